@@ -1,0 +1,35 @@
+"""sdp: spatial density patterns for point-cloud comparison.
+
+The data path, one module per step: points → :class:`DensityField` (:mod:`sdp.field` on the
+sparse grid of :mod:`sdp.grid`) → Boolean operations (:mod:`sdp.boolean`) → change masks
+(:mod:`sdp.change`) → regions (:mod:`sdp.regions`) → scores (:mod:`sdp.metrics`); surfaces
+by :mod:`sdp.surface`, parameters from the data by :mod:`sdp.params`.
+
+References
+----------
+.. [1] A. W. Vieira et al., "Spatial Density Patterns as Representation for Point Cloud
+   Comparison and Applications".
+"""
+
+from .boolean import difference, intersection, union
+from .change import ChangeResult, detect_changes
+from .errors import (FieldFileError, GridTooLargeError, IncompatibleFieldsError, InvalidPointsError, SDPError,
+                     SurfaceError)
+from .field import DensityField, threshold
+from .grid import BLOCK, Grid
+from .metrics import confusion_matrix, kappa, scores
+from .params import auto_voxel_size
+from .regions import Region
+from .surface import Mesh, extract_surface
+
+__all__ = [
+    "DensityField", "threshold", "Grid", "BLOCK",
+    "union", "intersection", "difference",
+    "detect_changes", "ChangeResult", "Region",
+    "extract_surface", "Mesh",
+    "auto_voxel_size",
+    "kappa", "confusion_matrix", "scores",
+    "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",
+    "FieldFileError",
+]
+__version__ = "0.1.0"

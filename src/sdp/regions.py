@@ -1,0 +1,103 @@
+"""Connected regions of a volume (F < 0) on a sparse grid, and the points they hold.
+
+A region is a 6-connected component of the grid nodes where a field is negative; a point
+belongs to the region of the lowest-valued negative corner of its cell. For change
+detection the volume is the difference max(F_cur, −F_ref) < 0, so every changed point (whose
+interpolated value is negative) has at least one negative corner and gets a region.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import _kernels as K
+from .field import DensityField
+
+__all__ = ["Region", "label_points", "describe_regions"]
+
+
+@dataclass(frozen=True)
+class Region:
+    """One connected region of changed points.
+
+    Attributes
+    ----------
+    label : int
+        Region number, 0 … n−1, largest region first.
+    n_points : int
+        Points of the cloud in the region.
+    centroid : ndarray (3,)
+        Mean position of those points (world units).
+    bbox_min, bbox_max : ndarray (3,)
+        Axis-aligned bounds of those points (world units).
+    volume : float
+        Volume of the region's grid cells: its negative nodes × l³ (world units cubed).
+    """
+
+    label: int
+    n_points: int
+    centroid: np.ndarray
+    bbox_min: np.ndarray
+    bbox_max: np.ndarray
+    volume: float
+
+    @property
+    def size(self) -> np.ndarray:
+        """Extent of the bounding box along x, y, z (world units)."""
+        return self.bbox_max - self.bbox_min
+
+
+def label_points(field: DensityField, values: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Label the connected components of ``values < 0`` on ``field``'s blocks, and the points in them.
+
+    Parameters
+    ----------
+    field : DensityField
+        Supplies the grid and block layout of ``values``.
+    values : ndarray, float32 (m, 512)
+        A field's values at the nodes of ``field``'s blocks (e.g. F, or a Boolean result).
+    points : ndarray (n, 3)
+        World coordinates to assign.
+
+    Returns
+    -------
+    point_labels : ndarray of int64 (n,)
+        Component of each point (-1: no negative corner).
+    node_counts : ndarray of int64 (n_components,)
+        Number of negative nodes of each component.
+    """
+    labels, count = K.label_nodes(values < 0, field._directory, field._keys)
+    point_labels = K.corner_labels(field.grid.to_grid_units(points), field._directory, labels, values)
+    node_counts = np.bincount(labels[labels >= 0], minlength=count)
+    return point_labels, node_counts
+
+
+def describe_regions(points: np.ndarray, point_labels: np.ndarray, node_counts: np.ndarray,
+                     voxel_size: float) -> tuple[list[Region], np.ndarray]:
+    """Summaries of the components holding labelled points, largest first.
+
+    Returns the regions and each point's region label (-1 for unlabelled points); regions
+    are renumbered 0 … n−1 by decreasing point count.
+    """
+    region_of = np.full(len(point_labels), -1, np.int64)
+    sel = point_labels >= 0
+    if not sel.any():
+        return [], region_of
+    pts = points[sel]
+    used, inv = np.unique(point_labels[sel], return_inverse=True)
+    counts = np.bincount(inv)
+    sums = np.stack([np.bincount(inv, weights=pts[:, d]) for d in range(3)], axis=1)
+    mins = np.full((len(used), 3), np.inf)
+    maxs = np.full((len(used), 3), -np.inf)
+    np.minimum.at(mins, inv, pts)
+    np.maximum.at(maxs, inv, pts)
+    order = np.argsort(-counts, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    region_of[sel] = rank[inv]
+    regions = [Region(label=i, n_points=int(counts[j]), centroid=sums[j] / counts[j], bbox_min=mins[j],
+                      bbox_max=maxs[j], volume=float(node_counts[used[j]]) * voxel_size**3)
+               for i, j in enumerate(order)]
+    return regions, region_of

@@ -1,0 +1,62 @@
+import numpy as np
+import pytest
+
+import sdp
+from sdp import DensityField, difference, intersection, union
+
+
+@pytest.fixture
+def two_fields(rng):
+    a = rng.normal([0, 0, 0], 0.3, (4000, 3))
+    b = rng.normal([0.4, 0, 0], 0.3, (4000, 3))
+    fa = DensityField.from_points(a, voxel_size=0.05)
+    fb = DensityField.from_points(b, voxel_size=0.05)
+    q = rng.uniform(-1.5, 2.0, (20000, 3))
+    return fa, fb, q
+
+
+def test_boolean_identities(two_fields):
+    fa, fb, q = two_fields
+    ia, ib = fa.inside(q), fb.inside(q)
+    assert ia.sum() > 500 and ib.sum() > 500 and (ia & ib).sum() > 100
+    u, i, d = union(fa, fb).inside(q), intersection(fa, fb).inside(q), difference(fa, fb).inside(q)
+    # exact at the nodes; interpolation can differ within one cell of the boundary
+    assert (u | ~(ia | ib)).mean() > 0.995 and (u >= ia).mean() > 0.995 and (u >= ib).mean() > 0.995
+    assert (~i | (ia & ib)).mean() > 0.995
+    assert not (d & ib).sum() > 0.005 * len(q)
+    assert (d <= ia).mean() > 0.995
+    assert d.sum() > 100
+
+
+def test_boolean_is_exact_at_shared_nodes(two_fields):
+    fa, fb, _ = two_fields
+    d = difference(fa, fb)
+    keys = d.global_keys
+    fa_n = fa.h - fa.node_values(keys)
+    fb_n = fb.h - fb.node_values(keys)
+    np.testing.assert_allclose(d.h - d.node_values(keys), np.maximum(fa_n, -fb_n), atol=1e-5)
+    u = union(fa, fb)
+    np.testing.assert_allclose(u.h - u.node_values(keys), np.minimum(fa_n, fb_n), atol=1e-5)
+
+
+def test_boolean_results_are_fields(tmp_path, two_fields):
+    fa, fb, q = two_fields
+    u = union(fa, fb)
+    assert u.method == "union" and u.voxel_size == fa.voxel_size
+    g = DensityField.load(u.save(tmp_path / "u.sdpf"))
+    np.testing.assert_array_equal(g.field(q), u.field(q))
+    assert u.mesh().area > fa.mesh().area  # the union's boundary encloses more than either part
+
+
+def test_far_from_both_fields_the_result_is_outside(two_fields):
+    fa, fb, _ = two_fields
+    for op in (union, intersection, difference):
+        r = op(fa, fb)
+        assert r.field([[100.0, 100.0, 100.0]])[0] > 0
+
+
+def test_mismatched_voxel_sizes_are_refused(rng):
+    fa = DensityField.from_points(rng.random((100, 3)), voxel_size=0.05)
+    fb = DensityField.from_points(rng.random((100, 3)), voxel_size=0.06)
+    with pytest.raises(sdp.IncompatibleFieldsError, match="same voxel_size"):
+        union(fa, fb)

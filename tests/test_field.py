@@ -1,0 +1,147 @@
+import math
+
+import numpy as np
+import pytest
+
+import sdp
+from sdp import DensityField
+
+
+def brute_force(points, queries, sigma, cutoff):
+    d = queries[:, None, :] - points[None]
+    g = np.exp(-(d**2).sum(-1) / (2 * sigma**2))
+    g[~(np.abs(d) <= cutoff).all(-1)] = 0.0
+    return g.sum(1)
+
+
+def node_positions(field, every=37):
+    dense, origin = field.to_dense()
+    idx = np.argwhere(np.ones(dense.shape, bool))[::every]
+    return dense[tuple(idx.T)], idx * field.voxel_size + origin
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_exact_splat_equals_brute_force_sum(seed):
+    rng = np.random.default_rng(seed)
+    pts = rng.random((200, 3)) * [2.0, 1.5, 1.0] - 0.3
+    f = DensityField.from_points(pts, voxel_size=0.1, method="exact")
+    values, xyz = node_positions(f)
+    expected = brute_force(pts, xyz, f.sigma, f.truncate * f.sigma)
+    assert expected.max() > 3  # the comparison covers dense parts
+    np.testing.assert_allclose(values, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_peak_is_one_for_a_lone_point():
+    # the fast path keeps each point's mass, not its exact shape: a lone point peaks within 7 %
+    f = DensityField.from_points([[0.3, 0.2, 0.1]], voxel_size=0.05)
+    assert f.density([[0.3, 0.2, 0.1]])[0] == pytest.approx(1.0, abs=0.07)
+    e = DensityField.from_points([[0.3, 0.2, 0.1]], voxel_size=0.05, method="exact")
+    assert e.density([[0.3, 0.2, 0.1]])[0] == pytest.approx(1.0, abs=1e-6)
+    # at distance sigma the kernel is e^-1/2
+    assert e.density([[0.3 + e.sigma, 0.2, 0.1]])[0] == pytest.approx(math.exp(-0.5), abs=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["volume", "surface"])
+def test_fast_path_departs_from_exact_sum_by_less_than_2_percent_of_peak(rng, kind):
+    if kind == "volume":
+        pts, l = rng.random((3000, 3)) * 2, 0.1
+    else:
+        pts, l = np.c_[rng.random((20000, 2)) * 2, 0.01 * rng.standard_normal(20000)], 0.02
+    exact, _ = DensityField.from_points(pts, voxel_size=l, method="exact").to_dense()
+    fast, _ = DensityField.from_points(pts, voxel_size=l, method="fast").to_dense()
+    assert np.abs(fast - exact).max() < 0.02 * exact.max()
+    h = sdp.threshold(3)
+    assert ((fast > h) == (exact > h)).mean() > 0.995
+
+
+def test_trilinear_query_equals_nodes_and_is_linear_between(rng):
+    pts = rng.random((500, 3))
+    f = DensityField.from_points(pts, voxel_size=0.07)
+    values, xyz = node_positions(f, every=11)
+    np.testing.assert_allclose(f.density(xyz), values, rtol=1e-6, atol=1e-6)
+    # along an edge between two nodes the query is the straight line between them
+    i = np.argmax(values)
+    a, b = xyz[i], xyz[i] + [f.voxel_size, 0, 0]
+    t = np.linspace(0, 1, 9)[:, None]
+    line = f.density(a + t * (b - a))
+    np.testing.assert_allclose(line, line[0] + t[:, 0] * (line[-1] - line[0]), rtol=1e-5, atol=1e-5)
+
+
+def test_query_outside_grid_is_zero_and_nan_propagates(rng):
+    f = DensityField.from_points(rng.random((100, 3)), voxel_size=0.1)
+    out = f.density([[50.0, 0, 0], [-1e9, 3, 3], [np.nan, 0, 0]])
+    assert out[0] == 0 and out[1] == 0 and np.isnan(out[2])
+    assert not f.inside([[np.nan, 0, 0]])[0]
+
+
+def test_threshold_and_field():
+    assert sdp.threshold(3) == pytest.approx(1 + 3 * math.exp(-0.5))
+    f = DensityField.from_points([[0, 0, 0], [0.01, 0, 0]], voxel_size=0.05, k=3)
+    q = np.array([[0.005, 0, 0]])
+    assert f.field(q)[0] == pytest.approx(f.h - f.density(q)[0])
+    g = f.with_threshold(h=1.5)
+    assert g.h == 1.5 and g.inside(q)[0] and not f.inside(q)[0]
+
+
+def test_sparse_storage_follows_occupied_surface_not_box(rng):
+    # two small clusters 20 m apart at 1 cm voxels: a dense box would hold 8e9 nodes
+    a = rng.normal(0, 0.02, (1000, 3))
+    pts = np.concatenate([a, a + [20.0, 20.0, 20.0]])
+    f = DensityField.from_points(pts, voxel_size=0.01)
+    assert f.n_blocks <= 2 * 6**3
+    dense_bytes = 4 * np.prod(np.asarray(f.grid.shape, float))
+    assert f.nbytes < dense_bytes / 100  # the block directory costs 1/128 byte per box node
+    assert f.density([[20, 20, 20]])[0] > 10
+
+
+def test_block_layout_matches_dense_reference(rng):
+    # every allocated node equals the exact sum computed densely with numpy over the box
+    pts = rng.random((300, 3)) * 0.5
+    f = DensityField.from_points(pts, voxel_size=0.05, method="exact")
+    dense, origin = f.to_dense()
+    axes = [origin[d] + np.arange(dense.shape[d]) * f.voxel_size for d in range(3)]
+    xyz = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    expected = brute_force(pts, xyz, f.sigma, f.truncate * f.sigma).reshape(dense.shape)
+    np.testing.assert_allclose(dense, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_grid_size_is_the_papers_parameterization(rng):
+    pts = rng.random((1000, 3)) * [4.0, 2.0, 1.0]
+    f = DensityField.from_points(pts, grid_size=80)
+    assert f.voxel_size == pytest.approx(np.ptp(pts[:, 0]) / 80)
+    assert f.sigma == pytest.approx(2 * f.voxel_size)
+    origin_in_voxels = f.grid.origin / f.voxel_size
+    np.testing.assert_allclose(origin_in_voxels, np.round(origin_in_voxels), atol=1e-6)
+
+
+def test_save_load_round_trip_is_exact(tmp_path, rng):
+    f = DensityField.from_points(rng.random((2000, 3)) + 1e6, voxel_size=0.05, k=4)
+    path = f.save(tmp_path / "f.sdpf")
+    g = DensityField.load(path)
+    assert (g.h, g.sigma, g.voxel_size, g.truncate, g.n_points, g.method) == \
+           (f.h, f.sigma, f.voxel_size, f.truncate, f.n_points, f.method)
+    np.testing.assert_array_equal(g.grid.block_origin, f.grid.block_origin)
+    np.testing.assert_array_equal(g._blocks, f._blocks)
+    q = rng.random((100, 3)) + 1e6
+    np.testing.assert_array_equal(g.density(q), f.density(q))
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_load_rejects_bad_files(tmp_path):
+    bad = tmp_path / "bad.sdpf"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(sdp.FieldFileError, match="bad.sdpf"):
+        DensityField.load(bad)
+    with pytest.raises(sdp.FieldFileError, match="no such file"):
+        DensityField.load(tmp_path / "missing.sdpf")
+
+
+def test_coarsen_matches_a_field_built_at_twice_the_voxel(rng):
+    pts = rng.random((4000, 3)) * [2, 2, 0.2]
+    fine = DensityField.from_points(pts, voxel_size=0.02, method="exact")
+    coarse = fine.coarsen()
+    direct = DensityField.from_points(pts, voxel_size=0.04, method="exact")
+    assert coarse.voxel_size == pytest.approx(0.04) and coarse.sigma == pytest.approx(direct.sigma)
+    q = pts[rng.choice(len(pts), 500)] + rng.normal(0, 0.02, (500, 3))
+    a, b = coarse.density(q), direct.density(q)
+    assert np.abs(a - b).max() < 0.03 * b.max()

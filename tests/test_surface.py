@@ -1,0 +1,41 @@
+import numpy as np
+import pytest
+
+import sdp
+from sdp import DensityField
+
+
+def test_ball_surface_has_the_analytic_area(rng):
+    # a ball of radius 1 sampled uniformly: G has a plateau inside and falls to half of it
+    # at the boundary, where the level set G = plateau/2 must lie
+    n = 400_000
+    v = rng.normal(size=(n, 3))
+    pts = v / np.linalg.norm(v, axis=1)[:, None] * rng.random(n)[:, None] ** (1 / 3)
+    f = DensityField.from_points(pts, voxel_size=0.025)
+    plateau = np.median(f.density(pts[np.linalg.norm(pts, axis=1) < 0.5]))
+    mesh = f.mesh(level=f.h - plateau / 2)
+    assert mesh.area == pytest.approx(4 * np.pi, rel=0.02)
+    r = np.linalg.norm(mesh.vertices, axis=1)
+    assert abs(r.mean() - 1) < 0.01
+    assert mesh.faces.max() < len(mesh.vertices)
+
+
+def test_mesh_spanning_several_chunks_is_merged(rng):
+    # a 6 m slab crosses many 64-node chunks: seams must share vertices (closed surface)
+    pts = np.c_[rng.uniform(0, 6, 200_000), rng.uniform(0, 1, 200_000), rng.normal(0, 0.01, 200_000)]
+    mesh = DensityField.from_points(pts, voxel_size=0.02).mesh()
+    edges = np.sort(np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]], mesh.faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert (counts == 2).mean() > 0.999  # every edge shared by two triangles: watertight
+    assert 12 < mesh.area < 20  # both faces of the 6 m x 1 m slab, widened by the kernel
+
+
+def test_level_outside_range_raises(rng):
+    f = DensityField.from_points(rng.random((200, 3)), voxel_size=0.05)
+    with pytest.raises(sdp.SurfaceError, match="outside the field's range"):
+        f.mesh(level=-1e6)
+    with pytest.raises(sdp.SurfaceError, match="outside"):
+        f.mesh(level=f.h + 1)
+    lone = DensityField.from_points([[0, 0, 0]], voxel_size=0.05)  # G <= 1 < h: no cluster volume
+    with pytest.raises(sdp.SurfaceError):
+        lone.mesh()
