@@ -115,19 +115,31 @@ def splat_exact(u, directory, blocks, inv_two_s2, rmax, reach):
 
 
 @nb.njit(parallel=True, cache=True)
-def blur_pass(src, dst, directory, keys, axis, taps):
+def nonzero_blocks(blocks):
+    """Per block: does it hold any nonzero value?"""
+    out = np.zeros(blocks.shape[0], np.bool_)
+    for b in nb.prange(blocks.shape[0]):
+        for n in range(B3):
+            if blocks[b, n] != 0.0:
+                out[b] = True
+                break
+    return out
+
+
+@nb.njit(parallel=True, cache=True)
+def blur_pass(src, src_nonzero, dst, dst_nonzero, directory, keys, axis, taps):
     """One separable pass: dst = src convolved with ``taps`` (odd length) along ``axis``.
 
-    Nodes of blocks that are not allocated read as 0; output is written for allocated blocks.
+    Nodes of blocks that are not allocated read as 0; output is written for every allocated
+    block. Source blocks flagged all-zero in ``src_nonzero`` are skipped; ``dst_nonzero``
+    receives the flags of the output. Each tap updates all 64 lines of a block at once.
     """
     r = (taps.shape[0] - 1) // 2
     nbr = (r + B - 1) // B
-    stride = B2 if axis == 0 else (B if axis == 1 else 1)
-    s1 = B2 if axis != 0 else B  # strides of the two other axes
-    s2 = 1 if axis != 2 else B
     dlen = directory.shape[axis]
     for b in nb.prange(keys.shape[0]):
         neigh = np.empty(2 * nbr + 1, np.int64)
+        any_src = False
         for j in range(-nbr, nbr + 1):
             k0, k1, k2 = keys[b, 0], keys[b, 1], keys[b, 2]
             if axis == 0:
@@ -137,36 +149,48 @@ def blur_pass(src, dst, directory, keys, axis, taps):
             else:
                 k2 += j
             ka = k0 if axis == 0 else (k1 if axis == 1 else k2)
-            neigh[j + nbr] = directory[k0, k1, k2] if 0 <= ka < dlen else -1
-        buf = np.empty(B + 2 * r, np.float32)
-        for i1 in range(B):
-            for i2 in range(B):
-                base = i1 * s1 + i2 * s2
-                nonzero = False
-                for t in range(-r, B + r):
-                    jb = (t + nbr * B) // B
-                    src_blk = neigh[jb]
-                    v = np.float32(0.0)
-                    if src_blk >= 0:
-                        v = src[src_blk, base + (t + nbr * B - jb * B) * stride]
-                    buf[t + r] = v
-                    if v != 0.0:
-                        nonzero = True
-                for x in range(B):
-                    acc = np.float32(0.0)
-                    if nonzero:
-                        for k in range(taps.shape[0]):
-                            acc += taps[k] * buf[x + k]
-                    dst[b, base + x * stride] = acc
+            nb_blk = directory[k0, k1, k2] if 0 <= ka < dlen else -1
+            if nb_blk >= 0 and not src_nonzero[nb_blk]:
+                nb_blk = -1
+            neigh[j + nbr] = nb_blk
+            any_src = any_src or nb_blk >= 0
+        out = dst[b]
+        out[:] = 0.0
+        dst_nonzero[b] = any_src
+        if not any_src:
+            continue
+        for x in range(B):
+            for k in range(taps.shape[0]):
+                s = x + k - r + nbr * B
+                sb = neigh[s // B]
+                if sb < 0:
+                    continue
+                ls = s % B
+                w = taps[k]
+                inp = src[sb]
+                if axis == 0:
+                    for li in range(B2):
+                        out[x * B2 + li] += w * inp[ls * B2 + li]
+                elif axis == 1:
+                    for a in range(B):
+                        for z in range(B):
+                            out[a * B2 + x * B + z] += w * inp[a * B2 + ls * B + z]
+                else:
+                    for a in range(B):
+                        for y in range(B):
+                            out[a * B2 + y * B + x] += w * inp[a * B2 + y * B + ls]
 
 
 @nb.njit(parallel=True, cache=True)
-def trilinear(u, directory, blocks, out):
-    """out[p] = trilinear interpolation of the node values at u[p]; 0 outside, NaN for NaN input."""
+def trilinear(points, origin, voxel, directory, blocks, out):
+    """out[p] = trilinear interpolation of the node values at world position points[p];
+    0 outside the grid, NaN for NaN input. Grid units are (p - origin) / voxel."""
     d0, d1, d2 = directory.shape
     n0, n1, n2 = d0 * B, d1 * B, d2 * B
-    for p in nb.prange(u.shape[0]):
-        x, y, z = u[p, 0], u[p, 1], u[p, 2]
+    for p in nb.prange(points.shape[0]):
+        x = (points[p, 0] - origin[0]) / voxel
+        y = (points[p, 1] - origin[1]) / voxel
+        z = (points[p, 2] - origin[2]) / voxel
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
             out[p] = np.nan
             continue

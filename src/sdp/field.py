@@ -162,12 +162,12 @@ class DensityField:
 
     def _blur(self, taps: np.ndarray) -> None:
         """Convolve the node values in place with ``taps`` along x, y and z (separable)."""
-        tmp = np.empty_like(self._blocks)
-        src, dst = self._blocks, tmp
+        src, dst = self._blocks, np.empty_like(self._blocks)
+        src_nz, dst_nz = K.nonzero_blocks(src), np.empty(len(src), np.bool_)
         for axis in range(3):
-            K.blur_pass(src, dst, self._directory, self._keys, axis, taps)
-            src, dst = dst, src
-        self._blocks = src  # after three passes the result is in tmp
+            K.blur_pass(src, src_nz, dst, dst_nz, self._directory, self._keys, axis, taps)
+            src, dst, src_nz, dst_nz = dst, src, dst_nz, src_nz
+        self._blocks = src
 
     # ------------------------------------------------------------------ queries
     @property
@@ -192,9 +192,9 @@ class DensityField:
     def interpolate(self, values: np.ndarray, points) -> np.ndarray:
         """Trilinear interpolation at world positions of per-node ``values`` laid out like this
         field's blocks (float32, (n_blocks, 512)); nodes outside the blocks read as 0."""
-        u = self.grid.to_grid_units(_query_array(points))
-        out = np.empty(len(u))
-        K.trilinear(u, self._directory, values, out)
+        pts = _query_array(points)
+        out = np.empty(len(pts))
+        K.trilinear(pts, self.grid.origin, self.voxel_size, self._directory, values, out)
         return out
 
     def field(self, points) -> np.ndarray:
@@ -338,7 +338,7 @@ def _gaussian_taps(s: float, radius: int) -> np.ndarray:
 
 
 def _query_array(points) -> np.ndarray:
-    arr = np.asarray(points, dtype=np.float64)
+    arr = np.ascontiguousarray(points, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InvalidPointsError(f"query points: expected shape (n, 3), got {arr.shape}")
     return arr
