@@ -267,54 +267,72 @@ def _find(parent, i):
     return i
 
 
-@nb.njit(cache=True)
-def label_nodes(mask, directory, keys):
-    """6-connected components of the nodes where ``mask`` (m, 512) is True.
+@nb.njit(parallel=True, cache=True)
+def _negative_blocks(values):
+    out = np.zeros(values.shape[0], np.bool_)
+    for b in nb.prange(values.shape[0]):
+        for n in range(B3):
+            if values[b, n] < 0:
+                out[b] = True
+                break
+    return out
 
-    Union-find over the blocks that hold a masked node only. Returns (labels (m, 512) int32,
-    -1 outside the mask, number of components).
+
+@nb.njit(cache=True)
+def _neighbour_block(directory, keys, blk, axis):
+    k0, k1, k2 = keys[blk, 0], keys[blk, 1], keys[blk, 2]
+    if axis == 0:
+        k0 -= 1
+    elif axis == 1:
+        k1 -= 1
+    else:
+        k2 -= 1
+    if k0 < 0 or k1 < 0 or k2 < 0:
+        return -1
+    return directory[k0, k1, k2]
+
+
+@nb.njit(cache=True)
+def _union(parent, a, b):
+    ra = _find(parent, a)
+    rb = _find(parent, b)
+    if ra != rb:
+        parent[max(ra, rb)] = min(ra, rb)
+
+
+@nb.njit(cache=True)
+def label_nodes(values, directory, keys):
+    """6-connected components of the nodes where ``values`` (m, 512) is negative.
+
+    Union-find over the blocks that hold a negative node only. Returns (labels (m, 512)
+    int32, -1 elsewhere, number of components).
     """
-    m = mask.shape[0]
+    m = values.shape[0]
+    active = _negative_blocks(values)
     slot = np.full(m, -1, np.int64)  # block -> its row among the active blocks
     n_active = 0
     for blk in range(m):
-        for n in range(B3):
-            if mask[blk, n]:
-                slot[blk] = n_active
-                n_active += 1
-                break
+        if active[blk]:
+            slot[blk] = n_active
+            n_active += 1
     parent = np.arange(n_active * B3)
-    d = directory.shape
+    strides = (B2, B, 1)
     for blk in range(m):
         if slot[blk] < 0:
             continue
-        for n in range(B3):
-            if not mask[blk, n]:
-                continue
-            loc = (n // B2, (n // B) % B, n % B)
-            for axis in range(3):
-                stride = B2 if axis == 0 else (B if axis == 1 else 1)
-                if loc[axis] > 0:
-                    nb_blk, nb_n = blk, n - stride
-                else:
-                    k0, k1, k2 = keys[blk, 0], keys[blk, 1], keys[blk, 2]
-                    if axis == 0:
-                        k0 -= 1
-                    elif axis == 1:
-                        k1 -= 1
-                    else:
-                        k2 -= 1
-                    if k0 < 0 or k1 < 0 or k2 < 0 or k0 >= d[0] or k1 >= d[1] or k2 >= d[2]:
-                        continue
-                    nb_blk = directory[k0, k1, k2]
-                    if nb_blk < 0:
-                        continue
-                    nb_n = n + (B - 1) * stride
-                if mask[nb_blk, nb_n]:
-                    ra = _find(parent, slot[blk] * B3 + n)
-                    rb = _find(parent, slot[nb_blk] * B3 + nb_n)
-                    if ra != rb:
-                        parent[max(ra, rb)] = min(ra, rb)
+        base = slot[blk] * B3
+        for axis in range(3):
+            stride = strides[axis]
+            nb_blk = _neighbour_block(directory, keys, blk, axis)
+            nb_base = slot[nb_blk] * B3 if nb_blk >= 0 else -1
+            for n in range(B3):
+                if values[blk, n] >= 0:
+                    continue
+                if (n // stride) % B > 0:
+                    if values[blk, n - stride] < 0:
+                        _union(parent, base + n, base + n - stride)
+                elif nb_base >= 0 and values[nb_blk, n + (B - 1) * stride] < 0:
+                    _union(parent, base + n, nb_base + n + (B - 1) * stride)
     labels = np.full((m, B3), -1, np.int32)
     root_label = np.full(n_active * B3, -1, np.int64)
     count = 0
@@ -322,7 +340,7 @@ def label_nodes(mask, directory, keys):
         if slot[blk] < 0:
             continue
         for n in range(B3):
-            if mask[blk, n]:
+            if values[blk, n] < 0:
                 root = _find(parent, slot[blk] * B3 + n)
                 if root_label[root] < 0:
                     root_label[root] = count
@@ -379,3 +397,23 @@ def difference_blocks(a_blocks, a_keys, ha, b_blocks, b_directory, b_shift, hb):
             gb = b_blocks[j, n] if j >= 0 else np.float32(0.0)
             out[i, n] = max(fa_h - a_blocks[i, n], gb - fb_h)
     return out
+
+
+@nb.njit(cache=True)
+def group_stats(points, labels, n_labels):
+    """Count, coordinate sums, minima and maxima of the points of each label (-1 skipped)."""
+    count = np.zeros(n_labels, np.int64)
+    sums = np.zeros((n_labels, 3))
+    lo = np.full((n_labels, 3), np.inf)
+    hi = np.full((n_labels, 3), -np.inf)
+    for p in range(points.shape[0]):
+        g = labels[p]
+        if g < 0:
+            continue
+        count[g] += 1
+        for d in range(3):
+            v = points[p, d]
+            sums[g, d] += v
+            lo[g, d] = min(lo[g, d], v)
+            hi[g, d] = max(hi[g, d], v)
+    return count, sums, lo, hi

@@ -68,7 +68,7 @@ def label_points(field: DensityField, values: np.ndarray, points: np.ndarray) ->
     node_counts : ndarray of int64 (n_components,)
         Number of negative nodes of each component.
     """
-    labels, count = K.label_nodes(values < 0, field._directory, field._keys)
+    labels, count = K.label_nodes(values, field._directory, field._keys)
     point_labels = K.corner_labels(field.grid.to_grid_units(points), field._directory, labels, values)
     node_counts = np.bincount(labels[labels >= 0], minlength=count)
     return point_labels, node_counts
@@ -81,23 +81,12 @@ def describe_regions(points: np.ndarray, point_labels: np.ndarray, node_counts: 
     Returns the regions and each point's region label (-1 for unlabelled points); regions
     are renumbered 0 … n−1 by decreasing point count.
     """
-    region_of = np.full(len(point_labels), -1, np.int64)
-    sel = point_labels >= 0
-    if not sel.any():
-        return [], region_of
-    pts = points[sel]
-    used, inv = np.unique(point_labels[sel], return_inverse=True)
-    counts = np.bincount(inv)
-    sums = np.stack([np.bincount(inv, weights=pts[:, d]) for d in range(3)], axis=1)
-    mins = np.full((len(used), 3), np.inf)
-    maxs = np.full((len(used), 3), -np.inf)
-    np.minimum.at(mins, inv, pts)
-    np.maximum.at(maxs, inv, pts)
-    order = np.argsort(-counts, kind="stable")
-    rank = np.empty_like(order)
+    counts, sums, mins, maxs = K.group_stats(points, point_labels, len(node_counts))
+    used = np.flatnonzero(counts)
+    order = used[np.argsort(-counts[used], kind="stable")]
+    rank = np.full(len(node_counts) + 1, -1, np.int64)  # the last slot maps label -1 to -1
     rank[order] = np.arange(len(order))
-    region_of[sel] = rank[inv]
     regions = [Region(label=i, n_points=int(counts[j]), centroid=sums[j] / counts[j], bbox_min=mins[j],
-                      bbox_max=maxs[j], volume=float(node_counts[used[j]]) * voxel_size**3)
+                      bbox_max=maxs[j], volume=float(node_counts[j]) * voxel_size**3)
                for i, j in enumerate(order)]
-    return regions, region_of
+    return regions, rank[point_labels]
