@@ -19,7 +19,7 @@ import numpy as np
 
 from .errors import SDPError
 
-__all__ = ["Cloud", "read_points", "CloudFileError", "FORMATS", "atomic_path"]
+__all__ = ["Cloud", "read_points", "write_points", "write_mesh", "CloudFileError", "FORMATS", "atomic_path"]
 
 #: Extension → format name understood by :func:`read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
@@ -146,6 +146,8 @@ def _read_las(path):
 def _read_text(path):
     with open(path, encoding="utf-8", errors="replace") as fh:
         sample = fh.read(4096)
+    if not sample.strip():
+        raise CloudFileError(f"{path}: the file is empty: no point to read")
     delimiter = "," if "," in sample else None
     first = sample.splitlines()[0] if sample else ""
     skip = 0 if _is_numeric_row(first, delimiter) else 1
@@ -202,3 +204,92 @@ def atomic_path(path: str | os.PathLike, *, inputs=()):
         os.replace(tmp, path)
     finally:
         Path(tmp).unlink(missing_ok=True)
+
+
+def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.ndarray] | None = None, *,
+                 like: Cloud | None = None, inputs=()) -> Path:
+    """Write points with per-point scalar fields as PLY, LAS/LAZ or NPZ (by extension).
+
+    LAS/LAZ output made from LAS/LAZ input (``like``) keeps every input dimension, scale and
+    offset, and adds ``fields`` as extra dimensions; other LAS output gets a 1 mm scale and
+    an offset at the cloud's minimum, so large coordinates stay exact. The file is written
+    under a temporary name and renamed; ``inputs`` are never overwritten.
+    """
+    path = Path(path)
+    fields = dict(fields or {})
+    ext = path.suffix.lower()
+    if ext not in (".ply", ".las", ".laz", ".npz"):
+        raise CloudFileError(f"{path}: can't write {ext or 'files without extension'}; use .ply, .las, .laz or .npz")
+    with atomic_path(path, inputs=inputs) as tmp:
+        if ext == ".ply":
+            from plyfile import PlyData, PlyElement
+
+            cols = [("x", xyz[:, 0]), ("y", xyz[:, 1]), ("z", xyz[:, 2])] + list(fields.items())
+            arr = np.empty(len(xyz), dtype=[(n, _ply_type(v)) for n, v in cols])
+            for n, v in cols:
+                arr[n] = v
+            PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp))
+        elif ext == ".npz":
+            np.savez_compressed(tmp, xyz=xyz, **fields)
+        else:
+            _write_las(tmp, xyz, fields, like, compressed=ext == ".laz")
+    return path
+
+
+def _ply_type(v: np.ndarray) -> str:
+    v = np.asarray(v)
+    if v.dtype == bool:
+        return "u1"
+    return v.dtype.str.lstrip("<>=|") if v.dtype.kind in "uif" else "f8"
+
+
+def _write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
+    import laspy
+
+    if like is not None and like.las is not None and len(like.las.points) == len(xyz) and like.n_dropped == 0:
+        las = like.las
+    else:
+        header = laspy.LasHeader(point_format=3, version="1.4")
+        header.scales = np.array([0.001, 0.001, 0.001])
+        header.offsets = np.floor(xyz.min(axis=0))
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    for name, v in fields.items():
+        v = np.asarray(v)
+        dtype = np.uint8 if v.dtype == bool else (v.dtype if v.dtype.kind in "uif" else np.float64)
+        if name not in las.point_format.dimension_names:
+            las.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dtype))
+        las[name] = v.astype(dtype)
+    las.write(str(tmp), laz_backend=laspy.LazBackend.Lazrs if compressed else None)
+
+
+def write_mesh(path: str | os.PathLike, mesh, *, inputs=()) -> Path:
+    """Write a :class:`sdp.Mesh` as PLY, OBJ or STL (by extension), atomically."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+    if ext not in (".ply", ".obj", ".stl"):
+        raise CloudFileError(f"{path}: can't write a mesh as {ext or 'no extension'}; use .ply, .obj or .stl")
+    with atomic_path(path, inputs=inputs) as tmp:
+        if ext == ".ply":
+            from plyfile import PlyData, PlyElement
+
+            verts = np.rec.fromarrays(v.T, names="x,y,z")
+            faces = np.empty(len(f), dtype=[("vertex_indices", "i4", (3,))])
+            faces["vertex_indices"] = f
+            PlyData([PlyElement.describe(verts, "vertex"), PlyElement.describe(faces, "face")]).write(str(tmp))
+        elif ext == ".obj":
+            with open(tmp, "w") as fh:
+                np.savetxt(fh, v, fmt="v %.9g %.9g %.9g")
+                np.savetxt(fh, f + 1, fmt="f %d %d %d")
+        else:
+            tri = v[f]
+            normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+            rec = np.zeros(len(f), dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+            rec["n"], rec["v"] = normals, tri
+            with open(tmp, "wb") as fh:
+                fh.write(b"sdp mesh".ljust(80, b" "))
+                fh.write(np.uint32(len(f)).tobytes())
+                fh.write(rec.tobytes())
+    return path

@@ -1,0 +1,77 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from sdp.io import read_points, write_points
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "sdp.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+
+
+@pytest.fixture
+def pair(tmp_path, rng):
+    from conftest import box_surface, room_scene
+
+    ref = room_scene(rng, n=40_000)
+    cur = np.concatenate([room_scene(rng, n=40_000), box_surface(rng, [2.0, 1.2, 0.75], [2.4, 1.6, 1.35], 3000)])
+    return write_points(tmp_path / "ref.ply", ref), write_points(tmp_path / "cur.ply", cur)
+
+
+def test_change_end_to_end(tmp_path, pair):
+    ref, cur = pair
+    p = run("change", ref, cur, "-o", tmp_path / "out.ply", "--both", "--voxel-size", "0.02", "--json",
+            "--png", tmp_path / "out.png", "--min-region-points", "20")
+    assert p.returncode == 0, p.stderr
+    s = json.loads(p.stdout)
+    assert s["current"]["appeared"] > 2000 and len(s["appeared_regions"]) == 1
+    out = read_points(tmp_path / "out.ply")
+    assert out.fields["change"].sum() == s["current"]["appeared"]
+    assert {"G", "F", "region"} <= set(out.fields)
+    assert (tmp_path / "out_disappeared.ply").exists() and (tmp_path / "out.png").stat().st_size > 10_000
+    text = run("change", ref, cur, "-o", tmp_path / "out2.las", "--grid-size", "80")
+    assert text.returncode == 0 and "appeared" in text.stdout and "time (ms)" in text.stdout
+
+
+def test_build_info_mesh(tmp_path, pair):
+    ref, _ = pair
+    assert run("build", ref, "-o", tmp_path / "ref.sdpf", "--voxel-size", "0.03").returncode == 0
+    info = json.loads(run("info", tmp_path / "ref.sdpf").stdout)
+    assert info["kind"] == "field" and info["voxel_size"] == pytest.approx(0.03)
+    assert json.loads(run("info", ref).stdout)["points"] == 40_000
+    m = run("mesh", tmp_path / "ref.sdpf", "-o", tmp_path / "ref.obj")
+    assert m.returncode == 0 and (tmp_path / "ref.obj").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("make_bad, match", [
+    (lambda d: d / "missing.ply", "no such file"),
+    (lambda d: (d / "x.foo").write_text("1 2 3") and d / "x.foo", "unknown point-cloud format"),
+    (lambda d: (d / "t.ply").write_bytes(b"ply\nformat ascii") and d / "t.ply", "can't read"),
+])
+def test_bad_input_exits_2_and_writes_nothing(tmp_path, pair, make_bad, match):
+    ref, _ = pair
+    bad = make_bad(tmp_path)
+    p = run("change", ref, bad, "-o", tmp_path / "o.ply")
+    assert p.returncode == 2 and match in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "o.ply").exists()
+
+
+def test_refuses_to_overwrite_input(tmp_path, pair):
+    ref, cur = pair
+    before = cur.read_bytes()
+    p = run("change", ref, cur, "-o", cur, "--voxel-size", "0.03")
+    assert p.returncode == 2 and "overwrite" in p.stderr
+    assert cur.read_bytes() == before
+
+
+def test_demo(tmp_path):
+    p = run("demo", "-o", tmp_path / "demo")
+    assert p.returncode == 0, p.stderr
+    assert "kappa" in p.stdout
+    kappa = float(p.stdout.split("kappa ")[1].split(",")[0])
+    assert kappa > 0.8
+    for name in ("reference.ply", "current_labelled.ply", "current_cluster_volume.ply", "changes.png"):
+        assert (tmp_path / "demo" / name).stat().st_size > 1000

@@ -1,0 +1,104 @@
+import numpy as np
+import pytest
+
+import sdp
+from sdp.io import CloudFileError, read_points, write_mesh, write_points
+
+
+@pytest.mark.shared_data
+def test_reads_real_scans(shared_data):
+    mosd = read_points(shared_data / "mosd/learn/learn1.pcd")  # organized, binary_compressed
+    assert len(mosd) + mosd.n_dropped == 640 * 480 and mosd.n_dropped > 0
+    assert mosd.fields["label"].dtype == np.uint32 and len(mosd.fields["label"]) == len(mosd)
+    assert set(np.unique(mosd.fields["label"] // 10)) >= {0, 2}
+    assert np.isfinite(mosd.xyz).all() and 0.3 < np.median(mosd.xyz[:, 2]) < 3  # Kinect range, metres
+    dlut = read_points(shared_data / "dlut/A603_reference.pcd")  # ascii
+    assert len(dlut) > 10_000 and dlut.n_dropped == 0
+    als = read_points(shared_data / "als_toronto/TTP_2023.laz")
+    assert als.xyz[:, 0].min() > 600_000 and "classification" in als.fields  # UTM metres kept exact
+    tree = read_points(shared_data / "trees/tree10_2022.xyz")
+    assert len(tree) > 10_000
+    kinect = read_points(shared_data / "pcl_kinect/office1.pcd")  # binary
+    assert len(kinect) > 100_000
+
+
+@pytest.mark.shared_data
+def test_real_kinect_pair_change_detection(shared_data):
+    # mOSD learn0 -> learn1: fixed camera; objects (label // 10 >= 2) moved between the scenes
+    ref = read_points(shared_data / "mosd/learn/learn0.pcd")
+    cur = read_points(shared_data / "mosd/learn/learn1.pcd")
+    r = sdp.detect_changes(ref.xyz, cur.xyz, voxel_size="auto", min_region_points=20)
+    table = (cur.fields["label"] >= 1) & (cur.fields["label"] < 10)
+    assert r.appeared[table].mean() < r.appeared[~table].mean()  # changes concentrate off the table
+    assert r.appeared_regions and r.timings["detect"] > 0
+
+
+def test_round_trips(tmp_path, rng):
+    xyz = rng.random((500, 3)) * 100 + [630_000.0, 4_830_000.0, 70.0]
+    change = rng.random(500) < 0.3
+    for ext in ("ply", "laz", "las", "npz"):
+        path = write_points(tmp_path / f"c.{ext}", xyz, {"change": change.astype(np.uint8)})
+        back = read_points(path)
+        tol = 1e-3 if ext in ("las", "laz") else 0  # LAS stores millimetre integers
+        np.testing.assert_allclose(back.xyz, xyz, atol=tol, rtol=0)
+        np.testing.assert_array_equal(back.fields["change"].astype(bool), change)
+    np.savetxt(tmp_path / "c.xyz", xyz, fmt="%.6f")
+    np.testing.assert_allclose(read_points(tmp_path / "c.xyz").xyz, xyz, atol=1e-6)
+    with open(tmp_path / "c.csv", "w") as fh:
+        fh.write("x,y,z,intensity\n")
+        np.savetxt(fh, np.c_[xyz, np.arange(500)], delimiter=",", fmt="%.6f")
+    c = read_points(tmp_path / "c.csv")
+    np.testing.assert_allclose(c.fields["intensity"], np.arange(500))
+
+
+def test_las_output_keeps_input_dimensions(tmp_path, rng):
+    import laspy
+
+    header = laspy.LasHeader(point_format=3, version="1.4")
+    header.scales, header.offsets = [0.01] * 3, [600_000.0, 4_800_000.0, 0.0]
+    las = laspy.LasData(header)
+    xyz = rng.random((200, 3)) * 50 + [600_000.0, 4_800_000.0, 10.0]
+    las.x, las.y, las.z = xyz.T
+    las.classification = rng.integers(1, 7, 200).astype(np.uint8)
+    las.write(str(tmp_path / "in.las"))
+    cloud = read_points(tmp_path / "in.las")
+    write_points(tmp_path / "out.las", cloud.xyz, {"change": np.ones(200, np.uint8)}, like=cloud)
+    back = read_points(tmp_path / "out.las")
+    np.testing.assert_array_equal(back.fields["classification"], las.classification)
+    np.testing.assert_array_equal(back.fields["change"], 1)
+
+
+def test_mesh_writers(tmp_path, rng):
+    f = sdp.DensityField.from_points(rng.normal(0, 0.1, (3000, 3)), voxel_size=0.02)
+    mesh = f.mesh()
+    for ext in ("ply", "obj", "stl"):
+        p = write_mesh(tmp_path / f"m.{ext}", mesh)
+        assert p.stat().st_size > 1000
+    assert (tmp_path / "m.stl").stat().st_size == 84 + 50 * len(mesh.faces)
+
+
+@pytest.mark.parametrize("name, content, match", [
+    ("a.foo", b"1 2 3\n", "unknown point-cloud format"),
+    ("a.ply", b"ply\nformat ascii 1.0\nelement vertex 10\n", "can't read"),
+    ("a.pcd", b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\n", "can't read"),
+    ("a.xyz", b"1 2\n3 4\n", "at least 3 columns"),
+    ("a.xyz", b"", "empty"),
+    ("a.las", b"LASF" + b"\0" * 50, "can't read"),
+])
+def test_bad_files_raise_one_clear_error(tmp_path, name, content, match):
+    p = tmp_path / name
+    p.write_bytes(content)
+    with pytest.raises(CloudFileError, match=match) as err:
+        read_points(p)
+    assert name in str(err.value)
+    with pytest.raises(CloudFileError, match="no such file"):
+        read_points(tmp_path / "missing.ply")
+
+
+def test_outputs_never_overwrite_inputs(tmp_path, rng):
+    p = write_points(tmp_path / "in.ply", rng.random((10, 3)))
+    before = p.read_bytes()
+    with pytest.raises(sdp.SDPError, match="overwrite an input"):
+        write_points(p, rng.random((10, 3)), inputs=(p,))
+    assert p.read_bytes() == before
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["in.ply"]
