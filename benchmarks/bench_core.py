@@ -96,7 +96,7 @@ def compile_times():
 
 def main():
     rng = np.random.default_rng(0)
-    lines = [f"# Core benchmark\n", f"Machine: {platform.processor() or platform.machine()}, "
+    lines = ["# Core benchmark\n", f"Machine: {platform.processor() or platform.machine()}, "
              f"{os.cpu_count()} cores, Python {platform.python_version()}, NumPy {np.__version__}. "
              f"Times are medians of repeated runs; every ratio compares runs made in this one process.\n"]
 
@@ -142,7 +142,7 @@ def main():
     out("|---:|---:|---:|---:|")
     for n in (20_000, 80_000, 320_000, 1_280_000, 5_000_000):
         pts = room(n, rng)
-        t_b = median_time(lambda: sdp.DensityField.from_points(pts, voxel_size=0.02), 5 if n < 10**6 else 3)
+        t_b = median_time(lambda pts=pts: sdp.DensityField.from_points(pts, voxel_size=0.02), 5 if n < 10**6 else 3)
         fb = sdp.DensityField.from_points(pts, voxel_size=0.02)
         out(f"| {n:,} | {t_b * 1e3:.1f} | {t_b / n * 1e9:.0f} | {fb.n_blocks} |")
     out("\nThe blocks saturate once the walls are covered: past that, time per point falls towards the "

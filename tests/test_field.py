@@ -124,7 +124,7 @@ def test_save_load_round_trip_is_exact(tmp_path, rng):
     np.testing.assert_array_equal(g._blocks, f._blocks)
     q = rng.random((100, 3)) + 1e6
     np.testing.assert_array_equal(g.density(q), f.density(q))
-    assert not list(tmp_path.glob("*.tmp"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.sdpf"]  # no temporary left
 
 
 def test_load_rejects_bad_files(tmp_path):

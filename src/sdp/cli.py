@@ -98,23 +98,27 @@ def _print_summary(s, ref_name, cur_name):
             print(f"  {'#':>3} {'points':>8}  {'centroid':>30}  {'size':>26}")
             for g in regs[:10]:
                 c = " ".join(f"{v:9.3f}" for v in g["centroid"])
-                size = " ".join(f"{hi - lo:8.3f}" for lo, hi in zip(g["bbox_min"], g["bbox_max"]))
+                size = " ".join(f"{hi - lo:8.3f}" for lo, hi in zip(g["bbox_min"], g["bbox_max"], strict=True))
                 print(f"  {g['label']:>3} {g['n_points']:>8,}  {c}  {size}")
     print("\ntime (ms): " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in s["timings"].items()))
     for o in s.get("outputs", []):
         print(f"wrote {o}")
 
 
-def cmd_build(a):
+def _field_of_cloud(path, a):
+    """Read a cloud and build its field with the grid options (``auto``: from its point spacing)."""
     from .field import DensityField
+    from .params import auto_voxel_size
 
-    cloud = _read(a.cloud, a.format)
+    cloud = _read(path, a.format)
     kw = _grid_kwargs(a)
     if kw.get("voxel_size") == "auto":
-        from .params import auto_voxel_size
-
         kw["voxel_size"] = auto_voxel_size(cloud.xyz, sigma_voxels=a.sigma_voxels)
-    f = DensityField.from_points(cloud.xyz, **kw)
+    return DensityField.from_points(cloud.xyz, **kw)
+
+
+def cmd_build(a):
+    f = _field_of_cloud(a.cloud, a)
     if Path(a.output).resolve() == Path(a.cloud).resolve():
         raise SDPError(f"{a.output}: refusing to overwrite an input file")
     f.save(a.output)
@@ -142,16 +146,7 @@ def cmd_mesh(a):
     from .field import DensityField
     from .io import write_mesh
 
-    if Path(a.input).suffix.lower() == ".sdpf":
-        f = DensityField.load(a.input)
-    else:
-        kw = _grid_kwargs(a)
-        cloud = _read(a.input, a.format)
-        if kw.get("voxel_size") == "auto":
-            from .params import auto_voxel_size
-
-            kw["voxel_size"] = auto_voxel_size(cloud.xyz, sigma_voxels=a.sigma_voxels)
-        f = DensityField.from_points(cloud.xyz, **kw)
+    f = DensityField.load(a.input) if Path(a.input).suffix.lower() == ".sdpf" else _field_of_cloud(a.input, a)
     mesh = f.mesh(level=a.level)
     write_mesh(a.output, mesh, inputs=(a.input,))
     print(f"{len(mesh.vertices):,} vertices, {len(mesh.faces):,} triangles, area {mesh.area:.4g}\nwrote {a.output}")

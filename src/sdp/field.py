@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 
@@ -299,14 +298,10 @@ class DensityField:
                 "block_origin": self.grid.block_origin.tolist(), "shape_blocks": list(self.grid.shape_blocks),
                 "block": BLOCK, "h": self.h, "sigma": self.sigma, "truncate": self.truncate,
                 "n_points": self.n_points, "n_dropped": self.n_dropped, "method": self.method}
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, meta=np.array(json.dumps(meta)), keys=self._keys, blocks=self._blocks)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        from .io import atomic_path
+
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, meta=np.array(json.dumps(meta)), keys=self._keys, blocks=self._blocks)
         return path
 
     @classmethod
