@@ -2,7 +2,8 @@
 
 The data path, one module per step: points → :class:`DensityField` (:mod:`sdp.field` on the
 sparse grid of :mod:`sdp.grid`) → Boolean operations (:mod:`sdp.boolean`) → change masks
-(:mod:`sdp.change`) → regions (:mod:`sdp.regions`) → scores (:mod:`sdp.metrics`); surfaces
+(:mod:`sdp.change`) → regions (:mod:`sdp.regions`) → scores (:mod:`sdp.metrics`) and files
+(:mod:`sdp.io`); surfaces
 by :mod:`sdp.surface`, parameters from the data by :mod:`sdp.params`.
 
 References
@@ -17,6 +18,7 @@ from .errors import (FieldFileError, GridTooLargeError, IncompatibleFieldsError,
                      SurfaceError)
 from .field import DensityField, threshold
 from .grid import BLOCK, Grid
+from .io import CloudFileError, read_points, write_mesh, write_points
 from .metrics import confusion_matrix, kappa, scores
 from .params import auto_voxel_size
 from .regions import Region
@@ -28,8 +30,9 @@ __all__ = [
     "detect_changes", "ChangeResult", "Region",
     "extract_surface", "Mesh",
     "auto_voxel_size",
+    "read_points", "write_points", "write_mesh",
     "kappa", "confusion_matrix", "scores",
     "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",
-    "FieldFileError",
+    "FieldFileError", "CloudFileError",
 ]
 __version__ = "0.1.0"
