@@ -61,7 +61,7 @@ def main():
     voxels = {"auto": "auto", "3 mm": 0.003, "80³ (paper)": None}
     rows = {(v, c): [] for v in voxels for c in configs}
     n_pairs = n_changed = 0
-    for t, ref, cur, truth, scored in labelled_pairs():
+    for _, ref, cur, truth, scored in labelled_pairs():
         n_pairs += 1
         n_changed += truth.sum() > 0
         for v, vs in voxels.items():

@@ -12,9 +12,9 @@ import numpy as np
 
 from . import __version__
 from .errors import SDPError
+from .io import read_points
 
-EPILOG_CHANGE = """examples:
-  sdp change ref.pcd cur.pcd -o changes.ply                  appeared points of cur.pcd
+EXAMPLES_CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                  appeared points of cur.pcd
   sdp change ref.laz cur.laz -o out.laz --both --voxel-size 0.1
   sdp change ref.ply cur.ply -o out.ply --grid-size 80        the paper's parameters
   sdp change ref.pcd cur.pcd -o out.ply --json                summary as JSON
@@ -44,18 +44,12 @@ def _grid_kwargs(a):
     return dict(size, k=a.k, h=a.h, sigma_voxels=a.sigma_voxels, memory_limit=a.memory_limit)
 
 
-def _read(path, fmt=None):
-    from .io import read_points
-
-    return read_points(path, format=fmt)
-
-
 def cmd_change(a):
     from .change import detect_changes
     from .io import write_points
 
     t0 = time.perf_counter()
-    ref, cur = _read(a.reference, a.format), _read(a.current, a.format)
+    ref, cur = read_points(a.reference, format=a.format), read_points(a.current, format=a.format)
     t_read = time.perf_counter() - t0
     r = detect_changes(ref.xyz, cur.xyz, decision=a.decision, min_region_points=a.min_region_points,
                        **_grid_kwargs(a))
@@ -110,7 +104,7 @@ def _field_of_cloud(path, a):
     from .field import DensityField
     from .params import auto_voxel_size
 
-    cloud = _read(path, a.format)
+    cloud = read_points(path, format=a.format)
     kw = _grid_kwargs(a)
     if kw.get("voxel_size") == "auto":
         kw["voxel_size"] = auto_voxel_size(cloud.xyz, sigma_voxels=a.sigma_voxels)
@@ -135,7 +129,7 @@ def cmd_info(a):
                 "box_nodes": list(f.grid.shape), "origin": f.grid.origin.tolist(), "n_points": f.n_points,
                 "method": f.method, "megabytes": f.nbytes / 2**20}
     else:
-        c = _read(a.file, a.format)
+        c = read_points(a.file, format=a.format)
         info = {"kind": "cloud", "points": len(c), "dropped_non_finite": c.n_dropped,
                 "min": c.xyz.min(0).tolist(), "max": c.xyz.max(0).tolist(), "fields": sorted(c.fields)}
     print(json.dumps(info, indent=2))
@@ -194,13 +188,20 @@ def cmd_demo(a):
     return 0
 
 
+def _command(sub, name, func, help, examples):
+    """A subcommand whose help ends with its examples, kept as written."""
+    p = sub.add_parser(name, help=help, epilog="examples:\n" + examples,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.set_defaults(func=func)
+    return p
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sdp", description="Compare point clouds through spatial density patterns.")
     p.add_argument("--version", action="version", version=f"sdp {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
-    c = sub.add_parser("change", help="appeared (and disappeared) points between two clouds", epilog=EPILOG_CHANGE,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    c = _command(sub, "change", cmd_change, "appeared (and disappeared) points between two clouds", EXAMPLES_CHANGE)
     c.add_argument("reference")
     c.add_argument("current")
     c.add_argument("-o", "--output", required=True, help="labelled current cloud (.ply, .las, .laz, .npz)")
@@ -209,41 +210,30 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--min-region-points", type=int, default=1, help="drop change regions with fewer points")
     c.add_argument("--png", help="write a picture of the appeared points")
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
-    c.add_argument("--format", help="input format, overriding the extension")
-    _grid_options(c)
-    c.set_defaults(func=cmd_change)
 
-    b = sub.add_parser("build", help="build a density field and save it (.sdpf)",
-                       epilog="example:\n  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01",
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    b = _command(sub, "build", cmd_build, "build a density field and save it (.sdpf)",
+                 "  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01")
     b.add_argument("cloud")
     b.add_argument("-o", "--output", required=True)
-    b.add_argument("--format")
-    _grid_options(b)
-    b.set_defaults(func=cmd_build)
 
-    i = sub.add_parser("info", help="describe a cloud or a field file",
-                       epilog="examples:\n  sdp info scan.laz\n  sdp info scan.sdpf",
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    i = _command(sub, "info", cmd_info, "describe a cloud or a field file", "  sdp info scan.laz\n  sdp info scan.sdpf")
     i.add_argument("file")
-    i.add_argument("--format")
-    i.set_defaults(func=cmd_info)
 
-    m = sub.add_parser("mesh", help="iso-surface of a field or cloud (Lewiner marching cubes)",
-                       epilog="examples:\n  sdp mesh scan.sdpf -o surface.ply\n  sdp mesh scan.pcd -o surface.obj --level 0",
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    m = _command(sub, "mesh", cmd_mesh, "iso-surface of a field or cloud (Lewiner marching cubes)",
+                 "  sdp mesh scan.sdpf -o surface.ply\n  sdp mesh scan.pcd -o surface.obj --level 0")
     m.add_argument("input")
     m.add_argument("-o", "--output", required=True, help=".ply, .obj or .stl")
     m.add_argument("--level", type=float, default=0.0, help="level of F = h - G (0: the cluster boundary)")
-    m.add_argument("--format")
-    _grid_options(m)
-    m.set_defaults(func=cmd_mesh)
 
-    d = sub.add_parser("demo", help="run change detection on a simulated office scan; write results",
-                       epilog="example:\n  sdp demo -o demo-output", formatter_class=argparse.RawDescriptionHelpFormatter)
+    for q in (c, b, i, m):
+        q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz)")
+    for q in (c, b, m):
+        _grid_options(q)
+
+    d = _command(sub, "demo", cmd_demo, "run change detection on a simulated office scan; write results",
+                 "  sdp demo -o demo-output")
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
-    d.set_defaults(func=cmd_demo)
     return p
 
 
@@ -251,10 +241,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except SDPError as exc:
-        print(f"sdp: error: {exc}", file=sys.stderr)
-        return 2
-    except ValueError as exc:
+    except (SDPError, ValueError) as exc:
         print(f"sdp: error: {exc}", file=sys.stderr)
         return 2
 

@@ -242,14 +242,14 @@ class DensityField:
         return dense, self.grid.origin
 
     # ------------------------------------------------------------------ derived fields
-    def mesh(self, *, level: float = 0.0, memory_limit: int | str | None = None):
+    def mesh(self, *, level: float = 0.0):
         """Iso-surface F = ``level`` (default 0: the cluster boundary) by Lewiner's marching cubes.
 
         See :func:`sdp.surface.extract_surface`.
         """
         from .surface import extract_surface
 
-        return extract_surface(self, level=level, memory_limit=memory_limit)
+        return extract_surface(self, level=level)
 
     def coarsen(self) -> "DensityField":
         """The next level of detail: voxel 2l and σ doubled, without the points.

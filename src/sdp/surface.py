@@ -14,7 +14,7 @@ import numpy as np
 
 from . import _kernels as K
 from .errors import SurfaceError
-from .grid import BLOCK, check_memory
+from .grid import BLOCK
 
 __all__ = ["Mesh", "extract_surface"]
 
@@ -34,7 +34,7 @@ class Mesh(NamedTuple):
         return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
 
 
-def extract_surface(field, *, level: float = 0.0, memory_limit=None) -> Mesh:
+def extract_surface(field, *, level: float = 0.0) -> Mesh:
     """The surface F = ``level`` of a field (F = 0: the boundary of the cluster volume).
 
     Runs ``skimage.measure.marching_cubes(method="lewiner")`` on chunks of 64³ nodes that
@@ -56,7 +56,6 @@ def extract_surface(field, *, level: float = 0.0, memory_limit=None) -> Mesh:
     if not gmin < g_level < gmax:
         raise SurfaceError(f"level {level:g} is outside the field's range F ∈ [{field.h - gmax:.4g}, "
                            f"{field.h - gmin:.4g}]: no surface; choose a level inside it")
-    check_memory(field._blocks.nbytes * 2, "the mesh of this field", memory_limit)
     chunks = np.unique(np.floor_divide(field._keys, _CHUNK), axis=0)
     # a cell on a chunk's low face belongs to the neighbouring chunk: add those neighbours
     shifts = np.array([[i, j, k] for i in (0, -1) for j in (0, -1) for k in (0, -1)])
