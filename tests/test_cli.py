@@ -75,3 +75,61 @@ def test_demo(tmp_path):
     assert kappa > 0.8
     for name in ("reference.ply", "current_labelled.ply", "current_cluster_volume.ply", "changes.png"):
         assert (tmp_path / "demo" / name).stat().st_size > 1000
+
+
+def test_bool_fields_and_clouds(tmp_path, pair):
+    ref, cur = pair
+    assert run("build", ref, "-o", tmp_path / "ref.sdpf", "--voxel-size", "0.03").returncode == 0
+    # a cloud combined with a field is built on the field's lattice; the result saved as a field
+    p = run("bool", "difference", cur, tmp_path / "ref.sdpf", "-o", tmp_path / "new.sdpf")
+    assert p.returncode == 0, p.stderr
+    import sdp
+
+    new = sdp.DensityField.load(tmp_path / "new.sdpf")
+    assert new.voxel_size == pytest.approx(0.03)
+    assert new.inside(np.array([[2.2, 1.4, 1.35]]))[0]  # on the added box's top
+    assert not new.inside(np.array([[0.5, 0.5, 0.0]]))[0]  # the floor is in both
+    # two clouds, automatic voxel from both: the surface of the union as a mesh
+    m = run("bool", "union", ref, cur, "-o", tmp_path / "u.stl")
+    assert m.returncode == 0 and "triangles" in m.stdout and (tmp_path / "u.stl").stat().st_size > 1000
+    again = run("bool", "union", tmp_path / "ref.sdpf", tmp_path / "new.sdpf", "-o", tmp_path / "ref.sdpf")
+    assert again.returncode == 2 and "overwrite" in again.stderr
+
+
+def test_eval_matches_library_scores(tmp_path, rng):
+    import sdp
+
+    truth = rng.random(500) < 0.3
+    pred = truth ^ (rng.random(500) < 0.1)
+    xyz = rng.random((500, 3))
+    write_points(tmp_path / "p.ply", xyz, {"change": pred.astype(np.uint8)})
+    write_points(tmp_path / "t.npz", xyz, {"label": truth.astype(np.int32) * 7})
+    p = run("eval", tmp_path / "p.ply", tmp_path / "t.npz", "--truth-field", "label", "--json")
+    assert p.returncode == 0, p.stderr
+    assert json.loads(p.stdout) == pytest.approx(sdp.scores(truth, pred), nan_ok=True)
+    bad = run("eval", tmp_path / "p.ply", tmp_path / "t.npz")
+    assert bad.returncode == 2 and "no per-point field 'change'" in bad.stderr and "label" in bad.stderr
+
+
+def test_render_cloud_and_field(tmp_path, pair):
+    ref, cur = pair
+    assert run("change", ref, cur, "-o", tmp_path / "c.ply", "--voxel-size", "0.03", "-q").returncode == 0
+    p = run("render", tmp_path / "c.ply", "--png", tmp_path / "c.png", "--html", tmp_path / "c.html")
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
+    page = (tmp_path / "c.html").read_text()
+    assert "<html" in page and "plotly" in page and "changed (" in page  # self-contained, legend counts
+    assert run("build", ref, "-o", tmp_path / "ref.sdpf", "--voxel-size", "0.03").returncode == 0
+    s = run("render", tmp_path / "ref.sdpf", "--png", tmp_path / "slices.png")
+    assert s.returncode == 0 and (tmp_path / "slices.png").stat().st_size > 10_000
+    assert run("render", tmp_path / "ref.sdpf").returncode == 2  # nothing asked for
+
+
+def test_outputs_get_a_normal_file_mode(tmp_path, pair):
+    ref, cur = pair
+    assert run("build", ref, "-o", tmp_path / "ref.sdpf", "--voxel-size", "0.03").returncode == 0
+    import os
+
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "ref.sdpf").stat().st_mode & 0o777 == 0o666 & ~umask  # not mkstemp's private 0o600

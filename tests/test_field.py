@@ -145,3 +145,14 @@ def test_coarsen_matches_a_field_built_at_twice_the_voxel(rng):
     q = pts[rng.choice(len(pts), 500)] + rng.normal(0, 0.02, (500, 3))
     a, b = coarse.density(q), direct.density(q)
     assert np.abs(a - b).max() < 0.03 * b.max()
+
+
+@pytest.mark.parametrize("method", ["fast", "exact"])
+def test_building_in_chunks_gives_the_same_field(rng, monkeypatch, method):
+    import sdp.field
+
+    pts = rng.random((5000, 3))
+    whole = DensityField.from_points(pts, voxel_size=0.05, method=method)
+    monkeypatch.setattr(sdp.field, "_CHUNK", 777)  # large clouds are binned chunk by chunk
+    chunked = DensityField.from_points(pts, voxel_size=0.05, method=method)
+    np.testing.assert_allclose(chunked.density(pts), whole.density(pts), rtol=1e-5)

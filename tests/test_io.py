@@ -51,7 +51,7 @@ def test_round_trips(tmp_path, rng):
     np.testing.assert_allclose(c.fields["intensity"], np.arange(500))
 
 
-def test_las_output_keeps_input_dimensions(tmp_path, rng):
+def test_las_output_keeps_input_dimensions(tmp_path, rng, monkeypatch):
     import laspy
 
     header = laspy.LasHeader(point_format=3, version="1.4")
@@ -65,6 +65,12 @@ def test_las_output_keeps_input_dimensions(tmp_path, rng):
     write_points(tmp_path / "out.las", cloud.xyz, {"change": np.ones(200, np.uint8)}, like=cloud)
     back = read_points(tmp_path / "out.las")
     np.testing.assert_array_equal(back.fields["classification"], las.classification)
+    import sdp.io
+
+    monkeypatch.setattr(sdp.io, "_LAS_CHUNK", 64)  # 4 chunks, as a large file is read (with a progress bar)
+    chunked = read_points(tmp_path / "out.las")
+    np.testing.assert_array_equal(chunked.xyz, back.xyz)
+    np.testing.assert_array_equal(chunked.fields["change"], back.fields["change"])
     np.testing.assert_array_equal(back.fields["change"], 1)
 
 

@@ -3,8 +3,8 @@
 The data path, one module per step: points → :class:`DensityField` (:mod:`sdp.field` on the
 sparse grid of :mod:`sdp.grid`) → Boolean operations (:mod:`sdp.boolean`) → change masks
 (:mod:`sdp.change`) → regions (:mod:`sdp.regions`) → scores (:mod:`sdp.metrics`) and files
-(:mod:`sdp.io`); surfaces
-by :mod:`sdp.surface`, parameters from the data by :mod:`sdp.params`.
+(:mod:`sdp.io`) and pictures (:mod:`sdp.render`); surfaces by :mod:`sdp.surface`, parameters
+from the data by :mod:`sdp.params`.
 
 References
 ----------
@@ -14,14 +14,15 @@ References
 
 from .boolean import difference, intersection, union
 from .change import ChangeResult, detect_changes
-from .errors import (FieldFileError, GridTooLargeError, IncompatibleFieldsError, InvalidPointsError, SDPError,
-                     SurfaceError)
+from .errors import (FieldFileError, GridTooLargeError, IncompatibleFieldsError, InvalidPointsError,
+                     MissingDependencyError, SDPError, SurfaceError)
 from .field import DensityField, threshold
 from .grid import BLOCK, Grid
 from .io import CloudFileError, read_points, write_mesh, write_points
 from .metrics import confusion_matrix, kappa, scores
 from .params import auto_voxel_size
 from .regions import Region
+from .render import render_changes, render_changes_html, render_field
 from .surface import Mesh, extract_surface
 
 __all__ = [
@@ -31,8 +32,9 @@ __all__ = [
     "extract_surface", "Mesh",
     "auto_voxel_size",
     "read_points", "write_points", "write_mesh",
+    "render_changes", "render_changes_html", "render_field",
     "kappa", "confusion_matrix", "scores",
     "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",
-    "FieldFileError", "CloudFileError",
+    "FieldFileError", "CloudFileError", "MissingDependencyError",
 ]
 __version__ = "0.1.0"

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
+from . import __version__, _progress
 from .errors import SDPError
 from .io import read_points
 
@@ -18,6 +18,19 @@ EXAMPLES_CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                
   sdp change ref.laz cur.laz -o out.laz --both --voxel-size 0.1
   sdp change ref.ply cur.ply -o out.ply --grid-size 80        the paper's parameters
   sdp change ref.pcd cur.pcd -o out.ply --json                summary as JSON
+"""
+
+EXAMPLES_BOOL = """  sdp bool difference cur.sdpf ref.sdpf -o new.sdpf          what cur has and ref lacks
+  sdp bool union a.pcd b.pcd -o both.ply                      surface of the union (auto voxel from both)
+  sdp bool intersection a.sdpf b.ply -o common.stl            b is built on a's lattice
+"""
+EXAMPLES_EVAL = """  sdp eval changes.ply truth.ply                              field 'change' of both
+  sdp eval demo-output/current_labelled.ply demo-output/current_labelled.ply --truth-field truth
+  sdp eval changes.las scan_labels.las --truth-field classification --json
+"""
+EXAMPLES_RENDER = """  sdp render changes.ply --png changes.png                    'change' field in red
+  sdp render changes.laz --html changes.html --field change   interactive, opens in a browser
+  sdp render scan.sdpf --png slices.png                       three slices of F = h - G
 """
 
 
@@ -64,11 +77,7 @@ def cmd_change(a):
                   "G": fld.density(cloud.xyz).astype(np.float32), "F": fld.field(cloud.xyz).astype(np.float32)}
         write_points(path, cloud.xyz, fields, like=cloud, inputs=(a.reference, a.current))
         outputs.append(str(path))
-    if a.png:
-        from .render import render_changes
-
-        render_changes(a.png, cur.xyz, r.appeared, title=f"appeared in {Path(a.current).name}")
-        outputs.append(a.png)
+    outputs += _pictures(a, cur.xyz, r.appeared, f"appeared in {Path(a.current).name}")
     summary = r.summary()
     summary["timings"]["read"] = t_read
     summary["outputs"] = outputs
@@ -99,31 +108,63 @@ def _print_summary(s, ref_name, cur_name):
         print(f"wrote {o}")
 
 
-def _field_of_cloud(path, a):
-    """Read a cloud and build its field with the grid options (``auto``: from its point spacing)."""
-    from .field import DensityField
+def _lattice(a, clouds, like=None) -> dict:
+    """``DensityField.from_points`` options: the grid options (``auto``: from all ``clouds``'
+    point spacing), or the lattice, σ and h of the field ``like`` so results can be combined."""
     from .params import auto_voxel_size
 
-    cloud = read_points(path, format=a.format)
+    if like is not None:
+        return dict(voxel_size=like.voxel_size, sigma_voxels=like.sigma / like.voxel_size, h=like.h,
+                    truncate=like.truncate, memory_limit=a.memory_limit)
     kw = _grid_kwargs(a)
     if kw.get("voxel_size") == "auto":
-        kw["voxel_size"] = auto_voxel_size(cloud.xyz, sigma_voxels=a.sigma_voxels)
-    return DensityField.from_points(cloud.xyz, **kw)
+        kw["voxel_size"] = auto_voxel_size(*clouds, sigma_voxels=a.sigma_voxels)
+    return kw
+
+
+def _is_field(path) -> bool:
+    return Path(path).suffix.lower() == ".sdpf"
+
+
+def _field(path, a):
+    """A field file loaded, or a cloud file's field built with the grid options."""
+    from .field import DensityField
+
+    if _is_field(path):
+        return DensityField.load(path)
+    xyz = read_points(path, format=a.format).xyz
+    return DensityField.from_points(xyz, **_lattice(a, [xyz]))
+
+
+def _save_field(field, path, inputs):
+    from .io import refuse_overwrite
+
+    refuse_overwrite(path, inputs)
+    field.save(path)
+    print(f"{field!r}\nwrote {path}")
+
+
+def _pictures(a, xyz, changed, title) -> list[str]:
+    """Write the ``--png`` / ``--html`` pictures of changed points that were asked for."""
+    from .render import render_changes, render_changes_html
+
+    written = []
+    for path, render in ((a.png, render_changes), (getattr(a, "html", None), render_changes_html)):
+        if path:
+            render(path, xyz, changed, title=title)
+            written.append(path)
+    return written
 
 
 def cmd_build(a):
-    f = _field_of_cloud(a.cloud, a)
-    if Path(a.output).resolve() == Path(a.cloud).resolve():
-        raise SDPError(f"{a.output}: refusing to overwrite an input file")
-    f.save(a.output)
-    print(f"{f!r}\nwrote {a.output}")
+    _save_field(_field(a.cloud, a), a.output, inputs=(a.cloud,))
     return 0
 
 
 def cmd_info(a):
     from .field import DensityField
 
-    if Path(a.file).suffix.lower() == ".sdpf":
+    if _is_field(a.file):
         f = DensityField.load(a.file)
         info = {"kind": "field", "voxel_size": f.voxel_size, "sigma": f.sigma, "h": f.h, "blocks": f.n_blocks,
                 "box_nodes": list(f.grid.shape), "origin": f.grid.origin.tolist(), "n_points": f.n_points,
@@ -137,13 +178,74 @@ def cmd_info(a):
 
 
 def cmd_mesh(a):
-    from .field import DensityField
+    _write_mesh(a.output, _field(a.input, a).mesh(level=a.level), inputs=(a.input,))
+    return 0
+
+
+def _write_mesh(path, mesh, inputs):
     from .io import write_mesh
 
-    f = DensityField.load(a.input) if Path(a.input).suffix.lower() == ".sdpf" else _field_of_cloud(a.input, a)
-    mesh = f.mesh(level=a.level)
-    write_mesh(a.output, mesh, inputs=(a.input,))
-    print(f"{len(mesh.vertices):,} vertices, {len(mesh.faces):,} triangles, area {mesh.area:.4g}\nwrote {a.output}")
+    write_mesh(path, mesh, inputs=inputs)
+    print(f"{len(mesh.vertices):,} vertices, {len(mesh.faces):,} triangles, area {mesh.area:.4g}\nwrote {path}")
+
+
+def cmd_bool(a):
+    from . import boolean
+    from .field import DensityField
+
+    items = [DensityField.load(p) if _is_field(p) else read_points(p, format=a.format).xyz for p in (a.a, a.b)]
+    like = next((x for x in items if isinstance(x, DensityField)), None)
+    kw = _lattice(a, items, like)  # clouds are built on a given field's lattice, else on one from both
+    fa, fb = (x if isinstance(x, DensityField) else DensityField.from_points(x, **kw) for x in items)
+    result = getattr(boolean, a.operation)(fa, fb)
+    if _is_field(a.output):
+        _save_field(result, a.output, inputs=(a.a, a.b))
+    else:
+        _write_mesh(a.output, result.mesh(), inputs=(a.a, a.b))
+    return 0
+
+
+def cmd_eval(a):
+    from .metrics import scores
+
+    labels = []
+    for path, name in ((a.predicted, a.predicted_field), (a.truth, a.truth_field)):
+        c = read_points(path, format=a.format)
+        if name not in c.fields:
+            raise SDPError(f"{path}: no per-point field {name!r} (fields: {', '.join(sorted(c.fields)) or 'none'})")
+        labels.append(np.asarray(c.fields[name]) != 0)
+    if len(labels[0]) != len(labels[1]):
+        raise SDPError(f"{a.predicted} has {len(labels[0]):,} points and {a.truth} {len(labels[1]):,}: "
+                       "they must be the same points in the same order")
+    sc = scores(labels[1], labels[0])
+    if a.json:
+        print(json.dumps(sc, indent=2))
+    else:
+        print(f"{len(labels[0]):,} points; changed: predicted {labels[0].sum():,}, true {labels[1].sum():,}")
+        print("  ".join(f"{k} {v:.4f}" for k, v in sc.items() if isinstance(v, float)))
+        print("  ".join(f"{k} {v:,}" for k, v in sc.items() if isinstance(v, int)))
+    return 0
+
+
+def cmd_render(a):
+    if not (a.png or a.html):
+        raise SDPError("nothing to write: give --png OUT.png and/or --html OUT.html")
+    if _is_field(a.file):
+        from .field import DensityField
+        from .render import render_field
+
+        if a.html:
+            raise SDPError("--html draws clouds; for a field use --png (slices), or `sdp mesh` for its surface")
+        render_field(a.png, DensityField.load(a.file))
+        written = [a.png]
+    else:
+        c = read_points(a.file, format=a.format)
+        if a.field not in c.fields:
+            raise SDPError(f"{a.file}: no per-point field {a.field!r} to colour by "
+                           f"(fields: {', '.join(sorted(c.fields)) or 'none'}); choose one with --field")
+        changed = np.asarray(c.fields[a.field]) != 0
+        written = _pictures(a, c.xyz, changed, f"{Path(a.file).name}: {a.field} ≠ 0 in red")
+    print("\n".join(f"wrote {w}" for w in written))
     return 0
 
 
@@ -209,6 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--decision", choices=("point", "cluster"), default="point")
     c.add_argument("--min-region-points", type=int, default=1, help="drop change regions with fewer points")
     c.add_argument("--png", help="write a picture of the appeared points")
+    c.add_argument("--html", help="write an interactive 3D view (needs the html extra: plotly)")
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
 
     b = _command(sub, "build", cmd_build, "build a density field and save it (.sdpf)",
@@ -225,20 +328,45 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("-o", "--output", required=True, help=".ply, .obj or .stl")
     m.add_argument("--level", type=float, default=0.0, help="level of F = h - G (0: the cluster boundary)")
 
-    for q in (c, b, i, m):
+    o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds",
+                 EXAMPLES_BOOL)
+    o.add_argument("operation", choices=("union", "intersection", "difference"))
+    o.add_argument("a", help="field (.sdpf) or cloud")
+    o.add_argument("b", help="field (.sdpf) or cloud")
+    o.add_argument("-o", "--output", required=True, help=".sdpf (the field) or .ply/.obj/.stl (its surface)")
+
+    e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth",
+                 EXAMPLES_EVAL)
+    e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
+    e.add_argument("truth", help="cloud with the true labels, same points in the same order")
+    e.add_argument("--predicted-field", default="change", help="field of PREDICTED (nonzero: changed; default change)")
+    e.add_argument("--truth-field", default="change", help="field of TRUTH (nonzero: changed; default change)")
+    e.add_argument("--json", action="store_true", help="print the scores as JSON")
+
+    r = _command(sub, "render", cmd_render, "picture of a labelled cloud (red: changed) or slices of a field",
+                 EXAMPLES_RENDER)
+    r.add_argument("file", help="cloud with a label field, or a field (.sdpf)")
+    r.add_argument("--png", help="picture (three views of a cloud; three slices of a field)")
+    r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")
+    r.add_argument("--field", default="change", help="per-point field whose nonzero points are red (default change)")
+
+    for q in (c, b, i, m, o, e, r):
         q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz)")
-    for q in (c, b, m):
+    for q in (c, b, m, o):
         _grid_options(q)
 
     d = _command(sub, "demo", cmd_demo, "run change detection on a simulated office scan; write results",
                  "  sdp demo -o demo-output")
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
+    for q in (c, b, i, m, o, e, r, d):
+        q.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     return p
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    _progress.enable(not (getattr(args, "quiet", False) or getattr(args, "json", False)))
     try:
         return args.func(args)
     except (SDPError, ValueError) as exc:

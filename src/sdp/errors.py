@@ -14,6 +14,7 @@ __all__ = [
     "IncompatibleFieldsError",
     "SurfaceError",
     "FieldFileError",
+    "MissingDependencyError",
 ]
 
 
@@ -39,3 +40,7 @@ class SurfaceError(SDPError, ValueError):
 
 class FieldFileError(SDPError, OSError):
     """A saved field can't be read: missing, corrupt, or written by an unknown format version."""
+
+
+class MissingDependencyError(SDPError, ImportError):
+    """An optional dependency is not installed; the message says which extra to install."""

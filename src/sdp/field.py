@@ -18,6 +18,7 @@ import numpy as np
 
 from . import _kernels as K
 from ._points import as_points
+from ._progress import bar
 from .errors import FieldFileError, InvalidPointsError
 from .grid import BLOCK, Grid, check_memory, voxel_size_for_grid_size
 
@@ -30,6 +31,7 @@ _DELTA = math.exp(-0.5)
 #: Build method used by ``method="auto"``: binning + blur was faster at every size measured
 #: (``benchmarks/bench_core.py``) and departs from the exact sum by < 1 % of the peak.
 _AUTO_METHOD = "fast"
+_CHUNK = 4_000_000  # points binned per kernel call (a progress step)
 
 
 def threshold(k: float = 3) -> float:
@@ -133,6 +135,8 @@ class DensityField:
             method = _AUTO_METHOD
         if method not in ("exact", "fast"):
             raise ValueError(f"method must be 'auto', 'exact' or 'fast', got {method!r}")
+        if method == "fast" and sigma_voxels**2 <= 1.0 / 6.0:
+            raise ValueError("method='fast' needs sigma_voxels > 0.41; use method='exact'")
         rmax = truncate * sigma_voxels
         reach = int(math.ceil(rmax))
         grid = Grid.covering(cloud.lo, cloud.hi, l, reach)
@@ -148,13 +152,16 @@ class DensityField:
                     h=threshold(k) if h is None else h, sigma=sigma_voxels * l, truncate=truncate,
                     n_points=len(cloud.xyz), n_dropped=cloud.n_dropped,
                     method=method)
-        if method == "exact":
-            K.splat_exact(u, field._directory, field._blocks, 1.0 / (2 * sigma_voxels**2), rmax, reach)
-        else:
-            K.bin_trilinear(u, field._directory, field._blocks)
+        with bar(len(u), "building field") as pb:
+            for s in range(0, len(u), _CHUNK):
+                part = u[s:s + _CHUNK]
+                if method == "exact":
+                    K.splat_exact(part, field._directory, field._blocks, 1.0 / (2 * sigma_voxels**2), rmax, reach)
+                else:
+                    K.bin_trilinear(part, field._directory, field._blocks)
+                pb.update(len(part))
+        if method == "fast":
             s2 = sigma_voxels**2 - 1.0 / 6.0
-            if s2 <= 0:
-                raise ValueError("method='fast' needs sigma_voxels > 0.41; use method='exact'")
             taps = _gaussian_taps(math.sqrt(s2), int(math.floor(rmax)))
             field._blur(taps * np.float32(sigma_voxels / math.sqrt(s2)))
         return field

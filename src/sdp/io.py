@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._progress import bar
 from .errors import SDPError
 
 __all__ = ["Cloud", "read_points", "write_points", "write_mesh", "CloudFileError", "FORMATS", "atomic_path"]
@@ -24,6 +25,9 @@ __all__ = ["Cloud", "read_points", "write_points", "write_mesh", "CloudFileError
 #: Extension → format name understood by :func:`read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
            ".csv": "text", ".pts": "text", ".npy": "npy", ".npz": "npz"}
+
+
+_LAS_CHUNK = 2_000_000  # points per chunk read (a progress step)
 
 
 class CloudFileError(SDPError, OSError):
@@ -137,7 +141,14 @@ def _read_ply(path):
 def _read_las(path):
     import laspy
 
-    las = laspy.read(str(path))
+    with laspy.open(str(path)) as reader, bar(reader.header.point_count, f"reading {Path(path).name}") as pb:
+        chunks = []
+        for chunk in reader.chunk_iterator(_LAS_CHUNK):
+            chunks.append(chunk.array)
+            pb.update(len(chunk))
+        h = reader.header
+        records = np.concatenate(chunks) if chunks else np.zeros(0, h.point_format.dtype())
+        las = laspy.LasData(h, points=laspy.ScaleAwarePointRecord(records, h.point_format, h.scales, h.offsets))
     xyz = np.c_[las.x, las.y, las.z]  # scaled and offset, float64: large coordinates stay exact
     fields = {d: np.asarray(las[d]) for d in las.point_format.dimension_names if d not in ("X", "Y", "Z")}
     return xyz, fields, las
@@ -187,6 +198,20 @@ _READERS = {"pcd": _read_pcd, "ply": _read_ply, "las": _read_las, "text": _read_
             "npz": _read_npz}
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def refuse_overwrite(path: str | os.PathLike, inputs=()) -> None:
+    """Raise :class:`SDPError` if ``path`` is one of the files ``inputs``."""
+    path = Path(path)
+    for src in inputs:
+        if Path(src).exists() and path.exists() and path.resolve() == Path(src).resolve():
+            raise SDPError(f"{path}: refusing to overwrite an input file; choose another output name")
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, *, inputs=()):
     """Yield a temporary path beside ``path``; rename it to ``path`` when the block succeeds.
@@ -194,13 +219,12 @@ def atomic_path(path: str | os.PathLike, *, inputs=()):
     Refuses to overwrite any of ``inputs``; nothing is left behind on failure.
     """
     path = Path(path)
-    for src in inputs:
-        if Path(src).exists() and path.exists() and path.resolve() == Path(src).resolve():
-            raise SDPError(f"{path}: refusing to overwrite an input file; choose another output name")
+    refuse_overwrite(path, inputs)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent if str(path.parent) else ".")
     os.close(fd)
     try:
         yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp made it private; give it a new file's mode
         os.replace(tmp, path)
     finally:
         Path(tmp).unlink(missing_ok=True)
