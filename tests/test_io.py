@@ -90,6 +90,8 @@ def test_mesh_writers(tmp_path, rng):
     ("a.xyz", b"1 2\n3 4\n", "at least 3 columns"),
     ("a.xyz", b"", "empty"),
     ("a.las", b"LASF" + b"\0" * 50, "can't read"),
+    ("a.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n",
+     "no x, y, z"),
 ])
 def test_bad_files_raise_one_clear_error(tmp_path, name, content, match):
     p = tmp_path / name
@@ -108,3 +110,14 @@ def test_outputs_never_overwrite_inputs(tmp_path, rng):
         write_points(p, rng.random((10, 3)), inputs=(p,))
     assert p.read_bytes() == before
     assert sorted(x.name for x in tmp_path.iterdir()) == ["in.ply"]
+
+
+def test_missing_xyz_and_truncated_files(tmp_path, rng):
+    np.savez(tmp_path / "a.npz", points=rng.random((5, 3)))
+    with pytest.raises(CloudFileError, match="a.npz: NPZ needs an array 'xyz'"):
+        read_points(tmp_path / "a.npz")
+    write_points(tmp_path / "whole.laz", rng.random((5000, 3)) * 100)
+    data = (tmp_path / "whole.laz").read_bytes()
+    (tmp_path / "cut.laz").write_bytes(data[: len(data) // 2])  # a download that stopped halfway
+    with pytest.raises(CloudFileError, match="cut.laz"):
+        read_points(tmp_path / "cut.laz")
