@@ -1,0 +1,84 @@
+import numpy as np
+import pytest
+from conftest import box_surface, room_scene
+from scipy.spatial.transform import Rotation
+
+import sdp
+from sdp import _kernels as K
+from sdp.align import align, transform_points
+
+
+def rigid(deg, axis, t):
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
+    m[:3, 3] = t
+    return m
+
+
+def disagreement(a, b, pts):
+    """RMS displacement between two transforms over ``pts`` and the angle between them (degrees)."""
+    d = transform_points(a, pts) - transform_points(b, pts)
+    angle = np.degrees(Rotation.from_matrix(a[:3, :3] @ b[:3, :3].T).magnitude())
+    return float(np.sqrt((d**2).sum(axis=1).mean())), float(angle)
+
+
+def test_gradient_matches_finite_differences(rng):
+    f = sdp.DensityField.from_points(room_scene(rng, n=8000), voxel_size=0.05)
+    q = rng.uniform([0.2, 0.2, 0.05], [3.8, 2.8, 1.0], (500, 3))
+    val, grad = np.empty(len(q)), np.empty((len(q), 3))
+    K.trilinear_gradient(q, f.grid.origin, f.voxel_size, f._directory, f._blocks, val, grad)
+    np.testing.assert_allclose(val, f.density(q), rtol=1e-6, atol=1e-9)
+    eps = 1e-6
+    for axis in range(3):
+        step = np.zeros(3)
+        step[axis] = eps
+        numeric = (f.density(q + step) - f.density(q - step)) / (2 * eps)
+        np.testing.assert_allclose(grad[:, axis], numeric, rtol=1e-3, atol=1e-3)
+
+
+@pytest.mark.parametrize("method", ["density", "gicp"])
+def test_recovers_a_known_transform_despite_a_change(rng, method):
+    ref = room_scene(rng)
+    truth = rigid(1.0, [0.3, 0.2, 1.0], [0.03, -0.02, 0.015])  # maps the moved scan back
+    scan = np.concatenate([room_scene(rng), box_surface(rng, [2.0, 1.2, 0.75], [2.4, 1.6, 1.35], 3000)])
+    cur = transform_points(np.linalg.inv(truth), scan)
+    a = align(ref, cur, method=method)
+    rms, angle = disagreement(a.matrix, truth, cur)
+    assert rms < 0.003 and angle < 0.05, (rms, angle)
+    assert a.rmse < 0.03  # nearest-neighbour distances of a 40,000-point room: ~1.5 cm apart
+
+
+def test_density_alignment_works_from_a_saved_field(tmp_path, rng):
+    ref = room_scene(rng)
+    f = sdp.DensityField.from_points(ref, voxel_size=sdp.auto_voxel_size(ref))
+    f.save(tmp_path / "ref.sdpf")
+    truth = rigid(0.5, [0, 0, 1], [0.02, 0.01, -0.01])
+    cur = transform_points(np.linalg.inv(truth), room_scene(rng))
+    a = align(sdp.DensityField.load(tmp_path / "ref.sdpf"), cur)
+    assert disagreement(a.matrix, truth, cur)[0] < 0.003 and np.isnan(a.rmse)
+    with pytest.raises(ValueError, match="gicp"):
+        align(f, cur, method="gicp")
+
+
+def test_huge_coordinates(rng):
+    """UTM-like offsets: the estimate is made in a local frame, so the result is as precise."""
+    offset = np.array([634_000.0, 4_832_000.0, 80.0])
+    ref = room_scene(rng)
+    truth = rigid(0.5, [0, 0, 1], [0.02, 0.01, -0.01])
+    cur = transform_points(np.linalg.inv(truth), room_scene(rng))
+    shift = np.eye(4)
+    shift[:3, 3] = offset
+    truth_world = shift @ truth @ np.linalg.inv(shift)
+    for method in ("density", "gicp"):
+        a = align(ref + offset, cur + offset, method=method)
+        assert disagreement(a.matrix, truth_world, cur + offset)[0] < 0.003, method
+
+
+@pytest.mark.shared_data
+def test_density_agrees_with_gicp_on_dlut_rescans(shared_data):
+    ref = sdp.read_points(shared_data / "dlut" / "A603_reference.pcd").xyz
+    cur = sdp.read_points(shared_data / "dlut" / "A603_rescan1.pcd").xyz
+    ref, cur = ref[np.abs(ref).sum(axis=1) > 0], cur[np.abs(cur).sum(axis=1) > 0]  # (0,0,0): no return
+    d, g = align(ref, cur), align(ref, cur, method="gicp")
+    rms, angle = disagreement(d.matrix, g.matrix, cur)
+    assert rms < 0.01 and angle < 0.15, (rms, angle)
