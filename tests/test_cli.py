@@ -133,3 +133,23 @@ def test_outputs_get_a_normal_file_mode(tmp_path, pair):
     umask = os.umask(0)
     os.umask(umask)
     assert (tmp_path / "ref.sdpf").stat().st_mode & 0o777 == 0o666 & ~umask  # not mkstemp's private 0o600
+
+
+def test_align_writes_a_loadable_matrix_and_change_uses_it(tmp_path, rng):
+    from conftest import room_scene
+
+    from sdp.align import transform_points
+
+    truth = np.eye(4)
+    truth[:3, 3] = [0.04, -0.03, 0.02]
+    write_points(tmp_path / "ref.ply", room_scene(rng, n=200_000))
+    write_points(tmp_path / "cur.ply", transform_points(np.linalg.inv(truth), room_scene(rng, n=200_000)))
+    p = run("align", tmp_path / "cur.ply", tmp_path / "ref.ply", "-o", tmp_path / "T.txt")
+    assert p.returncode == 0, p.stderr
+    np.testing.assert_allclose(np.loadtxt(tmp_path / "T.txt")[:3, 3], truth[:3, 3], atol=0.003)
+    plain = json.loads(run("change", tmp_path / "ref.ply", tmp_path / "cur.ply", "-o", tmp_path / "a.ply",
+                           "--voxel-size", "0.01", "--json").stdout)
+    aligned = json.loads(run("change", tmp_path / "ref.ply", tmp_path / "cur.ply", "-o", tmp_path / "b.ply",
+                             "--voxel-size", "0.01", "--json", "--align", "gicp").stdout)
+    assert aligned["current"]["appeared"] < 0.2 * plain["current"]["appeared"]  # the offset's false changes
+    assert aligned["alignment"]["method"] == "gicp" and "align" in aligned["timings"]

@@ -12,6 +12,7 @@ References
    Comparison and Applications".
 """
 
+from .align import Alignment, align, transform_points
 from .boolean import difference, intersection, union
 from .change import ChangeResult, detect_changes
 from .errors import (FieldFileError, GridTooLargeError, IncompatibleFieldsError, InvalidPointsError,
@@ -29,6 +30,7 @@ __all__ = [
     "DensityField", "threshold", "Grid", "BLOCK",
     "union", "intersection", "difference",
     "detect_changes", "ChangeResult", "Region",
+    "align", "Alignment", "transform_points",
     "extract_surface", "Mesh",
     "auto_voxel_size",
     "read_points", "write_points", "write_mesh",

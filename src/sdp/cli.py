@@ -18,11 +18,16 @@ EXAMPLES_CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                
   sdp change ref.laz cur.laz -o out.laz --both --voxel-size 0.1
   sdp change ref.ply cur.ply -o out.ply --grid-size 80        the paper's parameters
   sdp change ref.pcd cur.pcd -o out.ply --json                summary as JSON
+  sdp change ref.pcd rescan.pcd -o out.ply --align density    register the rescan first
 """
 
 EXAMPLES_BOOL = """  sdp bool difference cur.sdpf ref.sdpf -o new.sdpf          what cur has and ref lacks
   sdp bool union a.pcd b.pcd -o both.ply                      surface of the union (auto voxel from both)
   sdp bool intersection a.sdpf b.ply -o common.stl            b is built on a's lattice
+"""
+EXAMPLES_ALIGN = """  sdp align rescan.pcd reference.pcd -o T.txt               density-based, coarse to fine
+  sdp align rescan.pcd reference.pcd -o T.txt --method gicp  small_gicp (extra: align)
+  sdp change reference.pcd rescan.pcd -o out.ply --align density   align, then compare
 """
 EXAMPLES_EVAL = """  sdp eval changes.ply truth.ply                              field 'change' of both
   sdp eval demo-output/current_labelled.ply demo-output/current_labelled.ply --truth-field truth
@@ -64,22 +69,32 @@ def cmd_change(a):
     t0 = time.perf_counter()
     ref, cur = read_points(a.reference, format=a.format), read_points(a.current, format=a.format)
     t_read = time.perf_counter() - t0
-    r = detect_changes(ref.xyz, cur.xyz, decision=a.decision, min_region_points=a.min_region_points,
+    alignment, cur_xyz = None, cur.xyz
+    if a.align:
+        from .align import align
+
+        alignment = align(ref.xyz, cur.xyz, method=a.align)
+        cur_xyz = alignment.apply(cur.xyz)
+    r = detect_changes(ref.xyz, cur_xyz, decision=a.decision, min_region_points=a.min_region_points,
                        **_grid_kwargs(a))
     outputs = []
     out = Path(a.output)
-    jobs = [(out, cur, r.appeared, r.appeared_region, r.current_field)]
+    out_xyz = cur_xyz if a.aligned_output else cur.xyz
+    jobs = [(out, cur, out_xyz, r.appeared, r.appeared_region, r.current_field)]
     if a.both:
-        jobs.append((out.with_name(out.stem + "_disappeared" + out.suffix), ref, r.disappeared,
+        jobs.append((out.with_name(out.stem + "_disappeared" + out.suffix), ref, ref.xyz, r.disappeared,
                      r.disappeared_region, r.reference_field))
-    for path, cloud, mask, region, fld in jobs:
+    for path, cloud, xyz, mask, region, fld in jobs:
         fields = {"change": mask.astype(np.uint8), "region": region.astype(np.int32),
-                  "G": fld.density(cloud.xyz).astype(np.float32), "F": fld.field(cloud.xyz).astype(np.float32)}
-        write_points(path, cloud.xyz, fields, like=cloud, inputs=(a.reference, a.current))
+                  "G": fld.density(xyz).astype(np.float32), "F": fld.field(xyz).astype(np.float32)}
+        write_points(path, xyz, fields, like=cloud, inputs=(a.reference, a.current))
         outputs.append(str(path))
-    outputs += _pictures(a, cur.xyz, r.appeared, f"appeared in {Path(a.current).name}")
+    outputs += _pictures(a, out_xyz, r.appeared, f"appeared in {Path(a.current).name}")
     summary = r.summary()
     summary["timings"]["read"] = t_read
+    if alignment is not None:
+        summary["alignment"] = alignment.summary()
+        summary["timings"]["align"] = alignment.seconds
     summary["outputs"] = outputs
     if a.json:
         print(json.dumps(summary, indent=2))
@@ -93,6 +108,8 @@ def _print_summary(s, ref_name, cur_name):
           f"{s['reference']['disappeared']:,} disappeared")
     print(f"current    {cur_name}: {s['current']['points']:,} points ({s['current']['dropped']} dropped), "
           f"{s['current']['appeared']:,} appeared")
+    if "alignment" in s:
+        print(_alignment_text(s["alignment"]))
     print(f"voxel {s['voxel_size']:.4g}, sigma {s['sigma']:.4g}, h {s['h']:.4f}, decision {s['decision']}")
     for kind in ("appeared", "disappeared"):
         regs = s[f"{kind}_regions"]
@@ -154,6 +171,29 @@ def _pictures(a, xyz, changed, title) -> list[str]:
             render(path, xyz, changed, title=title)
             written.append(path)
     return written
+
+
+def _alignment_text(al) -> str:
+    t = " ".join(f"{v:.4f}" for v in al["translation"])
+    return (f"aligned current onto reference ({al['method']}): rotation {al['rotation_degrees']:.3f}°, "
+            f"translation [{t}], inside the reference's volume {al['inside_before']:.1%} → {al['inside_after']:.1%}, "
+            f"residual {al['rmse']:.4g} (RMS), {al['seconds']:.2f} s")
+
+
+def cmd_align(a):
+    from .align import align
+    from .io import atomic_path, refuse_overwrite
+
+    refuse_overwrite(a.output, (a.current, a.reference))
+    ref = _field(a.reference, a) if _is_field(a.reference) else read_points(a.reference, format=a.format).xyz
+    al = align(ref, read_points(a.current, format=a.format).xyz, method=a.method)
+    with atomic_path(a.output) as tmp:
+        np.savetxt(tmp, al.matrix, fmt="%.12g", header=f"sdp align {a.current} onto {a.reference} ({a.method})")
+    if a.json:
+        print(json.dumps(al.summary(), indent=2))
+    else:
+        print(f"{_alignment_text(al.summary())}\nwrote {a.output}")
+    return 0
 
 
 def cmd_build(a):
@@ -313,6 +353,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--png", help="write a picture of the appeared points")
     c.add_argument("--html", help="write an interactive 3D view (needs the html extra: plotly)")
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
+    c.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
+    c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
 
     b = _command(sub, "build", cmd_build, "build a density field and save it (.sdpf)",
                  "  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01")
@@ -335,6 +377,15 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("b", help="field (.sdpf) or cloud")
     o.add_argument("-o", "--output", required=True, help=".sdpf (the field) or .ply/.obj/.stl (its surface)")
 
+    al = _command(sub, "align", cmd_align, "rigid transform mapping CURRENT onto REFERENCE (4x4, numpy.loadtxt)",
+                  EXAMPLES_ALIGN)
+    al.add_argument("current")
+    al.add_argument("reference", help="cloud, or field (.sdpf) for --method density")
+    al.add_argument("-o", "--output", required=True, help="text file with the 4x4 matrix")
+    al.add_argument("--method", choices=("density", "gicp"), default="density",
+                    help="density: maximise the reference's density, coarse to fine; gicp: small_gicp")
+    al.add_argument("--json", action="store_true", help="print the result as JSON")
+
     e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth",
                  EXAMPLES_EVAL)
     e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
@@ -350,7 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")
     r.add_argument("--field", default="change", help="per-point field whose nonzero points are red (default change)")
 
-    for q in (c, b, i, m, o, e, r):
+    for q in (c, b, i, m, o, al, e, r):
         q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz)")
     for q in (c, b, m, o):
         _grid_options(q)
@@ -359,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
                  "  sdp demo -o demo-output")
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
-    for q in (c, b, i, m, o, e, r, d):
+    for q in (c, b, i, m, o, al, e, r, d):
         q.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -372,6 +423,9 @@ def main(argv=None) -> int:
     except (SDPError, ValueError) as exc:
         print(f"sdp: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into head & co.
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

@@ -3,7 +3,8 @@
 Readers use the field's libraries: pypcd4 (PCD v0.7 ascii / binary / binary_compressed),
 plyfile (PLY), laspy with the lazrs backend (LAS/LAZ, scaled integers kept exact), NumPy
 (NPY/NPZ, XYZ/TXT/CSV text). Rows whose x, y or z is NaN (sensors' missing returns, e.g. the
-organized Kinect PCD files) are dropped and counted; other per-point fields (``label``,
+organized Kinect PCD files), and points at exactly (0, 0, 0) in organized PCD files (the other
+marker of a missing return, e.g. the DLUT laser scans), are dropped and counted; other per-point fields (``label``,
 ``rgb``, ``intensity``, ``classification``, …) stay aligned with the points kept.
 """
 
@@ -115,7 +116,10 @@ def _read_pcd(path):
     data = pc.numpy()
     cols = {n: data[:, i] for i, n in enumerate(names)}
     fields = {n: _pcd_column(pc, n, cols[n]) for n in names if n not in ("x", "y", "z")}
-    return np.c_[cols["x"], cols["y"], cols["z"]], fields, None
+    xyz = np.c_[cols["x"], cols["y"], cols["z"]]
+    if pc.metadata.height > 1:  # organized scans mark a missing return by NaN or by (0, 0, 0)
+        xyz[~xyz.any(axis=1)] = np.nan
+    return xyz, fields, None
 
 
 def _pcd_column(pc, name, col):
