@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
+from conftest import box_surface, room_scene
 
 import sdp
-from conftest import box_surface, room_scene
 
 
 @pytest.fixture
@@ -107,3 +107,9 @@ def test_summary_is_json_serializable(scene_pair):
     s = sdp.detect_changes(reference, current, voxel_size=0.02).summary()
     again = json.loads(json.dumps(s))
     assert again["current"]["appeared"] > 0 and again["appeared_regions"][0]["n_points"] > 0
+
+
+def test_no_change_at_all_with_a_region_size_filter(rng):
+    pts = room_scene(rng, n=8000)
+    r = sdp.detect_changes(pts, pts, voxel_size=0.05, min_region_points=10)
+    assert not r.appeared.any() and not r.disappeared.any() and r.appeared_regions == []

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
-from sklearn.metrics import cohen_kappa_score, confusion_matrix as sk_confusion, f1_score, jaccard_score
+from sklearn.metrics import cohen_kappa_score, f1_score, jaccard_score
+from sklearn.metrics import confusion_matrix as sk_confusion
 
 import sdp
 

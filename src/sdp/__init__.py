@@ -15,12 +15,20 @@ References
 from .align import Alignment, align, transform_points
 from .boolean import difference, intersection, union
 from .change import ChangeResult, detect_changes
-from .errors import (FieldFileError, GridTooLargeError, IncompatibleFieldsError, InvalidPointsError,
-                     MissingDependencyError, SDPError, SurfaceError)
+from .errors import (
+                     FieldFileError,
+                     GridTooLargeError,
+                     IncompatibleFieldsError,
+                     InvalidPointsError,
+                     MissingDependencyError,
+                     SDPError,
+                     SurfaceError,
+)
 from .field import DensityField, threshold
 from .grid import BLOCK, Grid
 from .io import CloudFileError, read_points, write_mesh, write_points
 from .metrics import confusion_matrix, kappa, scores
+from .online import FrameChange, watch
 from .params import auto_voxel_size
 from .regions import Region
 from .render import render_changes, render_changes_html, render_field
@@ -31,6 +39,7 @@ __all__ = [
     "union", "intersection", "difference",
     "detect_changes", "ChangeResult", "Region",
     "align", "Alignment", "transform_points",
+    "watch", "FrameChange",
     "extract_surface", "Mesh",
     "auto_voxel_size",
     "read_points", "write_points", "write_mesh",

@@ -153,8 +153,8 @@ def align(reference, current, *, method: str = "density", voxel_size: float | st
                                        workers=-1)
         d = d[np.isfinite(d)]
         rmse = float(np.sqrt(np.mean(d**2))) if d.size else np.nan
-    return Alignment(matrix=matrix, method=method, inside_before=float(field.inside(transform_points(t0, sample)).mean()),
-                     inside_after=float(field.inside(transform_points(matrix, sample)).mean()), rmse=rmse,
+    before, after = (float(field.inside(transform_points(m, sample)).mean()) for m in (t0, matrix))
+    return Alignment(matrix=matrix, method=method, inside_before=before, inside_after=after, rmse=rmse,
                      seconds=seconds)
 
 

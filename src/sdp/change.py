@@ -9,7 +9,8 @@ References
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass
+from dataclasses import field as dc_field
 
 import numpy as np
 
@@ -146,22 +147,14 @@ def detect_changes(reference, current, *, grid_size: int | None = None, voxel_si
     timings["build_current"] = time.perf_counter() - t
     f_ref.n_dropped, f_cur.n_dropped = ref.n_dropped, cur.n_dropped  # rows dropped before the build
     t = time.perf_counter()
-    d_app = difference_on_own_blocks(f_cur, f_ref)
-    d_dis = difference_on_own_blocks(f_ref, f_cur)
-    app = f_cur.interpolate(d_app, cur.xyz) < 0
-    dis = f_ref.interpolate(d_dis, ref.xyz) < 0
+    app, d_app = _inside_difference(f_cur, f_ref, cur.xyz)
+    dis, d_dis = _inside_difference(f_ref, f_cur, ref.xyz)
     timings["detect"] = time.perf_counter() - t
     t = time.perf_counter()
     out = {}
     for name, fld, pts, mask, d in (("appeared", f_cur, cur, app, d_app), ("disappeared", f_ref, ref, dis, d_dis)):
-        regs, region_of = [], np.where(mask, 0, -1)
-        if regions or decision == "cluster":
-            labels, counts = label_points(fld, d, pts.xyz)
-            if min_region_points > 1:
-                mask = mask & (np.bincount(labels[mask], minlength=len(counts)) >= min_region_points)[labels]
-            if decision == "cluster":
-                mask, labels, counts = _cluster_decision(fld, pts.xyz, mask, labels, counts, cluster_fraction)
-            regs, region_of = describe_regions(pts.xyz, np.where(mask, labels, -1), counts, fld.voxel_size)
+        mask, regs, region_of = _regions(fld, d, pts.xyz, mask, regions=regions, decision=decision,
+                                         min_region_points=min_region_points, cluster_fraction=cluster_fraction)
         out[name] = (_to_rows(mask, pts, False), regs, _to_rows(region_of, pts, -1))
     timings["regions"] = time.perf_counter() - t
     return ChangeResult(appeared=out["appeared"][0], disappeared=out["disappeared"][0],
@@ -169,6 +162,28 @@ def detect_changes(reference, current, *, grid_size: int | None = None, voxel_si
                         appeared_region=out["appeared"][2], disappeared_region=out["disappeared"][2],
                         reference_field=f_ref, current_field=f_cur, voxel_size=float(voxel_size), h=f_cur.h,
                         decision=decision, timings=timings)
+
+
+def _inside_difference(fld: DensityField, other: DensityField, pts: np.ndarray):
+    """Mask of ``pts`` (the finite points ``fld`` was built from) inside fld − other, and the
+    difference D = max(F_fld, −F_other) on ``fld``'s blocks (interpolated at the points)."""
+    d = difference_on_own_blocks(fld, other)
+    return fld.interpolate(d, pts) < 0, d
+
+
+def _regions(fld: DensityField, d: np.ndarray, pts: np.ndarray, mask: np.ndarray, *, regions: bool,
+             decision: str, min_region_points: int, cluster_fraction: float):
+    """(mask, regions, region label per point) after the region-level rules of :func:`detect_changes`."""
+    if not (regions or decision == "cluster"):
+        return mask, [], np.where(mask, 0, -1)
+    labels, counts = label_points(fld, d, pts)
+    if min_region_points > 1 and len(counts):
+        big = np.bincount(labels[mask], minlength=len(counts)) >= min_region_points
+        mask = mask & big[np.maximum(labels, 0)]
+    if decision == "cluster":
+        mask, labels, counts = _cluster_decision(fld, pts, mask, labels, counts, cluster_fraction)
+    regs, region_of = describe_regions(pts, np.where(mask, labels, -1), counts, fld.voxel_size)
+    return mask, regs, region_of
 
 
 def _cluster_decision(fld: DensityField, pts: np.ndarray, changed: np.ndarray, labels: np.ndarray,

@@ -29,6 +29,9 @@ EXAMPLES_ALIGN = """  sdp align rescan.pcd reference.pcd -o T.txt               
   sdp align rescan.pcd reference.pcd -o T.txt --method gicp  small_gicp (extra: align)
   sdp change reference.pcd rescan.pcd -o out.ply --align density   align, then compare
 """
+EXAMPLES_WATCH = """  sdp watch empty_room.pcd frames/                         each frame against a sliding window
+  sdp watch map.sdpf frames/ --update none --json           against a fixed reference field
+"""
 EXAMPLES_EVAL = """  sdp eval changes.ply truth.ply                              field 'change' of both
   sdp eval demo-output/current_labelled.ply demo-output/current_labelled.ply --truth-field truth
   sdp eval changes.las scan_labels.las --truth-field classification --json
@@ -49,16 +52,17 @@ def _grid_options(p):
     g.add_argument("--memory-limit", help="refuse grids needing more (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
 
 
+def _voxel(a) -> float | str:
+    if a.voxel_size == "auto":
+        return "auto"
+    try:
+        return float(a.voxel_size)
+    except ValueError:
+        raise SDPError(f"--voxel-size must be a number or 'auto', got {a.voxel_size!r}") from None
+
+
 def _grid_kwargs(a):
-    if a.grid_size is not None:
-        size = {"grid_size": a.grid_size}
-    elif a.voxel_size == "auto":
-        size = {"voxel_size": "auto"}
-    else:
-        try:
-            size = {"voxel_size": float(a.voxel_size)}
-        except ValueError:
-            raise SDPError(f"--voxel-size must be a number or 'auto', got {a.voxel_size!r}") from None
+    size = {"grid_size": a.grid_size} if a.grid_size is not None else {"voxel_size": _voxel(a)}
     return dict(size, k=a.k, h=a.h, sigma_voxels=a.sigma_voxels, memory_limit=a.memory_limit)
 
 
@@ -193,6 +197,36 @@ def cmd_align(a):
         print(json.dumps(al.summary(), indent=2))
     else:
         print(f"{_alignment_text(al.summary())}\nwrote {a.output}")
+    return 0
+
+
+def cmd_watch(a):
+    import re
+
+    from .io import FORMATS
+    from .online import watch
+
+    folder = Path(a.frames)
+    if not folder.is_dir():
+        raise SDPError(f"{folder}: not a folder of frames")
+    paths = sorted((p for p in folder.iterdir() if p.suffix.lower() in FORMATS and p.is_file()),
+                   key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+    if not paths:
+        raise SDPError(f"{folder}: no point-cloud files ({', '.join(sorted(FORMATS))})")
+    ref = _field(a.reference, a) if _is_field(a.reference) else read_points(a.reference, format=a.format).xyz
+    frames = ((p.name, read_points(p, format=a.format).xyz) for p in paths)
+    reports = []
+    for r in watch(ref, frames, voxel_size=_voxel(a), update=a.update,
+                   window=a.window, decay=a.decay, min_region_points=a.min_region_points):
+        s = r.summary()
+        reports.append(s)
+        if not a.json:
+            where = "; ".join(f"{g['n_points']:,} at ({', '.join(f'{v:.2f}' for v in g['centroid'])})"
+                              for g in s["regions"][:3])
+            print(f"{r.name}: {s['points']:,} points, {r.n_appeared:,} appeared in {len(r.regions)} regions "
+                  f"({r.latency * 1e3:.1f} ms){': ' + where if where else ''}")
+    if a.json:
+        print(json.dumps(reports, indent=2))
     return 0
 
 
@@ -347,7 +381,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("reference")
     c.add_argument("current")
     c.add_argument("-o", "--output", required=True, help="labelled current cloud (.ply, .las, .laz, .npz)")
-    c.add_argument("--both", action="store_true", help="also write the disappeared reference points (OUTPUT_disappeared)")
+    c.add_argument("--both", action="store_true",
+                   help="also write the disappeared reference points (OUTPUT_disappeared)")
     c.add_argument("--decision", choices=("point", "cluster"), default="point")
     c.add_argument("--min-region-points", type=int, default=1, help="drop change regions with fewer points")
     c.add_argument("--png", help="write a picture of the appeared points")
@@ -386,6 +421,18 @@ def build_parser() -> argparse.ArgumentParser:
                     help="density: maximise the reference's density, coarse to fine; gicp: small_gicp")
     al.add_argument("--json", action="store_true", help="print the result as JSON")
 
+    w = _command(sub, "watch", cmd_watch, "compare each frame of a folder, in order, with a model that learns",
+                 EXAMPLES_WATCH)
+    w.add_argument("reference", help="cloud or field (.sdpf) of the scene before the frames")
+    w.add_argument("frames", help="folder of frames, processed in natural name order")
+    w.add_argument("--update", choices=("none", "window", "decay"), default="window",
+                   help="how the model learns the frames (default window)")
+    w.add_argument("--window", type=int, default=10, help="frames in the model, reference included (default 10)")
+    w.add_argument("--decay", type=float, default=0.8, help="per-frame forgetting factor for --update decay")
+    w.add_argument("--min-region-points", type=int, default=50, help="drop appeared regions with fewer points")
+    w.add_argument("--voxel-size", default="auto", help="voxel of a reference cloud, or 'auto'")
+    w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
+
     e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth",
                  EXAMPLES_EVAL)
     e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
@@ -401,7 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")
     r.add_argument("--field", default="change", help="per-point field whose nonzero points are red (default change)")
 
-    for q in (c, b, i, m, o, al, e, r):
+    for q in (c, b, i, m, o, al, w, e, r):
         q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz)")
     for q in (c, b, m, o):
         _grid_options(q)
@@ -410,7 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
                  "  sdp demo -o demo-output")
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
-    for q in (c, b, i, m, o, al, e, r, d):
+    for q in (c, b, i, m, o, al, w, e, r, d):
         q.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     return p
 

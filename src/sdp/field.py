@@ -19,7 +19,7 @@ import numpy as np
 from . import _kernels as K
 from ._points import as_points
 from ._progress import bar
-from .errors import FieldFileError, InvalidPointsError
+from .errors import FieldFileError, IncompatibleFieldsError, InvalidPointsError
 from .grid import BLOCK, Grid, check_memory, voxel_size_for_grid_size
 
 __all__ = ["DensityField", "threshold", "FORMAT_VERSION"]
@@ -174,6 +174,62 @@ class DensityField:
             K.blur_pass(src, src_nz, dst, dst_nz, self._directory, self._keys, axis, taps)
             src, dst, src_nz, dst_nz = dst, src, dst_nz, src_nz
         self._blocks = src
+
+    # ------------------------------------------------------------------ online updates
+    def accumulate(self, other: "DensityField", *, weight: float = 1.0) -> "DensityField":
+        """Add ``weight`` · G_other to this field, in place; returns ``self``.
+
+        ``other`` must share the voxel size, σ and truncation (build it with
+        ``voxel_size=self.voxel_size, sigma_voxels=self.sigma / self.voxel_size``). G is linear
+        in the points, so accumulating the field of new points equals rebuilding from all the
+        points, up to float32 rounding; ``weight=-1`` removes points added before (a sliding
+        window). Costs O(other's blocks), plus a copy of this field's blocks when new blocks
+        must be allocated and of its directory when the box must grow.
+        """
+        if not (np.isclose(other.voxel_size, self.voxel_size, rtol=1e-12, atol=0)
+                and np.isclose(other.sigma, self.sigma, rtol=1e-9) and other.truncate == self.truncate):
+            raise IncompatibleFieldsError(
+                f"can't accumulate a field of voxel {other.voxel_size:g}, σ {other.sigma:g} into one of voxel "
+                f"{self.voxel_size:g}, σ {self.sigma:g}: build it with the same voxel_size and sigma_voxels")
+        keys = other.global_keys
+        if len(keys) == 0:
+            return self
+        lo = np.minimum(keys.min(axis=0), self.grid.block_origin)
+        hi = np.maximum(keys.max(axis=0) + 1, self.grid.block_origin + np.asarray(self.grid.shape_blocks))
+        if np.any(lo < self.grid.block_origin) or np.any(hi > self.grid.block_origin + self.grid.shape_blocks):
+            grid = Grid(self.voxel_size, lo, tuple(int(v) for v in hi - lo))
+            check_memory(grid.n_blocks_box * 5 + self.nbytes, f"the block directory of a {grid.shape} grid", None)
+            self._keys = self._keys + (self.grid.block_origin - lo)
+            self._directory = np.full(grid.shape_blocks, -1, np.int32)
+            self._directory[tuple(self._keys.T)] = np.arange(len(self._keys), dtype=np.int32)
+            self.grid = grid
+        local = keys - self.grid.block_origin
+        rows = self._directory[tuple(local.T)].astype(np.int64)
+        new = rows < 0
+        if new.any():
+            rows[new] = len(self._keys) + np.arange(new.sum())
+            self._directory[tuple(local[new].T)] = rows[new]
+            self._keys = np.concatenate([self._keys, local[new]])
+            self._blocks = np.concatenate([self._blocks, np.zeros((new.sum(), BLOCK**3), np.float32)])
+        self._blocks[rows] += np.float32(weight) * other._blocks
+        self.n_points += int(round(weight * other.n_points))
+        return self
+
+    def copy(self) -> "DensityField":
+        """An independent copy (node values, blocks and directory copied)."""
+        out = DensityField.__new__(DensityField)
+        out.__dict__.update(self.__dict__)
+        out._blocks, out._keys, out._directory = self._blocks.copy(), self._keys.copy(), self._directory.copy()
+        return out
+
+    def scale(self, factor: float) -> "DensityField":
+        """Multiply G by ``factor``, in place (an exponential decay: old points fade); returns ``self``.
+
+        O(allocated nodes). Observed every frame with decay λ, a static surface's G settles at
+        1/(1 − λ) times one frame's.
+        """
+        self._blocks *= np.float32(factor)
+        return self
 
     # ------------------------------------------------------------------ queries
     @property

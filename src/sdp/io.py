@@ -224,7 +224,7 @@ def atomic_path(path: str | os.PathLike, *, inputs=()):
     """
     path = Path(path)
     refuse_overwrite(path, inputs)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent if str(path.parent) else ".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
         yield Path(tmp)

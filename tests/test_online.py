@@ -1,0 +1,79 @@
+import json
+
+import numpy as np
+import pytest
+from conftest import box_surface, room_scene
+
+import sdp
+from sdp.online import watch
+
+
+def test_accumulate_equals_a_rebuild_and_subtracting_undoes_it(rng):
+    a, b = room_scene(rng, n=20_000), box_surface(rng, [3.5, 3.2, 0.0], [4.5, 4.0, 0.8], 4000)  # b grows the box
+    fa = sdp.DensityField.from_points(a, voxel_size=0.04)
+    both = sdp.DensityField.from_points(np.concatenate([a, b]), voxel_size=0.04)
+    grown = fa.copy().accumulate(sdp.DensityField.from_points(b, voxel_size=0.04))
+    q = rng.uniform([0, 0, 0], [4.5, 4.0, 2.5], (5000, 3))
+    np.testing.assert_allclose(grown.density(q), both.density(q), atol=1e-4 * both.density(q).max())
+    assert grown.n_points == len(a) + len(b)
+    back = grown.accumulate(sdp.DensityField.from_points(b, voxel_size=0.04), weight=-1)
+    np.testing.assert_allclose(back.density(q), fa.density(q), atol=1e-4 * both.density(q).max())
+    with pytest.raises(sdp.IncompatibleFieldsError, match="voxel"):
+        fa.accumulate(sdp.DensityField.from_points(b, voxel_size=0.05))
+
+
+def test_scale_is_a_decay(rng):
+    f = sdp.DensityField.from_points(room_scene(rng, n=5000), voxel_size=0.05)
+    q = rng.uniform(0, 3, (100, 3))
+    before = f.density(q)
+    np.testing.assert_allclose(f.copy().scale(0.5).density(q), 0.5 * before, rtol=1e-6)
+    np.testing.assert_array_equal(f.density(q), before)  # the copy was scaled, not the original
+
+
+def stream(rng):
+    """A static room seen three times, then with a box put on the table, seen three times."""
+    box = box_surface(rng, [2.0, 1.2, 0.75], [2.4, 1.6, 1.1], 3000)
+    return [room_scene(rng) for _ in range(3)] + [np.concatenate([room_scene(rng), box]) for _ in range(3)], box
+
+
+@pytest.mark.parametrize("update", ["none", "window", "decay"])
+def test_watch_reports_an_object_when_it_appears(rng, update):
+    frames, box = stream(rng)
+    reports = list(watch(room_scene(rng), frames, voxel_size=0.03, update=update, window=3, decay=0.5,
+                         min_region_points=50))
+    assert [r.index for r in reports] == list(range(6))
+    assert all(r.n_appeared == 0 for r in reports[:3])  # static: nothing
+    first = reports[3]
+    assert first.n_appeared > 0.5 * len(box)  # not the parts within σ of the table and len(first.regions) == 1
+    assert np.allclose(first.regions[0].centroid, [2.2, 1.4, 0.95], atol=0.1)
+    if update == "none":  # the fixed reference keeps reporting it
+        assert all(r.n_appeared > 0.5 * len(box) for r in reports[4:])
+    else:  # the model has learnt it
+        assert reports[-1].n_appeared < 0.1 * len(box)
+    assert all(r.latency > 0 and set(r.timings) == {"build", "detect", "regions", "update"} for r in reports)
+
+
+def test_window_forgets_what_left(rng):
+    frames, box = stream(rng)
+    ref = np.concatenate([room_scene(rng), box])  # the box stands in the reference, leaves, comes back
+    kept = list(watch(ref, frames, voxel_size=0.03, update="none", min_region_points=50))
+    forgot = list(watch(ref, frames, voxel_size=0.03, update="window", window=2, min_region_points=50))
+    assert kept[3].n_appeared < 0.1 * len(box)  # still in the fixed reference
+    assert forgot[3].n_appeared > 0.5 * len(box)  # left the 2-frame window: new again
+
+
+def test_sdp_watch_folder(tmp_path, rng):
+    import subprocess
+    import sys
+
+    frames, box = stream(rng)
+    sdp.write_points(tmp_path / "ref.ply", room_scene(rng))
+    (tmp_path / "frames").mkdir()
+    for i, f in enumerate(frames):
+        sdp.write_points(tmp_path / "frames" / f"frame{i + 8}.npz", f)  # natural order: 8, 9, 10, ...
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "watch", str(tmp_path / "ref.ply"), str(tmp_path / "frames"),
+                        "--voxel-size", "0.03", "--json"], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert [r["name"] for r in out] == [f"frame{i + 8}.npz" for i in range(6)]
+    assert [r["appeared"] > 0 for r in out] == [False, False, False, True, False, False]
