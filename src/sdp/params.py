@@ -18,7 +18,7 @@ __all__ = ["auto_voxel_size"]
 
 
 def auto_voxel_size(*clouds, k: int = 3, quantile: float = 0.9, scale: float = 1.5,
-                    sigma_voxels: float = 2.0, sample: int = 20_000, seed: int = 0) -> float:
+                    sigma_voxels: float = 2.0, sample: int = 5_000, seed: int = 0) -> float:
     """A voxel size for clouds sampled like these: σ = ``scale`` × the ``quantile`` of each
     point's distance to its ``k``-th nearest neighbour, l = σ / ``sigma_voxels``.
 
@@ -57,7 +57,8 @@ def auto_voxel_size(*clouds, k: int = 3, quantile: float = 0.9, scale: float = 1
         query = pts[rng.choice(len(pts), sample, replace=False)] if len(pts) > sample else pts
         if len(pts) <= k:
             continue
-        d, _ = cKDTree(pts).query(query, k=k + 1, workers=-1)
+        tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)  # built 2-3x faster; queried once
+        d, _ = tree.query(query, k=k + 1, workers=-1)
         dists.append(d[:, k])
     d = np.concatenate(dists) if dists else np.zeros(0)
     d = d[d > 0]
