@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -31,6 +32,10 @@ EXAMPLES_ALIGN = """  sdp align rescan.pcd reference.pcd -o T.txt               
 """
 EXAMPLES_WATCH = """  sdp watch empty_room.pcd frames/                         each frame against a sliding window
   sdp watch map.sdpf frames/ --update none --json           against a fixed reference field
+"""
+EXAMPLES_ACTION = """  sdp action eval ../shared/data/msr_action3d --json          the cross-subject protocol
+  sdp action train ../shared/data/msr_action3d -o model.npz --subjects 1,3,5,7,9
+  sdp action predict model.npz a05_s02_e01_sdepth.mat
 """
 EXAMPLES_EVAL = """  sdp eval changes.ply truth.ply                              field 'change' of both
   sdp eval demo-output/current_labelled.ply demo-output/current_labelled.ply --truth-field truth
@@ -227,6 +232,40 @@ def cmd_watch(a):
                   f"({r.latency * 1e3:.1f} ms){': ' + where if where else ''}")
     if a.json:
         print(json.dumps(reports, indent=2))
+    return 0
+
+
+def cmd_action(a):
+    from . import actions
+
+    if a.action_command == "train":
+        rows = actions.list_sequences(a.data_dir)
+        if a.subjects:
+            wanted = {int(v) for v in a.subjects.split(",")}
+            rows = [r for r in rows if r[2] in wanted]
+        x = actions.describe_sequences([r[0] for r in rows], workers=a.workers)
+        model, cv = actions.train(x, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]))
+        model.save(a.output)
+        print(f"{len(rows)} sequences, {len(model.classes)} actions; alpha {model.alpha:g}, "
+              f"leave-one-subject-out accuracy {cv:.3f}\nwrote {a.output}")
+    elif a.action_command == "predict":
+        model = actions.ActionModel.load(a.model)
+        for path in a.sequences:
+            label = model.predict(actions.sequence_descriptor(actions.read_sequence(path)))[0]
+            print(f"{path}: a{int(label):02d}")
+    else:
+        t0 = time.perf_counter()
+        r = actions.evaluate_protocol(a.data_dir, workers=a.workers)
+        r["timings"]["total"] = time.perf_counter() - t0
+        summary = dict(r["accuracy"], cv=r["cv_accuracy"], alpha=r["alpha"], timings=r["timings"],
+                       sequences=r["sequences"])
+        if a.json:
+            print(json.dumps(summary, indent=2))
+        else:
+            for name, acc in r["accuracy"].items():
+                cv = r["cv_accuracy"].get(name)
+                print(f"{name:8s} {acc:.3f}" + (f"   (cross-validated on training subjects {cv:.3f})" if cv else ""))
+            print("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in r["timings"].items()))
     return 0
 
 
@@ -432,6 +471,22 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--min-region-points", type=int, default=50, help="drop appeared regions with fewer points")
     w.add_argument("--voxel-size", default="auto", help="voxel of a reference cloud, or 'auto'")
     w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
+
+    act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)",
+                   EXAMPLES_ACTION)
+    asub = act.add_subparsers(dest="action_command", required=True)
+    t = asub.add_parser("train", help="fit a classifier on a folder of aXX_sYY_eZZ sequences")
+    t.add_argument("data_dir")
+    t.add_argument("-o", "--output", required=True, help="model file (.npz)")
+    t.add_argument("--subjects", help="comma-separated subjects to train on (default: all)")
+    pr = asub.add_parser("predict", help="action label of each sequence")
+    pr.add_argument("model")
+    pr.add_argument("sequences", nargs="+", help=".mat or .bin depth sequences")
+    ev = asub.add_parser("eval", help="the cross-subject protocol: accuracy on AS1, AS2, AS3 and all")
+    ev.add_argument("data_dir")
+    ev.add_argument("--json", action="store_true", help="print the accuracies (fractions) and timings as JSON")
+    for q in (t, ev):
+        q.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes reading sequences")
 
     e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth",
                  EXAMPLES_EVAL)
