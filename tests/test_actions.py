@@ -5,8 +5,15 @@ import numpy as np
 import pytest
 
 from sdp import SDPError
-from sdp.actions import (ActionModel, depth_to_points, describe_sequences, list_sequences, read_sequence,
-                         sequence_descriptor, train)
+from sdp.actions import (
+    ActionModel,
+    depth_to_points,
+    describe_sequences,
+    list_sequences,
+    read_sequence,
+    sequence_descriptor,
+    train,
+)
 
 
 def person(t, arm, rng, h=240, w=320):
