@@ -162,6 +162,13 @@ def _field(path, a):
     return DensityField.from_points(xyz, **_lattice(a, [xyz]))
 
 
+def _field_or_points(path, a):
+    """A field file loaded, or a cloud file's points (n, 3)."""
+    from .field import DensityField
+
+    return DensityField.load(path) if _is_field(path) else read_points(path, format=a.format).xyz
+
+
 def _save_field(field, path, inputs):
     from .io import refuse_overwrite
 
@@ -194,7 +201,7 @@ def cmd_align(a):
     from .io import atomic_path, refuse_overwrite
 
     refuse_overwrite(a.output, (a.current, a.reference))
-    ref = _field(a.reference, a) if _is_field(a.reference) else read_points(a.reference, format=a.format).xyz
+    ref = _field_or_points(a.reference, a)
     al = align(ref, read_points(a.current, format=a.format).xyz, method=a.method)
     with atomic_path(a.output) as tmp:
         np.savetxt(tmp, al.matrix, fmt="%.12g", header=f"sdp align {a.current} onto {a.reference} ({a.method})")
@@ -218,7 +225,7 @@ def cmd_watch(a):
                    key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
     if not paths:
         raise SDPError(f"{folder}: no point-cloud files ({', '.join(sorted(FORMATS))})")
-    ref = _field(a.reference, a) if _is_field(a.reference) else read_points(a.reference, format=a.format).xyz
+    ref = _field_or_points(a.reference, a)
     frames = ((p.name, read_points(p, format=a.format).xyz) for p in paths)
     reports = []
     for r in watch(ref, frames, voxel_size=_voxel(a), update=a.update,
@@ -306,7 +313,7 @@ def cmd_bool(a):
     from . import boolean
     from .field import DensityField
 
-    items = [DensityField.load(p) if _is_field(p) else read_points(p, format=a.format).xyz for p in (a.a, a.b)]
+    items = [_field_or_points(p, a) for p in (a.a, a.b)]
     like = next((x for x in items if isinstance(x, DensityField)), None)
     kw = _lattice(a, items, like)  # clouds are built on a given field's lattice, else on one from both
     fa, fb = (x if isinstance(x, DensityField) else DensityField.from_points(x, **kw) for x in items)
