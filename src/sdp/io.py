@@ -52,6 +52,10 @@ class Cloud:
     las : object
         The ``laspy.LasData`` of LAS/LAZ input (kept so outputs can keep every dimension),
         else None.
+    viewpoint : ndarray (7,) float64 or None
+        The sensor's pose from a PCD file's ``VIEWPOINT`` header: translation ``tx ty tz``
+        then unit quaternion ``qw qx qy qz`` (PCL writes the grabber's ``sensor_origin_`` and
+        ``sensor_orientation_`` there; ``0 0 0 1 0 0 0`` when unset). None for other formats.
     """
 
     xyz: np.ndarray
@@ -59,9 +63,16 @@ class Cloud:
     path: Path | None = None
     n_dropped: int = 0
     las: object = None
+    viewpoint: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.xyz)
+
+    @property
+    def sensor_origin(self) -> np.ndarray | None:
+        """Position (3,) of the sensor in the cloud's frame (``viewpoint[:3]``), or None when
+        the file does not say; pass it to :func:`sdp.detect_changes` (``sensor_origin=``)."""
+        return None if self.viewpoint is None else self.viewpoint[:3].copy()
 
 
 def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
@@ -88,7 +99,7 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
     if not path.is_file():
         raise CloudFileError(f"{path}: no such file")
     try:
-        xyz, fields, las = _READERS[fmt](path)
+        xyz, fields, las, *viewpoint = _READERS[fmt](path)  # PCD adds its VIEWPOINT
     except CloudFileError:
         raise
     except Exception as exc:  # libraries raise many types on corrupt input
@@ -103,7 +114,7 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
         fields = {k: v[finite] for k, v in fields.items()}
     if len(xyz) == 0:
         raise CloudFileError(f"{path}: holds no point with finite x, y, z")
-    return Cloud(np.ascontiguousarray(xyz), fields, path, dropped, las)
+    return Cloud(np.ascontiguousarray(xyz), fields, path, dropped, las, viewpoint[0] if viewpoint else None)
 
 
 def _read_pcd(path):
@@ -119,7 +130,11 @@ def _read_pcd(path):
     xyz = np.c_[cols["x"], cols["y"], cols["z"]]
     if pc.metadata.height > 1:  # organized scans mark a missing return by NaN or by (0, 0, 0)
         xyz[~xyz.any(axis=1)] = np.nan
-    return xyz, fields, None
+    viewpoint = np.asarray(pc.metadata.viewpoint, dtype=np.float64)
+    if viewpoint.shape != (7,) or not np.isfinite(viewpoint).all():
+        raise CloudFileError(f"{path}: VIEWPOINT must be 7 finite numbers (tx ty tz qw qx qy qz), "
+                             f"got {pc.metadata.viewpoint}")
+    return xyz, fields, None, viewpoint
 
 
 def _pcd_column(pc, name, col):
