@@ -20,6 +20,8 @@ EXAMPLES_CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                
   sdp change ref.ply cur.ply -o out.ply --grid-size 80        the paper's parameters
   sdp change ref.pcd cur.pcd -o out.ply --json                summary as JSON
   sdp change ref.pcd rescan.pcd -o out.ply --align density    register the rescan first
+  sdp change a.laz b.laz -o out.laz --voxel-size 0.1 --memory-limit 2GB   any size: tiles on Dask
+  sdp change a.laz b.laz -o out.laz --voxel-size 0.1 --scheduler tcp://host:8786   on a cluster
 """
 
 EXAMPLES_BOOL = """  sdp bool difference cur.sdpf ref.sdpf -o new.sdpf          what cur has and ref lacks
@@ -75,6 +77,9 @@ def cmd_change(a):
     from .change import detect_changes
     from .io import write_points
 
+    tiled = _tiled_voxel(a)
+    if tiled is not None:
+        return _change_tiled(a, tiled)
     t0 = time.perf_counter()
     ref, cur = read_points(a.reference, format=a.format), read_points(a.current, format=a.format)
     t_read = time.perf_counter() - t0
@@ -112,6 +117,86 @@ def cmd_change(a):
     return 0
 
 
+def _tiled_voxel(a) -> float | None:
+    """The voxel size of a tiled comparison when ``--tiled`` is given or the clouds need it, else None.
+
+    Tiles are taken when the two dense grids over the clouds' box, or the points themselves,
+    would exceed the memory limit; only LAS/LAZ, NPY and binary PLY can be read in slices.
+    """
+    from .grid import memory_limit
+    from .io import FORMATS, PointSource
+    from .tiles import dense_grid_bytes, untiled_point_bytes
+
+    streamed = all((a.format or FORMATS.get(Path(f).suffix.lower())) in ("las", "npy", "ply")
+                   for f in (a.reference, a.current))
+    if not a.tiled and (not streamed or a.grid_size is not None or a.align or a.decision != "point"):
+        return None
+    if a.tiled:
+        for flag, bad in (("--grid-size", a.grid_size is not None), ("--align", a.align),
+                          ("--decision cluster", a.decision != "point"), ("--png/--html", a.png or a.html)):
+            if bad:
+                raise SDPError(f"{flag} is not available with --tiled")
+        if not streamed:
+            raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; convert the clouds first")
+    try:
+        sources = [PointSource.open(f, format=a.format) for f in (a.reference, a.current)]
+    except SDPError:
+        if a.tiled:
+            raise
+        return None  # ASCII PLY and the like: the in-memory path reads them (or reports the error)
+    voxel = _voxel(a)
+    if voxel == "auto":
+        from .params import auto_voxel_size
+
+        voxel = auto_voxel_size(*(next(s.chunks())[1] for s in sources), k=int(round(a.k)),
+                                sigma_voxels=a.sigma_voxels)
+    lo = np.minimum(sources[0].lo, sources[1].lo)
+    hi = np.maximum(sources[0].hi, sources[1].hi)
+    grids = 2 * dense_grid_bytes(lo, hi, voxel, sigma_voxels=a.sigma_voxels)
+    points = untiled_point_bytes(sum(s.n_rows for s in sources))
+    cap = memory_limit(a.memory_limit)
+    if a.tiled or max(grids, points) > cap:
+        if not a.tiled and not a.json:
+            print(f"sdp: comparing in tiles on Dask: dense grids of {grids / 2**30:.2f} GiB and points of "
+                  f"{points / 2**30:.2f} GiB exceed the memory limit of {cap / 2**30:.2f} GiB", file=sys.stderr)
+        a.sources = sources
+        return float(voxel)
+    return None
+
+
+def _change_tiled(a, voxel: float):
+    from .io import write_points_streamed
+    from .tiles import detect_changes_tiled
+
+    r = detect_changes_tiled(*a.sources, voxel_size=voxel, sigma_voxels=a.sigma_voxels, k=a.k, h=a.h,
+                             min_region_points=a.min_region_points, tile_size=a.tile_size,
+                             memory_limit=a.memory_limit, scheduler=a.scheduler, workers=a.workers,
+                             workdir=a.workdir)
+    out = Path(a.output)
+    jobs = [(out, a.sources[1], r.appeared_rows, r.appeared_region)]
+    if a.both:
+        jobs.append((out.with_name(out.stem + "_disappeared" + out.suffix), a.sources[0], r.disappeared_rows,
+                     r.disappeared_region))
+    t = time.perf_counter()
+    outputs = []
+    for path, src, rows, region in jobs:
+        def fields_of(start, stop, rows=rows, region=region):
+            i, j = np.searchsorted(rows, (start, stop))
+            change, label = np.zeros(stop - start, np.uint8), np.full(stop - start, -1, np.int32)
+            change[rows[i:j] - start], label[rows[i:j] - start] = 1, region[i:j]
+            return {"change": change, "region": label}
+
+        outputs.append(str(write_points_streamed(path, src, fields_of, inputs=(a.reference, a.current))))
+    summary = r.summary()
+    summary["timings"]["write"] = time.perf_counter() - t
+    summary["outputs"] = outputs
+    if a.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        _print_summary(summary, a.reference, a.current)
+    return 0
+
+
 def _print_summary(s, ref_name, cur_name):
     print(f"reference  {ref_name}: {s['reference']['points']:,} points ({s['reference']['dropped']} dropped), "
           f"{s['reference']['disappeared']:,} disappeared")
@@ -119,7 +204,8 @@ def _print_summary(s, ref_name, cur_name):
           f"{s['current']['appeared']:,} appeared")
     if "alignment" in s:
         print(_alignment_text(s["alignment"]))
-    print(f"voxel {s['voxel_size']:.4g}, sigma {s['sigma']:.4g}, h {s['h']:.4f}, decision {s['decision']}")
+    print(f"voxel {s['voxel_size']:.4g}, sigma {s['sigma']:.4g}, h {s['h']:.4f}, decision {s['decision']}"
+          + (f", {s['tiles']} tiles of {s['tile_size']:.4g}" if "tiles" in s else ""))
     for kind in ("appeared", "disappeared"):
         regs = s[f"{kind}_regions"]
         if regs:
@@ -436,6 +522,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
     c.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
+    t = c.add_argument_group("large clouds: tiles on Dask (taken by itself when the grids or points exceed "
+                             "--memory-limit; outputs LAS/LAZ with 'change' and 'region')")
+    t.add_argument("--tiled", action="store_true", help="compare in tiles even if the clouds fit in memory")
+    t.add_argument("--tile-size", type=float, help="tile edge in world units (default: ~2M points per tile)")
+    t.add_argument("--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786 "
+                   "(default: a local cluster of --workers processes)")
+    t.add_argument("--workers", type=int, help="worker processes of the local cluster (default: one per core)")
+    t.add_argument("--workdir", help="folder for the tiles' buckets (shared by all workers on a cluster)")
 
     b = _command(sub, "build", cmd_build, "build a density field and save it (.sdpf)",
                  "  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01")

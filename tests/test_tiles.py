@@ -1,0 +1,140 @@
+"""Tiled change detection (sdp.tiles), streaming input (PointSource) and streamed LAS output."""
+
+import json
+import subprocess
+import sys
+
+import laspy
+import numpy as np
+import pytest
+from conftest import box_surface
+
+import sdp
+from sdp.io import CloudFileError, PointSource, write_points, write_points_streamed
+from sdp.tiles import detect_changes_tiled
+
+UTM = np.array([630_000.0, 4_830_000.0, 100.0])
+
+
+def street(rng, boxes, n=120_000):
+    """A 30 m × 20 m ground with box-shaped objects on it, at UTM-like coordinates."""
+    ground = np.c_[rng.uniform(0, 30, n), rng.uniform(0, 20, n), 0.01 * rng.standard_normal(n)]
+    objects = [box_surface(rng, lo, hi, 4000) for lo, hi in boxes]
+    return np.concatenate([ground, *objects]) + UTM
+
+
+@pytest.fixture
+def epochs(rng):
+    ref = street(rng, [([2, 2, 0], [4, 5, 1.5]), ([14, 9.5, 0], [16, 10.5, 2])])
+    cur = street(rng, [([2, 2, 0], [4, 5, 1.5]), ([9.5, 15.5, 0], [10.8, 16.8, 1.2]), ([25, 3, 0], [26, 4, 1])])
+    cur[[7, 70_000]] = np.nan
+    return ref, cur
+
+
+def regions_of(rs):
+    return sorted((r.n_points, round(r.volume, 6), tuple(np.round(r.centroid, 6))) for r in rs)
+
+
+@pytest.mark.parametrize("min_region_points", [1, 500])
+def test_tiled_equals_untiled(epochs, min_region_points):
+    ref, cur = epochs
+    a = sdp.detect_changes(ref, cur, voxel_size=0.1, min_region_points=min_region_points)
+    # 4 m tiles: objects straddle tile borders (one sits across a corner of four tiles)
+    b = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=4.0, scheduler="synchronous",
+                             min_region_points=min_region_points)
+    assert b.n_tiles >= 35
+    assert a.appeared.sum() > 4000 and a.disappeared.sum() > 2000
+    np.testing.assert_array_equal(b.appeared, a.appeared)
+    np.testing.assert_array_equal(b.disappeared, a.disappeared)
+    assert regions_of(b.appeared_regions) == regions_of(a.appeared_regions)
+    assert regions_of(b.disappeared_regions) == regions_of(a.disappeared_regions)
+    np.testing.assert_array_equal(b.appeared_region, a.appeared_region[b.appeared_rows])
+    assert b.n_dropped_current == 2 and b.summary()["current"]["appeared"] == a.appeared.sum()
+
+
+def test_tiled_on_a_local_dask_cluster(epochs):
+    ref, cur = epochs
+    a = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=8.0, scheduler="synchronous")
+    b = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=8.0, workers=2)
+    np.testing.assert_array_equal(a.appeared_rows, b.appeared_rows)
+    np.testing.assert_array_equal(a.disappeared_rows, b.disappeared_rows)
+    assert {"bucket", "compare", "regions", "read", "build_reference", "detect"} <= set(b.timings)
+
+
+def test_tiled_refuses_a_tile_above_the_memory_limit(epochs):
+    ref, cur = epochs
+    with pytest.raises(sdp.GridTooLargeError, match="memory limit"):
+        detect_changes_tiled(ref, cur, voxel_size=0.01, tile_size=30, memory_limit="20MB", scheduler="synchronous")
+
+
+def write_las(path, xyz):
+    h = laspy.LasHeader(point_format=1, version="1.4")
+    h.scales, h.offsets = [0.001] * 3, np.floor(xyz.min(axis=0))
+    las = laspy.LasData(h)
+    las.x, las.y, las.z = xyz.T
+    las.intensity = np.arange(len(xyz)) % 60_000
+    las.write(str(path))
+    return path
+
+
+def test_point_source_slices_equal_the_whole_file(tmp_path, rng):
+    xyz = rng.uniform(0, 10, (250_000, 3)) + UTM
+    whole = {}
+    for name in ("c.laz", "c.npy", "c.ply"):
+        path = tmp_path / name
+        if name.endswith(".laz"):
+            write_las(path, xyz)
+        elif name.endswith(".npy"):
+            np.save(path, xyz)
+        else:
+            write_points(path, xyz)
+        whole[name] = sdp.read_points(path).xyz
+        src = PointSource.open(path)
+        assert src.n_rows == len(xyz)
+        np.testing.assert_allclose(src.lo, whole[name].min(axis=0), atol=1e-3)
+        np.testing.assert_array_equal(src.read(123_456, 123_460), whole[name][123_456:123_460])
+        parts = [c for _, c in src.chunks(70_000, start=10, stop=200_010)]
+        assert [len(c) for c in parts] == [70_000, 70_000, 60_000]
+        np.testing.assert_array_equal(np.concatenate(parts), whole[name][10:200_010])
+    (tmp_path / "bad.laz").write_bytes(b"LASF" + b"\0" * 50)
+    with pytest.raises(CloudFileError, match="bad.laz"):
+        PointSource.open(tmp_path / "bad.laz")
+    with pytest.raises(CloudFileError, match="slices"):
+        PointSource.open(write_points(tmp_path / "c.npz", xyz))
+
+
+def test_streamed_las_output_keeps_every_dimension(tmp_path, rng):
+    xyz = rng.uniform(0, 10, (50_000, 3)) + UTM
+    src = PointSource.open(write_las(tmp_path / "in.laz", xyz))
+    out = write_points_streamed(tmp_path / "out.laz", src, lambda s, e: {"change": (np.arange(s, e) % 3 == 0)
+                                                                         .astype(np.uint8)}, chunk_size=7_000)
+    a, b = laspy.read(str(tmp_path / "in.laz")), laspy.read(str(out))
+    np.testing.assert_array_equal(a.X, b.X)
+    np.testing.assert_array_equal(a.intensity, b.intensity)
+    np.testing.assert_array_equal(b.change, np.arange(len(xyz)) % 3 == 0)
+    with pytest.raises(sdp.SDPError, match="overwrite"):
+        write_points_streamed(tmp_path / "in.laz", src, lambda s, e: {}, inputs=(tmp_path / "in.laz",))
+    assert laspy.read(str(tmp_path / "in.laz")).header.point_count == len(xyz)
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "sdp.cli", *map(str, args)], capture_output=True, text=True)
+
+
+def test_cli_switches_to_tiles_by_itself(tmp_path, epochs):
+    ref, cur = epochs
+    cur = cur[np.isfinite(cur).all(axis=1)]
+    a, b = write_las(tmp_path / "a.laz", ref), write_las(tmp_path / "b.laz", cur)
+    small = run("change", a, b, "-o", tmp_path / "small.laz", "--voxel-size", "0.1", "--both", "--json")
+    big = run("change", a, b, "-o", tmp_path / "big.laz", "--voxel-size", "0.1", "--both", "--memory-limit", "15MB",
+              "--workers", "1", "--tile-size", "6")
+    assert small.returncode == 0 and big.returncode == 0, big.stderr
+    assert "comparing in tiles" in big.stderr and "tiles of 6.4" in big.stdout
+    for suffix in ("", "_disappeared"):
+        x, y = laspy.read(str(tmp_path / f"small{suffix}.laz")), laspy.read(str(tmp_path / f"big{suffix}.laz"))
+        np.testing.assert_array_equal(x.change, y.change)
+        np.testing.assert_array_equal(x.region >= 0, y.region >= 0)
+        np.testing.assert_array_equal(x.intensity, y.intensity)
+    assert json.loads(small.stdout)["current"]["appeared"] == laspy.read(str(tmp_path / "big.laz")).change.sum()
+    bad = run("change", a, b, "-o", tmp_path / "x.laz", "--tiled", "--align", "gicp")
+    assert bad.returncode == 2 and "--align is not available with --tiled" in bad.stderr
