@@ -4,6 +4,8 @@ References
 ----------
 .. [1] A. W. Vieira et al., "Spatial Density Patterns as Representation for Point Cloud
    Comparison and Applications", Algorithm 1.
+.. [2] J. P. Underwood et al., "Explicit 3D change detection using ray-tracing in spherical
+   coordinates", ICRA 2013 (the visibility test of ``sensor_origin=``, :mod:`sdp.visibility`).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from dataclasses import dataclass
 from dataclasses import field as dc_field
 
 import numpy as np
+import numpy.typing as npt
 
 from ._points import Points, as_points
 from .boolean import difference_on_own_blocks
@@ -20,6 +23,7 @@ from .field import DensityField
 from .grid import voxel_size_for_grid_size
 from .params import auto_voxel_size
 from .regions import Region, describe_regions, label_points
+from .visibility import as_sensor_origins, explained_by_visibility
 
 __all__ = ["ChangeResult", "detect_changes"]
 
@@ -43,7 +47,7 @@ class ChangeResult:
         The two fields, on one lattice (same voxel size).
     timings : dict of str to float
         Seconds per step: ``build_reference``, ``build_current``, ``detect`` (as the paper's
-        Table I), then ``regions``.
+        Table I), then ``regions``; with ``sensor_origin=``, also ``visibility``.
     voxel_size, h : float
         Parameters used.
     decision : str
@@ -84,7 +88,8 @@ def detect_changes(reference, current, *, grid_size: int | None = None, voxel_si
                    sigma_voxels: float = 2.0, k: float = 3, h: float | None = None, truncate: float = 3.0,
                    method: str = "auto", decision: str = "point", cluster_fraction: float = 0.5,
                    min_region_points: int = 1, regions: bool = True,
-                   memory_limit: int | str | None = None) -> ChangeResult:
+                   memory_limit: int | str | None = None, sensor_origin: npt.ArrayLike | None = None,
+                   range_noise: float = 0.015) -> ChangeResult:
     """Points that appeared in ``current`` and disappeared from ``reference``.
 
     Builds F_ref and F_cur on one lattice (same voxel size), forms the difference volumes
@@ -117,6 +122,21 @@ def detect_changes(reference, current, *, grid_size: int | None = None, voxel_si
         are reported unchanged. 1 keeps everything. Needs ``regions=True``.
     regions : bool
         Group changed points into connected regions (skip to save time).
+    sensor_origin : array_like (3,) or (2, 3), optional
+        Where the sensor stood, in the clouds' frame: one position for both scans, or the
+        reference's and the current's (e.g. :attr:`sdp.io.Cloud.sensor_origin`, a PCD file's
+        VIEWPOINT; after :func:`sdp.align`, move the current's origin with the same matrix).
+        Adds the visibility test of :mod:`sdp.visibility`: an appeared point stays a change if
+        the reference's rays passed through its place, or if the reference could not see its
+        place (hidden behind something nearer, or no return) and it does not continue the
+        unchanged surface around it; a point whose ray the reference saw end at the same range
+        is not a change. Disappeared points are tested against the current scan's view. This
+        removes the surface a moved object uncovers and depth noise along the rays; it runs
+        before the ``min_region_points`` filter. None (default): the density test alone.
+    range_noise : float
+        With ``sensor_origin``: "the same range" is within ``range_noise``·r² world units at
+        range r, and at least σ (for metres: 0.015 m⁻¹, 1.5 cm at 1 m, covers a Kinect's depth
+        noise and steps and its drift between frames).
 
     Returns
     -------
@@ -124,6 +144,9 @@ def detect_changes(reference, current, *, grid_size: int | None = None, voxel_si
     """
     if decision not in ("point", "cluster"):
         raise ValueError(f"decision must be 'point' or 'cluster', got {decision!r}")
+    origins = None if sensor_origin is None else as_sensor_origins(sensor_origin)
+    if not (range_noise >= 0 and np.isfinite(range_noise)):
+        raise ValueError(f"range_noise must be a finite number >= 0, got {range_noise!r}")
     ref = as_points(reference, name="reference")
     cur = as_points(current, name="current")
     if voxel_size is None and grid_size is None:
@@ -150,6 +173,12 @@ def detect_changes(reference, current, *, grid_size: int | None = None, voxel_si
     app, d_app = _inside_difference(f_cur, f_ref, cur.xyz)
     dis, d_dis = _inside_difference(f_ref, f_cur, ref.xyz)
     timings["detect"] = time.perf_counter() - t
+    if origins is not None:
+        t = time.perf_counter()
+        sigma = f_cur.sigma
+        app &= ~explained_by_visibility(cur.xyz, app, ref.xyz, origins[0], sigma=sigma, range_noise=range_noise)
+        dis &= ~explained_by_visibility(ref.xyz, dis, cur.xyz, origins[1], sigma=sigma, range_noise=range_noise)
+        timings["visibility"] = time.perf_counter() - t
     t = time.perf_counter()
     out = {}
     for name, fld, pts, mask, d in (("appeared", f_cur, cur, app, d_app), ("disappeared", f_ref, ref, dis, d_dis)):

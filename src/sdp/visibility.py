@@ -1,0 +1,461 @@
+"""Visibility along the sensor's rays: new surfaces versus surfaces the other scan never saw.
+
+A density difference says "the other cloud has no point here". For scans taken from known
+sensor positions that has several causes, which the other scan's rays tell apart. Each changed
+point is compared with the returns of the other scan along its ray (the range image cells
+within one cell of the ray's own, in azimuth and elevation about the other scan's origin), with
+a band ``b(r) = max(range_noise·r², band_floor·σ)`` of range noise:
+
+- **same surface** (:data:`SAME_SURFACE`): some return near the ray lies at the point's range
+  (within [nearest − b, farthest + b] of a cell): range noise or drift of the sensor, not a
+  change;
+- **seen free** (:data:`SEEN_FREE`): every return near the ray lies farther than r + b: the
+  other scan looked through the point's place and found it empty, so the point is new;
+- **hidden** (:data:`HIDDEN`): a return near the ray stopped nearer than r − b, none at r: the
+  other scan could not see the point's place;
+- **unobserved** (:data:`UNOBSERVED`): no return near the ray (a dropout, or outside the other
+  scan's field of view): nothing to compare with.
+
+A hidden or unobserved point is explained, not a change, when it continues the unchanged
+surface around it (it lies on the least-squares plane of its nearest unchanged neighbours,
+and that patch is flat; Hoppe et al. [3]): that is the table a moved object uncovers, or the
+border of a field of view that moved. Otherwise (a new object where the other scan could not
+look) it stays a change.
+
+The range image is spherical (azimuth, elevation about the sensor origin), as Underwood et al.
+[1] for change detection along laser rays, so any field of view works, from a Kinect's 57° to
+a full turn; each cell keeps the nearest and the farthest return. Cells are ``cell_factor``
+times the scan's angular point spacing, measured from the solid angle the scan covers (O(n), no
+neighbour search). The band grows as r², as the depth noise of triangulation sensors such as
+the Kinect (Khoshelham and Elberink [2]: σ_z ≈ 1.4e-3·r² m, depth steps ≈ 2.9e-3·r²).
+
+References
+----------
+.. [1] J. P. Underwood, D. Gillsjö, T. Bailey, V. Vlaskine, "Explicit 3D change detection using
+   ray-tracing in spherical coordinates", ICRA 2013.
+.. [2] K. Khoshelham, S. O. Elberink, "Accuracy and resolution of Kinect depth data for indoor
+   mapping applications", Sensors 12(2), 2012.
+.. [3] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle, "Surface reconstruction from
+   unorganized points", SIGGRAPH 1992.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import InvalidPointsError
+
+__all__ = ["RangeImage", "as_sensor_origins", "explained_by_visibility", "SEEN_FREE", "SAME_SURFACE", "HIDDEN",
+           "UNOBSERVED"]
+
+#: Classes of :meth:`RangeImage.classify`.
+SEEN_FREE, SAME_SURFACE, HIDDEN, UNOBSERVED = 0, 1, 2, 3
+
+_MAX_CELLS = 50_000_000  # a range image larger than this gets coarser cells (400 MB of float64)
+_DIRECTION_SAMPLE = 5_000  # points used to choose the image's frame
+
+
+# ---------------------------------------------------------------- kernels (compiled once, cached)
+
+@nb.njit(parallel=True, cache=True)
+def _angles(points, origin, frame):
+    """Azimuth, elevation (radians) and range of each point seen from ``origin``; frame rows are
+    forward (azimuth 0), left (azimuth +π/2) and pole (elevation +π/2). Range 0 gives NaN angles."""
+    n = points.shape[0]
+    az = np.empty(n)
+    el = np.empty(n)
+    rng = np.empty(n)
+    for i in nb.prange(n):
+        dx = points[i, 0] - origin[0]
+        dy = points[i, 1] - origin[1]
+        dz = points[i, 2] - origin[2]
+        f = dx * frame[0, 0] + dy * frame[0, 1] + dz * frame[0, 2]
+        lf = dx * frame[1, 0] + dy * frame[1, 1] + dz * frame[1, 2]
+        p = dx * frame[2, 0] + dy * frame[2, 1] + dz * frame[2, 2]
+        r = math.sqrt(f * f + lf * lf + p * p)
+        rng[i] = r
+        if r > 0.0:
+            az[i] = math.atan2(lf, f)
+            el[i] = math.asin(min(1.0, max(-1.0, p / r)))
+        else:
+            az[i] = np.nan
+            el[i] = np.nan
+    return az, el, rng
+
+
+@nb.njit(cache=True)
+def _occupied_solid_angle(az, el, lo_az, lo_el, bin_size, n_az, n_el):
+    """Solid angle (sr) of the bins of a coarse (azimuth, elevation) grid holding a point, and the
+    number of points binned."""
+    occ = np.zeros(n_az * n_el, np.bool_)
+    n = 0
+    for i in range(az.shape[0]):
+        if not math.isfinite(az[i]):
+            continue
+        a = min(int((az[i] - lo_az) / bin_size), n_az - 1)
+        e = min(int((el[i] - lo_el) / bin_size), n_el - 1)
+        occ[a * n_el + e] = True
+        n += 1
+    omega = 0.0
+    for a in range(n_az):
+        for e in range(n_el):
+            if occ[a * n_el + e]:
+                omega += bin_size * bin_size * math.cos(lo_el + (e + 0.5) * bin_size)
+    return omega, n
+
+
+@nb.njit(cache=True)
+def _near_far(az, el, rng, lo_az, lo_el, cell, n_az, n_el):
+    """Nearest and farthest range per cell (inf / -inf: no return)."""
+    near = np.full(n_az * n_el, np.inf)
+    far = np.full(n_az * n_el, -np.inf)
+    for i in range(az.shape[0]):
+        if not math.isfinite(az[i]):
+            continue
+        a = int((az[i] - lo_az) / cell)
+        e = int((el[i] - lo_el) / cell)
+        if a < 0 or e < 0 or a >= n_az or e >= n_el:
+            continue
+        j = a * n_el + e
+        near[j] = min(near[j], rng[i])
+        far[j] = max(far[j], rng[i])
+    return near, far
+
+
+@nb.njit(parallel=True, cache=True)
+def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noise, floor):
+    """Class of each ray (see :meth:`RangeImage.classify`) from the cells within ``reach`` of its own."""
+    out = np.empty(az.shape[0], np.int8)
+    for i in nb.prange(az.shape[0]):
+        r = rng[i]
+        band = max(noise * r * r, floor)
+        observed = False
+        same = False
+        nearer = False
+        if math.isfinite(az[i]):
+            a0 = int(math.floor((az[i] - lo_az) / cell))
+            e0 = int(math.floor((el[i] - lo_el) / cell))
+            for a in range(max(a0 - reach, 0), min(a0 + reach + 1, n_az)):
+                for e in range(max(e0 - reach, 0), min(e0 + reach + 1, n_el)):
+                    j = a * n_el + e
+                    if near[j] == np.inf:
+                        continue
+                    observed = True
+                    if near[j] - band <= r <= far[j] + band:
+                        same = True
+                    elif r > far[j]:
+                        nearer = True
+        if same:
+            out[i] = 1  # SAME_SURFACE
+        elif nearer:
+            out[i] = 2  # HIDDEN
+        elif observed:
+            out[i] = 0  # SEEN_FREE
+        else:
+            out[i] = 3  # UNOBSERVED
+    return out
+
+
+@nb.njit(parallel=True, cache=True)
+def _plane_fits(static, idx):
+    """Least-squares plane of each patch ``static[idx[i]]``: its mean, unit normal (eigenvector of
+    the covariance's smallest eigenvalue λ, closed form for symmetric 3×3 matrices) and RMS
+    deviation sqrt(λ); RMS is inf for a patch without a plane (all points equal)."""
+    m, k = idx.shape
+    mean = np.zeros((m, 3))
+    normal = np.zeros((m, 3))
+    rms = np.full(m, np.inf)
+    for i in nb.prange(m):
+        mx = my = mz = 0.0
+        for j in range(k):
+            s = idx[i, j]
+            mx += static[s, 0]
+            my += static[s, 1]
+            mz += static[s, 2]
+        mx /= k
+        my /= k
+        mz /= k
+        mean[i, 0], mean[i, 1], mean[i, 2] = mx, my, mz
+        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+        for j in range(k):
+            s = idx[i, j]
+            x = static[s, 0] - mx
+            y = static[s, 1] - my
+            z = static[s, 2] - mz
+            a00 += x * x
+            a01 += x * y
+            a02 += x * z
+            a11 += y * y
+            a12 += y * z
+            a22 += z * z
+        a00 /= k
+        a01 /= k
+        a02 /= k
+        a11 /= k
+        a12 /= k
+        a22 /= k
+        # smallest eigenvalue: trigonometric solution of the characteristic cubic
+        q = (a00 + a11 + a22) / 3.0
+        p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)
+        if not p2 > 1e-24 * q * q or q == 0.0:
+            continue  # isotropic patch, or one point repeated: no plane
+        p = math.sqrt(p2 / 6.0)
+        b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+        b01, b02, b12 = a01 / p, a02 / p, a12 / p
+        det = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
+        lam = q + 2.0 * p * math.cos(math.acos(min(1.0, max(-1.0, det / 2.0))) / 3.0 + 2.0 * math.pi / 3.0)
+        # its eigenvector: the longest cross product of two rows of A − λI
+        r0x, r0y, r0z = a00 - lam, a01, a02
+        r1x, r1y, r1z = a01, a11 - lam, a12
+        r2x, r2y, r2z = a02, a12, a22 - lam
+        best = 0.0
+        for c in range(3):
+            if c == 0:
+                ux, uy, uz, vx, vy, vz = r0x, r0y, r0z, r1x, r1y, r1z
+            elif c == 1:
+                ux, uy, uz, vx, vy, vz = r0x, r0y, r0z, r2x, r2y, r2z
+            else:
+                ux, uy, uz, vx, vy, vz = r1x, r1y, r1z, r2x, r2y, r2z
+            cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+            nn = cx * cx + cy * cy + cz * cz
+            if nn > best:
+                best = nn
+                normal[i, 0], normal[i, 1], normal[i, 2] = cx, cy, cz
+        if best > 0.0:
+            f = 1.0 / math.sqrt(best)
+            normal[i, 0] *= f
+            normal[i, 1] *= f
+            normal[i, 2] *= f
+            rms[i] = math.sqrt(max(lam, 0.0))
+    return mean, normal, rms
+
+
+# ---------------------------------------------------------------- range image
+
+@dataclass(frozen=True)
+class RangeImage:
+    """The nearest and farthest range a scan saw per angular cell, seen from its sensor origin.
+
+    Attributes
+    ----------
+    origin : ndarray (3,) float64
+        Sensor position (world units).
+    frame : ndarray (3, 3) float64
+        Rows: forward (azimuth 0, the scan's main viewing direction), left, pole (elevation
+        +π/2, the direction the scan spreads least along).
+    cell : float
+        Cell size in radians (azimuth and elevation).
+    spacing : float
+        Angular point spacing the cell was derived from (radians).
+    lo : ndarray (2,) float64
+        Azimuth and elevation of the first cell's corner.
+    shape : tuple of int
+        Cells along azimuth and elevation.
+    near, far : ndarray (shape[0] * shape[1],) float64
+        Nearest and farthest range per cell; ``inf`` and ``-inf`` where the scan has no return.
+    """
+
+    origin: np.ndarray
+    frame: np.ndarray
+    cell: float
+    spacing: float
+    lo: np.ndarray
+    shape: tuple[int, int]
+    near: np.ndarray
+    far: np.ndarray
+
+    @classmethod
+    def from_points(cls, points: np.ndarray, origin, *, cell_factor: float = 1.5,
+                    spacing: float | None = None) -> RangeImage:
+        """Range image of ``points`` seen from ``origin``.
+
+        Parameters
+        ----------
+        points : ndarray (n, 3) float64
+            The scan (finite rows).
+        origin : array_like (3,)
+            Its sensor position.
+        cell_factor : float
+            Cell size in units of the angular point spacing.
+        spacing : float, optional
+            Angular point spacing (radians); when None, sqrt(solid angle covered / points).
+
+        Returns
+        -------
+        RangeImage
+        """
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        origin = np.asarray(origin, dtype=np.float64)
+        frame = _view_frame(points, origin)
+        az, el, rng = _angles(points, origin, frame)
+        ok = np.isfinite(az)
+        if not ok.any():
+            raise InvalidPointsError("sensor_origin coincides with every point: no ray to follow")
+        lo = np.array([az[ok].min(), el[ok].min()])
+        extent = np.array([az[ok].max(), el[ok].max()]) - lo
+        if spacing is None:
+            spacing = _angular_spacing(az, el, lo, extent, int(ok.sum()))
+        cell = max(cell_factor * spacing, 1e-9, float(np.sqrt(np.prod(extent + 1e-9) / _MAX_CELLS)))
+        shape = (int(extent[0] // cell) + 1, int(extent[1] // cell) + 1)
+        near, far = _near_far(az, el, rng, lo[0], lo[1], cell, shape[0], shape[1])
+        return cls(origin, frame, float(cell), float(spacing), lo, shape, near, far)
+
+    def classify(self, points: np.ndarray, *, range_noise: float, floor: float = 0.0, reach: int = 1) -> np.ndarray:
+        """Class of each point along its ray from :attr:`origin` (int8, one per point).
+
+        The returns compared are those of the cells within ``reach`` cells of the ray's own;
+        the band is b = max(``range_noise``·r², ``floor``) at the point's range r.
+        :data:`SAME_SURFACE` (1): a cell spans the point's range (nearest − b ≤ r ≤ farthest + b);
+        else :data:`HIDDEN` (2): a cell's returns are all nearer; else :data:`SEEN_FREE` (0):
+        the returns are all farther than r + b; :data:`UNOBSERVED` (3): no return at all.
+        """
+        az, el, rng = _angles(np.ascontiguousarray(points, dtype=np.float64), self.origin, self.frame)
+        return _classify(az, el, rng, self.near, self.far, self.lo[0], self.lo[1], self.cell, self.shape[0],
+                         self.shape[1], int(reach), float(range_noise), float(floor))
+
+
+def _view_frame(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Forward = main eigenvector of the unit directions' second moments (sign: towards the mean
+    direction), pole = the least one: a camera's cone sits on the equator around azimuth 0, a
+    horizontal 360° scan gets a vertical pole; the azimuth seam (±π) lies behind the sensor."""
+    step = max(1, len(points) // _DIRECTION_SAMPLE)
+    d = points[::step] - origin
+    norm = np.linalg.norm(d, axis=1)
+    d = d[norm > 0] / norm[norm > 0, None]
+    if len(d) == 0:
+        return np.eye(3)
+    w, v = np.linalg.eigh(d.T @ d / len(d))
+    forward, pole = v[:, 2], v[:, 0]
+    if forward @ d.mean(axis=0) < 0:
+        forward = -forward
+    left = np.cross(pole, forward)
+    return np.ascontiguousarray(np.stack([forward, left / np.linalg.norm(left), pole]))
+
+
+def _angular_spacing(az, el, lo, extent, n) -> float:
+    """sqrt(occupied solid angle / n): the pixel pitch of a depth camera, the step of a scanner.
+    The solid angle is counted on bins holding about 32 points each where the scan is dense."""
+    area = max(float(np.prod(extent)), 1e-18)
+    bin_size = math.sqrt(area * 32.0 / max(n, 1))
+    n_az, n_el = int(extent[0] // bin_size) + 1, int(extent[1] // bin_size) + 1
+    omega, n_binned = _occupied_solid_angle(az, el, lo[0], lo[1], bin_size, n_az, n_el)
+    return math.sqrt(omega / max(n_binned, 1))
+
+
+# ---------------------------------------------------------------- the test used by detect_changes
+
+def as_sensor_origins(sensor_origin) -> tuple[np.ndarray, np.ndarray]:
+    """(reference's, current's) sensor origin from one position (3,) or two (2, 3).
+
+    Raises
+    ------
+    InvalidPointsError
+        Not numbers, wrong shape, or not finite.
+    """
+    try:
+        o = np.asarray(sensor_origin, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidPointsError(f"sensor_origin: expected x, y, z of the sensor, or two such rows "
+                                 f"(reference's, current's) ({exc})") from None
+    if o.shape == (3,):
+        o = np.stack([o, o])
+    if o.shape != (2, 3):
+        raise InvalidPointsError(f"sensor_origin: expected x, y, z of the sensor (shape (3,)) or one row per "
+                                 f"scan (shape (2, 3): reference's, current's), got shape {o.shape}")
+    if not np.isfinite(o).all():
+        raise InvalidPointsError(f"sensor_origin must be finite, got {o.tolist()}")
+    return o[0].copy(), o[1].copy()
+
+
+def explained_by_visibility(points: np.ndarray, changed: np.ndarray, other: np.ndarray, other_origin, *,
+                            sigma: float, range_noise: float = 0.015, band_floor: float = 1.0,
+                            cell_factor: float = 1.5, reach: int = 1, plane_points: int = 50,
+                            plane_stride: int = 8, plane_distance: float = 2.0, plane_flatness: float = 1.0,
+                            spacing: float | None = None) -> np.ndarray:
+    """Which changed points the other scan's view explains (not a change).
+
+    Parameters
+    ----------
+    points : ndarray (n, 3) float64
+        The cloud whose changes are tested (finite rows): the current cloud for "appeared".
+    changed : ndarray of bool (n,)
+        The density decision.
+    other : ndarray (m, 3) float64
+        The cloud they changed against (the reference for "appeared"), seen from ``other_origin``.
+    other_origin : array_like (3,)
+        The other scan's sensor position, in the same frame.
+    sigma : float
+        The density kernel's σ (world units): the scale of the plane test and of the band's floor.
+    range_noise : float
+        The band grows as ``range_noise``·r² (per world unit: 1/m for metres). 0.015 m⁻¹ (1.5 cm
+        at 1 m) covers a Kinect's depth noise and steps and the drift between its frames
+        (about 1.2e-2·r² on the static PCL sequence).
+    band_floor : float
+        The band is at least ``band_floor``·σ: the density test's own resolution, and the
+        constant range noise of laser scanners.
+    cell_factor : float
+        Range-image cell in units of the angular point spacing.
+    reach : int
+        Cells on each side of the ray's own cell whose returns are compared.
+    plane_points, plane_stride : int
+        The plane test fits ``plane_points`` nearest unchanged points taken from every
+        ``plane_stride``-th unchanged point (a patch of about ``plane_points``·``plane_stride``
+        points). Points in one cube of side σ share the patch nearest to their mean.
+    plane_distance, plane_flatness : float
+        A hidden or unobserved point is explained when it lies within ``plane_distance``·σ of
+        that plane and the patch is flat: RMS deviation from its plane below ``plane_flatness``·σ.
+    spacing : float, optional
+        Angular point spacing of ``other`` (radians); measured when None.
+
+    Returns
+    -------
+    ndarray of bool (n,)
+        True where a changed point is explained: seen as the same surface, or hidden or
+        unobserved and continuing the unchanged surface. False elsewhere (and for unchanged
+        points).
+    """
+    changed = np.asarray(changed, dtype=bool)
+    explained = np.zeros(len(points), bool)
+    cand = np.flatnonzero(changed)
+    if len(cand) == 0:
+        return explained
+    image = RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)
+    cls = image.classify(points[cand], range_noise=range_noise, floor=band_floor * sigma, reach=reach)
+    explained[cand[cls == SAME_SURFACE]] = True
+    unseen = cand[(cls == HIDDEN) | (cls == UNOBSERVED)]
+    static = points[np.flatnonzero(~changed)[::max(1, int(plane_stride))]]
+    if len(unseen) and len(static) >= 3:
+        explained[unseen] = _on_unchanged_plane(points[unseen], static, k=min(int(plane_points), len(static)),
+                                                distance=plane_distance * sigma, flatness=plane_flatness * sigma,
+                                                bin_size=sigma)
+    return explained
+
+
+def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distance: float, flatness: float,
+                        bin_size: float) -> np.ndarray:
+    """Does each query point lie on the least-squares plane of the ``k`` static points nearest to
+    it, the patch being flat (RMS off-plane deviation < ``flatness``) and the point within
+    ``distance`` of the plane? Query points sharing a cube of side ``bin_size`` share one patch:
+    the one nearest to their mean (one neighbour query per cube, not per point)."""
+    cells = np.floor(query / bin_size).astype(np.int64)
+    cells -= cells.min(axis=0)
+    dims = cells.max(axis=0) + 1
+    if np.prod(dims.astype(np.float64)) < 2.0**62:  # one int64 key per cube: a fast 1-D unique
+        _, inverse, counts = np.unique((cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2],
+                                       return_inverse=True, return_counts=True)
+    else:
+        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+        inverse = inverse.ravel()
+    centres = np.zeros((len(counts), 3))
+    np.add.at(centres, inverse, query)
+    centres /= counts[:, None]
+    tree = cKDTree(static, balanced_tree=False, compact_nodes=False)  # built once, queried once
+    _, idx = tree.query(centres, k=k, workers=-1)
+    mean, normal, rms = _plane_fits(static, np.ascontiguousarray(idx.reshape(len(centres), k)))
+    off = np.abs(np.einsum("ij,ij->i", query - mean[inverse], normal[inverse]))
+    return (rms < flatness)[inverse] & (off < distance)

@@ -1,0 +1,155 @@
+import numpy as np
+import pytest
+
+import sdp
+from sdp.scene import FURNITURE, INSERTED, office_scene, scan
+from sdp.visibility import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage, explained_by_visibility
+
+CAMERA = (0.3, 0.2, 2.2)  # sdp.scene's default camera
+BOX = INSERTED[0]  # a 30 cm box on the table
+
+
+def test_range_image_classes_along_rays():
+    # a wall 2 m in front of the sensor, sampled on a 1 mm-per-metre angular grid
+    u, v = np.meshgrid(np.linspace(-0.3, 0.3, 301), np.linspace(-0.2, 0.2, 201))
+    rays = np.c_[u.ravel(), v.ravel(), np.ones(u.size)]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    image = RangeImage.from_points(2.0 * rays, (0, 0, 0))
+    assert image.spacing == pytest.approx(0.002, rel=0.1)  # the grid's angular step
+    probe = rays[[100 * 301 + 150, 50 * 301 + 40, 150 * 301 + 250]]
+    cls = image.classify(np.r_[1.0 * probe, 2.0 * probe, 3.0 * probe, [[0.0, 0.0, -1.0], [1.0, 0.0, 0.05]]],
+                         range_noise=0.0, floor=0.01)
+    np.testing.assert_array_equal(cls, [SEEN_FREE] * 3 + [SAME_SURFACE] * 3 + [HIDDEN] * 3 + [UNOBSERVED] * 2)
+    # the band grows as r²: 2.03 m is the same surface at range_noise 0.015 (6 cm at 2 m), not at 0.005
+    assert (image.classify(2.03 * probe, range_noise=0.015) == SAME_SURFACE).all()
+    assert (image.classify(2.03 * probe, range_noise=0.005) == HIDDEN).all()
+
+
+def test_range_image_covers_a_full_turn():
+    # a horizontal 360° scan of a cylindrical wall: the azimuth seam must not lose any ray
+    az, z = np.meshgrid(np.linspace(-np.pi, np.pi, 720, endpoint=False), np.linspace(-0.5, 0.5, 60))
+    wall = np.c_[3 * np.cos(az.ravel()), 3 * np.sin(az.ravel()), z.ravel()]
+    image = RangeImage.from_points(wall, (0, 0, 0))
+    assert abs(image.frame[2, 2]) > 0.99  # the pole is vertical
+    assert (image.classify(wall, range_noise=0.0, floor=0.01) == SAME_SURFACE).all()
+    assert (image.classify(0.5 * wall, range_noise=0.0, floor=0.01) == SEEN_FREE).all()
+
+
+def test_disoccluded_table_is_not_appeared_with_sensor_origin():
+    # the box stood on the table in the reference and is gone: the current sees the table it hid
+    rng = np.random.default_rng(1)
+    reference, hit_ref = scan(FURNITURE + (BOX,), camera=CAMERA, rng=rng)
+    current, _ = scan(FURNITURE, camera=CAMERA, rng=rng)
+    box = hit_ref == len(FURNITURE)
+    plain = sdp.detect_changes(reference, current, voxel_size="auto", min_region_points=20)
+    seen = sdp.detect_changes(reference, current, voxel_size="auto", min_region_points=20, sensor_origin=CAMERA)
+    assert plain.appeared.sum() > 500  # the uncovered table patch looks new to the density test
+    assert seen.appeared.sum() == 0 and seen.appeared_regions == []
+    # the box itself did disappear: the current's rays pass through its place
+    assert seen.disappeared[box].mean() > 0.6 and not seen.disappeared[~box].any()
+    assert seen.disappeared[box].sum() >= 0.95 * plain.disappeared[box].sum()
+    assert seen.timings["visibility"] > 0 and "visibility" not in plain.timings
+
+
+def test_new_objects_are_still_found():
+    s = office_scene(seed=0)
+    plain = sdp.detect_changes(s.reference, s.current, voxel_size="auto", min_region_points=20)
+    seen = sdp.detect_changes(s.reference, s.current, voxel_size="auto", min_region_points=20, sensor_origin=CAMERA)
+    assert sdp.kappa(s.appeared_truth, seen.appeared) > 0.85
+    for i in range(len(INSERTED)):  # every object keeps most of what the density test found
+        obj = s.object_of_current == i
+        assert seen.appeared[obj].sum() >= 0.8 * plain.appeared[obj].sum()
+    # what the inserted objects hide in the current scan has not disappeared: it is hidden
+    assert seen.disappeared.sum() < 0.2 * plain.disappeared.sum()
+    # the regions describe exactly the points kept
+    assert sum(g.n_points for g in seen.appeared_regions) == seen.appeared.sum()
+    assert all(g.n_points >= 20 for g in seen.appeared_regions)
+
+
+def test_two_sensor_origins_swap_with_the_clouds():
+    a, b = np.array(CAMERA), np.array([0.6, 0.5, 2.0])
+    rng = np.random.default_rng(2)
+    reference, _ = scan(FURNITURE + INSERTED[:3], camera=a, rng=rng)
+    current, hit = scan(FURNITURE + INSERTED[:3] + INSERTED[4:5], camera=b, rng=rng)
+    new = hit == len(FURNITURE) + 3
+    kw = dict(voxel_size=sdp.auto_voxel_size(reference, current), min_region_points=20)  # one voxel both ways
+    plain = sdp.detect_changes(reference, current, **kw)
+    seen = sdp.detect_changes(reference, current, sensor_origin=[a, b], **kw)
+    # surfaces only the moved camera sees are mostly explained; the new crate stays
+    assert (seen.appeared & ~new).sum() < 0.5 * (plain.appeared & ~new).sum()
+    assert seen.appeared[new].mean() > 0.6
+    # appeared is judged from the reference's view, disappeared from the current's
+    swapped = sdp.detect_changes(current, reference, sensor_origin=[b, a], **kw)
+    np.testing.assert_array_equal(swapped.appeared, seen.disappeared)
+    np.testing.assert_array_equal(swapped.disappeared, seen.appeared)
+    np.testing.assert_array_equal(sdp.detect_changes(reference, current, sensor_origin=a, **kw).appeared,
+                                  seen.appeared)
+
+
+def test_without_sensor_origin_nothing_changes(rng):
+    s = office_scene(seed=3, width=160, height=120)
+    r = sdp.detect_changes(s.reference, s.current, voxel_size=0.02)
+    explicit = sdp.detect_changes(s.reference, s.current, voxel_size=0.02, sensor_origin=None, range_noise=0.5)
+    np.testing.assert_array_equal(r.appeared, explicit.appeared)
+    np.testing.assert_array_equal(r.disappeared, explicit.disappeared)
+
+
+def test_nan_rows_keep_their_place(rng):
+    s = office_scene(seed=4, width=160, height=120)
+    cur = s.current.copy()
+    cur[::50] = np.nan
+    r = sdp.detect_changes(s.reference, cur, voxel_size=0.02, sensor_origin=CAMERA)
+    assert r.appeared.shape == (len(cur),) and not r.appeared[::50].any()
+
+
+@pytest.mark.parametrize("origin, match", [
+    ((0.0, 1.0), r"or one row per scan .* got shape \(2,\)"),
+    (np.zeros((3, 3)), r"got shape \(3, 3\)"),
+    ((0.0, np.nan, 1.0), "must be finite"),
+    ("camera", "sensor_origin"),
+])
+def test_bad_sensor_origin_is_a_clear_error(origin, match):
+    pts = np.random.default_rng(0).random((500, 3))
+    with pytest.raises(sdp.InvalidPointsError, match=match):
+        sdp.detect_changes(pts, pts + 0.001, voxel_size=0.05, sensor_origin=origin)
+    with pytest.raises(ValueError, match="range_noise"):
+        sdp.detect_changes(pts, pts, voxel_size=0.05, sensor_origin=(0, 0, -1), range_noise=-1)
+
+
+def test_sensor_origin_on_every_point_is_a_clear_error():
+    pts = np.zeros((10, 3))
+    with pytest.raises(sdp.SDPError, match="no ray"):
+        RangeImage.from_points(pts, (0, 0, 0))
+
+
+def test_explained_by_visibility_leaves_unchanged_points_alone(rng):
+    pts = rng.random((1000, 3)) + [0, 0, 2]
+    changed = np.zeros(1000, bool)
+    assert not explained_by_visibility(pts, changed, pts, (0, 0, 0), sigma=0.01).any()
+
+
+def test_pcd_viewpoint_is_the_sensor_origin(tmp_path):
+    header = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 3\nHEIGHT 1\n"
+              "VIEWPOINT 0.5 -1 2 0.7071068 0 0.7071068 0\nPOINTS 3\nDATA ascii\n")
+    (tmp_path / "a.pcd").write_text(header + "1 2 3\n4 5 6\n7 8 9\n")
+    cloud = sdp.read_points(tmp_path / "a.pcd")
+    np.testing.assert_allclose(cloud.viewpoint, [0.5, -1, 2, 0.7071068, 0, 0.7071068, 0], rtol=1e-6)
+    np.testing.assert_allclose(cloud.sensor_origin, [0.5, -1, 2])
+    sdp.write_points(tmp_path / "a.ply", cloud.xyz)
+    assert sdp.read_points(tmp_path / "a.ply").sensor_origin is None
+
+
+@pytest.mark.shared_data
+def test_real_kinect_pair_with_sensor_origin(shared_data):
+    # mOSD learn0 -> learn1 (fixed camera): objects were moved, uncovering table the reference never saw
+    ref = sdp.read_points(shared_data / "mosd/learn/learn0.pcd")
+    cur = sdp.read_points(shared_data / "mosd/learn/learn1.pcd")
+    np.testing.assert_array_equal(ref.sensor_origin, [0, 0, 0])
+    table = (cur.fields["label"] >= 1) & (cur.fields["label"] < 10)
+    objects = cur.fields["label"] // 10 >= 2
+    plain = sdp.detect_changes(ref.xyz, cur.xyz, voxel_size="auto", min_region_points=50)
+    seen = sdp.detect_changes(ref.xyz, cur.xyz, voxel_size="auto", min_region_points=50,
+                              sensor_origin=[ref.sensor_origin, cur.sensor_origin])
+    assert plain.appeared[table].sum() > 2000  # uncovered table, flagged by the density test alone
+    assert seen.appeared[table].sum() < 0.05 * plain.appeared[table].sum()
+    assert seen.appeared[objects].sum() > 0.9 * plain.appeared[objects].sum()
