@@ -39,42 +39,89 @@ def finite_bounds(points):
     return lo, hi, bad
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(cache=True)
+def grid_units(points, origin, voxel):
+    """(points - origin) / voxel in float64, as :meth:`sdp.grid.Grid.to_grid_units`, in one pass."""
+    out = np.empty(points.shape)
+    for p in range(points.shape[0]):
+        for d in range(3):
+            out[p, d] = (points[p, d] - origin[d]) / voxel
+    return out
+
+
+@nb.njit(cache=True)
 def mark_blocks(u, lo_off, hi_off, shape_blocks):
     """Occupancy (uint8, directory-shaped) of blocks holding nodes floor(u)-lo_off … floor(u)+hi_off.
 
-    Threads may write the same 1 to one cell at once, which is harmless.
+    Along one axis the blocks reached from a node depend only on its block and its position
+    in the block, and take one of at most four ranges (the lowest block reached is one of two,
+    as is the highest). A first pass records, per block holding points, which of the 4³
+    combinations its points use (a 64-bit mask); a second marks the ranges of each recorded
+    combination once, instead of once per point.
     """
+    lo_min = -lo_off // B  # lowest block offset reached from position 0 of a block: it or one above
+    hi_min = hi_off // B  # highest block offset reached from position 0: it or one above
+    axis_code = np.empty(B, np.int64)  # per position in a block: (lowest, highest) block reached
+    for r in range(B):
+        axis_code[r] = ((r - lo_off) // B - lo_min) * 2 + ((r + hi_off) // B - hi_min)
+    codes = np.zeros((shape_blocks[0], shape_blocks[1], shape_blocks[2]), np.uint64)
+    for p in range(u.shape[0]):
+        ix, iy, iz = int(math.floor(u[p, 0])), int(math.floor(u[p, 1])), int(math.floor(u[p, 2]))
+        code = axis_code[ix & 7] * 16 + axis_code[iy & 7] * 4 + axis_code[iz & 7]
+        codes[ix >> 3, iy >> 3, iz >> 3] |= np.uint64(1) << np.uint64(code)
     occ = np.zeros((shape_blocks[0], shape_blocks[1], shape_blocks[2]), np.uint8)
-    for p in nb.prange(u.shape[0]):
-        i0 = int(math.floor(u[p, 0]))
-        i1 = int(math.floor(u[p, 1]))
-        i2 = int(math.floor(u[p, 2]))
-        for bx in range((i0 - lo_off) // B, (i0 + hi_off) // B + 1):
-            for by in range((i1 - lo_off) // B, (i1 + hi_off) // B + 1):
-                for bz in range((i2 - lo_off) // B, (i2 + hi_off) // B + 1):
-                    occ[bx, by, bz] = 1
+    for bx in range(shape_blocks[0]):
+        for by in range(shape_blocks[1]):
+            for bz in range(shape_blocks[2]):
+                mask = codes[bx, by, bz]
+                if mask == 0:
+                    continue
+                for code in range(64):
+                    if not (mask >> np.uint64(code)) & np.uint64(1):
+                        continue
+                    cx, cy, cz = code >> 4, (code >> 2) & 3, code & 3
+                    for x in range(bx + lo_min + (cx >> 1), bx + hi_min + (cx & 1) + 1):
+                        for y in range(by + lo_min + (cy >> 1), by + hi_min + (cy & 1) + 1):
+                            for z in range(bz + lo_min + (cz >> 1), bz + hi_min + (cz & 1) + 1):
+                                occ[x, y, z] = 1
     return occ
 
 
 @nb.njit(cache=True)
 def bin_trilinear(u, directory, blocks):
-    """Add each point's unit weight to its cell's 8 nodes, split by trilinear weights."""
+    """Add each point's unit weight to its cell's 8 nodes, split by trilinear weights.
+
+    Weights are computed in float64 and rounded to float32 before they are added (a float32
+    sum, no round trip through float64 per node).
+    """
     for p in range(u.shape[0]):
         x, y, z = u[p, 0], u[p, 1], u[p, 2]
         ix, iy, iz = int(math.floor(x)), int(math.floor(y)), int(math.floor(z))
         fx, fy, fz = x - ix, y - iy, z - iz
+        gx, gy, gz = 1.0 - fx, 1.0 - fy, 1.0 - fz
+        if (ix & 7) < 7 and (iy & 7) < 7 and (iz & 7) < 7:  # the cell lies in one block
+            out = blocks[directory[ix >> 3, iy >> 3, iz >> 3]]
+            n = (ix & 7) * B2 + (iy & 7) * B + (iz & 7)
+            out[n] += np.float32(gx * gy * gz)
+            out[n + 1] += np.float32(gx * gy * fz)
+            out[n + B] += np.float32(gx * fy * gz)
+            out[n + B + 1] += np.float32(gx * fy * fz)
+            out[n + B2] += np.float32(fx * gy * gz)
+            out[n + B2 + 1] += np.float32(fx * gy * fz)
+            out[n + B2 + B] += np.float32(fx * fy * gz)
+            out[n + B2 + B + 1] += np.float32(fx * fy * fz)
+            continue
         for a in range(2):
-            wx = fx if a else 1.0 - fx
+            wx = fx if a else gx
             nx = ix + a
             for b in range(2):
-                wy = fy if b else 1.0 - fy
+                wy = fy if b else gy
                 ny = iy + b
                 for c in range(2):
-                    wz = fz if c else 1.0 - fz
+                    wz = fz if c else gz
                     nz = iz + c
                     blk = directory[nx >> 3, ny >> 3, nz >> 3]
-                    blocks[blk, (nx & 7) * B2 + (ny & 7) * B + (nz & 7)] += wx * wy * wz
+                    blocks[blk, (nx & 7) * B2 + (ny & 7) * B + (nz & 7)] += np.float32(wx * wy * wz)
 
 
 @nb.njit(cache=True)
@@ -114,11 +161,11 @@ def splat_exact(u, directory, blocks, inv_two_s2, rmax, reach):
                     blocks[blk, (nx & 7) * B2 + (ny & 7) * B + (nz & 7)] += w
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(cache=True)
 def nonzero_blocks(blocks):
     """Per block: does it hold any nonzero value?"""
     out = np.zeros(blocks.shape[0], np.bool_)
-    for b in nb.prange(blocks.shape[0]):
+    for b in range(blocks.shape[0]):
         for n in range(B3):
             if blocks[b, n] != 0.0:
                 out[b] = True
@@ -128,11 +175,15 @@ def nonzero_blocks(blocks):
 
 @nb.njit(parallel=True, cache=True)
 def blur_pass(src, src_nonzero, dst, dst_nonzero, directory, keys, axis, taps):
-    """One separable pass: dst = src convolved with ``taps`` (odd length) along ``axis``.
+    """One separable pass: ``taps`` (odd length) along ``axis``, rotating the block layout.
 
+    The pass reads each block with the blurred axis as its first (slowest) index, column
+    ``a*64 + b*8 + c``, and writes it rotated, column ``b*64 + c*8 + a``: the next axis comes
+    first. Three passes along x, y, z therefore start and end in the usual layout, and every
+    pass convolves along the first index, with each tap updating a block's 64 lines at once.
     Nodes of blocks that are not allocated read as 0; output is written for every allocated
     block. Source blocks flagged all-zero in ``src_nonzero`` are skipped; ``dst_nonzero``
-    receives the flags of the output. Each tap updates all 64 lines of a block at once.
+    receives the flags of the output.
     """
     r = (taps.shape[0] - 1) // 2
     nbr = (r + B - 1) // B
@@ -155,30 +206,36 @@ def blur_pass(src, src_nonzero, dst, dst_nonzero, directory, keys, axis, taps):
             neigh[j + nbr] = nb_blk
             any_src = any_src or nb_blk >= 0
         out = dst[b]
-        out[:] = 0.0
         dst_nonzero[b] = any_src
         if not any_src:
+            out[:] = 0.0
             continue
-        for x in range(B):
+        acc = np.zeros(B3, np.float32)
+        for a in range(B):
             for k in range(taps.shape[0]):
-                s = x + k - r + nbr * B
+                s = a + k - r + nbr * B
                 sb = neigh[s // B]
                 if sb < 0:
                     continue
-                ls = s % B
                 w = taps[k]
                 inp = src[sb]
-                if axis == 0:
-                    for li in range(B2):
-                        out[x * B2 + li] += w * inp[ls * B2 + li]
-                elif axis == 1:
-                    for a in range(B):
-                        for z in range(B):
-                            out[a * B2 + x * B + z] += w * inp[a * B2 + ls * B + z]
-                else:
-                    for a in range(B):
-                        for y in range(B):
-                            out[a * B2 + y * B + x] += w * inp[a * B2 + y * B + ls]
+                ls = (s % B) * B2
+                for li in range(B2):
+                    acc[a * B2 + li] += w * inp[ls + li]
+        for a in range(B):
+            for li in range(B2):
+                out[li * B + a] = acc[a * B2 + li]
+
+
+@nb.njit(parallel=True, cache=True)
+def add_blocks(dst, rows, src, weight):
+    """dst[rows[i]] += weight · src[i] in float32, for every block i of src (rows distinct)."""
+    w = np.float32(weight)
+    for i in nb.prange(src.shape[0]):
+        out = dst[rows[i]]
+        inp = src[i]
+        for n in range(B3):
+            out[n] += w * inp[n]
 
 
 @nb.njit(parallel=True, cache=True)
@@ -200,6 +257,23 @@ def trilinear(points, origin, voxel, directory, blocks, out):
         ix, iy, iz = int(math.floor(x)), int(math.floor(y)), int(math.floor(z))
         fx, fy, fz = x - ix, y - iy, z - iz
         acc = 0.0
+        if ix >= 0 and iy >= 0 and iz >= 0 and (ix & 7) < 7 and (iy & 7) < 7 and (iz & 7) < 7:
+            # the cell lies in one block (inside the grid): one lookup, same sum as below
+            blk = directory[ix >> 3, iy >> 3, iz >> 3]
+            if blk >= 0:
+                row = blocks[blk]
+                n = (ix & 7) * B2 + (iy & 7) * B + (iz & 7)
+                gx, gy, gz = 1.0 - fx, 1.0 - fy, 1.0 - fz
+                acc += gx * gy * gz * row[n]
+                acc += gx * gy * fz * row[n + 1]
+                acc += gx * fy * gz * row[n + B]
+                acc += gx * fy * fz * row[n + B + 1]
+                acc += fx * gy * gz * row[n + B2]
+                acc += fx * gy * fz * row[n + B2 + 1]
+                acc += fx * fy * gz * row[n + B2 + B]
+                acc += fx * fy * fz * row[n + B2 + B + 1]
+            out[p] = acc
+            continue
         for a in range(2):
             nx = ix + a
             if nx < 0 or nx >= n0:
@@ -299,14 +373,15 @@ def _find(parent, i):
     return i
 
 
-@nb.njit(parallel=True, cache=True)
-def _negative_blocks(values):
-    out = np.zeros(values.shape[0], np.bool_)
-    for b in nb.prange(values.shape[0]):
+@nb.njit(cache=True)
+def _count_negative(values):
+    """Number of negative values in each block."""
+    out = np.zeros(values.shape[0], np.int64)
+    for b in range(values.shape[0]):
+        c = 0
         for n in range(B3):
-            if values[b, n] < 0:
-                out[b] = True
-                break
+            c += values[b, n] < 0
+        out[b] = c
     return out
 
 
@@ -336,56 +411,79 @@ def _union(parent, a, b):
 def label_nodes(values, directory, keys):
     """6-connected components of the nodes where ``values`` (m, 512) is negative.
 
-    Union-find over the blocks that hold a negative node only. Returns (labels (m, 512)
-    int32, -1 elsewhere, number of components).
+    Only the blocks holding a negative node take part, and union-find runs over their
+    negative nodes alone. Components are numbered in the order of their first node (blocks in
+    row order, nodes in column order). Returns ``slot`` (m,) int64, each block's row in
+    ``labels`` (-1: no negative node); ``labels`` (rows, 512) int32, the component of each
+    negative node of those blocks (-1 elsewhere); and the number of nodes of each component.
     """
     m = values.shape[0]
-    active = _negative_blocks(values)
-    slot = np.full(m, -1, np.int64)  # block -> its row among the active blocks
+    per_block = _count_negative(values)
+    slot = np.full(m, -1, np.int64)
     n_active = 0
     for blk in range(m):
-        if active[blk]:
+        if per_block[blk]:
             slot[blk] = n_active
             n_active += 1
-    parent = np.arange(n_active * B3)
-    strides = (B2, B, 1)
+    n_neg = per_block.sum()
+    labels = np.full((n_active, B3), -1, np.int32)  # first: each negative node's index among them
+    node_slot = np.empty(n_neg, np.int64)
+    node_col = np.empty(n_neg, np.int64)
+    neighbour = np.full((n_active, 3), -1, np.int64)  # slot of the block before, along each axis
+    i = 0
     for blk in range(m):
-        if slot[blk] < 0:
+        s = slot[blk]
+        if s < 0:
             continue
-        base = slot[blk] * B3
         for axis in range(3):
-            stride = strides[axis]
             nb_blk = _neighbour_block(directory, keys, blk, axis)
-            nb_base = slot[nb_blk] * B3 if nb_blk >= 0 else -1
-            for n in range(B3):
-                if values[blk, n] >= 0:
-                    continue
-                if (n // stride) % B > 0:
-                    if values[blk, n - stride] < 0:
-                        _union(parent, base + n, base + n - stride)
-                elif nb_base >= 0 and values[nb_blk, n + (B - 1) * stride] < 0:
-                    _union(parent, base + n, nb_base + n + (B - 1) * stride)
-    labels = np.full((m, B3), -1, np.int32)
-    root_label = np.full(n_active * B3, -1, np.int64)
+            if nb_blk >= 0:
+                neighbour[s, axis] = slot[nb_blk]
+        for line in range(0, B3, B):
+            neg = False
+            for n in range(line, line + B):  # branch-free test of a line of 8 nodes first
+                neg |= values[blk, n] < 0
+            if not neg:
+                continue
+            for n in range(line, line + B):
+                if values[blk, n] < 0:
+                    labels[s, n] = i
+                    node_slot[i] = s
+                    node_col[i] = n
+                    i += 1
+    parent = np.arange(n_neg)
+    for i in range(n_neg):
+        s, n = node_slot[i], node_col[i]
+        stride = B2
+        for axis in range(3):
+            if (n // stride) % B > 0:
+                j = labels[s, n - stride]
+            elif neighbour[s, axis] >= 0:
+                j = labels[neighbour[s, axis], n + (B - 1) * stride]
+            else:
+                j = -1
+            if j >= 0:
+                _union(parent, i, j)
+            stride //= B
+    root_label = np.full(n_neg, -1, np.int64)
+    node_counts = np.zeros(n_neg, np.int64)
     count = 0
-    for blk in range(m):
-        if slot[blk] < 0:
-            continue
-        for n in range(B3):
-            if values[blk, n] < 0:
-                root = _find(parent, slot[blk] * B3 + n)
-                if root_label[root] < 0:
-                    root_label[root] = count
-                    count += 1
-                labels[blk, n] = root_label[root]
-    return labels, count
+    for i in range(n_neg):
+        root = _find(parent, i)
+        if root_label[root] < 0:
+            root_label[root] = count
+            count += 1
+        labels[node_slot[i], node_col[i]] = root_label[root]
+        node_counts[root_label[root]] += 1
+    return slot, labels, node_counts[:count]
 
 
 @nb.njit(parallel=True, cache=True)
-def corner_labels(u, directory, labels, values):
+def corner_labels(u, directory, slot, labels, values):
     """For each point, the label of the cell corner with the lowest value among labelled corners.
 
-    -1 where no corner of the point's cell carries a label.
+    ``slot`` and ``labels`` as returned by :func:`label_nodes`; -1 where no corner of the
+    point's cell carries a label.
     """
     d0, d1, d2 = directory.shape
     out = np.full(u.shape[0], -1, np.int64)
@@ -401,12 +499,12 @@ def corner_labels(u, directory, labels, values):
                     if nx < 0 or ny < 0 or nz < 0 or nx >= d0 * B or ny >= d1 * B or nz >= d2 * B:
                         continue
                     blk = directory[nx >> 3, ny >> 3, nz >> 3]
-                    if blk < 0:
+                    if blk < 0 or slot[blk] < 0:
                         continue
                     i = (nx & 7) * B2 + (ny & 7) * B + (nz & 7)
-                    if labels[blk, i] >= 0 and values[blk, i] < best:
+                    if labels[slot[blk], i] >= 0 and values[blk, i] < best:
                         best = values[blk, i]
-                        out[p] = labels[blk, i]
+                        out[p] = labels[slot[blk], i]
     return out
 
 

@@ -73,6 +73,7 @@ class DensityField:
         self.grid = grid
         self._keys = np.ascontiguousarray(keys, dtype=np.int64).reshape(-1, 3)
         self._blocks = np.ascontiguousarray(blocks, dtype=np.float32).reshape(-1, BLOCK**3)
+        self._store = None  # when set, _blocks is its first rows (room to grow: see accumulate)
         self._directory = np.full(grid.shape_blocks, -1, np.int32)
         if len(self._keys):
             self._directory[tuple(self._keys.T)] = np.arange(len(self._keys), dtype=np.int32)
@@ -141,7 +142,7 @@ class DensityField:
         reach = int(math.ceil(rmax))
         grid = Grid.covering(cloud.lo, cloud.hi, l, reach)
         check_memory(grid.n_blocks_box * 5, f"the block directory of a {grid.shape} grid", memory_limit)
-        u = grid.to_grid_units(cloud.xyz)
+        u = K.grid_units(cloud.xyz, grid.origin, grid.voxel_size)
         occ = K.mark_blocks(u, reach, reach + 1, np.asarray(grid.shape_blocks, np.int64))
         flat = np.flatnonzero(occ)
         copies = 2 if method == "fast" else 1
@@ -183,8 +184,9 @@ class DensityField:
         ``voxel_size=self.voxel_size, sigma_voxels=self.sigma / self.voxel_size``). G is linear
         in the points, so accumulating the field of new points equals rebuilding from all the
         points, up to float32 rounding; ``weight=-1`` removes points added before (a sliding
-        window). Costs O(other's blocks), plus a copy of this field's blocks when new blocks
-        must be allocated and of its directory when the box must grow.
+        window). Costs O(other's blocks); new blocks go to spare rows reserved at the end (the
+        store grows by half when full, so a stream of frames copies the field's blocks O(log)
+        times), and the directory is rebuilt when the box must grow.
         """
         if not (np.isclose(other.voxel_size, self.voxel_size, rtol=1e-12, atol=0)
                 and np.isclose(other.sigma, self.sigma, rtol=1e-9) and other.truncate == self.truncate):
@@ -210,16 +212,28 @@ class DensityField:
             rows[new] = len(self._keys) + np.arange(new.sum())
             self._directory[tuple(local[new].T)] = rows[new]
             self._keys = np.concatenate([self._keys, local[new]])
-            self._blocks = np.concatenate([self._blocks, np.zeros((new.sum(), BLOCK**3), np.float32)])
-        self._blocks[rows] += np.float32(weight) * other._blocks
+            self._append_zero_blocks(int(new.sum()))
+        K.add_blocks(self._blocks, rows, other._blocks, weight)
         self.n_points += int(round(weight * other.n_points))
         return self
+
+    def _append_zero_blocks(self, count: int) -> None:
+        """Append ``count`` all-zero blocks, in the spare rows of the store when it has room."""
+        n = len(self._blocks)
+        store = self._store
+        if store is None or self._blocks.base is not store or len(store) < n + count:
+            store = np.empty((n + count + (n + count) // 2, BLOCK**3), np.float32)
+            store[:n] = self._blocks
+            self._store = store
+        store[n:n + count] = 0.0
+        self._blocks = store[:n + count]
 
     def copy(self) -> "DensityField":
         """An independent copy (node values, blocks and directory copied)."""
         out = DensityField.__new__(DensityField)
         out.__dict__.update(self.__dict__)
         out._blocks, out._keys, out._directory = self._blocks.copy(), self._keys.copy(), self._directory.copy()
+        out._store = None
         return out
 
     def scale(self, factor: float) -> "DensityField":
@@ -244,8 +258,9 @@ class DensityField:
 
     @property
     def nbytes(self) -> int:
-        """Memory held by node values and the block directory, in bytes."""
-        return self._blocks.nbytes + self._directory.nbytes + self._keys.nbytes
+        """Memory held by node values (spare rows included) and the block directory, in bytes."""
+        values = self._store if self._store is not None and self._blocks.base is self._store else self._blocks
+        return values.nbytes + self._directory.nbytes + self._keys.nbytes
 
     def density(self, points) -> np.ndarray:
         """G at world positions (n, 3), by trilinear interpolation; 0 outside the grid, NaN for NaN rows."""
