@@ -127,8 +127,13 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
         t1 = time.perf_counter()
         mask, d = _inside_difference(frame, model.with_threshold(h=h * weight), cur.xyz)
         t2 = time.perf_counter()
-        mask, regs, _ = _regions(frame, d, cur.xyz, mask, regions=regions, decision="point",
-                                 min_region_points=min_region_points, cluster_fraction=0.5)
+        if regions:  # point-wise decision: only the appeared points need a region
+            idx = np.flatnonzero(mask)
+            kept, regs, _ = _regions(frame, d, cur.xyz[idx], np.ones(len(idx), bool), regions=True,
+                                     decision="point", min_region_points=min_region_points, cluster_fraction=0.5)
+            mask[idx] = kept
+        else:
+            regs = []
         t3 = time.perf_counter()
         if update == "decay":
             model.scale(decay).accumulate(frame)

@@ -68,9 +68,8 @@ def label_points(field: DensityField, values: np.ndarray, points: np.ndarray) ->
     node_counts : ndarray of int64 (n_components,)
         Number of negative nodes of each component.
     """
-    labels, count = K.label_nodes(values, field._directory, field._keys)
-    point_labels = K.corner_labels(field.grid.to_grid_units(points), field._directory, labels, values)
-    node_counts = np.bincount(labels[labels >= 0], minlength=count)
+    slot, labels, node_counts = K.label_nodes(values, field._directory, field._keys)
+    point_labels = K.corner_labels(field.grid.to_grid_units(points), field._directory, slot, labels, values)
     return point_labels, node_counts
 
 
