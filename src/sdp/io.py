@@ -466,7 +466,8 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
     ``fields_of(start, stop)`` returns the fields of rows ``start`` … ``stop − 1`` (a dict of
     arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset; other input gets a
     1 mm scale and an offset at its minimum. Memory is bounded by ``chunk_size``; the file is
-    written under a temporary name and renamed, and ``inputs`` are never overwritten.
+    written under a temporary name and renamed, and ``inputs`` are never overwritten. LAZ is
+    decoded and encoded on all cores (lazrs' parallel backend).
     """
     import copy
 
@@ -477,7 +478,7 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
         raise CloudFileError(f"{path}: a cloud written chunk by chunk must be .las or .laz")
     with ExitStack() as stack:
         if source.format == "las":
-            reader = stack.enter_context(laspy.open(str(source.path)))
+            reader = stack.enter_context(laspy.open(str(source.path), laz_backend=laspy.LazBackend.LazrsParallel))
             header = copy.deepcopy(reader.header)
             chunks = ((len(c), c) for c in reader.chunk_iterator(chunk_size))
         else:
@@ -494,7 +495,8 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
                     if name not in header.point_format.dimension_names:
                         header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=np.asarray(v).dtype))
                 writer = stack.enter_context(laspy.open(str(tmp), mode="w", header=header,
-                                                        do_compress=path.suffix.lower() == ".laz"))
+                                                        do_compress=path.suffix.lower() == ".laz",
+                                                        laz_backend=laspy.LazBackend.LazrsParallel))
             out = laspy.ScaleAwarePointRecord.zeros(n, header=header)
             if source.format == "las":
                 for name in chunk.array.dtype.names:

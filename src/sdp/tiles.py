@@ -399,7 +399,7 @@ def _connect(scheduler: str | None, workers: int):
 
     if scheduler is None:  # the tasks bound their own memory (``share``): no pausing by distributed
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=0,
-                               dashboard_address=None)
+                               dashboard_address=None, env={"NUMBA_NUM_THREADS": "1"})  # a core per worker
         return Client(cluster), cluster
     return Client(scheduler), None
 
