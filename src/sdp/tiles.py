@@ -46,9 +46,10 @@ from .field import DensityField, threshold
 from .grid import BLOCK, Grid
 from .grid import memory_limit as _memory_limit
 from .io import PointSource
+from .store import FieldStore
 from .regions import Region, describe_regions, label_points
 
-__all__ = ["TiledChanges", "detect_changes_tiled", "dense_grid_bytes", "untiled_point_bytes"]
+__all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "dense_grid_bytes", "untiled_point_bytes"]
 
 _REC = np.dtype([("xyz", "<f8", 3), ("row", "<i8")])  # one bucketed point
 _PART_ROWS = 8_000_000  # rows read by one bucketing task
@@ -227,21 +228,25 @@ def _empty_field(like: DensityField) -> DensityField:
                         sigma=like.sigma, truncate=like.truncate)
 
 
-def _compare_tile(key, root: str, tiling: _Tiling, opts: dict) -> dict:
-    """Fields of both epochs in one tile, and its own changed rows (see the module docstring)."""
+def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None) -> dict:
+    """Fields of both epochs in one tile, and its own changed rows (see the module docstring).
+    With ``store`` (a :class:`FieldStore` path) the reference field is read from it."""
     t0 = time.perf_counter()
     recs = {e: _load(root, e, key) for e in ("reference", "current")}
     out = {"read": time.perf_counter() - t0, "build_reference": 0.0, "build_current": 0.0}
     fields = {}
     for e, rec in recs.items():
         t = time.perf_counter()
-        fields[e] = DensityField.from_points(rec["xyz"], **opts) if len(rec) else None
+        if e == "reference" and store is not None:
+            fields[e] = FieldStore.open(store).tile_field(key)
+        else:
+            fields[e] = DensityField.from_points(rec["xyz"], **opts) if len(rec) else None
         out[f"build_{e}"] = time.perf_counter() - t
     t = time.perf_counter()
     for e, other, kind in (("current", "reference", "appeared"), ("reference", "current", "disappeared")):
         fld, rec = fields[e], recs[e]
         own = np.zeros(len(rec), bool)
-        if fld is not None:
+        if fld is not None and len(rec):
             own = np.all(tiling.core(rec["xyz"]) == key, axis=1)
         if not own.any():
             out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.int64),
@@ -278,8 +283,8 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
     return rows, region_of, regs
 
 
-def detect_changes_tiled(reference, current, *, voxel_size: float, sigma_voxels: float = 2.0, k: float = 3,
-                         h: float | None = None, truncate: float = 3.0, method: str = "auto",
+def detect_changes_tiled(reference, current, *, voxel_size: float | None = None, sigma_voxels: float = 2.0,
+                         k: float = 3, h: float | None = None, truncate: float = 3.0, method: str = "auto",
                          min_region_points: int = 1, regions: bool = True, tile_size: float | None = None,
                          tile_points: int = 2_000_000, memory_limit: int | str | None = None,
                          scheduler: str | None = None, workers: int | None = None,
@@ -288,11 +293,17 @@ def detect_changes_tiled(reference, current, *, voxel_size: float, sigma_voxels:
 
     Parameters
     ----------
-    reference, current : path-like, PointSource or array_like (n, 3)
+    reference : path-like, PointSource, array_like (n, 3) or FieldStore
         Files are read in slices (LAS/LAZ, NPY, binary PLY; other formats are read once and
-        spilled to ``workdir``); arrays are spilled to ``workdir`` as NPY.
+        spilled to ``workdir``); arrays are spilled to ``workdir`` as NPY. A
+        :class:`~sdp.FieldStore` (e.g. from :func:`build_field_tiled`) is compared tile by
+        tile without its points: only what appeared is found, on the store's lattice,
+        σ, threshold and tiles.
+    current : path-like, PointSource or array_like (n, 3)
+        As ``reference``.
     voxel_size : float
-        Voxel length in world units (the tiles need it before reading the points).
+        Voxel length in world units (the tiles need it before reading the points); taken
+        from the store when ``reference`` is one.
     sigma_voxels, k, h, truncate, method
         As in :meth:`DensityField.from_points`.
     min_region_points, regions
@@ -319,49 +330,107 @@ def detect_changes_tiled(reference, current, *, voxel_size: float, sigma_voxels:
     -------
     TiledChanges
     """
-    workers = workers or os.cpu_count() or 1
-    share = _memory_limit(memory_limit) // (workers if scheduler in (None, "threads") else 1)
-    opts = dict(voxel_size=float(voxel_size), sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
-                method=method, memory_limit=share)
-    if not (voxel_size > 0 and math.isfinite(voxel_size)):
-        raise ValueError(f"voxel_size must be a positive length, got {voxel_size!r}")
-    root = tempfile.mkdtemp(prefix="sdp-tiles-", dir=workdir)
-    executor, cluster = _connect(scheduler, workers)
-    try:
-        sources = {e: _source(s, root, e) for e, s in (("reference", reference), ("current", current))}
-        tiling = _tiling(sources, float(voxel_size), tile_size, tile_points, sigma_voxels, truncate)
-        timings = {}
+    store = reference if isinstance(reference, FieldStore) else None
+    if store is not None:
+        voxel_size, sigma_voxels, truncate, h = store.voxel_size, store.sigma / store.voxel_size, store.truncate, store.h
+        tile_size = store.tile_blocks * BLOCK * store.voxel_size
+    clouds = {"current": current} if store is not None else {"reference": reference, "current": current}
+    with _Session(clouds, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
+                  tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit, scheduler=scheduler,
+                  workers=workers, workdir=workdir) as run:
+        jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path)) for key in run.tiles]
+        results = run.tasks("compare", _compare_tile, jobs, ("read", "build_reference", "build_current", "detect"))
         t = time.perf_counter()
-        jobs = [(src, e, s, s + _PART_ROWS, i, tiling, root) for e, src in sources.items()
-                for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
-        done = _run(executor, _bucket_part, jobs, "reading and tiling")
-        timings["bucket"] = time.perf_counter() - t
-        timings["read"] = sum(d[2] for d in done)
-        dropped = {e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in sources}
-        tiles = sorted({key for d in done for key in d[0]})
-        t = time.perf_counter()
-        results = _run(executor, _compare_tile, [(key, root, tiling, opts) for key in tiles], "comparing tiles")
-        timings["compare"] = time.perf_counter() - t
-        for name in ("read", "build_reference", "build_current", "detect"):
-            timings[name] = timings.get(name, 0.0) + sum(r[name] for r in results)
-        t = time.perf_counter()
-        out = {kind: _regions([r[kind] for r in results], float(voxel_size), min_region_points, regions)
+        out = {kind: _regions([r[kind] for r in results], run.voxel_size, min_region_points, regions)
                for kind in ("appeared", "disappeared")}
-        timings["regions"] = time.perf_counter() - t
-    finally:
-        if not isinstance(executor, str):
-            executor.close()
-        if cluster is not None:
-            cluster.close()
-        shutil.rmtree(root, ignore_errors=True)
+        run.timings["regions"] = time.perf_counter() - t
+    n_ref = run.sources["reference"].n_rows if store is None else 0
     return TiledChanges(appeared_rows=out["appeared"][0], disappeared_rows=out["disappeared"][0],
                         appeared_region=out["appeared"][1], disappeared_region=out["disappeared"][1],
                         appeared_regions=out["appeared"][2], disappeared_regions=out["disappeared"][2],
-                        n_current=sources["current"].n_rows, n_reference=sources["reference"].n_rows,
-                        n_dropped_current=dropped["current"], n_dropped_reference=dropped["reference"],
-                        voxel_size=float(voxel_size), sigma=sigma_voxels * float(voxel_size),
-                        h=threshold(k) if h is None else float(h), n_tiles=len(tiles), tile_size=tiling.edge,
-                        timings=timings)
+                        n_current=run.sources["current"].n_rows, n_reference=n_ref,
+                        n_dropped_current=run.dropped["current"], n_dropped_reference=run.dropped.get("reference", 0),
+                        voxel_size=run.voxel_size, sigma=sigma_voxels * run.voxel_size,
+                        h=threshold(k) if h is None else float(h), n_tiles=len(run.tiles), tile_size=run.tiling.edge,
+                        timings=run.timings)
+
+
+def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float, sigma_voxels: float = 2.0,
+                      k: float = 3, h: float | None = None, truncate: float = 3.0, method: str = "auto",
+                      tile_size: float | None = None, tile_points: int = 2_000_000,
+                      memory_limit: int | str | None = None, scheduler: str | None = None,
+                      workers: int | None = None, workdir: str | os.PathLike | None = None) -> FieldStore:
+    """The density field of a cloud of any size, built tile by tile into a :class:`FieldStore`.
+
+    Same parameters as :func:`detect_changes_tiled` (one cloud); ``path`` is the store to
+    write (a folder, conventionally ``*.zarr``). Each tile's blocks equal those of
+    :meth:`DensityField.from_points` on the whole cloud.
+    """
+    with _Session({"cloud": cloud}, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
+                  method=method, tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit,
+                  scheduler=scheduler, workers=workers, workdir=workdir) as run:
+        store = FieldStore.create(path, voxel_size=run.voxel_size, sigma=sigma_voxels * run.voxel_size,
+                                  truncate=truncate, h=threshold(k) if h is None else float(h),
+                                  tile_blocks=run.tiling.blocks, inputs=(cloud,) if isinstance(cloud, (str, Path)) else ())
+        jobs = [(key, run.root, run.tiling, run.opts, str(store.path)) for key in run.tiles]
+        counts = run.tasks("build", _build_tile, jobs, ())
+    store.set_counts(sum(counts), run.dropped["cloud"])
+    return store
+
+
+def _build_tile(key, root: str, tiling: _Tiling, opts: dict, store: str) -> int:
+    """Build tile ``key``'s field from its bucket and store its own blocks; returns its own points."""
+    rec = _load(root, "cloud", key)
+    FieldStore.open(store).write_tile(key, DensityField.from_points(rec["xyz"], **opts))
+    return int(np.all(tiling.core(rec["xyz"]) == key, axis=1).sum())
+
+
+class _Session:
+    """Workdir, Dask cluster and bucketed clouds of one tiled run; ``with`` closes them."""
+
+    def __init__(self, clouds: dict, voxel_size, *, sigma_voxels, k, h, truncate, method, tile_size, tile_points,
+                 memory_limit, scheduler, workers, workdir):
+        if voxel_size is None or not (voxel_size > 0 and math.isfinite(voxel_size)):
+            raise ValueError(f"voxel_size must be a positive length, got {voxel_size!r}")
+        self.voxel_size = float(voxel_size)
+        workers = workers or os.cpu_count() or 1
+        share = _memory_limit(memory_limit) // (workers if scheduler in (None, "threads") else 1)
+        self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
+                         method=method, memory_limit=share)
+        self.root = tempfile.mkdtemp(prefix="sdp-tiles-", dir=workdir)
+        self.timings: dict[str, float] = {}
+        try:
+            self.executor, self.cluster = _connect(scheduler, workers)
+            self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
+            self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate)
+            jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root) for e, src in self.sources.items()
+                    for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
+            done = self.tasks("bucket", _bucket_part, jobs, ())
+        except BaseException:
+            self.__exit__()
+            raise
+        self.timings["read"] = sum(d[2] for d in done)
+        self.dropped = {e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in self.sources}
+        self.tiles = sorted({key for d in done for key in d[0]})
+
+    def tasks(self, step: str, func, jobs: list, summed: tuple) -> list:
+        """Run the jobs; time the step (wall) and sum the tasks' own timings named ``summed``."""
+        t = time.perf_counter()
+        results = _run(self.executor, func, jobs, {"bucket": "reading and tiling"}.get(step, f"{step} tiles"))
+        self.timings[step] = time.perf_counter() - t
+        for name in summed:
+            self.timings[name] = self.timings.get(name, 0.0) + sum(r[name] for r in results)
+        return results
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if not isinstance(getattr(self, "executor", "none"), str):
+            self.executor.close()
+        if getattr(self, "cluster", None) is not None:
+            self.cluster.close()
+        shutil.rmtree(self.root, ignore_errors=True)
 
 
 def _source(s, root: str, epoch: str) -> PointSource:

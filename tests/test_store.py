@@ -1,0 +1,77 @@
+"""Out-of-core fields: FieldStore (Zarr, tile by tile) against the in-memory DensityField."""
+
+import numpy as np
+import pytest
+from test_tiles import street
+
+import sdp
+from sdp.store import FieldStore
+from sdp.tiles import build_field_tiled, detect_changes_tiled
+
+
+@pytest.fixture
+def clouds(rng):
+    ref = street(rng, [([2, 2, 0], [4, 5, 1.5]), ([14, 9.5, 0], [16, 10.5, 2])], n=60_000)
+    cur = street(rng, [([2, 2, 0], [4, 5, 1.5]), ([9.5, 15.5, 0], [10.8, 16.8, 1.2])], n=60_000)
+    return ref, cur
+
+
+def test_store_round_trip_queries_and_mesh(tmp_path, clouds):
+    ref, _ = clouds
+    f = sdp.DensityField.from_points(ref, voxel_size=0.1)
+    store = FieldStore.from_field(f, tmp_path / "f.zarr", tile_blocks=8)  # 6.4 m tiles
+    assert len(store.tiles) >= 20 and store.n_blocks == f.n_blocks and store.n_points == len(ref)
+    back = FieldStore.open(tmp_path / "f.zarr").read()
+    np.testing.assert_array_equal(back.node_values(f.global_keys), f.node_values(f.global_keys))
+    q = np.concatenate([ref[::50], ref[::97] + [0.03, -0.04, 0.05]])
+    # equal up to the rounding of (p − origin) / l: each tile's grid has its own origin
+    np.testing.assert_allclose(store.density(q), f.density(q), rtol=1e-8)
+    np.testing.assert_allclose(store.field(q[:5]), f.field(q[:5]), rtol=1e-8)
+    a, b = store.mesh(), f.mesh()
+    assert len(a.vertices) == len(b.vertices) and len(a.faces) == len(b.faces)
+    assert a.area == pytest.approx(b.area, rel=1e-9)
+
+
+def test_tiled_build_equals_the_whole_field(tmp_path, clouds):
+    ref, _ = clouds
+    f = sdp.DensityField.from_points(ref, voxel_size=0.1)
+    store = build_field_tiled(ref, tmp_path / "t.zarr", voxel_size=0.1, tile_size=5.0, scheduler="synchronous")
+    assert len(store.tiles) >= 20 and store.n_points == len(ref)
+    g = store.read()
+    assert g.n_blocks == f.n_blocks
+    np.testing.assert_allclose(g.node_values(f.global_keys), f.node_values(f.global_keys), rtol=1e-5,
+                               atol=1e-5 * float(f._blocks.max()))
+
+
+def test_out_of_core_boolean_equals_in_memory(tmp_path, clouds):
+    ref, cur = clouds
+    fa, fb = (sdp.DensityField.from_points(c, voxel_size=0.1) for c in (ref, cur))
+    sa = FieldStore.from_field(fa, tmp_path / "a.zarr", tile_blocks=8)
+    sb = FieldStore.from_field(fb, tmp_path / "b.zarr", tile_blocks=8)
+    for op in ("union", "intersection", "difference"):
+        want = getattr(sdp, op)(fa, fb)
+        got = sa.combine(sb, op, tmp_path / f"{op}.zarr").read()
+        assert got.h == want.h
+        np.testing.assert_array_equal(got.node_values(want.global_keys), want.node_values(want.global_keys))
+    with pytest.raises(sdp.SDPError, match="overwrite"):
+        sa.combine(sb, "union", tmp_path / "a.zarr")
+
+
+def test_changes_against_a_stored_reference(tmp_path, clouds):
+    ref, cur = clouds
+    want = sdp.detect_changes(ref, cur, voxel_size=0.1)
+    store = FieldStore.from_field(want.reference_field, tmp_path / "ref.zarr", tile_blocks=8)
+    got = detect_changes_tiled(store, cur, scheduler="synchronous")
+    assert got.n_tiles >= 20 and want.appeared.sum() > 1000
+    np.testing.assert_array_equal(got.appeared, want.appeared)
+    assert got.disappeared_rows.size == 0
+
+
+def test_store_errors(tmp_path):
+    (tmp_path / "plain").mkdir()
+    (tmp_path / "plain" / "notes.txt").write_text("keep me")
+    with pytest.raises(sdp.FieldFileError, match="not a readable sdp field store"):
+        FieldStore.open(tmp_path / "nothing.zarr")
+    with pytest.raises(sdp.FieldFileError, match="not a Zarr store"):
+        FieldStore.create(tmp_path / "plain", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8)
+    assert (tmp_path / "plain" / "notes.txt").read_text() == "keep me"
