@@ -47,7 +47,7 @@ def test_out_of_core_boolean_equals_in_memory(tmp_path, clouds):
     ref, cur = clouds
     fa, fb = (sdp.DensityField.from_points(c, voxel_size=0.1) for c in (ref, cur))
     sa = FieldStore.from_field(fa, tmp_path / "a.zarr", tile_blocks=8)
-    sb = FieldStore.from_field(fb, tmp_path / "b.zarr", tile_blocks=8)
+    sb = FieldStore.from_field(fb, tmp_path / "b.zarr", tile_blocks=5)  # tiles need not match
     for op in ("union", "intersection", "difference"):
         want = getattr(sdp, op)(fa, fb)
         got = sa.combine(sb, op, tmp_path / f"{op}.zarr").read()
@@ -75,3 +75,22 @@ def test_store_errors(tmp_path):
     with pytest.raises(sdp.FieldFileError, match="not a Zarr store"):
         FieldStore.create(tmp_path / "plain", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8)
     assert (tmp_path / "plain" / "notes.txt").read_text() == "keep me"
+
+
+def test_cli_field_store(tmp_path, clouds):
+    from test_tiles import run, write_las
+
+    ref, cur = clouds
+    a, b = write_las(tmp_path / "a.laz", ref), write_las(tmp_path / "b.laz", cur)
+    built = run("build", a, "-o", tmp_path / "a.zarr", "--voxel-size", "0.1", "--tile-size", "6", "--workers", "1")
+    assert built.returncode == 0, built.stderr
+    assert run("mesh", tmp_path / "a.zarr", "-o", tmp_path / "a.ply").returncode == 0
+    stored = run("change", tmp_path / "a.zarr", b, "-o", tmp_path / "s.laz", "--json")
+    direct = run("change", a, b, "-o", tmp_path / "d.laz", "--voxel-size", "0.1", "--json")
+    assert stored.returncode == 0 and direct.returncode == 0, stored.stderr
+    import json
+
+    s, d = json.loads(stored.stdout), json.loads(direct.stdout)
+    assert s["current"]["appeared"] == d["current"]["appeared"] > 1000 and s["tiles"] >= 12
+    both = run("change", tmp_path / "a.zarr", b, "-o", tmp_path / "x.laz", "--both")
+    assert both.returncode == 2 and "reference points" in both.stderr

@@ -59,6 +59,36 @@ def _grid_options(p):
     g.add_argument("--memory-limit", help="refuse grids needing more (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
 
 
+def _tile_options(p, title, *, tiled: bool = True):
+    t = p.add_argument_group(title)
+    if tiled:
+        t.add_argument("--tiled", action="store_true", help="work in tiles even if the clouds fit in memory")
+    t.add_argument("--tile-size", type=float, help="tile edge in world units (default: ~2M points per tile)")
+    t.add_argument("--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786 "
+                   "(default: a local cluster of --workers processes)")
+    t.add_argument("--workers", type=int, help="worker processes of the local cluster (default: one per core)")
+    t.add_argument("--workdir", help="folder for the tiles' buckets (shared by all workers on a cluster)")
+
+
+def _tile_kwargs(a) -> dict:
+    return dict(sigma_voxels=a.sigma_voxels, k=a.k, h=a.h, tile_size=a.tile_size, memory_limit=a.memory_limit,
+                scheduler=a.scheduler, workers=a.workers, workdir=a.workdir)
+
+
+def _sampled_voxel(a, sources) -> float:
+    """``--voxel-size``, or ``auto`` from the first chunk of each source (clouds too large to read whole)."""
+    voxel = _voxel(a)
+    if voxel != "auto":
+        return voxel
+    from .params import auto_voxel_size
+
+    return auto_voxel_size(*(next(s.chunks())[1] for s in sources), k=int(round(a.k)), sigma_voxels=a.sigma_voxels)
+
+
+def _is_store(path) -> bool:
+    return Path(path).suffix.lower() == ".zarr"
+
+
 def _voxel(a) -> float | str:
     if a.voxel_size == "auto":
         return "auto"
@@ -127,6 +157,13 @@ def _tiled_voxel(a) -> float | None:
     from .io import FORMATS, PointSource
     from .tiles import dense_grid_bytes, untiled_point_bytes
 
+    if _is_store(a.reference):  # a stored reference field: its lattice, σ, h and tiles
+        from .store import FieldStore
+
+        a.tiled, a.sources = True, [FieldStore.open(a.reference), PointSource.open(a.current, format=a.format)]
+        if a.both:
+            raise SDPError("--both needs the reference points; a .zarr field store only tells what appeared")
+        return a.sources[0].voxel_size
     streamed = all((a.format or FORMATS.get(Path(f).suffix.lower())) in ("las", "npy", "ply")
                    for f in (a.reference, a.current))
     if not a.tiled and (not streamed or a.grid_size is not None or a.align or a.decision != "point"):
@@ -144,12 +181,7 @@ def _tiled_voxel(a) -> float | None:
         if a.tiled:
             raise
         return None  # ASCII PLY and the like: the in-memory path reads them (or reports the error)
-    voxel = _voxel(a)
-    if voxel == "auto":
-        from .params import auto_voxel_size
-
-        voxel = auto_voxel_size(*(next(s.chunks())[1] for s in sources), k=int(round(a.k)),
-                                sigma_voxels=a.sigma_voxels)
+    voxel = _sampled_voxel(a, sources)
     lo = np.minimum(sources[0].lo, sources[1].lo)
     hi = np.maximum(sources[0].hi, sources[1].hi)
     grids = 2 * dense_grid_bytes(lo, hi, voxel, sigma_voxels=a.sigma_voxels)
@@ -168,10 +200,7 @@ def _change_tiled(a, voxel: float):
     from .io import write_points_streamed
     from .tiles import detect_changes_tiled
 
-    r = detect_changes_tiled(*a.sources, voxel_size=voxel, sigma_voxels=a.sigma_voxels, k=a.k, h=a.h,
-                             min_region_points=a.min_region_points, tile_size=a.tile_size,
-                             memory_limit=a.memory_limit, scheduler=a.scheduler, workers=a.workers,
-                             workdir=a.workdir)
+    r = detect_changes_tiled(*a.sources, voxel_size=voxel, min_region_points=a.min_region_points, **_tile_kwargs(a))
     out = Path(a.output)
     jobs = [(out, a.sources[1], r.appeared_rows, r.appeared_region)]
     if a.both:
@@ -363,14 +392,28 @@ def cmd_action(a):
 
 
 def cmd_build(a):
-    _save_field(_field(a.cloud, a), a.output, inputs=(a.cloud,))
+    if not _is_store(a.output):
+        _save_field(_field(a.cloud, a), a.output, inputs=(a.cloud,))
+        return 0
+    from .io import PointSource
+    from .tiles import build_field_tiled
+
+    source = PointSource.open(a.cloud, format=a.format)
+    store = build_field_tiled(source, a.output, voxel_size=_sampled_voxel(a, [source]), **_tile_kwargs(a))
+    print(f"{store!r}\nwrote {a.output}")
     return 0
 
 
 def cmd_info(a):
     from .field import DensityField
 
-    if _is_field(a.file):
+    if _is_store(a.file):
+        from .store import FieldStore
+
+        st = FieldStore.open(a.file)
+        info = {"kind": "field store", "voxel_size": st.voxel_size, "sigma": st.sigma, "h": st.h,
+                "tiles": len(st.tiles), "tile_blocks": st.tile_blocks, "blocks": st.n_blocks, "n_points": st.n_points}
+    elif _is_field(a.file):
         f = DensityField.load(a.file)
         info = {"kind": "field", "voxel_size": f.voxel_size, "sigma": f.sigma, "h": f.h, "blocks": f.n_blocks,
                 "box_nodes": list(f.grid.shape), "origin": f.grid.origin.tolist(), "n_points": f.n_points,
@@ -384,7 +427,13 @@ def cmd_info(a):
 
 
 def cmd_mesh(a):
-    _write_mesh(a.output, _field(a.input, a).mesh(level=a.level), inputs=(a.input,))
+    if _is_store(a.input):
+        from .store import FieldStore
+
+        mesh = FieldStore.open(a.input).mesh(level=a.level)
+    else:
+        mesh = _field(a.input, a).mesh(level=a.level)
+    _write_mesh(a.output, mesh, inputs=(a.input,))
     return 0
 
 
@@ -399,6 +448,14 @@ def cmd_bool(a):
     from . import boolean
     from .field import DensityField
 
+    if _is_store(a.output):
+        from .store import FieldStore
+
+        if not (_is_store(a.a) and _is_store(a.b)):
+            raise SDPError("a .zarr output combines two .zarr field stores (build them with sdp build -o X.zarr)")
+        out = FieldStore.open(a.a).combine(FieldStore.open(a.b), a.operation, a.output)
+        print(f"{out!r}\nwrote {a.output}")
+        return 0
     items = [_field_or_points(p, a) for p in (a.a, a.b)]
     like = next((x for x in items if isinstance(x, DensityField)), None)
     kw = _lattice(a, items, like)  # clouds are built on a given field's lattice, else on one from both
@@ -522,19 +579,15 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
     c.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
-    t = c.add_argument_group("large clouds: tiles on Dask (taken by itself when the grids or points exceed "
-                             "--memory-limit; outputs LAS/LAZ with 'change' and 'region')")
-    t.add_argument("--tiled", action="store_true", help="compare in tiles even if the clouds fit in memory")
-    t.add_argument("--tile-size", type=float, help="tile edge in world units (default: ~2M points per tile)")
-    t.add_argument("--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786 "
-                   "(default: a local cluster of --workers processes)")
-    t.add_argument("--workers", type=int, help="worker processes of the local cluster (default: one per core)")
-    t.add_argument("--workdir", help="folder for the tiles' buckets (shared by all workers on a cluster)")
+    _tile_options(c, "large clouds: tiles on Dask (taken by itself when the grids or points exceed --memory-limit, "
+                     "or when REFERENCE is a .zarr field store; outputs LAS/LAZ with 'change' and 'region')")
 
-    b = _command(sub, "build", cmd_build, "build a density field and save it (.sdpf)",
-                 "  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01")
+    b = _command(sub, "build", cmd_build, "build a density field and save it (.sdpf, or a .zarr store in tiles)",
+                 "  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01\n"
+                 "  sdp build city.laz -o city.zarr --voxel-size 0.1        any size: tiles on Dask, on disk")
     b.add_argument("cloud")
-    b.add_argument("-o", "--output", required=True)
+    b.add_argument("-o", "--output", required=True, help=".sdpf (in memory) or .zarr (a field store, built in tiles)")
+    _tile_options(b, "field stores (.zarr output)", tiled=False)
 
     i = _command(sub, "info", cmd_info, "describe a cloud or a field file", "  sdp info scan.laz\n  sdp info scan.sdpf")
     i.add_argument("file")

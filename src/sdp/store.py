@@ -246,15 +246,21 @@ class FieldStore:
 
         if operation not in ("union", "intersection", "difference"):
             raise ValueError(f"operation must be union, intersection or difference, got {operation!r}")
-        if self.tile_blocks != other.tile_blocks:
-            raise ValueError("stores with different tile_blocks; rebuild one with the other's tiles")
-        op = getattr(boolean, operation)
+        op, t = getattr(boolean, operation), self.tile_blocks
+        tiles = set(self.tiles)
+        for key in other.tiles:  # this store's tiles that the other's tiles overlap
+            lo = np.floor_divide(np.asarray(key) * other.tile_blocks, t)
+            hi = np.floor_divide((np.asarray(key) + 1) * other.tile_blocks - 1, t)
+            tiles |= {(i, j) for i in range(lo[0], hi[0] + 1) for j in range(lo[1], hi[1] + 1)}
         out = None
-        for key in sorted(set(self.tiles) | set(other.tiles)):
-            r = op(self.tile_field(key, margin=0), other.tile_field(key, margin=0))
+        for key in sorted(tiles):
+            lo = np.asarray(key, np.int64) * t
+            a, b = self.read(lo, lo + t), other.read(lo, lo + t)
+            if a.n_blocks + b.n_blocks == 0:
+                continue
+            r = op(a, b)
             if out is None:
                 out = FieldStore.create(path, voxel_size=r.voxel_size, sigma=r.sigma, truncate=r.truncate, h=r.h,
-                                        tile_blocks=self.tile_blocks, method=operation,
-                                        inputs=(self.path, other.path))
+                                        tile_blocks=t, method=operation, inputs=(self.path, other.path))
             out.write_tile(key, r)
         return out

@@ -69,7 +69,8 @@ class TiledChanges:
     appeared_regions, disappeared_regions : list of Region
         Connected change regions, largest first.
     n_current, n_reference : int
-        Rows of each input; ``n_dropped_*`` of them held NaN or Inf.
+        Rows of each input (for a stored reference: the points it was built from);
+        ``n_dropped_*`` of them held NaN or Inf.
     voxel_size, sigma, h : float
         Parameters used.
     n_tiles, tile_size : int, float
@@ -344,7 +345,7 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | None = None,
         out = {kind: _regions([r[kind] for r in results], run.voxel_size, min_region_points, regions)
                for kind in ("appeared", "disappeared")}
         run.timings["regions"] = time.perf_counter() - t
-    n_ref = run.sources["reference"].n_rows if store is None else 0
+    n_ref = run.sources["reference"].n_rows if store is None else store.n_points
     return TiledChanges(appeared_rows=out["appeared"][0], disappeared_rows=out["disappeared"][0],
                         appeared_region=out["appeared"][1], disappeared_region=out["disappeared"][1],
                         appeared_regions=out["appeared"][2], disappeared_regions=out["disappeared"][2],
