@@ -4,7 +4,9 @@ The data path, one module per step: points → :class:`DensityField` (:mod:`sdp.
 sparse grid of :mod:`sdp.grid`) → Boolean operations (:mod:`sdp.boolean`) → change masks
 (:mod:`sdp.change`) → regions (:mod:`sdp.regions`) → scores (:mod:`sdp.metrics`) and files
 (:mod:`sdp.io`) and pictures (:mod:`sdp.render`); surfaces by :mod:`sdp.surface`, parameters
-from the data by :mod:`sdp.params`.
+from the data by :mod:`sdp.params`. Clouds beyond memory: the same path in tiles on Dask
+(:mod:`sdp.tiles`), reading files in slices (:class:`PointSource`) and keeping fields on disk
+(:mod:`sdp.store`, Zarr).
 
 References
 ----------
@@ -26,23 +28,26 @@ from .errors import (
 )
 from .field import DensityField, threshold
 from .grid import BLOCK, Grid
-from .io import CloudFileError, read_points, write_mesh, write_points
+from .io import CloudFileError, PointSource, read_points, write_mesh, write_points, write_points_streamed
 from .metrics import confusion_matrix, kappa, scores
 from .online import FrameChange, watch
 from .params import auto_voxel_size
 from .regions import Region
 from .render import render_changes, render_changes_html, render_field
+from .store import FieldStore
 from .surface import Mesh, extract_surface
+from .tiles import TiledChanges, build_field_tiled, detect_changes_tiled
 
 __all__ = [
     "DensityField", "threshold", "Grid", "BLOCK",
     "union", "intersection", "difference",
     "detect_changes", "ChangeResult", "Region",
+    "detect_changes_tiled", "TiledChanges", "build_field_tiled", "FieldStore",
     "align", "Alignment", "transform_points",
     "watch", "FrameChange",
     "extract_surface", "Mesh",
     "auto_voxel_size",
-    "read_points", "write_points", "write_mesh",
+    "read_points", "write_points", "write_mesh", "PointSource", "write_points_streamed",
     "render_changes", "render_changes_html", "render_field",
     "kappa", "confusion_matrix", "scores",
     "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",
