@@ -140,10 +140,7 @@ def cmd_change(a):
         summary["alignment"] = alignment.summary()
         summary["timings"]["align"] = alignment.seconds
     summary["outputs"] = outputs
-    if a.json:
-        print(json.dumps(summary, indent=2))
-    else:
-        _print_summary(summary, a.reference, a.current)
+    _report(a, summary)
     return 0
 
 
@@ -219,14 +216,16 @@ def _change_tiled(a, voxel: float):
     summary = r.summary()
     summary["timings"]["write"] = time.perf_counter() - t
     summary["outputs"] = outputs
-    if a.json:
-        print(json.dumps(summary, indent=2))
-    else:
-        _print_summary(summary, a.reference, a.current)
+    _report(a, summary)
     return 0
 
 
-def _print_summary(s, ref_name, cur_name):
+def _report(a, s):
+    """Print a change summary: JSON with ``--json``, else a table."""
+    if a.json:
+        print(json.dumps(s, indent=2))
+        return
+    ref_name, cur_name = a.reference, a.current
     print(f"reference  {ref_name}: {s['reference']['points']:,} points ({s['reference']['dropped']} dropped), "
           f"{s['reference']['disappeared']:,} disappeared")
     print(f"current    {cur_name}: {s['current']['points']:,} points ({s['current']['dropped']} dropped), "
