@@ -156,3 +156,66 @@ def test_building_in_chunks_gives_the_same_field(rng, monkeypatch, method):
     monkeypatch.setattr(sdp.field, "_CHUNK", 777)  # large clouds are binned chunk by chunk
     chunked = DensityField.from_points(pts, voxel_size=0.05, method=method)
     np.testing.assert_allclose(chunked.density(pts), whole.density(pts), rtol=1e-5)
+
+
+@pytest.mark.parametrize("sigma_voxels", [0.5, 1.0, 2.0, 3.7])
+def test_allocated_blocks_are_exactly_those_the_kernels_reach(rng, sigma_voxels):
+    from sdp.grid import BLOCK
+
+    pts = rng.random((300, 3)) * [1.0, 0.6, 0.3]
+    f = DensityField.from_points(pts, voxel_size=0.013, sigma_voxels=sigma_voxels)
+    reach = int(math.ceil(3.0 * sigma_voxels))
+    i = np.floor(f.grid.to_grid_units(pts)).astype(int)
+    expected = set()
+    for lo, hi in zip((i - reach) // BLOCK, (i + reach + 1) // BLOCK):
+        expected.update(tuple(lo + d) for d in np.ndindex(*(hi - lo + 1)))
+    assert set(map(tuple, f._keys)) == expected
+
+
+@pytest.mark.parametrize("sigma_voxels", [1.0, 2.0])
+def test_fast_build_is_trilinear_binning_then_a_separable_blur(rng, sigma_voxels):
+    from scipy.ndimage import correlate1d
+
+    pts = rng.random((3000, 3)) * [0.8, 0.5, 0.4]
+    f = DensityField.from_points(pts, voxel_size=0.01, sigma_voxels=sigma_voxels)
+    dense, _ = f.to_dense()
+    u = f.grid.to_grid_units(pts)
+    i, t = np.floor(u).astype(int), u - np.floor(u)
+    binned = np.zeros(dense.shape)
+    for corner in np.ndindex(2, 2, 2):
+        c = np.array(corner)
+        w = np.prod(np.where(c, t, 1 - t), axis=1)
+        np.add.at(binned, tuple((i + c).T), w)
+    s = math.sqrt(sigma_voxels**2 - 1 / 6)
+    j = np.arange(-int(3 * sigma_voxels), int(3 * sigma_voxels) + 1)
+    taps = np.exp(-j**2 / (2 * s * s)) * sigma_voxels / s
+    expected = binned
+    for axis in range(3):
+        expected = correlate1d(expected, taps, axis=axis, mode="constant")
+    np.testing.assert_allclose(dense, expected, rtol=1e-5, atol=1e-5 * expected.max())
+
+
+def test_regions_are_the_6_connected_components_of_the_negative_nodes(rng):
+    from scipy.ndimage import label
+
+    from sdp.regions import label_points
+
+    centres = rng.random((40, 3)) * [0.5, 0.4, 0.3]  # 32 components, some merged, over ~1000 blocks
+    pts = np.concatenate([rng.normal(c, 0.008, (60, 3)) for c in centres])
+    f = DensityField.from_points(pts, voxel_size=0.005)
+    values = f.h - f._blocks
+    point_labels, node_counts = label_points(f, values, pts)
+    dense = f.h - f.to_dense()[0]
+    expected, n = label(dense < 0)  # 6-connectivity
+    assert len(node_counts) == n > 20
+    assert sorted(node_counts) == sorted(np.bincount(expected.ravel())[1:])
+    # a point lies in the component of its cell's lowest negative corner
+    u = np.floor(f.grid.to_grid_units(pts)).astype(int)
+    corners = np.stack([u + c for c in np.ndindex(2, 2, 2)], axis=1)
+    v = np.where(expected[tuple(corners.T)].T > 0, dense[tuple(corners.T)].T, np.inf)
+    best = expected[tuple(corners[np.arange(len(pts)), v.argmin(axis=1)].T)]
+    has = np.isfinite(v.min(axis=1))
+    assert np.array_equal(point_labels >= 0, has)
+    # the same partition of the points (numbering differs)
+    pairs = set(zip(point_labels[has], best[has]))
+    assert len(pairs) == len(set(point_labels[has])) == len(set(best[has]))

@@ -22,6 +22,26 @@ def test_accumulate_equals_a_rebuild_and_subtracting_undoes_it(rng):
         fa.accumulate(sdp.DensityField.from_points(b, voxel_size=0.05))
 
 
+def test_accumulating_a_stream_fills_spare_rows_and_equals_a_rebuild(rng):
+    parts = [rng.normal([0.3 * i, 0, 0], 0.05, (2000, 3)) for i in range(8)]  # each adds blocks
+    f = sdp.DensityField.from_points(parts[0], voxel_size=0.02)
+    fields = [sdp.DensityField.from_points(p, voxel_size=0.02) for p in parts]
+    snapshot = None
+    for i, g in enumerate(fields[1:], start=1):
+        f.accumulate(g)
+        if i == 3:
+            snapshot = f.copy()  # independent of the rows f keeps appending to
+    assert f.nbytes >= f._blocks.nbytes + f._directory.nbytes  # spare rows are counted
+    both = sdp.DensityField.from_points(np.concatenate(parts), voxel_size=0.02)
+    q = np.concatenate(parts)[::7]
+    np.testing.assert_allclose(f.density(q), both.density(q), atol=1e-5 * both.density(q).max())
+    first4 = sdp.DensityField.from_points(np.concatenate(parts[:4]), voxel_size=0.02)
+    np.testing.assert_allclose(snapshot.density(q), first4.density(q), atol=1e-5 * both.density(q).max())
+    for g in fields[1:]:
+        f.accumulate(g, weight=-1)
+    np.testing.assert_allclose(f.density(q), fields[0].density(q), atol=1e-5 * both.density(q).max())
+
+
 def test_scale_is_a_decay(rng):
     f = sdp.DensityField.from_points(room_scene(rng, n=5000), voxel_size=0.05)
     q = rng.uniform(0, 3, (100, 3))

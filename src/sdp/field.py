@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from . import _kernels as K
-from ._points import as_points
+from ._points import Points, as_points
 from ._progress import bar
 from .errors import FieldFileError, IncompatibleFieldsError, InvalidPointsError
 from .grid import BLOCK, Grid, check_memory, voxel_size_for_grid_size
@@ -96,7 +96,8 @@ class DensityField:
         ----------
         points : array_like, shape (n, 3)
             World coordinates (float64). Rows holding NaN or Inf are dropped and counted in
-            :attr:`n_dropped`.
+            :attr:`n_dropped`. (Internally also the ``Points`` of ``sdp._points.as_points``,
+            used as validated.)
         voxel_size : float, optional
             Node spacing l in world units. Exactly one of ``voxel_size`` and ``grid_size``;
             :func:`sdp.auto_voxel_size` picks one from the data.
@@ -128,7 +129,7 @@ class DensityField:
         GridTooLargeError
             The grid would need more memory than ``memory_limit``.
         """
-        cloud = as_points(points)
+        cloud = points if isinstance(points, Points) else as_points(points)  # validated already (sdp.watch)
         l = _resolve_voxel_size(cloud.lo, cloud.hi, voxel_size=voxel_size, grid_size=grid_size)
         if not sigma_voxels > 0 or not truncate > 0:
             raise ValueError("sigma_voxels and truncate must be positive")

@@ -123,7 +123,7 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
         name, pts = item if isinstance(item, tuple) else (str(index), item)
         t0 = time.perf_counter()
         cur = as_points(pts, name=f"frame {name}")
-        frame = DensityField.from_points(cur.xyz, **opts)
+        frame = DensityField.from_points(cur, **opts)
         t1 = time.perf_counter()
         mask, d = _inside_difference(frame, model.with_threshold(h=h * weight), cur.xyz)
         t2 = time.perf_counter()
