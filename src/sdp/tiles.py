@@ -12,7 +12,7 @@ The data path of :func:`sdp.detect_changes`, cut into square columns of the glob
 
 A tile's points plus its halo of ``ceil(truncate·σ) + 2`` voxels hold every point whose kernel
 reaches the nodes a tile point is interpolated from, so each tile's decisions equal the untiled
-run's (tested). Memory per task is bounded by the tile (``tile_points``), not by the cloud; the
+run's (tested). Memory per task is bounded by the tile (sized from the memory limit), not by the cloud; the
 result keeps the changed rows only.
 
 Tasks run on a Dask local cluster (one single-threaded worker process per core) by default, or
@@ -53,7 +53,10 @@ __all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "dense_g
 
 _REC = np.dtype([("xyz", "<f8", 3), ("row", "<i8")])  # one bucketed point
 _PART_ROWS = 8_000_000  # rows read by one bucketing task
-_CHUNK_ROWS = 2_000_000  # rows decoded at a time inside it
+_BYTES_PER_ROW_READ = 600  # a decoded row in a bucketing task: record, x y z, tile keys, sort, bucket record
+_BYTES_PER_TILE_POINT = 1200  # a point of one epoch in a compare task: bucket record, its share of two fields
+# (blocks, blur buffer, difference), masks: the 100 M-point benchmark peaked at 3.4 GiB (client and 2 workers)
+# with 1.2 M points per tile and epoch
 
 
 @dataclass
@@ -182,11 +185,12 @@ class _Tiling:
 
 
 def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: int, tiling: _Tiling,
-                 root: str) -> tuple[dict, int, float]:
-    """Bucket rows start … stop−1 of ``source``; returns ({tile: count}, rows dropped, seconds reading)."""
+                 root: str, chunk_rows: int) -> tuple[dict, int, float]:
+    """Bucket rows start … stop−1 of ``source``, ``chunk_rows`` at a time; returns ({tile: count},
+    rows dropped, seconds reading)."""
     counts: dict[tuple[int, int], int] = {}
     dropped, t_read = 0, 0.0
-    chunks = source.chunks(_CHUNK_ROWS, start, stop)
+    chunks = source.chunks(chunk_rows, start, stop)
     while True:
         t = time.perf_counter()
         item = next(chunks, None)
@@ -199,7 +203,8 @@ def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: i
         rows = first + np.flatnonzero(ok)
         xyz = xyz[ok]
         idx, ti, tj = tiling.buckets(xyz)
-        order = np.lexsort((idx, tj, ti))  # by tile, rows in file order within a tile
+        tile = (ti - ti.min()) * (int(tj.max() - tj.min()) + 1) + (tj - tj.min())
+        order = np.argsort(tile * len(xyz) + idx)  # by tile, rows in file order within a tile (unique keys)
         idx, ti, tj = idx[order], ti[order], tj[order]
         cut = np.flatnonzero((np.diff(ti) != 0) | (np.diff(tj) != 0)) + 1
         for s, e in zip(np.r_[0, cut], np.r_[cut, len(idx)], strict=True):
@@ -256,7 +261,8 @@ def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None
         pts = rec["xyz"][own]
         mask, d = _inside_difference(fld, fields[other] or _empty_field(fld), pts)
         keys = fld.global_keys
-        mine = np.all(np.floor_divide(keys[:, :2], tiling.blocks) == key, axis=1) & (d < 0).any(axis=1)
+        mine = np.flatnonzero(np.all(np.floor_divide(keys[:, :2], tiling.blocks) == key, axis=1))
+        mine = mine[d[mine].min(axis=1) < 0]
         out[kind] = (rec["row"][own][mask], pts[mask], keys[mine], d[mine])
     out["detect"] = time.perf_counter() - t
     return out
@@ -287,7 +293,7 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
 def detect_changes_tiled(reference, current, *, voxel_size: float | None = None, sigma_voxels: float = 2.0,
                          k: float = 3, h: float | None = None, truncate: float = 3.0, method: str = "auto",
                          min_region_points: int = 1, regions: bool = True, tile_size: float | None = None,
-                         tile_points: int = 2_000_000, memory_limit: int | str | None = None,
+                         tile_points: int | None = None, memory_limit: int | str | None = None,
                          scheduler: str | None = None, workers: int | None = None,
                          workdir: str | os.PathLike | None = None) -> TiledChanges:
     """:func:`sdp.detect_changes` (point decision) in tiles, for clouds of any size.
@@ -312,11 +318,14 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | None = None,
     tile_size : float, optional
         Tile edge in world units (rounded up to whole blocks of 8 voxels). Default: about
         ``tile_points`` points of the larger cloud per tile, from its mean density in x, y.
-    tile_points : int
-        Target points per tile when ``tile_size`` is not given.
+    tile_points : int, optional
+        Target points per tile and epoch when ``tile_size`` is not given; default: what a
+        worker's share of ``memory_limit`` holds (≈ 1.2 KB per point and epoch: 0.9 M points
+        for 2 GiB).
     memory_limit : int or str, optional
-        Memory of all workers together (default ``$SDP_MEMORY_LIMIT`` or 4 GiB); each of
-        the ``workers`` gets its share, and a tile whose fields need more is refused.
+        Memory of all workers together (default ``$SDP_MEMORY_LIMIT`` or 4 GiB): each of the
+        ``workers`` gets its share, which sets the tile size and the rows decoded at a time;
+        a tile whose fields need more than the share is refused.
     scheduler : str, optional
         ``None``: a Dask local cluster of ``workers`` processes; ``"tcp://host:8786"``: that
         ``dask.distributed`` scheduler; ``"synchronous"`` or ``"threads"``: Dask's local
@@ -358,7 +367,7 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | None = None,
 
 def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float, sigma_voxels: float = 2.0,
                       k: float = 3, h: float | None = None, truncate: float = 3.0, method: str = "auto",
-                      tile_size: float | None = None, tile_points: int = 2_000_000,
+                      tile_size: float | None = None, tile_points: int | None = None,
                       memory_limit: int | str | None = None, scheduler: str | None = None,
                       workers: int | None = None, workdir: str | os.PathLike | None = None) -> FieldStore:
     """The density field of a cloud of any size, built tile by tile into a :class:`FieldStore`.
@@ -398,13 +407,16 @@ class _Session:
         share = _memory_limit(memory_limit) // (workers if scheduler in (None, "threads") else 1)
         self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                          method=method, memory_limit=share)
+        if tile_points is None:
+            tile_points = max(10_000, share // (2 * _BYTES_PER_TILE_POINT))
+        chunk_rows = int(min(2_000_000, max(10_000, share // (4 * _BYTES_PER_ROW_READ))))
         self.root = tempfile.mkdtemp(prefix="sdp-tiles-", dir=workdir)
         self.timings: dict[str, float] = {}
         try:
             self.executor, self.cluster = _connect(scheduler, workers)
             self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
             self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate)
-            jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root) for e, src in self.sources.items()
+            jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows) for e, src in self.sources.items()
                     for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
             done = self.tasks("bucket", _bucket_part, jobs, ())
         except BaseException:
