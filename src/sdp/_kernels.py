@@ -381,15 +381,22 @@ def _find(parent, i):
 
 
 @nb.njit(cache=True)
-def _count_negative(values):
-    """Number of negative values in each block."""
-    out = np.zeros(values.shape[0], np.int64)
+def _negative_lines(values):
+    """Per block: a 64-bit mask of its lines of 8 nodes (columns 8j … 8j+7) holding a negative
+    value, and the number of negative values."""
+    lines = np.zeros(values.shape[0], np.uint64)
+    count = np.zeros(values.shape[0], np.int64)
     for b in range(values.shape[0]):
-        c = 0
-        for n in range(B3):
-            c += values[b, n] < 0
-        out[b] = c
-    return out
+        mask, c = np.uint64(0), 0
+        for j in range(B2):
+            cj = 0
+            for n in range(j * B, j * B + B):
+                cj += values[b, n] < 0
+            if cj:
+                mask |= np.uint64(1) << np.uint64(j)
+                c += cj
+        lines[b], count[b] = mask, c
+    return lines, count
 
 
 @nb.njit(cache=True)
@@ -425,7 +432,7 @@ def label_nodes(values, directory, keys):
     negative node of those blocks (-1 elsewhere); and the number of nodes of each component.
     """
     m = values.shape[0]
-    per_block = _count_negative(values)
+    lines, per_block = _negative_lines(values)
     slot = np.full(m, -1, np.int64)
     n_active = 0
     for blk in range(m):
@@ -446,13 +453,10 @@ def label_nodes(values, directory, keys):
             nb_blk = _neighbour_block(directory, keys, blk, axis)
             if nb_blk >= 0:
                 neighbour[s, axis] = slot[nb_blk]
-        for line in range(0, B3, B):
-            neg = False
-            for n in range(line, line + B):  # branch-free test of a line of 8 nodes first
-                neg |= values[blk, n] < 0
-            if not neg:
+        for j in range(B2):
+            if not (lines[blk] >> np.uint64(j)) & np.uint64(1):
                 continue
-            for n in range(line, line + B):
+            for n in range(j * B, j * B + B):
                 if values[blk, n] < 0:
                     labels[s, n] = i
                     node_slot[i] = s
