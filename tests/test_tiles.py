@@ -52,12 +52,17 @@ def test_tiled_equals_untiled(epochs, min_region_points):
     assert b.n_dropped_current == 2 and b.summary()["current"]["appeared"] == a.appeared.sum()
 
 
-def test_tiled_on_a_local_dask_cluster(epochs):
+def test_tiled_on_dask_clusters(epochs):
+    from dask.distributed import LocalCluster
+
     ref, cur = epochs
     a = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=8.0, scheduler="synchronous")
-    b = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=8.0, workers=2)
-    np.testing.assert_array_equal(a.appeared_rows, b.appeared_rows)
-    np.testing.assert_array_equal(a.disappeared_rows, b.disappeared_rows)
+    b = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=8.0, workers=2)  # its own local cluster
+    with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None) as cluster:  # "a remote one"
+        c = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=8.0, scheduler=cluster.scheduler_address)
+    for r in (b, c):
+        np.testing.assert_array_equal(a.appeared_rows, r.appeared_rows)
+        np.testing.assert_array_equal(a.disappeared_rows, r.disappeared_rows)
     assert {"bucket", "compare", "regions", "read", "build_reference", "detect"} <= set(b.timings)
 
 
