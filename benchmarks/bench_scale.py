@@ -150,7 +150,8 @@ def main(sizes):
         one, par = decode_rate(folder / "cur.laz")
         decode.append(f"| {n_pts:,} | {one / 1e6:.1f} | {par / 1e6:.1f} | {2 * n_pts / par:.1f} |")
     lines += ["\nLAZ decoding alone (x, y, z of one epoch; the floor no method can beat):\n",
-              "| points / epoch | one core (M points/s) | lazrs parallel (M points/s) | both epochs at the parallel rate (s) |",
+              "| points / epoch | one core (M points/s) | lazrs parallel (M points/s) "
+              "| both epochs at the parallel rate (s) |",
               "|---:|---:|---:|---:|", *decode]
     text = "\n".join(lines) + "\n"
     print("\n".join(lines[-len(decode) - 3:]))

@@ -345,8 +345,9 @@ class PointSource:
     """Rows of a point-cloud file, read slice by slice: a cloud larger than memory.
 
     LAS/LAZ are sliced by seeking through the LAZ chunk table, NPY through a memory map and
-    binary PLY through plyfile's memory map. Picklable (it holds the path, not an open file), so Dask tasks on other processes or
-    machines can each read their own slice of a file they can reach. Open one with
+    binary PLY through plyfile's memory map. Picklable (it holds the path, not an open file),
+    so Dask tasks on other processes or machines can each read their own slice of a file they
+    can reach. Open one with
     :meth:`open`; a format that can't be sliced (PCD, text, NPZ, ASCII PLY) is read once
     and spilled to a ``.npy`` file in ``spill_dir``.
 

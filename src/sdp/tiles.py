@@ -46,8 +46,8 @@ from .field import DensityField, threshold
 from .grid import BLOCK, Grid
 from .grid import memory_limit as _memory_limit
 from .io import PointSource
-from .store import FieldStore
 from .regions import Region, describe_regions, label_points
+from .store import FieldStore
 
 __all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "dense_grid_bytes", "untiled_point_bytes"]
 
@@ -342,7 +342,8 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | None = None,
     """
     store = reference if isinstance(reference, FieldStore) else None
     if store is not None:
-        voxel_size, sigma_voxels, truncate, h = store.voxel_size, store.sigma / store.voxel_size, store.truncate, store.h
+        voxel_size, truncate, h = store.voxel_size, store.truncate, store.h
+        sigma_voxels = store.sigma / store.voxel_size
         tile_size = store.tile_blocks * BLOCK * store.voxel_size
     clouds = {"current": current} if store is not None else {"reference": reference, "current": current}
     with _Session(clouds, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
@@ -381,7 +382,8 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float, sigm
                   scheduler=scheduler, workers=workers, workdir=workdir) as run:
         store = FieldStore.create(path, voxel_size=run.voxel_size, sigma=sigma_voxels * run.voxel_size,
                                   truncate=truncate, h=threshold(k) if h is None else float(h),
-                                  tile_blocks=run.tiling.blocks, inputs=(cloud,) if isinstance(cloud, (str, Path)) else ())
+                                  tile_blocks=run.tiling.blocks,
+                                  inputs=(cloud,) if isinstance(cloud, (str, Path)) else ())
         jobs = [(key, run.root, run.tiling, run.opts, str(store.path)) for key in run.tiles]
         counts = run.tasks("build", _build_tile, jobs, ())
     store.set_counts(sum(counts), run.dropped["cloud"])
@@ -416,8 +418,8 @@ class _Session:
             self.executor, self.cluster = _connect(scheduler, workers)
             self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
             self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate)
-            jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows) for e, src in self.sources.items()
-                    for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
+            jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
+                    for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
             done = self.tasks("bucket", _bucket_part, jobs, ())
         except BaseException:
             self.__exit__()
