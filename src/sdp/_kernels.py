@@ -28,22 +28,19 @@ B3 = B * B * B
 
 @nb.njit(cache=True)
 def finite_bounds(points):
-    """(lo, hi, number of rows holding NaN/Inf) of an (n, 3) array, over its finite rows, in one pass."""
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
+    """(lo, hi, number of rows holding NaN/Inf) of an (n, 3) array, over its finite rows, in one
+    pass (branch-free: a row that isn't finite counts as +inf for lo and -inf for hi)."""
+    lo0 = lo1 = lo2 = np.inf
+    hi0 = hi1 = hi2 = -np.inf
     bad = 0
     for p in range(points.shape[0]):
         x, y, z = points[p, 0], points[p, 1], points[p, 2]
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-            bad += 1
-            continue
-        lo[0] = min(lo[0], x)
-        lo[1] = min(lo[1], y)
-        lo[2] = min(lo[2], z)
-        hi[0] = max(hi[0], x)
-        hi[1] = max(hi[1], y)
-        hi[2] = max(hi[2], z)
-    return lo, hi, bad
+        ok = math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
+        bad += not ok
+        lo0, hi0 = min(lo0, x if ok else np.inf), max(hi0, x if ok else -np.inf)
+        lo1, hi1 = min(lo1, y if ok else np.inf), max(hi1, y if ok else -np.inf)
+        lo2, hi2 = min(lo2, z if ok else np.inf), max(hi2, z if ok else -np.inf)
+    return np.array([lo0, lo1, lo2]), np.array([hi0, hi1, hi2]), bad
 
 
 @nb.njit(cache=True)
@@ -534,9 +531,12 @@ def difference_blocks(a_blocks, a_keys, ha, b_blocks, b_directory, b_shift, hb):
         j = -1
         if 0 <= k0 < d[0] and 0 <= k1 < d[1] and 0 <= k2 < d[2]:
             j = b_directory[k0, k1, k2]
-        for n in range(B3):
-            gb = b_blocks[j, n] if j >= 0 else np.float32(0.0)
-            out[i, n] = max(fa_h - a_blocks[i, n], gb - fb_h)
+        if j >= 0:
+            for n in range(B3):
+                out[i, n] = max(fa_h - a_blocks[i, n], b_blocks[j, n] - fb_h)
+        else:
+            for n in range(B3):
+                out[i, n] = max(fa_h - a_blocks[i, n], -fb_h)
     return out
 
 
