@@ -46,6 +46,7 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
+import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from .errors import InvalidPointsError
@@ -272,7 +273,7 @@ class RangeImage:
     far: np.ndarray
 
     @classmethod
-    def from_points(cls, points: np.ndarray, origin, *, cell_factor: float = 1.5,
+    def from_points(cls, points: np.ndarray, origin: npt.ArrayLike, *, cell_factor: float = 1.5,
                     spacing: float | None = None) -> RangeImage:
         """Range image of ``points`` seen from ``origin``.
 
@@ -351,7 +352,7 @@ def _angular_spacing(az, el, lo, extent, n) -> float:
 
 # ---------------------------------------------------------------- the test used by detect_changes
 
-def as_sensor_origins(sensor_origin) -> tuple[np.ndarray, np.ndarray]:
+def as_sensor_origins(sensor_origin: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """(reference's, current's) sensor origin from one position (3,) or two (2, 3).
 
     Raises
@@ -374,8 +375,8 @@ def as_sensor_origins(sensor_origin) -> tuple[np.ndarray, np.ndarray]:
     return o[0].copy(), o[1].copy()
 
 
-def explained_by_visibility(points: np.ndarray, changed: np.ndarray, other: np.ndarray, other_origin, *,
-                            sigma: float, range_noise: float = 0.015, band_floor: float = 1.0,
+def explained_by_visibility(points: np.ndarray, changed: np.ndarray, other: np.ndarray, other_origin: npt.ArrayLike,
+                            *, sigma: float, range_noise: float = 0.015, band_floor: float = 1.0,
                             cell_factor: float = 1.5, reach: int = 1, plane_points: int = 50,
                             plane_stride: int = 8, plane_distance: float = 2.0, plane_flatness: float = 1.0,
                             spacing: float | None = None) -> np.ndarray:
