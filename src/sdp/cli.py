@@ -20,6 +20,7 @@ EXAMPLES_CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                
   sdp change ref.ply cur.ply -o out.ply --grid-size 80        the paper's parameters
   sdp change ref.pcd cur.pcd -o out.ply --json                summary as JSON
   sdp change ref.pcd rescan.pcd -o out.ply --align density    register the rescan first
+  sdp change ref.pcd cur.pcd -o out.ply --sensor-origin viewpoint   uncovered surfaces are not changes
   sdp change a.laz b.laz -o out.laz --voxel-size 0.1 --memory-limit 2GB   any size: tiles on Dask
   sdp change a.laz b.laz -o out.laz --voxel-size 0.1 --scheduler tcp://host:8786   on a cluster
 """
@@ -119,8 +120,11 @@ def cmd_change(a):
 
         alignment = align(ref.xyz, cur.xyz, method=a.align)
         cur_xyz = alignment.apply(cur.xyz)
+    origins = _sensor_origins(a, ref, cur)
+    if origins is not None and alignment is not None:
+        origins[1] = alignment.apply(origins[1:])[0]  # the current scan's sensor moves with it
     r = detect_changes(ref.xyz, cur_xyz, decision=a.decision, min_region_points=a.min_region_points,
-                       **_grid_kwargs(a))
+                       sensor_origin=origins, range_noise=a.range_noise, **_grid_kwargs(a))
     outputs = []
     out = Path(a.output)
     out_xyz = cur_xyz if a.aligned_output else cur.xyz
@@ -144,6 +148,24 @@ def cmd_change(a):
     return 0
 
 
+def _sensor_origins(a, ref, cur) -> np.ndarray | None:
+    """(2, 3) sensor positions of the reference and current scans from ``--sensor-origin``, or None."""
+    if a.sensor_origin is None:
+        return None
+    if a.sensor_origin == "viewpoint":
+        for name, c in ((a.reference, ref), (a.current, cur)):
+            if c.sensor_origin is None:
+                raise SDPError(f"{name}: no VIEWPOINT header (PCD files have one); give --sensor-origin X,Y,Z")
+        return np.array([ref.sensor_origin, cur.sensor_origin], dtype=np.float64)
+    try:
+        xyz = [float(v) for v in a.sensor_origin.split(",")]
+    except ValueError:
+        xyz = []
+    if len(xyz) != 3:
+        raise SDPError(f"--sensor-origin must be 'viewpoint' or X,Y,Z, got {a.sensor_origin!r}")
+    return np.array([xyz, xyz])
+
+
 def _tiled_voxel(a) -> float | None:
     """The voxel size of a tiled comparison when ``--tiled`` is given or the clouds need it, else None.
 
@@ -163,10 +185,12 @@ def _tiled_voxel(a) -> float | None:
         return a.sources[0].voxel_size
     streamed = all((a.format or FORMATS.get(Path(f).suffix.lower())) in ("las", "npy", "ply")
                    for f in (a.reference, a.current))
-    if not a.tiled and (not streamed or a.grid_size is not None or a.align or a.decision != "point"):
+    if not a.tiled and (not streamed or a.grid_size is not None or a.align or a.decision != "point"
+                        or a.sensor_origin is not None):
         return None
     if a.tiled:
         for flag, bad in (("--grid-size", a.grid_size is not None), ("--align", a.align),
+                          ("--sensor-origin", a.sensor_origin is not None),
                           ("--decision cluster", a.decision != "point"), ("--png/--html", a.png or a.html)):
             if bad:
                 raise SDPError(f"{flag} is not available with --tiled")
@@ -578,6 +602,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
     c.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
+    c.add_argument("--sensor-origin", metavar="viewpoint|X,Y,Z",
+                   help="test changes along the sensor's rays (sdp.visibility): 'viewpoint' takes each PCD's "
+                        "VIEWPOINT header, X,Y,Z one position for both scans")
+    c.add_argument("--range-noise", type=float, default=0.015,
+                   help="with --sensor-origin: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
     _tile_options(c, "large clouds: tiles on Dask (taken by itself when the grids or points exceed --memory-limit, "
                      "or when REFERENCE is a .zarr field store; outputs LAS/LAZ with 'change' and 'region')")
 
