@@ -21,7 +21,7 @@ from ._points import Points, as_points
 from .boolean import difference_on_own_blocks
 from .field import DensityField
 from .grid import voxel_size_for_grid_size
-from .params import auto_voxel_size
+from .params import auto_voxel_size_of
 from .regions import Region, describe_regions, label_points
 from .visibility import as_sensor_origins, explained_by_visibility
 
@@ -154,7 +154,7 @@ def detect_changes(reference, current, *, grid_size: int | None = None, voxel_si
     if isinstance(voxel_size, str):
         if voxel_size != "auto":
             raise ValueError(f"voxel_size must be a length or 'auto', got {voxel_size!r}")
-        voxel_size = auto_voxel_size(ref.xyz, cur.xyz, k=int(round(k)), sigma_voxels=sigma_voxels)
+        voxel_size = auto_voxel_size_of([ref, cur], k=int(round(k)), sigma_voxels=sigma_voxels)  # validated once
     elif grid_size is not None:
         if voxel_size is not None:
             raise ValueError("give grid_size= or voxel_size=, not both")
