@@ -205,7 +205,11 @@ def _regions(fld: DensityField, d: np.ndarray, pts: np.ndarray, mask: np.ndarray
     """(mask, regions, region label per point) after the region-level rules of :func:`detect_changes`."""
     if not (regions or decision == "cluster"):
         return mask, [], np.where(mask, 0, -1)
-    labels, counts = label_points(fld, d, pts)
+    # only the changed points' labels are used below (unchanged points end at -1, or take a
+    # promoted cluster's label): label those alone, each point's label depends on it only
+    changed = np.flatnonzero(mask)
+    labels = np.full(len(pts), -1, np.int64)
+    labels[changed], counts = label_points(fld, d, pts[changed])
     if min_region_points > 1 and len(counts):
         big = np.bincount(labels[mask], minlength=len(counts)) >= min_region_points
         mask = mask & big[np.maximum(labels, 0)]
