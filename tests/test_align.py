@@ -82,3 +82,56 @@ def test_density_agrees_with_gicp_on_dlut_rescans(shared_data):
     d, g = align(ref, cur), align(ref, cur, method="gicp")
     rms, angle = disagreement(d.matrix, g.matrix, cur)
     assert rms < 0.01 and angle < 0.15, (rms, angle)
+
+
+def test_uneven_sampling_does_not_pull_along_surfaces(rng):
+    """Each wall sampled densely at one end in the reference and at the other in the current (as
+    a scanner moved along a room sees it): mean-density objectives slide towards the dense ends;
+    the ridge residual is independent of how densely a surface was sampled."""
+
+    def room(flip):
+        pts = room_scene(rng, n=60_000)
+        x = pts[:, 0] / 4  # keep points with a probability rising (or falling) along x
+        keep = rng.uniform(size=len(pts)) < (0.15 + 0.85 * ((1 - x) if flip else x))
+        return pts[keep]
+
+    ref, scan = room(False), room(True)
+    truth = rigid(0.3, [0, 0, 1], [0.02, -0.01, 0.01])
+    cur = transform_points(np.linalg.inv(truth), scan)
+    a = align(ref, cur)
+    rms, angle = disagreement(a.matrix, truth, cur)
+    assert rms < 0.001 and angle < 0.02, (rms, angle)
+
+
+def test_flat_ground_keeps_the_horizontal_and_finds_the_vertical(rng):
+    """Two epochs of gently rolling, nearly flat ground 0.4 m apart vertically: the horizontal is
+    pinned by nothing but noise, so it stays where it was (reported as frozen directions) while
+    the vertical offset is recovered; ``fix_horizontal`` fixes it outright."""
+
+    def ground(n):
+        xy = rng.uniform(0, 200, (n, 2))
+        z = 0.3 * np.sin(xy[:, 0] / 40) * np.cos(xy[:, 1] / 55)  # slopes under 1 %
+        return np.c_[xy, z + 0.03 * rng.standard_normal(n)]
+
+    ref, cur = ground(40_000), ground(40_000) + [0.0, 0.0, -0.4]
+    a = align(ref, cur)
+    assert abs(a.translation[2] - 0.4) < 0.01
+    assert a.frozen >= 2 and a.conditioning[0] < 0.01
+    assert np.abs(a.matrix[:2, 3]).max() < 0.05 and a.rotation_degrees < 0.01, a.summary()
+    fixed = align(ref, cur, fix_horizontal=True)
+    assert abs(fixed.translation[2] - 0.4) < 0.01 and fixed.frozen >= 3
+    np.testing.assert_allclose(fixed.apply(cur)[:, :2], cur[:, :2], atol=1e-6)  # no shift, no turn about z
+    free = align(ref, cur, min_constraint=0.0)  # every direction moves: the horizontal wanders
+    assert free.frozen == 0
+
+
+def test_options_are_checked(rng):
+    ref = room_scene(rng, n=4000)
+    with pytest.raises(ValueError, match="fix_horizontal"):
+        align(ref, ref, method="gicp", fix_horizontal=True)
+    with pytest.raises(ValueError, match="min_constraint"):
+        align(ref, ref, min_constraint=1.5)
+    with pytest.raises(ValueError, match="levels"):
+        align(ref, ref, levels=0)
+    s = align(ref, ref, levels=1).summary()
+    assert len(s["conditioning"]) == 6 and s["used"] > 0.9

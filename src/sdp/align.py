@@ -2,12 +2,22 @@
 
 Two methods behind one function, :func:`align`:
 
-- ``"density"``: maximise the mean density of the transformed current points under the
-  reference's own density field, G_ref(R·p + t), with the gradient of the same trilinear grid,
-  coarse to fine over the level-of-detail pyramid (:meth:`DensityField.coarsen`, σ doubling per
-  level). Points in changed regions fall where the reference has no density: their value and
-  gradient are 0, so they pull on nothing and the estimate is robust to the changes without a
-  rejection step. Works from a saved field alone (no reference points needed).
+- ``"density"``: Gauss–Newton on the ridges of the density fields, coarse to fine over a
+  pyramid (σ doubling per level). At every current point the reference field gives, from G,
+  its gradient and its Hessian (the gradient of the same trilinear grid, differenced), the
+  surface normal n (the direction of strongest curvature of log G) and the Newton step along
+  n to the ridge of G: a point-to-plane residual that does not depend on how densely the
+  surface was sampled, so sampling patterns do not pull along surfaces as they do on a
+  plain "maximise the density" objective. Each current point is first moved onto the ridge of
+  the current scan's own field (same σ): blurring rounds corners and thins edges alike in
+  both scans, so the two ridges coincide where nothing changed and the blur's bias cancels.
+  Points are used only where both scans overlap (reference density at least a quarter of
+  the point's own, relative to the median ratio): changed regions (people, new objects,
+  parts seen by one scan only) have no reference density there and pull on nothing; the
+  rest are weighted by Tukey's biweight. Directions of the motion that the geometry does not
+  constrain (a flat ground leaves the horizontal free, a corridor its axis) are kept at the
+  initial value instead of drifting with noise: see ``min_constraint`` and
+  ``fix_horizontal``. Works from a saved field alone (no reference points needed).
 - ``"gicp"``: generalized ICP from small_gicp (the ``align`` extra), the proven baseline.
 
 References
@@ -17,12 +27,15 @@ References
    Journal of Open Source Software 9(100), 2024.
 .. [3] P. Biber and W. Straßer, "The normal distributions transform: a new approach to laser
    scan matching", IROS 2003 (scan matching by maximising a density score).
+.. [4] J. Zhang, M. Kaess and S. Singh, "On degeneracy of optimization-based state estimation
+   problems", ICRA 2016 (leaving unconstrained directions of the update out).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 
 import numpy as np
 from scipy.optimize import minimize
@@ -57,6 +70,18 @@ class Alignment:
         the reference was given as a field.
     seconds : float
         Time taken by the estimate (the residual excluded).
+    used : float
+        ``"density"``: fraction of the current points that took part at the finest level (in
+        the overlap of both scans, on a surface of the reference); NaN for ``"gicp"``.
+    conditioning : ndarray (6,)
+        ``"density"``: eigenvalues of the Gauss–Newton matrix at the finest level, ascending,
+        relative to the largest (rotations counted as displacement at the points' RMS radius):
+        how strongly the geometry pins each direction of the motion. Near 0: a direction the
+        scene leaves free (flat ground: horizontal shifts and the turn about the vertical).
+        Empty for ``"gicp"``.
+    frozen : int
+        ``"density"``: how many of those directions were left at the initial transform
+        (below ``min_constraint``, or fixed by ``fix_horizontal``).
     """
 
     matrix: np.ndarray
@@ -65,6 +90,9 @@ class Alignment:
     inside_after: float
     rmse: float
     seconds: float
+    used: float = np.nan
+    conditioning: np.ndarray = dataclass_field(default_factory=lambda: np.zeros(0))
+    frozen: int = 0
 
     @property
     def translation(self) -> np.ndarray:
@@ -82,7 +110,8 @@ class Alignment:
     def summary(self) -> dict:
         return {"method": self.method, "matrix": self.matrix.tolist(), "translation": self.translation.tolist(),
                 "rotation_degrees": self.rotation_degrees, "inside_before": self.inside_before,
-                "inside_after": self.inside_after, "rmse": self.rmse, "seconds": self.seconds}
+                "inside_after": self.inside_after, "rmse": self.rmse, "seconds": self.seconds,
+                "used": self.used, "conditioning": np.asarray(self.conditioning).tolist(), "frozen": self.frozen}
 
 
 def transform_points(matrix, points) -> np.ndarray:
@@ -94,7 +123,8 @@ def transform_points(matrix, points) -> np.ndarray:
 
 
 def align(reference, current, *, method: str = "density", voxel_size: float | str = "auto", levels: int = 4,
-          max_points: int = 100_000, init=None, seed: int = 0) -> Alignment:
+          max_points: int = 100_000, init=None, seed: int = 0, min_constraint: float = 0.01,
+          fix_horizontal: bool = False) -> Alignment:
     """Estimate the rigid transform that maps ``current`` onto ``reference``.
 
     Parameters
@@ -108,8 +138,9 @@ def align(reference, current, *, method: str = "density", voxel_size: float | st
     method : {"density", "gicp"}
         See the module docstring.
     voxel_size : float or "auto"
-        Voxel of the finest level (``"auto"``: :func:`sdp.auto_voxel_size` of the reference).
-        Ignored when ``reference`` is a field.
+        Voxel of the finest level (``"auto"``: :func:`sdp.auto_voxel_size` of the reference):
+        σ = 2 voxels as for change detection, sampled at half that voxel. Ignored when
+        ``reference`` is a field.
     levels : int
         Levels of the pyramid (``"density"``): the coarsest has σ × 2^(levels−1), which sets
         the largest offset that can be recovered (about that σ).
@@ -119,6 +150,17 @@ def align(reference, current, *, method: str = "density", voxel_size: float | st
         Starting transform (default: identity).
     seed : int
         Seed of the subset.
+    min_constraint : float
+        ``"density"``: a direction of the motion constrained less than ``min_constraint`` ×
+        the best-constrained one (eigenvalues of the Gauss–Newton matrix, see
+        :attr:`Alignment.conditioning`) is not moved: along it any residual bias or noise
+        would be amplified √(1/min_constraint) times (10× at 0.01), so it keeps its initial
+        value. 0 moves every direction that has any constraint at all.
+    fix_horizontal : bool
+        ``"density"``: estimate only the vertical shift and the tilts (z is up); the
+        horizontal shift and the turn about the vertical keep their initial values. For
+        epochs of nearly flat terrain (airborne scans of open ground), where the horizontal
+        is pinned by little more than noise and real change.
 
     Returns
     -------
@@ -126,77 +168,168 @@ def align(reference, current, *, method: str = "density", voxel_size: float | st
     """
     if method not in ("density", "gicp"):
         raise ValueError(f"method must be 'density' or 'gicp', got {method!r}")
+    if method == "gicp" and fix_horizontal:
+        raise ValueError("fix_horizontal is available with method='density' only")
+    if not 0 <= min_constraint < 1:
+        raise ValueError(f"min_constraint must be in [0, 1), got {min_constraint}")
+    if levels < 1:
+        raise ValueError(f"levels must be at least 1, got {levels}")
     cur = as_points(current, name="current").xyz
     ref_xyz = None
     if isinstance(reference, DensityField):
         if method == "gicp":
             raise ValueError("method='gicp' needs the reference points, not a field")
-        field = reference
+        ref_field = reference
     else:
         ref_xyz = as_points(reference, name="reference").xyz
         l = auto_voxel_size(ref_xyz) if isinstance(voxel_size, str) and voxel_size == "auto" else float(voxel_size)
         # σ = 2l as for change detection, sampled at l/2: a trilinear interpolant sags between
         # nodes (3 % at σ = 2 voxels, 0.8 % at 4), which would pull planes onto node planes
-        field = DensityField.from_points(ref_xyz, voxel_size=l / 2, sigma_voxels=4)
+        ref_field = DensityField.from_points(ref_xyz, voxel_size=l / 2, sigma_voxels=4)
     t0 = np.eye(4) if init is None else np.array(init, np.float64)
     rng = np.random.default_rng(seed)
     sample = cur if len(cur) <= max_points else cur[rng.choice(len(cur), max_points, replace=False)]
     start = time.perf_counter()
+    info = {}
     if method == "density":
-        matrix = _align_density(field, sample, t0, levels)
+        matrix, info = _align_density(ref_field, ref_xyz, sample, t0, levels, min_constraint, fix_horizontal)
     else:
-        matrix = _align_gicp(ref_xyz, sample, t0, field.voxel_size, field.sigma)
+        matrix = _align_gicp(ref_xyz, sample, t0, ref_field.voxel_size, ref_field.sigma)
     seconds = time.perf_counter() - start
     rmse = np.nan
     if ref_xyz is not None:
         from scipy.spatial import cKDTree
 
-        d, _ = cKDTree(ref_xyz).query(transform_points(matrix, sample), distance_upper_bound=3 * field.sigma,
+        d, _ = cKDTree(ref_xyz).query(transform_points(matrix, sample), distance_upper_bound=3 * ref_field.sigma,
                                        workers=-1)
         d = d[np.isfinite(d)]
         rmse = float(np.sqrt(np.mean(d**2))) if d.size else np.nan
-    before, after = (float(field.inside(transform_points(m, sample)).mean()) for m in (t0, matrix))
+    before, after = (float(ref_field.inside(transform_points(m, sample)).mean()) for m in (t0, matrix))
     return Alignment(matrix=matrix, method=method, inside_before=before, inside_after=after, rmse=rmse,
-                     seconds=seconds)
+                     seconds=seconds, **info)
 
 
-def _align_density(field: DensityField, points: np.ndarray, t0: np.ndarray, levels: int) -> np.ndarray:
-    pyramid = [field]
-    for _ in range(levels - 1):
-        pyramid.append(pyramid[-1].coarsen())
-    p = transform_points(t0, points)
-    c = p.mean(axis=0)
-    local = p - c
-    radius = float(np.sqrt((local**2).sum(axis=1).mean())) or 1.0
-    x = np.zeros(6)  # (rotation vector, translation), world units; q = R(ω)·(p − c) + c + t
-    val, grad = np.empty(len(p)), np.empty((len(p), 3))
-    for f in reversed(pyramid):
-        scale = np.r_[np.full(3, f.sigma / radius), np.full(3, f.sigma)]  # unknowns in units of σ
+_G_MIN = 0.05  # density below which a point sees no surface (a lone point's kernel at 2.4σ)
+_OVERLAP = 0.25  # reference density / own density, relative to the median ratio, to take part
+_MAX_ITER = 30  # Gauss–Newton iterations per level
+_TOL = 1e-3  # stop a level when the step moves points by less than this × σ
 
-        def cost(y, f=f, scale=scale):
-            w, t = y[:3] * scale[:3], y[3:] * scale[3:]
-            rot = Rotation.from_rotvec(w)
-            rp = rot.apply(local)
-            K.trilinear_gradient(rp + (c + t), f.grid.origin, f.voxel_size, f._directory, f._blocks, val, grad)
-            g_t = grad.sum(axis=0)
-            g_w = _left_jacobian(w).T @ np.cross(rp, grad).sum(axis=0)
-            n = len(p)
-            return -val.sum() / n, -np.r_[g_w, g_t] * scale / n
 
-        x = minimize(cost, x / scale, jac=True, method="L-BFGS-B", options={"maxiter": 200}).x * scale
+def _probe(f: DensityField, q: np.ndarray):
+    """G, ∇G and the Hessian of G at ``q``, each the trilinear interpolant of the nodes' central
+    differences (so continuous across cells, unlike the derivative of the trilinear G, whose
+    piecewise-constant gradient would put every ridge on a node plane). Shifting a query by
+    exactly one voxel shifts the nodes it reads, so those interpolants are differences of
+    trilinear values one voxel apart: 19 lookups per point."""
+    h = f.voxel_size
+
+    def at(offset):
+        out = np.empty(len(q))
+        K.trilinear(q + offset, f.grid.origin, h, f._directory, f._blocks, out)
+        return out
+
+    eye = np.eye(3) * h
+    val = at(np.zeros(3))
+    hi = [at(eye[k]) for k in range(3)]
+    lo = [at(-eye[k]) for k in range(3)]
+    grad = np.stack([(hi[k] - lo[k]) / (2 * h) for k in range(3)], axis=1)
+    hess = np.empty((len(q), 3, 3))
+    for i in range(3):
+        hess[:, i, i] = (hi[i] - 2 * val + lo[i]) / h**2
+        for j in range(i + 1, 3):
+            hess[:, i, j] = hess[:, j, i] = (at(eye[i] + eye[j]) - at(eye[i] - eye[j]) - at(eye[j] - eye[i])
+                                             + at(-eye[i] - eye[j])) / (4 * h**2)
+    return val, grad, hess
+
+
+def _ridge(f: DensityField, q: np.ndarray):
+    """Per point: G, the normal n (eigenvector of the largest curvature of −log G), that
+    curvature κ, the Newton step s along n to the ridge of G, and whether they are usable.
+
+    For a plane sampled with any areal density ρ(u, v), G ∝ ρ̃(u, v)·exp(−d²/2σ²) with d the
+    distance to the plane: log G is exactly quadratic along n with curvature 1/σ², and the
+    Newton step along n is −d, whatever ρ is (the in-plane terms of ∇ log G are left out).
+    """
+    G, g, H = _probe(f, q)
+    n = np.zeros_like(q)
+    kappa, step = np.zeros(len(q)), np.zeros(len(q))
+    ok = G > _G_MIN
+    gl = g[ok] / G[ok, None]  # ∇ log G
+    curv = gl[:, :, None] * gl[:, None, :] - H[ok] / G[ok, None, None]  # −∇² log G
+    w, v = np.linalg.eigh(curv)
+    kappa[ok], n[ok] = w[:, 2], v[:, :, 2]
+    good = ok & (kappa > 0.1 / f.sigma**2)  # a ridge, not the flat tail between surfaces
+    step[good] = (n[good] * g[good]).sum(axis=1) / G[good] / kappa[good]
+    return G, n, kappa, step, good
+
+
+def _pyramid(ref_field: DensityField, ref_xyz, cur: np.ndarray, levels: int):
+    """(reference, current) fields per level, finest first, on the reference's voxel and σ."""
+    sv = ref_field.sigma / ref_field.voxel_size
+    out = []
+    for k in range(levels):
+        voxel = ref_field.voxel_size * 2**k
+        if k == 0:
+            ref_k = ref_field
+        elif ref_xyz is not None:  # from the points: ~10x faster than coarsen()
+            ref_k = DensityField.from_points(ref_xyz, voxel_size=voxel, sigma_voxels=sv)
+        else:
+            ref_k = out[-1][0].coarsen()
+        out.append((ref_k, DensityField.from_points(cur, voxel_size=voxel, sigma_voxels=sv)))
+    return out
+
+
+def _align_density(ref_field: DensityField, ref_xyz, points: np.ndarray, t0: np.ndarray, levels: int,
+                   min_constraint: float, fix_horizontal: bool):
+    pyramid = _pyramid(ref_field, ref_xyz, points, levels)
+    x0 = transform_points(t0, points)
+    c = x0.mean(axis=0)
+    rot, t = np.eye(3), np.zeros(3)  # q = rot·(x − c) + c + t, x = t0·(point on its own ridge)
+    used, conditioning, frozen = 0.0, np.zeros(6), 0
+    for ref_k, cur_k in reversed(pyramid):
+        sigma = ref_k.sigma
+        g_own, n_own, k_own, s_own, own_ok = _ridge(cur_k, points)
+        # thickness² of the surface at each point (κ = 1/(σ² + τ²) across a blurred layer of
+        # thickness τ), at least a voxel: the residual's variance, for Gauss–Newton weights
+        thick_own = np.maximum(1 / np.maximum(k_own, 1e-30) - sigma**2, 0) + ref_k.voxel_size**2
+        ridge = points + np.where(own_ok[:, None], np.clip(s_own, -sigma, sigma)[:, None] * n_own, 0.0)
+        local = transform_points(t0, ridge) - c
+        radius = float(np.sqrt((local**2).sum(axis=1).mean())) or 1.0
+        damping, previous = 0.0, None
+        for _ in range(_MAX_ITER):
+            rp = local @ rot.T
+            g_ref, n, k_ref, s, ok = _ridge(ref_k, rp + c + t)
+            ok &= own_ok
+            if ok.sum() < 6:
+                break
+            ratio = g_ref / np.maximum(g_own, 1e-12)
+            ok &= ratio > _OVERLAP * np.median(ratio[ok])  # outside the overlap: changes, one-sided parts
+            u = s[ok] / sigma
+            w = np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)  # Tukey's biweight, c = σ
+            thick_ref = np.maximum(1 / np.maximum(k_ref[ok], 1e-30) - sigma**2, 0) + ref_k.voxel_size**2
+            w = w * sigma**2 / (thick_ref + thick_own[ok])  # thin surfaces (ground, walls) pin more than foliage
+            jac = np.c_[np.cross(rp[ok], n[ok]) / radius, n[ok]]  # (ω·radius, t)
+            if fix_horizontal:
+                jac[:, [2, 3, 4]] = 0.0  # turn about z, shift in x and y
+            a = (jac * w[:, None]).T @ jac
+            b = (jac * w[:, None]).T @ s[ok]
+            ev, vec = np.linalg.eigh(a)
+            if ev[-1] <= 0:
+                break
+            keep = ev > max(min_constraint, 1e-9) * ev[-1]
+            x = vec[:, keep] @ ((vec[:, keep].T @ b) / (ev[keep] + damping * ev[-1]))
+            # Levenberg damping when the step turns back (the model overshot), eased otherwise
+            damping = max(4 * damping, 1e-3) if previous is not None and x @ previous < 0 else damping / 2
+            previous = x
+            rot = Rotation.from_rotvec(x[:3] / radius).as_matrix() @ rot
+            t = t + x[3:]
+            used, conditioning, frozen = float(ok.mean()), ev / ev[-1], int((~keep).sum())
+            if np.linalg.norm(x) < _TOL * sigma:
+                break
     step = np.eye(4)
-    step[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
-    step[:3, 3] = c + x[3:] - step[:3, :3] @ c
-    return step @ t0
-
-
-def _left_jacobian(w: np.ndarray) -> np.ndarray:
-    """d(exp(ω)·v)/dω = −[exp(ω)·v]× · J_l(ω): the left Jacobian of SO(3)."""
-    theta = float(np.linalg.norm(w))
-    k = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-    if theta < 1e-8:
-        return np.eye(3) + k / 2
-    return np.eye(3) + (1 - np.cos(theta)) / theta**2 * k + (theta - np.sin(theta)) / theta**3 * (k @ k)
+    step[:3, :3] = rot
+    step[:3, 3] = c + t - rot @ c
+    return step @ t0, {"used": used, "conditioning": conditioning, "frozen": frozen}
 
 
 def _align_gicp(ref: np.ndarray, cur: np.ndarray, t0: np.ndarray, voxel: float, sigma: float) -> np.ndarray:
