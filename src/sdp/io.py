@@ -438,11 +438,14 @@ class PointSource:
         if self.format == "las":  # one open file, sequential decoding
             import laspy
 
+            from ._kernels import scaled_xyz
+
             with laspy.open(str(self.path)) as r:
+                scale, offset = np.asarray(r.header.scales, float), np.asarray(r.header.offsets, float)
                 r.seek(start)
                 for s in range(start, stop, size):
                     pts = r.read_points(min(size, stop - s))
-                    yield s, np.c_[pts.x, pts.y, pts.z]
+                    yield s, scaled_xyz(pts.X, pts.Y, pts.Z, scale, offset)
             return
         for s in range(start, stop, size):
             yield s, self.read(s, min(s + size, stop))

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _kernels as K
 from ._progress import bar
 from .change import _inside_difference
 from .errors import InvalidPointsError
@@ -51,7 +52,6 @@ from .store import FieldStore
 
 __all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "dense_grid_bytes", "untiled_point_bytes"]
 
-_REC = np.dtype([("xyz", "<f8", 3), ("row", "<i8")])  # one bucketed point
 _PART_ROWS = 8_000_000  # rows read by one bucketing task
 _BYTES_PER_ROW_READ = 600  # a decoded row in a bucketing task: record, x y z, tile keys, sort, bucket record
 _BYTES_PER_TILE_POINT = 1200  # a point of one epoch in a compare task: bucket record, its share of two fields
@@ -165,24 +165,6 @@ class _Tiling:
         cell = np.floor(xyz[:, :2] / self.voxel_size).astype(np.int64)
         return np.floor_divide(cell, self.blocks * BLOCK)
 
-    def buckets(self, xyz: np.ndarray):
-        """(point index, tile i, tile j) for each point and each tile whose core + halo holds it."""
-        t = self.core(xyz)
-        frac = xyz[:, :2] - t * self.edge
-        near = [(frac < self.halo), (frac >= self.edge - self.halo)]  # near the low / high side
-        idx, ti, tj = [], [], []
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                sel = np.ones(len(xyz), bool)
-                for axis, d in ((0, di), (1, dj)):
-                    if d:
-                        sel &= near[d > 0][:, axis]
-                k = np.flatnonzero(sel)
-                idx.append(k)
-                ti.append(t[k, 0] + di)
-                tj.append(t[k, 1] + dj)
-        return np.concatenate(idx), np.concatenate(ti), np.concatenate(tj)
-
 
 def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: int, tiling: _Tiling,
                  root: str, chunk_rows: int) -> tuple[dict, int, float]:
@@ -198,34 +180,26 @@ def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: i
         if item is None:
             break
         first, xyz = item
-        ok = np.isfinite(xyz).all(axis=1)
-        dropped += int((~ok).sum())
-        rows = first + np.flatnonzero(ok)
-        xyz = xyz[ok]
-        idx, ti, tj = tiling.buckets(xyz)
-        tile = (ti - ti.min()) * (int(tj.max() - tj.min()) + 1) + (tj - tj.min())
-        order = np.argsort(tile * len(xyz) + idx)  # by tile, rows in file order within a tile (unique keys)
-        idx, ti, tj = idx[order], ti[order], tj[order]
-        cut = np.flatnonzero((np.diff(ti) != 0) | (np.diff(tj) != 0)) + 1
-        for s, e in zip(np.r_[0, cut], np.r_[cut, len(idx)], strict=True):
-            if s == e:
-                continue
-            key = (int(ti[s]), int(tj[s]))
-            rec = np.empty(e - s, _REC)
-            rec["xyz"], rec["row"] = xyz[idx[s:e]], rows[idx[s:e]]
+        i0, j0, nj, sizes, records, n_bad = K.tile_buckets(xyz, first, tiling.voxel_size, tiling.blocks * BLOCK,
+                                                            tiling.halo)
+        dropped += n_bad
+        ends = np.cumsum(sizes)
+        for b in np.flatnonzero(sizes):
+            key = (int(i0 + b // nj), int(j0 + b % nj))
             path = Path(root, epoch, f"{key[0]}_{key[1]}")
             path.mkdir(parents=True, exist_ok=True)
             with open(path / f"{part:06d}.bin", "ab") as f:
-                rec.tofile(f)
-            counts[key] = counts.get(key, 0) + (e - s)
+                records[ends[b] - sizes[b]:ends[b]].tofile(f)
+            counts[key] = counts.get(key, 0) + int(sizes[b])
     return counts, dropped, t_read
 
 
 def _load(root: str, epoch: str, key) -> np.ndarray:
+    """Bucket of tile ``key``: (m, 4) float64 rows x, y, z, row number, in row order."""
     folder = Path(root, epoch, f"{key[0]}_{key[1]}")
     if not folder.is_dir():
-        return np.zeros(0, _REC)
-    return np.concatenate([np.fromfile(p, _REC) for p in sorted(folder.iterdir())])
+        return np.zeros((0, 4))
+    return np.concatenate([np.fromfile(p, np.float64).reshape(-1, 4) for p in sorted(folder.iterdir())])
 
 
 def _empty_field(like: DensityField) -> DensityField:
@@ -246,24 +220,24 @@ def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None
         if e == "reference" and store is not None:
             fields[e] = FieldStore.open(store).tile_field(key)
         else:
-            fields[e] = DensityField.from_points(rec["xyz"], **opts) if len(rec) else None
+            fields[e] = DensityField.from_points(rec[:, :3], **opts) if len(rec) else None
         out[f"build_{e}"] = time.perf_counter() - t
     t = time.perf_counter()
     for e, other, kind in (("current", "reference", "appeared"), ("reference", "current", "disappeared")):
         fld, rec = fields[e], recs[e]
         own = np.zeros(len(rec), bool)
         if fld is not None and len(rec):
-            own = np.all(tiling.core(rec["xyz"]) == key, axis=1)
+            own = np.all(tiling.core(rec) == key, axis=1)
         if not own.any():
             out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.int64),
                          np.zeros((0, BLOCK**3), np.float32))
             continue
-        pts = rec["xyz"][own]
+        pts = np.ascontiguousarray(rec[own, :3])
         mask, d = _inside_difference(fld, fields[other] or _empty_field(fld), pts)
         keys = fld.global_keys
         mine = np.flatnonzero(np.all(np.floor_divide(keys[:, :2], tiling.blocks) == key, axis=1))
         mine = mine[d[mine].min(axis=1) < 0]
-        out[kind] = (rec["row"][own][mask], pts[mask], keys[mine], d[mine])
+        out[kind] = (rec[own, 3].astype(np.int64)[mask], pts[mask], keys[mine], d[mine])
     out["detect"] = time.perf_counter() - t
     return out
 
@@ -393,8 +367,8 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float, sigm
 def _build_tile(key, root: str, tiling: _Tiling, opts: dict, store: str) -> int:
     """Build tile ``key``'s field from its bucket and store its own blocks; returns its own points."""
     rec = _load(root, "cloud", key)
-    FieldStore.open(store).write_tile(key, DensityField.from_points(rec["xyz"], **opts))
-    return int(np.all(tiling.core(rec["xyz"]) == key, axis=1).sum())
+    FieldStore.open(store).write_tile(key, DensityField.from_points(rec[:, :3], **opts))
+    return int(np.all(tiling.core(rec) == key, axis=1).sum())
 
 
 class _Session:
