@@ -160,10 +160,12 @@ class _Tiling:
     def edge(self) -> float:
         return self.blocks * BLOCK * self.voxel_size
 
-    def core(self, xyz: np.ndarray) -> np.ndarray:
-        """Tile (i, j) owning each point: the one whose blocks hold the point's cell."""
-        cell = np.floor(xyz[:, :2] / self.voxel_size).astype(np.int64)
-        return np.floor_divide(cell, self.blocks * BLOCK)
+    def owns(self, key, xyz: np.ndarray) -> np.ndarray:
+        """Mask of the points whose cell, floor(p / l), lies in tile ``key``'s blocks (x, y)."""
+        n = self.blocks * BLOCK
+        u = xyz[:, 0] / self.voxel_size
+        v = xyz[:, 1] / self.voxel_size
+        return (u >= key[0] * n) & (u < (key[0] + 1) * n) & (v >= key[1] * n) & (v < (key[1] + 1) * n)
 
 
 def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: int, tiling: _Tiling,
@@ -227,7 +229,7 @@ def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None
         fld, rec = fields[e], recs[e]
         own = np.zeros(len(rec), bool)
         if fld is not None and len(rec):
-            own = np.all(tiling.core(rec) == key, axis=1)
+            own = tiling.owns(key, rec)
         if not own.any():
             out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.int64),
                          np.zeros((0, BLOCK**3), np.float32))
@@ -235,8 +237,7 @@ def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None
         pts = np.ascontiguousarray(rec[own, :3])
         mask, d = _inside_difference(fld, fields[other] or _empty_field(fld), pts)
         keys = fld.global_keys
-        mine = np.flatnonzero(np.all(np.floor_divide(keys[:, :2], tiling.blocks) == key, axis=1))
-        mine = mine[d[mine].min(axis=1) < 0]
+        mine = np.all(np.floor_divide(keys[:, :2], tiling.blocks) == key, axis=1) & (d.min(axis=1) < 0)
         out[kind] = (rec[own, 3].astype(np.int64)[mask], pts[mask], keys[mine], d[mine])
     out["detect"] = time.perf_counter() - t
     return out
@@ -368,7 +369,7 @@ def _build_tile(key, root: str, tiling: _Tiling, opts: dict, store: str) -> int:
     """Build tile ``key``'s field from its bucket and store its own blocks; returns its own points."""
     rec = _load(root, "cloud", key)
     FieldStore.open(store).write_tile(key, DensityField.from_points(rec[:, :3], **opts))
-    return int(np.all(tiling.core(rec) == key, axis=1).sum())
+    return int(tiling.owns(key, rec).sum())
 
 
 class _Session:
