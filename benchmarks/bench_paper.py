@@ -10,7 +10,8 @@ sdp also runs with the sensor origin (each PCD's VIEWPOINT): the visibility test
 
 Kinect data: the 27 fixed-camera mOSD pairs of bench_decision.py with per-object ground truth.
 Prints markdown and writes benchmarks/results/paper.md and paper_*.png. ``--quick``: fewer pairs,
-sizes and parameters (smoke run).
+sizes and parameters (smoke run). ``--kinect-timing``: only Table I on all the Kinect pairs for sdp
+(with and without the sensor origin) and the C2C baselines, printed, nothing written (a few minutes).
 """
 
 from __future__ import annotations
@@ -413,12 +414,38 @@ def summary(runs: dict[str, Run], changed) -> list[str]:
     return lines + [""]
 
 
+def kinect_timing():
+    """Table I on every Kinect pair for sdp default, sdp + sensor origin and the C2C baselines,
+    interleaved pair by pair (as in the full run), with the ratios to cKDTree C2C (the bar: 5×)."""
+    pairs = list(labelled_pairs(45))
+    learn = DATA / "mosd" / "learn"
+    origins = [sensor_origins(learn / f"learn{t - 1}.pcd", learn / f"learn{t}.pcd") for t, *_ in pairs]
+    methods = {"sdp default": sdp_method(**SDP_DEFAULT), SDP_ORIGIN: sdp_method(**SDP_DEFAULT, with_origin=True),
+               "cKDTree C2C": B.c2c_ckdtree, "pykdtree C2C": B.c2c_pykdtree}
+    _, ref, cur, *_ = pairs[0]
+    for m in methods.values():  # warm-up: JIT compilation, imports
+        measure(m, ref[::40], cur[::40], origins[0])
+    runs = evaluate(methods, pairs, origins)
+    print(f"Machine: {machine()}. `python benchmarks/bench_paper.py --kinect-timing`.\n")
+    table_one(print, f"Kinect mOSD, {len(pairs)} pairs, {np.mean([len(p[2]) for p in pairs]):,.0f} current points "
+                     "on average", {name: r.steps for name, r in runs.items()})
+    c2c = runs["cKDTree C2C"].steps["total"]
+    for name in ("sdp default", SDP_ORIGIN, "pykdtree C2C"):
+        print(f"cKDTree C2C / {name}: {c2c / runs[name].steps['total']:.2f}×")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer pairs, sizes and parameters (smoke run)")
-    quick = parser.parse_args().quick
+    parser.add_argument("--kinect-timing", action="store_true",
+                        help="only Table I on the Kinect pairs: sdp and the C2C baselines (writes nothing)")
+    args = parser.parse_args()
+    quick = args.quick
     if not DATA.is_dir():
         print(f"skipped: {DATA} not found")
+        return
+    if args.kinect_timing:
+        kinect_timing()
         return
     t_start = perf_counter()
     sections = []
@@ -460,8 +487,8 @@ def main():
             for name in ("rescan1", "rescan2") for cur in [sdp.read_points(dlut_dir / f"A603_{name}.pcd")]]
     out("## 5. Table I: seconds per pair\n")
     out("Wall time per step (`time.perf_counter`), mean over pairs. *other* = the rest of the call: for sdp "
-        "the automatic voxel size (a k-d tree on each cloud) and the change regions with the "
-        "min_region_points filter; sdp's detect runs both ways (appeared and disappeared). "
+        "the automatic voxel size (exact neighbour distances on a hashed cell grid of each cloud) and the change "
+        "regions with the min_region_points filter; sdp's detect runs both ways (appeared and disappeared). "
         f"Paper's Table I for reference: {PAPER_TABLE_I}.\n")
     n_points = np.mean([len(p[2]) for p in pairs])
     table_one(out, f"Kinect mOSD, {len(pairs)} pairs, {n_points:,.0f} current points on average",

@@ -159,7 +159,7 @@ def kth_neighbour_distance(points: np.ndarray, queries: np.ndarray, k: int, *, c
             c = max(c * math.sqrt(_PER_CELL * cells / n), floor)
             grid, cells = _build(points, lo, c, n / _PER_CELL)
         step = max(len(todo) // _PILOT, 1)
-        pilot, todo = todo[::step], np.delete(todo, np.s_[::step])
+        pilot, todo = todo[::step].copy(), np.delete(todo, np.s_[::step])  # contiguous: one compiled _query
         _resolve(points, queries, pilot, out, grid, cells, c, k, lo, size)
         d = out[pilot]
         d = d[d > 0]
