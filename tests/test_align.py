@@ -135,3 +135,20 @@ def test_options_are_checked(rng):
         align(ref, ref, levels=0)
     s = align(ref, ref, levels=1).summary()
     assert len(s["conditioning"]) == 6 and s["used"] > 0.9
+
+
+def test_closed_form_top_eigenpair_matches_eigh(rng):
+    from sdp.align import _top_eigen
+
+    x = rng.standard_normal((3000, 3, 3))
+    m = x + x.transpose(0, 2, 1)
+    n = rng.standard_normal((1000, 3))
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    m[:1000] = 5 * n[:, :, None] * n[:, None, :] + 1e-4 * m[:1000]  # plane-like: one strong direction
+    m[1000:1010] = 2.0 * np.eye(3)  # isotropic: any unit vector
+    w, v = np.linalg.eigh(m)
+    lam, vec = _top_eigen(m)
+    np.testing.assert_allclose(lam, w[:, 2], atol=1e-9 * np.abs(w).max())
+    np.testing.assert_allclose(np.linalg.norm(vec, axis=1), 1.0, rtol=1e-12)
+    gap = w[:, 2] - w[:, 1] > 1e-3
+    np.testing.assert_allclose(np.abs((vec * v[:, :, 2]).sum(axis=1))[gap], 1.0, atol=1e-8)

@@ -212,6 +212,7 @@ def align(reference, current, *, method: str = "density", voxel_size: float | st
 _G_MIN = 0.05  # density below which a point sees no surface (a lone point's kernel at 2.4σ)
 _OVERLAP = 0.25  # reference density / own density, relative to the median ratio, to take part
 _MAX_ITER = 30  # Gauss–Newton iterations per level
+_COARSE_POINTS = 20_000  # current points used on the coarser levels
 _TOL = 1e-3  # stop a level when the step moves points by less than this × σ
 
 
@@ -256,11 +257,32 @@ def _ridge(f: DensityField, q: np.ndarray):
     ok = G > _G_MIN
     gl = g[ok] / G[ok, None]  # ∇ log G
     curv = gl[:, :, None] * gl[:, None, :] - H[ok] / G[ok, None, None]  # −∇² log G
-    w, v = np.linalg.eigh(curv)
-    kappa[ok], n[ok] = w[:, 2], v[:, :, 2]
+    kappa[ok], n[ok] = _top_eigen(curv)
     good = ok & (kappa > 0.1 / f.sigma**2)  # a ridge, not the flat tail between surfaces
     step[good] = (n[good] * g[good]).sum(axis=1) / G[good] / kappa[good]
     return G, n, kappa, step, good
+
+
+def _top_eigen(m: np.ndarray):
+    """Largest eigenvalue and its unit eigenvector of each symmetric 3×3 matrix (k, 3, 3): the
+    trigonometric closed form (O. K. Smith, CACM 1961), ~2.5x faster than a batched eigh."""
+    a00, a11, a22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    a01, a02, a12 = m[:, 0, 1], m[:, 0, 2], m[:, 1, 2]
+    q = (a00 + a11 + a22) / 3
+    p = np.sqrt(((a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2 * (a01**2 + a02**2 + a12**2)) / 6)
+    s = np.where(p > 0, p, 1.0)
+    b00, b11, b22, b01, b02, b12 = (a00 - q) / s, (a11 - q) / s, (a22 - q) / s, a01 / s, a02 / s, a12 / s
+    det = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
+    lam = q + 2 * p * np.cos(np.arccos(np.clip(det / 2, -1, 1)) / 3)
+    rows = m - lam[:, None, None] * np.eye(3)
+    cand = np.stack([np.cross(rows[:, 0], rows[:, 1]), np.cross(rows[:, 0], rows[:, 2]),
+                     np.cross(rows[:, 1], rows[:, 2])], axis=1)  # each ⟂ to two rows of m − λI
+    norm = np.linalg.norm(cand, axis=2)
+    best = norm.argmax(axis=1)
+    idx = np.arange(len(m))
+    v, nv = cand[idx, best], norm[idx, best]
+    v = np.where(nv[:, None] > 0, v / np.where(nv > 0, nv, 1.0)[:, None], [1.0, 0.0, 0.0])  # λI: any vector
+    return lam, v
 
 
 def _pyramid(ref_field: DensityField, ref_xyz, cur: np.ndarray, levels: int):
@@ -282,17 +304,20 @@ def _pyramid(ref_field: DensityField, ref_xyz, cur: np.ndarray, levels: int):
 def _align_density(ref_field: DensityField, ref_xyz, points: np.ndarray, t0: np.ndarray, levels: int,
                    min_constraint: float, fix_horizontal: bool):
     pyramid = _pyramid(ref_field, ref_xyz, points, levels)
+    coarse = points[np.sort(np.random.default_rng(0).permutation(len(points))[:_COARSE_POINTS])]
     x0 = transform_points(t0, points)
     c = x0.mean(axis=0)
     rot, t = np.eye(3), np.zeros(3)  # q = rot·(x − c) + c + t, x = t0·(point on its own ridge)
     used, conditioning, frozen = 0.0, np.zeros(6), 0
     for ref_k, cur_k in reversed(pyramid):
         sigma = ref_k.sigma
-        g_own, n_own, k_own, s_own, own_ok = _ridge(cur_k, points)
+        # coarse levels only bring the estimate into the finest level's basin: fewer points
+        pts = points if cur_k is pyramid[0][1] else coarse
+        g_own, n_own, k_own, s_own, own_ok = _ridge(cur_k, pts)
         # thickness² of the surface at each point (κ = 1/(σ² + τ²) across a blurred layer of
         # thickness τ), at least a voxel: the residual's variance, for Gauss–Newton weights
         thick_own = np.maximum(1 / np.maximum(k_own, 1e-30) - sigma**2, 0) + ref_k.voxel_size**2
-        ridge = points + np.where(own_ok[:, None], np.clip(s_own, -sigma, sigma)[:, None] * n_own, 0.0)
+        ridge = pts + np.where(own_ok[:, None], np.clip(s_own, -sigma, sigma)[:, None] * n_own, 0.0)
         local = transform_points(t0, ridge) - c
         radius = float(np.sqrt((local**2).sum(axis=1).mean())) or 1.0
         damping, previous = 0.0, None
