@@ -69,10 +69,6 @@ class ChangeResult:
 
     def summary(self) -> dict:
         """A JSON-serializable summary: counts, parameters, timings and regions."""
-        def regions(rs):
-            return [{"label": r.label, "n_points": r.n_points, "centroid": r.centroid.tolist(),
-                     "bbox_min": r.bbox_min.tolist(), "bbox_max": r.bbox_max.tolist(), "volume": r.volume}
-                    for r in rs]
         return {"voxel_size": self.voxel_size, "sigma": self.current_field.sigma, "h": self.h,
                 "decision": self.decision,
                 "reference": {"points": int(self.disappeared.size), "dropped": self.reference_field.n_dropped,
@@ -80,8 +76,8 @@ class ChangeResult:
                 "current": {"points": int(self.appeared.size), "dropped": self.current_field.n_dropped,
                             "appeared": int(self.appeared.sum())},
                 "timings": dict(self.timings),
-                "appeared_regions": regions(self.appeared_regions),
-                "disappeared_regions": regions(self.disappeared_regions)}
+                "appeared_regions": [r.to_dict() for r in self.appeared_regions],
+                "disappeared_regions": [r.to_dict() for r in self.disappeared_regions]}
 
 
 def detect_changes(reference, current, *, grid_size: int | None = None, voxel_size: float | str | None = None,

@@ -48,6 +48,11 @@ class Region:
         """Extent of the bounding box along x, y, z (world units)."""
         return self.bbox_max - self.bbox_min
 
+    def to_dict(self) -> dict:
+        """JSON-serializable fields (lists for the vectors)."""
+        return {"label": self.label, "n_points": self.n_points, "centroid": self.centroid.tolist(),
+                "bbox_min": self.bbox_min.tolist(), "bbox_max": self.bbox_max.tolist(), "volume": self.volume}
+
 
 def label_points(field: DensityField, values: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Label the connected components of ``values < 0`` on ``field``'s blocks, and the points in them.

@@ -119,13 +119,8 @@ class TiledChanges:
                 "current": {"points": self.n_current, "dropped": self.n_dropped_current,
                             "appeared": int(self.appeared_rows.size)},
                 "timings": dict(self.timings),
-                "appeared_regions": _regions_summary(self.appeared_regions),
-                "disappeared_regions": _regions_summary(self.disappeared_regions)}
-
-
-def _regions_summary(rs):
-    return [{"label": r.label, "n_points": r.n_points, "centroid": r.centroid.tolist(),
-             "bbox_min": r.bbox_min.tolist(), "bbox_max": r.bbox_max.tolist(), "volume": r.volume} for r in rs]
+                "appeared_regions": [r.to_dict() for r in self.appeared_regions],
+                "disappeared_regions": [r.to_dict() for r in self.disappeared_regions]}
 
 
 def _mask(rows: np.ndarray, n: int) -> np.ndarray:
