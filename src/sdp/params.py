@@ -293,13 +293,7 @@ def _query(keys, heads, nxt, points, queries, todo, out, lo, c, k, max_ring):
                                         dx = points[p, 0] - x
                                         dy = points[p, 1] - y
                                         dz = points[p, 2] - z
-                                        d2 = dx * dx + dy * dy + dz * dz
-                                        if d2 < best[k - 1]:
-                                            i = k - 1
-                                            while i > 0 and best[i - 1] > d2:
-                                                best[i] = best[i - 1]
-                                                i -= 1
-                                            best[i] = d2
+                                        _insert(best, dx * dx + dy * dy + dz * dz)
                                         p = nxt[p]
                                     break
                                 s = (s + 1) & mask
@@ -321,12 +315,18 @@ def _brute_force(points, queries, k):
             dx = points[j, 0] - queries[q, 0]
             dy = points[j, 1] - queries[q, 1]
             dz = points[j, 2] - queries[q, 2]
-            d2 = dx * dx + dy * dy + dz * dz
-            if d2 < best[k - 1]:
-                i = k - 1
-                while i > 0 and best[i - 1] > d2:
-                    best[i] = best[i - 1]
-                    i -= 1
-                best[i] = d2
+            _insert(best, dx * dx + dy * dy + dz * dz)
         out[q] = math.sqrt(best[k - 1])
     return out
+
+
+@nb.njit(cache=True, inline="always")
+def _insert(best, d2):
+    """Insert the squared distance d2 into the sorted k best (a no-op when it is not among them)."""
+    k = best.shape[0]
+    if d2 < best[k - 1]:
+        i = k - 1
+        while i > 0 and best[i - 1] > d2:
+            best[i] = best[i - 1]
+            i -= 1
+        best[i] = d2
