@@ -157,7 +157,8 @@ def test_align_writes_a_loadable_matrix_and_change_uses_it(tmp_path, rng):
 
 def test_change_sensor_origin(tmp_path, pair):
     ref, cur = pair
-    p = run("change", ref, cur, "-o", tmp_path / "o.ply", "--voxel-size", "0.02", "--json", "--sensor-origin", "2,1.5,2")
+    p = run("change", ref, cur, "-o", tmp_path / "o.ply", "--voxel-size", "0.02", "--json",
+            "--sensor-origin", "2,1.5,2")
     assert p.returncode == 0, p.stderr
     assert "visibility" in json.loads(p.stdout)["timings"] and json.loads(p.stdout)["current"]["appeared"] > 2000
     bad = run("change", ref, cur, "-o", tmp_path / "o.ply", "--sensor-origin", "viewpoint")

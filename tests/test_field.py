@@ -167,7 +167,7 @@ def test_allocated_blocks_are_exactly_those_the_kernels_reach(rng, sigma_voxels)
     reach = int(math.ceil(3.0 * sigma_voxels))
     i = np.floor(f.grid.to_grid_units(pts)).astype(int)
     expected = set()
-    for lo, hi in zip((i - reach) // BLOCK, (i + reach + 1) // BLOCK):
+    for lo, hi in zip((i - reach) // BLOCK, (i + reach + 1) // BLOCK, strict=False):
         expected.update(tuple(lo + d) for d in np.ndindex(*(hi - lo + 1)))
     assert set(map(tuple, f._keys)) == expected
 
@@ -217,5 +217,5 @@ def test_regions_are_the_6_connected_components_of_the_negative_nodes(rng):
     has = np.isfinite(v.min(axis=1))
     assert np.array_equal(point_labels >= 0, has)
     # the same partition of the points (numbering differs)
-    pairs = set(zip(point_labels[has], best[has]))
+    pairs = set(zip(point_labels[has], best[has], strict=False))
     assert len(pairs) == len(set(point_labels[has])) == len(set(best[has]))

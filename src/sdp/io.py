@@ -420,13 +420,8 @@ class PointSource:
         start, stop = max(0, start), min(stop, self.n_rows)
         if stop <= start:
             return np.zeros((0, 3))
-        if self.format == "las":
-            import laspy
-
-            with laspy.open(str(self.path)) as r:
-                r.seek(start)
-                pts = r.read_points(stop - start)
-            return np.c_[pts.x, pts.y, pts.z]
+        if self.format == "las":  # one decoding path: a single chunk
+            return next(self.chunks(stop - start, start, stop))[1]
         if self.format == "npy":
             return np.array(np.load(self.path, mmap_mode="r", allow_pickle=False)[start:stop], dtype=np.float64)
         v = _ply_vertices(self.path)[start:stop]
