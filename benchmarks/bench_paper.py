@@ -286,13 +286,13 @@ def table_one(out, title, steps: dict[str, dict]):
     for name, st in steps.items():
         out(f"| {name} | " + " | ".join(f"{st[k]:.3f}" for k in (*STEPS, "other", "total")) +
             f" | {st['total'] / base:.2f}× |")
-    st = steps["sdp default"]
-    out(f"\nsdp default's other: change regions {st['regions']:.3f} s, automatic voxel size and input checks "
-        f"{st['other'] - st['regions']:.3f} s.")
-    if SDP_ORIGIN in steps:
-        st = steps[SDP_ORIGIN]
-        out(f"{SDP_ORIGIN}'s other: visibility test {st['visibility']:.3f} s, change regions {st['regions']:.3f} s, "
-            f"automatic voxel size and input checks {st['other'] - st['regions'] - st['visibility']:.3f} s.")
+    for name in ("sdp default", SDP_ORIGIN):
+        if name in steps:
+            st = steps[name]
+            thread = ", ".join(f"{k} {st[k]:.3f} s" for k in ("visibility", "regions") if k in st)
+            out(f"{name}'s other: automatic voxel size {st['voxel_size']:.3f} s; the two directions' "
+                f"{'visibility test and ' if 'visibility' in st else ''}change regions on two threads and input "
+                f"checks {st['other'] - st['voxel_size']:.3f} s (thread time: {thread}).")
     out("")
 
 

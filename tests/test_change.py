@@ -3,6 +3,7 @@ import pytest
 from conftest import box_surface, room_scene
 
 import sdp
+from sdp.scene import office_scene
 
 
 @pytest.fixture
@@ -113,3 +114,25 @@ def test_no_change_at_all_with_a_region_size_filter(rng):
     pts = room_scene(rng, n=8000)
     r = sdp.detect_changes(pts, pts, voxel_size=0.05, min_region_points=10)
     assert not r.appeared.any() and not r.disappeared.any() and r.appeared_regions == []
+
+
+def test_two_directions_on_threads_equal_one_thread(monkeypatch):
+    # the directions run on two threads (map_concurrently); one at a time must give the same result
+
+    s = office_scene(seed=3)
+    kw = dict(voxel_size="auto", min_region_points=20, sensor_origin=(0.3, 0.2, 2.2))
+    threaded = sdp.detect_changes(s.reference, s.current, **kw)
+    monkeypatch.setattr(sdp.change, "map_concurrently", lambda fn, items, **_: [fn(x) for x in items])
+    serial = sdp.detect_changes(s.reference, s.current, **kw)
+    for a, b in ((threaded.appeared, serial.appeared), (threaded.disappeared, serial.disappeared),
+                 (threaded.appeared_region, serial.appeared_region)):
+        np.testing.assert_array_equal(a, b)
+    assert threaded.appeared.any() and threaded.disappeared.any()
+
+
+def test_map_concurrently_keeps_order_and_raises():
+    from sdp._kernels import map_concurrently
+
+    assert map_concurrently(lambda x: x * x, range(5)) == [0, 1, 4, 9, 16]
+    with pytest.raises(ZeroDivisionError):
+        map_concurrently(lambda x: 1 / x, [1, 0])

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 # Parallel kernels run on Numba's OpenMP layer. By default its idle workers spin before they
 # sleep, and on a machine whose cores are busy with other jobs a spinning worker is descheduled:
@@ -26,7 +27,27 @@ B2 = B * B
 B3 = B * B * B
 
 
-@nb.njit(cache=True)
+def map_concurrently(fn, items, *, parallel_kernels: bool = False) -> list:
+    """``[fn(x) for x in items]``, one thread per item when there is more than one core: the
+    kernels release the GIL (``nogil=True``), so independent pieces of work (the two directions
+    of a comparison, the spacing of two clouds) overlap. ``parallel_kernels``: ``fn`` also calls
+    parallel kernels; they may run from two threads at once only on a thread-safe Numba
+    threading layer (OpenMP, TBB; not the fallback "workqueue"), else the items run in turn."""
+    items = list(items)
+    if len(items) < 2 or nb.config.NUMBA_NUM_THREADS < 2:
+        return [fn(x) for x in items]
+    if parallel_kernels:
+        try:
+            safe = nb.threading_layer() in ("omp", "tbb")
+        except ValueError:  # no parallel kernel has run yet: the layer is not chosen
+            safe = False
+        if not safe:
+            return [fn(x) for x in items]
+    with ThreadPoolExecutor(len(items)) as pool:
+        return list(pool.map(fn, items))
+
+
+@nb.njit(cache=True, nogil=True)
 def finite_bounds(points):
     """(lo, hi, number of rows holding NaN/Inf) of an (n, 3) array, over its finite rows, in one
     pass (branch-free: a row that isn't finite counts as +inf for lo and -inf for hi)."""
@@ -43,7 +64,7 @@ def finite_bounds(points):
     return np.array([lo0, lo1, lo2]), np.array([hi0, hi1, hi2]), bad
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def grid_units(points, origin, voxel):
     """(points - origin) / voxel in float64, as :meth:`sdp.grid.Grid.to_grid_units`, in one pass."""
     out = np.empty(points.shape)
@@ -53,7 +74,7 @@ def grid_units(points, origin, voxel):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def mark_blocks(u, lo_off, hi_off, shape_blocks):
     """Occupancy (uint8, directory-shaped) of blocks holding nodes floor(u)-lo_off … floor(u)+hi_off.
 
@@ -91,7 +112,7 @@ def mark_blocks(u, lo_off, hi_off, shape_blocks):
     return occ
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def bin_trilinear(u, directory, blocks):
     """Add each point's unit weight to its cell's 8 nodes, split by trilinear weights.
 
@@ -128,7 +149,7 @@ def bin_trilinear(u, directory, blocks):
                     blocks[blk, (nx & 7) * B2 + (ny & 7) * B + (nz & 7)] += np.float32(wx * wy * wz)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def splat_exact(u, directory, blocks, inv_two_s2, rmax, reach):
     """Add exp(-d²/2σ²) of every point to every node within the cube |d|∞ <= rmax (grid units)."""
     n_t = 2 * reach + 2
@@ -165,7 +186,7 @@ def splat_exact(u, directory, blocks, inv_two_s2, rmax, reach):
                     blocks[blk, (nx & 7) * B2 + (ny & 7) * B + (nz & 7)] += w
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def nonzero_blocks(blocks):
     """Per block: does it hold any nonzero value?"""
     out = np.zeros(blocks.shape[0], np.bool_)
@@ -332,7 +353,7 @@ def trilinear_gradient(points, origin, voxel, directory, blocks, val, grad):
                     grad[p, 2] += wx * wy * dz * v / voxel
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def node_values(nodes, directory, blocks):
     """Values at integer node coordinates (k, 3); 0 where no block is allocated."""
     d0, d1, d2 = directory.shape
@@ -346,7 +367,7 @@ def node_values(nodes, directory, blocks):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def gather_box(directory, blocks, lo, shape):
     """Dense float32 copy of the nodes lo … lo+shape-1 (0 where nothing is allocated)."""
     out = np.zeros((shape[0], shape[1], shape[2]), np.float32)
@@ -369,7 +390,7 @@ def gather_box(directory, blocks, lo, shape):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _find(parent, i):
     while parent[i] != i:
         parent[i] = parent[parent[i]]
@@ -377,7 +398,7 @@ def _find(parent, i):
     return i
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _negative_lines(values):
     """Per block: a 64-bit mask of its lines of 8 nodes (columns 8j … 8j+7) holding a negative
     value, and the number of negative values."""
@@ -396,7 +417,7 @@ def _negative_lines(values):
     return lines, count
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _neighbour_block(directory, keys, blk, axis):
     k0, k1, k2 = keys[blk, 0], keys[blk, 1], keys[blk, 2]
     if axis == 0:
@@ -410,7 +431,7 @@ def _neighbour_block(directory, keys, blk, axis):
     return directory[k0, k1, k2]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _union(parent, a, b):
     ra = _find(parent, a)
     rb = _find(parent, b)
@@ -418,7 +439,7 @@ def _union(parent, a, b):
         parent[max(ra, rb)] = min(ra, rb)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def label_nodes(values, directory, keys):
     """6-connected components of the nodes where ``values`` (m, 512) is negative.
 
@@ -540,7 +561,7 @@ def difference_blocks(a_blocks, a_keys, ha, b_blocks, b_directory, b_shift, hb):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def group_stats(points, labels, n_labels):
     """Count, coordinate sums, minima and maxima of the points of each label (-1 skipped)."""
     count = np.zeros(n_labels, np.int64)
@@ -561,7 +582,7 @@ def group_stats(points, labels, n_labels):
 
 
 # ---------------------------------------------------------------------------- tiles (sdp.tiles)
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def scaled_xyz(X, Y, Z, scale, offset):
     """LAS integer coordinates → float64 world (n, 3): X·scale + offset, as laspy computes it."""
     out = np.empty((X.shape[0], 3))
@@ -572,7 +593,7 @@ def scaled_xyz(X, Y, Z, scale, offset):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def tile_buckets(xyz, first_row, voxel, tile_nodes, halo):
     """Group finite points into the buckets of the tiles whose core or halo holds them.
 

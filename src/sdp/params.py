@@ -22,7 +22,7 @@ from collections.abc import Sequence
 import numba as nb
 import numpy as np
 
-from ._kernels import finite_bounds
+from ._kernels import finite_bounds, map_concurrently
 from ._points import Points, as_points
 
 __all__ = ["auto_voxel_size", "kth_neighbour_distance"]
@@ -79,16 +79,17 @@ def auto_voxel_size_of(clouds: Sequence[Points], *, k: int = 3, quantile: float 
                        sigma_voxels: float = 2.0, sample: int = 5_000, seed: int = 0) -> float:
     """:func:`auto_voxel_size` of clouds already validated by :func:`sdp._points.as_points`."""
     rng = np.random.default_rng(seed)
-    dists = []
+    jobs = []
     for pts in clouds:
         xyz = pts.xyz
         # sorted: the queries then visit the cloud in its own order (scans are ordered in space),
         # which keeps the memory they touch warm; the quantile doesn't depend on the order
         idx = np.sort(rng.choice(len(xyz), sample, replace=False)) if len(xyz) > sample else None
-        if len(xyz) <= k:
-            continue
-        query = xyz if idx is None else xyz[idx]
-        dists.append(kth_neighbour_distance(xyz, query, k + 1, lo=pts.lo, hi=pts.hi))  # each query is a point
+        if len(xyz) > k:
+            jobs.append((pts, xyz if idx is None else xyz[idx]))
+    # each query is a point of the cloud: its k + 1-th neighbour is its k-th other point
+    dists = map_concurrently(lambda job: kth_neighbour_distance(job[0].xyz, job[1], k + 1, lo=job[0].lo,
+                                                                hi=job[0].hi), jobs)
     d = np.concatenate(dists) if dists else np.zeros(0)
     d = d[d > 0]
     if d.size == 0:
@@ -208,7 +209,7 @@ def _slot(key, shift, mask):
     return ((key * -7046029254386353131) >> shift) & mask  # Fibonacci hashing (the product wraps)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _cell_list(points, lo, c, bits):
     """Hashed cell list, one pass: ``keys`` (2**bits,) int64 cell keys of an open-addressing table
     (-1: free slot), ``heads`` the last point of each used slot's cell, ``nxt`` (n,) int32 the
@@ -256,7 +257,7 @@ def _gap2(d, f0, f1):
     return g * g if g > 0 else 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _query(keys, heads, nxt, points, queries, todo, out, lo, c, k, max_ring):
     """``out[q]`` = the k-th nearest distance of query ``q``, for each ``q`` in ``todo`` (inside the
     points' box); left as it is when not resolved within ``max_ring`` rings of cells."""
@@ -304,7 +305,7 @@ def _query(keys, heads, nxt, points, queries, todo, out, lo, c, k, max_ring):
                 break
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _brute_force(points, queries, k):
     """k-th nearest distance of each query, by a scan over every point."""
     out = np.empty(queries.shape[0])

@@ -65,7 +65,7 @@ _DIRECTION_SAMPLE = 5_000  # points used to choose the image's frame
 # Serial on purpose: a few ms of work each, where a thread pool on busy shared cores costs more
 # than it saves (measured: the plane fits 0.5 ms serial, 16 ms parallel on a loaded 2-core machine).
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _angles(points, origin, frame):
     """Azimuth, elevation (radians) and range of each point seen from ``origin``; frame rows are
     forward (azimuth 0), left (azimuth +π/2) and pole (elevation +π/2). Range 0 gives NaN angles."""
@@ -91,7 +91,7 @@ def _angles(points, origin, frame):
     return az, el, rng
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _occupied_solid_angle(az, el, lo_az, lo_el, bin_size, n_az, n_el):
     """Solid angle (sr) of the bins of a coarse (azimuth, elevation) grid holding a point, and the
     number of points binned."""
@@ -112,7 +112,7 @@ def _occupied_solid_angle(az, el, lo_az, lo_el, bin_size, n_az, n_el):
     return omega, n
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _near_far(az, el, rng, lo_az, lo_el, cell, n_az, n_el):
     """Nearest and farthest range per cell (inf / -inf: no return)."""
     near = np.full(n_az * n_el, np.inf)
@@ -130,7 +130,7 @@ def _near_far(az, el, rng, lo_az, lo_el, cell, n_az, n_el):
     return near, far
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noise, floor):
     """Class of each ray (see :meth:`RangeImage.classify`) from the cells within ``reach`` of its own."""
     out = np.empty(az.shape[0], np.int8)
@@ -164,7 +164,7 @@ def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noi
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _plane_fits(static, idx):
     """Least-squares plane of each patch ``static[idx[i]]``: its mean, unit normal (eigenvector of
     the covariance's smallest eigenvalue λ, closed form for symmetric 3×3 matrices) and RMS
@@ -458,7 +458,7 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
     np.add.at(centres, inverse, query)
     centres /= counts[:, None]
     tree = cKDTree(static, balanced_tree=False, compact_nodes=False)  # built once, queried once
-    _, idx = tree.query(centres, k=k, workers=-1)
+    _, idx = tree.query(centres, k=k, workers=1)
     mean, normal, rms = _plane_fits(static, np.ascontiguousarray(idx.reshape(len(centres), k)))
     off = np.abs(np.einsum("ij,ij->i", query - mean[inverse], normal[inverse]))
     return (rms < flatness)[inverse] & (off < distance)
