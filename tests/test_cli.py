@@ -163,3 +163,39 @@ def test_change_sensor_origin(tmp_path, pair):
     assert "visibility" in json.loads(p.stdout)["timings"] and json.loads(p.stdout)["current"]["appeared"] > 2000
     bad = run("change", ref, cur, "-o", tmp_path / "o.ply", "--sensor-origin", "viewpoint")
     assert bad.returncode == 2 and "VIEWPOINT" in bad.stderr
+
+
+def test_align_on_a_class_with_fixed_horizontal(tmp_path, rng):
+    # two epochs of gently rolling ground (class 2) with shrubs (class 5) that grew; the second
+    # epoch lies 0.3 m lower: registered on the ground with the horizontal fixed, the lift is
+    # 0.3 m and the horizontal stays exactly where it was
+    def epoch(shrub_height):
+        g = rng.uniform(0, 60, (40_000, 2))
+        ground = np.c_[g, 0.5 * np.sin(g[:, 0] / 9) + 0.3 * np.cos(g[:, 1] / 7) + rng.normal(0, 0.02, len(g))]
+        s = rng.uniform(0, 60, (8_000, 2))
+        shrubs = np.c_[s, rng.uniform(0.2, shrub_height, len(s))]
+        return np.r_[ground, shrubs], np.r_[np.full(len(g), 2, np.uint8), np.full(len(s), 5, np.uint8)]
+
+    ref, ref_class = epoch(1.0)
+    cur, cur_class = epoch(2.5)
+    cur[:, 2] -= 0.3
+    write_points(tmp_path / "ref.las", ref, {"classification": ref_class})
+    write_points(tmp_path / "cur.las", cur, {"classification": cur_class})
+    p = run("align", tmp_path / "cur.las", tmp_path / "ref.las", "-o", tmp_path / "T.txt", "--align-class", "2",
+            "--fix-horizontal")
+    assert p.returncode == 0, p.stderr
+    t = np.loadtxt(tmp_path / "T.txt")
+    assert abs(t[2, 3] + t[2, :3] @ cur.mean(axis=0) - cur.mean(axis=0)[2] - 0.3) < 0.02  # lift at the centroid
+    np.testing.assert_allclose(t[:2, :2], np.eye(2), atol=1e-3)  # no turn about the vertical
+    assert np.abs(t[:2, :3] @ cur.mean(axis=0) + t[:2, 3] - cur.mean(axis=0)[:2]).max() < 1e-3  # no slide
+    change = run("change", tmp_path / "ref.las", tmp_path / "cur.las", "-o", tmp_path / "c.las", "--json",
+                 "--align", "density", "--align-class", "2", "--fix-horizontal")
+    assert change.returncode == 0, change.stderr
+    assert abs(json.loads(change.stdout)["alignment"]["translation"][2] - 0.3) < 0.05
+    for args, message in ((("--align-class", "ground"), "class numbers"), (("--align-class", "7"), "too few"),
+                          (("--method", "gicp", "--fix-horizontal"), "density alignment only")):
+        bad = run("align", tmp_path / "cur.las", tmp_path / "ref.las", "-o", tmp_path / "U.txt", *args)
+        assert bad.returncode == 2 and message in bad.stderr and not (tmp_path / "U.txt").exists()
+    write_points(tmp_path / "cur.ply", cur)
+    bad = run("align", tmp_path / "cur.ply", tmp_path / "ref.las", "-o", tmp_path / "U.txt", "--align-class", "2")
+    assert bad.returncode == 2 and "classification" in bad.stderr

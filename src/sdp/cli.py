@@ -116,9 +116,7 @@ def cmd_change(a):
     t_read = time.perf_counter() - t0
     alignment, cur_xyz = None, cur.xyz
     if a.align:
-        from .align import align
-
-        alignment = align(ref.xyz, cur.xyz, method=a.align)
+        alignment = _align(a, ref, cur, method=a.align)
         cur_xyz = alignment.apply(cur.xyz)
     origins = _sensor_origins(a, ref, cur)
     if origins is not None and alignment is not None:
@@ -327,6 +325,15 @@ def _pictures(a, xyz, changed, title) -> list[str]:
     return written
 
 
+def _align_options(p):
+    p.add_argument("--fix-horizontal", action="store_true",
+                   help="density alignment: estimate only the vertical shift and the tilts (z up); for epochs of "
+                        "nearly flat terrain")
+    p.add_argument("--align-class", metavar="C[,C...]",
+                   help="estimate the transform on the points of these LAS classes of both scans (e.g. 2: ground), "
+                        "then move the whole current scan")
+
+
 def _alignment_text(al) -> str:
     t = " ".join(f"{v:.4f}" for v in al["translation"])
     return (f"aligned current onto reference ({al['method']}): rotation {al['rotation_degrees']:.3f}°, "
@@ -334,13 +341,42 @@ def _alignment_text(al) -> str:
             f"residual {al['rmse']:.4g} (RMS), {al['seconds']:.2f} s")
 
 
-def cmd_align(a):
+def _align(a, ref, cur, *, method: str):
+    """sdp.align of the current Cloud onto the reference (a Cloud, or a DensityField) with the
+    options --fix-horizontal and --align-class."""
     from .align import align
+    from .field import DensityField
+
+    if a.fix_horizontal and method != "density":
+        raise SDPError("--fix-horizontal works with the density alignment only")
+    ref_xyz = ref if isinstance(ref, DensityField) else ref.xyz
+    cur_xyz = cur.xyz
+    if a.align_class:
+        try:
+            classes = [int(c) for c in a.align_class.split(",")]
+        except ValueError:
+            raise SDPError(f"--align-class takes LAS class numbers such as 2 or 2,9, got {a.align_class!r}") from None
+        if isinstance(ref, DensityField):
+            raise SDPError("--align-class needs the reference's points, not a field")
+        picked = []
+        for cloud, name in ((ref, a.reference), (cur, a.current)):
+            if "classification" not in cloud.fields:
+                raise SDPError(f"{name}: no 'classification' field for --align-class (LAS/LAZ files have one)")
+            keep = np.isin(cloud.fields["classification"], classes)
+            if keep.sum() < 3:
+                raise SDPError(f"{name}: {int(keep.sum())} points of class {a.align_class}: too few to align on")
+            picked.append(cloud.xyz[keep])
+        ref_xyz, cur_xyz = picked
+    return align(ref_xyz, cur_xyz, method=method, fix_horizontal=a.fix_horizontal)
+
+
+def cmd_align(a):
+    from .field import DensityField
     from .io import atomic_path, refuse_overwrite
 
     refuse_overwrite(a.output, (a.current, a.reference))
-    ref = _field_or_points(a.reference, a)
-    al = align(ref, read_points(a.current, format=a.format).xyz, method=a.method)
+    ref = DensityField.load(a.reference) if _is_field(a.reference) else read_points(a.reference, format=a.format)
+    al = _align(a, ref, read_points(a.current, format=a.format), method=a.method)
     with atomic_path(a.output) as tmp:
         np.savetxt(tmp, al.matrix, fmt="%.12g", header=f"sdp align {a.current} onto {a.reference} ({a.method})")
     if a.json:
@@ -602,6 +638,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
     c.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
+    _align_options(c)
     c.add_argument("--sensor-origin", metavar="viewpoint|X,Y,Z",
                    help="test changes along the sensor's rays (sdp.visibility): 'viewpoint' takes each PCD's "
                         "VIEWPOINT header, X,Y,Z one position for both scans")
@@ -640,6 +677,7 @@ def build_parser() -> argparse.ArgumentParser:
     al.add_argument("-o", "--output", required=True, help="text file with the 4x4 matrix")
     al.add_argument("--method", choices=("density", "gicp"), default="density",
                     help="density: maximise the reference's density, coarse to fine; gicp: small_gicp")
+    _align_options(al)
     al.add_argument("--json", action="store_true", help="print the result as JSON")
 
     w = _command(sub, "watch", cmd_watch, "compare each frame of a folder, in order, with a model that learns",
