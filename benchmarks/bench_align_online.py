@@ -171,7 +171,9 @@ def align_table():
         "voxel: flagged whatever the alignment), *offset* (the current's local surface lies outside the reference's "
         "cluster volume: misalignment), *noise* (the surfaces agree, the point strays). *Other changed*: appeared "
         "points neither person-like nor static, split into those with no reference point within 10 cm (real "
-        "change or a surface only the re-scan saw) and the rest.\n",
+        "change or a surface only the re-scan saw) and the rest. *density + sensor origin*: the same alignment, "
+        "then `detect_changes(..., sensor_origin=)` with each scan's VIEWPOINT (the current's moved with it) and "
+        "the default range noise; reductions are against the unaligned density test.\n",
         "| rescan | voxel | alignment | people regions | people points | flagged static (sampling / offset / noise) "
         "| reduction | offset + noise | reduction | other changed (no ref. within 10 cm / rest) |",
         "|---|---|---|---:|---:|---|---:|---:|---:|---|"]
@@ -224,10 +226,15 @@ def align_table():
             static = on_reference_surface(ref, tree, aligned["density"]) & on_reference_surface(ref, tree,
                                                                                                aligned["gicp"])
             far = tree.query(aligned["gicp"], distance_upper_bound=0.10)[0] == np.inf
+            # with the sensor origins (PCD VIEWPOINT; the current's moved with the density alignment)
+            origins = np.stack([ref_cloud.sensor_origin,
+                                sdp.transform_points(res["density"][0], cur_cloud.sensor_origin[None])[0]])
+            variants = [(label, xyz, {}) for label, xyz in aligned.items()]
+            variants.append(("density + sensor origin", aligned["density"], {"sensor_origin": origins}))
             for voxel in ("auto", 0.02):
                 base = None
-                for label, xyz in aligned.items():
-                    r = sdp.detect_changes(ref, xyz, voxel_size=voxel, min_region_points=50)
+                for label, xyz, kw in variants:
+                    r = sdp.detect_changes(ref, xyz, voxel_size=voxel, min_region_points=50, **kw)
                     people = people_mask(r)
                     n_reg = len(np.unique(r.appeared_region[people]))
                     flagged = r.appeared & static
@@ -243,7 +250,7 @@ def align_table():
                         f"({' / '.join(f'{v:,}' for v in causes)}) | {red[0]} | {movable:,} | {red[1]} | "
                         f"{int(other.sum()):,} ({int((other & far).sum()):,} / {int((other & ~far).sum()):,}) |")
                     print(change_lines[-1])
-                    if label != "gicp":
+                    if label in ("none", "density"):
                         sdp.render_changes(RESULTS / f"dlut_{name.split()[-1]}_{voxel}_{label}.png", xyz, r.appeared,
                                            title=f"{name}: appeared (voxel {voxel}), alignment {label}")
     text = "\n".join(lines + toronto_lines + change_lines) + "\n"
