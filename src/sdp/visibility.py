@@ -378,7 +378,7 @@ def as_sensor_origins(sensor_origin: npt.ArrayLike) -> tuple[np.ndarray, np.ndar
 def explained_by_visibility(points: np.ndarray, changed: np.ndarray, other: np.ndarray, other_origin: npt.ArrayLike,
                             *, sigma: float, range_noise: float = 0.015, band_floor: float = 1.0,
                             cell_factor: float = 1.5, reach: int = 1, plane_points: int = 50,
-                            plane_stride: int = 8, plane_bin: float = 4.0, plane_distance: float = 2.0,
+                            plane_stride: int = 8, plane_bin: float = 2.0, plane_distance: float = 2.0,
                             plane_flatness: float = 1.0,
                             spacing: float | None = None) -> np.ndarray:
     """Which changed points the other scan's view explains (not a change).
@@ -410,8 +410,9 @@ def explained_by_visibility(points: np.ndarray, changed: np.ndarray, other: np.n
         The plane test fits ``plane_points`` nearest unchanged points taken from every
         ``plane_stride``-th unchanged point (a patch of about ``plane_points``·``plane_stride``
         points). Points in one cube of side ``plane_bin``·σ share the patch nearest to their
-        mean (one neighbour query per cube: 4σ is well inside a patch, whose radius is about
-        10σ on Kinect frames; on the mOSD pairs kappa moves by < 0.001 from σ to 4σ).
+        mean (one neighbour query per cube; a patch's radius is about 10σ on Kinect frames. On the
+        mOSD pairs kappa moves by < 0.001 from σ to 4σ; on the DLUT re-scans 3σ and more lose a
+        62-point piece of a person that σ and 2σ keep).
     plane_distance, plane_flatness : float
         A hidden or unobserved point is explained when it lies within ``plane_distance``·σ of
         that plane and the patch is flat: RMS deviation from its plane below ``plane_flatness``·σ.
