@@ -199,3 +199,5 @@ def test_align_on_a_class_with_fixed_horizontal(tmp_path, rng):
     write_points(tmp_path / "cur.ply", cur)
     bad = run("align", tmp_path / "cur.ply", tmp_path / "ref.las", "-o", tmp_path / "U.txt", "--align-class", "2")
     assert bad.returncode == 2 and "classification" in bad.stderr
+    bad = run("change", tmp_path / "ref.las", tmp_path / "cur.las", "-o", tmp_path / "d.las", "--align-class", "2")
+    assert bad.returncode == 2 and "--align density" in bad.stderr and not (tmp_path / "d.las").exists()

@@ -28,9 +28,10 @@ B3 = B * B * B
 
 
 def map_concurrently(fn, items, *, parallel_kernels: bool = False) -> list:
-    """``[fn(x) for x in items]``, one thread per item when there is more than one core: the
-    kernels release the GIL (``nogil=True``), so independent pieces of work (the two directions
-    of a comparison, the spacing of two clouds) overlap. ``parallel_kernels``: ``fn`` also calls
+    """``[fn(x) for x in items]``, one thread per item when Numba may use more than one thread
+    (``NUMBA_NUM_THREADS``: the cores by default, 1 on the Dask workers of :mod:`sdp.tiles`):
+    the kernels release the GIL (``nogil=True``), so independent pieces of work (the two
+    directions of a comparison, the spacing of two clouds) overlap. ``parallel_kernels``: ``fn`` also calls
     parallel kernels; they may run from two threads at once only on a thread-safe Numba
     threading layer (OpenMP, TBB; not the fallback "workqueue"), else the items run in turn."""
     items = list(items)

@@ -115,6 +115,8 @@ def cmd_change(a):
     ref, cur = read_points(a.reference, format=a.format), read_points(a.current, format=a.format)
     t_read = time.perf_counter() - t0
     alignment, cur_xyz = None, cur.xyz
+    if (a.fix_horizontal or a.align_class) and not a.align:
+        raise SDPError("--fix-horizontal and --align-class choose how to align: give --align density too")
     if a.align:
         alignment = _align(a, ref, cur, method=a.align)
         cur_xyz = alignment.apply(cur.xyz)
