@@ -118,7 +118,6 @@ def test_no_change_at_all_with_a_region_size_filter(rng):
 
 def test_two_directions_on_threads_equal_one_thread(monkeypatch):
     # the directions run on two threads (map_concurrently); one at a time must give the same result
-
     s = office_scene(seed=3)
     kw = dict(voxel_size="auto", min_region_points=20, sensor_origin=(0.3, 0.2, 2.2))
     threaded = sdp.detect_changes(s.reference, s.current, **kw)

@@ -462,7 +462,7 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
     np.add.at(centres, inverse, query)
     centres /= counts[:, None]
     tree = cKDTree(static, balanced_tree=False, compact_nodes=False)  # built once, queried once
-    _, idx = tree.query(centres, k=k, workers=1)
+    _, idx = tree.query(centres, k=k, workers=1)  # one thread: detect_changes runs both directions at once
     mean, normal, rms = _plane_fits(static, np.ascontiguousarray(idx.reshape(len(centres), k)))
     off = np.abs(np.einsum("ij,ij->i", query - mean[inverse], normal[inverse]))
     return (rms < flatness)[inverse] & (off < distance)
