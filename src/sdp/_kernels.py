@@ -66,18 +66,9 @@ def finite_bounds(points):
 
 
 @nb.njit(cache=True, nogil=True)
-def grid_units(points, origin, voxel):
-    """(points - origin) / voxel in float64, as :meth:`sdp.grid.Grid.to_grid_units`, in one pass."""
-    out = np.empty(points.shape)
-    for p in range(points.shape[0]):
-        for d in range(3):
-            out[p, d] = (points[p, d] - origin[d]) / voxel
-    return out
-
-
-@nb.njit(cache=True, nogil=True)
-def mark_blocks(u, lo_off, hi_off, shape_blocks):
-    """Occupancy (uint8, directory-shaped) of blocks holding nodes floor(u)-lo_off … floor(u)+hi_off.
+def mark_blocks(points, origin, voxel, lo_off, hi_off, shape_blocks):
+    """Occupancy (uint8, directory-shaped) of blocks holding nodes floor(u)-lo_off … floor(u)+hi_off,
+    u = (points - origin) / voxel the points' grid units (computed on the fly, as every kernel here).
 
     Along one axis the blocks reached from a node depend only on its block and its position
     in the block, and take one of at most four ranges (the lowest block reached is one of two,
@@ -91,8 +82,10 @@ def mark_blocks(u, lo_off, hi_off, shape_blocks):
     for r in range(B):
         axis_code[r] = ((r - lo_off) // B - lo_min) * 2 + ((r + hi_off) // B - hi_min)
     codes = np.zeros((shape_blocks[0], shape_blocks[1], shape_blocks[2]), np.uint64)
-    for p in range(u.shape[0]):
-        ix, iy, iz = int(math.floor(u[p, 0])), int(math.floor(u[p, 1])), int(math.floor(u[p, 2]))
+    for p in range(points.shape[0]):
+        ix = int(math.floor((points[p, 0] - origin[0]) / voxel))
+        iy = int(math.floor((points[p, 1] - origin[1]) / voxel))
+        iz = int(math.floor((points[p, 2] - origin[2]) / voxel))
         code = axis_code[ix & 7] * 16 + axis_code[iy & 7] * 4 + axis_code[iz & 7]
         codes[ix >> 3, iy >> 3, iz >> 3] |= np.uint64(1) << np.uint64(code)
     occ = np.zeros((shape_blocks[0], shape_blocks[1], shape_blocks[2]), np.uint8)
@@ -114,19 +107,24 @@ def mark_blocks(u, lo_off, hi_off, shape_blocks):
 
 
 @nb.njit(cache=True, nogil=True)
-def bin_trilinear(u, directory, blocks):
-    """Add each point's unit weight to its cell's 8 nodes, split by trilinear weights.
+def bin_trilinear(points, origin, voxel, directory, blocks, touched):
+    """Add each point's unit weight to its cell's 8 nodes, split by trilinear weights, and flag
+    the blocks written in ``touched`` (the others stay all zero).
 
     Weights are computed in float64 and rounded to float32 before they are added (a float32
     sum, no round trip through float64 per node).
     """
-    for p in range(u.shape[0]):
-        x, y, z = u[p, 0], u[p, 1], u[p, 2]
+    for p in range(points.shape[0]):
+        x = (points[p, 0] - origin[0]) / voxel
+        y = (points[p, 1] - origin[1]) / voxel
+        z = (points[p, 2] - origin[2]) / voxel
         ix, iy, iz = int(math.floor(x)), int(math.floor(y)), int(math.floor(z))
         fx, fy, fz = x - ix, y - iy, z - iz
         gx, gy, gz = 1.0 - fx, 1.0 - fy, 1.0 - fz
         if (ix & 7) < 7 and (iy & 7) < 7 and (iz & 7) < 7:  # the cell lies in one block
-            out = blocks[directory[ix >> 3, iy >> 3, iz >> 3]]
+            blk = directory[ix >> 3, iy >> 3, iz >> 3]
+            touched[blk] = True
+            out = blocks[blk]
             n = (ix & 7) * B2 + (iy & 7) * B + (iz & 7)
             out[n] += np.float32(gx * gy * gz)
             out[n + 1] += np.float32(gx * gy * fz)
@@ -147,18 +145,21 @@ def bin_trilinear(u, directory, blocks):
                     wz = fz if c else gz
                     nz = iz + c
                     blk = directory[nx >> 3, ny >> 3, nz >> 3]
+                    touched[blk] = True
                     blocks[blk, (nx & 7) * B2 + (ny & 7) * B + (nz & 7)] += np.float32(wx * wy * wz)
 
 
 @nb.njit(cache=True, nogil=True)
-def splat_exact(u, directory, blocks, inv_two_s2, rmax, reach):
+def splat_exact(points, origin, voxel, directory, blocks, inv_two_s2, rmax, reach):
     """Add exp(-d²/2σ²) of every point to every node within the cube |d|∞ <= rmax (grid units)."""
     n_t = 2 * reach + 2
     wx = np.empty(n_t)
     wy = np.empty(n_t)
     wz = np.empty(n_t)
-    for p in range(u.shape[0]):
-        x, y, z = u[p, 0], u[p, 1], u[p, 2]
+    for p in range(points.shape[0]):
+        x = (points[p, 0] - origin[0]) / voxel
+        y = (points[p, 1] - origin[1]) / voxel
+        z = (points[p, 2] - origin[2]) / voxel
         fx = int(math.floor(x)) - reach
         fy = int(math.floor(y)) - reach
         fz = int(math.floor(z)) - reach
@@ -200,16 +201,17 @@ def nonzero_blocks(blocks):
 
 
 @nb.njit(parallel=True, cache=True)
-def blur_pass(src, src_nonzero, dst, dst_nonzero, directory, keys, axis, taps):
+def blur_pass(src, src_nonzero, dst, dst_nonzero, directory, keys, axis, taps, zero_fill):
     """One separable pass: ``taps`` (odd length) along ``axis``, rotating the block layout.
 
     The pass reads each block with the blurred axis as its first (slowest) index, column
     ``a*64 + b*8 + c``, and writes it rotated, column ``b*64 + c*8 + a``: the next axis comes
     first. Three passes along x, y, z therefore start and end in the usual layout, and every
     pass convolves along the first index, with each tap updating a block's 64 lines at once.
-    Nodes of blocks that are not allocated read as 0; output is written for every allocated
-    block. Source blocks flagged all-zero in ``src_nonzero`` are skipped; ``dst_nonzero``
-    receives the flags of the output.
+    Nodes of blocks that are not allocated read as 0. Source blocks flagged all-zero in
+    ``src_nonzero`` are not read; ``dst_nonzero`` receives the flags of the output. An output
+    block that no source reaches is written as zeros only with ``zero_fill`` (the last pass):
+    a pass in between leaves it as it was, flagged, and the next pass doesn't read it.
     """
     r = (taps.shape[0] - 1) // 2
     nbr = (r + B - 1) // B
@@ -234,7 +236,8 @@ def blur_pass(src, src_nonzero, dst, dst_nonzero, directory, keys, axis, taps):
         out = dst[b]
         dst_nonzero[b] = any_src
         if not any_src:
-            out[:] = 0.0
+            if zero_fill:
+                out[:] = 0.0
             continue
         acc = np.zeros(B3, np.float32)
         for a in range(B):

@@ -143,8 +143,8 @@ class DensityField:
         reach = int(math.ceil(rmax))
         grid = Grid.covering(cloud.lo, cloud.hi, l, reach)
         check_memory(grid.n_blocks_box * 5, f"the block directory of a {grid.shape} grid", memory_limit)
-        u = K.grid_units(cloud.xyz, grid.origin, grid.voxel_size)
-        occ = K.mark_blocks(u, reach, reach + 1, np.asarray(grid.shape_blocks, np.int64))
+        xyz, origin, l = cloud.xyz, grid.origin, grid.voxel_size
+        occ = K.mark_blocks(xyz, origin, l, reach, reach + 1, np.asarray(grid.shape_blocks, np.int64))
         flat = np.flatnonzero(occ)
         copies = 2 if method == "fast" else 1
         check_memory(flat.size * BLOCK**3 * 4 * copies + grid.n_blocks_box * 5,
@@ -154,26 +154,30 @@ class DensityField:
                     h=threshold(k) if h is None else h, sigma=sigma_voxels * l, truncate=truncate,
                     n_points=len(cloud.xyz), n_dropped=cloud.n_dropped,
                     method=method)
-        with bar(len(u), "building field") as pb:
-            for s in range(0, len(u), _CHUNK):
-                part = u[s:s + _CHUNK]
+        touched = np.zeros(flat.size, np.bool_)
+        with bar(len(xyz), "building field") as pb:
+            for s in range(0, len(xyz), _CHUNK):
+                part = xyz[s:s + _CHUNK]
                 if method == "exact":
-                    K.splat_exact(part, field._directory, field._blocks, 1.0 / (2 * sigma_voxels**2), rmax, reach)
+                    K.splat_exact(part, origin, l, field._directory, field._blocks, 1.0 / (2 * sigma_voxels**2),
+                                  rmax, reach)
                 else:
-                    K.bin_trilinear(part, field._directory, field._blocks)
+                    K.bin_trilinear(part, origin, l, field._directory, field._blocks, touched)
                 pb.update(len(part))
         if method == "fast":
             s2 = sigma_voxels**2 - 1.0 / 6.0
             taps = _gaussian_taps(math.sqrt(s2), int(math.floor(rmax)))
-            field._blur(taps * np.float32(sigma_voxels / math.sqrt(s2)))
+            field._blur(taps * np.float32(sigma_voxels / math.sqrt(s2)), nonzero=touched)
         return field
 
-    def _blur(self, taps: np.ndarray) -> None:
-        """Convolve the node values in place with ``taps`` along x, y and z (separable)."""
+    def _blur(self, taps: np.ndarray, *, nonzero: np.ndarray | None = None) -> None:
+        """Convolve the node values in place with ``taps`` along x, y and z (separable).
+        ``nonzero``: flags of the blocks that may hold a nonzero value (default: found by a scan)."""
         src, dst = self._blocks, np.empty_like(self._blocks)
-        src_nz, dst_nz = K.nonzero_blocks(src), np.empty(len(src), np.bool_)
+        src_nz = K.nonzero_blocks(src) if nonzero is None else nonzero
+        dst_nz = np.empty(len(src), np.bool_)
         for axis in range(3):
-            K.blur_pass(src, src_nz, dst, dst_nz, self._directory, self._keys, axis, taps)
+            K.blur_pass(src, src_nz, dst, dst_nz, self._directory, self._keys, axis, taps, axis == 2)
             src, dst, src_nz, dst_nz = dst, src, dst_nz, src_nz
         self._blocks = src
 
