@@ -219,3 +219,18 @@ def test_regions_are_the_6_connected_components_of_the_negative_nodes(rng):
     # the same partition of the points (numbering differs)
     pairs = set(zip(point_labels[has], best[has], strict=False))
     assert len(pairs) == len(set(point_labels[has])) == len(set(best[has]))
+
+
+def test_regions_of_a_speckled_volume_match_scipy(rng):
+    """Components made of many short runs of nodes, crossing blocks along every axis."""
+    from scipy.ndimage import label
+
+    from sdp.regions import label_points
+
+    f = DensityField.from_points(rng.random((300, 3)) * 0.2, voxel_size=0.005)
+    speckled = f.copy()
+    speckled._blocks[:] = rng.random(speckled._blocks.shape) < 0.3  # G = 1 at 30 % of the nodes
+    point_labels, node_counts = label_points(speckled, 0.5 - speckled._blocks, np.zeros((0, 3)))
+    expected, n = label(speckled.to_dense()[0] > 0.5)
+    assert len(node_counts) == n > 1000
+    assert sorted(node_counts) == sorted(np.bincount(expected.ravel())[1:])

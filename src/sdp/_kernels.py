@@ -403,22 +403,29 @@ def _find(parent, i):
 
 
 @nb.njit(cache=True, nogil=True)
-def _negative_lines(values):
-    """Per block: a 64-bit mask of its lines of 8 nodes (columns 8j … 8j+7) holding a negative
-    value, and the number of negative values."""
-    lines = np.zeros(values.shape[0], np.uint64)
-    count = np.zeros(values.shape[0], np.int64)
+def _line_masks(values):
+    """Per block, per line of 8 nodes along z (columns 8j … 8j+7): bit z set where the node is negative."""
+    masks = np.zeros((values.shape[0], B2), np.uint8)
     for b in range(values.shape[0]):
-        mask, c = np.uint64(0), 0
         for j in range(B2):
-            cj = 0
-            for n in range(j * B, j * B + B):
-                cj += values[b, n] < 0
-            if cj:
-                mask |= np.uint64(1) << np.uint64(j)
-                c += cj
-        lines[b], count[b] = mask, c
-    return lines, count
+            mk = 0
+            for z in range(B):
+                mk |= (values[b, j * B + z] < 0) << z
+            masks[b, j] = mk
+    return masks
+
+
+@nb.njit(cache=True, inline="always")
+def _runs_of(mk, out):
+    """The runs of consecutive set bits of ``mk``, as masks, into ``out`` (low bits first); returns
+    their number."""
+    n = 0
+    while mk:
+        run = ((mk + (mk & -mk)) ^ mk) & mk  # adding the lowest set bit clears the lowest run
+        out[n] = run
+        n += 1
+        mk &= ~run
+    return n
 
 
 @nb.njit(cache=True, nogil=True)
@@ -447,67 +454,79 @@ def _union(parent, a, b):
 def label_nodes(values, directory, keys):
     """6-connected components of the nodes where ``values`` (m, 512) is negative.
 
-    Only the blocks holding a negative node take part, and union-find runs over their
-    negative nodes alone. Components are numbered in the order of their first node (blocks in
-    row order, nodes in column order). Returns ``slot`` (m,) int64, each block's row in
-    ``labels`` (-1: no negative node); ``labels`` (rows, 512) int32, the component of each
-    negative node of those blocks (-1 elsewhere); and the number of nodes of each component.
+    Union-find runs over runs, not nodes: the negative nodes of a line of 8 along z split into
+    runs of consecutive nodes (3–4 nodes each on change volumes of Kinect pairs); a run joins the
+    runs it overlaps in the line before it along y and along x, and along z the run that ends
+    the same line in the block below. Only blocks holding a negative node take part.
+    Components are numbered in the order of their first node (blocks in row order, nodes in
+    column order). Returns ``slot`` (m,) int64, each block's row in ``labels`` (-1: no negative
+    node); ``labels`` (rows, 512) int32, the component of each negative node of those blocks (-1
+    elsewhere); and the number of nodes of each component.
     """
     m = values.shape[0]
-    lines, per_block = _negative_lines(values)
+    masks = _line_masks(values)
     slot = np.full(m, -1, np.int64)
     n_active = 0
     for blk in range(m):
-        if per_block[blk]:
-            slot[blk] = n_active
-            n_active += 1
-    n_neg = per_block.sum()
-    labels = np.full((n_active, B3), -1, np.int32)  # first: each negative node's index among them
-    node_slot = np.empty(n_neg, np.int64)
-    node_col = np.empty(n_neg, np.int64)
-    neighbour = np.full((n_active, 3), -1, np.int64)  # slot of the block before, along each axis
-    i = 0
-    for blk in range(m):
-        s = slot[blk]
-        if s < 0:
-            continue
-        for axis in range(3):
-            nb_blk = _neighbour_block(directory, keys, blk, axis)
-            if nb_blk >= 0:
-                neighbour[s, axis] = slot[nb_blk]
         for j in range(B2):
-            if not (lines[blk] >> np.uint64(j)) & np.uint64(1):
-                continue
-            for n in range(j * B, j * B + B):
-                if values[blk, n] < 0:
-                    labels[s, n] = i
-                    node_slot[i] = s
-                    node_col[i] = n
-                    i += 1
-    parent = np.arange(n_neg)
-    for i in range(n_neg):
-        s, n = node_slot[i], node_col[i]
-        stride = B2
+            if masks[blk, j]:
+                slot[blk] = n_active
+                n_active += 1
+                break
+    active = np.empty(n_active, np.int64)  # block of each slot
+    for blk in range(m):
+        if slot[blk] >= 0:
+            active[slot[blk]] = blk
+    # the runs of line j of slot s are first[s*64 + j] … first[s*64 + j + 1] - 1
+    first = np.zeros(n_active * B2 + 1, np.int64)
+    scratch = np.empty(B, np.int64)
+    for s in range(n_active):
+        for j in range(B2):
+            first[s * B2 + j + 1] = first[s * B2 + j] + _runs_of(np.int64(masks[active[s], j]), scratch)
+    run_mask = np.empty(first[-1], np.int64)
+    for s in range(n_active):
+        for j in range(B2):
+            _runs_of(np.int64(masks[active[s], j]), run_mask[first[s * B2 + j]:])
+    parent = np.arange(run_mask.shape[0])
+    below = np.empty(3, np.int64)  # slot of the block before along x, y, z (-1: none)
+    for s in range(n_active):
         for axis in range(3):
-            if (n // stride) % B > 0:
-                j = labels[s, n - stride]
-            elif neighbour[s, axis] >= 0:
-                j = labels[neighbour[s, axis], n + (B - 1) * stride]
-            else:
-                j = -1
-            if j >= 0:
-                _union(parent, i, j)
-            stride //= B
-    root_label = np.full(n_neg, -1, np.int64)
-    node_counts = np.zeros(n_neg, np.int64)
+            nb_blk = _neighbour_block(directory, keys, active[s], axis)
+            below[axis] = slot[nb_blk] if nb_blk >= 0 else -1
+        for j in range(B2):
+            r0, r1 = first[s * B2 + j], first[s * B2 + j + 1]
+            if r0 == r1:
+                continue
+            t = below[2]
+            if run_mask[r0] & 1 and t >= 0 and masks[active[t], j] & 128:
+                _union(parent, r0, first[t * B2 + j + 1] - 1)  # the last run of that line
+            for axis in range(2):  # x, then y: the line before, in this block or the block below
+                stride = B if axis == 0 else 1
+                if (j // stride) % B > 0:
+                    t, jj = s, j - stride
+                else:
+                    t, jj = below[axis], j + (B - 1) * stride
+                if t < 0 or not masks[active[t], jj]:
+                    continue
+                for r in range(r0, r1):
+                    for q in range(first[t * B2 + jj], first[t * B2 + jj + 1]):
+                        if run_mask[r] & run_mask[q]:
+                            _union(parent, r, q)
+    labels = np.full((n_active, B3), -1, np.int32)
+    root_label = np.full(run_mask.shape[0], -1, np.int64)
+    node_counts = np.zeros(run_mask.shape[0], np.int64)
     count = 0
-    for i in range(n_neg):
-        root = _find(parent, i)
-        if root_label[root] < 0:
-            root_label[root] = count
-            count += 1
-        labels[node_slot[i], node_col[i]] = root_label[root]
-        node_counts[root_label[root]] += 1
+    for s in range(n_active):
+        for j in range(B2):
+            for r in range(first[s * B2 + j], first[s * B2 + j + 1]):
+                root = _find(parent, r)
+                if root_label[root] < 0:
+                    root_label[root] = count
+                    count += 1
+                for z in range(B):
+                    if run_mask[r] >> z & 1:
+                        labels[s, j * B + z] = root_label[root]
+                        node_counts[root_label[root]] += 1
     return slot, labels, node_counts[:count]
 
 
