@@ -1,3 +1,5 @@
+import threading
+
 import numpy as np
 import pytest
 from conftest import box_surface, room_scene
@@ -135,3 +137,10 @@ def test_map_concurrently_keeps_order_and_raises():
     assert map_concurrently(lambda x: x * x, range(5)) == [0, 1, 4, 9, 16]
     with pytest.raises(ZeroDivisionError):
         map_concurrently(lambda x: 1 / x, [1, 0])
+    # a call from one of the pool's threads runs in turn instead of waiting for a thread of its own
+    done = []
+    outer = threading.Thread(target=lambda: done.append(map_concurrently(
+        lambda x: map_concurrently(lambda y: x * y, [1, 2]), [1, 2, 3])), daemon=True)
+    outer.start()
+    outer.join(60)
+    assert done == [[[1, 2], [2, 4], [3, 6]]]
