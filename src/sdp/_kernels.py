@@ -225,59 +225,84 @@ def nonzero_blocks(blocks):
 
 
 @nb.njit(parallel=True, cache=True)
-def blur_pass(src, src_nonzero, dst, dst_nonzero, directory, keys, axis, taps, zero_fill):
-    """One separable pass: ``taps`` (odd length) along ``axis``, rotating the block layout.
+def blur_pass(blocks, nonzero, directory, axis, taps):
+    """One separable pass, in place: ``taps`` (odd length) along ``axis``, rotating the block layout.
 
     The pass reads each block with the blurred axis as its first (slowest) index, column
     ``a*64 + b*8 + c``, and writes it rotated, column ``b*64 + c*8 + a``: the next axis comes
     first. Three passes along x, y, z therefore start and end in the usual layout, and every
     pass convolves along the first index, with each tap updating a block's 64 lines at once.
-    Nodes of blocks that are not allocated read as 0. Source blocks flagged all-zero in
-    ``src_nonzero`` are not read; ``dst_nonzero`` receives the flags of the output. An output
-    block that no source reaches is written as zeros only with ``zero_fill`` (the last pass):
-    a pass in between leaves it as it was, flagged, and the next pass doesn't read it.
+
+    The lines of blocks along ``axis`` run in parallel; along a line, each block's original
+    values are copied to a small ring before the block is overwritten, so the blocks after it
+    read them there (no second array: the pass touches no fresh memory). Nodes of blocks that
+    are not allocated read as 0. ``nonzero`` flags the blocks that may hold a nonzero value
+    (a block not flagged must hold zeros): unflagged blocks are not read, and are left as they
+    are when no source reaches them; the flags are updated for the output.
     """
     r = (taps.shape[0] - 1) // 2
     nbr = (r + B - 1) // B
+    ring_len = nbr + 1
+    d0, d1, d2 = directory.shape
     dlen = directory.shape[axis]
-    for b in nb.prange(keys.shape[0]):
-        neigh = np.empty(2 * nbr + 1, np.int64)
-        any_src = False
-        for j in range(-nbr, nbr + 1):
-            k0, k1, k2 = keys[b, 0], keys[b, 1], keys[b, 2]
+    n1 = d1 if axis == 0 else d0  # the other two axes, in order
+    n2 = d1 if axis == 2 else d2
+    for line in nb.prange(n1 * n2):
+        i1, i2 = line // n2, line % n2
+        ring = np.empty((ring_len, B3), np.float32)  # originals of the blocks k - nbr … k
+        ring_ok = np.zeros(ring_len, np.bool_)
+        neigh = np.empty(2 * nbr + 1, np.int64)  # per offset: -1 none, 0 ring, 1 in place
+        acc = np.empty(B3, np.float32)
+        for k in range(dlen):
             if axis == 0:
-                k0 += j
+                blk = directory[k, i1, i2]
             elif axis == 1:
-                k1 += j
+                blk = directory[i1, k, i2]
             else:
-                k2 += j
-            ka = k0 if axis == 0 else (k1 if axis == 1 else k2)
-            nb_blk = directory[k0, k1, k2] if 0 <= ka < dlen else -1
-            if nb_blk >= 0 and not src_nonzero[nb_blk]:
-                nb_blk = -1
-            neigh[j + nbr] = nb_blk
-            any_src = any_src or nb_blk >= 0
-        out = dst[b]
-        dst_nonzero[b] = any_src
-        if not any_src:
-            if zero_fill:
-                out[:] = 0.0
-            continue
-        acc = np.zeros(B3, np.float32)
-        for a in range(B):
-            for k in range(taps.shape[0]):
-                s = a + k - r + nbr * B
-                sb = neigh[s // B]
-                if sb < 0:
-                    continue
-                w = taps[k]
-                inp = src[sb]
-                ls = (s % B) * B2
+                blk = directory[i1, i2, k]
+            slot = k % ring_len
+            ring_ok[slot] = blk >= 0 and nonzero[blk]
+            if ring_ok[slot]:
+                ring[slot, :] = blocks[blk]
+            if blk < 0:
+                continue
+            any_src = False
+            for j in range(-nbr, nbr + 1):
+                kk = k + j
+                if j <= 0:
+                    ok = kk >= 0 and ring_ok[kk % ring_len]
+                    neigh[j + nbr] = 0 if ok else -1
+                else:
+                    nb_blk = -1
+                    if kk < dlen:
+                        if axis == 0:
+                            nb_blk = directory[kk, i1, i2]
+                        elif axis == 1:
+                            nb_blk = directory[i1, kk, i2]
+                        else:
+                            nb_blk = directory[i1, i2, kk]
+                    ok = nb_blk >= 0 and nonzero[nb_blk]
+                    neigh[j + nbr] = nb_blk if ok else -1
+                any_src = any_src or ok
+            if not any_src:
+                continue  # all zero, and stays so
+            acc[:] = 0.0
+            for a in range(B):
+                for t in range(taps.shape[0]):
+                    s = a + t - r + nbr * B
+                    j = s // B - nbr
+                    if neigh[j + nbr] < 0:
+                        continue
+                    inp = ring[(k + j) % ring_len] if j <= 0 else blocks[neigh[j + nbr]]
+                    w = taps[t]
+                    ls = (s % B) * B2
+                    for li in range(B2):
+                        acc[a * B2 + li] += w * inp[ls + li]
+            out = blocks[blk]
+            for a in range(B):
                 for li in range(B2):
-                    acc[a * B2 + li] += w * inp[ls + li]
-        for a in range(B):
-            for li in range(B2):
-                out[li * B + a] = acc[a * B2 + li]
+                    out[li * B + a] = acc[a * B2 + li]
+            nonzero[blk] = True
 
 
 @nb.njit(parallel=True, cache=True)

@@ -146,8 +146,7 @@ class DensityField:
         xyz, origin, l = cloud.xyz, grid.origin, grid.voxel_size
         occ = K.mark_blocks(xyz, origin, l, reach, reach + 1, np.asarray(grid.shape_blocks, np.int64))
         flat = np.flatnonzero(occ)
-        copies = 2 if method == "fast" else 1
-        check_memory(flat.size * BLOCK**3 * 4 * copies + grid.n_blocks_box * 5,
+        check_memory(flat.size * BLOCK**3 * 4 + grid.n_blocks_box * 5,
                      f"{flat.size} blocks of {BLOCK}³ nodes (voxel {l:g})", memory_limit)
         keys = np.stack(np.unravel_index(flat, grid.shape_blocks), axis=1)
         field = cls(grid, keys, np.zeros((flat.size, BLOCK**3), np.float32),
@@ -173,13 +172,9 @@ class DensityField:
     def _blur(self, taps: np.ndarray, *, nonzero: np.ndarray | None = None) -> None:
         """Convolve the node values in place with ``taps`` along x, y and z (separable).
         ``nonzero``: flags of the blocks that may hold a nonzero value (default: found by a scan)."""
-        src, dst = self._blocks, np.empty_like(self._blocks)
-        src_nz = K.nonzero_blocks(src) if nonzero is None else nonzero
-        dst_nz = np.empty(len(src), np.bool_)
+        nonzero = K.nonzero_blocks(self._blocks) if nonzero is None else nonzero
         for axis in range(3):
-            K.blur_pass(src, src_nz, dst, dst_nz, self._directory, self._keys, axis, taps, axis == 2)
-            src, dst, src_nz, dst_nz = dst, src, dst_nz, src_nz
-        self._blocks = src
+            K.blur_pass(self._blocks, nonzero, self._directory, axis, taps)
 
     # ------------------------------------------------------------------ online updates
     def accumulate(self, other: "DensityField", *, weight: float = 1.0) -> "DensityField":
