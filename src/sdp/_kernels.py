@@ -451,17 +451,106 @@ def _find(parent, i):
     return i
 
 
+# ---------------------------------------------------------------------------- volumes (sdp.regions)
+# A volume (sdp.regions.Volume) is the set of nodes of field a's blocks where
+# v = max(ha − A, B − hb) < 0; its kernels take (a_keys, a_blocks, ha, b_blocks, b_directory, shift,
+# hb). With B the other field's G (its block found through ``b_directory`` at a's key + ``shift``;
+# 0 where it holds none), v is the difference max(F_a, −F_b), computed node by node in float32
+# exactly as :func:`difference_blocks` stores it, without storing it; with no B (hb = inf), F_a.
+@nb.njit(cache=True, inline="always")
+def _partner(a_keys, blk, b_directory, shift):
+    """Row in b of the block at a's block ``blk`` (-1: b holds none)."""
+    k0, k1, k2 = a_keys[blk, 0] + shift[0], a_keys[blk, 1] + shift[1], a_keys[blk, 2] + shift[2]
+    d = b_directory.shape
+    if 0 <= k0 < d[0] and 0 <= k1 < d[1] and 0 <= k2 < d[2]:
+        return b_directory[k0, k1, k2]
+    return -1
+
+
+@nb.njit(cache=True, inline="always")
+def _volume_value(a_blocks, fa_h, b_blocks, j, fb_h, blk, n):
+    """v at node ``n`` of a's block ``blk`` (``j``: its partner in b), float32 like difference_blocks."""
+    if j >= 0:
+        return max(fa_h - a_blocks[blk, n], b_blocks[j, n] - fb_h)
+    return max(fa_h - a_blocks[blk, n], -fb_h)
+
+
 @nb.njit(cache=True, nogil=True)
-def _line_masks(values):
-    """Per block, per line of 8 nodes along z (columns 8j … 8j+7): bit z set where the node is negative."""
-    masks = np.zeros((values.shape[0], B2), np.uint8)
-    for b in range(values.shape[0]):
-        for j in range(B2):
+def volume_masks(a_keys, a_blocks, ha, b_blocks, b_directory, shift, hb):
+    """Per block of a, per line of 8 nodes along z (columns 8j … 8j+7): bit z set where v < 0,
+    that is where A > ha and B < hb (the sign of a float32 difference is exact)."""
+    fa_h, fb_h = np.float32(ha), np.float32(hb)
+    masks = np.zeros((a_blocks.shape[0], B2), np.uint8)
+    for blk in range(a_blocks.shape[0]):
+        j = _partner(a_keys, blk, b_directory, shift)
+        if j < 0 and not fb_h > 0:
+            continue  # v >= -hb >= 0 throughout
+        for line in range(B2):
             mk = 0
-            for z in range(B):
-                mk |= (values[b, j * B + z] < 0) << z
-            masks[b, j] = mk
+            if j >= 0:
+                for z in range(B):
+                    n = line * B + z
+                    mk |= ((a_blocks[blk, n] > fa_h) & (b_blocks[j, n] < fb_h)) << z
+            else:
+                for z in range(B):
+                    mk |= (a_blocks[blk, line * B + z] > fa_h) << z
+            masks[blk, line] = mk
     return masks
+
+
+@nb.njit(parallel=True, cache=True)
+def volume_at(points, origin, voxel, a_directory, a_keys, a_blocks, ha, b_blocks, b_directory, shift, hb, out):
+    """out[p] = trilinear interpolation of v at world position points[p] (finite), as
+    :func:`trilinear` interpolates an array of v on a's blocks: nodes outside a's blocks and
+    points outside the grid read as 0."""
+    fa_h, fb_h = np.float32(ha), np.float32(hb)
+    d0, d1, d2 = a_directory.shape
+    for p in nb.prange(points.shape[0]):
+        x = (points[p, 0] - origin[0]) / voxel
+        y = (points[p, 1] - origin[1]) / voxel
+        z = (points[p, 2] - origin[2]) / voxel
+        ix, iy, iz = int(math.floor(x)), int(math.floor(y)), int(math.floor(z))
+        fx, fy, fz = x - ix, y - iy, z - iz
+        acc = 0.0
+        if ix >= 0 and iy >= 0 and iz >= 0 and (ix & 7) < 7 and (iy & 7) < 7 and (iz & 7) < 7 and \
+                ix < d0 * B and iy < d1 * B and iz < d2 * B:
+            # the cell lies in one block: one lookup in each field, the same sum as below
+            blk = a_directory[ix >> 3, iy >> 3, iz >> 3]
+            if blk >= 0:
+                j = _partner(a_keys, blk, b_directory, shift)
+                n = (ix & 7) * B2 + (iy & 7) * B + (iz & 7)
+                for a in range(2):
+                    wx = fx if a else 1.0 - fx
+                    for b in range(2):
+                        wy = fy if b else 1.0 - fy
+                        for c in range(2):
+                            wz = fz if c else 1.0 - fz
+                            acc += wx * wy * wz * _volume_value(a_blocks, fa_h, b_blocks, j, fb_h, blk,
+                                                                n + a * B2 + b * B + c)
+            out[p] = acc
+            continue
+        for a in range(2):
+            nx = ix + a
+            if nx < 0 or nx >= d0 * B:
+                continue
+            wx = fx if a else 1.0 - fx
+            for b in range(2):
+                ny = iy + b
+                if ny < 0 or ny >= d1 * B:
+                    continue
+                wy = fy if b else 1.0 - fy
+                for c in range(2):
+                    nz = iz + c
+                    if nz < 0 or nz >= d2 * B:
+                        continue
+                    blk = a_directory[nx >> 3, ny >> 3, nz >> 3]
+                    if blk < 0:
+                        continue
+                    wz = fz if c else 1.0 - fz
+                    v = _volume_value(a_blocks, fa_h, b_blocks, _partner(a_keys, blk, b_directory, shift), fb_h,
+                                      blk, (nx & 7) * B2 + (ny & 7) * B + (nz & 7))
+                    acc += wx * wy * wz * v
+        out[p] = acc
 
 
 @nb.njit(cache=True, inline="always")
@@ -500,8 +589,8 @@ def _union(parent, a, b):
 
 
 @nb.njit(cache=True, nogil=True)
-def label_nodes(values, directory, keys):
-    """6-connected components of the nodes where ``values`` (m, 512) is negative.
+def label_nodes(masks, directory, keys):
+    """6-connected components of the nodes set in ``masks`` ((m, 64) uint8, :func:`volume_masks`).
 
     Union-find runs over runs, not nodes: the negative nodes of a line of 8 along z split into
     runs of consecutive nodes (3–4 nodes each on change volumes of Kinect pairs); a run joins the
@@ -512,8 +601,7 @@ def label_nodes(values, directory, keys):
     node); ``labels`` (rows, 512) int32, the component of each negative node of those blocks (-1
     elsewhere); and the number of nodes of each component.
     """
-    m = values.shape[0]
-    masks = _line_masks(values)
+    m = masks.shape[0]
     slot = np.full(m, -1, np.int64)
     n_active = 0
     for blk in range(m):
@@ -580,12 +668,13 @@ def label_nodes(values, directory, keys):
 
 
 @nb.njit(parallel=True, cache=True)
-def corner_labels(u, directory, slot, labels, values):
-    """For each point, the label of the cell corner with the lowest value among labelled corners.
+def corner_labels(u, directory, slot, labels, a_keys, a_blocks, ha, b_blocks, b_directory, shift, hb):
+    """For each point, the label of the cell corner with the lowest v among labelled corners.
 
     ``slot`` and ``labels`` as returned by :func:`label_nodes`; -1 where no corner of the
     point's cell carries a label.
     """
+    fa_h, fb_h = np.float32(ha), np.float32(hb)
     d0, d1, d2 = directory.shape
     out = np.full(u.shape[0], -1, np.int64)
     for p in nb.prange(u.shape[0]):
@@ -603,8 +692,12 @@ def corner_labels(u, directory, slot, labels, values):
                     if blk < 0 or slot[blk] < 0:
                         continue
                     i = (nx & 7) * B2 + (ny & 7) * B + (nz & 7)
-                    if labels[slot[blk], i] >= 0 and values[blk, i] < best:
-                        best = values[blk, i]
+                    if labels[slot[blk], i] < 0:
+                        continue
+                    v = _volume_value(a_blocks, fa_h, b_blocks, _partner(a_keys, blk, b_directory, shift), fb_h,
+                                      blk, i)
+                    if v < best:
+                        best = v
                         out[p] = labels[slot[blk], i]
     return out
 

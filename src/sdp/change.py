@@ -19,11 +19,10 @@ import numpy.typing as npt
 
 from ._kernels import map_concurrently
 from ._points import Points, as_points
-from .boolean import difference_on_own_blocks
 from .field import DensityField
 from .grid import voxel_size_for_grid_size
 from .params import auto_voxel_size_of
-from .regions import Region, describe_regions, label_points
+from .regions import Region, Volume, describe_regions, label_volume
 from .visibility import as_sensor_origins, explained_by_visibility
 
 __all__ = ["ChangeResult", "detect_changes"]
@@ -205,12 +204,12 @@ def detect_changes(reference, current, *, grid_size: int | None = None, voxel_si
 
 def _inside_difference(fld: DensityField, other: DensityField, pts: np.ndarray):
     """Mask of ``pts`` (the finite points ``fld`` was built from) inside fld − other, and the
-    difference D = max(F_fld, −F_other) on ``fld``'s blocks (interpolated at the points)."""
-    d = difference_on_own_blocks(fld, other)
-    return fld.interpolate(d, pts) < 0, d
+    difference volume D = max(F_fld, −F_other) < 0 on ``fld``'s blocks (D interpolated at the points)."""
+    d = Volume.difference(fld, other)
+    return d.at(fld, pts) < 0, d
 
 
-def _regions(fld: DensityField, d: np.ndarray, pts: np.ndarray, mask: np.ndarray, *, regions: bool,
+def _regions(fld: DensityField, d: Volume, pts: np.ndarray, mask: np.ndarray, *, regions: bool,
              decision: str, min_region_points: int, cluster_fraction: float):
     """(mask, regions, region label per point) after the region-level rules of :func:`detect_changes`."""
     if not (regions or decision == "cluster"):
@@ -219,7 +218,7 @@ def _regions(fld: DensityField, d: np.ndarray, pts: np.ndarray, mask: np.ndarray
     # promoted cluster's label): label those alone, each point's label depends on it only
     changed = np.flatnonzero(mask)
     labels = np.full(len(pts), -1, np.int64)
-    labels[changed], counts = label_points(fld, d, pts[changed])
+    labels[changed], counts = label_volume(fld, d, pts[changed])
     if min_region_points > 1 and len(counts):
         big = np.bincount(labels[mask], minlength=len(counts)) >= min_region_points
         mask = mask & big[np.maximum(labels, 0)]
@@ -233,7 +232,7 @@ def _cluster_decision(fld: DensityField, pts: np.ndarray, changed: np.ndarray, l
                       counts: np.ndarray, fraction: float):
     """Promote whole clusters (components of the cloud's own F < 0) in which more than
     ``fraction`` of the points changed; they become regions of their own."""
-    clusters, cluster_nodes = label_points(fld, fld.h - fld._blocks, pts)
+    clusters, cluster_nodes = label_volume(fld, Volume.inside(fld), pts)
     inside = clusters >= 0
     n = np.bincount(clusters[inside], minlength=len(cluster_nodes))
     c = np.bincount(clusters[inside], weights=changed[inside], minlength=len(cluster_nodes))

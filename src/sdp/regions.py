@@ -9,11 +9,14 @@ interpolated value is negative) has at least one negative corner and gets a regi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from . import _kernels as K
+from .boolean import check_compatible
 from .field import DensityField
+from .grid import BLOCK
 
 __all__ = ["Region", "label_points", "describe_regions"]
 
@@ -73,8 +76,65 @@ def label_points(field: DensityField, values: np.ndarray, points: np.ndarray) ->
     node_counts : ndarray of int64 (n_components,)
         Number of negative nodes of each component.
     """
-    slot, labels, node_counts = K.label_nodes(values, field._directory, field._keys)
-    point_labels = K.corner_labels(field.grid.to_grid_units(points), field._directory, slot, labels, values)
+    return label_volume(field, Volume.of_values(values), points)
+
+
+class Volume(NamedTuple):
+    """The nodes of a field's blocks where v = max(h_a − A, B − h_b) < 0, never stored whole.
+
+    ``A`` is float32 per node of the field's blocks; ``B`` the blocks of another field on the
+    same lattice (found through ``b_directory`` at the field's block keys + ``shift``; 0 where
+    it holds none); with no ``B`` (``hb`` = inf), v = h_a − A. The kernels of ``sdp._kernels``
+    compute v node by node where they need it: change detection labels and interpolates the
+    difference max(F_a, −F_b) without writing it out (a field's worth of fresh memory per
+    direction).
+    """
+
+    a_blocks: np.ndarray
+    ha: float
+    b_blocks: np.ndarray
+    b_directory: np.ndarray
+    shift: np.ndarray
+    hb: float
+
+    @classmethod
+    def difference(cls, a: DensityField, b: DensityField) -> "Volume":
+        """max(F_a, −F_b) on a's blocks: a's points there are inside a and outside b."""
+        check_compatible(a, b)
+        return cls(a._blocks, a.h, b._blocks, b._directory, a.grid.block_origin - b.grid.block_origin, b.h)
+
+    @classmethod
+    def inside(cls, a: DensityField) -> "Volume":
+        """F_a = h − G_a on a's blocks: the cluster volume."""
+        return cls(a._blocks, a.h, _NO_BLOCKS, _NO_DIRECTORY, np.zeros(3, np.int64), np.inf)
+
+    @classmethod
+    def of_values(cls, values: np.ndarray) -> "Volume":
+        """Given node values (v = 0 − (−values), exactly)."""
+        return cls(np.negative(values, dtype=np.float32), 0.0, _NO_BLOCKS, _NO_DIRECTORY, np.zeros(3, np.int64),
+                   np.inf)
+
+    def at(self, field: DensityField, points: np.ndarray) -> np.ndarray:
+        """v interpolated at finite world ``points``, as :meth:`DensityField.interpolate` would
+        interpolate v stored on ``field``'s blocks."""
+        out = np.empty(len(points))
+        K.volume_at(points, field.grid.origin, field.voxel_size, field._directory, *self.kernel_args(field), out)
+        return out
+
+    def kernel_args(self, field: DensityField) -> tuple:
+        """The arguments of the volume kernels of ``sdp._kernels``, on ``field``'s blocks."""
+        return field._keys, self.a_blocks, self.ha, self.b_blocks, self.b_directory, self.shift, self.hb
+
+
+_NO_BLOCKS = np.zeros((0, BLOCK**3), np.float32)
+_NO_DIRECTORY = np.full((1, 1, 1), -1, np.int32)
+
+
+def label_volume(field: DensityField, volume: Volume, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`label_points` of a :class:`Volume` on ``field``'s blocks."""
+    args = volume.kernel_args(field)
+    slot, labels, node_counts = K.label_nodes(K.volume_masks(*args), field._directory, field._keys)
+    point_labels = K.corner_labels(field.grid.to_grid_units(points), field._directory, slot, labels, *args)
     return point_labels, node_counts
 
 
