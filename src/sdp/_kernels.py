@@ -92,7 +92,7 @@ def finite_bounds(points):
 @nb.njit(cache=True, nogil=True)
 def mark_blocks(points, origin, voxel, lo_off, hi_off, shape_blocks):
     """Occupancy (uint8, directory-shaped) of blocks holding nodes floor(u)-lo_off … floor(u)+hi_off,
-    u = (points - origin) / voxel the points' grid units (computed on the fly, as every kernel here).
+    u = (points - origin) / voxel the points' grid units (computed on the fly, not stored).
 
     Along one axis the blocks reached from a node depend only on its block and its position
     in the block, and take one of at most four ranges (the lowest block reached is one of two,
@@ -224,6 +224,16 @@ def nonzero_blocks(blocks):
     return out
 
 
+@nb.njit(cache=True, inline="always")
+def _along(directory, axis, k, i1, i2):
+    """The directory entry at position k along ``axis`` of the line (i1, i2) of the other two axes."""
+    if axis == 0:
+        return directory[k, i1, i2]
+    if axis == 1:
+        return directory[i1, k, i2]
+    return directory[i1, i2, k]
+
+
 @nb.njit(parallel=True, cache=True)
 def blur_pass(blocks, nonzero, directory, axis, taps):
     """One separable pass, in place: ``taps`` (odd length) along ``axis``, rotating the block layout.
@@ -251,15 +261,10 @@ def blur_pass(blocks, nonzero, directory, axis, taps):
         i1, i2 = line // n2, line % n2
         ring = np.empty((ring_len, B3), np.float32)  # originals of the blocks k - nbr … k
         ring_ok = np.zeros(ring_len, np.bool_)
-        neigh = np.empty(2 * nbr + 1, np.int64)  # per offset: -1 none, 0 ring, 1 in place
+        neigh = np.empty(2 * nbr + 1, np.int64)  # per offset j: -1 no source; j <= 0 in the ring; j > 0 its row
         acc = np.empty(B3, np.float32)
         for k in range(dlen):
-            if axis == 0:
-                blk = directory[k, i1, i2]
-            elif axis == 1:
-                blk = directory[i1, k, i2]
-            else:
-                blk = directory[i1, i2, k]
+            blk = _along(directory, axis, k, i1, i2)
             slot = k % ring_len
             ring_ok[slot] = blk >= 0 and nonzero[blk]
             if ring_ok[slot]:
@@ -273,14 +278,7 @@ def blur_pass(blocks, nonzero, directory, axis, taps):
                     ok = kk >= 0 and ring_ok[kk % ring_len]
                     neigh[j + nbr] = 0 if ok else -1
                 else:
-                    nb_blk = -1
-                    if kk < dlen:
-                        if axis == 0:
-                            nb_blk = directory[kk, i1, i2]
-                        elif axis == 1:
-                            nb_blk = directory[i1, kk, i2]
-                        else:
-                            nb_blk = directory[i1, i2, kk]
+                    nb_blk = _along(directory, axis, kk, i1, i2) if kk < dlen else -1
                     ok = nb_blk >= 0 and nonzero[nb_blk]
                     neigh[j + nbr] = nb_blk if ok else -1
                 any_src = any_src or ok
