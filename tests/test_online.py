@@ -82,18 +82,55 @@ def test_window_forgets_what_left(rng):
     assert forgot[3].n_appeared > 0.5 * len(box)  # left the 2-frame window: new again
 
 
-def test_sdp_watch_folder(tmp_path, rng):
+@pytest.mark.parametrize("align", [None, "gicp"])
+def test_sdp_watch_folder(tmp_path, rng, align):
     import subprocess
     import sys
 
     frames, box = stream(rng)
+    if align:  # a camera that moves 1.5° and 4 cm per frame
+        frames = [moved(f, 1.5 * (i + 1), np.array([0.03, -0.02, 0.01]) * (i + 1)) for i, f in enumerate(frames)]
     sdp.write_points(tmp_path / "ref.ply", room_scene(rng))
     (tmp_path / "frames").mkdir()
     for i, f in enumerate(frames):
         sdp.write_points(tmp_path / "frames" / f"frame{i + 8}.npz", f)  # natural order: 8, 9, 10, ...
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "watch", str(tmp_path / "ref.ply"), str(tmp_path / "frames"),
-                        "--voxel-size", "0.03", "--json"], capture_output=True, text=True)
+                        "--voxel-size", "0.03", "--json"] + (["--align", align] if align else []),
+                       capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     assert [r["name"] for r in out] == [f"frame{i + 8}.npz" for i in range(6)]
     assert [r["appeared"] > 0 for r in out] == [False, False, False, True, False, False]
+    assert all((r["transform"] is None) == (align is None) for r in out)
+
+
+def moved(points, degrees, shift, centre=(2.0, 2.0, 1.0)):
+    """``points`` turned about a vertical axis through ``centre`` and shifted: a camera that moved."""
+    a = np.radians(degrees)
+    r = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    return (points - centre) @ r.T + centre + shift
+
+
+@pytest.mark.parametrize("align", ["gicp", "density"])
+def test_watch_registers_the_frames_of_a_moving_camera(rng, align):
+    frames, box = stream(rng)
+    poses = [(1.5 * (i + 1), np.array([0.03, -0.02, 0.01]) * (i + 1)) for i in range(len(frames))]
+    seen = [moved(f, deg, shift) for f, (deg, shift) in zip(frames, poses, strict=True)]  # 1.5° and 4 cm more per frame
+    still = list(watch(room_scene(rng), seen, voxel_size=0.03, update="window", window=3, min_region_points=50))
+    assert all(r.n_appeared > 0 for r in still[:3])  # not registered: walls look new
+    reports = list(watch(room_scene(rng), seen, voxel_size=0.03, update="window", window=3, min_region_points=50,
+                         align=align))
+    assert all(r.n_appeared == 0 for r in reports[:3])  # registered: the static room again
+    assert reports[3].n_appeared > 0.5 * len(box)
+    assert np.allclose(reports[3].regions[0].centroid, [2.2, 1.4, 0.95], atol=0.1)  # in the reference's frame
+    for r, f, g in zip(reports, frames, seen, strict=True):  # the transform undoes the camera's motion
+        assert np.sqrt(np.mean(np.sum((sdp.transform_points(r.transform, g) - f) ** 2, axis=1))) < 0.003
+        assert "align" in r.timings and r.summary()["transform"] == r.transform.tolist()
+
+
+def test_watch_align_needs_what_it_registers_onto(rng):
+    field = sdp.DensityField.from_points(room_scene(rng, n=5000), voxel_size=0.05)
+    with pytest.raises(ValueError, match="needs the reference points"):
+        next(watch(field, [room_scene(rng, n=5000)], align="gicp"))
+    with pytest.raises(ValueError, match="align must be"):
+        next(watch(field, [room_scene(rng, n=5000)], align="icp"))

@@ -357,14 +357,41 @@ def _align_density(ref_field: DensityField, ref_xyz, points: np.ndarray, t0: np.
 
 
 def _align_gicp(ref: np.ndarray, cur: np.ndarray, t0: np.ndarray, voxel: float, sigma: float) -> np.ndarray:
-    try:
-        import small_gicp
-    except ImportError:
-        raise MissingDependencyError('method="gicp" needs small_gicp: pip install "sdp[align]"') from None
-    o = ref.mean(axis=0)  # local frame: small_gicp's voxel keys hold 21 bits per axis
-    shift, unshift = np.eye(4), np.eye(4)
-    shift[:3, 3], unshift[:3, 3] = -o, o
-    result = small_gicp.align(ref - o, cur - o, shift @ t0 @ unshift, registration_type="GICP",
-                              downsampling_resolution=voxel, max_correspondence_distance=4 * sigma,
-                              num_threads=2, max_iterations=100)
-    return unshift @ result.T_target_source @ shift
+    return _GicpTarget(ref, resolution=voxel, max_distance=4 * sigma).register(cur, t0)
+
+
+class _GicpTarget:
+    """A reference prepared once for small_gicp's GICP, to register many scans onto it.
+
+    The reference is downsampled on a voxel grid of side ``resolution`` and given per-point
+    covariances and a k-d tree [1, 2]; :meth:`register` prepares each scan the same way and
+    returns the 4×4 transform that maps it onto the reference. Used by :func:`sdp.watch`
+    (``align="gicp"``), where the reference is prepared once for the whole stream.
+
+    Raises
+    ------
+    MissingDependencyError
+        small_gicp is not installed (``pip install "sdp[align]"``).
+    """
+
+    def __init__(self, reference: np.ndarray, *, resolution: float, max_distance: float):
+        try:
+            import small_gicp
+        except ImportError:
+            raise MissingDependencyError('GICP needs small_gicp: pip install "sdp[align]"') from None
+        self._gicp, self.resolution, self.max_distance = small_gicp, float(resolution), float(max_distance)
+        self._o = reference.mean(axis=0)  # local frame: small_gicp's voxel keys hold 21 bits per axis
+        self._target, self._tree = self._prepare(reference)
+
+    def _prepare(self, points: np.ndarray):
+        return self._gicp.preprocess_points(points - self._o, downsampling_resolution=self.resolution, num_threads=2)
+
+    def register(self, current: np.ndarray, init: np.ndarray | None = None) -> np.ndarray:
+        """4×4 transform mapping ``current`` (finite rows) onto the reference, starting from ``init``."""
+        shift, unshift = np.eye(4), np.eye(4)
+        shift[:3, 3], unshift[:3, 3] = -self._o, self._o
+        t0 = np.eye(4) if init is None else np.asarray(init, np.float64)
+        source, _ = self._prepare(current)
+        result = self._gicp.align(self._target, source, self._tree, shift @ t0 @ unshift, registration_type="GICP",
+                                  max_correspondence_distance=self.max_distance, num_threads=2, max_iterations=100)
+        return unshift @ result.T_target_source @ shift

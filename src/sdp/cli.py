@@ -34,6 +34,7 @@ EXAMPLES_ALIGN = """  sdp align rescan.pcd reference.pcd -o T.txt               
   sdp change reference.pcd rescan.pcd -o out.ply --align density   align, then compare
 """
 EXAMPLES_WATCH = """  sdp watch empty_room.pcd frames/                         each frame against a sliding window
+  sdp watch first.pcd frames/ --align gicp                  a hand-held camera: register each frame first
   sdp watch map.sdpf frames/ --update none --json           against a fixed reference field
 """
 EXAMPLES_ACTION = """  sdp action eval ../shared/data/msr_action3d --json          the cross-subject protocol
@@ -405,7 +406,7 @@ def cmd_watch(a):
     frames = ((p.name, read_points(p, format=a.format).xyz) for p in paths)
     reports = []
     for r in watch(ref, frames, voxel_size=_voxel(a), update=a.update,
-                   window=a.window, decay=a.decay, min_region_points=a.min_region_points):
+                   window=a.window, decay=a.decay, min_region_points=a.min_region_points, align=a.align):
         s = r.summary()
         reports.append(s)
         if not a.json:
@@ -692,6 +693,9 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--decay", type=float, default=0.8, help="per-frame forgetting factor for --update decay")
     w.add_argument("--min-region-points", type=int, default=50, help="drop appeared regions with fewer points")
     w.add_argument("--voxel-size", default="auto", help="voxel of a reference cloud, or 'auto'")
+    w.add_argument("--align", choices=("gicp", "density"),
+                   help="register each frame onto the reference first (a moving camera): gicp (small_gicp, "
+                        "needs a reference cloud) or density")
     w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
 
     act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)",

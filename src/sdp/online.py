@@ -14,6 +14,17 @@ whatever the history:
 
 Each update costs the frame's own field (built once, used for detection too) plus a pass over
 its blocks: time proportional to the frame, not to the history.
+
+A camera that moves (a hand-held sensor, a robot without a pose estimate) sees a static scene
+from a new pose at every frame, and every surface then looks changed. ``align=`` registers each
+frame onto the reference before it is compared and merged, starting from the previous frame's
+transform: GICP against the reference points (small_gicp [1], prepared once for the stream) or
+the density method of :func:`sdp.align` against the reference field.
+
+References
+----------
+.. [1] K. Koide, "small_gicp: Efficient and parallel algorithms for point cloud registration",
+   Journal of Open Source Software 9(100), 2024.
 """
 
 from __future__ import annotations
@@ -27,6 +38,8 @@ from dataclasses import field as dc_field
 import numpy as np
 
 from ._points import as_points
+from .align import _GicpTarget, transform_points
+from .align import align as align_density
 from .change import _inside_difference, _regions, _to_rows
 from .field import DensityField
 from .params import auto_voxel_size
@@ -52,7 +65,11 @@ class FrameChange:
     latency : float
         Seconds from receiving the frame to the answer, model update included.
     timings : dict of str to float
-        Seconds per step: ``build``, ``detect``, ``regions``, ``update``.
+        Seconds per step: ``build``, ``detect``, ``regions``, ``update`` (and ``align`` with
+        ``align=``).
+    transform : ndarray (4, 4) or None
+        With ``align=``: the rigid transform that mapped the frame onto the reference (its
+        points were compared and merged after it); None otherwise.
     """
 
     index: int
@@ -61,6 +78,7 @@ class FrameChange:
     regions: list[Region]
     latency: float
     timings: dict[str, float] = dc_field(default_factory=dict)
+    transform: np.ndarray | None = None
 
     @property
     def n_appeared(self) -> int:
@@ -69,13 +87,14 @@ class FrameChange:
     def summary(self) -> dict:
         return {"index": self.index, "name": self.name, "points": int(self.appeared.size),
                 "appeared": self.n_appeared, "latency": self.latency, "timings": dict(self.timings),
+                "transform": None if self.transform is None else self.transform.tolist(),
                 "regions": [{"n_points": r.n_points, "centroid": r.centroid.tolist(), "size": r.size.tolist()}
                             for r in self.regions]}
 
 
 def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigma_voxels: float = 2.0,
           k: float = 3, update: str = "none", window: int = 10, decay: float = 0.8, min_region_points: int = 1,
-          regions: bool = True) -> Iterator[FrameChange]:
+          regions: bool = True, align: str | None = None) -> Iterator[FrameChange]:
     """Compare each frame of a stream with a model of the scene, in order; yield as they come.
 
     Parameters
@@ -98,6 +117,12 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
         Appeared regions with fewer points are dropped (noise).
     regions : bool
         Group appeared points into regions (skip for the lowest latency).
+    align : {None, "gicp", "density"}
+        Register each frame onto the reference first (see the module docstring), starting
+        from the previous frame's transform: ``"gicp"`` needs reference points (not a field)
+        and the ``align`` extra, downsamples both at σ and pairs points up to 4σ apart;
+        ``"density"`` is :func:`sdp.align` on the reference field. None: the frames are
+        already in the reference's frame (a fixed camera, or poses applied by the caller).
 
     Yields
     ------
@@ -109,6 +134,10 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
         raise ValueError("window must be at least 1 frame")
     if update == "decay" and not 0 < decay < 1:
         raise ValueError("decay must be in (0, 1)")
+    if align not in (None, "gicp", "density"):
+        raise ValueError(f"align must be None, 'gicp' or 'density', got {align!r}")
+    if align == "gicp" and isinstance(reference, DensityField):
+        raise ValueError("align='gicp' needs the reference points, not a field: give the points, or align='density'")
     if isinstance(reference, DensityField):
         base = reference
     else:
@@ -119,10 +148,20 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
                            truncate=base.truncate, h=base.h)
     model = base if update == "none" else base.copy()
     weight, history = 1.0, deque([base])
+    target = None if align != "gicp" else _GicpTarget(ref, resolution=base.sigma, max_distance=4 * base.sigma)
+    matrix = None if align is None else np.eye(4)
     for index, item in enumerate(frames):
         name, pts = item if isinstance(item, tuple) else (str(index), item)
         t0 = time.perf_counter()
+        timings = {}
         cur = as_points(pts, name=f"frame {name}")
+        if align is not None:  # from the previous frame's pose: the sensor moved little since
+            t = time.perf_counter()
+            matrix = (target.register(cur.xyz, matrix) if target is not None else
+                      align_density(base, cur.xyz, init=matrix).matrix)
+            moved = transform_points(matrix, cur.xyz)
+            cur = cur._replace(xyz=moved, lo=moved.min(axis=0), hi=moved.max(axis=0))
+            timings["align"] = time.perf_counter() - t
         frame = DensityField.from_points(cur, **opts)
         t1 = time.perf_counter()
         mask, d = _inside_difference(frame, model.with_threshold(h=h * weight), cur.xyz)
@@ -145,6 +184,6 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
                 model.accumulate(history.popleft(), weight=-1)
             weight = float(len(history))
         t4 = time.perf_counter()
+        timings.update(build=t1 - t0 - timings.get("align", 0.0), detect=t2 - t1, regions=t3 - t2, update=t4 - t3)
         yield FrameChange(index=index, name=name, appeared=_to_rows(mask, cur, False), regions=regs,
-                          latency=t4 - t0, timings={"build": t1 - t0, "detect": t2 - t1, "regions": t3 - t2,
-                                                    "update": t4 - t3})
+                          latency=t4 - t0, timings=timings, transform=matrix)
