@@ -343,28 +343,32 @@ def online_table(repeats=3):
     lines = ["# Online: per-frame latency of sdp.watch (update + detection)\n",
              f"Medians over {repeats} runs of each stream; steps: the frame's field, detection against the model, "
              "change regions, model update.\n",
-             "| stream | update | regions | align | frames | points/frame | appeared per frame | median latency (ms) "
+             "| stream | update | regions | align | sensor origin | frames | points/frame | appeared per frame | median latency (ms) "
              "| max (ms) | "
              + " / ".join(steps) + " (ms) |",
-             "|---|---|---|---|---:|---:|---|---:|---:|---|"]
-    grab = [read_points(p).xyz for p in sorted(glob.glob(str(DATA / "pcl_kinect/grabber_sequence/*.pcd")))]
-    mosd = [read_points(DATA / f"mosd/learn/learn{i}.pcd").xyz for i in (6, 7, 8, 9, 10, 11)]
+             "|---|---|---|---|---|---:|---:|---|---:|---:|---|"]
+    grab = [read_points(p) for p in sorted(glob.glob(str(DATA / "pcl_kinect/grabber_sequence/*.pcd")))]
+    mosd = [read_points(DATA / f"mosd/learn/learn{i}.pcd") for i in (6, 7, 8, 9, 10, 11)]
     load = os.getloadavg()[0]
-    streams = {"static grabber sequence (x4)": (grab[0], grab[1:] + grab * 3),
-               "mOSD learn6 → 7 … 11": (mosd[0], mosd[1:])}
+    streams = {"static grabber sequence (x4)": (grab[0], [c.xyz for c in grab[1:] + grab * 3]),
+               "mOSD learn6 → 7 … 11": (mosd[0], [c.xyz for c in mosd[1:]])}
     for name, (ref, frames) in streams.items():
-        # the grabber's camera moved between frames (0.8-1.2°, 1-2 cm): also registered frame by frame
-        aligned = [("window", True, "gicp")] if name.startswith("static") else []
-        for update, regions, align in [(u, r, None) for u in ("window", "decay") for r in (True, False)] + aligned:
-            list(sdp.watch(ref, frames[:2], update=update, regions=regions, align=align))  # warm the kernels
-            runs = [list(sdp.watch(ref, frames, update=update, regions=regions, align=align,
-                                   min_region_points=50 if regions else 1)) for _ in range(repeats)]
+        configs = [(u, r, None, None) for u in ("window", "decay") for r in (True, False)]
+        configs.append(("window", True, None, ref.sensor_origin))  # the visibility test (PCD VIEWPOINT)
+        if name.startswith("static"):  # its camera moved between frames (0.8-1.2°, 1-2 cm): registered
+            configs += [("window", True, "gicp", None), ("window", True, "gicp", ref.sensor_origin)]
+        for update, regions, align, origin in configs:
+            kw = dict(update=update, regions=regions, align=align, sensor_origin=origin)
+            list(sdp.watch(ref.xyz, frames[:2], **kw))  # warm the compiled kernels
+            runs = [list(sdp.watch(ref.xyz, frames, min_region_points=50 if regions else 1, **kw))
+                    for _ in range(repeats)]
             reps = runs[0]
             lat = np.array([r.latency for run in runs for r in run]) * 1e3
             step = " / ".join(f"{1e3 * np.median([r.timings.get(k, 0.0) for run in runs for r in run]):.1f}"
                               for k in steps)
             app = ", ".join(f"{r.n_appeared / r.appeared.size:.2%}" for r in reps)
-            lines.append(f"| {name} | {update} | {'yes' if regions else 'no'} | {align or 'no'} | {len(reps)} | "
+            lines.append(f"| {name} | {update} | {'yes' if regions else 'no'} | {align or 'no'} | "
+                         f"{'no' if origin is None else 'viewpoint'} | {len(reps)} | "
                          f"{np.mean([r.appeared.size for r in reps]):,.0f} | {app} | {np.median(lat):.1f} | "
                          f"{lat.max():.1f} | {step} |")
             print(lines[-1])

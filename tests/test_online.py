@@ -130,7 +130,43 @@ def test_watch_registers_the_frames_of_a_moving_camera(rng, align):
 
 def test_watch_align_needs_what_it_registers_onto(rng):
     field = sdp.DensityField.from_points(room_scene(rng, n=5000), voxel_size=0.05)
-    with pytest.raises(ValueError, match="needs the reference points"):
+    with pytest.raises(ValueError, match="need the reference points"):
         next(watch(field, [room_scene(rng, n=5000)], align="gicp"))
+    with pytest.raises(ValueError, match="need the reference points"):
+        next(watch(field, [room_scene(rng, n=5000)], sensor_origin=[0, 0, 1]))
     with pytest.raises(ValueError, match="align must be"):
         next(watch(field, [room_scene(rng, n=5000)], align="icp"))
+
+
+def test_watch_sensor_origin_applies_the_visibility_test_of_detect_changes(shared_data):
+    ref, cur = (sdp.read_points(shared_data / f"mosd/learn/learn{i}.pcd") for i in (6, 7))  # an object added
+    voxel = sdp.auto_voxel_size(ref.xyz)
+    plain = next(watch(ref.xyz, [cur.xyz], voxel_size=voxel, update="none", min_region_points=50))
+    seen = next(watch(ref.xyz, [cur.xyz], voxel_size=voxel, update="none", min_region_points=50,
+                      sensor_origin=ref.sensor_origin))
+    pair = sdp.detect_changes(ref.xyz, cur.xyz, voxel_size=voxel, min_region_points=50,
+                              sensor_origin=np.stack([ref.sensor_origin, cur.sensor_origin]))
+    np.testing.assert_array_equal(seen.appeared, pair.appeared)
+    obj = cur.fields["label"] // 10
+    new, old = obj == 3, obj == 2  # learn7 adds object 3 beside object 2
+    assert seen.appeared[new].mean() > 0.9 and plain.appeared[new].mean() > 0.9
+    assert seen.appeared[old].mean() < 0.5 * plain.appeared[old].mean()  # its edges: seen by the reference
+
+
+def test_sdp_watch_sensor_origin_viewpoint(tmp_path, shared_data):
+    import subprocess
+    import sys
+
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "frames" / "learn7.pcd").symlink_to(shared_data / "mosd/learn/learn7.pcd")
+    runs = [subprocess.run([sys.executable, "-m", "sdp.cli", "watch", str(shared_data / "mosd/learn/learn6.pcd"),
+                            str(tmp_path / "frames"), "--json"] + extra, capture_output=True, text=True)
+            for extra in ([], ["--sensor-origin", "viewpoint"])]
+    assert all(p.returncode == 0 for p in runs), runs[1].stderr
+    plain, seen = (json.loads(p.stdout)[0]["appeared"] for p in runs)
+    assert 0 < seen < plain
+    field = tmp_path / "ref.sdpf"
+    sdp.DensityField.from_points(sdp.read_points(shared_data / "mosd/learn/learn6.pcd").xyz, voxel_size=0.01).save(field)
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "watch", str(field), str(tmp_path / "frames"),
+                        "--sensor-origin", "viewpoint"], capture_output=True, text=True)
+    assert p.returncode != 0 and "not a field" in p.stderr

@@ -35,6 +35,7 @@ EXAMPLES_ALIGN = """  sdp align rescan.pcd reference.pcd -o T.txt               
 """
 EXAMPLES_WATCH = """  sdp watch empty_room.pcd frames/                         each frame against a sliding window
   sdp watch first.pcd frames/ --align gicp                  a hand-held camera: register each frame first
+  sdp watch first.pcd frames/ --sensor-origin viewpoint     edges and uncovered surfaces are not changes
   sdp watch map.sdpf frames/ --update none --json           against a fixed reference field
 """
 EXAMPLES_ACTION = """  sdp action eval ../shared/data/msr_action3d --json          the cross-subject protocol
@@ -121,7 +122,7 @@ def cmd_change(a):
     if a.align:
         alignment = _align(a, ref, cur, method=a.align)
         cur_xyz = alignment.apply(cur.xyz)
-    origins = _sensor_origins(a, ref, cur)
+    origins = _sensor_origins(a, (a.reference, ref), (a.current, cur))
     if origins is not None and alignment is not None:
         origins[1] = alignment.apply(origins[1:])[0]  # the current scan's sensor moves with it
     r = detect_changes(ref.xyz, cur_xyz, decision=a.decision, min_region_points=a.min_region_points,
@@ -149,22 +150,22 @@ def cmd_change(a):
     return 0
 
 
-def _sensor_origins(a, ref, cur) -> np.ndarray | None:
-    """(2, 3) sensor positions of the reference and current scans from ``--sensor-origin``, or None."""
+def _sensor_origins(a, *scans) -> np.ndarray | None:
+    """Sensor position of each (file name, Cloud) from ``--sensor-origin`` (one row per scan), or None."""
     if a.sensor_origin is None:
         return None
     if a.sensor_origin == "viewpoint":
-        for name, c in ((a.reference, ref), (a.current, cur)):
+        for name, c in scans:
             if c.sensor_origin is None:
                 raise SDPError(f"{name}: no VIEWPOINT header (PCD files have one); give --sensor-origin X,Y,Z")
-        return np.array([ref.sensor_origin, cur.sensor_origin], dtype=np.float64)
+        return np.array([c.sensor_origin for _, c in scans], dtype=np.float64)
     try:
         xyz = [float(v) for v in a.sensor_origin.split(",")]
     except ValueError:
         xyz = []
     if len(xyz) != 3:
         raise SDPError(f"--sensor-origin must be 'viewpoint' or X,Y,Z, got {a.sensor_origin!r}")
-    return np.array([xyz, xyz])
+    return np.array([xyz] * len(scans))
 
 
 def _tiled_voxel(a) -> float | None:
@@ -402,11 +403,17 @@ def cmd_watch(a):
                    key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
     if not paths:
         raise SDPError(f"{folder}: no point-cloud files ({', '.join(sorted(FORMATS))})")
-    ref = _field_or_points(a.reference, a)
+    ref, origin = _field_or_points(a.reference, a), None
+    if a.sensor_origin is not None:
+        if _is_field(a.reference):
+            raise SDPError("--sensor-origin follows the reference's rays: give the reference cloud, not a field")
+        cloud = read_points(a.reference, format=a.format)
+        ref, origin = cloud.xyz, _sensor_origins(a, (a.reference, cloud))[0]
     frames = ((p.name, read_points(p, format=a.format).xyz) for p in paths)
     reports = []
-    for r in watch(ref, frames, voxel_size=_voxel(a), update=a.update,
-                   window=a.window, decay=a.decay, min_region_points=a.min_region_points, align=a.align):
+    for r in watch(ref, frames, voxel_size=_voxel(a), update=a.update, window=a.window, decay=a.decay,
+                   min_region_points=a.min_region_points, align=a.align, sensor_origin=origin,
+                   range_noise=a.range_noise):
         s = r.summary()
         reports.append(s)
         if not a.json:
@@ -696,6 +703,11 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--align", choices=("gicp", "density"),
                    help="register each frame onto the reference first (a moving camera): gicp (small_gicp, "
                         "needs a reference cloud) or density")
+    w.add_argument("--sensor-origin", metavar="viewpoint|X,Y,Z",
+                   help="test changes along the reference's rays (sdp.visibility): 'viewpoint' takes the "
+                        "reference PCD's VIEWPOINT header, X,Y,Z its sensor position")
+    w.add_argument("--range-noise", type=float, default=0.015,
+                   help="with --sensor-origin: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
     w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
 
     act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)",

@@ -44,6 +44,7 @@ from .change import _inside_difference, _regions, _to_rows
 from .field import DensityField
 from .params import auto_voxel_size
 from .regions import Region
+from .visibility import RangeImage, as_sensor_origins, explained_by_visibility
 
 __all__ = ["FrameChange", "watch"]
 
@@ -94,7 +95,8 @@ class FrameChange:
 
 def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigma_voxels: float = 2.0,
           k: float = 3, update: str = "none", window: int = 10, decay: float = 0.8, min_region_points: int = 1,
-          regions: bool = True, align: str | None = None) -> Iterator[FrameChange]:
+          regions: bool = True, align: str | None = None, sensor_origin=None,
+          range_noise: float = 0.015) -> Iterator[FrameChange]:
     """Compare each frame of a stream with a model of the scene, in order; yield as they come.
 
     Parameters
@@ -123,6 +125,13 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
         and the ``align`` extra, downsamples both at σ and pairs points up to 4σ apart;
         ``"density"`` is :func:`sdp.align` on the reference field. None: the frames are
         already in the reference's frame (a fixed camera, or poses applied by the caller).
+    sensor_origin : array_like (3,), optional
+        The reference scan's sensor position (reference points only). Adds the visibility
+        test of :func:`sdp.detect_changes` against the reference's rays
+        (:func:`sdp.visibility.explained_by_visibility`): an appeared point the reference
+        could not see, or saw at the same range, is not a change.
+    range_noise : float
+        With ``sensor_origin``: as in :func:`sdp.detect_changes`.
 
     Yields
     ------
@@ -136,8 +145,8 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
         raise ValueError("decay must be in (0, 1)")
     if align not in (None, "gicp", "density"):
         raise ValueError(f"align must be None, 'gicp' or 'density', got {align!r}")
-    if align == "gicp" and isinstance(reference, DensityField):
-        raise ValueError("align='gicp' needs the reference points, not a field: give the points, or align='density'")
+    if isinstance(reference, DensityField) and (align == "gicp" or sensor_origin is not None):
+        raise ValueError("align='gicp' and sensor_origin= need the reference points, not a field")
     if isinstance(reference, DensityField):
         base = reference
     else:
@@ -149,6 +158,7 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
     model = base if update == "none" else base.copy()
     weight, history = 1.0, deque([base])
     target = None if align != "gicp" else _GicpTarget(ref, resolution=base.sigma, max_distance=4 * base.sigma)
+    image = None if sensor_origin is None else RangeImage.from_points(ref, as_sensor_origins(sensor_origin)[0])
     matrix = None if align is None else np.eye(4)
     for index, item in enumerate(frames):
         name, pts = item if isinstance(item, tuple) else (str(index), item)
@@ -165,6 +175,9 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
         frame = DensityField.from_points(cur, **opts)
         t1 = time.perf_counter()
         mask, d = _inside_difference(frame, model.with_threshold(h=h * weight), cur.xyz)
+        if image is not None:  # the reference's rays, imaged once
+            mask &= ~explained_by_visibility(cur.xyz, mask, ref, image.origin, sigma=frame.sigma,
+                                             range_noise=range_noise, image=image)
         t2 = time.perf_counter()
         if regions:  # point-wise decision: only the appeared points need a region
             idx = np.flatnonzero(mask)

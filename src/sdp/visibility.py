@@ -380,7 +380,7 @@ def explained_by_visibility(points: np.ndarray, changed: np.ndarray, other: np.n
                             cell_factor: float = 1.5, reach: int = 1, plane_points: int = 50,
                             plane_stride: int = 8, plane_bin: float = 2.0, plane_distance: float = 2.0,
                             plane_flatness: float = 1.0,
-                            spacing: float | None = None) -> np.ndarray:
+                            spacing: float | None = None, image: RangeImage | None = None) -> np.ndarray:
     """Which changed points the other scan's view explains (not a change).
 
     Parameters
@@ -418,6 +418,9 @@ def explained_by_visibility(points: np.ndarray, changed: np.ndarray, other: np.n
         that plane and the patch is flat: RMS deviation from its plane below ``plane_flatness``·σ.
     spacing : float, optional
         Angular point spacing of ``other`` (radians); measured when None.
+    image : RangeImage, optional
+        ``RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)``
+        built beforehand, for many calls against the same scan (:func:`sdp.watch`).
 
     Returns
     -------
@@ -431,7 +434,8 @@ def explained_by_visibility(points: np.ndarray, changed: np.ndarray, other: np.n
     cand = np.flatnonzero(changed)
     if len(cand) == 0:
         return explained
-    image = RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)
+    if image is None:
+        image = RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)
     cls = image.classify(points[cand], range_noise=range_noise, floor=band_floor * sigma, reach=reach)
     explained[cand[cls == SAME_SURFACE]] = True
     unseen = cand[(cls == HIDDEN) | (cls == UNOBSERVED)]
