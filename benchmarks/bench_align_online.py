@@ -341,10 +341,11 @@ def online_table(repeats=3):
 
     steps = ("align", "build", "detect", "regions", "update")
     lines = ["# Online: per-frame latency of sdp.watch (update + detection)\n",
-             f"Medians over {repeats} runs of each stream; steps: the frame's field, detection against the model, "
-             "change regions, model update.\n",
-             "| stream | update | regions | align | sensor origin | frames | points/frame | appeared per frame | median latency (ms) "
-             "| max (ms) | "
+             f"Medians over {repeats} runs of each stream; steps: registration onto the reference (align=), the "
+             "frame's field, detection against the model (with the visibility test for a sensor origin), change "
+             "regions, model update.\n",
+             "| stream | update | regions | align | sensor origin | frames | points/frame | appeared per frame "
+             "| median latency (ms) | max (ms) | "
              + " / ".join(steps) + " (ms) |",
              "|---|---|---|---|---|---:|---:|---|---:|---:|---|"]
     grab = [read_points(p) for p in sorted(glob.glob(str(DATA / "pcl_kinect/grabber_sequence/*.pcd")))]

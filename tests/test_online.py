@@ -166,7 +166,8 @@ def test_sdp_watch_sensor_origin_viewpoint(tmp_path, shared_data):
     plain, seen = (json.loads(p.stdout)[0]["appeared"] for p in runs)
     assert 0 < seen < plain
     field = tmp_path / "ref.sdpf"
-    sdp.DensityField.from_points(sdp.read_points(shared_data / "mosd/learn/learn6.pcd").xyz, voxel_size=0.01).save(field)
+    ref = sdp.read_points(shared_data / "mosd/learn/learn6.pcd").xyz
+    sdp.DensityField.from_points(ref, voxel_size=0.01).save(field)
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "watch", str(field), str(tmp_path / "frames"),
                         "--sensor-origin", "viewpoint"], capture_output=True, text=True)
     assert p.returncode != 0 and "not a field" in p.stderr
