@@ -19,7 +19,10 @@ A camera that moves (a hand-held sensor, a robot without a pose estimate) sees a
 from a new pose at every frame, and every surface then looks changed. ``align=`` registers each
 frame onto the reference before it is compared and merged, starting from the previous frame's
 transform: GICP against the reference points (small_gicp [1], prepared once for the stream) or
-the density method of :func:`sdp.align` against the reference field.
+the density method of :func:`sdp.align` against the reference field. ``sensor_origin=`` adds
+the visibility test of :func:`sdp.detect_changes` against the reference scan's rays (its range
+image built once for the stream): depth edges and surfaces the reference could not see are not
+changes.
 
 References
 ----------
@@ -36,6 +39,7 @@ from dataclasses import dataclass
 from dataclasses import field as dc_field
 
 import numpy as np
+import numpy.typing as npt
 
 from ._points import as_points
 from .align import _GicpTarget, transform_points
@@ -95,7 +99,7 @@ class FrameChange:
 
 def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigma_voxels: float = 2.0,
           k: float = 3, update: str = "none", window: int = 10, decay: float = 0.8, min_region_points: int = 1,
-          regions: bool = True, align: str | None = None, sensor_origin=None,
+          regions: bool = True, align: str | None = None, sensor_origin: npt.ArrayLike | None = None,
           range_noise: float = 0.015) -> Iterator[FrameChange]:
     """Compare each frame of a stream with a model of the scene, in order; yield as they come.
 
@@ -145,6 +149,8 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
         raise ValueError("decay must be in (0, 1)")
     if align not in (None, "gicp", "density"):
         raise ValueError(f"align must be None, 'gicp' or 'density', got {align!r}")
+    if not (range_noise >= 0 and np.isfinite(range_noise)):
+        raise ValueError(f"range_noise must be a finite number >= 0, got {range_noise!r}")
     if isinstance(reference, DensityField) and (align == "gicp" or sensor_origin is not None):
         raise ValueError("align='gicp' and sensor_origin= need the reference points, not a field")
     if isinstance(reference, DensityField):
