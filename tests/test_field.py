@@ -158,6 +158,22 @@ def test_building_in_chunks_gives_the_same_field(rng, monkeypatch, method):
     np.testing.assert_allclose(chunked.density(pts), whole.density(pts), rtol=1e-5)
 
 
+@pytest.mark.parametrize("method", ["fast", "exact"])
+def test_building_two_clouds_at_once_gives_each_field_bit_for_bit(rng, method):
+    from sdp._points import as_points
+    from sdp.field import build_fields
+
+    a, b = rng.random((4000, 3)), rng.random((3000, 3)) + 0.3
+    b[::97] = np.nan  # counted as dropped, as from_points does
+    opts = dict(voxel_size=0.04, sigma_voxels=1.5, method=method)
+    (fa, fb), seconds = build_fields([as_points(a), as_points(b)], **opts)
+    for got, pts in ((fa, a), (fb, b)):
+        want = DensityField.from_points(pts, **opts)
+        assert np.array_equal(got._blocks, want._blocks) and np.array_equal(got._keys, want._keys)
+        assert (got.n_points, got.n_dropped, got.method) == (want.n_points, want.n_dropped, want.method)
+    assert fb.n_dropped == 31 and len(seconds) == 2 and min(seconds) > 0
+
+
 @pytest.mark.parametrize("sigma_voxels", [0.5, 1.0, 2.0, 3.7])
 def test_allocated_blocks_are_exactly_those_the_kernels_reach(rng, sigma_voxels):
     from sdp.grid import BLOCK

@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from ._kernels import map_concurrently
 from ._points import Points, as_points
-from .field import DensityField
+from .field import DensityField, build_fields
 from .grid import voxel_size_for_grid_size
 from .params import auto_voxel_size_of
 from .regions import Region, Volume, describe_regions, label_volume
@@ -48,9 +48,9 @@ class ChangeResult:
     timings : dict of str to float
         Seconds per step: ``build_reference``, ``build_current``, ``detect`` (as the paper's
         Table I), then ``regions``; with ``voxel_size="auto"``, also ``voxel_size``; with
-        ``sensor_origin=``, also ``visibility``. ``regions`` and ``visibility``
-        add up both directions, which run on two threads at once when there are two cores (so
-        they may add up to more than the wall time they took).
+        ``sensor_origin=``, also ``visibility``. The two builds bin their clouds at once, and
+        ``regions`` and ``visibility`` add up both directions, which run at once: on two threads
+        when there are two cores, so these steps may add up to more than the wall time they took.
     voxel_size, h : float
         Parameters used.
     decision : str
@@ -163,13 +163,7 @@ def detect_changes(reference, current, *, grid_size: int | None = None, voxel_si
         voxel_size = voxel_size_for_grid_size(np.minimum(ref.lo, cur.lo), np.maximum(ref.hi, cur.hi), grid_size)
     opts = dict(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
                 memory_limit=memory_limit)
-    t = time.perf_counter()
-    f_ref = DensityField.from_points(ref.xyz, **opts)
-    timings["build_reference"] = time.perf_counter() - t
-    t = time.perf_counter()
-    f_cur = DensityField.from_points(cur.xyz, **opts)
-    timings["build_current"] = time.perf_counter() - t
-    f_ref.n_dropped, f_cur.n_dropped = ref.n_dropped, cur.n_dropped  # rows dropped before the build
+    (f_ref, f_cur), (timings["build_reference"], timings["build_current"]) = build_fields([ref, cur], **opts)
     t = time.perf_counter()
     app, d_app = _inside_difference(f_cur, f_ref, cur.xyz)
     dis, d_dis = _inside_difference(f_ref, f_cur, ref.xyz)
