@@ -130,11 +130,8 @@ class DensityField:
         GridTooLargeError
             The grid would need more memory than ``memory_limit``.
         """
-        field, touched, taps = cls._binned(points, voxel_size=voxel_size, grid_size=grid_size,
-                                           sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
-                                           memory_limit=memory_limit)
-        if taps is not None:
-            field._blur(taps, nonzero=touched)
+        (field,), _ = build_fields([points], voxel_size=voxel_size, grid_size=grid_size, sigma_voxels=sigma_voxels,
+                                   k=k, h=h, truncate=truncate, method=method, memory_limit=memory_limit)
         return field
 
     @classmethod
