@@ -141,7 +141,7 @@ class DensityField:
         """The first, single-threaded part of :meth:`from_points`: (field, flags of the blocks
         written, taps), the field holding the exact sums (``method="exact"``, taps None) or the
         binned weights still to be blurred with ``taps`` (``"fast"``)."""
-        cloud = points if isinstance(points, Points) else as_points(points)  # validated already (sdp.watch)
+        cloud = points if isinstance(points, Points) else as_points(points)  # validated already (watch, detect_changes)
         l = _resolve_voxel_size(cloud.lo, cloud.hi, voxel_size=voxel_size, grid_size=grid_size)
         if not sigma_voxels > 0 or not truncate > 0:
             raise ValueError("sigma_voxels and truncate must be positive")
