@@ -38,7 +38,7 @@ def test_inserted_box_is_found_as_one_region(scene_pair):
     assert sum(x.n_points for x in r.appeared_regions) == r.appeared.sum()
     assert (r.appeared_region >= 0).sum() == r.appeared.sum()
     np.testing.assert_array_equal(r.appeared_region == 0, r.appeared & (r.appeared_region == big.label))
-    assert set(r.timings) == {"build_reference", "build_current", "detect", "regions"}
+    assert set(r.timings) == {"build_reference", "build_current", "detect", "coverage", "regions"}
     # dropping stray regions leaves exactly the box
     s = sdp.detect_changes(reference, current, voxel_size=0.015, min_region_points=20)
     assert len(s.appeared_regions) == 1 and sdp.kappa(truth, s.appeared) >= sdp.kappa(truth, r.appeared)

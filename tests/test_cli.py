@@ -29,7 +29,8 @@ def test_change_end_to_end(tmp_path, pair):
     s = json.loads(p.stdout)
     assert s["current"]["appeared"] > 2000 and len(s["appeared_regions"]) == 1
     out = read_points(tmp_path / "out.ply")
-    assert out.fields["change"].sum() == s["current"]["appeared"]
+    assert (out.fields["change"] == 1).sum() == s["current"]["appeared"]
+    assert (out.fields["change"] == 2).sum() == s["current"]["not_comparable"]
     assert {"G", "F", "region"} <= set(out.fields)
     assert (tmp_path / "out_disappeared.ply").exists() and (tmp_path / "out.png").stat().st_size > 10_000
     text = run("change", ref, cur, "-o", tmp_path / "out2.las", "--grid-size", "80")
@@ -71,7 +72,7 @@ def test_demo(tmp_path):
     p = run("demo", "-o", tmp_path / "demo")
     assert p.returncode == 0, p.stderr
     assert "kappa" in p.stdout
-    kappa = float(p.stdout.split("kappa ")[1].split(",")[0])
+    kappa = float(p.stdout.split("comparable points: kappa ")[1].split(",")[0])
     assert kappa > 0.8
     for name in ("reference.ply", "current_labelled.ply", "current_cluster_volume.ply", "changes.png"):
         assert (tmp_path / "demo" / name).stat().st_size > 1000
@@ -160,9 +161,12 @@ def test_change_sensor_origin(tmp_path, pair):
     p = run("change", ref, cur, "-o", tmp_path / "o.ply", "--voxel-size", "0.02", "--json",
             "--sensor-origin", "2,1.5,2")
     assert p.returncode == 0, p.stderr
-    assert "visibility" in json.loads(p.stdout)["timings"] and json.loads(p.stdout)["current"]["appeared"] > 2000
+    s = json.loads(p.stdout)
+    assert s["coverage"] == {"appeared": "sensor rays", "disappeared": "sensor rays"}
+    assert s["current"]["appeared"] > 2000
+    assert s["sensor_origin"]["reference"] == [2, 1.5, 2]
     bad = run("change", ref, cur, "-o", tmp_path / "o.ply", "--sensor-origin", "viewpoint")
-    assert bad.returncode == 2 and "VIEWPOINT" in bad.stderr
+    assert bad.returncode == 2 and "records no sensor position" in bad.stderr
 
 
 def test_align_on_a_class_with_fixed_horizontal(tmp_path, rng):

@@ -64,10 +64,10 @@ def test_memory_limit_from_environment(monkeypatch):
 
 def test_options_are_checked():
     pts = np.random.default_rng(0).random((10, 3))
-    with pytest.raises(ValueError, match="exactly one"):
-        DensityField.from_points(pts)
-    with pytest.raises(ValueError, match="exactly one"):
+    with pytest.raises(ValueError, match="not both"):
         DensityField.from_points(pts, voxel_size=0.1, grid_size=10)
+    with pytest.raises(ValueError, match="'auto'"):
+        DensityField.from_points(pts, voxel_size="fine")
     with pytest.raises(ValueError, match="positive"):
         DensityField.from_points(pts, voxel_size=-1)
     with pytest.raises(ValueError, match="method"):

@@ -117,10 +117,10 @@ def test_watch_registers_the_frames_of_a_moving_camera(rng, align):
     poses = [(1.5 * (i + 1), np.array([0.03, -0.02, 0.01]) * (i + 1)) for i in range(len(frames))]
     seen = [moved(f, deg, shift) for f, (deg, shift) in zip(frames, poses, strict=True)]  # 1.5° and 4 cm more per frame
     still = list(watch(room_scene(rng), seen, voxel_size=0.03, update="window", window=3, min_region_points=50))
-    assert all(r.n_appeared > 0 for r in still[:3])  # not registered: walls look new
+    assert all(r.n_appeared + r.not_comparable.sum() > 0 for r in still[:3])  # not registered: walls look new
     reports = list(watch(room_scene(rng), seen, voxel_size=0.03, update="window", window=3, min_region_points=50,
                          align=align))
-    assert all(r.n_appeared == 0 for r in reports[:3])  # registered: the static room again
+    assert all(r.n_appeared == 0 and r.not_comparable.sum() < 20 for r in reports[:3])  # registered: the room again
     assert reports[3].n_appeared > 0.5 * len(box)
     assert np.allclose(reports[3].regions[0].centroid, [2.2, 1.4, 0.95], atol=0.1)  # in the reference's frame
     for r, f, g in zip(reports, frames, seen, strict=True):  # the transform undoes the camera's motion
@@ -141,7 +141,8 @@ def test_watch_align_needs_what_it_registers_onto(rng):
 def test_watch_sensor_origin_applies_the_visibility_test_of_detect_changes(shared_data):
     ref, cur = (sdp.read_points(shared_data / f"mosd/learn/learn{i}.pcd") for i in (6, 7))  # an object added
     voxel = sdp.auto_voxel_size(ref.xyz)
-    plain = next(watch(ref.xyz, [cur.xyz], voxel_size=voxel, update="none", min_region_points=50))
+    plain = next(watch(ref.xyz, [cur.xyz], voxel_size=voxel, update="none", min_region_points=50,
+                       coverage=False))
     seen = next(watch(ref.xyz, [cur.xyz], voxel_size=voxel, update="none", min_region_points=50,
                       sensor_origin=ref.sensor_origin))
     pair = sdp.detect_changes(ref.xyz, cur.xyz, voxel_size=voxel, min_region_points=50,
@@ -161,10 +162,10 @@ def test_sdp_watch_sensor_origin_viewpoint(tmp_path, shared_data):
     (tmp_path / "frames" / "learn7.pcd").symlink_to(shared_data / "mosd/learn/learn7.pcd")
     runs = [subprocess.run([sys.executable, "-m", "sdp.cli", "watch", str(shared_data / "mosd/learn/learn6.pcd"),
                             str(tmp_path / "frames"), "--json"] + extra, capture_output=True, text=True)
-            for extra in ([], ["--sensor-origin", "viewpoint"])]
+            for extra in (["--sensor-origin", "none"], ["--sensor-origin", "viewpoint"], [])]
     assert all(p.returncode == 0 for p in runs), runs[1].stderr
-    plain, seen = (json.loads(p.stdout)[0]["appeared"] for p in runs)
-    assert 0 < seen < plain
+    plain, seen, default = (json.loads(p.stdout)[0]["appeared"] for p in runs)
+    assert 0 < seen < plain and default == seen  # the PCD's VIEWPOINT is used without being asked
     field = tmp_path / "ref.sdpf"
     ref = sdp.read_points(shared_data / "mosd/learn/learn6.pcd").xyz
     sdp.DensityField.from_points(ref, voxel_size=0.01).save(field)

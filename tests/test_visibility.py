@@ -3,7 +3,7 @@ import pytest
 
 import sdp
 from sdp.scene import FURNITURE, INSERTED, office_scene, scan
-from sdp.visibility import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage, explained_by_visibility
+from sdp.visibility import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage, visibility_states
 
 CAMERA = (0.3, 0.2, 2.2)  # sdp.scene's default camera
 BOX = INSERTED[0]  # a 30 cm box on the table
@@ -48,17 +48,21 @@ def test_disoccluded_table_is_not_appeared_with_sensor_origin():
     # the box itself did disappear: the current's rays pass through its place
     assert seen.disappeared[box].mean() > 0.6 and not seen.disappeared[~box].any()
     assert seen.disappeared[box].sum() >= 0.95 * plain.disappeared[box].sum()
-    assert seen.timings["visibility"] > 0 and "visibility" not in plain.timings
+    assert seen.coverage == {"appeared": "sensor rays", "disappeared": "sensor rays"}
+    assert plain.coverage == {"appeared": "footprint", "disappeared": "footprint"}
 
 
 def test_new_objects_are_still_found():
     s = office_scene(seed=0)
-    plain = sdp.detect_changes(s.reference, s.current, voxel_size="auto", min_region_points=20)
-    seen = sdp.detect_changes(s.reference, s.current, voxel_size="auto", min_region_points=20, sensor_origin=CAMERA)
+    plain = sdp.detect_changes(s.reference, s.current, min_region_points=20, coverage=False)  # density alone
+    seen = sdp.detect_changes(s.reference, s.current, min_region_points=20, sensor_origin=CAMERA)
     assert sdp.kappa(s.appeared_truth, seen.appeared) > 0.85
-    for i in range(len(INSERTED)):  # every object keeps most of what the density test found
+    # what the reference's camera could not see (its far corner, beyond range) is not comparable, not new
+    assert 0 < seen.current_not_comparable.sum() < 0.01 * len(s.current)
+    assert not (seen.current_not_comparable & seen.appeared).any()
+    for i in range(len(INSERTED)):  # every object keeps most of what the density test found, or is not comparable
         obj = s.object_of_current == i
-        assert seen.appeared[obj].sum() >= 0.8 * plain.appeared[obj].sum()
+        assert (seen.appeared | seen.current_not_comparable)[obj].sum() >= 0.8 * plain.appeared[obj].sum()
     # what the inserted objects hide in the current scan has not disappeared: it is hidden
     assert seen.disappeared.sum() < 0.2 * plain.disappeared.sum()
     # the regions describe exactly the points kept
@@ -122,10 +126,10 @@ def test_sensor_origin_on_every_point_is_a_clear_error():
         RangeImage.from_points(pts, (0, 0, 0))
 
 
-def test_explained_by_visibility_leaves_unchanged_points_alone(rng):
+def test_visibility_states_leave_unchanged_points_alone(rng):
     pts = rng.random((1000, 3)) + [0, 0, 2]
     changed = np.zeros(1000, bool)
-    assert not explained_by_visibility(pts, changed, pts, (0, 0, 0), sigma=0.01).any()
+    assert not visibility_states(pts, changed, pts, (0, 0, 0), sigma=0.01).any()
 
 
 def test_pcd_viewpoint_is_the_sensor_origin(tmp_path):

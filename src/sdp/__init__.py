@@ -2,11 +2,12 @@
 
 The data path, one module per step: points → :class:`DensityField` (:mod:`sdp.field` on the
 sparse grid of :mod:`sdp.grid`) → Boolean operations (:mod:`sdp.boolean`) → change masks
-(:mod:`sdp.change`) → regions (:mod:`sdp.regions`) → scores (:mod:`sdp.metrics`) and files
+(:mod:`sdp.change`), where the other epoch could see (:mod:`sdp.coverage`, :mod:`sdp.visibility`)
+→ regions (:mod:`sdp.regions`) → scores (:mod:`sdp.metrics`) and files
 (:mod:`sdp.io`) and pictures (:mod:`sdp.render`); surfaces by :mod:`sdp.surface`, parameters
 from the data by :mod:`sdp.params`. Clouds beyond memory: the same path in tiles on Dask
 (:mod:`sdp.tiles`), reading files in slices (:class:`PointSource`) and keeping fields on disk
-(:mod:`sdp.store`, Zarr).
+(:mod:`sdp.store`, Zarr). Every default is :data:`DEFAULTS` (:mod:`sdp.defaults`).
 
 References
 ----------
@@ -17,6 +18,8 @@ References
 from .align import Alignment, align, transform_points
 from .boolean import difference, intersection, union
 from .change import ChangeResult, detect_changes
+from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered
+from .defaults import DEFAULTS, Defaults
 from .errors import (
                      FieldFileError,
                      GridTooLargeError,
@@ -41,7 +44,9 @@ from .tiles import TiledChanges, build_field_tiled, detect_changes_tiled
 __all__ = [
     "DensityField", "threshold", "Grid", "BLOCK",
     "union", "intersection", "difference",
+    "DEFAULTS", "Defaults",
     "detect_changes", "ChangeResult", "Region",
+    "UNCHANGED", "CHANGED", "NOT_COMPARABLE", "footprint_covered",
     "detect_changes_tiled", "TiledChanges", "build_field_tiled", "FieldStore",
     "align", "Alignment", "transform_points",
     "watch", "FrameChange",

@@ -20,8 +20,10 @@ import numpy as np
 from . import _kernels as K
 from ._points import Points, as_points
 from ._progress import bar
+from .defaults import DEFAULTS
 from .errors import FieldFileError, IncompatibleFieldsError, InvalidPointsError
-from .grid import BLOCK, Grid, check_memory, voxel_size_for_grid_size
+from .grid import BLOCK, Grid, check_memory
+from .params import resolve_voxel_size
 
 __all__ = ["DensityField", "threshold", "FORMAT_VERSION"]
 
@@ -87,10 +89,10 @@ class DensityField:
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_points(cls, points, *, voxel_size: float | None = None, grid_size: int | None = None,
-                    sigma_voxels: float = 2.0, k: float = 3, h: float | None = None,
-                    truncate: float = 3.0, method: str = "auto",
-                    memory_limit: int | str | None = None) -> "DensityField":
+    def from_points(cls, points, *, voxel_size: float | str | None = DEFAULTS.voxel_size,
+                    grid_size: int | None = None, sigma_voxels: float = DEFAULTS.sigma_voxels,
+                    k: float = DEFAULTS.k, h: float | None = None, truncate: float = DEFAULTS.truncate,
+                    method: str = "auto", memory_limit: int | str | None = None) -> "DensityField":
         """Build the density field of a cloud in O(n).
 
         Parameters
@@ -99,12 +101,12 @@ class DensityField:
             World coordinates (float64). Rows holding NaN or Inf are dropped and counted in
             :attr:`n_dropped`. (Internally also the ``Points`` of ``sdp._points.as_points``,
             used as validated.)
-        voxel_size : float, optional
-            Node spacing l in world units. Exactly one of ``voxel_size`` and ``grid_size``;
-            :func:`sdp.auto_voxel_size` picks one from the data.
+        voxel_size : float or "auto"
+            Node spacing l in world units; ``"auto"`` (the default, :data:`sdp.DEFAULTS`):
+            :func:`sdp.auto_voxel_size` of the cloud, σ from its point spacing.
         grid_size : int, optional
             The paper's level of detail: the bounding box's longest side divided into
-            ``grid_size`` segments (80 in the paper).
+            ``grid_size`` segments (80 in the paper); wins over ``voxel_size="auto"``.
         sigma_voxels : float
             σ in voxels (2 in the paper).
         k, h : float
@@ -135,14 +137,13 @@ class DensityField:
         return field
 
     @classmethod
-    def _binned(cls, points, *, voxel_size: float | None = None, grid_size: int | None = None,
-                sigma_voxels: float = 2.0, k: float = 3, h: float | None = None, truncate: float = 3.0,
-                method: str = "auto", memory_limit: int | str | None = None):
-        """The first, single-threaded part of :meth:`from_points`: (field, flags of the blocks
-        written, taps), the field holding the exact sums (``method="exact"``, taps None) or the
-        binned weights still to be blurred with ``taps`` (``"fast"``)."""
-        cloud = points if isinstance(points, Points) else as_points(points)  # validated already (watch, detect_changes)
-        l = _resolve_voxel_size(cloud.lo, cloud.hi, voxel_size=voxel_size, grid_size=grid_size)
+    def _binned(cls, cloud: Points, *, voxel_size: float, sigma_voxels: float, k: float, h: float | None,
+                truncate: float, method: str, memory_limit: int | str | None):
+        """The first, single-threaded part of :meth:`from_points` for a validated cloud and a
+        resolved voxel length: (field, flags of the blocks written, taps), the field holding the
+        exact sums (``method="exact"``, taps None) or the binned weights still to be blurred with
+        ``taps`` (``"fast"``)."""
+        l = voxel_size
         if not sigma_voxels > 0 or not truncate > 0:
             raise ValueError("sigma_voxels and truncate must be positive")
         if method == "auto":
@@ -285,6 +286,31 @@ class DensityField:
         K.trilinear(pts, self.grid.origin, self.voxel_size, self._directory, values, out)
         return out
 
+    def footprint(self, points) -> np.ndarray:
+        """The density projected on the x, y plane, at each point's x, y (any z).
+
+        G integrated along z and divided by the integral of one kernel (√(2π)·σ), from the
+        nodes (Σ_z G·l / (√(2π)·σ), then bilinear in x, y): in the units of G, so one point
+        adds up to 1 at its own x, y, and a point's footprint is never below its density.
+        ``footprint(p) >= h`` says that the cloud sampled the column of p densely enough for
+        the threshold, at any height (:func:`sdp.coverage.footprint_covered`).
+        """
+        pts = _query_array(points)
+        flat = np.ascontiguousarray(pts)
+        flat = np.c_[flat[:, :2], np.full(len(flat), self.grid.origin[2])]  # z at the first node of a column
+        shape = self.grid.shape_blocks
+        packed = self._keys[:, 0] * shape[1] + self._keys[:, 1]
+        cols, inverse = np.unique(packed, return_inverse=True)
+        sums = np.zeros((len(cols), BLOCK, BLOCK))
+        np.add.at(sums, inverse.ravel(), self._blocks.reshape(-1, BLOCK, BLOCK, BLOCK).sum(axis=3, dtype=np.float64))
+        sums *= self.voxel_size / (math.sqrt(2 * math.pi) * self.sigma)
+        directory = np.full((shape[0], shape[1], 1), -1, np.int32)
+        directory[cols // shape[1], cols % shape[1], 0] = np.arange(len(cols), dtype=np.int32)
+        values = np.repeat(sums.astype(np.float32)[..., None], BLOCK, axis=3).reshape(len(cols), BLOCK**3)
+        out = np.empty(len(flat))
+        K.trilinear(flat, self.grid.origin, self.voxel_size, directory, values, out)
+        return out
+
     def field(self, points) -> np.ndarray:
         """F = h − G at world positions: negative inside the cluster volume."""
         return self.h - self.density(points)
@@ -416,12 +442,20 @@ class DensityField:
                 f"blocks={self.n_blocks}, box={self.grid.shape}, n_points={self.n_points}, method={self.method!r})")
 
 
-def build_fields(clouds, **options) -> tuple[list[DensityField], list[float]]:
-    """:meth:`DensityField.from_points` (with ``options``) of each cloud: their single-threaded
-    parts (block marking, binning) at once on the threads of :func:`sdp._kernels.map_concurrently`,
-    then the parallel blurs in turn. Returns the fields and the seconds each took (its first part,
-    in its own thread, plus its blur: together more than the wall time when the first parts
-    overlap)."""
+def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size, grid_size: int | None = None,
+                 sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
+                 truncate: float = DEFAULTS.truncate, method: str = "auto",
+                 memory_limit: int | str | None = None) -> tuple[list[DensityField], list[float]]:
+    """:meth:`DensityField.from_points` of each cloud, on one lattice (the voxel resolved from all
+    of them, :func:`sdp.params.resolve_voxel_size`): their single-threaded parts (block marking,
+    binning) at once on the threads of :func:`sdp._kernels.map_concurrently`, then the parallel
+    blurs in turn. Returns the fields and the seconds each took (its first part, in its own
+    thread, plus its blur: together more than the wall time when the first parts overlap)."""
+    clouds = [c if isinstance(c, Points) else as_points(c) for c in clouds]  # Points: validated already
+    voxel = resolve_voxel_size(clouds, voxel_size=voxel_size, grid_size=grid_size, k=k, sigma_voxels=sigma_voxels)
+    options = dict(voxel_size=voxel, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
+                   memory_limit=memory_limit)
+
     def binned(cloud):
         t = time.perf_counter()
         return DensityField._binned(cloud, **options), time.perf_counter() - t
@@ -446,13 +480,3 @@ def _query_array(points) -> np.ndarray:
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InvalidPointsError(f"query points: expected shape (n, 3), got {arr.shape}")
     return arr
-
-
-def _resolve_voxel_size(lo, hi, *, voxel_size, grid_size) -> float:
-    if (voxel_size is None) == (grid_size is None):
-        raise ValueError("give exactly one of voxel_size= (world units) and grid_size= (segments of the longest side)")
-    if grid_size is not None:
-        return voxel_size_for_grid_size(lo, hi, grid_size)
-    if not (isinstance(voxel_size, (int, float, np.floating)) and voxel_size > 0 and math.isfinite(voxel_size)):
-        raise ValueError(f"voxel_size must be a positive length in world units, got {voxel_size!r}")
-    return float(voxel_size)

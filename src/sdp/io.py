@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 import tempfile
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,7 @@ FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "
 
 
 _LAS_CHUNK = 2_000_000  # points per chunk read (a progress step)
+_DEFAULT_VIEWPOINT = np.array([0.0, 0, 0, 1, 0, 0, 0])  # PCL's VIEWPOINT when the sensor pose is unset
 
 
 class CloudFileError(SDPError, OSError):
@@ -57,6 +58,8 @@ class Cloud:
         The sensor's pose from a PCD file's ``VIEWPOINT`` header: translation ``tx ty tz``
         then unit quaternion ``qw qx qy qz`` (PCL writes the grabber's ``sensor_origin_`` and
         ``sensor_orientation_`` there; ``0 0 0 1 0 0 0`` when unset). None for other formats.
+    organized : bool
+        The file is an organized PCD (HEIGHT > 1: one point per pixel or ray).
     """
 
     xyz: np.ndarray
@@ -66,14 +69,38 @@ class Cloud:
     las: object = None
     viewpoint: np.ndarray | None = None
 
+    organized: bool = False
+
     def __len__(self) -> int:
         return len(self.xyz)
 
     @property
     def sensor_origin(self) -> np.ndarray | None:
-        """Position (3,) of the sensor in the cloud's frame (``viewpoint[:3]``), or None when
-        the file does not say; pass it to :func:`sdp.detect_changes` (``sensor_origin=``)."""
-        return None if self.viewpoint is None else self.viewpoint[:3].copy()
+        """Position (3,) of the sensor in the cloud's frame, or None when the file does not say.
+
+        An organized PCD (an image of the sensor's rays) always says: ``viewpoint[:3]``. An
+        unorganized PCD says only if its VIEWPOINT is not PCL's default ``0 0 0 1 0 0 0``
+        (the header every merged or filtered map carries). Other formats say nothing.
+        :func:`sdp.detect_changes` uses it by default (``sensor_origin="auto"``).
+        """
+        if self.viewpoint is None or not (self.organized or np.any(self.viewpoint != _DEFAULT_VIEWPOINT)):
+            return None
+        return self.viewpoint[:3].copy()
+
+    def transformed(self, matrix: np.ndarray) -> "Cloud":
+        """The cloud moved by a rigid 4×4 ``matrix`` (e.g. :attr:`sdp.Alignment.matrix`), its
+        sensor pose with it; fields, path and counts unchanged."""
+        from scipy.spatial.transform import Rotation
+
+        m = np.asarray(matrix, dtype=np.float64)
+        xyz = self.xyz @ m[:3, :3].T + m[:3, 3]
+        viewpoint = None
+        if self.viewpoint is not None:
+            q = self.viewpoint[3:]  # qw qx qy qz
+            turned = Rotation.from_matrix(m[:3, :3]) * Rotation.from_quat([q[1], q[2], q[3], q[0]])
+            x, y, z, w = turned.as_quat()
+            viewpoint = np.r_[m[:3, :3] @ self.viewpoint[:3] + m[:3, 3], w, x, y, z]
+        return replace(self, xyz=np.ascontiguousarray(xyz), viewpoint=viewpoint)
 
 
 def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
@@ -100,7 +127,7 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
     if not path.is_file():
         raise CloudFileError(f"{path}: no such file")
     try:
-        xyz, fields, las, *viewpoint = _READERS[fmt](path)  # PCD adds its VIEWPOINT
+        xyz, fields, las, *pose = _READERS[fmt](path)  # PCD adds its VIEWPOINT and whether organized
     except CloudFileError:
         raise
     except Exception as exc:  # libraries raise many types on corrupt input
@@ -115,7 +142,8 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
         fields = {k: v[finite] for k, v in fields.items()}
     if len(xyz) == 0:
         raise CloudFileError(f"{path}: holds no point with finite x, y, z")
-    return Cloud(np.ascontiguousarray(xyz), fields, path, dropped, las, viewpoint[0] if viewpoint else None)
+    viewpoint, organized = pose if pose else (None, False)
+    return Cloud(np.ascontiguousarray(xyz), fields, path, dropped, las, viewpoint, organized)
 
 
 def _read_pcd(path):
@@ -135,7 +163,7 @@ def _read_pcd(path):
     if viewpoint.shape != (7,) or not np.isfinite(viewpoint).all():
         raise CloudFileError(f"{path}: VIEWPOINT must be 7 finite numbers (tx ty tz qw qx qy qz), "
                              f"got {pc.metadata.viewpoint}")
-    return xyz, fields, None, viewpoint
+    return xyz, fields, None, viewpoint, pc.metadata.height > 1
 
 
 def _pcd_column(pc, name, col):

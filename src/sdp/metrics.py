@@ -47,17 +47,32 @@ def kappa(truth, predicted) -> float:
     return float("nan") if pe == 1 else float((po - pe) / (1 - pe))
 
 
-def scores(truth, predicted) -> dict[str, float]:
+def scores(truth, predicted, *, comparable=None) -> dict[str, float]:
     """Kappa, accuracy, precision, recall, F1 and IoU of the "change" class, and the counts.
+
+    Parameters
+    ----------
+    truth, predicted : array_like of bool
+        One label per point (True: changed).
+    comparable : array_like of bool, optional
+        Points that could be compared (e.g. ``~result.current_not_comparable``): the scores
+        cover these only, and ``not_comparable`` counts the others, as M3C2's users leave
+        NaN distances out of their statistics.
 
     Ratios whose denominator is 0 are NaN.
     """
-    (tn, fp), (fn, tp) = confusion_matrix(truth, predicted)
+    t, p = _labels(truth, predicted)
+    keep = np.ones(t.size, bool) if comparable is None else np.asarray(comparable, bool).ravel()
+    if keep.shape != t.shape:
+        raise SDPError(f"comparable has {keep.size} labels and truth {t.size}: they must label the same points")
+    t, p = t[keep], p[keep]
+    (tn, fp), (fn, tp) = confusion_matrix(t, p)
 
     def ratio(a, b):
         return float(a / b) if b else float("nan")
 
     precision, recall = ratio(tp, tp + fp), ratio(tp, tp + fn)
-    return {"kappa": kappa(truth, predicted), "accuracy": ratio(tp + tn, tp + tn + fp + fn),
+    return {"kappa": kappa(t, p) if t.size else float("nan"), "accuracy": ratio(tp + tn, tp + tn + fp + fn),
             "precision": precision, "recall": recall, "f1": ratio(2 * tp, 2 * tp + fp + fn),
-            "iou": ratio(tp, tp + fp + fn), "tp": int(tp), "fp": int(fp), "fn": int(fn), "tn": int(tn)}
+            "iou": ratio(tp, tp + fp + fn), "tp": int(tp), "fp": int(fp), "fn": int(fn), "tn": int(tn),
+            "not_comparable": int((~keep).sum())}

@@ -44,11 +44,13 @@ import numpy.typing as npt
 from ._points import as_points
 from .align import _GicpTarget, transform_points
 from .align import align as align_density
-from .change import _inside_difference, _regions, _to_rows
+from .change import _inside_difference, _regions, _to_rows, judge_coverage
+from .coverage import CHANGED, NOT_COMPARABLE, states_of
+from .defaults import DEFAULTS
 from .field import DensityField
-from .params import auto_voxel_size
+from .params import resolve_voxel_size
 from .regions import Region
-from .visibility import RangeImage, as_sensor_origins, explained_by_visibility
+from .visibility import RangeImage, resolve_sensor_origins
 
 __all__ = ["FrameChange", "watch"]
 
@@ -65,6 +67,9 @@ class FrameChange:
         The frame's name (its file name from the command line), else its index.
     appeared : ndarray of bool
         One flag per row of the frame (False for NaN rows).
+    not_comparable : ndarray of bool
+        Rows where the reference could not see (outside its footprint or field of view, or
+        hidden from its sensor): neither appeared nor unchanged (:mod:`sdp.coverage`).
     regions : list of Region
         Connected appeared regions, largest first.
     latency : float
@@ -80,6 +85,7 @@ class FrameChange:
     index: int
     name: str
     appeared: np.ndarray
+    not_comparable: np.ndarray
     regions: list[Region]
     latency: float
     timings: dict[str, float] = dc_field(default_factory=dict)
@@ -89,38 +95,49 @@ class FrameChange:
     def n_appeared(self) -> int:
         return int(self.appeared.sum())
 
+    @property
+    def state(self) -> np.ndarray:
+        """The ``change`` field of the frame's rows (uint8): 0 unchanged, 1 appeared, 2 not comparable."""
+        return states_of(self.appeared, self.not_comparable)
+
     def summary(self) -> dict:
         return {"index": self.index, "name": self.name, "points": int(self.appeared.size),
-                "appeared": self.n_appeared, "latency": self.latency, "timings": dict(self.timings),
+                "appeared": self.n_appeared, "not_comparable": int(self.not_comparable.sum()),
+                "latency": self.latency, "timings": dict(self.timings),
                 "transform": None if self.transform is None else self.transform.tolist(),
                 "regions": [{"n_points": r.n_points, "centroid": r.centroid.tolist(), "size": r.size.tolist()}
                             for r in self.regions]}
 
 
-def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigma_voxels: float = 2.0,
-          k: float = 3, update: str = "none", window: int = 10, decay: float = 0.8, min_region_points: int = 1,
-          regions: bool = True, align: str | None = None, sensor_origin: npt.ArrayLike | None = None,
-          range_noise: float = 0.015) -> Iterator[FrameChange]:
+def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.voxel_size,
+          sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, update: str = DEFAULTS.update,
+          window: int = DEFAULTS.window, decay: float = DEFAULTS.decay,
+          min_region_points: int = DEFAULTS.min_region_points, regions: bool = True, align: str | None = None,
+          sensor_origin: npt.ArrayLike | str | None = DEFAULTS.sensor_origin,
+          range_noise: float = DEFAULTS.range_noise, coverage: bool = True) -> Iterator[FrameChange]:
     """Compare each frame of a stream with a model of the scene, in order; yield as they come.
+
+    Every default is :data:`sdp.DEFAULTS`, as for :func:`sdp.detect_changes` and ``sdp watch``.
 
     Parameters
     ----------
-    reference : array_like (n, 3) or DensityField
-        The scene before the stream: points, or a field (its lattice, σ and h are used).
+    reference : array_like (n, 3), Cloud or DensityField
+        The scene before the stream: points (a :func:`sdp.read_points` cloud brings its sensor
+        position), or a field (its lattice, σ and h are used).
     frames : iterable
-        Arrays (m, 3), or ``(name, array)`` pairs; consumed lazily.
+        Arrays (m, 3) or clouds, or ``(name, array)`` pairs; consumed lazily.
     voxel_size : float or "auto"
-        Lattice of the reference points (``"auto"``: :func:`sdp.auto_voxel_size`).
+        Lattice of the reference points (``"auto"``, default: :func:`sdp.auto_voxel_size`).
     sigma_voxels, k
         As in :meth:`DensityField.from_points`.
-    update : {"none", "window", "decay"}
-        How the model learns (see the module docstring).
+    update : {"window", "none", "decay"}
+        How the model learns (see the module docstring); default ``"window"``.
     window : int
         Frames in the model (the reference counts as one) for ``update="window"``.
     decay : float
         λ in (0, 1) for ``update="decay"``.
     min_region_points : int
-        Appeared regions with fewer points are dropped (noise).
+        Appeared regions with fewer points are dropped (noise); default 50.
     regions : bool
         Group appeared points into regions (skip for the lowest latency).
     align : {None, "gicp", "density"}
@@ -129,13 +146,18 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
         and the ``align`` extra, downsamples both at σ and pairs points up to 4σ apart;
         ``"density"`` is :func:`sdp.align` on the reference field. None: the frames are
         already in the reference's frame (a fixed camera, or poses applied by the caller).
-    sensor_origin : array_like (3,), optional
-        The reference scan's sensor position (reference points only). Adds the visibility
-        test of :func:`sdp.detect_changes` against the reference's rays
-        (:func:`sdp.visibility.explained_by_visibility`): an appeared point the reference
-        could not see, or saw at the same range, is not a change.
+    sensor_origin : "auto", None or array_like (3,)
+        The reference scan's sensor position (reference points only); ``"auto"`` (default):
+        what a reference read from a file says (an organized PCD's VIEWPOINT). Adds the
+        visibility test of :func:`sdp.detect_changes` against the reference's rays
+        (:func:`sdp.visibility.visibility_states`): an appeared point the reference saw at the
+        same range is not a change, one it could not see is not comparable.
     range_noise : float
-        With ``sensor_origin``: as in :func:`sdp.detect_changes`.
+        With a sensor: as in :func:`sdp.detect_changes`.
+    coverage : bool
+        Tell what the model could not see (default True): without a sensor, a frame point whose
+        column the model did not sample densely enough is not comparable (its footprint, as in
+        :func:`sdp.detect_changes`); with one, the reference's rays decide.
 
     Yields
     ------
@@ -151,20 +173,24 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
         raise ValueError(f"align must be None, 'gicp' or 'density', got {align!r}")
     if not (range_noise >= 0 and np.isfinite(range_noise)):
         raise ValueError(f"range_noise must be a finite number >= 0, got {range_noise!r}")
-    if isinstance(reference, DensityField) and (align == "gicp" or sensor_origin is not None):
-        raise ValueError("align='gicp' and sensor_origin= need the reference points, not a field")
-    if isinstance(reference, DensityField):
-        base = reference
+    is_field = isinstance(reference, DensityField)
+    origin = None
+    if is_field:
+        if align == "gicp" or not (sensor_origin is None or isinstance(sensor_origin, str)):
+            raise ValueError("align='gicp' and sensor_origin= need the reference points, not a field")
+        base, ref = reference, None
     else:
-        ref = as_points(reference, name="reference").xyz
-        l = auto_voxel_size(ref, sigma_voxels=sigma_voxels) if voxel_size == "auto" else float(voxel_size)
-        base = DensityField.from_points(ref, voxel_size=l, sigma_voxels=sigma_voxels, k=k)
+        origin = resolve_sensor_origins(sensor_origin, reference, None)[0]
+        pts = as_points(reference, name="reference")
+        ref = pts.xyz
+        l = resolve_voxel_size([pts], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+        base = DensityField.from_points(pts, voxel_size=l, sigma_voxels=sigma_voxels, k=k)
     h, opts = base.h, dict(voxel_size=base.voxel_size, sigma_voxels=base.sigma / base.voxel_size,
                            truncate=base.truncate, h=base.h)
     model = base if update == "none" else base.copy()
     weight, history = 1.0, deque([base])
     target = None if align != "gicp" else _GicpTarget(ref, resolution=base.sigma, max_distance=4 * base.sigma)
-    image = None if sensor_origin is None else RangeImage.from_points(ref, as_sensor_origins(sensor_origin)[0])
+    image = None if origin is None else RangeImage.from_points(ref, origin)
     matrix = None if align is None else np.eye(4)
     for index, item in enumerate(frames):
         name, pts = item if isinstance(item, tuple) else (str(index), item)
@@ -180,10 +206,12 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
             timings["align"] = time.perf_counter() - t
         frame = DensityField.from_points(cur, **opts)
         t1 = time.perf_counter()
-        mask, d = _inside_difference(frame, model.with_threshold(h=h * weight), cur.xyz)
-        if image is not None:  # the reference's rays, imaged once
-            mask &= ~explained_by_visibility(cur.xyz, mask, ref, image.origin, sigma=frame.sigma,
-                                             range_noise=range_noise, image=image)
+        seen = model.with_threshold(h=h * weight)
+        mask, d = _inside_difference(frame, seen, cur.xyz)
+        # the model's footprint, or the reference's rays (imaged once)
+        states = judge_coverage(cur.xyz, mask, ref, seen, origin, coverage=coverage, range_noise=range_noise,
+                                image=image, present=frame.inside)
+        mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
         if regions:  # point-wise decision: only the appeared points need a region
             idx = np.flatnonzero(mask)
@@ -204,5 +232,6 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = "auto", sigm
             weight = float(len(history))
         t4 = time.perf_counter()
         timings.update(build=t1 - t0 - timings.get("align", 0.0), detect=t2 - t1, regions=t3 - t2, update=t4 - t3)
-        yield FrameChange(index=index, name=name, appeared=_to_rows(mask, cur, False), regions=regs,
+        yield FrameChange(index=index, name=name, appeared=_to_rows(mask, cur, False),
+                          not_comparable=_to_rows(unseen, cur, False), regions=regs,
                           latency=t4 - t0, timings=timings, transform=matrix)

@@ -25,7 +25,7 @@ import numpy as np
 from ._kernels import finite_bounds, map_concurrently
 from ._points import Points, as_points
 
-__all__ = ["auto_voxel_size", "kth_neighbour_distance"]
+__all__ = ["auto_voxel_size", "kth_neighbour_distance", "resolve_voxel_size"]
 
 _MAX_CELL_INDEX = 2**21  # cells per axis: three 21-bit cell coordinates packed in one int64 key
 _MAX_RING = 2  # rings of cells scanned around a query before a 4x coarser grid takes it over
@@ -73,6 +73,37 @@ def auto_voxel_size(*clouds, k: int = 3, quantile: float = 0.9, scale: float = 1
     """
     return auto_voxel_size_of([as_points(cloud, name=f"cloud {i}") for i, cloud in enumerate(clouds)], k=k,
                               quantile=quantile, scale=scale, sigma_voxels=sigma_voxels, sample=sample, seed=seed)
+
+
+def resolve_voxel_size(clouds: Sequence[Points], *, voxel_size: float | str | None = "auto",
+                       grid_size: int | None = None, k: float = 3, sigma_voxels: float = 2.0) -> float:
+    """The voxel length of a comparison of ``clouds`` (validated), one for all of them.
+
+    ``grid_size`` (the paper's parameterization: the longest side of the box holding all the
+    clouds in ``grid_size`` segments) wins over the default ``voxel_size="auto"``
+    (:func:`auto_voxel_size` of all the clouds, neighbour rank ``k``); a length is used as given.
+
+    Raises
+    ------
+    ValueError
+        ``grid_size`` with a length, a length that is not positive and finite, or an unknown word.
+    """
+    from .grid import voxel_size_for_grid_size
+
+    if grid_size is not None:
+        if voxel_size not in (None, "auto"):
+            raise ValueError("give grid_size= or voxel_size=, not both")
+        lo = np.min([c.lo for c in clouds], axis=0)
+        hi = np.max([c.hi for c in clouds], axis=0)
+        return voxel_size_for_grid_size(lo, hi, grid_size)
+    if voxel_size is None or isinstance(voxel_size, str):
+        if voxel_size not in (None, "auto"):
+            raise ValueError(f"voxel_size must be a length or 'auto', got {voxel_size!r}")
+        return auto_voxel_size_of(clouds, k=int(round(k)), sigma_voxels=sigma_voxels)
+    if not (isinstance(voxel_size, (int, float, np.integer, np.floating)) and not isinstance(voxel_size, bool)
+            and math.isfinite(voxel_size) and voxel_size > 0):
+        raise ValueError(f"voxel_size must be a positive length in world units or 'auto', got {voxel_size!r}")
+    return float(voxel_size)
 
 
 def auto_voxel_size_of(clouds: Sequence[Points], *, k: int = 3, quantile: float = 0.9, scale: float = 1.5,

@@ -1,4 +1,5 @@
-"""Pictures of results: changed points red over unchanged blue (the paper's Figure 9) as PNG
+"""Pictures of results: changed points red over unchanged blue (the paper's Figure 9), not
+comparable points grey, as PNG
 (matplotlib) or as an interactive page (plotly, the ``html`` extra), and slices of a field."""
 
 from __future__ import annotations
@@ -8,33 +9,39 @@ from pathlib import Path
 
 import numpy as np
 
+from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from .errors import MissingDependencyError
 from .io import atomic_path
 
 __all__ = ["render_changes", "render_changes_html", "render_field"]
 
-_RED, _BLUE = "#d62728", "#3b6fb6"
+_RED, _BLUE, _GREY = "#d62728", "#3b6fb6", "#b0b0b0"
 
 _VIEWS = ((25, -60, "oblique"), (90, -90, "top"), (0, -90, "front"))
+# drawn in this order (later on top): state value, name, colour, marker size (PNG, HTML)
+_LAYERS = ((UNCHANGED, "unchanged", _BLUE, 0.6, 1), (NOT_COMPARABLE, "not comparable", _GREY, 0.8, 1),
+           (CHANGED, "changed", _RED, 1.5, 2))
 
 
 def render_changes(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray, *, title: str = "",
                    max_points: int = 80_000, seed: int = 0) -> Path:
-    """Write a PNG with three views of ``xyz``: changed points red, unchanged blue, with counts.
+    """Write a PNG with three views of ``xyz``: changed points red, unchanged blue, not comparable
+    grey, with counts.
 
-    Unchanged points are subsampled to ``max_points`` for drawing; changed points are all drawn,
-    on top.
+    ``changed`` is a boolean mask, or the ``change`` field of :mod:`sdp.coverage` (0 unchanged,
+    1 changed, 2 not comparable). Unchanged and not comparable points are subsampled to
+    ``max_points`` each for drawing; changed points are all drawn, on top.
     """
     plt = _pyplot()
-    xyz, changed = np.asarray(xyz), np.asarray(changed, bool)
-    still, moved = _drawn(changed, max_points, seed)
+    xyz = np.asarray(xyz)
+    layers = _drawn(changed, max_points, seed)
     fig = plt.figure(figsize=(15, 5.4), dpi=110, layout="constrained")
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     for i, (elev, azim, name) in enumerate(_VIEWS):
         ax = fig.add_subplot(1, 3, i + 1, projection="3d")
-        ax.scatter(*xyz[still].T, s=0.6, c=_BLUE, alpha=0.5, linewidths=0,
-                   label=f"unchanged ({(~changed).sum():,})")
-        ax.scatter(*xyz[moved].T, s=1.5, c=_RED, alpha=0.9, linewidths=0, label=f"changed ({changed.sum():,})")
+        for idx, label, n, color, size, _ in layers:
+            ax.scatter(*xyz[idx].T, s=size, c=color, alpha=0.9 if color == _RED else 0.5, linewidths=0,
+                       label=f"{label} ({n:,})")
         ax.view_init(elev=elev, azim=azim)
         ax.set_box_aspect(np.maximum(hi - lo, 1e-9))
         ax.set_title(name)
@@ -54,8 +61,9 @@ def render_changes_html(path: str | os.PathLike, xyz: np.ndarray, changed: np.nd
                         max_points: int = 200_000, seed: int = 0) -> Path:
     """Write an interactive 3D view (plotly) that opens in a browser without a server.
 
-    The page embeds plotly.js, so it works offline. Unchanged points are subsampled to
-    ``max_points``; changed points are all drawn.
+    ``changed`` as in :func:`render_changes`. The page embeds plotly.js, so it works offline.
+    Unchanged and not comparable points are subsampled to ``max_points`` each; changed points
+    are all drawn.
 
     Raises
     ------
@@ -66,12 +74,10 @@ def render_changes_html(path: str | os.PathLike, xyz: np.ndarray, changed: np.nd
         import plotly.graph_objects as go
     except ImportError:
         raise MissingDependencyError('--html needs plotly: pip install "sdp[html]"') from None
-    xyz, changed = np.asarray(xyz), np.asarray(changed, bool)
-    still, moved = _drawn(changed, max_points, seed)
+    xyz = np.asarray(xyz)
     fig = go.Figure([go.Scatter3d(x=xyz[i, 0], y=xyz[i, 1], z=xyz[i, 2], mode="markers", name=f"{name} ({n:,})",
                                   marker={"size": size, "color": color})
-                     for i, name, n, size, color in ((still, "unchanged", (~changed).sum(), 1, _BLUE),
-                                                     (moved, "changed", changed.sum(), 2, _RED))])
+                     for i, name, n, color, _, size in _drawn(changed, max_points, seed)])
     fig.update_layout(title=title, scene={"aspectmode": "data"}, legend={"itemsizing": "constant"})
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -128,12 +134,20 @@ def _pyplot():
     return plt
 
 
-def _drawn(changed: np.ndarray, max_points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of the unchanged points to draw (at most ``max_points``) and of all changed points."""
-    still = np.flatnonzero(~changed)
-    if len(still) > max_points:
-        still = np.random.default_rng(seed).choice(still, max_points, replace=False)
-    return still, np.flatnonzero(changed)
+def _drawn(changed: np.ndarray, max_points: int, seed: int) -> list[tuple]:
+    """The layers to draw, as (indices, name, count, colour, PNG size, HTML size): every changed
+    point, at most ``max_points`` of the others per state; states without points are left out."""
+    state = np.asarray(changed)
+    state = state.astype(np.uint8) if state.dtype == bool else state
+    rng = np.random.default_rng(seed)
+    layers = []
+    for value, name, color, png, html in _LAYERS:
+        idx = np.flatnonzero(state == value)
+        if value != CHANGED and len(idx) > max_points:
+            idx = rng.choice(idx, max_points, replace=False)
+        if len(idx) or value != NOT_COMPARABLE:
+            layers.append((idx, name, int((state == value).sum()), color, png, html))
+    return layers
 
 
 def _save_png(fig, path) -> Path:

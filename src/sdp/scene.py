@@ -17,7 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Box", "OfficeScene", "office_scene", "scan"]
+__all__ = ["Box", "OfficeScene", "office_scene", "scan", "CAMERA"]
+
+#: Where the simulated camera stands (metres), for both scans.
+CAMERA = (0.3, 0.2, 2.2)
 
 
 @dataclass(frozen=True)
@@ -61,9 +64,10 @@ class OfficeScene:
     current: np.ndarray
     appeared_truth: np.ndarray  # over current: the point lies on an inserted object
     object_of_current: np.ndarray  # index into INSERTED, -1 for room and furniture
+    camera: tuple = CAMERA  # the sensor origin of both scans
 
 
-def scan(boxes, *, camera=(0.3, 0.2, 2.2), target=(3.0, 2.6, 0.7), width=320, height=240,
+def scan(boxes, *, camera=CAMERA, target=(3.0, 2.6, 0.7), width=320, height=240,
          max_range=4.5, rng=None) -> tuple[np.ndarray, np.ndarray]:
     """Cast one ray per pixel; return the noisy hit points (n, 3) and the index of the box hit.
 

@@ -42,6 +42,8 @@ import numpy as np
 from . import _kernels as K
 from ._progress import bar
 from .boolean import difference_on_own_blocks
+from .coverage import footprint_covered
+from .defaults import DEFAULTS
 from .errors import InvalidPointsError
 from .field import DensityField, threshold
 from .grid import BLOCK, Grid
@@ -50,7 +52,8 @@ from .io import PointSource
 from .regions import Region, describe_regions, label_points
 from .store import FieldStore
 
-__all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "dense_grid_bytes", "untiled_point_bytes"]
+__all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "dense_grid_bytes", "untiled_point_bytes",
+           "sampled_voxel_size"]
 
 _PART_ROWS = 8_000_000  # rows read by one bucketing task
 _BYTES_PER_ROW_READ = 600  # a decoded row in a bucketing task: record, x y z, tile keys, sort, bucket record
@@ -71,6 +74,9 @@ class TiledChanges:
         Region label of each of those rows.
     appeared_regions, disappeared_regions : list of Region
         Connected change regions, largest first.
+    current_not_comparable_rows, reference_not_comparable_rows : ndarray of int64
+        Sorted rows the other epoch has no point near in x, y (its footprint,
+        :func:`sdp.coverage.footprint_covered`): not comparable, neither changed nor unchanged.
     n_current, n_reference : int
         Rows of each input (for a stored reference: the points it was built from);
         ``n_dropped_*`` of them held NaN or Inf.
@@ -89,6 +95,8 @@ class TiledChanges:
     disappeared_region: np.ndarray
     appeared_regions: list[Region]
     disappeared_regions: list[Region]
+    current_not_comparable_rows: np.ndarray
+    reference_not_comparable_rows: np.ndarray
     n_current: int
     n_reference: int
     n_dropped_current: int
@@ -114,10 +122,14 @@ class TiledChanges:
         """A JSON-serializable summary in the shape of :meth:`sdp.ChangeResult.summary`, plus tiles."""
         return {"voxel_size": self.voxel_size, "sigma": self.sigma, "h": self.h, "decision": "point",
                 "tiles": self.n_tiles, "tile_size": self.tile_size,
+                "sensor_origin": {"reference": None, "current": None},
+                "coverage": {"appeared": "footprint", "disappeared": "footprint"},
                 "reference": {"points": self.n_reference, "dropped": self.n_dropped_reference,
-                              "disappeared": int(self.disappeared_rows.size)},
+                              "disappeared": int(self.disappeared_rows.size),
+                              "not_comparable": int(self.reference_not_comparable_rows.size)},
                 "current": {"points": self.n_current, "dropped": self.n_dropped_current,
-                            "appeared": int(self.appeared_rows.size)},
+                            "appeared": int(self.appeared_rows.size),
+                            "not_comparable": int(self.current_not_comparable_rows.size)},
                 "timings": dict(self.timings),
                 "appeared_regions": [r.to_dict() for r in self.appeared_regions],
                 "disappeared_regions": [r.to_dict() for r in self.disappeared_regions]}
@@ -206,8 +218,9 @@ def _empty_field(like: DensityField) -> DensityField:
 
 
 def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None) -> dict:
-    """Fields of both epochs in one tile, and its own changed rows (see the module docstring).
-    With ``store`` (a :class:`FieldStore` path) the reference field is read from it."""
+    """Fields of both epochs in one tile, its own changed rows and its own not comparable rows
+    (outside the other field's footprint; see the module docstring). With ``store`` (a
+    :class:`FieldStore` path) the reference field is read from it."""
     t0 = time.perf_counter()
     recs = {e: _load(root, e, key) for e in ("reference", "current")}
     out = {"read": time.perf_counter() - t0, "build_reference": 0.0, "build_current": 0.0}
@@ -227,14 +240,18 @@ def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None
             own = tiling.owns(key, rec)
         if not own.any():
             out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.int64),
-                         np.zeros((0, BLOCK**3), np.float32))
+                         np.zeros((0, BLOCK**3), np.float32), np.zeros(0, np.int64))
             continue
         pts = np.ascontiguousarray(rec[own, :3])
         d = difference_on_own_blocks(fld, fields[other] or _empty_field(fld))  # shipped: the regions span tiles
         mask = fld.interpolate(d, pts) < 0
+        rows = rec[own, 3].astype(np.int64)
+        cand = np.flatnonzero(mask)
+        unseen = cand if fields[other] is None else cand[~footprint_covered(pts[cand], fields[other])]
+        mask[unseen] = False
         keys = fld.global_keys
         mine = np.all(np.floor_divide(keys[:, :2], tiling.blocks) == key, axis=1) & (d.min(axis=1) < 0)
-        out[kind] = (rec[own, 3].astype(np.int64)[mask], pts[mask], keys[mine], d[mine])
+        out[kind] = (rows[mask], pts[mask], keys[mine], d[mine], rows[unseen])
     out["detect"] = time.perf_counter() - t
     return out
 
@@ -261,13 +278,19 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
     return rows, region_of, regs
 
 
-def detect_changes_tiled(reference, current, *, voxel_size: float | None = None, sigma_voxels: float = 2.0,
-                         k: float = 3, h: float | None = None, truncate: float = 3.0, method: str = "auto",
-                         min_region_points: int = 1, regions: bool = True, tile_size: float | None = None,
+def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAULTS.voxel_size,
+                         sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
+                         truncate: float = DEFAULTS.truncate, method: str = "auto",
+                         min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
+                         tile_size: float | None = None,
                          tile_points: int | None = None, memory_limit: int | str | None = None,
                          scheduler: str | None = None, workers: int | None = None,
                          workdir: str | os.PathLike | None = None) -> TiledChanges:
-    """:func:`sdp.detect_changes` (point decision) in tiles, for clouds of any size.
+    """:func:`sdp.detect_changes` (point decision, footprint coverage) in tiles, for clouds of any size.
+
+    Every default is :data:`sdp.DEFAULTS`, as for :func:`sdp.detect_changes`. Points outside the
+    other epoch's footprint (:func:`sdp.coverage.footprint_covered`) are not comparable; the
+    tiles follow no sensor rays.
 
     Parameters
     ----------
@@ -279,8 +302,9 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | None = None,
         σ, threshold and tiles.
     current : path-like, PointSource or array_like (n, 3)
         As ``reference``.
-    voxel_size : float
-        Voxel length in world units (the tiles need it before reading the points); taken
+    voxel_size : float or "auto"
+        Voxel length in world units, or ``"auto"`` (default): :func:`sdp.auto_voxel_size` of
+        the first slice of each cloud (the tiles need it before reading the points); taken
         from the store when ``reference`` is one.
     sigma_voxels, k, h, truncate, method
         As in :meth:`DensityField.from_points`.
@@ -317,6 +341,8 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | None = None,
         sigma_voxels = store.sigma / store.voxel_size
         tile_size = store.tile_blocks * BLOCK * store.voxel_size
     clouds = {"current": current} if store is not None else {"reference": reference, "current": current}
+    if store is None and isinstance(voxel_size, str):
+        voxel_size = sampled_voxel_size(list(clouds.values()), voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
     with _Session(clouds, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
                   tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit, scheduler=scheduler,
                   workers=workers, workdir=workdir) as run:
@@ -325,11 +351,14 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | None = None,
         t = time.perf_counter()
         out = {kind: _regions([r[kind] for r in results], run.voxel_size, min_region_points, regions)
                for kind in ("appeared", "disappeared")}
+        unseen = {kind: np.sort(np.concatenate([r[kind][4] for r in results])) for kind in ("appeared", "disappeared")}
         run.timings["regions"] = time.perf_counter() - t
     n_ref = run.sources["reference"].n_rows if store is None else store.n_points
     return TiledChanges(appeared_rows=out["appeared"][0], disappeared_rows=out["disappeared"][0],
                         appeared_region=out["appeared"][1], disappeared_region=out["disappeared"][1],
                         appeared_regions=out["appeared"][2], disappeared_regions=out["disappeared"][2],
+                        current_not_comparable_rows=unseen["appeared"],
+                        reference_not_comparable_rows=unseen["disappeared"],
                         n_current=run.sources["current"].n_rows, n_reference=n_ref,
                         n_dropped_current=run.dropped["current"], n_dropped_reference=run.dropped.get("reference", 0),
                         voxel_size=run.voxel_size, sigma=sigma_voxels * run.voxel_size,
@@ -337,8 +366,9 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | None = None,
                         timings=run.timings)
 
 
-def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float, sigma_voxels: float = 2.0,
-                      k: float = 3, h: float | None = None, truncate: float = 3.0, method: str = "auto",
+def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float | str = DEFAULTS.voxel_size,
+                      sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
+                      truncate: float = DEFAULTS.truncate, method: str = "auto",
                       tile_size: float | None = None, tile_points: int | None = None,
                       memory_limit: int | str | None = None, scheduler: str | None = None,
                       workers: int | None = None, workdir: str | os.PathLike | None = None) -> FieldStore:
@@ -348,6 +378,7 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float, sigm
     write (a folder, conventionally ``*.zarr``). Each tile's blocks equal those of
     :meth:`DensityField.from_points` on the whole cloud.
     """
+    voxel_size = sampled_voxel_size([cloud], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
     with _Session({"cloud": cloud}, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                   method=method, tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit,
                   scheduler=scheduler, workers=workers, workdir=workdir) as run:
@@ -417,6 +448,23 @@ class _Session:
         if getattr(self, "cluster", None) is not None:
             self.cluster.close()
         shutil.rmtree(self.root, ignore_errors=True)
+
+
+def sampled_voxel_size(clouds: list, *, voxel_size: float | str = DEFAULTS.voxel_size, k: float = DEFAULTS.k,
+                       sigma_voxels: float = DEFAULTS.sigma_voxels) -> float:
+    """``voxel_size``, or for ``"auto"`` :func:`sdp.auto_voxel_size` of the first slice of each
+    cloud (a path, :class:`~sdp.io.PointSource` or array): clouds too large to read whole."""
+    from ._points import as_points
+    from .params import resolve_voxel_size
+
+    if not isinstance(voxel_size, str):
+        return resolve_voxel_size([], voxel_size=voxel_size)
+    firsts = []
+    for c in clouds:
+        if isinstance(c, (str, os.PathLike)):
+            c = PointSource.open(c)
+        firsts.append(next(c.chunks())[1] if isinstance(c, PointSource) else c)
+    return resolve_voxel_size([as_points(x) for x in firsts], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
 
 
 def _source(s, root: str, epoch: str) -> PointSource:

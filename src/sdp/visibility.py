@@ -12,15 +12,19 @@ a band ``b(r) = max(range_noise·r², band_floor·σ)`` of range noise:
 - **seen free** (:data:`SEEN_FREE`): every return near the ray lies farther than r + b: the
   other scan looked through the point's place and found it empty, so the point is new;
 - **hidden** (:data:`HIDDEN`): a return near the ray stopped nearer than r − b, none at r: the
-  other scan could not see the point's place;
-- **unobserved** (:data:`UNOBSERVED`): no return near the ray (a dropout, or outside the other
-  scan's field of view): nothing to compare with.
+  other scan could not see the point's place (unless the point's own scan no longer holds the
+  hiding surface: then the place changed, whatever stood behind it);
+- **unobserved** (:data:`UNOBSERVED`): no return near the ray. Inside the other scan's field
+  of view and nearer than its farthest return, the ray found nothing in range: the place was
+  free (as seen free; a surface that returns nothing is the exception). Outside the field of
+  view, or beyond the sensor's reach: not seen.
 
 A hidden or unobserved point is explained, not a change, when it continues the unchanged
 surface around it (it lies on the least-squares plane of its nearest unchanged neighbours,
 and that patch is flat; Hoppe et al. [3]): that is the table a moved object uncovers, or the
-border of a field of view that moved. Otherwise (a new object where the other scan could not
-look) it stays a change.
+border of a field of view that moved. Otherwise (something where the other scan could not
+look) it is not comparable (:data:`sdp.coverage.NOT_COMPARABLE`): the other scan says nothing
+of it.
 
 The range image is spherical (azimuth, elevation about the sensor origin), as Underwood et al.
 [1] for change detection along laser rays, so any field of view works, from a Kinect's 57° to
@@ -48,10 +52,13 @@ import numba as nb
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
+from skimage.morphology import convex_hull_image
 
+from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from .errors import InvalidPointsError
 
-__all__ = ["RangeImage", "as_sensor_origins", "explained_by_visibility", "SEEN_FREE", "SAME_SURFACE", "HIDDEN",
+__all__ = ["RangeImage", "as_sensor_origins", "resolve_sensor_origins", "visibility_states", "SEEN_FREE",
+           "SAME_SURFACE", "HIDDEN",
            "UNOBSERVED"]
 
 #: Classes of :meth:`RangeImage.classify`.
@@ -132,14 +139,17 @@ def _near_far(az, el, rng, lo_az, lo_el, cell, n_az, n_el):
 
 @nb.njit(cache=True, nogil=True)
 def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noise, floor):
-    """Class of each ray (see :meth:`RangeImage.classify`) from the cells within ``reach`` of its own."""
+    """Class of each ray (see :meth:`RangeImage.classify`) from the cells within ``reach`` of its own,
+    and for hidden rays the range of the hiding surface (the farthest of the nearer cells' returns)."""
     out = np.empty(az.shape[0], np.int8)
+    hider = np.full(az.shape[0], np.nan)
     for i in range(az.shape[0]):
         r = rng[i]
         band = max(noise * r * r, floor)
         observed = False
         same = False
         nearer = False
+        hide = -np.inf
         if math.isfinite(az[i]):
             a0 = int(math.floor((az[i] - lo_az) / cell))
             e0 = int(math.floor((el[i] - lo_el) / cell))
@@ -153,15 +163,17 @@ def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noi
                         same = True
                     elif r > far[j]:
                         nearer = True
+                        hide = max(hide, far[j])
         if same:
             out[i] = 1  # SAME_SURFACE
         elif nearer:
             out[i] = 2  # HIDDEN
+            hider[i] = hide
         elif observed:
             out[i] = 0  # SEEN_FREE
         else:
             out[i] = 3  # UNOBSERVED
-    return out
+    return out, hider
 
 
 @nb.njit(cache=True, nogil=True)
@@ -261,6 +273,11 @@ class RangeImage:
         Cells along azimuth and elevation.
     near, far : ndarray (shape[0] * shape[1],) float64
         Nearest and farthest range per cell; ``inf`` and ``-inf`` where the scan has no return.
+    view : ndarray of bool (shape[0] * shape[1],)
+        The field of view: the convex hull of the cells with a return (a cell without return
+        inside it is a ray that found nothing in range).
+    reach_range : float
+        The farthest return of the scan: how far the sensor is known to see.
     """
 
     origin: np.ndarray
@@ -271,6 +288,8 @@ class RangeImage:
     shape: tuple[int, int]
     near: np.ndarray
     far: np.ndarray
+    view: np.ndarray
+    reach_range: float
 
     @classmethod
     def from_points(cls, points: np.ndarray, origin: npt.ArrayLike, *, cell_factor: float = 1.5,
@@ -306,10 +325,26 @@ class RangeImage:
         cell = max(cell_factor * spacing, 1e-9, float(np.sqrt(np.prod(extent + 1e-9) / _MAX_CELLS)))
         shape = (int(extent[0] // cell) + 1, int(extent[1] // cell) + 1)
         near, far = _near_far(az, el, rng, lo[0], lo[1], cell, shape[0], shape[1])
-        return cls(origin, frame, float(cell), float(spacing), lo, shape, near, far)
+        view = convex_hull_image(np.isfinite(near).reshape(shape))
+        return cls(origin, frame, float(cell), float(spacing), lo, shape, near, far, view.ravel(),
+                   float(far[np.isfinite(far)].max()))
 
-    def classify(self, points: np.ndarray, *, range_noise: float, floor: float = 0.0, reach: int = 1) -> np.ndarray:
-        """Class of each point along its ray from :attr:`origin` (int8, one per point).
+    def in_view(self, points: np.ndarray) -> np.ndarray:
+        """Is each point inside the field of view (:attr:`view`) and within :attr:`reach_range`?"""
+        az, el, rng = _angles(np.ascontiguousarray(points, dtype=np.float64), self.origin, self.frame)
+        with np.errstate(invalid="ignore"):
+            a = np.floor((az - self.lo[0]) / self.cell)
+            e = np.floor((el - self.lo[1]) / self.cell)
+            ok = (a >= 0) & (a < self.shape[0]) & (e >= 0) & (e < self.shape[1]) & (rng <= self.reach_range)
+        out = np.zeros(len(az), bool)
+        out[ok] = self.view[a[ok].astype(np.int64) * self.shape[1] + e[ok].astype(np.int64)]
+        return out
+
+    def classify(self, points: np.ndarray, *, range_noise: float, floor: float = 0.0, reach: int = 1,
+                 hiders: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """Class of each point along its ray from :attr:`origin` (int8, one per point); with
+        ``hiders``, also where the surface hiding each :data:`HIDDEN` point was seen (world
+        coordinates on the point's ray, NaN for the other classes).
 
         The returns compared are those of the cells within ``reach`` cells of the ray's own;
         the band is b = max(``range_noise``·r², ``floor``) at the point's range r.
@@ -317,9 +352,14 @@ class RangeImage:
         else :data:`HIDDEN` (2): a cell's returns are all nearer; else :data:`SEEN_FREE` (0):
         the returns are all farther than r + b; :data:`UNOBSERVED` (3): no return at all.
         """
-        az, el, rng = _angles(np.ascontiguousarray(points, dtype=np.float64), self.origin, self.frame)
-        return _classify(az, el, rng, self.near, self.far, self.lo[0], self.lo[1], self.cell, self.shape[0],
-                         self.shape[1], int(reach), float(range_noise), float(floor))
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        az, el, rng = _angles(points, self.origin, self.frame)
+        cls, hide = _classify(az, el, rng, self.near, self.far, self.lo[0], self.lo[1], self.cell, self.shape[0],
+                              self.shape[1], int(reach), float(range_noise), float(floor))
+        if not hiders:
+            return cls
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return cls, self.origin + (points - self.origin) * (hide / rng)[:, None]
 
 
 def _view_frame(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
@@ -375,13 +415,33 @@ def as_sensor_origins(sensor_origin: npt.ArrayLike) -> tuple[np.ndarray, np.ndar
     return o[0].copy(), o[1].copy()
 
 
-def explained_by_visibility(points: np.ndarray, changed: np.ndarray, other: np.ndarray, other_origin: npt.ArrayLike,
+def resolve_sensor_origins(sensor_origin, reference, current) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(reference's, current's) sensor origin, each None when unknown.
+
+    ``"auto"``: what each cloud knows (:attr:`sdp.io.Cloud.sensor_origin`, e.g. an organized
+    PCD's VIEWPOINT; arrays know nothing); ``None`` or ``"none"``: no sensor; else a position
+    (3,) for both or one per scan (2, 3), as :func:`as_sensor_origins`, or a pair whose unknown
+    entry is None.
+    """
+    if sensor_origin is None or (isinstance(sensor_origin, str) and sensor_origin == "none"):
+        return None, None
+    if isinstance(sensor_origin, str):
+        if sensor_origin != "auto":
+            raise InvalidPointsError(f"sensor_origin must be 'auto', 'none', None or a position, got {sensor_origin!r}")
+        sensor_origin = [getattr(c, "sensor_origin", None) for c in (reference, current)]
+    if isinstance(sensor_origin, (list, tuple)) and len(sensor_origin) == 2 and any(o is None for o in sensor_origin):
+        return tuple(None if o is None else as_sensor_origins(o)[0] for o in sensor_origin)
+    return as_sensor_origins(sensor_origin)
+
+
+def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray, other_origin: npt.ArrayLike,
                             *, sigma: float, range_noise: float = 0.015, band_floor: float = 1.0,
                             cell_factor: float = 1.5, reach: int = 1, plane_points: int = 50,
                             plane_stride: int = 8, plane_bin: float = 2.0, plane_distance: float = 2.0,
                             plane_flatness: float = 1.0,
-                            spacing: float | None = None, image: RangeImage | None = None) -> np.ndarray:
-    """Which changed points the other scan's view explains (not a change).
+                            spacing: float | None = None, image: RangeImage | None = None,
+                            present=None) -> np.ndarray:
+    """What the other scan's view says of each changed point: unchanged, changed or not comparable.
 
     Parameters
     ----------
@@ -421,30 +481,48 @@ def explained_by_visibility(points: np.ndarray, changed: np.ndarray, other: np.n
     image : RangeImage, optional
         ``RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)``
         built beforehand, for many calls against the same scan (:func:`sdp.watch`).
+    present : callable, optional
+        ``present(xyz) -> bool mask``: does the points' own scan still hold something at these
+        places (e.g. ``DensityField.inside`` of their own field)? A point hidden from the other
+        scan behind a surface that is gone from its own scan (an object taken away, another put
+        in its place) is judged as a seen point: by the plane test, else changed. Without it,
+        every hidden point is treated as unseen.
 
     Returns
     -------
-    ndarray of bool (n,)
-        True where a changed point is explained: seen as the same surface, or hidden or
-        unobserved and continuing the unchanged surface. False elsewhere (and for unchanged
-        points).
+    ndarray of uint8 (n,)
+        :data:`sdp.coverage.UNCHANGED` where a changed point is explained (seen as the same
+        surface, or hidden or unobserved and continuing the unchanged surface) and for the
+        points not ``changed``; :data:`~sdp.coverage.CHANGED` where the other scan saw through
+        the point's place; :data:`~sdp.coverage.NOT_COMPARABLE` where it could not see it
+        (hidden, or no return near the ray: outside its field of view, or a dropout) and the
+        point does not continue the unchanged surface.
     """
     changed = np.asarray(changed, dtype=bool)
-    explained = np.zeros(len(points), bool)
+    states = changed.astype(np.uint8)  # UNCHANGED / CHANGED
     cand = np.flatnonzero(changed)
     if len(cand) == 0:
-        return explained
+        return states
     if image is None:
         image = RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)
-    cls = image.classify(points[cand], range_noise=range_noise, floor=band_floor * sigma, reach=reach)
-    explained[cand[cls == SAME_SURFACE]] = True
-    unseen = cand[(cls == HIDDEN) | (cls == UNOBSERVED)]
+    cls, hider = image.classify(points[cand], range_noise=range_noise, floor=band_floor * sigma, reach=reach,
+                                hiders=True)
+    states[cand[cls == SAME_SURFACE]] = UNCHANGED
+    hidden, missing = cls == HIDDEN, cls == UNOBSERVED
+    if present is not None and hidden.any():  # hidden behind what is still there: not seen
+        states[cand[hidden]] = np.where(present(hider[hidden]), NOT_COMPARABLE, CHANGED)
+    else:
+        states[cand[hidden]] = NOT_COMPARABLE
+    if missing.any():  # no return: free in range inside the field of view, unseen outside it
+        states[cand[missing]] = np.where(image.in_view(points[cand[missing]]), CHANGED, NOT_COMPARABLE)
+    unseen = cand[hidden | missing]
     static = points[np.flatnonzero(~changed)[::max(1, int(plane_stride))]]
     if len(unseen) and len(static) >= 3:
-        explained[unseen] = _on_unchanged_plane(points[unseen], static, k=min(int(plane_points), len(static)),
-                                                distance=plane_distance * sigma, flatness=plane_flatness * sigma,
-                                                bin_size=plane_bin * sigma)
-    return explained
+        on_plane = _on_unchanged_plane(points[unseen], static, k=min(int(plane_points), len(static)),
+                                       distance=plane_distance * sigma, flatness=plane_flatness * sigma,
+                                       bin_size=plane_bin * sigma)
+        states[unseen[on_plane]] = UNCHANGED
+    return states
 
 
 def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distance: float, flatness: float,
