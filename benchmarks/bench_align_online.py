@@ -300,7 +300,7 @@ def align_table():
             for voxel in ("auto", 0.02):
                 base = None
                 for label, xyz, kw in variants:
-                    r = sdp.detect_changes(ref, xyz, voxel_size=voxel, min_region_points=50, **kw)
+                    r = sdp.detect_changes(ref, xyz, voxel_size=voxel, **kw)
                     found = sum(r.appeared[m].mean() >= 0.5 for m in persons)
                     flagged = r.appeared & static
                     n_static = int(flagged.sum())
@@ -361,8 +361,8 @@ def online_table(repeats=3):
         for update, regions, align, origin in configs:
             kw = dict(update=update, regions=regions, align=align, sensor_origin=origin)
             list(sdp.watch(ref.xyz, frames[:2], **kw))  # warm the compiled kernels
-            runs = [list(sdp.watch(ref.xyz, frames, min_region_points=50 if regions else 1, **kw))
-                    for _ in range(repeats)]
+            least = sdp.DEFAULTS.min_region_points if regions else 1
+            runs = [list(sdp.watch(ref.xyz, frames, min_region_points=least, **kw)) for _ in range(repeats)]
             reps = runs[0]
             lat = np.array([r.latency for run in runs for r in run]) * 1e3
             step = " / ".join(f"{1e3 * np.median([r.timings.get(k, 0.0) for run in runs for r in run]):.1f}"
