@@ -300,9 +300,13 @@ class DensityField:
         flat = np.c_[flat[:, :2], np.full(len(flat), self.grid.origin[2])]  # z at the first node of a column
         shape = self.grid.shape_blocks
         packed = self._keys[:, 0] * shape[1] + self._keys[:, 1]
-        cols, inverse = np.unique(packed, return_inverse=True)
-        sums = np.zeros((len(cols), BLOCK, BLOCK))
-        np.add.at(sums, inverse.ravel(), self._blocks.reshape(-1, BLOCK, BLOCK, BLOCK).sum(axis=3, dtype=np.float64))
+        along_z = self._blocks.reshape(-1, BLOCK, BLOCK, BLOCK).sum(axis=3, dtype=np.float64)
+        if np.any(packed[1:] < packed[:-1]):  # built fields keep a column's blocks together; accumulated ones may not
+            order = np.argsort(packed, kind="stable")
+            packed, along_z = packed[order], along_z[order]
+        starts = np.flatnonzero(np.r_[True, packed[1:] != packed[:-1]]) if len(packed) else np.zeros(0, np.int64)
+        cols = packed[starts]
+        sums = np.add.reduceat(along_z, starts, axis=0) if len(starts) else np.zeros((0, BLOCK, BLOCK))
         sums *= self.voxel_size / (math.sqrt(2 * math.pi) * self.sigma)
         directory = np.full((shape[0], shape[1], 1), -1, np.int32)
         directory[cols // shape[1], cols % shape[1], 0] = np.arange(len(cols), dtype=np.int32)

@@ -52,7 +52,7 @@ import numba as nb
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
-from skimage.morphology import convex_hull_image
+from scipy.spatial import ConvexHull, QhullError
 
 from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from .errors import InvalidPointsError
@@ -325,7 +325,7 @@ class RangeImage:
         cell = max(cell_factor * spacing, 1e-9, float(np.sqrt(np.prod(extent + 1e-9) / _MAX_CELLS)))
         shape = (int(extent[0] // cell) + 1, int(extent[1] // cell) + 1)
         near, far = _near_far(az, el, rng, lo[0], lo[1], cell, shape[0], shape[1])
-        view = convex_hull_image(np.isfinite(near).reshape(shape))
+        view = _convex_hull(np.isfinite(near).reshape(shape))
         return cls(origin, frame, float(cell), float(spacing), lo, shape, near, far, view.ravel(),
                    float(far[np.isfinite(far)].max()))
 
@@ -360,6 +360,34 @@ class RangeImage:
             return cls
         with np.errstate(invalid="ignore", divide="ignore"):
             return cls, self.origin + (points - self.origin) * (hide / rng)[:, None]
+
+
+def _convex_hull(seen: np.ndarray) -> np.ndarray:
+    """The cells (centres) inside the convex hull of the True cells' squares, as
+    ``skimage.morphology.convex_hull_image``: a hull of each row's outermost cells, filled row by
+    row (a convex polygon cuts each row in one interval)."""
+    rows = np.flatnonzero(seen.any(axis=1))
+    if len(rows) == 0:
+        return np.zeros_like(seen)
+    first = seen[rows].argmax(axis=1)
+    last = seen.shape[1] - 1 - seen[rows, ::-1].argmax(axis=1)
+    ends = np.r_[np.c_[rows, first], np.c_[rows, last]].astype(np.float64)
+    corners = (ends[:, None, :] + np.array([[-0.5, -0.5], [-0.5, 0.5], [0.5, -0.5], [0.5, 0.5]])).reshape(-1, 2)
+    try:
+        v = corners[ConvexHull(corners).vertices]
+    except QhullError:  # all in one line of cells: the corners span it already
+        v = corners
+    p, q = v, np.roll(v, -1, axis=0)
+    a = np.arange(seen.shape[0], dtype=np.float64)[:, None]
+    lo_x, hi_x = np.minimum(p[:, 0], q[:, 0]), np.maximum(p[:, 0], q[:, 0])
+    crosses = (a >= lo_x) & (a <= hi_x)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(q[:, 0] != p[:, 0], (a - p[:, 0]) / (q[:, 0] - p[:, 0]), 0.0)
+    e = np.where(crosses, p[:, 1] + t * (q[:, 1] - p[:, 1]), np.nan)
+    with np.errstate(invalid="ignore"):
+        lo, hi = np.nanmin(np.where(crosses, e, np.inf), axis=1), np.nanmax(np.where(crosses, e, -np.inf), axis=1)
+    cols = np.arange(seen.shape[1], dtype=np.float64)[None, :]
+    return (cols >= lo[:, None]) & (cols <= hi[:, None])
 
 
 def _view_frame(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
