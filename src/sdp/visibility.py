@@ -51,8 +51,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import cKDTree
-from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from .errors import InvalidPointsError
