@@ -144,3 +144,17 @@ def test_watch_marks_what_the_reference_never_covered(rng):
     assert r.not_comparable[strip].mean() > 0.95 and not r.appeared[strip].any()
     assert r.summary()["not_comparable"] == r.not_comparable.sum()
     np.testing.assert_array_equal(r.state == NOT_COMPARABLE, r.not_comparable)
+
+
+def test_a_landscape_is_drawn_as_a_map_and_a_room_in_three_views(tmp_path, rng, monkeypatch):
+    from sdp import render
+
+    old, _ = flight(rng, 60, spacing=1.5)
+    new, _ = flight(rng, 90, building=(20, 20, 35, 35), spacing=1.5)
+    state = sdp.detect_changes(old, new).current_state
+    drawn = []
+    monkeypatch.setattr(render, "_map", lambda *a, _map=render._map: drawn.append("map") or _map(*a))
+    render.render_changes(tmp_path / "map.png", new + [6e5, 5e6, 0], state)  # UTM-sized: relative axes
+    render.render_changes(tmp_path / "room.png", rng.random((2000, 3)), rng.random(2000) < 0.1)
+    assert drawn == ["map"]
+    assert (tmp_path / "map.png").stat().st_size > 1000 and (tmp_path / "room.png").stat().st_size > 1000

@@ -47,7 +47,7 @@ EXAMPLES_EVAL = """  sdp eval changes.ply truth.ply                             
   sdp eval demo-output/current_labelled.ply demo-output/current_labelled.ply --truth-field truth
   sdp eval changes.las scan_labels.las --truth-field classification --json
 """
-EXAMPLES_RENDER = """  sdp render changes.ply --png changes.png                    'change' field in red
+EXAMPLES_RENDER = """  sdp render changes.ply --png changes.png                    'change' field: changed in vermillion
   sdp render changes.laz --html changes.html --field change   interactive, opens in a browser
   sdp render scan.sdpf --png slices.png                       three slices of F = h - G
 """
@@ -619,9 +619,9 @@ def cmd_render(a):
                            f"(fields: {', '.join(sorted(c.fields)) or 'none'}); choose one with --field")
         values = np.asarray(c.fields[a.field])
         if a.field == "change":  # sdp's field: 0 unchanged, 1 changed, 2 not comparable
-            state, what = values.astype(np.uint8), "changed in red, not comparable grey"
+            state, what = values.astype(np.uint8), "changed vermillion, not comparable grey"
         else:
-            state, what = values != 0, f"{a.field} ≠ 0 in red"
+            state, what = values != 0, f"{a.field} ≠ 0 in vermillion"
         written = _pictures(a, c.xyz, state, f"{Path(a.file).name}: {what}")
     print("\n".join(f"wrote {w}" for w in written))
     return 0
@@ -669,7 +669,7 @@ def cmd_demo(a):
                   "F": r.current_field.field(s.current).astype(np.float32)})
     write_mesh(out / "current_cluster_volume.ply", r.current_field.mesh())
     render_changes(out / "changes.png", s.current, r.current_state,
-                   title=f"sdp demo: appeared points in red, not comparable grey (kappa {sc['kappa']:.3f} "
+                   title=f"sdp demo: appeared points vermillion, not comparable grey (kappa {sc['kappa']:.3f} "
                          "vs. ground truth on the comparable points)")
     print(f"\nwrote {out}/reference.ply, current_labelled.ply, current_cluster_volume.ply, changes.png")
     return 0
@@ -797,7 +797,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("file", help="cloud with a label field, or a field (.sdpf)")
     r.add_argument("--png", help="picture (three views of a cloud; three slices of a field)")
     r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")
-    r.add_argument("--field", default="change", help="per-point field whose nonzero points are red (default change)")
+    r.add_argument("--field", default="change", help="per-point field whose nonzero points are drawn as changed (default change)")
 
     for q in (c, b, i, m, o, al, w, e, r):
         q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz)")

@@ -1,9 +1,21 @@
-"""Pictures of results: changed points red over unchanged blue (the paper's Figure 9), not
-comparable points grey, as PNG
-(matplotlib) or as an interactive page (plotly, the ``html`` extra), and slices of a field."""
+"""Pictures of results: changed points over unchanged ones (the paper's Figure 9), not comparable
+points in a neutral grey, as PNG (matplotlib) or as an interactive page (plotly, the ``html``
+extra), and slices of a field.
+
+The picture is chosen by the data: a scene much wider than tall (airborne, mobile, terrain) is
+drawn as a top-down map, in coordinates relative to a stated round origin, with a scale bar and a
+north arrow (+y, as in projected coordinate systems); a room or an object as three 3-D views.
+Colours are the Okabe–Ito palette, told apart by colour-blind readers [1].
+
+References
+----------
+.. [1] M. Okabe, K. Ito, "Color Universal Design (CUD): how to make figures and presentations that
+   are friendly to colorblind people", J*FLY, 2008.
+"""
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -15,46 +27,83 @@ from .io import atomic_path
 
 __all__ = ["render_changes", "render_changes_html", "render_field"]
 
-_RED, _BLUE, _GREY = "#d62728", "#3b6fb6", "#b0b0b0"
+_VERMILLION, _BLUE, _GREY = "#D55E00", "#0072B2", "#B4B4B4"  # Okabe–Ito, and a neutral grey
 
 _VIEWS = ((25, -60, "oblique"), (90, -90, "top"), (0, -90, "front"))
 # drawn in this order (later on top): state value, name, colour, marker size (PNG, HTML)
 _LAYERS = ((UNCHANGED, "unchanged", _BLUE, 0.6, 1), (NOT_COMPARABLE, "not comparable", _GREY, 0.8, 1),
-           (CHANGED, "changed", _RED, 1.5, 2))
+           (CHANGED, "changed", _VERMILLION, 1.5, 2))
+_FLAT = 0.1  # height below this share of the horizontal extent: a map
 
 
 def render_changes(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray, *, title: str = "",
-                   max_points: int = 80_000, seed: int = 0) -> Path:
-    """Write a PNG with three views of ``xyz``: changed points red, unchanged blue, not comparable
-    grey, with counts.
+                   max_points: int = 80_000, seed: int = 0, view: str = "auto") -> Path:
+    """Write a PNG of ``xyz``: changed points vermillion, unchanged blue, not comparable grey,
+    with counts.
 
     ``changed`` is a boolean mask, or the ``change`` field of :mod:`sdp.coverage` (0 unchanged,
     1 changed, 2 not comparable). Unchanged and not comparable points are subsampled to
-    ``max_points`` each for drawing; changed points are all drawn, on top.
+    ``max_points`` each for drawing; changed points are all drawn, on top. ``view``: ``"map"``
+    (top-down, relative coordinates, scale bar, north arrow), ``"3d"`` (three views) or
+    ``"auto"`` (a map when the scene's height is below a tenth of its horizontal extent).
     """
     plt = _pyplot()
     xyz = np.asarray(xyz)
     layers = _drawn(changed, max_points, seed)
-    fig = plt.figure(figsize=(15, 5.4), dpi=110, layout="constrained")
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
-    for i, (elev, azim, name) in enumerate(_VIEWS):
-        ax = fig.add_subplot(1, 3, i + 1, projection="3d")
-        for idx, label, n, color, size, _ in layers:
-            ax.scatter(*xyz[idx].T, s=size, c=color, alpha=0.9 if color == _RED else 0.5, linewidths=0,
-                       label=f"{label} ({n:,})")
-        ax.view_init(elev=elev, azim=azim)
-        ax.set_box_aspect(np.maximum(hi - lo, 1e-9))
-        ax.set_title(name)
-        ax.set_xlabel("x")
-        ax.set_ylabel("y")
-        ax.set_zlabel("z")
-        if name != "oblique":  # the axis seen end-on carries no information
-            (ax.set_zticks if name == "top" else ax.set_yticks)([])
-        if i == 0:
-            ax.legend(loc="upper left", markerscale=8, fontsize=9)
+    if view not in ("auto", "map", "3d"):
+        raise ValueError(f"view must be 'auto', 'map' or '3d', got {view!r}")
+    if view == "map" or (view == "auto" and hi[2] - lo[2] < _FLAT * max(hi[0] - lo[0], hi[1] - lo[1])):
+        fig = _map(plt, xyz, layers, lo, hi)
+    else:
+        fig = plt.figure(figsize=(15, 5.4), dpi=110, layout="constrained")
+        for i, (elev, azim, name) in enumerate(_VIEWS):
+            ax = fig.add_subplot(1, 3, i + 1, projection="3d")
+            for idx, label, n, color, size, _ in layers:
+                ax.scatter(*xyz[idx].T, s=size, c=color, alpha=0.9 if color == _VERMILLION else 0.5, linewidths=0,
+                           label=f"{label} ({n:,})")
+            ax.view_init(elev=elev, azim=azim)
+            ax.set_box_aspect(np.maximum(hi - lo, 1e-9))
+            ax.set_title(name)
+            ax.set_xlabel("x")
+            ax.set_ylabel("y")
+            ax.set_zlabel("z")
+            if name != "oblique":  # the axis seen end-on carries no information
+                (ax.set_zticks if name == "top" else ax.set_yticks)([])
+            if i == 0:
+                ax.legend(loc="upper left", markerscale=8, fontsize=9)
     if title:
         fig.suptitle(title)
     return _save_png(fig, path)
+
+
+def _map(plt, xyz, layers, lo, hi):
+    """A top-down map: x, y relative to a round origin named on the axes, a scale bar, a north arrow."""
+    from matplotlib.ticker import MaxNLocator
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    span = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]), 1e-9)
+    step = 10.0 ** math.floor(math.log10(span))
+    origin = np.floor(lo[:2] / step) * step
+    w, h = float(hi[0] - lo[0]), float(hi[1] - lo[1])
+    aspect = min(max(h / max(w, 1e-9), 0.3), 3.0)
+    fig, ax = plt.subplots(figsize=(9, 9 * aspect * 0.9 + 1.2), dpi=110, layout="constrained")
+    for idx, label, n, color, size, _ in layers:
+        ax.scatter(xyz[idx, 0] - origin[0], xyz[idx, 1] - origin[1], s=size * 2, c=color, linewidths=0,
+                   alpha=0.9 if color == _VERMILLION else 0.6, label=f"{label} ({n:,})")
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"x − {origin[0]:,.0f}")
+    ax.set_ylabel(f"y − {origin[1]:,.0f}")
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_locator(MaxNLocator(6))
+    ax.legend(loc="best", markerscale=6, fontsize=9, framealpha=0.9)
+    bar = 10.0 ** math.floor(math.log10(span / 4))
+    bar *= 5 if 5 * bar <= span / 4 else (2 if 2 * bar <= span / 4 else 1)
+    ax.add_artist(AnchoredSizeBar(ax.transData, bar, f"{bar:g}", "lower right", pad=0.6, frameon=True,
+                                  size_vertical=span / 300))
+    ax.annotate("N", xy=(0.04, 0.95), xytext=(0.04, 0.84), xycoords="axes fraction", ha="center", va="center",
+                fontsize=12, fontweight="bold", arrowprops={"arrowstyle": "-|>", "color": "k", "lw": 1.5})
+    return fig
 
 
 def render_changes_html(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray, *, title: str = "",
