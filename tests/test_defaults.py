@@ -110,8 +110,8 @@ def test_sdp_change_and_detect_changes_agree_with_no_option(tmp_path, shared_dat
 def test_k_reaches_the_automatic_voxel_of_build_and_tiles(tmp_path, rng):
     pts = rng.random((4000, 3))
     np.save(tmp_path / "a.npy", pts)
-    p = subprocess.run([sys.executable, "-m", "sdp.cli", "build", str(tmp_path / "a.npy"), "-o", str(tmp_path / "a.sdpf"),
-                        "-k", "5"], capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "build", str(tmp_path / "a.npy"),
+                        "-o", str(tmp_path / "a.sdpf"), "-k", "5"], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     built = sdp.DensityField.load(tmp_path / "a.sdpf")
     assert built.voxel_size == pytest.approx(sdp.auto_voxel_size(pts, k=5))

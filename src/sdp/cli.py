@@ -797,7 +797,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("file", help="cloud with a label field, or a field (.sdpf)")
     r.add_argument("--png", help="picture (three views of a cloud; three slices of a field)")
     r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")
-    r.add_argument("--field", default="change", help="per-point field whose nonzero points are drawn as changed (default change)")
+    r.add_argument("--field", default="change",
+                   help="per-point field whose nonzero points are drawn as changed (default change)")
 
     for q in (c, b, i, m, o, al, w, e, r):
         q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz)")
