@@ -21,6 +21,7 @@ from .errors import (
                      FieldFileError,
                      GridTooLargeError,
                      IncompatibleFieldsError,
+                     InvalidOptionError,
                      InvalidPointsError,
                      MissingDependencyError,
                      SDPError,
@@ -51,6 +52,6 @@ __all__ = [
     "render_changes", "render_changes_html", "render_field",
     "kappa", "confusion_matrix", "scores",
     "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",
-    "FieldFileError", "CloudFileError", "MissingDependencyError",
+    "FieldFileError", "CloudFileError", "MissingDependencyError", "InvalidOptionError",
 ]
 __version__ = "0.1.0"

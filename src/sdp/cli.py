@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, _progress
+from . import validate as V
 from .errors import SDPError
 from .io import read_points
 
@@ -54,23 +55,29 @@ EXAMPLES_RENDER = """  sdp render changes.ply --png changes.png                 
 
 def _grid_options(p):
     g = p.add_argument_group("grid (default: --voxel-size auto)")
-    g.add_argument("--voxel-size", default="auto", help="voxel length in world units, or 'auto' (from point spacing)")
-    g.add_argument("--grid-size", type=int, help="the paper's level of detail: longest side / GRID_SIZE")
-    g.add_argument("-k", type=float, default=3, help="threshold h = 1 + k·e^-1/2 (default 3)")
-    g.add_argument("--h", type=float, help="threshold h given directly")
-    g.add_argument("--sigma-voxels", type=float, default=2.0, help="sigma in voxels (default 2)")
-    g.add_argument("--memory-limit", help="refuse grids needing more (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
+    g.add_argument("--voxel-size", default="auto", type=V.cli_type(V.auto_or_positive),
+                   help="voxel length in world units, or 'auto' (from point spacing)")
+    g.add_argument("--grid-size", type=V.cli_type(V.integer_at_least, 1),
+                   help="the paper's level of detail: longest side / GRID_SIZE")
+    g.add_argument("-k", type=V.cli_type(V.finite), default=3, help="threshold h = 1 + k·e^-1/2 (default 3)")
+    g.add_argument("--h", type=V.cli_type(V.positive_finite), help="threshold h given directly")
+    g.add_argument("--sigma-voxels", type=V.cli_type(V.positive_finite), default=2.0, help="sigma in voxels (default 2)")
+    g.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
+                   help="refuse grids needing more (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
 
 
 def _tile_options(p, title, *, tiled: bool = True):
     t = p.add_argument_group(title)
     if tiled:
         t.add_argument("--tiled", action="store_true", help="work in tiles even if the clouds fit in memory")
-    t.add_argument("--tile-size", type=float, help="tile edge in world units (default: ~2M points per tile)")
+    t.add_argument("--tile-size", type=V.cli_type(V.positive_finite),
+                   help="tile edge in world units (default: ~2M points per tile)")
     t.add_argument("--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786 "
                    "(default: a local cluster of --workers processes)")
-    t.add_argument("--workers", type=int, help="worker processes of the local cluster (default: one per core)")
-    t.add_argument("--workdir", help="folder for the tiles' buckets (shared by all workers on a cluster)")
+    t.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1),
+                   help="worker processes of the local cluster (default: one per core)")
+    t.add_argument("--workdir", type=V.cli_type(V.existing_folder),
+                   help="folder for the tiles' buckets (shared by all workers on a cluster)")
 
 
 def _tile_kwargs(a) -> dict:
@@ -630,8 +637,15 @@ def _command(sub, name, func, help, examples):
     return p
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (``sdp: error: ...``, status 2), pointing at ``--help``."""
+
+    def error(self, message: str):
+        self.exit(2, f"sdp: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sdp", description="Compare point clouds through spatial density patterns.")
+    p = _Parser(prog="sdp", description="Compare point clouds through spatial density patterns.")
     p.add_argument("--version", action="version", version=f"sdp {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -642,7 +656,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--both", action="store_true",
                    help="also write the disappeared reference points (OUTPUT_disappeared)")
     c.add_argument("--decision", choices=("point", "cluster"), default="point")
-    c.add_argument("--min-region-points", type=int, default=1, help="drop change regions with fewer points")
+    c.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=1,
+                   help="drop change regions with fewer points")
     c.add_argument("--png", help="write a picture of the appeared points")
     c.add_argument("--html", help="write an interactive 3D view (needs the html extra: plotly)")
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -652,7 +667,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--sensor-origin", metavar="viewpoint|X,Y,Z",
                    help="test changes along the sensor's rays (sdp.visibility): 'viewpoint' takes each PCD's "
                         "VIEWPOINT header, X,Y,Z one position for both scans")
-    c.add_argument("--range-noise", type=float, default=0.015,
+    c.add_argument("--range-noise", type=V.cli_type(V.nonnegative_finite), default=0.015,
                    help="with --sensor-origin: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
     _tile_options(c, "large clouds: tiles on Dask (taken by itself when the grids or points exceed --memory-limit, "
                      "or when REFERENCE is a .zarr field store; outputs LAS/LAZ with 'change' and 'region')")
@@ -671,7 +686,7 @@ def build_parser() -> argparse.ArgumentParser:
                  "  sdp mesh scan.sdpf -o surface.ply\n  sdp mesh scan.pcd -o surface.obj --level 0")
     m.add_argument("input")
     m.add_argument("-o", "--output", required=True, help=".ply, .obj or .stl")
-    m.add_argument("--level", type=float, default=0.0, help="level of F = h - G (0: the cluster boundary)")
+    m.add_argument("--level", type=V.cli_type(V.finite), default=0.0, help="level of F = h - G (0: the cluster boundary)")
 
     o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds",
                  EXAMPLES_BOOL)
@@ -696,17 +711,17 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("frames", help="folder of frames, processed in natural name order")
     w.add_argument("--update", choices=("none", "window", "decay"), default="window",
                    help="how the model learns the frames (default window)")
-    w.add_argument("--window", type=int, default=10, help="frames in the model, reference included (default 10)")
+    w.add_argument("--window", type=V.cli_type(V.integer_at_least, 1), default=10, help="frames in the model, reference included (default 10)")
     w.add_argument("--decay", type=float, default=0.8, help="per-frame forgetting factor for --update decay")
-    w.add_argument("--min-region-points", type=int, default=50, help="drop appeared regions with fewer points")
-    w.add_argument("--voxel-size", default="auto", help="voxel of a reference cloud, or 'auto'")
+    w.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=50, help="drop appeared regions with fewer points")
+    w.add_argument("--voxel-size", default="auto", type=V.cli_type(V.auto_or_positive), help="voxel of a reference cloud, or 'auto'")
     w.add_argument("--align", choices=("gicp", "density"),
                    help="register each frame onto the reference first (a moving camera): gicp (small_gicp, "
                         "needs a reference cloud) or density")
     w.add_argument("--sensor-origin", metavar="viewpoint|X,Y,Z",
                    help="test changes along the reference's rays (sdp.visibility): 'viewpoint' takes the "
                         "reference PCD's VIEWPOINT header, X,Y,Z its sensor position")
-    w.add_argument("--range-noise", type=float, default=0.015,
+    w.add_argument("--range-noise", type=V.cli_type(V.nonnegative_finite), default=0.015,
                    help="with --sensor-origin: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
     w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
 
@@ -724,7 +739,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("data_dir")
     ev.add_argument("--json", action="store_true", help="print the accuracies (fractions) and timings as JSON")
     for q in (t, ev):
-        q.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes reading sequences")
+        q.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1), default=os.cpu_count() or 1,
+                       help="processes reading sequences")
 
     e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth",
                  EXAMPLES_EVAL)

@@ -20,8 +20,9 @@ import numpy as np
 from . import _kernels as K
 from ._points import Points, as_points
 from ._progress import bar
-from .errors import FieldFileError, IncompatibleFieldsError, InvalidPointsError
+from .errors import FieldFileError, IncompatibleFieldsError, InvalidOptionError, InvalidPointsError
 from .grid import BLOCK, Grid, check_memory, voxel_size_for_grid_size
+from .validate import check_grid_options, check_kernel, positive_finite
 
 __all__ = ["DensityField", "threshold", "FORMAT_VERSION"]
 
@@ -142,17 +143,18 @@ class DensityField:
         written, taps), the field holding the exact sums (``method="exact"``, taps None) or the
         binned weights still to be blurred with ``taps`` (``"fast"``)."""
         cloud = points if isinstance(points, Points) else as_points(points)  # validated already (watch, detect_changes)
+        check_grid_options(voxel_size=None if grid_size is not None else voxel_size, sigma_voxels=sigma_voxels, k=k,
+                           h=h, truncate=truncate, memory_limit=memory_limit)
         l = _resolve_voxel_size(cloud.lo, cloud.hi, voxel_size=voxel_size, grid_size=grid_size)
-        if not sigma_voxels > 0 or not truncate > 0:
-            raise ValueError("sigma_voxels and truncate must be positive")
         if method == "auto":
             method = _AUTO_METHOD
         if method not in ("exact", "fast"):
-            raise ValueError(f"method must be 'auto', 'exact' or 'fast', got {method!r}")
-        if method == "fast" and sigma_voxels**2 <= 1.0 / 6.0:
-            raise ValueError("method='fast' needs sigma_voxels > 0.41; use method='exact'")
+            raise InvalidOptionError(f"method must be 'auto', 'exact' or 'fast', got {method!r}")
+        if method == "fast" and sigma_voxels <= math.sqrt(1.0 / 6.0):
+            raise InvalidOptionError(f"sigma of {sigma_voxels:g} voxels is below 0.41 voxels, the least the fast build "
+                                     "(binning, then a blur) can make: use a larger sigma in voxels")
         rmax = truncate * sigma_voxels
-        reach = int(math.ceil(rmax))
+        reach = check_kernel(sigma_voxels, truncate, memory_limit)
         grid = Grid.covering(cloud.lo, cloud.hi, l, reach)
         check_memory(grid.n_blocks_box * 5, f"the block directory of a {grid.shape} grid", memory_limit)
         xyz, origin, l = cloud.xyz, grid.origin, grid.voxel_size
@@ -450,9 +452,11 @@ def _query_array(points) -> np.ndarray:
 
 def _resolve_voxel_size(lo, hi, *, voxel_size, grid_size) -> float:
     if (voxel_size is None) == (grid_size is None):
-        raise ValueError("give exactly one of voxel_size= (world units) and grid_size= (segments of the longest side)")
+        raise InvalidOptionError("give exactly one of voxel_size= (world units) and grid_size= (segments of the "
+                                 "longest side)")
     if grid_size is not None:
         return voxel_size_for_grid_size(lo, hi, grid_size)
-    if not (isinstance(voxel_size, (int, float, np.floating)) and voxel_size > 0 and math.isfinite(voxel_size)):
-        raise ValueError(f"voxel_size must be a positive length in world units, got {voxel_size!r}")
-    return float(voxel_size)
+    if isinstance(voxel_size, str):
+        raise InvalidOptionError(f"voxel_size must be a positive length in world units, got {voxel_size!r} "
+                                 "(sdp.auto_voxel_size picks one from the points)")
+    return positive_finite("voxel_size", voxel_size)

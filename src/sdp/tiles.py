@@ -42,13 +42,15 @@ import numpy as np
 from . import _kernels as K
 from ._progress import bar
 from .boolean import difference_on_own_blocks
-from .errors import InvalidPointsError
+from .errors import InvalidOptionError, InvalidPointsError, SDPError
 from .field import DensityField, threshold
-from .grid import BLOCK, Grid
+from .grid import BLOCK, Grid, check_memory
 from .grid import memory_limit as _memory_limit
 from .io import PointSource
 from .regions import Region, describe_regions, label_points
 from .store import FieldStore
+from .validate import (check_grid_options, check_kernel, check_lattice, check_tile_options, integer_at_least,
+                       kernel_reach, positive_finite)
 
 __all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "dense_grid_bytes", "untiled_point_bytes"]
 
@@ -133,9 +135,9 @@ def dense_grid_bytes(lo, hi, voxel_size: float, *, sigma_voxels: float = 2.0, tr
     """Bytes of one float32 dense grid over the box [lo, hi] with its kernel margin: the size
     at which :func:`detect_changes_tiled` is worth its overhead (``sdp change`` switches when
     two of them exceed the memory limit)."""
-    reach = math.ceil(truncate * sigma_voxels)
-    nodes = np.floor((np.asarray(hi, float) - np.asarray(lo, float)) / voxel_size) + 2 * reach + 2
-    return int(np.prod(nodes) * 4)
+    reach = kernel_reach(sigma_voxels, truncate)
+    nodes = np.floor((np.asarray(hi, float) - np.asarray(lo, float)) / positive_finite("voxel_size", voxel_size))
+    return int(np.prod(nodes + 2 * reach + 2) * 4)
 
 
 def untiled_point_bytes(n_points: int) -> int:
@@ -311,6 +313,7 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | None = None,
     -------
     TiledChanges
     """
+    integer_at_least("min_region_points", min_region_points, 0)
     store = reference if isinstance(reference, FieldStore) else None
     if store is not None:
         voxel_size, truncate, h = store.voxel_size, store.truncate, store.h
@@ -373,11 +376,16 @@ class _Session:
 
     def __init__(self, clouds: dict, voxel_size, *, sigma_voxels, k, h, truncate, method, tile_size, tile_points,
                  memory_limit, scheduler, workers, workdir):
-        if voxel_size is None or not (voxel_size > 0 and math.isfinite(voxel_size)):
-            raise ValueError(f"voxel_size must be a positive length, got {voxel_size!r}")
+        if voxel_size is None:
+            raise InvalidOptionError("voxel_size must be given: the tiles need it before the points are read")
+        check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
+                           memory_limit=memory_limit)
+        check_tile_options(tile_size=tile_size, tile_points=tile_points, workers=workers, workdir=workdir,
+                           scheduler=scheduler)
         self.voxel_size = float(voxel_size)
         workers = workers or os.cpu_count() or 1
         share = _memory_limit(memory_limit) // (workers if scheduler in (None, "threads") else 1)
+        reach = check_kernel(sigma_voxels, truncate, share)
         self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                          method=method, memory_limit=share)
         if tile_points is None:
@@ -386,9 +394,13 @@ class _Session:
         self.root = tempfile.mkdtemp(prefix="sdp-tiles-", dir=workdir)
         self.timings: dict[str, float] = {}
         try:
-            self.executor, self.cluster = _connect(scheduler, workers)
             self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
+            lo = np.min([src.lo for src in self.sources.values()], axis=0)
+            hi = np.max([src.hi for src in self.sources.values()], axis=0)
+            check_lattice(lo, hi, self.voxel_size, reach)
             self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate)
+            _check_tile_directory(self.tiling, lo, hi, reach, share, workers if scheduler in (None, "threads") else 1)
+            self.executor, self.cluster = _connect(scheduler, workers)
             jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
                     for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
             done = self.tasks("bucket", _bucket_part, jobs, ())
@@ -445,6 +457,20 @@ def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_poin
     return _Tiling(voxel_size, blocks, halo)
 
 
+def _check_tile_directory(tiling: _Tiling, lo, hi, reach: int, share: int, workers: int) -> None:
+    """Refuse, before any task runs, tiles whose block directory alone exceeds a worker's share of
+    the memory limit (a voxel far below the point spacing: 1e-9 for metres)."""
+    span = (tiling.edge + 2 * tiling.halo) / tiling.voxel_size + 2 * reach + 2 * BLOCK
+    z = (float(hi[2]) - float(lo[2])) / tiling.voxel_size + 2 * reach + 2 * BLOCK
+    whose = f", in a worker's 1/{workers} share" if workers > 1 else ""
+    check_memory((span / BLOCK) ** 2 * (z / BLOCK) * 5, f"the block directory of one tile (voxel "
+                 f"{tiling.voxel_size:g}, tile edge {tiling.edge:.4g}{whose})", share)
+
+
+#: Seconds to wait for a ``dask.distributed`` scheduler to answer.
+CONNECT_TIMEOUT = 10
+
+
 def _connect(scheduler: str | None, workers: int):
     """(executor, cluster): a distributed ``Client`` (and the local cluster it drives), or the
     name of a Dask local scheduler."""
@@ -456,7 +482,12 @@ def _connect(scheduler: str | None, workers: int):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=0,
                                dashboard_address=None, env={"NUMBA_NUM_THREADS": "1"})  # a core per worker
         return Client(cluster), cluster
-    return Client(scheduler), None
+    try:
+        return Client(scheduler, timeout=CONNECT_TIMEOUT), None
+    except (OSError, TimeoutError, ValueError) as exc:  # refused, unreachable, or not an address
+        reason = str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise SDPError(f"can't reach the Dask scheduler at {scheduler} within {CONNECT_TIMEOUT} s ({reason}); "
+                       "start it (dask scheduler) or check the address") from None
 
 
 def _run(executor, func, jobs: list, what: str) -> list:
