@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -14,7 +16,7 @@ import numpy as np
 from . import __version__, _progress
 from . import validate as V
 from .errors import SDPError
-from .io import read_points
+from .io import check_outputs, read_points
 
 EXAMPLES_CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                  appeared points of cur.pcd
   sdp change ref.laz cur.laz -o out.laz --both --voxel-size 0.1
@@ -385,6 +387,7 @@ def cmd_align(a):
     from .field import DensityField
     from .io import atomic_path, refuse_overwrite
 
+    check_outputs([a.output], [a.current, a.reference])
     refuse_overwrite(a.output, (a.current, a.reference))
     ref = DensityField.load(a.reference) if _is_field(a.reference) else read_points(a.reference, format=a.format)
     al = _align(a, ref, read_points(a.current, format=a.format), method=a.method)
@@ -468,6 +471,7 @@ def cmd_action(a):
 
 
 def cmd_build(a):
+    check_outputs([a.output], [a.cloud])
     if not _is_store(a.output):
         _save_field(_field(a.cloud, a), a.output, inputs=(a.cloud,))
         return 0
@@ -503,6 +507,7 @@ def cmd_info(a):
 
 
 def cmd_mesh(a):
+    check_outputs([a.output], [a.input])
     if _is_store(a.input):
         from .store import FieldStore
 
@@ -524,6 +529,7 @@ def cmd_bool(a):
     from . import boolean
     from .field import DensityField
 
+    check_outputs([a.output], [a.a, a.b])
     if _is_store(a.output):
         from .store import FieldStore
 
@@ -569,6 +575,7 @@ def cmd_eval(a):
 def cmd_render(a):
     if not (a.png or a.html):
         raise SDPError("nothing to write: give --png OUT.png and/or --html OUT.html")
+    check_outputs([a.png, a.html], [a.file])
     if _is_field(a.file):
         from .field import DensityField
         from .render import render_field
@@ -771,17 +778,50 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that ``finally`` blocks and context managers clean up
+    (temporary outputs, the tiles' work folder, the Dask cluster) before the process ends."""
+
+
+def _on_sigterm(signum, frame):
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not cut the clean-up short
+    raise _Terminated()
+
+
+def _one_line(exc: BaseException) -> str:
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    return lines[0] if lines else type(exc).__name__
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     _progress.enable(not (getattr(args, "quiet", False) or getattr(args, "json", False)))
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
     try:
         return args.func(args)
     except (SDPError, ValueError) as exc:
-        print(f"sdp: error: {exc}", file=sys.stderr)
+        print(f"sdp: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("sdp: error: out of memory: use a larger --voxel-size or a lower --memory-limit", file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into head & co.
         sys.stderr.close()
         return 0
+    except OSError as exc:  # a disk full, a file vanishing: said in one line
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"sdp: error: {where}{exc.strerror or _one_line(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("sdp: interrupted", file=sys.stderr)
+        return 130
+    except _Terminated:
+        print("sdp: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 if __name__ == "__main__":

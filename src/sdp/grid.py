@@ -160,4 +160,4 @@ class Grid:
     @property
     def n_blocks_box(self) -> int:
         """Number of blocks in the bounding box (the size of the block directory)."""
-        return int(np.prod(np.asarray(self.shape_blocks, dtype=np.int64)))
+        return math.prod(int(v) for v in self.shape_blocks)  # Python ints: no int64 wrap-around on huge boxes

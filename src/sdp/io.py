@@ -22,7 +22,7 @@ from ._progress import bar
 from .errors import SDPError
 
 __all__ = ["Cloud", "PointSource", "read_points", "write_points", "write_mesh", "CloudFileError", "FORMATS",
-           "atomic_path"]
+           "atomic_path", "check_outputs", "las_scale_offset"]
 
 #: Extension → format name understood by :func:`read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
@@ -93,18 +93,15 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
         Unknown format, missing file, unreadable content, no x/y/z, or no finite point.
     """
     path = Path(path)
-    fmt = format or FORMATS.get(path.suffix.lower())
-    if fmt not in set(FORMATS.values()):
-        raise CloudFileError(f"{path}: unknown point-cloud format {path.suffix or '(no extension)'!r}; "
-                             f"use one of {', '.join(sorted(FORMATS))} or pass format=")
-    if not path.is_file():
-        raise CloudFileError(f"{path}: no such file")
+    fmt = _input_format(path, format)
     try:
         xyz, fields, las, *viewpoint = _READERS[fmt](path)  # PCD adds its VIEWPOINT
     except CloudFileError:
         raise
+    except MemoryError:
+        raise CloudFileError(f"{path}: too large to read into memory as {fmt}") from None
     except Exception as exc:  # libraries raise many types on corrupt input
-        raise CloudFileError(f"{path}: can't read as {fmt} ({type(exc).__name__}: {exc})") from None
+        raise _unreadable(path, fmt, exc) from None
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise CloudFileError(f"{path}: expected x, y, z columns, got an array of shape {xyz.shape}")
@@ -116,6 +113,54 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
     if len(xyz) == 0:
         raise CloudFileError(f"{path}: holds no point with finite x, y, z")
     return Cloud(np.ascontiguousarray(xyz), fields, path, dropped, las, viewpoint[0] if viewpoint else None)
+
+
+def _input_format(path: Path, format: str | None) -> str:
+    """The reader's format name for ``path`` (``format`` overrides the extension), once ``path``
+    is known to be an existing file; else :class:`CloudFileError` saying what is wrong."""
+    names = sorted(set(FORMATS.values()))
+    if format is not None:
+        if format not in names:
+            raise CloudFileError(f"unknown format {format!r}; use one of {', '.join(names)}")
+        fmt = format
+    else:
+        fmt = FORMATS.get(path.suffix.lower())
+        if fmt is None:
+            raise CloudFileError(f"{path}: unknown point-cloud format {path.suffix or '(no extension)'!r}; use one "
+                                 f"of the extensions {', '.join(sorted(FORMATS))} or give the format "
+                                 f"({', '.join(names)})")
+    if path.is_dir():
+        raise CloudFileError(f"{path}: is a directory, not a point-cloud file")
+    if not path.exists():
+        raise CloudFileError(f"{path}: no such file")
+    if not path.is_file():
+        raise CloudFileError(f"{path}: not a regular file")
+    if not os.access(path, os.R_OK):
+        raise CloudFileError(f"{path}: permission denied")
+    return fmt
+
+
+def _one_line(exc: BaseException, limit: int = 200) -> str:
+    """A library exception in one line: pydantic's validation errors summarized (pypcd4's PCD
+    headers), other messages cut at their first line and at ``limit`` characters."""
+    errors = getattr(exc, "errors", None)
+    if callable(errors):
+        try:
+            items = errors()
+            parts = [f"{' '.join(str(x) for x in e.get('loc', ())).upper() or 'header'}: {e.get('msg', '')}"
+                     for e in items[:3]]
+            text = "; ".join(parts) + (f" (and {len(items) - 3} more)" if len(items) > 3 else "")
+            return f"header {text}" if text else type(exc).__name__
+        except Exception:  # not pydantic after all
+            pass
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    text = lines[0] if lines else type(exc).__name__
+    return text if len(text) <= limit else text[:limit - 1] + "…"
+
+
+def _unreadable(path, fmt: str, exc: BaseException) -> "CloudFileError":
+    """The CloudFileError of a library exception raised while reading ``path``."""
+    return CloudFileError(f"{path}: can't read as {fmt} ({type(exc).__name__}: {_one_line(exc)})")
 
 
 def _read_pcd(path):
@@ -162,6 +207,7 @@ def _read_las(path):
     import laspy
 
     with laspy.open(str(path)) as reader, bar(reader.header.point_count, f"reading {Path(path).name}") as pb:
+        _check_las(path, reader.header)
         chunks = []
         for chunk in reader.chunk_iterator(_LAS_CHUNK):
             chunks.append(chunk.array)
@@ -172,6 +218,19 @@ def _read_las(path):
     xyz = np.c_[las.x, las.y, las.z]  # scaled and offset, float64: large coordinates stay exact
     fields = {d: np.asarray(las[d]) for d in las.point_format.dimension_names if d not in ("X", "Y", "Z")}
     return xyz, fields, las
+
+
+def _check_las(path, header) -> None:
+    """Refuse a LAS/LAZ file without points, or an uncompressed LAS shorter than its header says."""
+    n = int(header.point_count)
+    if n == 0:
+        raise CloudFileError(f"{path}: holds no point (its LAS header counts 0)")
+    if not header.are_points_compressed:
+        need = int(header.offset_to_point_data) + n * int(header.point_format.size)
+        have = Path(path).stat().st_size
+        if have < need:
+            raise CloudFileError(f"{path}: truncated: the LAS header announces {n:,} points ({need:,} bytes) but the "
+                                 f"file holds {have:,} bytes")
 
 
 def _read_text(path):
@@ -224,11 +283,73 @@ def _umask() -> int:
     return mask
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether two paths name one file (the same resolved path, or a hard link / bind mount)."""
+    try:
+        if a.resolve() == b.resolve():
+            return True
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_outputs(outputs, inputs=()) -> None:
+    """Refuse, before any work, outputs that can't be written or would overwrite an input.
+
+    Each output's folder must exist and take new files (tried with a temporary file, so
+    read-only mounts and ``/sys`` are caught), the output must not be an existing directory
+    (except a ``.zarr`` field store, which is one), must not be one of ``inputs`` (resolved
+    paths, hard links too), and no two outputs may be the same file.
+
+    Parameters
+    ----------
+    outputs : iterable of path-like or None
+        Files the command will write (None entries, options not given, are skipped).
+    inputs : iterable of path-like
+        Files the command reads.
+
+    Raises
+    ------
+    SDPError
+        With a one-line message naming the output and what is wrong.
+    """
+    seen: list[Path] = []
+    ins = [Path(p) for p in inputs if p is not None]
+    for out in outputs:
+        if out is None:
+            continue
+        path = Path(out)
+        if str(out) == "" or path.name in ("", ".", ".."):
+            raise SDPError(f"{str(out)!r}: not a file name for an output")
+        parent = path.parent
+        if not parent.exists():
+            raise SDPError(f"{path}: folder {str(parent)!r} does not exist; create it first")
+        if not parent.is_dir():
+            raise SDPError(f"{path}: {str(parent)!r} is not a folder")
+        if path.is_dir() and not (path.suffix.lower() == ".zarr" and (path / "zarr.json").is_file()):
+            raise SDPError(f"{path}: is an existing directory; choose a file name for the output")
+        for src in ins:
+            if _same_file(path, src):
+                raise SDPError(f"{path}: refusing to overwrite an input file; choose another output name")
+        for other in seen:
+            if _same_file(path, other):
+                raise SDPError(f"{path}: given for two outputs; choose a different name for each")
+        try:
+            fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".probe", dir=parent)
+        except OSError as exc:
+            raise SDPError(f"{path}: can't create files in {str(parent)!r} ({exc.strerror or exc})") from None
+        os.close(fd)
+        os.unlink(probe)
+        if path.exists() and not path.is_dir() and not os.access(path, os.W_OK):
+            raise SDPError(f"{path}: exists and is not writable")
+        seen.append(path)
+
+
 def refuse_overwrite(path: str | os.PathLike, inputs=()) -> None:
     """Raise :class:`SDPError` if ``path`` is one of the files ``inputs``."""
     path = Path(path)
     for src in inputs:
-        if Path(src).exists() and path.exists() and path.resolve() == Path(src).resolve():
+        if src is not None and path.exists() and _same_file(path, Path(src)):
             raise SDPError(f"{path}: refusing to overwrite an input file; choose another output name")
 
 
@@ -240,9 +361,14 @@ def atomic_path(path: str | os.PathLike, *, inputs=()):
     """
     path = Path(path)
     refuse_overwrite(path, inputs)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
+    if path.is_dir():
+        raise SDPError(f"{path}: is an existing directory; choose a file name for the output")
     try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    except OSError as exc:
+        raise SDPError(f"{path}: can't create files in {str(path.parent)!r} ({exc.strerror or exc})") from None
+    try:
+        os.close(fd)
         yield Path(tmp)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp made it private; give it a new file's mode
         os.replace(tmp, path)
@@ -255,8 +381,9 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
     """Write points with per-point scalar fields as PLY, LAS/LAZ or NPZ (by extension).
 
     LAS/LAZ output made from LAS/LAZ input (``like``) keeps every input dimension, scale and
-    offset, and adds ``fields`` as extra dimensions; other LAS output gets a 1 mm scale and
-    an offset at the cloud's minimum, so large coordinates stay exact. The file is written
+    offset, and adds ``fields`` as extra dimensions; other LAS output gets a 1 mm scale (coarser
+    only for clouds wider than ±2,147 km: :func:`las_scale_offset`) and an offset at the cloud's
+    centre, so large coordinates stay exact. The file is written
     under a temporary name and renamed; ``inputs`` are never overwritten.
     """
     path = Path(path)
@@ -287,6 +414,33 @@ def _ply_type(v: np.ndarray) -> str:
     return v.dtype.str.lstrip("<>=|") if v.dtype.kind in "uif" else "f8"
 
 
+def las_scale_offset(lo, hi, path=None) -> tuple[np.ndarray, np.ndarray]:
+    """Scale and offset of LAS integer coordinates for points in the box [lo, hi].
+
+    The offset is a whole number near the box's centre; the scale (per axis) the finest of
+    0.001, 0.01, 0.1, 1, … whose 32-bit integers reach both ends of the box (so 1 mm unless
+    the cloud spans more than ±2,147 km).
+
+    Raises
+    ------
+    CloudFileError
+        The box is not finite (``path`` names the file in the message).
+    """
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise CloudFileError(f"{path or 'LAS output'}: can't write non-finite coordinates as LAS")
+    offset = np.floor((lo + hi) / 2)
+    half = np.maximum(hi - offset, offset - lo)
+    limit = 2**31 - 2  # one unit of margin for rounding
+    scales = np.empty(3)
+    for axis in range(3):
+        scale = 0.001
+        while half[axis] / scale > limit:
+            scale *= 10
+        scales[axis] = scale
+    return scales, offset
+
+
 def _write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
     import laspy
 
@@ -294,8 +448,7 @@ def _write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
         las = like.las
     else:
         header = laspy.LasHeader(point_format=3, version="1.4")
-        header.scales = np.array([0.001, 0.001, 0.001])
-        header.offsets = np.floor(xyz.min(axis=0))
+        header.scales, header.offsets = las_scale_offset(xyz.min(axis=0), xyz.max(axis=0), tmp)
         las = laspy.LasData(header)
         las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     for name, v in fields.items():
@@ -374,16 +527,21 @@ class PointSource:
              chunk_size: int = _LAS_CHUNK) -> "PointSource":
         """Inspect ``path`` (header, or one pass for the bounds) without keeping its points."""
         path = Path(path)
-        fmt = format or FORMATS.get(path.suffix.lower())
-        if not path.is_file():
-            raise CloudFileError(f"{path}: no such file")
+        fmt = _input_format(path, format)
         try:
             if fmt == "las":
                 import laspy
 
                 with laspy.open(str(path)) as r:
                     h = r.header
-                    return cls(path, fmt, int(h.point_count), tuple(map(float, h.mins)), tuple(map(float, h.maxs)))
+                    _check_las(path, h)
+                    lo, hi = np.asarray(h.mins, float), np.asarray(h.maxs, float)
+                    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (lo <= hi).all()):
+                        raise CloudFileError(f"{path}: the LAS header's bounds {lo.tolist()} … {hi.tolist()} are "
+                                             "not a box")
+                    if h.are_points_compressed:  # decode the first points: a cut-off LAZ fails here
+                        r.read_points(1)
+                    return cls(path, fmt, int(h.point_count), tuple(map(float, lo)), tuple(map(float, hi)))
             if fmt == "ply" and _ply_is_binary(path):
                 v = _ply_vertices(path)
                 if not {"x", "y", "z"} <= set(v.dtype.names):
@@ -396,7 +554,8 @@ class PointSource:
                 n = len(a)
             else:  # can't slice: read it once, spill the finite points to .npy
                 if spill_dir is None:
-                    raise CloudFileError(f"{path}: {fmt} files can't be read in slices; give spill_dir=")
+                    raise CloudFileError(f"{path}: {fmt} files can't be read in slices; convert to LAS/LAZ, NPY or "
+                                         "binary PLY (or, in Python, give spill_dir=)")
                 fd, tmp = tempfile.mkstemp(suffix=".npy", dir=spill_dir)
                 os.close(fd)
                 np.save(tmp, read_points(path, format=fmt).xyz)
@@ -404,7 +563,9 @@ class PointSource:
         except CloudFileError:
             raise
         except Exception as exc:  # libraries raise many types on corrupt input
-            raise CloudFileError(f"{path}: can't read as {fmt} ({type(exc).__name__}: {exc})") from None
+            raise _unreadable(path, fmt, exc) from None
+        if n == 0:
+            raise CloudFileError(f"{path}: holds no point")
         src = cls(path, fmt, n, (np.inf,) * 3, (-np.inf,) * 3)
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         for _, xyz in src.chunks(chunk_size):
@@ -416,7 +577,21 @@ class PointSource:
         return cls(path, fmt, n, tuple(map(float, lo)), tuple(map(float, hi)))
 
     def read(self, start: int, stop: int) -> np.ndarray:
-        """Rows ``start`` … ``stop − 1`` as float64 (m, 3) world coordinates (NaN rows kept)."""
+        """Rows ``start`` … ``stop − 1`` as float64 (m, 3) world coordinates (NaN rows kept).
+
+        Raises
+        ------
+        CloudFileError
+            The file can't be decoded there (cut short, corrupt, changed since it was opened).
+        """
+        try:
+            return self._read(start, stop)
+        except CloudFileError:
+            raise
+        except Exception as exc:  # libraries raise many types on corrupt input
+            raise _unreadable(self.path, self.format, exc) from None
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
         start, stop = max(0, start), min(stop, self.n_rows)
         if stop <= start:
             return np.zeros((0, 3))
@@ -428,7 +603,26 @@ class PointSource:
         return np.c_[v["x"], v["y"], v["z"]].astype(np.float64)
 
     def chunks(self, size: int = _LAS_CHUNK, start: int = 0, stop: int | None = None):
-        """Yield ``(first_row, xyz)`` slices of at most ``size`` rows, in order."""
+        """Yield ``(first_row, xyz)`` slices of at most ``size`` rows, in order.
+
+        Raises
+        ------
+        CloudFileError
+            The file can't be decoded (cut short, corrupt), naming it.
+        """
+        it = self._chunks(size, start, stop)
+        while True:
+            try:
+                item = next(it)
+            except StopIteration:
+                return
+            except CloudFileError:
+                raise
+            except Exception as exc:  # libraries raise many types on corrupt input
+                raise _unreadable(self.path, self.format, exc) from None
+            yield item
+
+    def _chunks(self, size: int, start: int, stop: int | None):
         stop = self.n_rows if stop is None else min(stop, self.n_rows)
         if self.format == "las":  # one open file, sequential decoding
             import laspy
@@ -458,13 +652,25 @@ def _ply_is_binary(path) -> bool:
     return any(line.startswith(b"format binary") for line in head)
 
 
+def _decoded(source: PointSource, iterator):
+    """``iterator``'s items, its library exceptions turned into :class:`CloudFileError` naming the file."""
+    while True:
+        try:
+            item = next(iterator)
+        except StopIteration:
+            return
+        except Exception as exc:  # libraries raise many types on corrupt input
+            raise _unreadable(source.path, source.format, exc) from None
+        yield item
+
+
 def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_of, *, inputs=(),
                           chunk_size: int = _LAS_CHUNK) -> Path:
     """Write every row of ``source`` with extra per-point fields, chunk by chunk, as LAS/LAZ.
 
     ``fields_of(start, stop)`` returns the fields of rows ``start`` … ``stop − 1`` (a dict of
-    arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset; other input gets a
-    1 mm scale and an offset at its minimum. Memory is bounded by ``chunk_size``; the file is
+    arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset; other input gets the
+    scale and offset of :func:`las_scale_offset` (1 mm, offset at the centre). Memory is bounded by ``chunk_size``; the file is
     written under a temporary name and renamed, and ``inputs`` are never overwritten. LAZ is
     decoded and encoded on all cores (lazrs' parallel backend).
     """
@@ -479,11 +685,10 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
         if source.format == "las":
             reader = stack.enter_context(laspy.open(str(source.path), laz_backend=laspy.LazBackend.LazrsParallel))
             header = copy.deepcopy(reader.header)
-            chunks = ((len(c), c) for c in reader.chunk_iterator(chunk_size))
+            chunks = ((len(c), c) for c in _decoded(source, reader.chunk_iterator(chunk_size)))
         else:
             header = laspy.LasHeader(point_format=3, version="1.4")
-            header.scales = np.array([0.001, 0.001, 0.001])
-            header.offsets = np.floor(np.asarray(source.lo))
+            header.scales, header.offsets = las_scale_offset(source.lo, source.hi, path)
             chunks = ((len(xyz), xyz) for _, xyz in source.chunks(chunk_size))
         tmp = stack.enter_context(atomic_path(path, inputs=inputs))
         writer, start = None, 0

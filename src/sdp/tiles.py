@@ -28,6 +28,7 @@ References
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import shutil
@@ -358,9 +359,13 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float, sigm
                                   truncate=truncate, h=threshold(k) if h is None else float(h),
                                   tile_blocks=run.tiling.blocks,
                                   inputs=(cloud,) if isinstance(cloud, (str, Path)) else ())
-        jobs = [(key, run.root, run.tiling, run.opts, str(store.path)) for key in run.tiles]
-        counts = run.tasks("build", _build_tile, jobs, ())
-    store.set_counts(sum(counts), run.dropped["cloud"])
+        try:
+            jobs = [(key, run.root, run.tiling, run.opts, str(store.path)) for key in run.tiles]
+            counts = run.tasks("build", _build_tile, jobs, ())
+            store.set_counts(sum(counts), run.dropped["cloud"])
+        except BaseException:  # no half-built store left behind (a failed tile, Ctrl-C, SIGTERM)
+            shutil.rmtree(store.path, ignore_errors=True)
+            raise
     return store
 
 
@@ -424,11 +429,17 @@ class _Session:
         return self
 
     def __exit__(self, *exc):
-        if not isinstance(getattr(self, "executor", "none"), str):
-            self.executor.close()
-        if getattr(self, "cluster", None) is not None:
-            self.cluster.close()
-        shutil.rmtree(self.root, ignore_errors=True)
+        """Close the client and the local cluster, and remove the work folder whatever happens
+        (an error, Ctrl-C, SIGTERM turned into an exception by ``sdp``'s ``main``)."""
+        try:
+            if not isinstance(getattr(self, "executor", "none"), str):
+                self.executor.close()
+        finally:
+            try:
+                if getattr(self, "cluster", None) is not None:
+                    self.cluster.close()  # stops the workers: nothing writes into the buckets any more
+            finally:
+                shutil.rmtree(self.root, ignore_errors=True)
 
 
 def _source(s, root: str, epoch: str) -> PointSource:
@@ -471,6 +482,16 @@ def _check_tile_directory(tiling: _Tiling, lo, hi, reach: int, share: int, worke
 CONNECT_TIMEOUT = 10
 
 
+#: Run in each local worker process as it starts (a Dask preload): Ctrl-C in a terminal reaches the
+#: whole process group, and the client, not each worker, ends the run (a worker would print a
+#: KeyboardInterrupt traceback); the client closes the cluster on its way out.
+_WORKER_PRELOAD = """
+import signal, threading
+if threading.current_thread() is threading.main_thread():
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+"""
+
+
 def _connect(scheduler: str | None, workers: int):
     """(executor, cluster): a distributed ``Client`` (and the local cluster it drives), or the
     name of a Dask local scheduler."""
@@ -480,8 +501,14 @@ def _connect(scheduler: str | None, workers: int):
 
     if scheduler is None:  # the tasks bound their own memory (``share``): no pausing by distributed
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=0,
-                               dashboard_address=None, env={"NUMBA_NUM_THREADS": "1"})  # a core per worker
-        return Client(cluster), cluster
+                               dashboard_address=":0", env={"NUMBA_NUM_THREADS": "1"},  # a core per worker
+                               silence_logs=logging.ERROR,  # no warnings about tasks cancelled on Ctrl-C
+                               preload=[_WORKER_PRELOAD])
+        try:
+            return Client(cluster), cluster
+        except BaseException:
+            cluster.close()
+            raise
     try:
         return Client(scheduler, timeout=CONNECT_TIMEOUT), None
     except (OSError, TimeoutError, ValueError) as exc:  # refused, unreachable, or not an address
