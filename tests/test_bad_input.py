@@ -46,7 +46,7 @@ def test_bad_pcd_header_is_one_line(tmp_path):
 
 
 @pytest.mark.parametrize("name, match", [
-    ("t.laz", r"t.laz: can't read as las"),
+    ("t.laz", r"t.laz: truncated: the LAS header puts the points at byte"),
     ("t.las", r"t.las: truncated: the LAS header announces 5,000 points"),
     ("header_only.las", r"header_only.las: holds no point"),
 ])
@@ -192,3 +192,22 @@ def test_interrupt_is_one_line(tmp_path):
     _, err = p.communicate(timeout=120)
     assert p.returncode == 130 and err.strip().splitlines()[-1] == "sdp: interrupted" and "Traceback" not in err, err
     assert not [f for f in tmp_path.iterdir() if f.name.startswith(("sdp-tiles-", ".o.laz", "o.laz"))]
+
+
+def test_corrupt_las_counts_are_refused_before_laspy_loops_or_lazrs_aborts(clouds):
+    import struct
+
+    data = bytearray((clouds / "a.laz").read_bytes())
+    vlrs = bytearray(data)
+    vlrs[100:104] = struct.pack("<I", 134_217_729)  # laspy would loop over 1.3e8 records
+    (clouds / "vlrs.laz").write_bytes(bytes(vlrs))
+    offset = struct.unpack_from("<I", data, 96)[0]
+    table = struct.unpack_from("<q", data, offset)[0]
+    chunks = bytearray(data)
+    chunks[table + 4:table + 8] = struct.pack("<I", 4_213_908_307)  # lazrs would allocate 67 GB and abort
+    (clouds / "chunks.laz").write_bytes(bytes(chunks))
+    for name, match in (("vlrs.laz", "records do not fit"), ("chunks.laz", "corrupt LAZ chunk table")):
+        with pytest.raises(CloudFileError, match=match):
+            read_points(clouds / name)
+        with pytest.raises(CloudFileError, match=match):
+            PointSource.open(clouds / name)

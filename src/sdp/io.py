@@ -100,7 +100,9 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
         raise
     except MemoryError:
         raise CloudFileError(f"{path}: too large to read into memory as {fmt}") from None
-    except Exception as exc:  # libraries raise many types on corrupt input
+    except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+        if not _library_error(exc):
+            raise
         raise _unreadable(path, fmt, exc) from None
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -158,6 +160,13 @@ def _one_line(exc: BaseException, limit: int = 200) -> str:
     return text if len(text) <= limit else text[:limit - 1] + "…"
 
 
+def _library_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a reader library's failure on bad content: any ``Exception``, or a Rust
+    panic surfaced by pyo3 (``PanicException`` derives from ``BaseException``), but never
+    Ctrl-C, ``SystemExit`` or a closed generator."""
+    return isinstance(exc, Exception) or type(exc).__name__ == "PanicException"
+
+
 def _unreadable(path, fmt: str, exc: BaseException) -> "CloudFileError":
     """The CloudFileError of a library exception raised while reading ``path``."""
     return CloudFileError(f"{path}: can't read as {fmt} ({type(exc).__name__}: {_one_line(exc)})")
@@ -206,6 +215,7 @@ def _read_ply(path):
 def _read_las(path):
     import laspy
 
+    _check_las_counts(path)
     with laspy.open(str(path)) as reader, bar(reader.header.point_count, f"reading {Path(path).name}") as pb:
         _check_las(path, reader.header)
         chunks = []
@@ -218,6 +228,41 @@ def _read_las(path):
     xyz = np.c_[las.x, las.y, las.z]  # scaled and offset, float64: large coordinates stay exact
     fields = {d: np.asarray(las[d]) for d in las.point_format.dimension_names if d not in ("X", "Y", "Z")}
     return xyz, fields, las
+
+
+def _check_las_counts(path) -> None:
+    """Refuse a LAS/LAZ whose header counts more (extended) VLRs than the file can hold, before laspy
+    reads it: laspy loops over the count, and a corrupt 32-bit count makes that loop run for hours.
+    Reads the public header block's fixed fields only (ASPRS LAS 1.0–1.4)."""
+    import struct
+
+    size = Path(path).stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(247)
+    if len(head) < 227 or head[:4] != b"LASF":
+        raise CloudFileError(f"{path}: not a LAS/LAZ file (no LASF header)")
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    if offset > size:
+        raise CloudFileError(f"{path}: truncated: the LAS header puts the points at byte {offset:,}, the file holds "
+                             f"{size:,} bytes")
+    if header_size + 54 * n_vlrs > offset:
+        raise CloudFileError(f"{path}: corrupt LAS header: {n_vlrs:,} records do not fit before the point data")
+    if offset + 8 <= size and bool(head[104] & 0x80 or head[104] & 0x40):  # LAZ: its chunk table
+        # lazrs allocates the table's entries before reading them: a corrupt count aborts the process
+        with open(path, "rb") as f:
+            f.seek(offset)
+            (table,) = struct.unpack("<q", f.read(8))
+            if 0 < table and table + 8 <= size:
+                f.seek(table)
+                _, n_chunks = struct.unpack("<II", f.read(8))
+                if n_chunks > size:
+                    raise CloudFileError(f"{path}: corrupt LAZ chunk table ({n_chunks:,} chunks in a file of "
+                                         f"{size:,} bytes)")
+    if head[24:26] == b"\x01\x04" and len(head) >= 247:  # LAS 1.4: extended VLRs at the end
+        start, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and (start > size or 60 * n_evlrs > size):
+            raise CloudFileError(f"{path}: corrupt LAS header: {n_evlrs:,} extended records do not fit in a file "
+                                 f"of {size:,} bytes")
 
 
 def _check_las(path, header) -> None:
@@ -532,6 +577,7 @@ class PointSource:
             if fmt == "las":
                 import laspy
 
+                _check_las_counts(path)
                 with laspy.open(str(path)) as r:
                     h = r.header
                     _check_las(path, h)
@@ -562,7 +608,9 @@ class PointSource:
                 return cls.open(tmp, format="npy", chunk_size=chunk_size)
         except CloudFileError:
             raise
-        except Exception as exc:  # libraries raise many types on corrupt input
+        except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+            if not _library_error(exc):
+                raise
             raise _unreadable(path, fmt, exc) from None
         if n == 0:
             raise CloudFileError(f"{path}: holds no point")
@@ -588,7 +636,9 @@ class PointSource:
             return self._read(start, stop)
         except CloudFileError:
             raise
-        except Exception as exc:  # libraries raise many types on corrupt input
+        except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+            if not _library_error(exc):
+                raise
             raise _unreadable(self.path, self.format, exc) from None
 
     def _read(self, start: int, stop: int) -> np.ndarray:
@@ -618,7 +668,9 @@ class PointSource:
                 return
             except CloudFileError:
                 raise
-            except Exception as exc:  # libraries raise many types on corrupt input
+            except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+                if not _library_error(exc):
+                    raise
                 raise _unreadable(self.path, self.format, exc) from None
             yield item
 
@@ -659,7 +711,9 @@ def _decoded(source: PointSource, iterator):
             item = next(iterator)
         except StopIteration:
             return
-        except Exception as exc:  # libraries raise many types on corrupt input
+        except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+            if not _library_error(exc):
+                raise
             raise _unreadable(source.path, source.format, exc) from None
         yield item
 
