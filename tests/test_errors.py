@@ -19,7 +19,7 @@ def test_bad_points_raise_invalid_points_error(points, match):
 
 
 def test_single_point_needs_an_explicit_voxel_size():
-    with pytest.raises(sdp.InvalidPointsError, match="zero extent.*voxel_size"):
+    with pytest.raises(sdp.InvalidPointsError, match="zero extent.*voxel size"):
         DensityField.from_points([[1.0, 2.0, 3.0]], grid_size=80)
     f = DensityField.from_points([[1.0, 2.0, 3.0]], voxel_size=0.1)
     assert f.density([[1.0, 2.0, 3.0]])[0] == pytest.approx(1.0, abs=0.07)

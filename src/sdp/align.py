@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation
 
 from . import _kernels as K
 from ._points import as_points
-from .errors import InvalidPointsError, MissingDependencyError
+from .errors import InvalidOptionError, InvalidPointsError, MissingDependencyError
 from .field import DensityField
 from .params import auto_voxel_size
 from .validate import positive_finite
@@ -169,7 +169,7 @@ def align(reference, current, *, method: str = "density", voxel_size: float | st
     if method not in ("density", "gicp"):
         raise ValueError(f"method must be 'density' or 'gicp', got {method!r}")
     if method == "gicp" and fix_horizontal:
-        raise ValueError("fix_horizontal is available with method='density' only")
+        raise InvalidOptionError("fix_horizontal is available with method='density' only")
     if not 0 <= min_constraint < 1:
         raise ValueError(f"min_constraint must be in [0, 1), got {min_constraint}")
     if levels < 1:
@@ -178,7 +178,7 @@ def align(reference, current, *, method: str = "density", voxel_size: float | st
     ref_xyz = None
     if isinstance(reference, DensityField):
         if method == "gicp":
-            raise ValueError("method='gicp' needs the reference points, not a field")
+            raise InvalidOptionError("the GICP alignment needs the reference points, not a density field")
         ref_field = reference
     else:
         ref_xyz = _enough_points(as_points(reference, name="reference").xyz, "reference")

@@ -104,8 +104,8 @@ def voxel_size_for_grid_size(lo: np.ndarray, hi: np.ndarray, grid_size: int) -> 
     extent = float(np.max(np.asarray(hi) - np.asarray(lo)))
     if not extent > 0:
         raise InvalidPointsError(
-            "the cloud has zero extent (a single point, or all points equal): grid_size can't set a "
-            "voxel length from it; pass voxel_size= in world units instead")
+            "the cloud has zero extent (a single point, or all points equal): a grid size can't set a "
+            "voxel length from it; give a voxel size in world units instead")
     return extent / grid_size
 
 
