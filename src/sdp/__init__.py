@@ -29,7 +29,15 @@ from .errors import (
 )
 from .field import DensityField, threshold
 from .grid import BLOCK, Grid
-from .io import CloudFileError, PointSource, read_points, write_mesh, write_points, write_points_streamed
+from .io import (
+                 CloudFileError,
+                 PointSource,
+                 check_outputs,
+                 read_points,
+                 write_mesh,
+                 write_points,
+                 write_points_streamed,
+)
 from .metrics import confusion_matrix, kappa, scores
 from .online import FrameChange, watch
 from .params import auto_voxel_size
@@ -48,7 +56,7 @@ __all__ = [
     "watch", "FrameChange",
     "extract_surface", "Mesh",
     "auto_voxel_size",
-    "read_points", "write_points", "write_mesh", "PointSource", "write_points_streamed",
+    "read_points", "write_points", "write_mesh", "PointSource", "write_points_streamed", "check_outputs",
     "render_changes", "render_changes_html", "render_field",
     "kappa", "confusion_matrix", "scores",
     "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",

@@ -239,8 +239,10 @@ def _check_las_counts(path) -> None:
     size = Path(path).stat().st_size
     with open(path, "rb") as f:
         head = f.read(247)
-    if len(head) < 227 or head[:4] != b"LASF":
-        raise CloudFileError(f"{path}: not a LAS/LAZ file (no LASF header)")
+    if head[:4] != b"LASF":
+        raise CloudFileError(f"{path}: can't read as las (no LASF signature: not a LAS/LAZ file)")
+    if len(head) < 227:
+        raise CloudFileError(f"{path}: can't read as las (truncated: the header holds {len(head)} of 227 bytes)")
     header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
     if offset > size:
         raise CloudFileError(f"{path}: truncated: the LAS header puts the points at byte {offset:,}, the file holds "
