@@ -63,7 +63,8 @@ def _grid_options(p):
                    help="the paper's level of detail: longest side / GRID_SIZE")
     g.add_argument("-k", type=V.cli_type(V.finite), default=3, help="threshold h = 1 + k·e^-1/2 (default 3)")
     g.add_argument("--h", type=V.cli_type(V.positive_finite), help="threshold h given directly")
-    g.add_argument("--sigma-voxels", type=V.cli_type(V.positive_finite), default=2.0, help="sigma in voxels (default 2)")
+    g.add_argument("--sigma-voxels", type=V.cli_type(V.positive_finite), default=2.0,
+                   help="sigma in voxels (default 2)")
     g.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
                    help="refuse grids needing more (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
 
@@ -693,7 +694,8 @@ def build_parser() -> argparse.ArgumentParser:
                  "  sdp mesh scan.sdpf -o surface.ply\n  sdp mesh scan.pcd -o surface.obj --level 0")
     m.add_argument("input")
     m.add_argument("-o", "--output", required=True, help=".ply, .obj or .stl")
-    m.add_argument("--level", type=V.cli_type(V.finite), default=0.0, help="level of F = h - G (0: the cluster boundary)")
+    m.add_argument("--level", type=V.cli_type(V.finite), default=0.0,
+                   help="level of F = h - G (0: the cluster boundary)")
 
     o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds",
                  EXAMPLES_BOOL)
@@ -718,10 +720,13 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("frames", help="folder of frames, processed in natural name order")
     w.add_argument("--update", choices=("none", "window", "decay"), default="window",
                    help="how the model learns the frames (default window)")
-    w.add_argument("--window", type=V.cli_type(V.integer_at_least, 1), default=10, help="frames in the model, reference included (default 10)")
+    w.add_argument("--window", type=V.cli_type(V.integer_at_least, 1), default=10,
+                   help="frames in the model, reference included (default 10)")
     w.add_argument("--decay", type=float, default=0.8, help="per-frame forgetting factor for --update decay")
-    w.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=50, help="drop appeared regions with fewer points")
-    w.add_argument("--voxel-size", default="auto", type=V.cli_type(V.auto_or_positive), help="voxel of a reference cloud, or 'auto'")
+    w.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=50,
+                   help="drop appeared regions with fewer points")
+    w.add_argument("--voxel-size", default="auto", type=V.cli_type(V.auto_or_positive),
+                   help="voxel of a reference cloud, or 'auto'")
     w.add_argument("--align", choices=("gicp", "density"),
                    help="register each frame onto the reference first (a moving camera): gicp (small_gicp, "
                         "needs a reference cloud) or density")

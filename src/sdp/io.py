@@ -726,9 +726,9 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
 
     ``fields_of(start, stop)`` returns the fields of rows ``start`` … ``stop − 1`` (a dict of
     arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset; other input gets the
-    scale and offset of :func:`las_scale_offset` (1 mm, offset at the centre). Memory is bounded by ``chunk_size``; the file is
-    written under a temporary name and renamed, and ``inputs`` are never overwritten. LAZ is
-    decoded and encoded on all cores (lazrs' parallel backend).
+    scale and offset of :func:`las_scale_offset` (1 mm, offset at the centre). Memory is bounded
+    by ``chunk_size``; the file is written under a temporary name and renamed, and ``inputs``
+    are never overwritten. LAZ is decoded and encoded on all cores (lazrs' parallel backend).
     """
     import copy
 

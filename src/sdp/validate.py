@@ -21,11 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import GridTooLargeError, InvalidOptionError, InvalidPointsError, SDPError
+from .errors import InvalidOptionError, InvalidPointsError, SDPError
 
-__all__ = ["positive_finite", "finite", "nonnegative_finite", "existing_folder", "integer_at_least", "check_threshold", "check_grid_options",
-           "check_tile_options", "check_lattice", "check_kernel", "kernel_reach", "check_workdir", "format_bytes", "auto_or_positive",
-           "memory_size", "cli_type",
+__all__ = ["positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
+           "memory_size", "existing_folder", "check_threshold", "check_grid_options", "check_tile_options",
+           "check_lattice", "check_kernel", "kernel_reach", "check_workdir", "format_bytes", "cli_type",
            "MAX_GRID_UNITS"]
 
 #: Largest |coordinate| / voxel size accepted: beyond 2**40 voxels from the origin, float64 keeps
