@@ -58,7 +58,7 @@ def test_far_from_both_fields_the_result_is_outside(two_fields):
 def test_mismatched_voxel_sizes_are_refused(rng):
     fa = DensityField.from_points(rng.random((100, 3)), voxel_size=0.05)
     fb = DensityField.from_points(rng.random((100, 3)), voxel_size=0.06)
-    with pytest.raises(sdp.IncompatibleFieldsError, match="same voxel_size"):
+    with pytest.raises(sdp.IncompatibleFieldsError, match="same voxel size"):
         union(fa, fb)
 
 

@@ -24,6 +24,7 @@ from .errors import (
                      FieldFileError,
                      GridTooLargeError,
                      IncompatibleFieldsError,
+                     InvalidOptionError,
                      InvalidPointsError,
                      MissingDependencyError,
                      SDPError,
@@ -31,7 +32,15 @@ from .errors import (
 )
 from .field import DensityField, threshold
 from .grid import BLOCK, Grid
-from .io import CloudFileError, PointSource, read_points, write_mesh, write_points, write_points_streamed
+from .io import (
+                 CloudFileError,
+                 PointSource,
+                 check_outputs,
+                 read_points,
+                 write_mesh,
+                 write_points,
+                 write_points_streamed,
+)
 from .metrics import confusion_matrix, kappa, scores
 from .online import FrameChange, watch
 from .params import auto_voxel_size
@@ -52,10 +61,10 @@ __all__ = [
     "watch", "FrameChange",
     "extract_surface", "Mesh",
     "auto_voxel_size",
-    "read_points", "write_points", "write_mesh", "PointSource", "write_points_streamed",
+    "read_points", "write_points", "write_mesh", "PointSource", "write_points_streamed", "check_outputs",
     "render_changes", "render_changes_html", "render_field",
     "kappa", "confusion_matrix", "scores",
     "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",
-    "FieldFileError", "CloudFileError", "MissingDependencyError",
+    "FieldFileError", "CloudFileError", "MissingDependencyError", "InvalidOptionError",
 ]
 __version__ = "0.1.0"

@@ -42,9 +42,10 @@ from scipy.spatial.transform import Rotation
 
 from . import _kernels as K
 from ._points import as_points
-from .errors import MissingDependencyError
+from .errors import InvalidOptionError, InvalidPointsError, MissingDependencyError
 from .field import DensityField
 from .params import auto_voxel_size
+from .validate import positive_finite
 
 __all__ = ["Alignment", "align", "transform_points"]
 
@@ -168,20 +169,21 @@ def align(reference, current, *, method: str = "density", voxel_size: float | st
     if method not in ("density", "gicp"):
         raise ValueError(f"method must be 'density' or 'gicp', got {method!r}")
     if method == "gicp" and fix_horizontal:
-        raise ValueError("fix_horizontal is available with method='density' only")
+        raise InvalidOptionError("fix_horizontal is available with method='density' only")
     if not 0 <= min_constraint < 1:
         raise ValueError(f"min_constraint must be in [0, 1), got {min_constraint}")
     if levels < 1:
         raise ValueError(f"levels must be at least 1, got {levels}")
-    cur = as_points(current, name="current").xyz
+    cur = _enough_points(as_points(current, name="current").xyz, "current")
     ref_xyz = None
     if isinstance(reference, DensityField):
         if method == "gicp":
-            raise ValueError("method='gicp' needs the reference points, not a field")
+            raise InvalidOptionError("the GICP alignment needs the reference points, not a density field")
         ref_field = reference
     else:
-        ref_xyz = as_points(reference, name="reference").xyz
-        l = auto_voxel_size(ref_xyz) if isinstance(voxel_size, str) and voxel_size == "auto" else float(voxel_size)
+        ref_xyz = _enough_points(as_points(reference, name="reference").xyz, "reference")
+        l = auto_voxel_size(ref_xyz) if isinstance(voxel_size, str) and voxel_size == "auto" else \
+            positive_finite("voxel_size", voxel_size)
         # σ = 2l as for change detection, sampled at l/2: a trilinear interpolant sags between
         # nodes (3 % at σ = 2 voxels, 0.8 % at 4), which would pull planes onto node planes
         ref_field = DensityField.from_points(ref_xyz, voxel_size=l / 2, sigma_voxels=4)
@@ -206,6 +208,20 @@ def align(reference, current, *, method: str = "density", voxel_size: float | st
     before, after = (float(ref_field.inside(transform_points(m, sample)).mean()) for m in (t0, matrix))
     return Alignment(matrix=matrix, method=method, inside_before=before, inside_after=after, rmse=rmse,
                      seconds=seconds, **info)
+
+
+#: Fewest (finite, distinct) points of a cloud to align: a rigid motion has 6 unknowns, and a
+#: handful of points pins none of them against a density field.
+MIN_ALIGN_POINTS = 10
+
+
+def _enough_points(xyz: np.ndarray, name: str) -> np.ndarray:
+    """``xyz`` if it holds at least :data:`MIN_ALIGN_POINTS` distinct points, else InvalidPointsError."""
+    n = len(xyz) if len(xyz) > 10_000 else len(np.unique(xyz, axis=0))  # duplicates pin nothing
+    if n < MIN_ALIGN_POINTS:
+        raise InvalidPointsError(f"{name} has {n} distinct point{'s' * (n != 1)}: too few to align "
+                                 f"(at least {MIN_ALIGN_POINTS})")
+    return xyz
 
 
 _G_MIN = 0.05  # density below which a point sees no surface (a lone point's kernel at 2.4σ)

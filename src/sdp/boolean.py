@@ -39,7 +39,7 @@ def check_compatible(a: DensityField, b: DensityField) -> None:
     if not np.isclose(a.voxel_size, b.voxel_size, rtol=1e-12, atol=0):
         raise IncompatibleFieldsError(
             f"fields have different voxel sizes ({a.voxel_size:g} and {b.voxel_size:g}): build both "
-            "with the same voxel_size= so their nodes coincide (detect_changes does this for you)")
+            "with the same voxel size so their nodes coincide")
 
 
 def _combine(a: DensityField, b: DensityField, name: str) -> DensityField:

@@ -21,9 +21,11 @@ from ._kernels import map_concurrently
 from ._points import Points, as_points
 from .coverage import CHANGED, NOT_COMPARABLE, footprint_covered, states_of
 from .defaults import DEFAULTS
+from .errors import InvalidOptionError
 from .field import DensityField, build_fields
 from .params import resolve_voxel_size
 from .regions import Region, Volume, describe_regions, label_volume
+from .validate import check_grid_options, finite, integer_at_least, nonnegative_finite
 from .visibility import resolve_sensor_origins, visibility_states
 
 __all__ = ["ChangeResult", "detect_changes", "judge_coverage"]
@@ -193,10 +195,14 @@ def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAU
     ChangeResult
     """
     if decision not in ("point", "cluster"):
-        raise ValueError(f"decision must be 'point' or 'cluster', got {decision!r}")
+        raise InvalidOptionError(f"decision must be 'point' or 'cluster', got {decision!r}")
+    check_grid_options(voxel_size=None if grid_size is not None else voxel_size, sigma_voxels=sigma_voxels, k=k, h=h,
+                       truncate=truncate, memory_limit=memory_limit)
+    nonnegative_finite("range_noise", range_noise)
+    integer_at_least("min_region_points", min_region_points, 0)
+    if not 0 <= finite("cluster_fraction", cluster_fraction) < 1:
+        raise InvalidOptionError(f"cluster_fraction must be in [0, 1), got {cluster_fraction!r}")
     o_ref, o_cur = resolve_sensor_origins(sensor_origin, reference, current)
-    if not (range_noise >= 0 and np.isfinite(range_noise)):
-        raise ValueError(f"range_noise must be a finite number >= 0, got {range_noise!r}")
     ref = as_points(reference, name="reference")
     cur = as_points(current, name="current")
     timings = {}

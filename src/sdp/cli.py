@@ -5,16 +5,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__, _progress
+from . import validate as V
 from .defaults import DEFAULTS
 from .errors import SDPError
-from .io import read_points
+from .io import all_or_none, check_outputs, read_points
 
 EXAMPLES_CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                  appeared points of cur.pcd
   sdp change ref.laz cur.laz -o out.laz --both --voxel-size 0.1
@@ -55,25 +58,31 @@ EXAMPLES_RENDER = """  sdp render changes.ply --png changes.png                 
 
 def _grid_options(p):
     g = p.add_argument_group("grid (default: --voxel-size auto, sigma from the point spacing, which suits real scans)")
-    g.add_argument("--voxel-size", default=DEFAULTS.voxel_size,
+    g.add_argument("--voxel-size", default=DEFAULTS.voxel_size, type=V.cli_type(V.auto_or_positive),
                    help="voxel length in world units, or 'auto' (default: from the clouds' point spacing)")
-    g.add_argument("--grid-size", type=int, help="the paper's level of detail: longest side / GRID_SIZE (paper: 80)")
-    g.add_argument("-k", type=float, default=DEFAULTS.k, help="threshold h = 1 + k·e^-1/2 (default 3, the paper's)")
-    g.add_argument("--h", type=float, help="threshold h given directly")
-    g.add_argument("--sigma-voxels", type=float, default=DEFAULTS.sigma_voxels,
+    g.add_argument("--grid-size", type=V.cli_type(V.integer_at_least, 1),
+                   help="the paper's level of detail: longest side / GRID_SIZE (paper: 80)")
+    g.add_argument("-k", type=V.cli_type(V.finite), default=DEFAULTS.k,
+                   help="threshold h = 1 + k·e^-1/2 (default 3, the paper's)")
+    g.add_argument("--h", type=V.cli_type(V.positive_finite), help="threshold h given directly")
+    g.add_argument("--sigma-voxels", type=V.cli_type(V.positive_finite), default=DEFAULTS.sigma_voxels,
                    help="sigma in voxels (default 2, the paper's)")
-    g.add_argument("--memory-limit", help="refuse grids needing more (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
+    g.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
+                   help="refuse grids needing more (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
 
 
 def _tile_options(p, title, *, tiled: bool = True):
     t = p.add_argument_group(title)
     if tiled:
         t.add_argument("--tiled", action="store_true", help="work in tiles even if the clouds fit in memory")
-    t.add_argument("--tile-size", type=float, help="tile edge in world units (default: ~2M points per tile)")
+    t.add_argument("--tile-size", type=V.cli_type(V.positive_finite),
+                   help="tile edge in world units (default: ~2M points per tile)")
     t.add_argument("--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786 "
                    "(default: a local cluster of --workers processes)")
-    t.add_argument("--workers", type=int, help="worker processes of the local cluster (default: one per core)")
-    t.add_argument("--workdir", help="folder for the tiles' buckets (shared by all workers on a cluster)")
+    t.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1),
+                   help="worker processes of the local cluster (default: one per core)")
+    t.add_argument("--workdir", type=V.cli_type(V.existing_folder),
+                   help="folder for the tiles' buckets (shared by all workers on a cluster)")
 
 
 def _tile_kwargs(a) -> dict:
@@ -109,6 +118,8 @@ def _grid_kwargs(a):
 def cmd_change(a):
     from .change import detect_changes
 
+    out = Path(a.output)
+    check_outputs([out, _disappeared_path(out) if a.both else None, a.png, a.html], [a.reference, a.current])
     tiled = _tiled_voxel(a)
     if tiled is not None:
         return _change_tiled(a, tiled)
@@ -124,7 +135,6 @@ def cmd_change(a):
     r = detect_changes(ref, moved, decision=a.decision, min_region_points=a.min_region_points,
                        sensor_origin=_sensor_origin(a, (a.reference, ref), (a.current, moved), alignment),
                        range_noise=a.range_noise, **_grid_kwargs(a))
-    out = Path(a.output)
     out_xyz = moved.xyz if a.aligned_output else cur.xyz
     jobs = [(out, cur, out_xyz, r.current_state, r.appeared_region, r.current_field, moved.xyz)]
     if a.both:
@@ -226,9 +236,13 @@ def _tiled_voxel(a) -> float | None:
     points = untiled_point_bytes(sum(s.n_rows for s in sources))
     cap = memory_limit(a.memory_limit)
     if a.tiled or max(grids, points) > cap:
+        if Path(a.output).suffix.lower() not in (".las", ".laz"):  # before any work: the tiles stream LAS/LAZ
+            raise SDPError(f"{a.output}: the clouds are compared in tiles (two dense grids would need "
+                           f"{V.format_bytes(grids)}, above the memory limit of {V.format_bytes(cap)}), whose "
+                           "output streams to LAS/LAZ: give -o OUT.laz, or a larger --memory-limit")
         if not a.tiled and not a.json:
-            print(f"sdp: comparing in tiles on Dask: dense grids of {grids / 2**30:.2f} GiB and points of "
-                  f"{points / 2**30:.2f} GiB exceed the memory limit of {cap / 2**30:.2f} GiB", file=sys.stderr)
+            print(f"sdp: comparing in tiles on Dask: dense grids of {V.format_bytes(grids)} and points of "
+                  f"{V.format_bytes(points)} exceed the memory limit of {V.format_bytes(cap)}", file=sys.stderr)
         a.sources = sources
         return float(voxel)
     return None
@@ -411,6 +425,7 @@ def cmd_align(a):
     from .field import DensityField
     from .io import atomic_path, refuse_overwrite
 
+    check_outputs([a.output], [a.current, a.reference])
     refuse_overwrite(a.output, (a.current, a.reference))
     ref = DensityField.load(a.reference) if _is_field(a.reference) else read_points(a.reference, format=a.format)
     al = _align(a, ref, read_points(a.current, format=a.format), method=a.method)
@@ -498,6 +513,7 @@ def cmd_action(a):
 
 
 def cmd_build(a):
+    check_outputs([a.output], [a.cloud])
     if not _is_store(a.output):
         _save_field(_field(a.cloud, a), a.output, inputs=(a.cloud,))
         return 0
@@ -533,6 +549,7 @@ def cmd_info(a):
 
 
 def cmd_mesh(a):
+    check_outputs([a.output], [a.input])
     if _is_store(a.input):
         from .store import FieldStore
 
@@ -554,6 +571,7 @@ def cmd_bool(a):
     from . import boolean
     from .field import DensityField
 
+    check_outputs([a.output], [a.a, a.b])
     if _is_store(a.output):
         from .store import FieldStore
 
@@ -604,6 +622,7 @@ def cmd_eval(a):
 def cmd_render(a):
     if not (a.png or a.html):
         raise SDPError("nothing to write: give --png OUT.png and/or --html OUT.html")
+    check_outputs([a.png, a.html], [a.file])
     if _is_field(a.file):
         from .field import DensityField
         from .render import render_field
@@ -683,8 +702,15 @@ def _command(sub, name, func, help, examples):
     return p
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (``sdp: error: ...``, status 2), pointing at ``--help``."""
+
+    def error(self, message: str):
+        self.exit(2, f"sdp: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sdp", description="Compare point clouds through spatial density patterns.")
+    p = _Parser(prog="sdp", description="Compare point clouds through spatial density patterns.")
     p.add_argument("--version", action="version", version=f"sdp {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -696,7 +722,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write the disappeared reference points (OUTPUT_disappeared)")
     c.add_argument("--decision", choices=("point", "cluster"), default=DEFAULTS.decision,
                    help="point (default: Algorithm 1 per point) or cluster (the paper's clustering)")
-    c.add_argument("--min-region-points", type=int, default=DEFAULTS.min_region_points,
+    c.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=DEFAULTS.min_region_points,
                    help="drop change regions with fewer points (default 50: smaller ones are noise and depth edges)")
     c.add_argument("--png", help="write a picture of the appeared points")
     c.add_argument("--html", help="write an interactive 3D view (needs the html extra: plotly)")
@@ -706,9 +732,9 @@ def build_parser() -> argparse.ArgumentParser:
     _align_options(c)
     c.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
                    help="test changes along the sensor's rays (sdp.visibility). auto (default): where a file "
-                        "records it (organized PCD: VIEWPOINT), as it lifts kappa on Kinect pairs from 0.67 to 0.86; "
+                        "records it (organized PCD: VIEWPOINT), as it lifts kappa on Kinect pairs from 0.67 to 0.85; "
                         "viewpoint: the same, required; none: density and footprint only; X,Y,Z: one position")
-    c.add_argument("--range-noise", type=float, default=DEFAULTS.range_noise,
+    c.add_argument("--range-noise", type=V.cli_type(V.nonnegative_finite), default=DEFAULTS.range_noise,
                    help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect's depth noise)")
     _tile_options(c, "large clouds: tiles on Dask (taken by itself when the grids or points exceed --memory-limit, "
                      "or when REFERENCE is a .zarr field store; outputs LAS/LAZ with 'change' and 'region')")
@@ -727,7 +753,8 @@ def build_parser() -> argparse.ArgumentParser:
                  "  sdp mesh scan.sdpf -o surface.ply\n  sdp mesh scan.pcd -o surface.obj --level 0")
     m.add_argument("input")
     m.add_argument("-o", "--output", required=True, help=".ply, .obj or .stl")
-    m.add_argument("--level", type=float, default=0.0, help="level of F = h - G (0: the cluster boundary)")
+    m.add_argument("--level", type=V.cli_type(V.finite), default=0.0,
+                   help="level of F = h - G (0: the cluster boundary)")
 
     o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds",
                  EXAMPLES_BOOL)
@@ -752,19 +779,20 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("frames", help="folder of frames, processed in natural name order")
     w.add_argument("--update", choices=("none", "window", "decay"), default=DEFAULTS.update,
                    help="how the model learns the frames (default window: learns the last frames, forgets the rest)")
-    w.add_argument("--window", type=int, default=DEFAULTS.window,
+    w.add_argument("--window", type=V.cli_type(V.integer_at_least, 1), default=DEFAULTS.window,
                    help="frames in the model, reference included (default 10)")
     w.add_argument("--decay", type=float, default=DEFAULTS.decay, help="per-frame forgetting factor for --update decay")
-    w.add_argument("--min-region-points", type=int, default=DEFAULTS.min_region_points,
+    w.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=DEFAULTS.min_region_points,
                    help="drop appeared regions with fewer points (default 50)")
-    w.add_argument("--voxel-size", default=DEFAULTS.voxel_size, help="voxel of a reference cloud, or 'auto' (default)")
+    w.add_argument("--voxel-size", default=DEFAULTS.voxel_size, type=V.cli_type(V.auto_or_positive),
+                   help="voxel of a reference cloud, or 'auto' (default)")
     w.add_argument("--align", choices=("gicp", "density"),
                    help="register each frame onto the reference first (a moving camera): gicp (small_gicp, "
                         "needs a reference cloud) or density")
     w.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
                    help="test changes along the reference's rays (sdp.visibility): auto (default) where its file "
                         "records the sensor (organized PCD), viewpoint the same but required, none, or X,Y,Z")
-    w.add_argument("--range-noise", type=float, default=DEFAULTS.range_noise,
+    w.add_argument("--range-noise", type=V.cli_type(V.nonnegative_finite), default=DEFAULTS.range_noise,
                    help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
     w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
 
@@ -782,7 +810,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("data_dir")
     ev.add_argument("--json", action="store_true", help="print the accuracies (fractions) and timings as JSON")
     for q in (t, ev):
-        q.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes reading sequences")
+        q.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1), default=os.cpu_count() or 1,
+                       help="processes reading sequences")
 
     e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth",
                  EXAMPLES_EVAL)
@@ -814,17 +843,51 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that ``finally`` blocks and context managers clean up
+    (temporary outputs, the tiles' work folder, the Dask cluster) before the process ends."""
+
+
+def _on_sigterm(signum, frame):
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not cut the clean-up short
+    raise _Terminated()
+
+
+def _one_line(exc: BaseException) -> str:
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    return lines[0] if lines else type(exc).__name__
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     _progress.enable(not (getattr(args, "quiet", False) or getattr(args, "json", False)))
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
     try:
-        return args.func(args)
+        with all_or_none():  # a command writes all its outputs or none
+            return args.func(args)
     except (SDPError, ValueError) as exc:
-        print(f"sdp: error: {exc}", file=sys.stderr)
+        print(f"sdp: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("sdp: error: out of memory: use a larger --voxel-size or a lower --memory-limit", file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into head & co.
         sys.stderr.close()
         return 0
+    except OSError as exc:  # a disk full, a file vanishing: said in one line
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"sdp: error: {where}{exc.strerror or _one_line(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("sdp: interrupted", file=sys.stderr)
+        return 130
+    except _Terminated:
+        print("sdp: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ __all__ = [
     "SurfaceError",
     "FieldFileError",
     "MissingDependencyError",
+    "InvalidOptionError",
 ]
 
 
@@ -44,3 +45,7 @@ class FieldFileError(SDPError, OSError):
 
 class MissingDependencyError(SDPError, ImportError):
     """An optional dependency is not installed; the message says which extra to install."""
+
+
+class InvalidOptionError(SDPError, ValueError):
+    """An option is out of range: a voxel size, σ, threshold, count, memory limit or folder."""

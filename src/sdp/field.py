@@ -21,9 +21,10 @@ from . import _kernels as K
 from ._points import Points, as_points
 from ._progress import bar
 from .defaults import DEFAULTS
-from .errors import FieldFileError, IncompatibleFieldsError, InvalidPointsError
+from .errors import FieldFileError, IncompatibleFieldsError, InvalidOptionError, InvalidPointsError
 from .grid import BLOCK, Grid, check_memory
 from .params import resolve_voxel_size
+from .validate import check_grid_options, check_kernel
 
 __all__ = ["DensityField", "threshold", "FORMAT_VERSION"]
 
@@ -139,21 +140,20 @@ class DensityField:
     @classmethod
     def _binned(cls, cloud: Points, *, voxel_size: float, sigma_voxels: float, k: float, h: float | None,
                 truncate: float, method: str, memory_limit: int | str | None):
-        """The first, single-threaded part of :meth:`from_points` for a validated cloud and a
-        resolved voxel length: (field, flags of the blocks written, taps), the field holding the
-        exact sums (``method="exact"``, taps None) or the binned weights still to be blurred with
+        """The first, single-threaded part of :meth:`from_points` for a validated cloud and checked
+        options (:func:`build_fields`): (field, flags of the blocks written, taps), the field holding
+        the exact sums (``method="exact"``, taps None) or the binned weights still to be blurred with
         ``taps`` (``"fast"``)."""
         l = voxel_size
-        if not sigma_voxels > 0 or not truncate > 0:
-            raise ValueError("sigma_voxels and truncate must be positive")
         if method == "auto":
             method = _AUTO_METHOD
         if method not in ("exact", "fast"):
-            raise ValueError(f"method must be 'auto', 'exact' or 'fast', got {method!r}")
-        if method == "fast" and sigma_voxels**2 <= 1.0 / 6.0:
-            raise ValueError("method='fast' needs sigma_voxels > 0.41; use method='exact'")
+            raise InvalidOptionError(f"method must be 'auto', 'exact' or 'fast', got {method!r}")
+        if method == "fast" and sigma_voxels <= math.sqrt(1.0 / 6.0):
+            raise InvalidOptionError(f"sigma of {sigma_voxels:g} voxels is below 0.41 voxels, the least the fast build "
+                                     "(binning, then a blur) can make: use a larger sigma in voxels")
         rmax = truncate * sigma_voxels
-        reach = int(math.ceil(rmax))
+        reach = check_kernel(sigma_voxels, truncate, memory_limit)
         grid = Grid.covering(cloud.lo, cloud.hi, l, reach)
         check_memory(grid.n_blocks_box * 5, f"the block directory of a {grid.shape} grid", memory_limit)
         xyz, origin, l = cloud.xyz, grid.origin, grid.voxel_size
@@ -455,6 +455,8 @@ def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size
     binning) at once on the threads of :func:`sdp._kernels.map_concurrently`, then the parallel
     blurs in turn. Returns the fields and the seconds each took (its first part, in its own
     thread, plus its blur: together more than the wall time when the first parts overlap)."""
+    check_grid_options(voxel_size=None if grid_size is not None else voxel_size, sigma_voxels=sigma_voxels, k=k,
+                       h=h, truncate=truncate, memory_limit=memory_limit)  # before any work
     clouds = [c if isinstance(c, Points) else as_points(c) for c in clouds]  # Points: validated already
     voxel = resolve_voxel_size(clouds, voxel_size=voxel_size, grid_size=grid_size, k=k, sigma_voxels=sigma_voxels)
     options = dict(voxel_size=voxel, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,

@@ -22,9 +22,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import GridTooLargeError, InvalidPointsError
+from .errors import GridTooLargeError, InvalidOptionError, InvalidPointsError
+from .validate import check_lattice, format_bytes, integer_at_least, positive_finite
 
-__all__ = ["BLOCK", "Grid", "voxel_size_for_grid_size", "memory_limit", "parse_bytes"]
+__all__ = ["BLOCK", "Grid", "voxel_size_for_grid_size", "memory_limit", "parse_bytes", "check_memory",
+           "MIN_MEMORY_LIMIT"]
 
 #: Edge length of a block, in nodes (blocks hold ``BLOCK**3`` float32 values, 2 KiB).
 BLOCK = 8
@@ -34,43 +36,76 @@ _UNITS = {"": 1, "b": 1, "k": 2**10, "kb": 2**10, "kib": 2**10, "m": 2**20, "mb"
           "mib": 2**20, "g": 2**30, "gb": 2**30, "gib": 2**30, "t": 2**40, "tb": 2**40, "tib": 2**40}
 
 
+#: Smallest memory limit accepted: a smaller one is almost surely a size given without its unit.
+MIN_MEMORY_LIMIT = 2**20
+
+
 def parse_bytes(value: int | float | str) -> int:
-    """Parse a memory size such as ``2GB``, ``512MiB`` or ``1e9`` into bytes (binary units)."""
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        if value <= 0:
-            raise ValueError(f"a memory limit must be positive, got {value}")
+    """Parse a memory size such as ``2GB``, ``512MiB`` or ``1e9`` into bytes (binary units).
+
+    Raises
+    ------
+    InvalidOptionError
+        Not a positive finite size in a known unit.
+    """
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+        if not (value > 0 and math.isfinite(value)):
+            raise InvalidOptionError(f"a memory limit must be a positive size such as 2GB, got {value!r}")
         return int(value)
-    match = re.fullmatch(r"\s*([0-9.eE+]+)\s*([a-zA-Z]*)\s*", str(value))
+    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?|[0-9]+\.)\s*([a-zA-Z]*)\s*", str(value))
     if not match or match.group(2).lower() not in _UNITS:
-        raise ValueError(f"can't read memory size {value!r}: use e.g. 2GB, 512MB or a number of bytes")
+        raise InvalidOptionError(f"can't read memory size {value!r}: use e.g. 2GB, 512MB or a number of bytes")
     return parse_bytes(float(match.group(1)) * _UNITS[match.group(2).lower()])
 
 
 def memory_limit(limit: int | float | str | None = None) -> int:
-    """The memory limit in bytes: ``limit`` if given, else ``$SDP_MEMORY_LIMIT``, else 4 GiB."""
+    """The memory limit in bytes: ``limit`` if given, else ``$SDP_MEMORY_LIMIT``, else 4 GiB.
+
+    Raises
+    ------
+    InvalidOptionError
+        Unreadable, not positive, or, given as text (the command line, ``$SDP_MEMORY_LIMIT``),
+        below 1 MB (:data:`MIN_MEMORY_LIMIT`: most likely a size without its unit).
+    """
+    source = "the memory limit"
     if limit is None:
-        limit = os.environ.get("SDP_MEMORY_LIMIT", _DEFAULT_MEMORY_LIMIT)
-    return parse_bytes(limit)
+        env = os.environ.get("SDP_MEMORY_LIMIT")
+        limit, source = (_DEFAULT_MEMORY_LIMIT, source) if env is None else (env, "$SDP_MEMORY_LIMIT")
+    try:
+        cap = parse_bytes(limit)
+    except InvalidOptionError as exc:
+        if source == "the memory limit":
+            raise
+        raise InvalidOptionError(f"{source}: {exc}") from None
+    if cap < MIN_MEMORY_LIMIT and isinstance(limit, str):  # numbers (Python) are bytes, taken as given
+        raise InvalidOptionError(f"{source} {limit!r} is {format_bytes(cap)}, below the minimum of "
+                                 f"{format_bytes(MIN_MEMORY_LIMIT)}: give a size with its unit, e.g. 2GB")
+    return cap
 
 
-def check_memory(nbytes: int, what: str, limit: int | float | str | None) -> None:
-    """Raise :class:`GridTooLargeError` if ``nbytes`` exceeds the memory limit."""
+def check_memory(nbytes: float, what: str, limit: int | float | str | None, *,
+                 advice: str = "use a larger voxel size (or a smaller grid size)") -> None:
+    """Raise :class:`GridTooLargeError` if ``nbytes`` exceeds the memory limit.
+
+    The message gives both sizes in human units and says what to change: ``advice``, or
+    raising the memory limit (``--memory-limit`` on the command line, ``memory_limit=`` in
+    Python, ``$SDP_MEMORY_LIMIT`` for both).
+    """
     cap = memory_limit(limit)
-    if nbytes > cap:
+    if not nbytes <= cap:
         raise GridTooLargeError(
-            f"{what} would need {nbytes / 2**30:.2f} GiB, above the memory limit of {cap / 2**30:.2f} GiB: "
-            "use a larger voxel_size (or a smaller grid_size), or raise memory_limit= / $SDP_MEMORY_LIMIT")
+            f"{what} would need {format_bytes(nbytes)}, above the memory limit of {format_bytes(cap)}: "
+            f"{advice}, or raise the memory limit ($SDP_MEMORY_LIMIT)")
 
 
 def voxel_size_for_grid_size(lo: np.ndarray, hi: np.ndarray, grid_size: int) -> float:
     """The paper's parameterization: the box's longest side divided into ``grid_size`` segments."""
-    if int(grid_size) != grid_size or grid_size < 1:
-        raise ValueError(f"grid_size must be a positive integer, got {grid_size!r}")
+    grid_size = integer_at_least("grid_size", grid_size, 1)
     extent = float(np.max(np.asarray(hi) - np.asarray(lo)))
     if not extent > 0:
         raise InvalidPointsError(
-            "the cloud has zero extent (a single point, or all points equal): grid_size can't set a "
-            "voxel length from it; pass voxel_size= in world units instead")
+            "the cloud has zero extent (a single point, or all points equal): a grid size can't set a "
+            "voxel length from it; give a voxel size in world units instead")
     return extent / grid_size
 
 
@@ -114,8 +149,8 @@ class Grid:
     @classmethod
     def covering(cls, lo: np.ndarray, hi: np.ndarray, voxel_size: float, reach: int) -> "Grid":
         """The smallest grid whose blocks hold every node within ``reach`` nodes of the box [lo, hi]."""
-        if not (voxel_size > 0 and math.isfinite(voxel_size)):
-            raise ValueError(f"voxel_size must be a positive finite length, got {voxel_size!r}")
+        voxel_size = positive_finite("voxel_size", voxel_size)
+        check_lattice(lo, hi, voxel_size, reach)
         first = np.floor(np.asarray(lo) / voxel_size).astype(np.int64) - reach
         last = np.floor(np.asarray(hi) / voxel_size).astype(np.int64) + 1 + reach
         b0 = np.floor_divide(first, BLOCK)
@@ -125,4 +160,4 @@ class Grid:
     @property
     def n_blocks_box(self) -> int:
         """Number of blocks in the bounding box (the size of the block directory)."""
-        return int(np.prod(np.asarray(self.shape_blocks, dtype=np.int64)))
+        return math.prod(int(v) for v in self.shape_blocks)  # Python ints: no int64 wrap-around on huge boxes

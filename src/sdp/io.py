@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import os
 import tempfile
+import warnings
 from contextlib import ExitStack, contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -22,7 +24,7 @@ from ._progress import bar
 from .errors import SDPError
 
 __all__ = ["Cloud", "PointSource", "read_points", "write_points", "write_mesh", "CloudFileError", "FORMATS",
-           "atomic_path"]
+           "atomic_path", "check_outputs", "las_scale_offset"]
 
 #: Extension → format name understood by :func:`read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
@@ -120,18 +122,17 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
         Unknown format, missing file, unreadable content, no x/y/z, or no finite point.
     """
     path = Path(path)
-    fmt = format or FORMATS.get(path.suffix.lower())
-    if fmt not in set(FORMATS.values()):
-        raise CloudFileError(f"{path}: unknown point-cloud format {path.suffix or '(no extension)'!r}; "
-                             f"use one of {', '.join(sorted(FORMATS))} or pass format=")
-    if not path.is_file():
-        raise CloudFileError(f"{path}: no such file")
+    fmt = _input_format(path, format)
     try:
         xyz, fields, las, *pose = _READERS[fmt](path)  # PCD adds its VIEWPOINT and whether organized
     except CloudFileError:
         raise
-    except Exception as exc:  # libraries raise many types on corrupt input
-        raise CloudFileError(f"{path}: can't read as {fmt} ({type(exc).__name__}: {exc})") from None
+    except MemoryError:
+        raise CloudFileError(f"{path}: too large to read into memory as {fmt}") from None
+    except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+        if not _library_error(exc):
+            raise
+        raise _unreadable(path, fmt, exc) from None
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise CloudFileError(f"{path}: expected x, y, z columns, got an array of shape {xyz.shape}")
@@ -144,6 +145,61 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
         raise CloudFileError(f"{path}: holds no point with finite x, y, z")
     viewpoint, organized = pose if pose else (None, False)
     return Cloud(np.ascontiguousarray(xyz), fields, path, dropped, las, viewpoint, organized)
+
+
+def _input_format(path: Path, format: str | None) -> str:
+    """The reader's format name for ``path`` (``format`` overrides the extension), once ``path``
+    is known to be an existing file; else :class:`CloudFileError` saying what is wrong."""
+    names = sorted(set(FORMATS.values()))
+    if format is not None:
+        if format not in names:
+            raise CloudFileError(f"unknown format {format!r}; use one of {', '.join(names)}")
+        fmt = format
+    else:
+        fmt = FORMATS.get(path.suffix.lower())
+        if fmt is None:
+            raise CloudFileError(f"{path}: unknown point-cloud format {path.suffix or '(no extension)'!r}; use one "
+                                 f"of the extensions {', '.join(sorted(FORMATS))} or give the format "
+                                 f"({', '.join(names)})")
+    if path.is_dir():
+        raise CloudFileError(f"{path}: is a directory, not a point-cloud file")
+    if not path.exists():
+        raise CloudFileError(f"{path}: no such file")
+    if not path.is_file():
+        raise CloudFileError(f"{path}: not a regular file")
+    if not os.access(path, os.R_OK):
+        raise CloudFileError(f"{path}: permission denied")
+    return fmt
+
+
+def _one_line(exc: BaseException, limit: int = 200) -> str:
+    """A library exception in one line: pydantic's validation errors summarized (pypcd4's PCD
+    headers), other messages cut at their first line and at ``limit`` characters."""
+    errors = getattr(exc, "errors", None)
+    if callable(errors):
+        try:
+            items = errors()
+            parts = [f"{' '.join(str(x) for x in e.get('loc', ())).upper() or 'header'}: {e.get('msg', '')}"
+                     for e in items[:3]]
+            text = "; ".join(parts) + (f" (and {len(items) - 3} more)" if len(items) > 3 else "")
+            return f"header {text}" if text else type(exc).__name__
+        except Exception:  # not pydantic after all
+            pass
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    text = lines[0] if lines else type(exc).__name__
+    return text if len(text) <= limit else text[:limit - 1] + "…"
+
+
+def _library_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a reader library's failure on bad content: any ``Exception``, or a Rust
+    panic surfaced by pyo3 (``PanicException`` derives from ``BaseException``), but never
+    Ctrl-C, ``SystemExit`` or a closed generator."""
+    return isinstance(exc, Exception) or type(exc).__name__ == "PanicException"
+
+
+def _unreadable(path, fmt: str, exc: BaseException) -> "CloudFileError":
+    """The CloudFileError of a library exception raised while reading ``path``."""
+    return CloudFileError(f"{path}: can't read as {fmt} ({type(exc).__name__}: {_one_line(exc)})")
 
 
 def _read_pcd(path):
@@ -189,7 +245,9 @@ def _read_ply(path):
 def _read_las(path):
     import laspy
 
+    _check_las_counts(path)
     with laspy.open(str(path)) as reader, bar(reader.header.point_count, f"reading {Path(path).name}") as pb:
+        _check_las(path, reader.header)
         chunks = []
         for chunk in reader.chunk_iterator(_LAS_CHUNK):
             chunks.append(chunk.array)
@@ -202,6 +260,56 @@ def _read_las(path):
     return xyz, fields, las
 
 
+def _check_las_counts(path) -> None:
+    """Refuse a LAS/LAZ whose header counts more (extended) VLRs than the file can hold, before laspy
+    reads it: laspy loops over the count, and a corrupt 32-bit count makes that loop run for hours.
+    Reads the public header block's fixed fields only (ASPRS LAS 1.0–1.4)."""
+    import struct
+
+    size = Path(path).stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(247)
+    if head[:4] != b"LASF":
+        raise CloudFileError(f"{path}: can't read as las (no LASF signature: not a LAS/LAZ file)")
+    if len(head) < 227:
+        raise CloudFileError(f"{path}: can't read as las (truncated: the header holds {len(head)} of 227 bytes)")
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    if offset > size:
+        raise CloudFileError(f"{path}: truncated: the LAS header puts the points at byte {offset:,}, the file holds "
+                             f"{size:,} bytes")
+    if header_size + 54 * n_vlrs > offset:
+        raise CloudFileError(f"{path}: corrupt LAS header: {n_vlrs:,} records do not fit before the point data")
+    if offset + 8 <= size and bool(head[104] & 0x80 or head[104] & 0x40):  # LAZ: its chunk table
+        # lazrs allocates the table's entries before reading them: a corrupt count aborts the process
+        with open(path, "rb") as f:
+            f.seek(offset)
+            (table,) = struct.unpack("<q", f.read(8))
+            if 0 < table and table + 8 <= size:
+                f.seek(table)
+                _, n_chunks = struct.unpack("<II", f.read(8))
+                if n_chunks > size:
+                    raise CloudFileError(f"{path}: corrupt LAZ chunk table ({n_chunks:,} chunks in a file of "
+                                         f"{size:,} bytes)")
+    if head[24:26] == b"\x01\x04" and len(head) >= 247:  # LAS 1.4: extended VLRs at the end
+        start, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and (start > size or 60 * n_evlrs > size):
+            raise CloudFileError(f"{path}: corrupt LAS header: {n_evlrs:,} extended records do not fit in a file "
+                                 f"of {size:,} bytes")
+
+
+def _check_las(path, header) -> None:
+    """Refuse a LAS/LAZ file without points, or an uncompressed LAS shorter than its header says."""
+    n = int(header.point_count)
+    if n == 0:
+        raise CloudFileError(f"{path}: holds no point (its LAS header counts 0)")
+    if not header.are_points_compressed:
+        need = int(header.offset_to_point_data) + n * int(header.point_format.size)
+        have = Path(path).stat().st_size
+        if have < need:
+            raise CloudFileError(f"{path}: truncated: the LAS header announces {n:,} points ({need:,} bytes) but the "
+                                 f"file holds {have:,} bytes")
+
+
 def _read_text(path):
     with open(path, encoding="utf-8", errors="replace") as fh:
         sample = fh.read(4096)
@@ -210,7 +318,11 @@ def _read_text(path):
     delimiter = "," if "," in sample else None
     first = sample.splitlines()[0] if sample else ""
     skip = 0 if _is_numeric_row(first, delimiter) else 1
-    arr = np.loadtxt(path, delimiter=delimiter, skiprows=skip, ndmin=2)
+    with warnings.catch_warnings():  # a header without rows: said below, not as a warning
+        warnings.simplefilter("ignore", UserWarning)
+        arr = np.loadtxt(path, delimiter=delimiter, skiprows=skip, ndmin=2)
+    if arr.size == 0:
+        raise CloudFileError(f"{path}: holds a header but no point")
     if arr.shape[1] < 3:
         raise CloudFileError(f"{path}: expected at least 3 columns (x y z), found {arr.shape[1]}")
     names = [n.strip().lower() for n in first.replace(",", " ").split()] if skip else []
@@ -252,30 +364,124 @@ def _umask() -> int:
     return mask
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether two paths name one file (the same resolved path, or a hard link / bind mount)."""
+    try:
+        if a.resolve() == b.resolve():
+            return True
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_outputs(outputs, inputs=()) -> None:
+    """Refuse, before any work, outputs that can't be written or would overwrite an input.
+
+    Each output's folder must exist and take new files (tried with a temporary file, so
+    read-only mounts and ``/sys`` are caught), the output must not be an existing directory
+    (except a ``.zarr`` field store, which is one), must not be one of ``inputs`` (resolved
+    paths, hard links too), and no two outputs may be the same file.
+
+    Parameters
+    ----------
+    outputs : iterable of path-like or None
+        Files the command will write (None entries, options not given, are skipped).
+    inputs : iterable of path-like
+        Files the command reads.
+
+    Raises
+    ------
+    SDPError
+        With a one-line message naming the output and what is wrong.
+    """
+    seen: list[Path] = []
+    ins = [Path(p) for p in inputs if p is not None]
+    for out in outputs:
+        if out is None:
+            continue
+        path = Path(out)
+        if str(out) == "" or path.name in ("", ".", ".."):
+            raise SDPError(f"{str(out)!r}: not a file name for an output")
+        parent = path.parent
+        if not parent.exists():
+            raise SDPError(f"{path}: folder {str(parent)!r} does not exist; create it first")
+        if not parent.is_dir():
+            raise SDPError(f"{path}: {str(parent)!r} is not a folder")
+        if path.is_dir() and not (path.suffix.lower() == ".zarr" and (path / "zarr.json").is_file()):
+            raise SDPError(f"{path}: is an existing directory; choose a file name for the output")
+        for src in ins:
+            if _same_file(path, src):
+                raise SDPError(f"{path}: refusing to overwrite an input file; choose another output name")
+        for other in seen:
+            if _same_file(path, other):
+                raise SDPError(f"{path}: given for two outputs; choose a different name for each")
+        try:
+            fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".probe", dir=parent)
+        except OSError as exc:
+            raise SDPError(f"{path}: can't create files in {str(parent)!r} ({exc.strerror or exc})") from None
+        os.close(fd)
+        os.unlink(probe)
+        if path.exists() and not path.is_dir() and not os.access(path, os.W_OK):
+            raise SDPError(f"{path}: exists and is not writable")
+        seen.append(path)
+
+
 def refuse_overwrite(path: str | os.PathLike, inputs=()) -> None:
     """Raise :class:`SDPError` if ``path`` is one of the files ``inputs``."""
     path = Path(path)
     for src in inputs:
-        if Path(src).exists() and path.exists() and path.resolve() == Path(src).resolve():
+        if src is not None and path.exists() and _same_file(path, Path(src)):
             raise SDPError(f"{path}: refusing to overwrite an input file; choose another output name")
+
+
+_PENDING: ContextVar[list | None] = ContextVar("sdp_pending_outputs", default=None)
+
+
+@contextmanager
+def all_or_none():
+    """Within the block, every :func:`atomic_path` (every writer of sdp) keeps its finished file
+    under its temporary name; they are all renamed when the block succeeds, all removed when it
+    fails: a command writes all its outputs or none (``sdp`` runs each command inside one)."""
+    pending: list[tuple[str, Path]] = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+        for tmp, path in pending:
+            os.replace(tmp, path)
+    finally:
+        _PENDING.reset(token)
+        for tmp, _ in pending:
+            Path(tmp).unlink(missing_ok=True)
 
 
 @contextmanager
 def atomic_path(path: str | os.PathLike, *, inputs=()):
-    """Yield a temporary path beside ``path``; rename it to ``path`` when the block succeeds.
+    """Yield a temporary path beside ``path``; rename it to ``path`` when the block succeeds
+    (inside :func:`all_or_none`: when that block does).
 
     Refuses to overwrite any of ``inputs``; nothing is left behind on failure.
     """
     path = Path(path)
     refuse_overwrite(path, inputs)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
+    if path.is_dir():
+        raise SDPError(f"{path}: is an existing directory; choose a file name for the output")
     try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    except OSError as exc:
+        raise SDPError(f"{path}: can't create files in {str(path.parent)!r} ({exc.strerror or exc})") from None
+    pending, deferred = _PENDING.get(), False
+    try:
+        os.close(fd)
         yield Path(tmp)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp made it private; give it a new file's mode
-        os.replace(tmp, path)
+        if pending is not None:
+            pending.append((tmp, path))
+            deferred = True
+        else:
+            os.replace(tmp, path)
     finally:
-        Path(tmp).unlink(missing_ok=True)
+        if not deferred:
+            Path(tmp).unlink(missing_ok=True)
 
 
 def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.ndarray] | None = None, *,
@@ -283,8 +489,9 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
     """Write points with per-point scalar fields as PLY, LAS/LAZ or NPZ (by extension).
 
     LAS/LAZ output made from LAS/LAZ input (``like``) keeps every input dimension, scale and
-    offset, and adds ``fields`` as extra dimensions; other LAS output gets a 1 mm scale and
-    an offset at the cloud's minimum, so large coordinates stay exact. The file is written
+    offset, and adds ``fields`` as extra dimensions; other LAS output gets a 1 mm scale (coarser
+    only for clouds wider than ±2,147 km: :func:`las_scale_offset`) and an offset at the cloud's
+    centre, so large coordinates stay exact. The file is written
     under a temporary name and renamed; ``inputs`` are never overwritten.
     """
     path = Path(path)
@@ -315,6 +522,33 @@ def _ply_type(v: np.ndarray) -> str:
     return v.dtype.str.lstrip("<>=|") if v.dtype.kind in "uif" else "f8"
 
 
+def las_scale_offset(lo, hi, path=None) -> tuple[np.ndarray, np.ndarray]:
+    """Scale and offset of LAS integer coordinates for points in the box [lo, hi].
+
+    The offset is a whole number near the box's centre; the scale (per axis) the finest of
+    0.001, 0.01, 0.1, 1, … whose 32-bit integers reach both ends of the box (so 1 mm unless
+    the cloud spans more than ±2,147 km).
+
+    Raises
+    ------
+    CloudFileError
+        The box is not finite (``path`` names the file in the message).
+    """
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise CloudFileError(f"{path or 'LAS output'}: can't write non-finite coordinates as LAS")
+    offset = np.floor((lo + hi) / 2)
+    half = np.maximum(hi - offset, offset - lo)
+    limit = 2**31 - 2  # one unit of margin for rounding
+    scales = np.empty(3)
+    for axis in range(3):
+        scale = 0.001
+        while half[axis] / scale > limit:
+            scale *= 10
+        scales[axis] = scale
+    return scales, offset
+
+
 def _write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
     import laspy
 
@@ -322,8 +556,7 @@ def _write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
         las = like.las
     else:
         header = laspy.LasHeader(point_format=3, version="1.4")
-        header.scales = np.array([0.001, 0.001, 0.001])
-        header.offsets = np.floor(xyz.min(axis=0))
+        header.scales, header.offsets = las_scale_offset(xyz.min(axis=0), xyz.max(axis=0), tmp)
         las = laspy.LasData(header)
         las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     for name, v in fields.items():
@@ -402,16 +635,22 @@ class PointSource:
              chunk_size: int = _LAS_CHUNK) -> "PointSource":
         """Inspect ``path`` (header, or one pass for the bounds) without keeping its points."""
         path = Path(path)
-        fmt = format or FORMATS.get(path.suffix.lower())
-        if not path.is_file():
-            raise CloudFileError(f"{path}: no such file")
+        fmt = _input_format(path, format)
         try:
             if fmt == "las":
                 import laspy
 
+                _check_las_counts(path)
                 with laspy.open(str(path)) as r:
                     h = r.header
-                    return cls(path, fmt, int(h.point_count), tuple(map(float, h.mins)), tuple(map(float, h.maxs)))
+                    _check_las(path, h)
+                    lo, hi = np.asarray(h.mins, float), np.asarray(h.maxs, float)
+                    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (lo <= hi).all()):
+                        raise CloudFileError(f"{path}: the LAS header's bounds {lo.tolist()} … {hi.tolist()} are "
+                                             "not a box")
+                    if h.are_points_compressed:  # decode the first points: a cut-off LAZ fails here
+                        r.read_points(1)
+                    return cls(path, fmt, int(h.point_count), tuple(map(float, lo)), tuple(map(float, hi)))
             if fmt == "ply" and _ply_is_binary(path):
                 v = _ply_vertices(path)
                 if not {"x", "y", "z"} <= set(v.dtype.names):
@@ -424,15 +663,20 @@ class PointSource:
                 n = len(a)
             else:  # can't slice: read it once, spill the finite points to .npy
                 if spill_dir is None:
-                    raise CloudFileError(f"{path}: {fmt} files can't be read in slices; give spill_dir=")
+                    raise CloudFileError(f"{path}: {fmt} files can't be read in slices; convert to LAS/LAZ, NPY or "
+                                         "binary PLY (or, in Python, give spill_dir=)")
                 fd, tmp = tempfile.mkstemp(suffix=".npy", dir=spill_dir)
                 os.close(fd)
                 np.save(tmp, read_points(path, format=fmt).xyz)
                 return cls.open(tmp, format="npy", chunk_size=chunk_size)
         except CloudFileError:
             raise
-        except Exception as exc:  # libraries raise many types on corrupt input
-            raise CloudFileError(f"{path}: can't read as {fmt} ({type(exc).__name__}: {exc})") from None
+        except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+            if not _library_error(exc):
+                raise
+            raise _unreadable(path, fmt, exc) from None
+        if n == 0:
+            raise CloudFileError(f"{path}: holds no point")
         src = cls(path, fmt, n, (np.inf,) * 3, (-np.inf,) * 3)
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         for _, xyz in src.chunks(chunk_size):
@@ -444,7 +688,23 @@ class PointSource:
         return cls(path, fmt, n, tuple(map(float, lo)), tuple(map(float, hi)))
 
     def read(self, start: int, stop: int) -> np.ndarray:
-        """Rows ``start`` … ``stop − 1`` as float64 (m, 3) world coordinates (NaN rows kept)."""
+        """Rows ``start`` … ``stop − 1`` as float64 (m, 3) world coordinates (NaN rows kept).
+
+        Raises
+        ------
+        CloudFileError
+            The file can't be decoded there (cut short, corrupt, changed since it was opened).
+        """
+        try:
+            return self._read(start, stop)
+        except CloudFileError:
+            raise
+        except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+            if not _library_error(exc):
+                raise
+            raise _unreadable(self.path, self.format, exc) from None
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
         start, stop = max(0, start), min(stop, self.n_rows)
         if stop <= start:
             return np.zeros((0, 3))
@@ -456,7 +716,28 @@ class PointSource:
         return np.c_[v["x"], v["y"], v["z"]].astype(np.float64)
 
     def chunks(self, size: int = _LAS_CHUNK, start: int = 0, stop: int | None = None):
-        """Yield ``(first_row, xyz)`` slices of at most ``size`` rows, in order."""
+        """Yield ``(first_row, xyz)`` slices of at most ``size`` rows, in order.
+
+        Raises
+        ------
+        CloudFileError
+            The file can't be decoded (cut short, corrupt), naming it.
+        """
+        it = self._chunks(size, start, stop)
+        while True:
+            try:
+                item = next(it)
+            except StopIteration:
+                return
+            except CloudFileError:
+                raise
+            except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+                if not _library_error(exc):
+                    raise
+                raise _unreadable(self.path, self.format, exc) from None
+            yield item
+
+    def _chunks(self, size: int, start: int, stop: int | None):
         stop = self.n_rows if stop is None else min(stop, self.n_rows)
         if self.format == "las":  # one open file, sequential decoding
             import laspy
@@ -486,15 +767,29 @@ def _ply_is_binary(path) -> bool:
     return any(line.startswith(b"format binary") for line in head)
 
 
+def _decoded(source: PointSource, iterator):
+    """``iterator``'s items, its library exceptions turned into :class:`CloudFileError` naming the file."""
+    while True:
+        try:
+            item = next(iterator)
+        except StopIteration:
+            return
+        except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+            if not _library_error(exc):
+                raise
+            raise _unreadable(source.path, source.format, exc) from None
+        yield item
+
+
 def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_of, *, inputs=(),
                           chunk_size: int = _LAS_CHUNK) -> Path:
     """Write every row of ``source`` with extra per-point fields, chunk by chunk, as LAS/LAZ.
 
     ``fields_of(start, stop)`` returns the fields of rows ``start`` … ``stop − 1`` (a dict of
-    arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset; other input gets a
-    1 mm scale and an offset at its minimum. Memory is bounded by ``chunk_size``; the file is
-    written under a temporary name and renamed, and ``inputs`` are never overwritten. LAZ is
-    decoded and encoded on all cores (lazrs' parallel backend).
+    arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset; other input gets the
+    scale and offset of :func:`las_scale_offset` (1 mm, offset at the centre). Memory is bounded
+    by ``chunk_size``; the file is written under a temporary name and renamed, and ``inputs``
+    are never overwritten. LAZ is decoded and encoded on all cores (lazrs' parallel backend).
     """
     import copy
 
@@ -507,11 +802,10 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
         if source.format == "las":
             reader = stack.enter_context(laspy.open(str(source.path), laz_backend=laspy.LazBackend.LazrsParallel))
             header = copy.deepcopy(reader.header)
-            chunks = ((len(c), c) for c in reader.chunk_iterator(chunk_size))
+            chunks = ((len(c), c) for c in _decoded(source, reader.chunk_iterator(chunk_size)))
         else:
             header = laspy.LasHeader(point_format=3, version="1.4")
-            header.scales = np.array([0.001, 0.001, 0.001])
-            header.offsets = np.floor(np.asarray(source.lo))
+            header.scales, header.offsets = las_scale_offset(source.lo, source.hi, path)
             chunks = ((len(xyz), xyz) for _, xyz in source.chunks(chunk_size))
         tmp = stack.enter_context(atomic_path(path, inputs=inputs))
         writer, start = None, 0

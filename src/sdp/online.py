@@ -50,6 +50,7 @@ from .defaults import DEFAULTS
 from .field import DensityField
 from .params import resolve_voxel_size
 from .regions import Region
+from .validate import check_grid_options, integer_at_least, nonnegative_finite
 from .visibility import RangeImage, resolve_sensor_origins
 
 __all__ = ["FrameChange", "watch"]
@@ -171,8 +172,9 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.vox
         raise ValueError("decay must be in (0, 1)")
     if align not in (None, "gicp", "density"):
         raise ValueError(f"align must be None, 'gicp' or 'density', got {align!r}")
-    if not (range_noise >= 0 and np.isfinite(range_noise)):
-        raise ValueError(f"range_noise must be a finite number >= 0, got {range_noise!r}")
+    nonnegative_finite("range_noise", range_noise)
+    integer_at_least("min_region_points", min_region_points, 0)
+    check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k)
     is_field = isinstance(reference, DensityField)
     origin = None
     if is_field:

@@ -85,25 +85,24 @@ def resolve_voxel_size(clouds: Sequence[Points], *, voxel_size: float | str | No
 
     Raises
     ------
-    ValueError
+    InvalidOptionError
         ``grid_size`` with a length, a length that is not positive and finite, or an unknown word.
     """
+    from .errors import InvalidOptionError
     from .grid import voxel_size_for_grid_size
+    from .validate import positive_finite
 
     if grid_size is not None:
         if voxel_size not in (None, "auto"):
-            raise ValueError("give grid_size= or voxel_size=, not both")
+            raise InvalidOptionError("give grid_size= or voxel_size=, not both")
         lo = np.min([c.lo for c in clouds], axis=0)
         hi = np.max([c.hi for c in clouds], axis=0)
         return voxel_size_for_grid_size(lo, hi, grid_size)
     if voxel_size is None or isinstance(voxel_size, str):
         if voxel_size not in (None, "auto"):
-            raise ValueError(f"voxel_size must be a length or 'auto', got {voxel_size!r}")
+            raise InvalidOptionError(f"voxel_size must be a length or 'auto', got {voxel_size!r}")
         return auto_voxel_size_of(clouds, k=int(round(k)), sigma_voxels=sigma_voxels)
-    if not (isinstance(voxel_size, (int, float, np.integer, np.floating)) and not isinstance(voxel_size, bool)
-            and math.isfinite(voxel_size) and voxel_size > 0):
-        raise ValueError(f"voxel_size must be a positive length in world units or 'auto', got {voxel_size!r}")
-    return float(voxel_size)
+    return positive_finite("voxel_size", voxel_size)
 
 
 def auto_voxel_size_of(clouds: Sequence[Points], *, k: int = 3, quantile: float = 0.9, scale: float = 1.5,

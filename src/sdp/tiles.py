@@ -28,11 +28,15 @@ References
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import shutil
+import signal
 import tempfile
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from dataclasses import field as dc_field
 from pathlib import Path
@@ -44,13 +48,22 @@ from ._progress import bar
 from .boolean import difference_on_own_blocks
 from .coverage import footprint_covered
 from .defaults import DEFAULTS
-from .errors import InvalidPointsError
+from .errors import InvalidPointsError, SDPError
 from .field import DensityField, threshold
-from .grid import BLOCK, Grid
+from .grid import BLOCK, Grid, check_memory
 from .grid import memory_limit as _memory_limit
 from .io import PointSource
 from .regions import Region, describe_regions, label_points
 from .store import FieldStore
+from .validate import (
+    check_grid_options,
+    check_kernel,
+    check_lattice,
+    check_tile_options,
+    integer_at_least,
+    kernel_reach,
+    positive_finite,
+)
 
 __all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "dense_grid_bytes", "untiled_point_bytes",
            "sampled_voxel_size"]
@@ -145,9 +158,9 @@ def dense_grid_bytes(lo, hi, voxel_size: float, *, sigma_voxels: float = 2.0, tr
     """Bytes of one float32 dense grid over the box [lo, hi] with its kernel margin: the size
     at which :func:`detect_changes_tiled` is worth its overhead (``sdp change`` switches when
     two of them exceed the memory limit)."""
-    reach = math.ceil(truncate * sigma_voxels)
-    nodes = np.floor((np.asarray(hi, float) - np.asarray(lo, float)) / voxel_size) + 2 * reach + 2
-    return int(np.prod(nodes) * 4)
+    reach = kernel_reach(sigma_voxels, truncate)
+    nodes = np.floor((np.asarray(hi, float) - np.asarray(lo, float)) / positive_finite("voxel_size", voxel_size))
+    return int(np.prod(nodes + 2 * reach + 2) * 4)
 
 
 def untiled_point_bytes(n_points: int) -> int:
@@ -335,14 +348,13 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
     -------
     TiledChanges
     """
+    integer_at_least("min_region_points", min_region_points, 0)
     store = reference if isinstance(reference, FieldStore) else None
     if store is not None:
         voxel_size, truncate, h = store.voxel_size, store.truncate, store.h
         sigma_voxels = store.sigma / store.voxel_size
         tile_size = store.tile_blocks * BLOCK * store.voxel_size
     clouds = {"current": current} if store is not None else {"reference": reference, "current": current}
-    if store is None and isinstance(voxel_size, str):
-        voxel_size = sampled_voxel_size(list(clouds.values()), voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
     with _Session(clouds, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
                   tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit, scheduler=scheduler,
                   workers=workers, workdir=workdir) as run:
@@ -378,7 +390,6 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float | str
     write (a folder, conventionally ``*.zarr``). Each tile's blocks equal those of
     :meth:`DensityField.from_points` on the whole cloud.
     """
-    voxel_size = sampled_voxel_size([cloud], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
     with _Session({"cloud": cloud}, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                   method=method, tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit,
                   scheduler=scheduler, workers=workers, workdir=workdir) as run:
@@ -386,9 +397,13 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float | str
                                   truncate=truncate, h=threshold(k) if h is None else float(h),
                                   tile_blocks=run.tiling.blocks,
                                   inputs=(cloud,) if isinstance(cloud, (str, Path)) else ())
-        jobs = [(key, run.root, run.tiling, run.opts, str(store.path)) for key in run.tiles]
-        counts = run.tasks("build", _build_tile, jobs, ())
-    store.set_counts(sum(counts), run.dropped["cloud"])
+        try:
+            jobs = [(key, run.root, run.tiling, run.opts, str(store.path)) for key in run.tiles]
+            counts = run.tasks("build", _build_tile, jobs, ())
+            store.set_counts(sum(counts), run.dropped["cloud"])
+        except BaseException:  # no half-built store left behind (a failed tile, Ctrl-C, SIGTERM)
+            shutil.rmtree(store.path, ignore_errors=True)
+            raise
     return store
 
 
@@ -404,11 +419,16 @@ class _Session:
 
     def __init__(self, clouds: dict, voxel_size, *, sigma_voxels, k, h, truncate, method, tile_size, tile_points,
                  memory_limit, scheduler, workers, workdir):
-        if voxel_size is None or not (voxel_size > 0 and math.isfinite(voxel_size)):
-            raise ValueError(f"voxel_size must be a positive length, got {voxel_size!r}")
+        check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
+                           memory_limit=memory_limit)
+        check_tile_options(tile_size=tile_size, tile_points=tile_points, workers=workers, workdir=workdir,
+                           scheduler=scheduler)
+        if voxel_size is None or isinstance(voxel_size, str):  # "auto": the tiles need it before the points
+            voxel_size = sampled_voxel_size(list(clouds.values()), k=k, sigma_voxels=sigma_voxels)
         self.voxel_size = float(voxel_size)
         workers = workers or os.cpu_count() or 1
         share = _memory_limit(memory_limit) // (workers if scheduler in (None, "threads") else 1)
+        reach = check_kernel(sigma_voxels, truncate, share)
         self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                          method=method, memory_limit=share)
         if tile_points is None:
@@ -417,9 +437,13 @@ class _Session:
         self.root = tempfile.mkdtemp(prefix="sdp-tiles-", dir=workdir)
         self.timings: dict[str, float] = {}
         try:
-            self.executor, self.cluster = _connect(scheduler, workers)
             self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
+            lo = np.min([src.lo for src in self.sources.values()], axis=0)
+            hi = np.max([src.hi for src in self.sources.values()], axis=0)
+            check_lattice(lo, hi, self.voxel_size, reach)
             self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate)
+            _check_tile_directory(self.tiling, lo, hi, reach, share, workers if scheduler in (None, "threads") else 1)
+            self.executor, self.cluster = _connect(scheduler, workers)
             jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
                     for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
             done = self.tasks("bucket", _bucket_part, jobs, ())
@@ -443,11 +467,17 @@ class _Session:
         return self
 
     def __exit__(self, *exc):
-        if not isinstance(getattr(self, "executor", "none"), str):
-            self.executor.close()
-        if getattr(self, "cluster", None) is not None:
-            self.cluster.close()
-        shutil.rmtree(self.root, ignore_errors=True)
+        """Close the client and the local cluster, and remove the work folder whatever happens
+        (an error, Ctrl-C, SIGTERM turned into an exception by ``sdp``'s ``main``)."""
+        try:
+            if not isinstance(getattr(self, "executor", "none"), str):
+                self.executor.close()
+        finally:
+            try:
+                if getattr(self, "cluster", None) is not None:
+                    self.cluster.close()  # stops the workers: nothing writes into the buckets any more
+            finally:
+                shutil.rmtree(self.root, ignore_errors=True)
 
 
 def sampled_voxel_size(clouds: list, *, voxel_size: float | str = DEFAULTS.voxel_size, k: float = DEFAULTS.k,
@@ -493,6 +523,30 @@ def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_poin
     return _Tiling(voxel_size, blocks, halo)
 
 
+def _check_tile_directory(tiling: _Tiling, lo, hi, reach: int, share: int, workers: int) -> None:
+    """Refuse, before any task runs, tiles whose block directory alone exceeds a worker's share of
+    the memory limit (a voxel far below the point spacing: 1e-9 for metres)."""
+    span = (tiling.edge + 2 * tiling.halo) / tiling.voxel_size + 2 * reach + 2 * BLOCK
+    z = (float(hi[2]) - float(lo[2])) / tiling.voxel_size + 2 * reach + 2 * BLOCK
+    whose = f", in a worker's 1/{workers} share" if workers > 1 else ""
+    check_memory((span / BLOCK) ** 2 * (z / BLOCK) * 5, f"the block directory of one tile (voxel "
+                 f"{tiling.voxel_size:g}, tile edge {tiling.edge:.4g}{whose})", share)
+
+
+#: Seconds to wait for a ``dask.distributed`` scheduler to answer.
+CONNECT_TIMEOUT = 10
+
+
+#: Run in each local worker process as it starts (a Dask preload): Ctrl-C in a terminal reaches the
+#: whole process group, and the client, not each worker, ends the run (a worker would print a
+#: KeyboardInterrupt traceback); the client closes the cluster on its way out.
+_WORKER_PRELOAD = """
+import signal, threading
+if threading.current_thread() is threading.main_thread():
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+"""
+
+
 def _connect(scheduler: str | None, workers: int):
     """(executor, cluster): a distributed ``Client`` (and the local cluster it drives), or the
     name of a Dask local scheduler."""
@@ -501,10 +555,41 @@ def _connect(scheduler: str | None, workers: int):
     from dask.distributed import Client, LocalCluster
 
     if scheduler is None:  # the tasks bound their own memory (``share``): no pausing by distributed
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=0,
-                               dashboard_address=None, env={"NUMBA_NUM_THREADS": "1"})  # a core per worker
-        return Client(cluster), cluster
-    return Client(scheduler), None
+        with _sigint_deferred() as interrupted:  # a cluster half started can't be closed
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=0,
+                                   dashboard_address=":0", env={"NUMBA_NUM_THREADS": "1"},  # a core per worker
+                                   silence_logs=logging.ERROR,  # no warnings about tasks cancelled on Ctrl-C
+                                   preload=[_WORKER_PRELOAD])
+            try:
+                client = Client(cluster)
+            except BaseException:
+                cluster.close()
+                raise
+        if interrupted():
+            client.close()
+            cluster.close()
+            raise KeyboardInterrupt
+        return client, cluster
+    try:
+        return Client(scheduler, timeout=CONNECT_TIMEOUT), None
+    except (OSError, TimeoutError, ValueError) as exc:  # refused, unreachable, or not an address
+        reason = str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise SDPError(f"can't reach the Dask scheduler at {scheduler} within {CONNECT_TIMEOUT} s ({reason}); "
+                       "start it (dask scheduler) or check the address") from None
+
+
+@contextmanager
+def _sigint_deferred():
+    """Hold Ctrl-C back in the block (main thread only), and tell afterwards whether it came."""
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: False
+        return
+    hits = []
+    previous = signal.signal(signal.SIGINT, lambda *_: hits.append(True))
+    try:
+        yield lambda: bool(hits)
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _run(executor, func, jobs: list, what: str) -> list:

@@ -1,0 +1,128 @@
+"""Bad options are refused with one clear line, before any allocation, Dask work or output (issue 17)."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import sdp
+from sdp import DensityField
+from sdp.grid import memory_limit, parse_bytes
+from sdp.validate import check_lattice, format_bytes, integer_at_least, positive_finite
+
+
+def run(*args, cwd=None, **kw):
+    return subprocess.run([sys.executable, "-m", "sdp.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, **kw)
+
+
+@pytest.fixture(scope="module")
+def cloud():
+    return np.random.default_rng(0).random((2000, 3))
+
+
+@pytest.mark.parametrize("kw, error, match", [
+    (dict(voxel_size=1e308), sdp.SDPError, "too large"),
+    (dict(voxel_size=0), sdp.InvalidOptionError, "positive finite"),
+    (dict(voxel_size=math.nan), sdp.InvalidOptionError, "positive finite"),
+    (dict(voxel_size=-1), sdp.InvalidOptionError, "positive finite"),
+    (dict(voxel_size=1e-9), sdp.GridTooLargeError, r"would need [0-9.e+]+ EB, above the memory limit of 4 GB"),
+    (dict(voxel_size=0.05, sigma_voxels=1e308), sdp.InvalidOptionError, "reaches inf voxels"),
+    (dict(voxel_size=0.05, sigma_voxels=1000), sdp.GridTooLargeError, "kernel of one point.*808 GB"),
+    (dict(voxel_size=0.05, sigma_voxels=0.3), sdp.InvalidOptionError, "below 0.41 voxels"),
+    (dict(voxel_size=0.05, k=math.nan), sdp.InvalidOptionError, "k must be a finite"),
+    (dict(voxel_size=0.05, h=math.nan), sdp.InvalidOptionError, "h must be a positive"),
+    (dict(voxel_size=0.05, h=-1), sdp.InvalidOptionError, "h must be a positive"),
+    (dict(voxel_size=0.05, memory_limit="1e3"), sdp.InvalidOptionError, "1000 B, below the minimum of 1 MB"),
+    (dict(voxel_size=0.05, memory_limit=0), sdp.InvalidOptionError, "positive"),
+    (dict(voxel_size=0.05, memory_limit="garbage"), sdp.InvalidOptionError, "can't read memory size"),
+    (dict(grid_size=0), sdp.InvalidOptionError, "grid_size"),
+])
+def test_field_and_detect_changes_refuse_bad_options(cloud, kw, error, match):
+    with pytest.raises(error, match=match) as err:
+        DensityField.from_points(cloud, **kw)
+    assert "\n" not in str(err.value) and "0.00 GiB" not in str(err.value)
+    with pytest.raises(error, match=match):
+        sdp.detect_changes(cloud, cloud, **kw)
+
+
+def test_far_coordinates_are_refused_not_silently_wrong(cloud):
+    # 1e12 m from zero at a 1 cm voxel: 1e14 voxels, beyond float64's sub-voxel precision
+    with pytest.raises(sdp.InvalidPointsError, match=r"2\*\*40"):
+        DensityField.from_points(cloud + 1e12, voxel_size=0.01)
+    with pytest.raises(sdp.InvalidPointsError, match=r"2\*\*40"):
+        sdp.detect_changes(cloud + 1e15, cloud + 1e15, voxel_size=0.1)
+    DensityField.from_points(cloud + 1e9, voxel_size=0.01)  # UTM-like offsets stay fine
+    check_lattice([0, 0, 0], [2.0**39, 0, 0], 1.0)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(voxel_size=0), "positive finite"),
+    (dict(voxel_size=1e308), "too large"),
+    (dict(voxel_size=1e-9), "block directory of one tile"),
+    (dict(voxel_size=0.05, sigma_voxels=1000), "kernel of one point"),
+    (dict(voxel_size=0.05, h=-1), "h must be"),
+    (dict(voxel_size=0.05, tile_size=-1), "tile_size"),
+    (dict(voxel_size=0.05, workers=0), "workers"),
+    (dict(voxel_size=0.05, workers=-1), "workers"),
+    (dict(voxel_size=0.05, min_region_points=-5), "min_region_points"),
+    (dict(voxel_size=0.05, memory_limit="1e3"), "below the minimum"),
+    (dict(voxel_size=0.05, workdir="/nonexistent/sdp"), "no such folder"),
+])
+def test_tiled_refuses_bad_options_before_any_work(tmp_path, cloud, kw, match, monkeypatch):
+    monkeypatch.setattr("sdp.tiles._connect", lambda *a: pytest.fail("reached Dask"))
+    kw.setdefault("workdir", tmp_path)
+    with pytest.raises(sdp.SDPError, match=match):
+        sdp.detect_changes_tiled(cloud, cloud, scheduler="synchronous", **kw)
+    if "min_region_points" not in kw:
+        with pytest.raises(sdp.SDPError, match=match):
+            sdp.build_field_tiled(cloud, tmp_path / "f.zarr", scheduler="synchronous", **kw)
+    assert list(tmp_path.iterdir()) == []  # no work folder, no store left
+
+
+def test_helpers():
+    assert positive_finite("x", "2.5") == 2.5
+    with pytest.raises(sdp.InvalidOptionError, match="x must be a positive finite number, got 'inf'"):
+        positive_finite("x", "inf")
+    assert integer_at_least("n", "3", 1) == 3
+    with pytest.raises(sdp.InvalidOptionError):
+        integer_at_least("n", 2.5, 1)
+    assert [format_bytes(v) for v in (512, 12.3 * 2**20, 4 * 2**30)] == ["512 B", "12.3 MB", "4 GB"]
+    assert parse_bytes("2GB") == 2 * 2**30 and memory_limit(1000) == 1000  # numbers are bytes
+
+
+def test_unreachable_scheduler_is_one_line_error(cloud, tmp_path):
+    with pytest.raises(sdp.SDPError, match="can't reach the Dask scheduler at tcp://127.0.0.1:1") as err:
+        sdp.detect_changes_tiled(cloud, cloud, voxel_size=0.1, scheduler="tcp://127.0.0.1:1", workdir=tmp_path)
+    assert "\n" not in str(err.value)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args", [
+    ["build", "g.npy", "-o", "f.sdpf", "--voxel-size", "1e308"],
+    ["build", "g.npy", "-o", "f.sdpf", "--voxel-size", "0"],
+    ["build", "g.npy", "-o", "f.sdpf", "--voxel-size", "nan"],
+    ["build", "g.npy", "-o", "f.sdpf", "--voxel-size", "1e-9"],
+    ["build", "g.npy", "-o", "f.sdpf", "--sigma-voxels", "1000"],
+    ["build", "g.npy", "-o", "f.sdpf", "-k", "nan"],
+    ["build", "g.npy", "-o", "f.sdpf", "--h", "-1"],
+    ["build", "g.npy", "-o", "f.sdpf", "--memory-limit", "1e3"],
+    ["build", "g.npy", "-o", "f.zarr", "--voxel-size", "1e-9"],
+    ["change", "g.npy", "g.npy", "-o", "o.laz", "--tiled", "--voxel-size", "0"],
+    ["change", "g.npy", "g.npy", "-o", "o.laz", "--tiled", "--voxel-size", "1e308"],
+    ["change", "g.npy", "g.npy", "-o", "o.laz", "--tiled", "--sigma-voxels", "1e308"],
+    ["change", "g.npy", "g.npy", "-o", "o.laz", "--tiled", "--workers", "-1"],
+    ["change", "g.npy", "g.npy", "-o", "o.laz", "--tiled", "--tile-size", "-1"],
+    ["change", "g.npy", "g.npy", "-o", "o.laz", "--min-region-points", "-5"],
+    ["change", "g.npy", "g.npy", "-o", "o.laz", "--tiled", "--workdir", "/nonexistent"],
+    ["change", "g.npy", "g.npy", "-o", "o.laz", "--tiled", "--memory-limit", "garbage"],
+])
+def test_cli_refuses_bad_options_in_one_line(tmp_path, cloud, args):
+    np.save(tmp_path / "g.npy", cloud)
+    p = run(*args, cwd=tmp_path, timeout=60)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.startswith("sdp: error: ") and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert "Traceback" not in p.stderr and "0.00 GiB" not in p.stderr
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["g.npy"]
