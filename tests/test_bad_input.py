@@ -150,11 +150,21 @@ def test_atomic_path_leaves_nothing_on_any_exception(tmp_path):
     ["align", "g.npy", "g.npy", "-o", "g.npy"],
     ["align", "g.npy", "g.npy", "-o", "nodir/T.txt"],
     ["align", "few.npy", "g.npy", "-o", "T.txt"],
+    ["change", "g.npy", "g2.npy", "-o", "o.ply", "--png", "g2.npy"],
+    ["change", "g.npy", "g2.npy", "-o", "x.png", "--png", "x.png"],
+    ["change", "o_disappeared.ply", "g2.npy", "-o", "o.ply", "--both"],  # OUT_disappeared is the reference
+    ["change", "g.npy", "g2.npy", "-o", "o.ply", "--both", "--png", "o_disappeared.ply"],
+    ["change", "g.npy", "g2.npy", "-o", "o.ply", "--png", "nodir/x.png"],
+    ["change", "g.npy", "g2.npy", "-o", "nodir/o.ply"],
+    ["change", "g.npy", "g2.npy", "-o", "existing_dir.ply"],
+    ["change", "g.npy", "g2.npy", "-o", "o.ply", "--voxel-size", "0.001", "--memory-limit", "1MB"],  # tiles: LAS
 ])
 def test_cli_output_paths_are_checked_first(tmp_path, args):
     xyz = np.random.default_rng(3).random((3000, 3))
     np.save(tmp_path / "g.npy", xyz)
     np.save(tmp_path / "few.npy", xyz[:3])
+    np.save(tmp_path / "g2.npy", xyz + 0.01)
+    sdp.write_points(tmp_path / "o_disappeared.ply", xyz)
     sdp.write_points(tmp_path / "lab.ply", xyz, {"change": (xyz[:, 0] > 0.5).astype(np.uint8)})
     sdp.DensityField.from_points(xyz, voxel_size=0.05).save(tmp_path / "f.sdpf")
     (tmp_path / "existing_dir.ply").mkdir()
@@ -221,3 +231,18 @@ def test_corrupt_las_counts_are_refused_before_laspy_loops_or_lazrs_aborts(cloud
             read_points(clouds / name)
         with pytest.raises(CloudFileError, match=match):
             PointSource.open(clouds / name)
+
+
+def test_a_command_writes_all_its_outputs_or_none(tmp_path):
+    from sdp.io import all_or_none
+
+    xyz = np.random.default_rng(6).random((100, 3))
+    with pytest.raises(RuntimeError), all_or_none():
+        sdp.write_points(tmp_path / "first.ply", xyz)
+        assert not (tmp_path / "first.ply").exists()  # kept under its temporary name until the end
+        raise RuntimeError("the second output failed")
+    assert list(tmp_path.iterdir()) == []
+    with all_or_none():
+        sdp.write_points(tmp_path / "first.ply", xyz)
+        sdp.write_points(tmp_path / "second.npz", xyz)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["first.ply", "second.npz"]
