@@ -84,17 +84,19 @@ def memory_limit(limit: int | float | str | None = None) -> int:
 
 
 def check_memory(nbytes: float, what: str, limit: int | float | str | None, *,
-                 advice: str = "use a larger voxel size (or a smaller grid size)") -> None:
+                 advice: str = "use a larger voxel size (or a smaller grid size)",
+                 budget: str = "the memory limit") -> None:
     """Raise :class:`GridTooLargeError` if ``nbytes`` exceeds the memory limit.
 
     The message gives both sizes in human units and says what to change: ``advice``, or
     raising the memory limit (``--memory-limit`` on the command line, ``memory_limit=`` in
-    Python, ``$SDP_MEMORY_LIMIT`` for both).
+    Python, ``$SDP_MEMORY_LIMIT`` for both). ``budget`` names what ``limit`` is (a worker's
+    share of the memory limit, for the tiles).
     """
     cap = memory_limit(limit)
     if not nbytes <= cap:
         raise GridTooLargeError(
-            f"{what} would need {format_bytes(nbytes)}, above the memory limit of {format_bytes(cap)}: "
+            f"{what} would need {format_bytes(nbytes)}, above {budget} of {format_bytes(cap)}: "
             f"{advice}, or raise the memory limit ($SDP_MEMORY_LIMIT)")
 
 

@@ -60,6 +60,7 @@ from .validate import (
     check_kernel,
     check_lattice,
     check_tile_options,
+    format_bytes,
     integer_at_least,
     kernel_reach,
     positive_finite,
@@ -427,8 +428,11 @@ class _Session:
             voxel_size = sampled_voxel_size(list(clouds.values()), k=k, sigma_voxels=sigma_voxels)
         self.voxel_size = float(voxel_size)
         workers = workers or os.cpu_count() or 1
-        share = _memory_limit(memory_limit) // (workers if scheduler in (None, "threads") else 1)
-        reach = check_kernel(sigma_voxels, truncate, share)
+        local = scheduler in (None, "threads")
+        share = _memory_limit(memory_limit) // (workers if local else 1)
+        budget = (f"a worker's share (1/{workers} of the memory limit of {format_bytes(_memory_limit(memory_limit))})"
+                  if local and workers > 1 else "the memory limit")
+        reach = check_kernel(sigma_voxels, truncate, share, budget=budget)
         self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                          method=method, memory_limit=share)
         if tile_points is None:
@@ -442,7 +446,7 @@ class _Session:
             hi = np.max([src.hi for src in self.sources.values()], axis=0)
             check_lattice(lo, hi, self.voxel_size, reach)
             self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate)
-            _check_tile_directory(self.tiling, lo, hi, reach, share, workers if scheduler in (None, "threads") else 1)
+            _check_tile_directory(self.tiling, lo, hi, reach, share, budget)
             self.executor, self.cluster = _connect(scheduler, workers)
             jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
                     for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
@@ -523,14 +527,13 @@ def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_poin
     return _Tiling(voxel_size, blocks, halo)
 
 
-def _check_tile_directory(tiling: _Tiling, lo, hi, reach: int, share: int, workers: int) -> None:
+def _check_tile_directory(tiling: _Tiling, lo, hi, reach: int, share: int, budget: str) -> None:
     """Refuse, before any task runs, tiles whose block directory alone exceeds a worker's share of
     the memory limit (a voxel far below the point spacing: 1e-9 for metres)."""
     span = (tiling.edge + 2 * tiling.halo) / tiling.voxel_size + 2 * reach + 2 * BLOCK
     z = (float(hi[2]) - float(lo[2])) / tiling.voxel_size + 2 * reach + 2 * BLOCK
-    whose = f", in a worker's 1/{workers} share" if workers > 1 else ""
     check_memory((span / BLOCK) ** 2 * (z / BLOCK) * 5, f"the block directory of one tile (voxel "
-                 f"{tiling.voxel_size:g}, tile edge {tiling.edge:.4g}{whose})", share)
+                 f"{tiling.voxel_size:g}, tile edge {tiling.edge:.4g})", share, budget=budget)
 
 
 #: Seconds to wait for a ``dask.distributed`` scheduler to answer.

@@ -160,7 +160,7 @@ def kernel_reach(sigma_voxels: float, truncate: float = 3.0) -> int:
     return int(math.ceil(rmax))
 
 
-def check_kernel(sigma_voxels: float, truncate: float, memory_limit=None) -> int:
+def check_kernel(sigma_voxels: float, truncate: float, memory_limit=None, *, budget: str = "the memory limit") -> int:
     """The kernel's reach in nodes, ⌈truncate·σ⌉, once one point's kernel fits the memory limit.
 
     Raises
@@ -174,7 +174,7 @@ def check_kernel(sigma_voxels: float, truncate: float, memory_limit=None) -> int
     kernel_reach(sigma_voxels, truncate)
     blocks = math.ceil((2 * rmax + 1) / BLOCK) ** 3
     check_memory(blocks * BLOCK**3 * 4, f"the kernel of one point (σ = {sigma_voxels:g} voxels, reaching "
-                 f"{rmax:.4g} voxels each way)", memory_limit, advice="use a smaller sigma in voxels")
+                 f"{rmax:.4g} voxels each way)", memory_limit, advice="use a smaller sigma in voxels", budget=budget)
     return int(math.ceil(rmax))
 
 
