@@ -723,19 +723,7 @@ class PointSource:
         CloudFileError
             The file can't be decoded (cut short, corrupt), naming it.
         """
-        it = self._chunks(size, start, stop)
-        while True:
-            try:
-                item = next(it)
-            except StopIteration:
-                return
-            except CloudFileError:
-                raise
-            except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
-                if not _library_error(exc):
-                    raise
-                raise _unreadable(self.path, self.format, exc) from None
-            yield item
+        yield from _decoded(self, self._chunks(size, start, stop))
 
     def _chunks(self, size: int, start: int, stop: int | None):
         stop = self.n_rows if stop is None else min(stop, self.n_rows)
@@ -774,6 +762,8 @@ def _decoded(source: PointSource, iterator):
             item = next(iterator)
         except StopIteration:
             return
+        except CloudFileError:
+            raise
         except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
             if not _library_error(exc):
                 raise
