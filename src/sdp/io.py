@@ -695,14 +695,8 @@ class PointSource:
         CloudFileError
             The file can't be decoded there (cut short, corrupt, changed since it was opened).
         """
-        try:
+        with _decoding(self):
             return self._read(start, stop)
-        except CloudFileError:
-            raise
-        except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
-            if not _library_error(exc):
-                raise
-            raise _unreadable(self.path, self.format, exc) from None
 
     def _read(self, start: int, stop: int) -> np.ndarray:
         start, stop = max(0, start), min(stop, self.n_rows)
@@ -755,19 +749,29 @@ def _ply_is_binary(path) -> bool:
     return any(line.startswith(b"format binary") for line in head)
 
 
-def _decoded(source: PointSource, iterator):
-    """``iterator``'s items, its library exceptions turned into :class:`CloudFileError` naming the file."""
-    while True:
-        try:
-            item = next(iterator)
-        except StopIteration:
-            return
-        except CloudFileError:
+_END = object()
+
+
+@contextmanager
+def _decoding(source: PointSource):
+    """Turn the reader libraries' exceptions in the block into :class:`CloudFileError` naming the file."""
+    try:
+        yield
+    except CloudFileError:
+        raise
+    except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+        if not _library_error(exc):
             raise
-        except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
-            if not _library_error(exc):
-                raise
-            raise _unreadable(source.path, source.format, exc) from None
+        raise _unreadable(source.path, source.format, exc) from None
+
+
+def _decoded(source: PointSource, iterator):
+    """``iterator``'s items, read under :func:`_decoding`."""
+    while True:
+        with _decoding(source):
+            item = next(iterator, _END)
+        if item is _END:
+            return
         yield item
 
 
