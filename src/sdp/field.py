@@ -300,17 +300,25 @@ class DensityField:
         flat = np.c_[flat[:, :2], np.full(len(flat), self.grid.origin[2])]  # z at the first node of a column
         shape = self.grid.shape_blocks
         packed = self._keys[:, 0] * shape[1] + self._keys[:, 1]
-        along_z = self._blocks.reshape(-1, BLOCK, BLOCK, BLOCK).sum(axis=3, dtype=np.float64)
+        # only the columns of blocks the queries' cells touch (a cell's far corner may be in the next one)
+        cell = np.floor((flat[:, :2] - self.grid.origin[:2]) / self.voxel_size)
+        ok = np.all(np.isfinite(cell), axis=1)
+        first = (cell[ok].astype(np.int64) // BLOCK)
+        near = np.concatenate([first + [dx, dy] for dx in (0, 1) for dy in (0, 1)])
+        near = near[np.all((near >= 0) & (near < shape[:2]), axis=1)]
+        rows = np.flatnonzero(np.isin(packed, near[:, 0] * shape[1] + near[:, 1], kind="table"))
+        packed = packed[rows]
+        along_z = self._blocks[rows].reshape(-1, BLOCK, BLOCK, BLOCK).sum(axis=3)
         if np.any(packed[1:] < packed[:-1]):  # built fields keep a column's blocks together; accumulated ones may not
             order = np.argsort(packed, kind="stable")
             packed, along_z = packed[order], along_z[order]
         starts = np.flatnonzero(np.r_[True, packed[1:] != packed[:-1]]) if len(packed) else np.zeros(0, np.int64)
         cols = packed[starts]
-        sums = np.add.reduceat(along_z, starts, axis=0) if len(starts) else np.zeros((0, BLOCK, BLOCK))
-        sums *= self.voxel_size / (math.sqrt(2 * math.pi) * self.sigma)
+        sums = np.add.reduceat(along_z, starts, axis=0) if len(starts) else np.zeros((0, BLOCK, BLOCK), np.float32)
+        sums *= np.float32(self.voxel_size / (math.sqrt(2 * math.pi) * self.sigma))
         directory = np.full((shape[0], shape[1], 1), -1, np.int32)
         directory[cols // shape[1], cols % shape[1], 0] = np.arange(len(cols), dtype=np.int32)
-        values = np.repeat(sums.astype(np.float32)[..., None], BLOCK, axis=3).reshape(len(cols), BLOCK**3)
+        values = np.repeat(sums[..., None], BLOCK, axis=3).reshape(len(cols), BLOCK**3)
         out = np.empty(len(flat))
         K.trilinear(flat, self.grid.origin, self.voxel_size, directory, values, out)
         return out
