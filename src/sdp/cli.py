@@ -605,10 +605,13 @@ def cmd_eval(a):
     if len(values[0]) != len(values[1]):
         raise SDPError(f"{a.predicted} has {len(values[0]):,} points and {a.truth} {len(values[1]):,}: "
                        "they must be the same points in the same order")
-    # the predicted field is sdp's: 1 changed, 2 not comparable (scored apart); truth: nonzero is changed
-    predicted, comparable = values[0] == CHANGED, values[0] != NOT_COMPARABLE
+    if a.predicted_field == "change":  # sdp's field: 1 changed, 2 not comparable (scored apart)
+        predicted, comparable = values[0] == CHANGED, values[0] != NOT_COMPARABLE
+    else:  # any other field: nonzero is changed
+        predicted, comparable = values[0] != 0, None
     truth = values[1] != 0
     sc = scores(truth, predicted, comparable=comparable)
+    comparable = np.ones(len(truth), bool) if comparable is None else comparable
     if a.json:
         print(json.dumps(sc, indent=2))
     else:
@@ -817,7 +820,9 @@ def build_parser() -> argparse.ArgumentParser:
                  EXAMPLES_EVAL)
     e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
     e.add_argument("truth", help="cloud with the true labels, same points in the same order")
-    e.add_argument("--predicted-field", default="change", help="field of PREDICTED (nonzero: changed; default change)")
+    e.add_argument("--predicted-field", default="change",
+                   help="field of PREDICTED (default change: 1 changed, 2 not comparable, left out; other fields: "
+                        "nonzero is changed)")
     e.add_argument("--truth-field", default="change", help="field of TRUTH (nonzero: changed; default change)")
     e.add_argument("--json", action="store_true", help="print the scores as JSON")
 

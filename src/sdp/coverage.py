@@ -29,12 +29,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["UNCHANGED", "CHANGED", "NOT_COMPARABLE", "STATES", "footprint_covered", "states_of"]
+__all__ = ["UNCHANGED", "CHANGED", "NOT_COMPARABLE", "footprint_covered", "states_of"]
 
 #: Values of the ``change`` field: unchanged, changed, not comparable.
 UNCHANGED, CHANGED, NOT_COMPARABLE = 0, 1, 2
-#: Their names, by value.
-STATES = ("unchanged", "changed", "not comparable")
 
 
 def footprint_covered(points: np.ndarray, other) -> np.ndarray:
