@@ -157,3 +157,21 @@ def test_real_kinect_pair_with_sensor_origin(shared_data):
     assert plain.appeared[table].sum() > 2000  # uncovered table, flagged by the density test alone
     assert seen.appeared[table].sum() < 0.05 * plain.appeared[table].sum()
     assert seen.appeared[objects].sum() > 0.9 * plain.appeared[objects].sum()
+
+
+def test_field_of_view_is_the_convex_hull_of_the_returned_cells():
+    from scipy.spatial import Delaunay
+
+    from sdp.visibility import _convex_hull
+
+    rng = np.random.default_rng(7)
+    squares = np.array([[-0.5, -0.5], [-0.5, 0.5], [0.5, -0.5], [0.5, 0.5]])
+    for _ in range(100):
+        seen = np.zeros((rng.integers(3, 30), rng.integers(3, 30)), bool)
+        seen.flat[rng.integers(0, seen.size, rng.integers(3, 9))] = True
+        corners = (np.argwhere(seen)[:, None, :] + squares).reshape(-1, 2)
+        if np.linalg.matrix_rank(corners - corners[0]) < 2:
+            continue
+        centres = np.argwhere(np.ones_like(seen)).astype(float)
+        brute = (Delaunay(corners).find_simplex(centres, tol=1e-9) >= 0).reshape(seen.shape)
+        np.testing.assert_array_equal(_convex_hull(seen), brute)
