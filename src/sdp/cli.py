@@ -39,7 +39,7 @@ EXAMPLES_ALIGN = """  sdp align rescan.pcd reference.pcd -o T.txt               
 """
 EXAMPLES_WATCH = """  sdp watch empty_room.pcd frames/                         each frame against a sliding window
   sdp watch first.pcd frames/ --align gicp                  a hand-held camera: register each frame first
-  sdp watch first.pcd frames/ --sensor-origin viewpoint     edges and uncovered surfaces are not changes
+  sdp watch first.ply frames/ --sensor-origin 0,0,0         the sensor's rays (a PCD's VIEWPOINT is read by itself)
   sdp watch map.sdpf frames/ --update none --json           against a fixed reference field
 """
 EXAMPLES_ACTION = """  sdp action eval ../shared/data/msr_action3d --json          the cross-subject protocol
