@@ -158,6 +158,7 @@ def test_atomic_path_leaves_nothing_on_any_exception(tmp_path):
     ["change", "g.npy", "g2.npy", "-o", "nodir/o.ply"],
     ["change", "g.npy", "g2.npy", "-o", "existing_dir.ply"],
     ["change", "g.npy", "g2.npy", "-o", "o.ply", "--voxel-size", "0.001", "--memory-limit", "1MB"],  # tiles: LAS
+    ["action", "train", ".", "-o", "nodir/model.npz"],
 ])
 def test_cli_output_paths_are_checked_first(tmp_path, args):
     xyz = np.random.default_rng(3).random((3000, 3))

@@ -482,9 +482,13 @@ def cmd_action(a):
     from . import actions
 
     if a.action_command == "train":
+        check_outputs([a.output], [a.data_dir])
         rows = actions.list_sequences(a.data_dir)
         if a.subjects:
-            wanted = {int(v) for v in a.subjects.split(",")}
+            try:
+                wanted = {int(v) for v in a.subjects.split(",")}
+            except ValueError:
+                raise SDPError(f"--subjects takes subject numbers such as 1,3,5, got {a.subjects!r}") from None
             rows = [r for r in rows if r[2] in wanted]
         x = actions.describe_sequences([r[0] for r in rows], workers=a.workers)
         model, cv = actions.train(x, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]))
