@@ -29,21 +29,23 @@ class Defaults:
     ----------
     voxel_size : str
         ``"auto"``: σ from the clouds' point spacing (:func:`sdp.auto_voxel_size`), because a
-        fixed grid is too coarse on real Kinect frames (kappa 0.19 at the paper's 80³ on
-        unseen mOSD pairs, 0.70 with the automatic voxel).
+        fixed grid is too coarse on real Kinect frames (on the 27 mOSD pairs of
+        ``benchmarks/bench_decision.py``: kappa 0.307 at the paper's 80³, 0.665 with the
+        automatic voxel).
     sigma_voxels : float
-        2: the paper's σ in voxels; σ = 1 loses 0.01 kappa on mOSD for 5× faster builds.
+        2: the paper's σ in voxels.
     k : float
         3: the paper's threshold h = 1 + k·e^(−1/2) (a point needs about k neighbours at σ).
     truncate : float
         3: kernels cut at 3σ (e^(−4.5) ≈ 1 % of the peak).
     min_region_points : int
-        50: change regions with fewer points are noise or parallax at depth edges (+0.02
-        kappa on the 27 mOSD pairs; the static Kinect sequence stays below 0.5 % flagged).
+        50: change regions with fewer points are noise or parallax at depth edges (kappa 0.641
+        → 0.665 on the 27 mOSD pairs; the static Kinect sequence stays below 0.5 % flagged
+        once registered).
     sensor_origin : str
         ``"auto"``: the sensor position a file records (an organized PCD's VIEWPOINT) is used,
-        because the visibility test lifts kappa on the mOSD pairs from 0.67 to 0.86; clouds
-        whose files say nothing are compared without it.
+        because the visibility test lifts kappa on the mOSD pairs from 0.670 to 0.850
+        (``benchmarks/bench_paper.py``); clouds whose files say nothing are compared without it.
     range_noise : float
         0.015 m⁻¹: "the same range" within 0.015·r² (1.5 cm at 1 m), a Kinect's depth noise
         and drift; laser scans are bounded below by σ anyway.
