@@ -126,3 +126,10 @@ def test_cli_refuses_bad_options_in_one_line(tmp_path, cloud, args):
     assert p.stderr.startswith("sdp: error: ") and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert "Traceback" not in p.stderr and "0.00 GiB" not in p.stderr
     assert sorted(f.name for f in tmp_path.iterdir()) == ["g.npy"]
+
+
+def test_a_tile_refusal_names_the_workers_share_of_the_limit(tmp_path, cloud, monkeypatch):
+    monkeypatch.setattr("sdp.tiles._connect", lambda *a: pytest.fail("reached Dask"))
+    with pytest.raises(sdp.GridTooLargeError, match=r"a worker's share \(1/2 of the memory limit of 4 GB\) of 2 GB"):
+        sdp.detect_changes_tiled(cloud, cloud, voxel_size=0.05, sigma_voxels=1000, workers=2, memory_limit="4GB",
+                                 workdir=tmp_path)
