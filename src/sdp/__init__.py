@@ -20,6 +20,7 @@ from .boolean import difference, intersection, union
 from .change import ChangeResult, detect_changes
 from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered
 from .defaults import DEFAULTS, Defaults
+from .distance import Distances, distances
 from .errors import (
                      FieldFileError,
                      GridTooLargeError,
@@ -55,6 +56,7 @@ __all__ = [
     "union", "intersection", "difference",
     "DEFAULTS", "Defaults",
     "detect_changes", "ChangeResult", "Region",
+    "distances", "Distances",
     "UNCHANGED", "CHANGED", "NOT_COMPARABLE", "footprint_covered",
     "detect_changes_tiled", "TiledChanges", "build_field_tiled", "FieldStore",
     "align", "Alignment", "transform_points",

@@ -60,6 +60,17 @@ class Defaults:
         10 frames in the model (the reference counts as one): a third of a second at 30 Hz.
     decay : float
         0.8 per frame for ``update="decay"``.
+    projection_scale : str
+        ``"auto"``: M3C2's projection scale d of :func:`sdp.distances` is 4σ of the density
+        kernel (a Gaussian of σ holds as many effective points as a cylinder of radius 2σ), so
+        the distances and the change masks look at the same neighbourhood.
+    normal_scale : str
+        ``"auto"``: 2d, raised to 20× the roughness at that scale (Lague et al.), at most 4d.
+    max_distance : str
+        ``"auto"``: cylinders up to 48σ long each way (three levels), so that displacements
+        well beyond the kernel's reach are still measured.
+    registration_error : float
+        0: M3C2's default; give the alignment's residual when the epochs were registered.
     """
 
     voxel_size: str = "auto"
@@ -74,6 +85,10 @@ class Defaults:
     update: str = "window"
     window: int = 10
     decay: float = 0.8
+    projection_scale: str = "auto"
+    normal_scale: str = "auto"
+    max_distance: str = "auto"
+    registration_error: float = 0.0
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -1,0 +1,587 @@
+"""How much each place changed: a signed distance along the surface normal, its level of
+detection and a significance flag, from the density kernels of the two epochs.
+
+M3C2 [1]_ answers "by how much, and is it more than the noise?" with a k-d tree, a normal per
+core point and a cylinder search. The same answer falls out of the density field's kernel:
+the Gaussian that builds G, centred on a core point, weights each epoch's points around it,
+and their weighted moments are what M3C2 needs.
+
+- **Normal**: the eigenvector of the smallest eigenvalue of the reference's kernel-weighted
+  covariance at the normal scale (the current's where the reference has no points), oriented
+  towards the sensor when it is known, else along ``orientation`` (default +z, as M3C2).
+- **Distance**: along that normal, each epoch's kernel-weighted mean offset in a cylinder
+  around the core point: weight ``exp(−r²/2σ_p²)`` of the distance ``r`` to the axis (cut at
+  3σ_p), the axis half-length growing by 4× per level (3σ_p, 12σ_p, 48σ_p, …) until the epoch
+  has points in it (the finest level that holds them answers, so a displacement larger than the
+  kernel's reach is still measured, at the cost of a longer cylinder). ``distance = mean₂ −
+  mean₁``: positive where the current lies on the normal's side (M3C2's sign).
+- **Uncertainty**: ``spread`` = the weighted standard deviation along the normal, ``n`` = the
+  effective number of points ``(Σw)²/Σw²`` (the count of an equivalent uniform cylinder), and
+  M3C2's level of detection ``lod = 1.96·(√(spread₁²/n₁ + spread₂²/n₂) + registration_error)``;
+  ``significant = |distance| > lod``.
+
+Scales: a Gaussian of σ gives as many effective points as a disk of radius 2σ, so the
+projection scale ``d`` (M3C2's cylinder *diameter*) is ``4σ_p`` and the normal scale ``D``
+(the normal sphere's diameter) is ``4σ_n``. With ``"auto"``, σ_p is the density kernel's own σ
+(σ = 1.5 × the 90th percentile of the 3rd-neighbour spacing, :func:`sdp.auto_voxel_size`), so a
+cylinder holds about 28 points of a surface sampled like the cloud; ``D = 2d``, enlarged to
+20× the roughness found at that scale (Lague et al.'s rule that the normal scale be 20–25× the
+roughness, so that roughness does not tilt the normals) up to ``4d``. CloudCompare's "guess
+params" picks its scales from the cloud's density in the same spirit, from an octree level.
+
+The binary change masks of :func:`sdp.detect_changes` and this distance agree where both apply:
+a current point is "appeared" when the reference's density at it is below h. For a reference
+surface of peak density G₀ at distance δ along the normal, G_ref ≈ G₀·exp(−δ²/2s²) with
+s² = σ² + spread², so the point is appeared when ``|δ| > s·√(2 ln(G₀/h))``; for a surface
+sampled like the cloud (G₀ ≈ 2–3 h) that is |δ| ≈ 1.2–1.5 s (``benchmarks/bench_distance.py``
+measures it).
+
+References
+----------
+.. [1] D. Lague, N. Brodu, J. Leroux, "Accurate 3D comparison of complex topography with
+   terrestrial laser scanner: application to the Rangitikei canyon (N-Z)", ISPRS Journal of
+   Photogrammetry and Remote Sensing 82 (2013) 10–26.
+.. [2] A. W. Vieira et al., "Spatial Density Patterns as Representation for Point Cloud
+   Comparison and Applications" (the Gaussian kernel, σ = 2 voxels).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numba as nb
+import numpy as np
+import numpy.typing as npt
+
+from ._points import as_points
+from .defaults import DEFAULTS
+from .errors import InvalidOptionError
+from .params import resolve_voxel_size
+from .validate import auto_or_positive, nonnegative_finite
+from .visibility import resolve_sensor_origins
+
+__all__ = ["Distances", "distances", "DISTANCE_FIELDS"]
+
+#: The per-point outputs, in the order files store them.
+DISTANCE_FIELDS = ("distance", "lod", "significant", "n1", "n2", "spread1", "spread2",
+                   "normal_x", "normal_y", "normal_z")
+
+_LEVEL_GROWTH = 4.0  # each level's cylinder is this many times longer than the previous one
+_MIN_POINTS = 2.0  # effective points an epoch needs in the cylinder: a spread needs two
+_NORMAL_REACH = 2.0  # normal kernels cut at 2σ_n: the covariance's direction is settled by then
+_ROUGHNESS_RATIO = 20.0  # Lague et al.: normal scale ≥ 20–25 × the roughness
+_MAX_NORMAL_FACTOR = 4.0  # the roughness rule may enlarge D up to this many projection scales
+_BITS = 21  # per axis in a cell key
+_RADIUS = 3.0  # cylinder cut, in σ_p: the density kernel's truncation
+
+
+@dataclass
+class Distances:
+    """Per core point: how far the current lies from the reference along the normal, and whether
+    that is more than the noise (see :func:`distances`).
+
+    Attributes
+    ----------
+    core_points : ndarray (m, 3) float64
+        Where the distances were measured.
+    distance : ndarray (m,) float64
+        Signed distance ``mean₂ − mean₁`` along ``normal``; NaN where an epoch has fewer than two
+        effective points in the longest cylinder (not comparable: nothing to measure against).
+    lod : ndarray (m,) float64
+        Level of detection at 95 % (M3C2's LoD95), NaN where ``distance`` is.
+    significant : ndarray (m,) bool
+        ``|distance| > lod`` (False where not comparable).
+    n1, n2 : ndarray (m,) float64
+        Effective numbers of reference and current points, ``(Σw)²/Σw²``.
+    spread1, spread2 : ndarray (m,) float64
+        Weighted standard deviation of the epochs' points along the normal.
+    normal : ndarray (m, 3) float64
+        Unit normals, oriented as described in :func:`distances`.
+    level : ndarray (m,) int8
+        The cylinder level that answered (0: half-length 3σ_p; each level 4× longer; -1: none).
+    projection_scale, normal_scale, max_distance, registration_error : float
+        The parameters used (M3C2's terms: diameters d and D, the cylinder's half-length).
+    orientation : str
+        How the normals were oriented.
+    timings : dict of str to float
+        Seconds per step.
+    """
+
+    core_points: np.ndarray
+    distance: np.ndarray
+    lod: np.ndarray
+    significant: np.ndarray
+    n1: np.ndarray
+    n2: np.ndarray
+    spread1: np.ndarray
+    spread2: np.ndarray
+    normal: np.ndarray
+    level: np.ndarray
+    projection_scale: float
+    normal_scale: float
+    max_distance: float
+    registration_error: float
+    orientation: str
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def comparable(self) -> np.ndarray:
+        """Core points with a distance (both epochs have points in the cylinder)."""
+        return np.isfinite(self.distance)
+
+    def fields(self) -> dict[str, np.ndarray]:
+        """The per-point outputs by name (:data:`DISTANCE_FIELDS`), as files store them."""
+        out = {name: getattr(self, name) for name in DISTANCE_FIELDS[:7]}
+        out["significant"] = self.significant.astype(np.uint8)
+        for i, axis in enumerate("xyz"):
+            out[f"normal_{axis}"] = self.normal[:, i]
+        return out
+
+    def summary(self) -> dict:
+        """Counts, the distribution of the distances and the parameters, as plain numbers."""
+        ok = self.comparable
+        d, sig = self.distance[ok], self.significant[ok]
+
+        def q(values, p):
+            return float(np.quantile(values, p)) if values.size else float("nan")
+
+        return {
+            "core_points": int(len(self.distance)),
+            "comparable": int(ok.sum()),
+            "not_comparable": int((~ok).sum()),
+            "significant": int(sig.sum()),
+            "significant_positive": int((sig & (d > 0)).sum()),
+            "significant_negative": int((sig & (d < 0)).sum()),
+            "median_distance": q(d, 0.5),
+            "median_abs_distance": q(np.abs(d), 0.5),
+            "distance_p05": q(d, 0.05),
+            "distance_p95": q(d, 0.95),
+            "median_lod": q(self.lod[ok], 0.5),
+            "projection_scale": self.projection_scale,
+            "normal_scale": self.normal_scale,
+            "max_distance": self.max_distance,
+            "registration_error": self.registration_error,
+            "orientation": self.orientation,
+            "timings": {k: round(v, 4) for k, v in self.timings.items()},
+        }
+
+
+def distances(reference, current, *, core_points=None, projection_scale: float | str = DEFAULTS.projection_scale,
+              normal_scale: float | str = DEFAULTS.normal_scale, max_distance: float | str = DEFAULTS.max_distance,
+              registration_error: float = DEFAULTS.registration_error,
+              orientation: npt.ArrayLike | None = None, sensor_origin=DEFAULTS.sensor_origin) -> Distances:
+    """Signed distance from the reference to the current along the local normal, with M3C2's
+    level of detection, at every core point.
+
+    Parameters
+    ----------
+    reference, current : array_like (n, 3) or :class:`sdp.io.Cloud`
+        The two epochs, in one frame (align them first: :func:`sdp.align`).
+    core_points : array_like (m, 3), Cloud, ``"reference"`` or ``"current"``, optional
+        Where to measure; default every reference point (M3C2's epoch 1).
+    projection_scale : float or "auto"
+        M3C2's projection scale ``d`` (the cylinder's diameter, world units); the cylinder's
+        Gaussian has σ_p = d/4. ``"auto"``: the density kernel's σ from the point spacing.
+    normal_scale : float or "auto"
+        M3C2's normal scale ``D`` (diameter); σ_n = D/4. ``"auto"``: 2d, enlarged to 20× the
+        roughness at that scale, at most 4d.
+    max_distance : float or "auto"
+        Longest cylinder half-length searched (world units). ``"auto"``: 48σ_p = 12d (three
+        levels: 3σ_p, 12σ_p, 48σ_p).
+    registration_error : float
+        Added to the level of detection before the 1.96 factor (M3C2's ``reg``), world units,
+        e.g. the alignment's residual.
+    orientation : array_like (3,), optional
+        Direction the normals point to where the sensor is unknown; default +z.
+    sensor_origin : "auto", None or array_like
+        As :func:`sdp.detect_changes`: where known, normals point towards the sensor of the
+        core points' epoch (the reference's for the default core points).
+
+    Returns
+    -------
+    Distances
+
+    Raises
+    ------
+    InvalidPointsError, InvalidOptionError
+        Bad clouds or options (checked before any work).
+
+    References
+    ----------
+    .. [1] Lague et al. 2013 (M3C2, the level of detection); Vieira et al. (the kernel).
+
+    Examples
+    --------
+    >>> import numpy as np, sdp
+    >>> rng = np.random.default_rng(0)
+    >>> ground = np.c_[rng.uniform(0, 10, (20000, 2)), 0.01 * rng.standard_normal(20000)]
+    >>> raised = ground + [0, 0, 0.05]
+    >>> d = sdp.distances(ground, raised, projection_scale=0.5)
+    >>> print(round(float(np.median(d.distance)), 3), bool(d.significant.mean() > 0.99))
+    0.05 True
+    """
+    t0 = time.perf_counter()
+    ref, cur = as_points(reference, name="reference"), as_points(current, name="current")
+    d_opt = auto_or_positive("projection_scale", projection_scale)
+    D_opt = auto_or_positive("normal_scale", normal_scale)
+    L_opt = auto_or_positive("max_distance", max_distance)
+    reg = nonnegative_finite("registration_error", registration_error)
+    if orientation is None:
+        towards = np.array([0.0, 0.0, 1.0])
+    else:
+        towards = np.asarray(orientation, np.float64).reshape(-1)
+        if towards.shape != (3,) or not np.isfinite(towards).all() or not np.any(towards):
+            raise InvalidOptionError(f"orientation must be a nonzero finite vector (x, y, z), got {orientation!r}")
+        towards = towards / np.linalg.norm(towards)
+    origins = resolve_sensor_origins(sensor_origin, reference, current)
+    if core_points is None or (isinstance(core_points, str) and core_points == "reference"):
+        core, sensor = ref.xyz, origins[0]
+    elif isinstance(core_points, str):
+        if core_points != "current":
+            raise InvalidOptionError(f"core_points must be points, 'reference' or 'current', got {core_points!r}")
+        core, sensor = cur.xyz, origins[1]
+    else:
+        core, sensor = as_points(core_points, name="core points").xyz, origins[0]
+    timings = {"validate": time.perf_counter() - t0}
+
+    t = time.perf_counter()
+    if d_opt == "auto":
+        voxel = resolve_voxel_size([ref, cur], voxel_size="auto", k=DEFAULTS.k, sigma_voxels=DEFAULTS.sigma_voxels)
+        sigma_p = DEFAULTS.sigma_voxels * voxel
+    else:
+        sigma_p = d_opt / 4.0
+    max_half = 3.0 * sigma_p * _LEVEL_GROWTH**2 if L_opt == "auto" else max(L_opt, 0.0)
+    lo = np.minimum(np.minimum(ref.lo, cur.lo), core.min(axis=0)) - 1e-9
+    hi = np.maximum(np.maximum(ref.hi, cur.hi), core.max(axis=0))
+    timings["scales"] = time.perf_counter() - t
+
+    lists = _CellLists(lo, hi)
+    t = time.perf_counter()
+    # queries in cell order: neighbouring queries then read the same cells while they are cached
+    order = lists.order(core, 2.0 * sigma_p)
+    core_sorted = np.ascontiguousarray(core[order])
+    if D_opt == "auto":
+        sigma_n = 2.0 * sigma_p
+        sample = core_sorted[:: max(1, len(core) // 2000)]
+        _, rough = lists.normals(ref.xyz, sample, sigma_n)
+        rough = rough[np.isfinite(rough)]
+        if rough.size:
+            sigma_n = min(max(sigma_n, _ROUGHNESS_RATIO * float(np.median(rough)) / 4.0),
+                          _MAX_NORMAL_FACTOR * sigma_p)
+    else:
+        sigma_n = D_opt / 4.0
+    normal, _ = lists.normals(ref.xyz, core_sorted, sigma_n)
+    missing = ~np.isfinite(normal[:, 0])
+    if missing.any():  # no reference point near: the current's surface gives the direction
+        normal[missing] = lists.normals(cur.xyz, core_sorted[missing], sigma_n)[0]
+    if sensor is not None:
+        facing = np.asarray(sensor, np.float64)[None, :] - core_sorted
+        flip = np.einsum("ij,ij->i", normal, facing) < 0
+        how = "towards the sensor"
+    else:
+        flip = normal @ towards < 0
+        how = f"towards ({towards[0]:g}, {towards[1]:g}, {towards[2]:g})"
+    normal[flip] *= -1.0
+    timings["normals"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    levels = [3.0 * sigma_p]
+    while levels[-1] < max_half:
+        levels.append(min(levels[-1] * _LEVEL_GROWTH, max_half))
+    stats = [lists.cylinder(xyz, core_sorted, normal, sigma_p, levels) for xyz in (ref.xyz, cur.xyz)]
+    timings["cylinders"] = time.perf_counter() - t
+
+    back = np.empty_like(order)
+    back[order] = np.arange(len(order))
+    normal = normal[back]
+    (m1, s1, n1, k1), (m2, s2, n2, k2) = ([a[back] for a in st] for st in stats)
+    dist = m2 - m1
+    lod = 1.96 * (np.sqrt(s1**2 / n1 + s2**2 / n2) + reg)
+    bad = ~(np.isfinite(dist) & np.isfinite(normal[:, 0]))
+    for a in (dist, lod):
+        a[bad] = np.nan
+    level = np.where(bad, -1, np.maximum(k1, k2)).astype(np.int8)
+    timings["total"] = time.perf_counter() - t0
+    return Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
+                     n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
+                     projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=levels[-1],
+                     registration_error=reg, orientation=how, timings=timings)
+
+
+class _CellLists:
+    """Each cloud's points sorted into cubic cells of one size, built once per (cloud, size)."""
+
+    def __init__(self, lo, hi):
+        self.lo = np.asarray(lo, np.float64)
+        self.extent = np.asarray(hi, np.float64) - self.lo
+        self._cache: dict = {}
+
+    def _keys(self, xyz, cell):
+        if np.max(self.extent) / cell >= 2**_BITS - 4:
+            raise InvalidOptionError(f"the clouds span {np.max(self.extent):g} units, more than 2**{_BITS} cells of "
+                                     f"{cell:g}: give a larger projection_scale, or compare in tiles")
+        ijk = np.floor((xyz - self.lo) / cell).astype(np.int64)
+        return (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
+
+    def order(self, xyz, cell):
+        """Permutation that sorts ``xyz`` by cell."""
+        return np.argsort(self._keys(xyz, cell), kind="stable")
+
+    def get(self, xyz: np.ndarray, cell: float):
+        key = (id(xyz), cell)
+        if key not in self._cache:
+            keys = self._keys(xyz, cell)
+            order = np.argsort(keys, kind="stable")
+            keys = keys[order]
+            first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+            starts = np.r_[first, len(keys)].astype(np.int64)
+            table, rows = _hash_table(keys[first])
+            self._cache[key] = (np.ascontiguousarray(xyz[order]), starts, table, rows, cell)
+        return self._cache[key]
+
+    def normals(self, xyz, queries, sigma):
+        """(unit normals (m, 3), NaN where fewer than 3 points; roughness = √λ_min).
+
+        From the moments of cells of σ (count, centroid, scatter), each cell weighted by the
+        Gaussian at its centroid: a few dozen cells per query instead of hundreds of points,
+        and the direction of a covariance does not need each point's own weight."""
+        key = ("moments", id(xyz), sigma)
+        if key not in self._cache:
+            pts, starts, _, _, _ = self.get(xyz, sigma)
+            self._cache[key] = _cell_moments(pts, starts)
+        moments = self._cache[key]
+        _, _, table, rows, cell = self.get(xyz, sigma)
+        normal = np.empty((len(queries), 3))
+        rough = np.empty(len(queries))
+        _normals(*moments, table, rows, self.lo, cell, np.ascontiguousarray(queries), sigma,
+                 _NORMAL_REACH * sigma, normal, rough)
+        return normal, rough
+
+    def cylinder(self, xyz, queries, normals, sigma, levels):
+        """(weighted mean offset, spread, effective count, level) of ``xyz`` in the cylinders."""
+        m = len(queries)
+        mean, spread, count = np.full(m, np.nan), np.full(m, np.nan), np.zeros(m)
+        level = np.full(m, -1, np.int64)
+        todo = np.arange(m)
+        for k, half in enumerate(levels):
+            if not todo.size:
+                break
+            # cells about as long as the cylinder's radius, or a quarter of its length: the cells
+            # visited then stay a few dozen
+            cell = max(2.0 * sigma, half / 2.0)
+            pts, starts, table, rows, cell = self.get(xyz, cell)
+            out = np.empty((todo.size, 4))
+            _cylinders(pts, starts, table, rows, self.lo, cell, np.ascontiguousarray(queries[todo]),
+                       np.ascontiguousarray(normals[todo]), sigma, _RADIUS * sigma, half, out)
+            ok = out[:, 2] >= _MIN_POINTS
+            sel = todo[ok]
+            mean[sel], spread[sel], count[sel], level[sel] = out[ok, 0], out[ok, 1], out[ok, 2], k
+            count[todo[~ok]] = out[~ok, 2]
+            todo = todo[~ok]
+        return mean, spread, count, level
+
+
+@nb.njit(cache=True, inline="always")
+def _slot(key, shift, mask):
+    return ((key * -7046029254386353131) >> shift) & mask  # Fibonacci hashing (the product wraps)
+
+
+@nb.njit(cache=True)
+def _hash_table(keys):
+    """Open-addressing table of the sorted unique cell ``keys``: slot → key, slot → cell row."""
+    bits = max(6, int(math.ceil(math.log2(2 * len(keys) + 1))))
+    cap = 1 << bits
+    table = np.full(cap, -1, np.int64)
+    rows = np.empty(cap, np.int64)
+    shift, mask = 64 - bits, cap - 1
+    for r in range(len(keys)):
+        s = _slot(keys[r], shift, mask)
+        while table[s] >= 0:
+            s = (s + 1) & mask
+        table[s] = keys[r]
+        rows[s] = r
+    return table, rows
+
+
+@nb.njit(cache=True, inline="always")
+def _row(table, rows, shift, ix, iy, iz):
+    if ix < 0 or iy < 0 or iz < 0 or ix >= 1 << _BITS or iy >= 1 << _BITS or iz >= 1 << _BITS:
+        return -1
+    key = (ix << (2 * _BITS)) | (iy << _BITS) | iz
+    mask = table.shape[0] - 1
+    s = _slot(key, shift, mask)
+    while True:
+        stored = table[s]
+        if stored == key:
+            return rows[s]
+        if stored < 0:
+            return -1
+        s = (s + 1) & mask
+
+
+@nb.njit(cache=True, inline="always")
+def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3×3 matrix, and that eigenvalue
+    (closed form: the trigonometric solution of the characteristic cubic, then the largest cross
+    product of two rows of A − λI)."""
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    p = math.sqrt(p2 / 6.0)
+    if p < 1e-300:
+        return 0.0, 0.0, 1.0, q
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    r = (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)) / 2.0
+    r = min(1.0, max(-1.0, r))
+    lam = q + 2.0 * p * math.cos(math.acos(r) / 3.0 + 2.0 * math.pi / 3.0)
+    r0 = (a00 - lam, a01, a02)
+    r1 = (a01, a11 - lam, a12)
+    r2 = (a02, a12, a22 - lam)
+    best, bx, by, bz = -1.0, 0.0, 0.0, 1.0
+    for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+        cx = u[1] * v[2] - u[2] * v[1]
+        cy = u[2] * v[0] - u[0] * v[2]
+        cz = u[0] * v[1] - u[1] * v[0]
+        nn = cx * cx + cy * cy + cz * cz
+        if nn > best:
+            best, bx, by, bz = nn, cx, cy, cz
+    s = math.sqrt(best)
+    return bx / s, by / s, bz / s, lam
+
+
+@nb.njit(cache=True)
+def _cell_moments(pts, starts):
+    """Per cell of a sorted cloud: point count, centroid, and scatter about the centroid
+    (xx, xy, xz, yy, yz, zz)."""
+    c = starts.shape[0] - 1
+    count = np.empty(c)
+    mean = np.zeros((c, 3))
+    scatter = np.zeros((c, 6))
+    for r in range(c):
+        a, b = starts[r], starts[r + 1]
+        count[r] = b - a
+        for j in range(a, b):
+            for k in range(3):
+                mean[r, k] += pts[j, k]
+        for k in range(3):
+            mean[r, k] /= b - a
+        for j in range(a, b):
+            dx, dy, dz = pts[j, 0] - mean[r, 0], pts[j, 1] - mean[r, 1], pts[j, 2] - mean[r, 2]
+            scatter[r, 0] += dx * dx
+            scatter[r, 1] += dx * dy
+            scatter[r, 2] += dx * dz
+            scatter[r, 3] += dy * dy
+            scatter[r, 4] += dy * dz
+            scatter[r, 5] += dz * dz
+    return count, mean, scatter
+
+
+@nb.njit(cache=True, parallel=True)
+def _normals(count, mean, scatter, table, rows, lo, cell, queries, sigma, reach, normal, rough):
+    inv2s2 = 0.5 / (sigma * sigma)
+    r2max = reach * reach
+    shift = 64 - int(round(math.log2(table.shape[0])))
+    for i in nb.prange(queries.shape[0]):
+        qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
+        x0 = int(math.floor((qx - reach - lo[0]) / cell))
+        x1 = int(math.floor((qx + reach - lo[0]) / cell))
+        y0 = int(math.floor((qy - reach - lo[1]) / cell))
+        y1 = int(math.floor((qy + reach - lo[1]) / cell))
+        z0 = int(math.floor((qz - reach - lo[2]) / cell))
+        z1 = int(math.floor((qz + reach - lo[2]) / cell))
+        w = sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+        npts = 0.0
+        for ix in range(x0, x1 + 1):
+            for iy in range(y0, y1 + 1):
+                for iz in range(z0, z1 + 1):
+                    r = _row(table, rows, shift, ix, iy, iz)
+                    if r < 0:
+                        continue
+                    dx, dy, dz = mean[r, 0] - qx, mean[r, 1] - qy, mean[r, 2] - qz
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 > r2max:
+                        continue
+                    g = math.exp(-d2 * inv2s2)
+                    n = count[r]
+                    gn = g * n
+                    npts += n
+                    w += gn
+                    sx += gn * dx
+                    sy += gn * dy
+                    sz += gn * dz
+                    sxx += g * scatter[r, 0] + gn * dx * dx
+                    sxy += g * scatter[r, 1] + gn * dx * dy
+                    sxz += g * scatter[r, 2] + gn * dx * dz
+                    syy += g * scatter[r, 3] + gn * dy * dy
+                    syz += g * scatter[r, 4] + gn * dy * dz
+                    szz += g * scatter[r, 5] + gn * dz * dz
+        if npts < 3:
+            normal[i, 0] = normal[i, 1] = normal[i, 2] = np.nan
+            rough[i] = np.nan
+            continue
+        mx, my, mz = sx / w, sy / w, sz / w
+        nx, ny, nz, lam = _smallest_eigenvector(sxx / w - mx * mx, sxy / w - mx * my, sxz / w - mx * mz,
+                                                syy / w - my * my, syz / w - my * mz, szz / w - mz * mz)
+        normal[i, 0], normal[i, 1], normal[i, 2] = nx, ny, nz
+        rough[i] = math.sqrt(max(lam, 0.0))
+
+
+@nb.njit(cache=True, parallel=True)
+def _cylinders(pts, starts, table, rows, lo, cell, queries, normals, sigma, radius, half, out):
+    """Per query: kernel-weighted mean offset along its normal, spread and effective count of the
+    points within ``radius`` of its axis and ``half`` along it (out[:, 3]: the weight)."""
+    inv2s2 = 0.5 / (sigma * sigma)
+    r2max = radius * radius
+    shift = 64 - int(round(math.log2(table.shape[0])))
+    for i in nb.prange(queries.shape[0]):
+        qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        w = w2 = st = stt = 0.0
+        if not np.isfinite(nx):
+            out[i, 0] = out[i, 1] = np.nan
+            out[i, 2] = out[i, 3] = 0.0
+            continue
+        ex = half * abs(nx) + radius * math.sqrt(max(0.0, 1.0 - nx * nx))
+        ey = half * abs(ny) + radius * math.sqrt(max(0.0, 1.0 - ny * ny))
+        ez = half * abs(nz) + radius * math.sqrt(max(0.0, 1.0 - nz * nz))
+        x0 = int(math.floor((qx - ex - lo[0]) / cell))
+        x1 = int(math.floor((qx + ex - lo[0]) / cell))
+        y0 = int(math.floor((qy - ey - lo[1]) / cell))
+        y1 = int(math.floor((qy + ey - lo[1]) / cell))
+        z0 = int(math.floor((qz - ez - lo[2]) / cell))
+        z1 = int(math.floor((qz + ez - lo[2]) / cell))
+        for ix in range(x0, x1 + 1):
+            for iy in range(y0, y1 + 1):
+                for iz in range(z0, z1 + 1):
+                    r = _row(table, rows, shift, ix, iy, iz)
+                    if r < 0:
+                        continue
+                    for j in range(starts[r], starts[r + 1]):
+                        dx, dy, dz = pts[j, 0] - qx, pts[j, 1] - qy, pts[j, 2] - qz
+                        t = dx * nx + dy * ny + dz * nz
+                        if t > half or t < -half:
+                            continue
+                        r2 = dx * dx + dy * dy + dz * dz - t * t
+                        if r2 > r2max:
+                            continue
+                        g = math.exp(-r2 * inv2s2)
+                        w += g
+                        w2 += g * g
+                        st += g * t
+                        stt += g * t * t
+        if w <= 0.0:
+            out[i, 0] = out[i, 1] = np.nan
+            out[i, 2] = out[i, 3] = 0.0
+            continue
+        mean = st / w
+        n_eff = w * w / w2
+        var = max(stt / w - mean * mean, 0.0)
+        if n_eff > 1.0:
+            var *= n_eff / (n_eff - 1.0)
+        out[i, 0] = mean
+        out[i, 1] = math.sqrt(var)
+        out[i, 2] = n_eff
+        out[i, 3] = w

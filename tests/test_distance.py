@@ -1,0 +1,112 @@
+"""Signed distances along the normal with M3C2's level of detection (sdp.distances)."""
+
+import numpy as np
+import pytest
+
+import sdp
+
+
+def plane(rng, n, noise, z=0.0, size=4.0):
+    return np.c_[rng.uniform(0, size, (n, 2)), z + noise * rng.standard_normal(n)]
+
+
+def sphere(rng, n, radius, noise, centre=(0.0, 0.0, 0.0)):
+    v = rng.standard_normal((n, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    return np.asarray(centre) + v * (radius + noise * rng.standard_normal(n))[:, None]
+
+
+@pytest.mark.parametrize("shift", [0.002, 0.03, 0.5])
+def test_plane_shift_is_measured_with_its_sign(rng, shift):
+    a = plane(rng, 40_000, 0.002)
+    d = sdp.distances(a, plane(rng, 40_000, 0.002, z=shift))
+    assert d.comparable.all()
+    assert abs(np.median(d.distance) - shift) < 0.0005  # ≤ 1 mm and ≤ 25 % of the noise
+    assert np.allclose(np.abs(d.normal[:, 2]), 1, atol=0.01) and (d.normal[:, 2] > 0).all()  # +z
+    down = sdp.distances(a, plane(rng, 40_000, 0.002, z=-shift))
+    assert abs(np.median(down.distance) + shift) < 0.0005
+
+
+def test_static_pair_flags_about_five_percent(rng):
+    d = sdp.distances(plane(rng, 60_000, 0.003), plane(rng, 60_000, 0.003))
+    assert 0.03 < d.significant.mean() < 0.07
+    assert abs(np.median(d.spread1) - 0.003) < 0.0006 and abs(np.median(d.spread2) - 0.003) < 0.0006
+
+
+def test_large_shift_found_on_a_longer_cylinder(rng):
+    a = plane(rng, 30_000, 0.002)
+    d = sdp.distances(a, a + [0, 0, 1.0], projection_scale=0.1)
+    inner = ((a[:, :2] > 0.3) & (a[:, :2] < 3.7)).all(axis=1)  # a corner's normal tilts
+    assert (d.level[inner] == 2).all()
+    assert np.allclose(d.distance[inner], d.normal[inner, 2], atol=1e-9)  # 1 m along the normal
+    short = sdp.distances(a, a + [0, 0, 1.0], projection_scale=0.1, max_distance=0.5)
+    assert not short.comparable.any() and not short.significant.any()
+
+
+def test_sphere_growth_along_outward_normals(rng):
+    a = sphere(rng, 60_000, 1.0, 0.002)
+    b = sphere(rng, 60_000, 1.01, 0.002)
+    d = sdp.distances(a, b, sensor_origin=None, orientation=None)
+    outward = np.einsum("ij,ij->i", d.normal, a) > 0
+    signed = np.where(outward, d.distance, -d.distance)  # the sign follows the normal's side
+    assert abs(np.median(signed) - 0.01) < 0.0005
+
+
+def test_normals_point_to_the_sensor(rng):
+    wall = np.c_[np.full(20_000, 2.0), rng.uniform(-1, 1, (20_000, 2))] + 0.002 * rng.standard_normal((20_000, 3))
+    nearer = wall - [0.02, 0, 0]
+    d = sdp.distances(wall, nearer, sensor_origin=[0.0, 0.0, 0.0])
+    assert (d.normal[:, 0] < 0).all()  # towards the sensor at x = 0
+    assert abs(np.median(d.distance) - 0.02) < 0.001  # the current lies on the sensor's side
+    assert "sensor" in d.orientation
+
+
+def test_no_data_is_not_comparable(rng):
+    a = plane(rng, 20_000, 0.002, size=4.0)
+    b = plane(rng, 20_000, 0.002, size=2.0)  # covers only a quarter of a
+    d = sdp.distances(a, b)
+    inside = (a[:, :2] < 1.8).all(axis=1)
+    outside = (a[:, :2] > 2.3).any(axis=1)
+    assert d.comparable[inside].all() and not d.comparable[outside].any()
+    assert np.isnan(d.lod[outside]).all() and not d.significant[outside].any()
+    s = d.summary()
+    assert s["comparable"] + s["not_comparable"] == len(a) and s["not_comparable"] == int((~d.comparable).sum())
+
+
+def test_core_points_and_registration_error(rng):
+    a, b = plane(rng, 20_000, 0.002), plane(rng, 20_000, 0.002, z=0.004)
+    core = np.c_[rng.uniform(0.5, 3.5, (50, 2)), np.zeros(50)]
+    d = sdp.distances(a, b, core_points=core)
+    assert d.core_points.shape == (50, 3) and d.distance.shape == (50,)
+    assert abs(np.median(d.distance) - 0.004) < 0.001
+    wide = sdp.distances(a, b, core_points=core, registration_error=0.01)
+    assert np.allclose(wide.lod - d.lod, 1.96 * 0.01) and not wide.significant.any()
+    cur = sdp.distances(a, b, core_points="current")
+    assert len(cur.distance) == len(b)
+
+
+def test_fields_and_summary(rng):
+    d = sdp.distances(plane(rng, 5_000, 0.002), plane(rng, 5_000, 0.002, z=0.05))
+    f = d.fields()
+    assert list(f) == list(sdp.distance.DISTANCE_FIELDS)
+    assert all(len(v) == 5_000 for v in f.values()) and f["significant"].dtype == np.uint8
+    s = d.summary()
+    assert s["significant_positive"] == s["significant"] > 4_900
+    assert s["projection_scale"] == pytest.approx(d.projection_scale) and s["normal_scale"] >= 2 * s["projection_scale"]
+
+
+def test_scales_are_the_density_kernel(rng):
+    a, b = plane(rng, 20_000, 0.002), plane(rng, 20_000, 0.002)
+    voxel = sdp.auto_voxel_size(a, b)
+    d = sdp.distances(a, b)
+    assert d.projection_scale == pytest.approx(4 * 2 * voxel)
+
+
+@pytest.mark.parametrize("kwargs", [dict(projection_scale=0), dict(projection_scale=float("nan")),
+                                    dict(normal_scale=-1), dict(max_distance="far"),
+                                    dict(registration_error=-0.1), dict(orientation=[0, 0, 0]),
+                                    dict(core_points="both"), dict(core_points=np.zeros((0, 3)))])
+def test_bad_options_are_refused(rng, kwargs):
+    a = plane(rng, 1_000, 0.002)
+    with pytest.raises(sdp.SDPError):
+        sdp.distances(a, a, **kwargs)
