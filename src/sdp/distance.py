@@ -10,11 +10,18 @@ and their weighted moments are what M3C2 needs.
   covariance at the normal scale (the current's where the reference has no points), oriented
   towards the sensor when it is known, else along ``orientation`` (default +z, as M3C2).
 - **Distance**: along that normal, each epoch's kernel-weighted mean offset in a cylinder
-  around the core point: weight ``exp(−r²/2σ_p²)`` of the distance ``r`` to the axis (cut at
-  3σ_p), the axis half-length growing by 4× per level (3σ_p, 12σ_p, 48σ_p, …) until the epoch
-  has points in it (the finest level that holds them answers, so a displacement larger than the
-  kernel's reach is still measured, at the cost of a longer cylinder). ``distance = mean₂ −
-  mean₁``: positive where the current lies on the normal's side (M3C2's sign).
+  around the core point: weight ``exp(−r²/2σ_p²)`` of the distance ``r`` to the axis, radius
+  and half-length cut at 3σ_p (the kernel's truncation). Where an epoch has too few points
+  there (it moved farther than the kernel reaches), the nearest of its cells on the normal's
+  line within ``max_distance`` is found and the same cylinder, moved there, answers (twice
+  recentred on the mean it finds): a displacement of any size is measured at the kernel's own
+  resolution, and the nearest surface answers, not a mean of all surfaces on the line.
+  ``distance = mean₂ − mean₁``: positive where the current lies on the normal's side (M3C2's
+  sign).
+- **Moments on cells**: each epoch's points are summed once, in O(n), into cubic cells of
+  1.5σ_p (count, centroid, scatter); a cylinder reads at most 5³ cells and gives each cell's
+  points the weight of its centroid (their offsets and spread along the normal stay exact), so
+  a query costs the same however dense the cloud is.
 - **Uncertainty**: ``spread`` = the weighted standard deviation along the normal, ``n`` = the
   effective number of points ``(Σw)²/Σw²`` (the count of an equivalent uniform cylinder), and
   M3C2's level of detection ``lod = 1.96·(√(spread₁²/n₁ + spread₂²/n₂) + registration_error)``;
@@ -32,9 +39,9 @@ params" picks its scales from the cloud's density in the same spirit, from an oc
 The binary change masks of :func:`sdp.detect_changes` and this distance agree where both apply:
 a current point is "appeared" when the reference's density at it is below h. For a reference
 surface of peak density G₀ at distance δ along the normal, G_ref ≈ G₀·exp(−δ²/2s²) with
-s² = σ² + spread², so the point is appeared when ``|δ| > s·√(2 ln(G₀/h))``; for a surface
-sampled like the cloud (G₀ ≈ 2–3 h) that is |δ| ≈ 1.2–1.5 s (``benchmarks/bench_distance.py``
-measures it).
+s² = σ² + spread², so the point is appeared when ``|δ| > s·√(2 ln(G₀/h))``: about 2σ on a
+plane sampled as densely as the automatic σ assumes (``benchmarks/bench_distance.py`` moves a
+plane step by step: none appeared at 1.5σ, all at 2.5σ, the formula said 2.1σ).
 
 References
 ----------
@@ -68,13 +75,15 @@ __all__ = ["Distances", "distances", "DISTANCE_FIELDS"]
 DISTANCE_FIELDS = ("distance", "lod", "significant", "n1", "n2", "spread1", "spread2",
                    "normal_x", "normal_y", "normal_z")
 
-_LEVEL_GROWTH = 4.0  # each level's cylinder is this many times longer than the previous one
+_AUTO_REACH = 48.0  # max_distance="auto", in σ_p
 _MIN_POINTS = 2.0  # effective points an epoch needs in the cylinder: a spread needs two
 _NORMAL_REACH = 2.0  # normal kernels cut at 2σ_n: the covariance's direction is settled by then
 _ROUGHNESS_RATIO = 20.0  # Lague et al.: normal scale ≥ 20–25 × the roughness
 _MAX_NORMAL_FACTOR = 4.0  # the roughness rule may enlarge D up to this many projection scales
 _BITS = 21  # per axis in a cell key
+_DENSE_CELLS = 2**25  # boxes of up to this many cells get a dense cell table (8 bytes per cell)
 _RADIUS = 3.0  # cylinder cut, in σ_p: the density kernel's truncation
+_CELL = 1.5  # cells of the cylinders' moments, in σ_p
 
 
 @dataclass
@@ -100,7 +109,8 @@ class Distances:
     normal : ndarray (m, 3) float64
         Unit normals, oriented as described in :func:`distances`.
     level : ndarray (m,) int8
-        The cylinder level that answered (0: half-length 3σ_p; each level 4× longer; -1: none).
+        0: both epochs answered in the cylinder at the core point; 1: one was found farther along
+        the normal; -1: no distance.
     projection_scale, normal_scale, max_distance, registration_error : float
         The parameters used (M3C2's terms: diameters d and D, the cylinder's half-length).
     orientation : str
@@ -188,8 +198,7 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
         M3C2's normal scale ``D`` (diameter); σ_n = D/4. ``"auto"``: 2d, enlarged to 20× the
         roughness at that scale, at most 4d.
     max_distance : float or "auto"
-        Longest cylinder half-length searched (world units). ``"auto"``: 48σ_p = 12d (three
-        levels: 3σ_p, 12σ_p, 48σ_p).
+        How far along the normal an epoch is looked for (world units). ``"auto"``: 48σ_p = 12d.
     registration_error : float
         Added to the level of detection before the 1.96 factor (M3C2's ``reg``), world units,
         e.g. the alignment's residual.
@@ -252,7 +261,7 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
         sigma_p = DEFAULTS.sigma_voxels * voxel
     else:
         sigma_p = d_opt / 4.0
-    max_half = 3.0 * sigma_p * _LEVEL_GROWTH**2 if L_opt == "auto" else max(L_opt, 0.0)
+    max_half = _AUTO_REACH * sigma_p if L_opt == "auto" else L_opt
     lo = np.minimum(np.minimum(ref.lo, cur.lo), core.min(axis=0)) - 1e-9
     hi = np.maximum(np.maximum(ref.hi, cur.hi), core.max(axis=0))
     timings["scales"] = time.perf_counter() - t
@@ -287,10 +296,7 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     timings["normals"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    levels = [3.0 * sigma_p]
-    while levels[-1] < max_half:
-        levels.append(min(levels[-1] * _LEVEL_GROWTH, max_half))
-    stats = [lists.cylinder(xyz, core_sorted, normal, sigma_p, levels) for xyz in (ref.xyz, cur.xyz)]
+    stats = [lists.cylinder(xyz, core_sorted, normal, sigma_p, max_half) for xyz in (ref.xyz, cur.xyz)]
     timings["cylinders"] = time.perf_counter() - t
 
     back = np.empty_like(order)
@@ -299,14 +305,16 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     (m1, s1, n1, k1), (m2, s2, n2, k2) = ([a[back] for a in st] for st in stats)
     dist = m2 - m1
     lod = 1.96 * (np.sqrt(s1**2 / n1 + s2**2 / n2) + reg)
-    bad = ~(np.isfinite(dist) & np.isfinite(normal[:, 0]))
+    reach = max(max_half, 3.0 * sigma_p)
+    with np.errstate(invalid="ignore"):  # both epochs found, but farther apart than asked: none
+        bad = ~(np.abs(dist) <= reach) | ~np.isfinite(normal[:, 0])
     for a in (dist, lod):
         a[bad] = np.nan
     level = np.where(bad, -1, np.maximum(k1, k2)).astype(np.int8)
     timings["total"] = time.perf_counter() - t0
     return Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
                      n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
-                     projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=levels[-1],
+                     projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
                      registration_error=reg, orientation=how, timings=timings)
 
 
@@ -337,7 +345,11 @@ class _CellLists:
             keys = keys[order]
             first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
             starts = np.r_[first, len(keys)].astype(np.int64)
-            table, rows = _hash_table(keys[first])
+            dims = (self.extent // cell).astype(np.int64) + 1
+            if np.prod(dims.astype(float)) <= _DENSE_CELLS:
+                table, rows = _dense_table(keys[first], dims), dims
+            else:
+                table, rows = _hash_table(keys[first]), np.zeros(3, np.int64)
             self._cache[key] = (np.ascontiguousarray(xyz[order]), starts, table, rows, cell)
         return self._cache[key]
 
@@ -347,40 +359,51 @@ class _CellLists:
         From the moments of cells of σ (count, centroid, scatter), each cell weighted by the
         Gaussian at its centroid: a few dozen cells per query instead of hundreds of points,
         and the direction of a covariance does not need each point's own weight."""
-        key = ("moments", id(xyz), sigma)
-        if key not in self._cache:
-            pts, starts, _, _, _ = self.get(xyz, sigma)
-            self._cache[key] = _cell_moments(pts, starts)
-        moments = self._cache[key]
-        _, _, table, rows, cell = self.get(xyz, sigma)
         normal = np.empty((len(queries), 3))
         rough = np.empty(len(queries))
-        _normals(*moments, table, rows, self.lo, cell, np.ascontiguousarray(queries), sigma,
+        _normals(*self.moments(xyz, sigma), self.lo, np.ascontiguousarray(queries), sigma,
                  _NORMAL_REACH * sigma, normal, rough)
         return normal, rough
 
-    def cylinder(self, xyz, queries, normals, sigma, levels):
-        """(weighted mean offset, spread, effective count, level) of ``xyz`` in the cylinders."""
-        m = len(queries)
-        mean, spread, count = np.full(m, np.nan), np.full(m, np.nan), np.zeros(m)
-        level = np.full(m, -1, np.int64)
-        todo = np.arange(m)
-        for k, half in enumerate(levels):
-            if not todo.size:
-                break
-            # cells about as long as the cylinder's radius, or a quarter of its length: the cells
-            # visited then stay a few dozen
-            cell = max(2.0 * sigma, half / 2.0)
-            pts, starts, table, rows, cell = self.get(xyz, cell)
-            out = np.empty((todo.size, 4))
-            _cylinders(pts, starts, table, rows, self.lo, cell, np.ascontiguousarray(queries[todo]),
-                       np.ascontiguousarray(normals[todo]), sigma, _RADIUS * sigma, half, out)
-            ok = out[:, 2] >= _MIN_POINTS
-            sel = todo[ok]
-            mean[sel], spread[sel], count[sel], level[sel] = out[ok, 0], out[ok, 1], out[ok, 2], k
-            count[todo[~ok]] = out[~ok, 2]
-            todo = todo[~ok]
-        return mean, spread, count, level
+    def moments(self, xyz, cell):
+        """(count, centroid, scatter) of each cell of ``xyz`` and the cells' hash table."""
+        pts, starts, table, rows, cell = self.get(xyz, cell)
+        key = ("moments", id(xyz), cell)
+        if key not in self._cache:
+            self._cache[key] = _cell_moments(pts, starts)
+        return (*self._cache[key], table, rows, cell)
+
+    def cylinder(self, xyz, queries, normals, sigma, max_half):
+        """(weighted mean offset, spread, effective count, level) of ``xyz`` in the cylinders:
+        level 0 around the core point; level 1 around the nearest cell of ``xyz`` on the normal's
+        line within ``max_half``, where the first found too few points."""
+        half = _RADIUS * sigma
+        out = self._cylinders(xyz, queries, normals, sigma, half)
+        level = np.where(out[:, 2] >= _MIN_POINTS, 0, -1)
+        todo = np.flatnonzero(level < 0)
+        if todo.size and max_half > half:
+            q, n = queries[todo], normals[todo]
+            _, _, table, dims, cell = self.get(xyz, _CELL * sigma)
+            t = np.empty(todo.size)
+            _nearest_along(table, dims, cell, self.lo, q, n, max_half, t)
+            found = np.flatnonzero(np.isfinite(t))
+            q, n, t = q[found], n[found], t[found]
+            for _ in range(2):  # move the cylinder onto the surface found: twice settles it
+                fine = self._cylinders(xyz, np.ascontiguousarray(q + t[:, None] * n), n, sigma, half)
+                ok = fine[:, 2] >= _MIN_POINTS
+                t = np.where(ok, t + np.nan_to_num(fine[:, 0]), t)
+            fine[:, 0] = t
+            keep = ok & (np.abs(t) <= max_half)
+            out[todo[found[keep]]] = fine[keep]
+            level[todo[found[keep]]] = 1
+        return out[:, 0], out[:, 1], out[:, 2], level
+
+    def _cylinders(self, xyz, queries, normals, sigma, half):
+        out = np.empty((len(queries), 3))
+        _cylinders(*self.moments(xyz, _CELL * sigma), self.lo, np.ascontiguousarray(queries),
+                   np.ascontiguousarray(normals), sigma, _RADIUS * sigma, half, out)
+        out[out[:, 2] < _MIN_POINTS, :2] = np.nan
+        return out
 
 
 @nb.njit(cache=True, inline="always")
@@ -389,8 +412,21 @@ def _slot(key, shift, mask):
 
 
 @nb.njit(cache=True)
+def _dense_table(keys, dims):
+    """Cell → row over the whole box of cells (-1: empty), one read per lookup; for boxes of up
+    to :data:`_DENSE_CELLS` cells."""
+    table = np.full(dims[0] * dims[1] * dims[2], -1, np.int64)
+    m = (1 << _BITS) - 1
+    for r in range(len(keys)):
+        k = keys[r]
+        table[((k >> (2 * _BITS)) * dims[1] + ((k >> _BITS) & m)) * dims[2] + (k & m)] = r
+    return table
+
+
+@nb.njit(cache=True)
 def _hash_table(keys):
-    """Open-addressing table of the sorted unique cell ``keys``: slot → key, slot → cell row."""
+    """Open-addressing table of the sorted unique cell ``keys``: slot → key, slot → cell row
+    (the two halves of the returned array)."""
     bits = max(6, int(math.ceil(math.log2(2 * len(keys) + 1))))
     cap = 1 << bits
     table = np.full(cap, -1, np.int64)
@@ -402,20 +438,27 @@ def _hash_table(keys):
             s = (s + 1) & mask
         table[s] = keys[r]
         rows[s] = r
-    return table, rows
+    return np.concatenate((table, rows))
 
 
 @nb.njit(cache=True, inline="always")
-def _row(table, rows, shift, ix, iy, iz):
+def _row(table, dims, shift, ix, iy, iz):
+    """Row of cell (ix, iy, iz) in a dense table (``dims`` the box of cells) or a hash table
+    (``dims`` zeros), -1 if empty."""
+    if dims[0] > 0:
+        if ix < 0 or iy < 0 or iz < 0 or ix >= dims[0] or iy >= dims[1] or iz >= dims[2]:
+            return -1
+        return table[(ix * dims[1] + iy) * dims[2] + iz]
     if ix < 0 or iy < 0 or iz < 0 or ix >= 1 << _BITS or iy >= 1 << _BITS or iz >= 1 << _BITS:
         return -1
     key = (ix << (2 * _BITS)) | (iy << _BITS) | iz
-    mask = table.shape[0] - 1
+    cap = table.shape[0] // 2
+    mask = cap - 1
     s = _slot(key, shift, mask)
     while True:
         stored = table[s]
         if stored == key:
-            return rows[s]
+            return table[cap + s]
         if stored < 0:
             return -1
         s = (s + 1) & mask
@@ -480,10 +523,10 @@ def _cell_moments(pts, starts):
 
 
 @nb.njit(cache=True, parallel=True)
-def _normals(count, mean, scatter, table, rows, lo, cell, queries, sigma, reach, normal, rough):
+def _normals(count, mean, scatter, table, dims, cell, lo, queries, sigma, reach, normal, rough):
     inv2s2 = 0.5 / (sigma * sigma)
     r2max = reach * reach
-    shift = 64 - int(round(math.log2(table.shape[0])))
+    shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
     for i in nb.prange(queries.shape[0]):
         qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
         x0 = int(math.floor((qx - reach - lo[0]) / cell))
@@ -497,7 +540,7 @@ def _normals(count, mean, scatter, table, rows, lo, cell, queries, sigma, reach,
         for ix in range(x0, x1 + 1):
             for iy in range(y0, y1 + 1):
                 for iz in range(z0, z1 + 1):
-                    r = _row(table, rows, shift, ix, iy, iz)
+                    r = _row(table, dims, shift, ix, iy, iz)
                     if r < 0:
                         continue
                     dx, dy, dz = mean[r, 0] - qx, mean[r, 1] - qy, mean[r, 2] - qz
@@ -530,19 +573,49 @@ def _normals(count, mean, scatter, table, rows, lo, cell, queries, sigma, reach,
 
 
 @nb.njit(cache=True, parallel=True)
-def _cylinders(pts, starts, table, rows, lo, cell, queries, normals, sigma, radius, half, out):
+def _nearest_along(table, dims, cell, lo, queries, normals, reach, out):
+    """Per query: the signed offset t, nearest to 0 with |t| ≤ ``reach``, at which the line
+    ``q + t·n`` passes an occupied cell or one of its 26 neighbours (steps of half a cell, both
+    ways at once; the neighbours bridge the gaps of a sparse surface); NaN if none."""
+    shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
+    step = 0.5 * cell
+    for i in nb.prange(queries.shape[0]):
+        out[i] = np.nan
+        s = step
+        while s <= reach and np.isnan(out[i]):
+            for sign in (1.0, -1.0):
+                t = sign * s
+                cx = int(math.floor((queries[i, 0] + t * normals[i, 0] - lo[0]) / cell))
+                cy = int(math.floor((queries[i, 1] + t * normals[i, 1] - lo[1]) / cell))
+                cz = int(math.floor((queries[i, 2] + t * normals[i, 2] - lo[2]) / cell))
+                hit = False
+                for ix in range(cx - 1, cx + 2):
+                    for iy in range(cy - 1, cy + 2):
+                        for iz in range(cz - 1, cz + 2):
+                            if not hit and _row(table, dims, shift, ix, iy, iz) >= 0:
+                                hit = True
+                if hit:
+                    out[i] = t
+                    break
+            s += step
+
+
+@nb.njit(cache=True, parallel=True)
+def _cylinders(count, mean, scatter, table, dims, cell, lo, queries, normals, sigma, radius, half, out):
     """Per query: kernel-weighted mean offset along its normal, spread and effective count of the
-    points within ``radius`` of its axis and ``half`` along it (out[:, 3]: the weight)."""
+    cells whose centroid lies within ``radius`` of its axis and ``half`` along it; each cell's
+    points share the weight of its centroid, their offsets and spread are exact (the cell's
+    centroid and scatter)."""
     inv2s2 = 0.5 / (sigma * sigma)
     r2max = radius * radius
-    shift = 64 - int(round(math.log2(table.shape[0])))
+    shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
     for i in nb.prange(queries.shape[0]):
         qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         w = w2 = st = stt = 0.0
         if not np.isfinite(nx):
             out[i, 0] = out[i, 1] = np.nan
-            out[i, 2] = out[i, 3] = 0.0
+            out[i, 2] = 0.0
             continue
         ex = half * abs(nx) + radius * math.sqrt(max(0.0, 1.0 - nx * nx))
         ey = half * abs(ny) + radius * math.sqrt(max(0.0, 1.0 - ny * ny))
@@ -556,32 +629,34 @@ def _cylinders(pts, starts, table, rows, lo, cell, queries, normals, sigma, radi
         for ix in range(x0, x1 + 1):
             for iy in range(y0, y1 + 1):
                 for iz in range(z0, z1 + 1):
-                    r = _row(table, rows, shift, ix, iy, iz)
+                    r = _row(table, dims, shift, ix, iy, iz)
                     if r < 0:
                         continue
-                    for j in range(starts[r], starts[r + 1]):
-                        dx, dy, dz = pts[j, 0] - qx, pts[j, 1] - qy, pts[j, 2] - qz
-                        t = dx * nx + dy * ny + dz * nz
-                        if t > half or t < -half:
-                            continue
-                        r2 = dx * dx + dy * dy + dz * dz - t * t
-                        if r2 > r2max:
-                            continue
-                        g = math.exp(-r2 * inv2s2)
-                        w += g
-                        w2 += g * g
-                        st += g * t
-                        stt += g * t * t
+                    dx, dy, dz = mean[r, 0] - qx, mean[r, 1] - qy, mean[r, 2] - qz
+                    t = dx * nx + dy * ny + dz * nz
+                    if t > half or t < -half:
+                        continue
+                    r2 = dx * dx + dy * dy + dz * dz - t * t
+                    if r2 > r2max:
+                        continue
+                    g = math.exp(-r2 * inv2s2)
+                    n = count[r]
+                    along = (nx * (scatter[r, 0] * nx + scatter[r, 1] * ny + scatter[r, 2] * nz)
+                             + ny * (scatter[r, 1] * nx + scatter[r, 3] * ny + scatter[r, 4] * nz)
+                             + nz * (scatter[r, 2] * nx + scatter[r, 4] * ny + scatter[r, 5] * nz))
+                    w += g * n
+                    w2 += g * g * n
+                    st += g * n * t
+                    stt += g * (n * t * t + along)
         if w <= 0.0:
             out[i, 0] = out[i, 1] = np.nan
-            out[i, 2] = out[i, 3] = 0.0
+            out[i, 2] = 0.0
             continue
-        mean = st / w
+        m = st / w
         n_eff = w * w / w2
-        var = max(stt / w - mean * mean, 0.0)
+        var = max(stt / w - m * m, 0.0)
         if n_eff > 1.0:
             var *= n_eff / (n_eff - 1.0)
-        out[i, 0] = mean
+        out[i, 0] = m
         out[i, 1] = math.sqrt(var)
         out[i, 2] = n_eff
-        out[i, 3] = w
