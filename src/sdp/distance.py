@@ -81,7 +81,7 @@ _NORMAL_REACH = 2.0  # normal kernels cut at 2σ_n: the covariance's direction i
 _ROUGHNESS_RATIO = 20.0  # Lague et al.: normal scale ≥ 20–25 × the roughness
 _MAX_NORMAL_FACTOR = 4.0  # the roughness rule may enlarge D up to this many projection scales
 _BITS = 21  # per axis in a cell key
-_DENSE_CELLS = 2**25  # boxes of up to this many cells get a dense cell table (8 bytes per cell)
+_DENSE_CELLS = 2**25  # boxes of up to this many cells are sorted by counting (8 bytes per cell)
 _RADIUS = 3.0  # cylinder cut, in σ_p: the density kernel's truncation
 _CELL = 1.5  # cells of the cylinders' moments, in σ_p
 
@@ -268,12 +268,15 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
 
     lists = _CellLists(lo, hi)
     t = time.perf_counter()
-    # queries in cell order: neighbouring queries then read the same cells while they are cached
-    order = lists.order(core, 2.0 * sigma_p)
-    core_sorted = np.ascontiguousarray(core[order])
+    # queries in cell order: neighbouring queries then read the same cells while they are cached,
+    # and the core points of a cell share one normal, taken at their centroid
+    order, starts = lists.order(core, _CELL * sigma_p)
+    core_sorted = lists.get(core, _CELL * sigma_p)[0]
+    centroids = _cell_moments(core_sorted, starts)[1]
+    per_cell = np.diff(starts)
     if D_opt == "auto":
         sigma_n = 2.0 * sigma_p
-        sample = core_sorted[:: max(1, len(core) // 2000)]
+        sample = centroids[:: max(1, len(centroids) // 2000)]
         _, rough = lists.normals(ref.xyz, sample, sigma_n)
         rough = rough[np.isfinite(rough)]
         if rough.size:
@@ -281,10 +284,11 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
                           _MAX_NORMAL_FACTOR * sigma_p)
     else:
         sigma_n = D_opt / 4.0
-    normal, _ = lists.normals(ref.xyz, core_sorted, sigma_n)
+    normal, _ = lists.normals(ref.xyz, centroids, sigma_n)
     missing = ~np.isfinite(normal[:, 0])
     if missing.any():  # no reference point near: the current's surface gives the direction
-        normal[missing] = lists.normals(cur.xyz, core_sorted[missing], sigma_n)[0]
+        normal[missing] = lists.normals(cur.xyz, centroids[missing], sigma_n)[0]
+    normal = np.repeat(normal, per_cell, axis=0)
     if sensor is not None:
         facing = np.asarray(sensor, np.float64)[None, :] - core_sorted
         flip = np.einsum("ij,ij->i", normal, facing) < 0
@@ -299,10 +303,12 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     stats = [lists.cylinder(xyz, core_sorted, normal, sigma_p, max_half) for xyz in (ref.xyz, cur.xyz)]
     timings["cylinders"] = time.perf_counter() - t
 
+    # back to the input order in one pass over rows (a permutation reads memory at random)
     back = np.empty_like(order)
     back[order] = np.arange(len(order))
-    normal = normal[back]
-    (m1, s1, n1, k1), (m2, s2, n2, k2) = ([a[back] for a in st] for st in stats)
+    packed = _gather(np.column_stack([*stats[0], *stats[1], normal]), back)
+    m1, s1, n1, k1, m2, s2, n2, k2 = packed[:, :8].T
+    normal = np.ascontiguousarray(packed[:, 8:])
     dist = m2 - m1
     lod = 1.96 * (np.sqrt(s1**2 / n1 + s2**2 / n2) + reg)
     reach = max(max_half, 3.0 * sigma_p)
@@ -327,30 +333,33 @@ class _CellLists:
         self._cache: dict = {}
 
     def _keys(self, xyz, cell):
-        if np.max(self.extent) / cell >= 2**_BITS - 4:
-            raise InvalidOptionError(f"the clouds span {np.max(self.extent):g} units, more than 2**{_BITS} cells of "
-                                     f"{cell:g}: give a larger projection_scale, or compare in tiles")
         ijk = np.floor((xyz - self.lo) / cell).astype(np.int64)
         return (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
 
     def order(self, xyz, cell):
-        """Permutation that sorts ``xyz`` by cell."""
-        return np.argsort(self._keys(xyz, cell), kind="stable")
+        """(permutation that sorts ``xyz`` by cell, start of each cell's run in that order)."""
+        entry = self.get(xyz, cell)
+        return entry[5], entry[1]
 
     def get(self, xyz: np.ndarray, cell: float):
+        """(points sorted by cell, start of each occupied cell's run, cell table, its box of
+        cells or zeros for a hash table, cell size, the sorting permutation)."""
         key = (id(xyz), cell)
         if key not in self._cache:
-            keys = self._keys(xyz, cell)
-            order = np.argsort(keys, kind="stable")
-            keys = keys[order]
-            first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-            starts = np.r_[first, len(keys)].astype(np.int64)
+            if np.max(self.extent) / cell >= 2**_BITS - 4:
+                raise InvalidOptionError(f"the clouds span {np.max(self.extent):g} units, more than 2**{_BITS} cells "
+                                         f"of {cell:g}: give a larger projection_scale, or compare in tiles")
             dims = (self.extent // cell).astype(np.int64) + 1
-            if np.prod(dims.astype(float)) <= _DENSE_CELLS:
-                table, rows = _dense_table(keys[first], dims), dims
+            if np.prod(dims.astype(float)) <= _DENSE_CELLS:  # a counting sort over the box of cells
+                order, starts, table = _counting_sort(xyz, self.lo, cell, dims)
             else:
-                table, rows = _hash_table(keys[first]), np.zeros(3, np.int64)
-            self._cache[key] = (np.ascontiguousarray(xyz[order]), starts, table, rows, cell)
+                keys = self._keys(xyz, cell)
+                order = np.argsort(keys, kind="stable")
+                keys = keys[order]
+                first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+                starts = np.r_[first, len(keys)].astype(np.int64)
+                table, dims = _hash_table(keys[first]), np.zeros(3, np.int64)
+            self._cache[key] = (_gather(xyz, order), starts, table, dims, cell, order)
         return self._cache[key]
 
     def normals(self, xyz, queries, sigma):
@@ -367,7 +376,7 @@ class _CellLists:
 
     def moments(self, xyz, cell):
         """(count, centroid, scatter) of each cell of ``xyz`` and the cells' hash table."""
-        pts, starts, table, rows, cell = self.get(xyz, cell)
+        pts, starts, table, rows, cell, _ = self.get(xyz, cell)
         key = ("moments", id(xyz), cell)
         if key not in self._cache:
             self._cache[key] = _cell_moments(pts, starts)
@@ -383,7 +392,7 @@ class _CellLists:
         todo = np.flatnonzero(level < 0)
         if todo.size and max_half > half:
             q, n = queries[todo], normals[todo]
-            _, _, table, dims, cell = self.get(xyz, _CELL * sigma)
+            _, _, table, dims, cell, _ = self.get(xyz, _CELL * sigma)
             t = np.empty(todo.size)
             _nearest_along(table, dims, cell, self.lo, q, n, max_half, t)
             found = np.flatnonzero(np.isfinite(t))
@@ -412,15 +421,49 @@ def _slot(key, shift, mask):
 
 
 @nb.njit(cache=True)
-def _dense_table(keys, dims):
-    """Cell → row over the whole box of cells (-1: empty), one read per lookup; for boxes of up
-    to :data:`_DENSE_CELLS` cells."""
-    table = np.full(dims[0] * dims[1] * dims[2], -1, np.int64)
-    m = (1 << _BITS) - 1
-    for r in range(len(keys)):
-        k = keys[r]
-        table[((k >> (2 * _BITS)) * dims[1] + ((k >> _BITS) & m)) * dims[2] + (k & m)] = r
-    return table
+def _counting_sort(xyz, lo, cell, dims):
+    """Points sorted by cell in O(n + cells): (permutation, start of each occupied cell's run,
+    dense table cell → run (-1: empty)) over the box of ``dims`` cells."""
+    n = xyz.shape[0]
+    inv = 1.0 / cell
+    total = dims[0] * dims[1] * dims[2]
+    linear = np.empty(n, np.int64)
+    table = np.zeros(total, np.int64)
+    for i in range(n):
+        ix = min(max(int((xyz[i, 0] - lo[0]) * inv), 0), dims[0] - 1)
+        iy = min(max(int((xyz[i, 1] - lo[1]) * inv), 0), dims[1] - 1)
+        iz = min(max(int((xyz[i, 2] - lo[2]) * inv), 0), dims[2] - 1)
+        linear[i] = (ix * dims[1] + iy) * dims[2] + iz
+        table[linear[i]] += 1
+    starts = np.empty(n + 1, np.int64)
+    runs = 0
+    at = 0
+    for c in range(total):  # counts → first slot of each cell; the table then maps cell → run
+        k = table[c]
+        if k:
+            starts[runs] = at
+            table[c] = runs
+            runs += 1
+            at += k
+        else:
+            table[c] = -1
+    starts[runs] = n
+    fill = starts[:runs].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        r = table[linear[i]]
+        order[fill[r]] = i
+        fill[r] += 1
+    return order, starts[: runs + 1].copy(), table
+
+
+@nb.njit(cache=True, parallel=True)
+def _gather(values, index):
+    """``values[index]`` on all threads (a permutation of a scan touches memory at random)."""
+    out = np.empty((index.shape[0],) + values.shape[1:], values.dtype)
+    for i in nb.prange(index.shape[0]):
+        out[i] = values[index[i]]
+    return out
 
 
 @nb.njit(cache=True)
