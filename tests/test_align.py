@@ -4,7 +4,7 @@ from conftest import box_surface, room_scene
 from scipy.spatial.transform import Rotation
 
 import sdp
-from sdp import _kernels as K
+from sdp import _grid_kernels as K
 from sdp.align import align, transform_points
 
 

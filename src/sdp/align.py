@@ -40,7 +40,7 @@ from dataclasses import field as dataclass_field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import _kernels as K
+from ._grid_kernels import trilinear
 from ._points import as_points
 from .errors import InvalidOptionError, InvalidPointsError, MissingDependencyError
 from .field import DensityField
@@ -241,7 +241,7 @@ def _probe(f: DensityField, q: np.ndarray):
 
     def at(offset):
         out = np.empty(len(q))
-        K.trilinear(q + offset, f.grid.origin, h, f._directory, f._blocks, out)
+        trilinear(q + offset, f.grid.origin, h, f._directory, f._blocks, out)
         return out
 
     eye = np.eye(3) * h

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _kernels as K
+from ._region_kernels import difference_blocks
 from .errors import IncompatibleFieldsError
 from .field import DensityField
 from .grid import Grid
@@ -88,5 +88,5 @@ def difference_on_own_blocks(a: DensityField, b: DensityField) -> np.ndarray:
     """
     check_compatible(a, b)
     shift = a.grid.block_origin - b.grid.block_origin
-    return K.difference_blocks(a._blocks, a._keys, a.h, b._blocks, b._directory, shift, b.h)
+    return difference_blocks(a._blocks, a._keys, a.h, b._blocks, b._directory, shift, b.h)
 

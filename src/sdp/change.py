@@ -17,7 +17,7 @@ from dataclasses import field as dc_field
 import numpy as np
 import numpy.typing as npt
 
-from ._kernels import map_concurrently
+from ._parallel import map_concurrently
 from ._points import Points, as_points
 from .coverage import CHANGED, NOT_COMPARABLE, footprint_covered, states_of
 from .defaults import DEFAULTS

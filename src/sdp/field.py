@@ -17,7 +17,18 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _kernels as K
+from ._grid_kernels import (
+    add_blocks,
+    bin_trilinear,
+    blur_pass,
+    gather_box,
+    mark_blocks,
+    node_values,
+    nonzero_blocks,
+    splat_exact,
+    trilinear,
+)
+from ._parallel import map_concurrently
 from ._points import Points, as_points
 from ._progress import bar
 from .defaults import DEFAULTS
@@ -157,7 +168,7 @@ class DensityField:
         grid = Grid.covering(cloud.lo, cloud.hi, l, reach)
         check_memory(grid.n_blocks_box * 5, f"the block directory of a {grid.shape} grid", memory_limit)
         xyz, origin, l = cloud.xyz, grid.origin, grid.voxel_size
-        occ = K.mark_blocks(xyz, origin, l, reach, reach + 1, np.asarray(grid.shape_blocks, np.int64))
+        occ = mark_blocks(xyz, origin, l, reach, reach + 1, np.asarray(grid.shape_blocks, np.int64))
         flat = np.flatnonzero(occ)
         check_memory(flat.size * BLOCK**3 * 4 + grid.n_blocks_box * 5,
                      f"{flat.size} blocks of {BLOCK}³ nodes (voxel {l:g})", memory_limit)
@@ -171,10 +182,10 @@ class DensityField:
             for s in range(0, len(xyz), _CHUNK):
                 part = xyz[s:s + _CHUNK]
                 if method == "exact":
-                    K.splat_exact(part, origin, l, field._directory, field._blocks, 1.0 / (2 * sigma_voxels**2),
+                    splat_exact(part, origin, l, field._directory, field._blocks, 1.0 / (2 * sigma_voxels**2),
                                   rmax, reach)
                 else:
-                    K.bin_trilinear(part, origin, l, field._directory, field._blocks, touched)
+                    bin_trilinear(part, origin, l, field._directory, field._blocks, touched)
                 pb.update(len(part))
         if method == "exact":
             return field, touched, None
@@ -184,9 +195,9 @@ class DensityField:
     def _blur(self, taps: np.ndarray, *, nonzero: np.ndarray | None = None) -> None:
         """Convolve the node values in place with ``taps`` along x, y and z (separable).
         ``nonzero``: flags of the blocks that may hold a nonzero value (default: found by a scan)."""
-        nonzero = K.nonzero_blocks(self._blocks) if nonzero is None else nonzero
+        nonzero = nonzero_blocks(self._blocks) if nonzero is None else nonzero
         for axis in range(3):
-            K.blur_pass(self._blocks, nonzero, self._directory, axis, taps)
+            blur_pass(self._blocks, nonzero, self._directory, axis, taps)
 
     # ------------------------------------------------------------------ online updates
     def accumulate(self, other: "DensityField", *, weight: float = 1.0) -> "DensityField":
@@ -225,7 +236,7 @@ class DensityField:
             self._directory[tuple(local[new].T)] = rows[new]
             self._keys = np.concatenate([self._keys, local[new]])
             self._append_zero_blocks(int(new.sum()))
-        K.add_blocks(self._blocks, rows, other._blocks, weight)
+        add_blocks(self._blocks, rows, other._blocks, weight)
         self.n_points += int(round(weight * other.n_points))
         return self
 
@@ -283,7 +294,7 @@ class DensityField:
         field's blocks (float32, (n_blocks, 512)); nodes outside the blocks read as 0."""
         pts = _query_array(points)
         out = np.empty(len(pts))
-        K.trilinear(pts, self.grid.origin, self.voxel_size, self._directory, values, out)
+        trilinear(pts, self.grid.origin, self.voxel_size, self._directory, values, out)
         return out
 
     def footprint(self, points) -> np.ndarray:
@@ -320,7 +331,7 @@ class DensityField:
         directory[cols // shape[1], cols % shape[1], 0] = np.arange(len(cols), dtype=np.int32)
         values = np.repeat(sums[..., None], BLOCK, axis=3).reshape(len(cols), BLOCK**3)
         out = np.empty(len(flat))
-        K.trilinear(flat, self.grid.origin, self.voxel_size, directory, values, out)
+        trilinear(flat, self.grid.origin, self.voxel_size, directory, values, out)
         return out
 
     def field(self, points) -> np.ndarray:
@@ -364,7 +375,7 @@ class DensityField:
     def to_dense(self, *, memory_limit: int | str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """G on every node of the bounding box of blocks: ``(array float32, world origin)``."""
         check_memory(int(np.prod(self.grid.shape)) * 4, f"a dense {self.grid.shape} array", memory_limit)
-        dense = K.gather_box(self._directory, self._blocks, np.zeros(3, np.int64),
+        dense = gather_box(self._directory, self._blocks, np.zeros(3, np.int64),
                              np.asarray(self.grid.shape, np.int64))
         return dense, self.grid.origin
 
@@ -408,7 +419,7 @@ class DensityField:
         cgrid = Grid(2 * l, ckeys.min(axis=0), tuple(int(v) for v in np.ptp(ckeys, axis=0) + 1))
         offs = np.stack(np.unravel_index(np.arange(BLOCK**3), (BLOCK,) * 3), axis=1)
         fine = (ckeys[:, None, :] * BLOCK + offs[None]) * 2 - wide.grid.block_origin * BLOCK
-        vals = K.node_values(fine.reshape(-1, 3), wide._directory, wide._blocks)
+        vals = node_values(fine.reshape(-1, 3), wide._directory, wide._blocks)
         return DensityField(cgrid, ckeys - cgrid.block_origin, vals.reshape(-1, BLOCK**3), h=self.h,
                             sigma=2 * self.sigma, truncate=self.truncate, n_points=self.n_points,
                             n_dropped=self.n_dropped, method=f"coarsen({self.method})")
@@ -460,7 +471,7 @@ def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size
                  memory_limit: int | str | None = None) -> tuple[list[DensityField], list[float]]:
     """:meth:`DensityField.from_points` of each cloud, on one lattice (the voxel resolved from all
     of them, :func:`sdp.params.resolve_voxel_size`): their single-threaded parts (block marking,
-    binning) at once on the threads of :func:`sdp._kernels.map_concurrently`, then the parallel
+    binning) at once on the threads of :func:`sdp._parallel.map_concurrently`, then the parallel
     blurs in turn. Returns the fields and the seconds each took (its first part, in its own
     thread, plus its blur: together more than the wall time when the first parts overlap)."""
     check_grid_options(voxel_size=None if grid_size is not None else voxel_size, sigma_voxels=sigma_voxels, k=k,
@@ -475,7 +486,7 @@ def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size
         return DensityField._binned(cloud, **options), time.perf_counter() - t
 
     fields, seconds = [], []
-    for (field, touched, taps), t_binned in K.map_concurrently(binned, clouds):
+    for (field, touched, taps), t_binned in map_concurrently(binned, clouds):
         t = time.perf_counter()
         if taps is not None:
             field._blur(taps, nonzero=touched)

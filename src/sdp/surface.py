@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import _kernels as K
+from ._grid_kernels import gather_box
 from .errors import SurfaceError
 from .grid import BLOCK
 
@@ -64,7 +64,7 @@ def extract_surface(field, *, level: float = 0.0) -> Mesh:
     verts, faces, offset = [], [], 0
     for c in chunks:
         lo = c * n
-        vol = K.gather_box(field._directory, field._blocks, lo, np.full(3, n + 1, np.int64))
+        vol = gather_box(field._directory, field._blocks, lo, np.full(3, n + 1, np.int64))
         if not (vol.min() < g_level < vol.max()):
             continue
         v, f, _, _ = marching_cubes(vol, level=g_level, method="lewiner")
