@@ -40,7 +40,6 @@ from dataclasses import field as dataclass_field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ._grid_kernels import trilinear
 from ._points import as_points
 from .errors import InvalidOptionError, InvalidPointsError, MissingDependencyError
 from .field import DensityField
@@ -240,9 +239,7 @@ def _probe(f: DensityField, q: np.ndarray):
     h = f.voxel_size
 
     def at(offset):
-        out = np.empty(len(q))
-        trilinear(q + offset, f.grid.origin, h, f._directory, f._blocks, out)
-        return out
+        return f.density(q + offset)
 
     eye = np.eye(3) * h
     val = at(np.zeros(3))

@@ -88,5 +88,5 @@ def difference_on_own_blocks(a: DensityField, b: DensityField) -> np.ndarray:
     """
     check_compatible(a, b)
     shift = a.grid.block_origin - b.grid.block_origin
-    return difference_blocks(a._blocks, a._keys, a.h, b._blocks, b._directory, shift, b.h)
+    return difference_blocks(a.blocks.values, a.blocks.keys, a.h, b.blocks.values, b.blocks.directory, shift, b.h)
 
