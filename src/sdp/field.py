@@ -8,30 +8,27 @@ References
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
+from . import fieldfile
 from ._grid_kernels import bin_trilinear, mark_blocks, splat_exact, trilinear
 from ._parallel import map_concurrently
 from ._points import Points, as_points
 from ._progress import bar
 from .blocks import Blocks
 from .defaults import DEFAULTS
-from .errors import FieldFileError, IncompatibleFieldsError, InvalidOptionError, InvalidPointsError
+from .errors import IncompatibleFieldsError, InvalidOptionError, InvalidPointsError
+from .fieldfile import FORMAT_VERSION
 from .grid import BLOCK, Grid, check_memory
 from .params import resolve_voxel_size
 from .validate import check_grid_options, check_kernel
 
-__all__ = ["DensityField", "threshold", "FORMAT_VERSION"]
-
-#: Version of the ``.sdpf`` file format written by :meth:`DensityField.save`.
-FORMAT_VERSION = 1
+__all__ = ["DensityField", "threshold", "FORMAT_VERSION"]  # FORMAT_VERSION: of sdp.fieldfile
 
 _DELTA = math.exp(-0.5)
 #: Build method used by ``method="auto"``: binning + blur was faster at every size measured
@@ -379,39 +376,18 @@ class DensityField:
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the field to ``path`` (compressed ``.sdpf``: a zip of arrays and JSON metadata).
+        """Write the field to ``path`` (compressed ``.sdpf``: a zip of arrays and JSON metadata,
+        :mod:`sdp.fieldfile`).
 
         The file is written under a temporary name and renamed, so a crash never leaves a
         half-written file and an existing file is replaced only once the new one is complete.
         """
-        path = Path(path)
-        meta = {"format": "sdp-field", "format_version": FORMAT_VERSION, "voxel_size": self.voxel_size,
-                "block_origin": self.grid.block_origin.tolist(), "shape_blocks": list(self.grid.shape_blocks),
-                "block": BLOCK, "h": self.h, "sigma": self.sigma, "truncate": self.truncate,
-                "n_points": self.n_points, "n_dropped": self.n_dropped, "method": self.method}
-        from .io import atomic_path
-
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, meta=np.array(json.dumps(meta)), keys=self.blocks.keys, blocks=self.blocks.values)
-        return path
+        return fieldfile.write(self, path)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "DensityField":
-        """Read a field written by :meth:`save`."""
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
-                keys, blocks = z["keys"], z["blocks"]
-        except FileNotFoundError:
-            raise FieldFileError(f"{path}: no such file") from None
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError) as exc:
-            raise FieldFileError(f"{path}: not a readable sdp field file ({type(exc).__name__}: {exc})") from None
-        if meta.get("format") != "sdp-field" or meta.get("format_version") != FORMAT_VERSION:
-            raise FieldFileError(f"{path}: format {meta.get('format')!r} version {meta.get('format_version')!r}; "
-                                 f"this sdp reads sdp-field version {FORMAT_VERSION}")
-        grid = Grid(meta["voxel_size"], np.asarray(meta["block_origin"], np.int64), tuple(meta["shape_blocks"]))
-        return cls(grid, keys, blocks, h=meta["h"], sigma=meta["sigma"], truncate=meta["truncate"],
-                   n_points=meta["n_points"], n_dropped=meta["n_dropped"], method=meta["method"])
+        """Read a field written by :meth:`save` (:func:`sdp.fieldfile.read`)."""
+        return cls(**fieldfile.read(path))
 
     def __repr__(self) -> str:
         return (f"DensityField(voxel_size={self.voxel_size:g}, sigma={self.sigma:g}, h={self.h:.4g}, "
