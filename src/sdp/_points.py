@@ -27,6 +27,11 @@ class Points(NamedTuple):
     def n_dropped(self) -> int:
         return self.dropped_before + (0 if self.finite is None else int((~self.finite).sum()))
 
+    def moved(self, xyz: np.ndarray) -> "Points":
+        """The same cloud at new coordinates ``xyz`` (one row per finite point, e.g. registered),
+        with their bounds."""
+        return self._replace(xyz=xyz, lo=xyz.min(axis=0), hi=xyz.max(axis=0))
+
 
 def as_points(points, *, name: str = "points") -> Points:
     """Validate an (n, 3) array-like of world coordinates, or a :class:`sdp.io.Cloud`.
@@ -59,6 +64,16 @@ def as_points(points, *, name: str = "points") -> Points:
         what = "is empty" if finite is None else f"has no finite point (all {finite.size} rows hold NaN or Inf)"
         raise InvalidPointsError(f"{name} {what}: nothing to build a density field from")
     return Points(arr, finite, lo, hi, before)
+
+
+
+def to_rows(values: np.ndarray, pts: Points, fill):
+    """Spread per-finite-point values back over the input rows (``fill`` for dropped rows)."""
+    if pts.finite is None:
+        return values
+    out = np.full(pts.finite.shape, fill, dtype=values.dtype)
+    out[pts.finite] = values
+    return out
 
 
 @nb.njit(cache=True, nogil=True)
