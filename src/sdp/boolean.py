@@ -65,7 +65,9 @@ def union(a: DensityField, b: DensityField) -> DensityField:
     -------
     DensityField
         Holds the combined F as ``G := h − F`` with h = min(h_a, h_b), the value of F far
-        from both clouds, so ``field()``, ``inside()``, ``mesh()`` and ``save()`` all apply.
+        from both clouds, so ``field()``, ``inside()``, ``mesh()`` and ``save()`` all apply;
+        flagged ``is_boolean`` (``method="union"``), so ``coarsen()`` and ``accumulate()``,
+        which need a density of points, refuse it.
     """
     return _combine(a, b, "union")
 

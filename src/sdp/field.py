@@ -28,7 +28,11 @@ from .grid import BLOCK, Grid, check_memory
 from .params import resolve_voxel_size
 from .validate import check_grid_options, check_kernel
 
-__all__ = ["DensityField", "threshold", "FORMAT_VERSION"]  # FORMAT_VERSION: of sdp.fieldfile
+__all__ = ["DensityField", "threshold", "FORMAT_VERSION", "BOOLEAN_METHODS"]  # FORMAT_VERSION: of sdp.fieldfile
+
+#: The ``method`` of the fields :mod:`sdp.boolean` returns (saved with them): they hold a combined
+#: F as G := h − F, not the density of any points (:attr:`DensityField.is_boolean`).
+BOOLEAN_METHODS = ("union", "intersection", "difference")
 
 _DELTA = math.exp(-0.5)
 #: Build method used by ``method="auto"``: binning + blur was faster at every size measured
@@ -50,8 +54,10 @@ class DensityField:
     where some point's kernel reaches; elsewhere G = 0. Between nodes G is interpolated
     trilinearly. The normalized field is F = h − G (negative inside the cluster volume).
 
-    Fields returned by the Boolean operations of :mod:`sdp.boolean` are instances too: they
-    store the combined F through ``G := h − F`` so that every method works on them.
+    Fields returned by the Boolean operations of :mod:`sdp.boolean` are instances too, flagged
+    by :attr:`is_boolean`: they store the combined F through ``G := h − F``, so queries,
+    meshes, files and further Boolean operations work on them; :meth:`coarsen` and
+    :meth:`accumulate`, which need the density of points, refuse them.
 
     Attributes
     ----------
@@ -71,7 +77,8 @@ class DensityField:
     n_dropped : int
         Rows of the input that held NaN or Inf and were left out.
     method : str
-        ``"exact"``, ``"fast"``, or the Boolean operation that made the field.
+        ``"exact"``, ``"fast"``, or the Boolean operation that made the field
+        (:data:`BOOLEAN_METHODS`).
     """
 
     def __init__(self, grid: Grid, keys: np.ndarray, blocks: np.ndarray, *, h: float, sigma: float,
@@ -189,7 +196,13 @@ class DensityField:
         window). Costs O(other's blocks); new blocks go to spare rows reserved at the end (the
         store grows by half when full, so a stream of frames copies the field's blocks O(log)
         times), and the directory is rebuilt when the box must grow.
+
+        Raises
+        ------
+        IncompatibleFieldsError
+            Another lattice or σ, or either field is a Boolean result (:attr:`is_boolean`).
         """
+        self._refuse_boolean("accumulate", other)
         if not (np.isclose(other.voxel_size, self.voxel_size, rtol=1e-12, atol=0)
                 and np.isclose(other.sigma, self.sigma, rtol=1e-9) and other.truncate == self.truncate):
             raise IncompatibleFieldsError(
@@ -225,6 +238,19 @@ class DensityField:
         """
         self.blocks.values *= np.float32(factor)
         return self
+
+    @property
+    def is_boolean(self) -> bool:
+        """Whether the field is a result of :mod:`sdp.boolean` (``method`` in :data:`BOOLEAN_METHODS`,
+        also after save and load): its G is h − F of the combined volume, not a density of points."""
+        return self.method in BOOLEAN_METHODS
+
+    def _refuse_boolean(self, operation: str, *others: "DensityField") -> None:
+        for f in (self, *others):
+            if f.is_boolean:
+                raise IncompatibleFieldsError(
+                    f"{operation}() needs the density of points, and this field is the {f.method} of two fields "
+                    "(it holds F as G = h - F): apply it to the fields built from points, then combine them")
 
     # ------------------------------------------------------------------ queries
     @property
@@ -345,7 +371,13 @@ class DensityField:
         A peak-1 Gaussian of σ convolved with a normalized Gaussian of s = √3·σ is
         (1/8)·(peak-1 Gaussian of 2σ); so G at 2σ is 8 × (G blurred by s), sampled at every
         second node. Exact up to the kernels' truncation and the grid's sampling.
+
+        Raises
+        ------
+        IncompatibleFieldsError
+            The field is a Boolean result (:attr:`is_boolean`): not a sum of Gaussians.
         """
+        self._refuse_boolean("coarsen")
         l, sv = self.voxel_size, self.sigma / self.voxel_size
         s = math.sqrt(3.0) * sv
         taps = _gaussian_taps(s, int(math.floor(self.truncate * s)))
