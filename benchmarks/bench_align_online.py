@@ -40,7 +40,7 @@ def legacy_density(ref, cur, levels=4, max_points=100_000, seed=0):
     from the trilinear-gradient kernel, coarse to fine over ``coarsen()``. Returns (matrix, s)."""
     from scipy.optimize import minimize
 
-    from sdp import _kernels as K
+    from sdp import _grid_kernels as K
 
     start = time.perf_counter()
     field = sdp.DensityField.from_points(ref, voxel_size=sdp.auto_voxel_size(ref) / 2, sigma_voxels=4)
@@ -68,7 +68,8 @@ def legacy_density(ref, cur, levels=4, max_points=100_000, seed=0):
         def cost(y, f=f, scale=scale):
             w, t = y[:3] * scale[:3], y[3:] * scale[3:]
             rp = Rotation.from_rotvec(w).apply(local)
-            K.trilinear_gradient(rp + (c + t), f.grid.origin, f.voxel_size, f._directory, f._blocks, val, grad)
+            K.trilinear_gradient(rp + (c + t), f.grid.origin, f.voxel_size, f.blocks.directory, f.blocks.values,
+                                 val, grad)
             g_w = left_jacobian(w).T @ np.cross(rp, grad).sum(axis=0)
             return -val.sum() / len(p), -np.r_[g_w, grad.sum(axis=0)] * scale / len(p)
 

@@ -4,7 +4,7 @@ from conftest import box_surface, room_scene
 from scipy.spatial.transform import Rotation
 
 import sdp
-from sdp import _kernels as K
+from sdp import _grid_kernels as K
 from sdp.align import align, transform_points
 
 
@@ -26,7 +26,7 @@ def test_gradient_matches_finite_differences(rng):
     f = sdp.DensityField.from_points(room_scene(rng, n=8000), voxel_size=0.05)
     q = rng.uniform([0.2, 0.2, 0.05], [3.8, 2.8, 1.0], (500, 3))
     val, grad = np.empty(len(q)), np.empty((len(q), 3))
-    K.trilinear_gradient(q, f.grid.origin, f.voxel_size, f._directory, f._blocks, val, grad)
+    K.trilinear_gradient(q, f.grid.origin, f.voxel_size, f.blocks.directory, f.blocks.values, val, grad)
     np.testing.assert_allclose(val, f.density(q), rtol=1e-6, atol=1e-9)
     eps = 1e-6
     for axis in range(3):

@@ -80,3 +80,18 @@ def test_difference_volume_equals_the_stored_difference(two_fields, rng):
     assert (stored < 0).any() and len(counts) > 0
     np.testing.assert_array_equal(labels, expected_labels)
     np.testing.assert_array_equal(counts, expected_counts)
+
+
+def test_a_boolean_result_is_flagged_and_refuses_what_needs_a_density(tmp_path, two_fields):
+    fa, fb, _ = two_fields
+    for op in (union, intersection, difference):
+        r = op(fa, fb)
+        assert r.is_boolean and r.method == op.__name__
+        assert DensityField.load(r.save(tmp_path / "r.sdpf")).is_boolean  # the flag is the saved method
+        with pytest.raises(sdp.IncompatibleFieldsError, match=f"coarsen.*{op.__name__}"):
+            r.coarsen()
+        with pytest.raises(sdp.IncompatibleFieldsError, match="accumulate"):
+            r.copy().accumulate(fa)
+        with pytest.raises(sdp.IncompatibleFieldsError, match="accumulate"):
+            fa.copy().accumulate(r)
+    assert not (fa.is_boolean or fa.coarsen().is_boolean or fa.with_threshold(k=4).is_boolean)

@@ -132,7 +132,7 @@ def test_two_directions_on_threads_equal_one_thread(monkeypatch):
 
 
 def test_map_concurrently_keeps_order_and_raises():
-    from sdp._kernels import map_concurrently
+    from sdp._parallel import map_concurrently
 
     assert map_concurrently(lambda x: x * x, range(5)) == [0, 1, 4, 9, 16]
     with pytest.raises(ZeroDivisionError):

@@ -121,7 +121,7 @@ def test_save_load_round_trip_is_exact(tmp_path, rng):
     assert (g.h, g.sigma, g.voxel_size, g.truncate, g.n_points, g.method) == \
            (f.h, f.sigma, f.voxel_size, f.truncate, f.n_points, f.method)
     np.testing.assert_array_equal(g.grid.block_origin, f.grid.block_origin)
-    np.testing.assert_array_equal(g._blocks, f._blocks)
+    np.testing.assert_array_equal(g.blocks.values, f.blocks.values)
     q = rng.random((100, 3)) + 1e6
     np.testing.assert_array_equal(g.density(q), f.density(q))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.sdpf"]  # no temporary left
@@ -169,7 +169,8 @@ def test_building_two_clouds_at_once_gives_each_field_bit_for_bit(rng, method):
     (fa, fb), seconds = build_fields([as_points(a), as_points(b)], **opts)
     for got, pts in ((fa, a), (fb, b)):
         want = DensityField.from_points(pts, **opts)
-        assert np.array_equal(got._blocks, want._blocks) and np.array_equal(got._keys, want._keys)
+        assert np.array_equal(got.blocks.values, want.blocks.values)
+        assert np.array_equal(got.blocks.keys, want.blocks.keys)
         assert (got.n_points, got.n_dropped, got.method) == (want.n_points, want.n_dropped, want.method)
     assert fb.n_dropped == 31 and len(seconds) == 2 and min(seconds) > 0
 
@@ -185,7 +186,7 @@ def test_allocated_blocks_are_exactly_those_the_kernels_reach(rng, sigma_voxels)
     expected = set()
     for lo, hi in zip((i - reach) // BLOCK, (i + reach + 1) // BLOCK, strict=False):
         expected.update(tuple(lo + d) for d in np.ndindex(*(hi - lo + 1)))
-    assert set(map(tuple, f._keys)) == expected
+    assert set(map(tuple, f.blocks.keys)) == expected
 
 
 @pytest.mark.parametrize("sigma_voxels", [1.0, 2.0])
@@ -219,7 +220,7 @@ def test_regions_are_the_6_connected_components_of_the_negative_nodes(rng):
     centres = rng.random((40, 3)) * [0.5, 0.4, 0.3]  # 32 components, some merged, over ~1000 blocks
     pts = np.concatenate([rng.normal(c, 0.008, (60, 3)) for c in centres])
     f = DensityField.from_points(pts, voxel_size=0.005)
-    values = f.h - f._blocks
+    values = f.h - f.blocks.values
     point_labels, node_counts = label_points(f, values, pts)
     dense = f.h - f.to_dense()[0]
     expected, n = label(dense < 0)  # 6-connectivity
@@ -245,8 +246,8 @@ def test_regions_of_a_speckled_volume_match_scipy(rng):
 
     f = DensityField.from_points(rng.random((300, 3)) * 0.2, voxel_size=0.005)
     speckled = f.copy()
-    speckled._blocks[:] = rng.random(speckled._blocks.shape) < 0.3  # G = 1 at 30 % of the nodes
-    point_labels, node_counts = label_points(speckled, 0.5 - speckled._blocks, np.zeros((0, 3)))
+    speckled.blocks.values[:] = rng.random(speckled.blocks.values.shape) < 0.3  # G = 1 at 30 % of the nodes
+    point_labels, node_counts = label_points(speckled, 0.5 - speckled.blocks.values, np.zeros((0, 3)))
     expected, n = label(speckled.to_dense()[0] > 0.5)
     assert len(node_counts) == n > 1000
     assert sorted(node_counts) == sorted(np.bincount(expected.ravel())[1:])

@@ -31,7 +31,7 @@ def test_accumulating_a_stream_fills_spare_rows_and_equals_a_rebuild(rng):
         f.accumulate(g)
         if i == 3:
             snapshot = f.copy()  # independent of the rows f keeps appending to
-    assert f.nbytes >= f._blocks.nbytes + f._directory.nbytes  # spare rows are counted
+    assert f.nbytes >= f.blocks.values.nbytes + f.blocks.directory.nbytes  # spare rows are counted
     both = sdp.DensityField.from_points(np.concatenate(parts), voxel_size=0.02)
     q = np.concatenate(parts)[::7]
     np.testing.assert_allclose(f.density(q), both.density(q), atol=1e-5 * both.density(q).max())

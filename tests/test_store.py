@@ -40,7 +40,7 @@ def test_tiled_build_equals_the_whole_field(tmp_path, clouds):
     g = store.read()
     assert g.n_blocks == f.n_blocks
     np.testing.assert_allclose(g.node_values(f.global_keys), f.node_values(f.global_keys), rtol=1e-5,
-                               atol=1e-5 * float(f._blocks.max()))
+                               atol=1e-5 * float(f.blocks.values.max()))
 
 
 def test_out_of_core_boolean_equals_in_memory(tmp_path, clouds):

@@ -40,14 +40,13 @@ from dataclasses import field as dataclass_field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import _kernels as K
 from ._points import as_points
 from .errors import InvalidOptionError, InvalidPointsError, MissingDependencyError
 from .field import DensityField
 from .params import auto_voxel_size
 from .validate import positive_finite
 
-__all__ = ["Alignment", "align", "transform_points"]
+__all__ = ["Alignment", "align", "transform_points", "GicpTarget"]
 
 
 @dataclass
@@ -240,9 +239,7 @@ def _probe(f: DensityField, q: np.ndarray):
     h = f.voxel_size
 
     def at(offset):
-        out = np.empty(len(q))
-        K.trilinear(q + offset, f.grid.origin, h, f._directory, f._blocks, out)
-        return out
+        return f.density(q + offset)
 
     eye = np.eye(3) * h
     val = at(np.zeros(3))
@@ -373,10 +370,10 @@ def _align_density(ref_field: DensityField, ref_xyz, points: np.ndarray, t0: np.
 
 
 def _align_gicp(ref: np.ndarray, cur: np.ndarray, t0: np.ndarray, voxel: float, sigma: float) -> np.ndarray:
-    return _GicpTarget(ref, resolution=voxel, max_distance=4 * sigma).register(cur, t0)
+    return GicpTarget(ref, resolution=voxel, max_distance=4 * sigma).register(cur, t0)
 
 
-class _GicpTarget:
+class GicpTarget:
     """A reference prepared once for small_gicp's GICP, to register many scans onto it.
 
     The reference is downsampled on a voxel grid of side ``resolution`` and given per-point

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _kernels as K
+from ._region_kernels import difference_blocks
 from .errors import IncompatibleFieldsError
 from .field import DensityField
 from .grid import Grid
@@ -65,7 +65,9 @@ def union(a: DensityField, b: DensityField) -> DensityField:
     -------
     DensityField
         Holds the combined F as ``G := h − F`` with h = min(h_a, h_b), the value of F far
-        from both clouds, so ``field()``, ``inside()``, ``mesh()`` and ``save()`` all apply.
+        from both clouds, so ``field()``, ``inside()``, ``mesh()`` and ``save()`` all apply;
+        flagged ``is_boolean`` (``method="union"``), so ``coarsen()`` and ``accumulate()``,
+        which need a density of points, refuse it.
     """
     return _combine(a, b, "union")
 
@@ -88,5 +90,5 @@ def difference_on_own_blocks(a: DensityField, b: DensityField) -> np.ndarray:
     """
     check_compatible(a, b)
     shift = a.grid.block_origin - b.grid.block_origin
-    return K.difference_blocks(a._blocks, a._keys, a.h, b._blocks, b._directory, shift, b.h)
+    return difference_blocks(a.blocks.values, a.blocks.keys, a.h, b.blocks.values, b.blocks.directory, shift, b.h)
 

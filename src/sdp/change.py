@@ -17,8 +17,8 @@ from dataclasses import field as dc_field
 import numpy as np
 import numpy.typing as npt
 
-from ._kernels import map_concurrently
-from ._points import Points, as_points
+from ._parallel import map_concurrently
+from ._points import as_points, to_rows
 from .coverage import CHANGED, NOT_COMPARABLE, footprint_covered, states_of
 from .defaults import DEFAULTS
 from .errors import InvalidOptionError
@@ -28,7 +28,7 @@ from .regions import Region, Volume, describe_regions, label_volume
 from .validate import check_grid_options, finite, integer_at_least, nonnegative_finite
 from .visibility import resolve_sensor_origins, visibility_states
 
-__all__ = ["ChangeResult", "detect_changes", "judge_coverage"]
+__all__ = ["ChangeResult", "detect_changes", "judge_coverage", "inside_difference", "region_rules"]
 
 
 @dataclass
@@ -214,8 +214,8 @@ def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAU
                 method=method, memory_limit=memory_limit)
     (f_ref, f_cur), (timings["build_reference"], timings["build_current"]) = build_fields([ref, cur], **opts)
     t = time.perf_counter()
-    app, d_app = _inside_difference(f_cur, f_ref, cur.xyz)
-    dis, d_dis = _inside_difference(f_ref, f_cur, ref.xyz)
+    app, d_app = inside_difference(f_cur, f_ref, cur.xyz)
+    dis, d_dis = inside_difference(f_ref, f_cur, ref.xyz)
     timings["detect"] = time.perf_counter() - t
 
     def finish(job):
@@ -228,11 +228,11 @@ def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAU
         steps = {"coverage": time.perf_counter() - t}
         t = time.perf_counter()
         unseen = states == NOT_COMPARABLE
-        mask, regs, region_of = _regions(fld, d, pts.xyz, states == CHANGED, regions=regions, decision=decision,
-                                         min_region_points=min_region_points, cluster_fraction=cluster_fraction,
-                                         blocked=unseen)
+        mask, regs, region_of = region_rules(fld, d, pts.xyz, states == CHANGED, regions=regions,
+                                             decision=decision, min_region_points=min_region_points,
+                                             cluster_fraction=cluster_fraction, blocked=unseen)
         steps["regions"] = time.perf_counter() - t
-        return (_to_rows(mask, pts, False), _to_rows(unseen, pts, False), regs, _to_rows(region_of, pts, -1)), steps
+        return (to_rows(mask, pts, False), to_rows(unseen, pts, False), regs, to_rows(region_of, pts, -1)), steps
 
     # the two directions are independent: on two threads when there are two cores
     (appeared, steps_a), (disappeared, steps_d) = map_concurrently(
@@ -274,15 +274,15 @@ def _coverage_kind(other_origin, coverage: bool) -> str:
     return "sensor rays" if other_origin is not None else ("footprint" if coverage else "off")
 
 
-def _inside_difference(fld: DensityField, other: DensityField, pts: np.ndarray):
+def inside_difference(fld: DensityField, other: DensityField, pts: np.ndarray):
     """Mask of ``pts`` (the finite points ``fld`` was built from) inside fld − other, and the
     difference volume D = max(F_fld, −F_other) < 0 on ``fld``'s blocks (D interpolated at the points)."""
     d = Volume.difference(fld, other)
     return d.at(fld, pts) < 0, d
 
 
-def _regions(fld: DensityField, d: Volume, pts: np.ndarray, mask: np.ndarray, *, regions: bool,
-             decision: str, min_region_points: int, cluster_fraction: float, blocked: np.ndarray | None = None):
+def region_rules(fld: DensityField, d: Volume, pts: np.ndarray, mask: np.ndarray, *, regions: bool,
+                 decision: str, min_region_points: int, cluster_fraction: float, blocked: np.ndarray | None = None):
     """(mask, regions, region label per point) after the region-level rules of :func:`detect_changes`
     (``blocked``: points the cluster rule may not promote, the not comparable ones)."""
     if not (regions or decision == "cluster"):
@@ -316,12 +316,3 @@ def _cluster_decision(fld: DensityField, pts: np.ndarray, changed: np.ndarray, l
     # promoted clusters are labelled after the change regions
     labels = np.where(promoted, len(counts) + clusters, labels)
     return changed | promoted, labels, np.concatenate([counts, cluster_nodes])
-
-
-def _to_rows(values: np.ndarray, pts: Points, fill):
-    """Spread per-finite-point values back over the input rows (``fill`` for dropped rows)."""
-    if pts.finite is None:
-        return values
-    out = np.full(pts.finite.shape, fill, dtype=values.dtype)
-    out[pts.finite] = values
-    return out

@@ -32,7 +32,8 @@ class GridTooLargeError(SDPError, MemoryError):
 
 
 class IncompatibleFieldsError(SDPError, ValueError):
-    """Two fields can't be combined (e.g. different voxel sizes)."""
+    """Two fields can't be combined (e.g. different voxel sizes), or a Boolean result is given
+    where a density of points is needed."""
 
 
 class SurfaceError(SDPError, ValueError):

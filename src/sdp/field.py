@@ -8,28 +8,31 @@ References
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from . import _kernels as K
+from . import fieldfile
+from ._grid_kernels import bin_trilinear, mark_blocks, splat_exact, trilinear
+from ._parallel import map_concurrently
 from ._points import Points, as_points
 from ._progress import bar
+from .blocks import Blocks
 from .defaults import DEFAULTS
-from .errors import FieldFileError, IncompatibleFieldsError, InvalidOptionError, InvalidPointsError
+from .errors import IncompatibleFieldsError, InvalidOptionError, InvalidPointsError
+from .fieldfile import FORMAT_VERSION
 from .grid import BLOCK, Grid, check_memory
 from .params import resolve_voxel_size
 from .validate import check_grid_options, check_kernel
 
-__all__ = ["DensityField", "threshold", "FORMAT_VERSION"]
+__all__ = ["DensityField", "threshold", "FORMAT_VERSION", "BOOLEAN_METHODS"]  # FORMAT_VERSION: of sdp.fieldfile
 
-#: Version of the ``.sdpf`` file format written by :meth:`DensityField.save`.
-FORMAT_VERSION = 1
+#: The ``method`` of the fields :mod:`sdp.boolean` returns (saved with them): they hold a combined
+#: F as G := h − F, not the density of any points (:attr:`DensityField.is_boolean`).
+BOOLEAN_METHODS = ("union", "intersection", "difference")
 
 _DELTA = math.exp(-0.5)
 #: Build method used by ``method="auto"``: binning + blur was faster at every size measured
@@ -51,13 +54,18 @@ class DensityField:
     where some point's kernel reaches; elsewhere G = 0. Between nodes G is interpolated
     trilinearly. The normalized field is F = h − G (negative inside the cluster volume).
 
-    Fields returned by the Boolean operations of :mod:`sdp.boolean` are instances too: they
-    store the combined F through ``G := h − F`` so that every method works on them.
+    Fields returned by the Boolean operations of :mod:`sdp.boolean` are instances too, flagged
+    by :attr:`is_boolean`: they store the combined F through ``G := h − F``, so queries,
+    meshes, files and further Boolean operations work on them; :meth:`coarsen` and
+    :meth:`accumulate`, which need the density of points, refuse them.
 
     Attributes
     ----------
     grid : Grid
         Voxel size, snapped origin and the box of blocks.
+    blocks : Blocks
+        The node values of G in blocks of 8³, their keys and the block directory
+        (:class:`sdp.blocks.Blocks`, local to ``grid``'s box).
     h : float
         Threshold of the normalized field F = h − G.
     sigma : float
@@ -69,18 +77,14 @@ class DensityField:
     n_dropped : int
         Rows of the input that held NaN or Inf and were left out.
     method : str
-        ``"exact"``, ``"fast"``, or the Boolean operation that made the field.
+        ``"exact"``, ``"fast"``, or the Boolean operation that made the field
+        (:data:`BOOLEAN_METHODS`).
     """
 
     def __init__(self, grid: Grid, keys: np.ndarray, blocks: np.ndarray, *, h: float, sigma: float,
                  truncate: float, n_points: int = 0, n_dropped: int = 0, method: str = "exact"):
         self.grid = grid
-        self._keys = np.ascontiguousarray(keys, dtype=np.int64).reshape(-1, 3)
-        self._blocks = np.ascontiguousarray(blocks, dtype=np.float32).reshape(-1, BLOCK**3)
-        self._store = None  # when set, _blocks is its first rows (room to grow: see accumulate)
-        self._directory = np.full(grid.shape_blocks, -1, np.int32)
-        if len(self._keys):
-            self._directory[tuple(self._keys.T)] = np.arange(len(self._keys), dtype=np.int32)
+        self.blocks = Blocks(grid.shape_blocks, keys, blocks)
         self.h = float(h)
         self.sigma = float(sigma)
         self.truncate = float(truncate)
@@ -157,7 +161,7 @@ class DensityField:
         grid = Grid.covering(cloud.lo, cloud.hi, l, reach)
         check_memory(grid.n_blocks_box * 5, f"the block directory of a {grid.shape} grid", memory_limit)
         xyz, origin, l = cloud.xyz, grid.origin, grid.voxel_size
-        occ = K.mark_blocks(xyz, origin, l, reach, reach + 1, np.asarray(grid.shape_blocks, np.int64))
+        occ = mark_blocks(xyz, origin, l, reach, reach + 1, np.asarray(grid.shape_blocks, np.int64))
         flat = np.flatnonzero(occ)
         check_memory(flat.size * BLOCK**3 * 4 + grid.n_blocks_box * 5,
                      f"{flat.size} blocks of {BLOCK}³ nodes (voxel {l:g})", memory_limit)
@@ -171,22 +175,15 @@ class DensityField:
             for s in range(0, len(xyz), _CHUNK):
                 part = xyz[s:s + _CHUNK]
                 if method == "exact":
-                    K.splat_exact(part, origin, l, field._directory, field._blocks, 1.0 / (2 * sigma_voxels**2),
-                                  rmax, reach)
+                    splat_exact(part, origin, l, field.blocks.directory, field.blocks.values,
+                                1.0 / (2 * sigma_voxels**2), rmax, reach)
                 else:
-                    K.bin_trilinear(part, origin, l, field._directory, field._blocks, touched)
+                    bin_trilinear(part, origin, l, field.blocks.directory, field.blocks.values, touched)
                 pb.update(len(part))
         if method == "exact":
             return field, touched, None
         s = math.sqrt(sigma_voxels**2 - 1.0 / 6.0)
         return field, touched, _gaussian_taps(s, int(math.floor(rmax))) * np.float32(sigma_voxels / s)
-
-    def _blur(self, taps: np.ndarray, *, nonzero: np.ndarray | None = None) -> None:
-        """Convolve the node values in place with ``taps`` along x, y and z (separable).
-        ``nonzero``: flags of the blocks that may hold a nonzero value (default: found by a scan)."""
-        nonzero = K.nonzero_blocks(self._blocks) if nonzero is None else nonzero
-        for axis in range(3):
-            K.blur_pass(self._blocks, nonzero, self._directory, axis, taps)
 
     # ------------------------------------------------------------------ online updates
     def accumulate(self, other: "DensityField", *, weight: float = 1.0) -> "DensityField":
@@ -199,7 +196,13 @@ class DensityField:
         window). Costs O(other's blocks); new blocks go to spare rows reserved at the end (the
         store grows by half when full, so a stream of frames copies the field's blocks O(log)
         times), and the directory is rebuilt when the box must grow.
+
+        Raises
+        ------
+        IncompatibleFieldsError
+            Another lattice or σ, or either field is a Boolean result (:attr:`is_boolean`).
         """
+        self._refuse_boolean("accumulate", other)
         if not (np.isclose(other.voxel_size, self.voxel_size, rtol=1e-12, atol=0)
                 and np.isclose(other.sigma, self.sigma, rtol=1e-9) and other.truncate == self.truncate):
             raise IncompatibleFieldsError(
@@ -213,39 +216,18 @@ class DensityField:
         if np.any(lo < self.grid.block_origin) or np.any(hi > self.grid.block_origin + self.grid.shape_blocks):
             grid = Grid(self.voxel_size, lo, tuple(int(v) for v in hi - lo))
             check_memory(grid.n_blocks_box * 5 + self.nbytes, f"the block directory of a {grid.shape} grid", None)
-            self._keys = self._keys + (self.grid.block_origin - lo)
-            self._directory = np.full(grid.shape_blocks, -1, np.int32)
-            self._directory[tuple(self._keys.T)] = np.arange(len(self._keys), dtype=np.int32)
+            self.blocks.move(self.grid.block_origin - lo, grid.shape_blocks)
             self.grid = grid
-        local = keys - self.grid.block_origin
-        rows = self._directory[tuple(local.T)].astype(np.int64)
-        new = rows < 0
-        if new.any():
-            rows[new] = len(self._keys) + np.arange(new.sum())
-            self._directory[tuple(local[new].T)] = rows[new]
-            self._keys = np.concatenate([self._keys, local[new]])
-            self._append_zero_blocks(int(new.sum()))
-        K.add_blocks(self._blocks, rows, other._blocks, weight)
+        rows = self.blocks.allocate(keys - self.grid.block_origin)
+        self.blocks.add(rows, other.blocks.values, weight)
         self.n_points += int(round(weight * other.n_points))
         return self
-
-    def _append_zero_blocks(self, count: int) -> None:
-        """Append ``count`` all-zero blocks, in the spare rows of the store when it has room."""
-        n = len(self._blocks)
-        store = self._store
-        if store is None or self._blocks.base is not store or len(store) < n + count:
-            store = np.empty((n + count + (n + count) // 2, BLOCK**3), np.float32)
-            store[:n] = self._blocks
-            self._store = store
-        store[n:n + count] = 0.0
-        self._blocks = store[:n + count]
 
     def copy(self) -> "DensityField":
         """An independent copy (node values, blocks and directory copied)."""
         out = DensityField.__new__(DensityField)
         out.__dict__.update(self.__dict__)
-        out._blocks, out._keys, out._directory = self._blocks.copy(), self._keys.copy(), self._directory.copy()
-        out._store = None
+        out.blocks = self.blocks.copy()
         return out
 
     def scale(self, factor: float) -> "DensityField":
@@ -254,8 +236,21 @@ class DensityField:
         O(allocated nodes). Observed every frame with decay λ, a static surface's G settles at
         1/(1 − λ) times one frame's.
         """
-        self._blocks *= np.float32(factor)
+        self.blocks.values *= np.float32(factor)
         return self
+
+    @property
+    def is_boolean(self) -> bool:
+        """Whether the field is a result of :mod:`sdp.boolean` (``method`` in :data:`BOOLEAN_METHODS`,
+        also after save and load): its G is h − F of the combined volume, not a density of points."""
+        return self.method in BOOLEAN_METHODS
+
+    def _refuse_boolean(self, operation: str, *others: "DensityField") -> None:
+        for f in (self, *others):
+            if f.is_boolean:
+                raise IncompatibleFieldsError(
+                    f"{operation}() needs the density of points, and this field is the {f.method} of two fields "
+                    "(it holds F as G = h - F): apply it to the fields built from points, then combine them")
 
     # ------------------------------------------------------------------ queries
     @property
@@ -266,24 +261,23 @@ class DensityField:
     @property
     def n_blocks(self) -> int:
         """Number of allocated blocks of 8³ nodes."""
-        return len(self._keys)
+        return len(self.blocks)
 
     @property
     def nbytes(self) -> int:
         """Memory held by node values (spare rows included) and the block directory, in bytes."""
-        values = self._store if self._store is not None and self._blocks.base is self._store else self._blocks
-        return values.nbytes + self._directory.nbytes + self._keys.nbytes
+        return self.blocks.nbytes
 
     def density(self, points) -> np.ndarray:
         """G at world positions (n, 3), by trilinear interpolation; 0 outside the grid, NaN for NaN rows."""
-        return self.interpolate(self._blocks, points)
+        return self.interpolate(self.blocks.values, points)
 
     def interpolate(self, values: np.ndarray, points) -> np.ndarray:
         """Trilinear interpolation at world positions of per-node ``values`` laid out like this
         field's blocks (float32, (n_blocks, 512)); nodes outside the blocks read as 0."""
         pts = _query_array(points)
         out = np.empty(len(pts))
-        K.trilinear(pts, self.grid.origin, self.voxel_size, self._directory, values, out)
+        trilinear(pts, self.grid.origin, self.voxel_size, self.blocks.directory, values, out)
         return out
 
     def footprint(self, points) -> np.ndarray:
@@ -299,7 +293,8 @@ class DensityField:
         flat = np.ascontiguousarray(pts)
         flat = np.c_[flat[:, :2], np.full(len(flat), self.grid.origin[2])]  # z at the first node of a column
         shape = self.grid.shape_blocks
-        packed = self._keys[:, 0] * shape[1] + self._keys[:, 1]
+        keys = self.blocks.keys
+        packed = keys[:, 0] * shape[1] + keys[:, 1]
         # only the columns of blocks the queries' cells touch (a cell's far corner may be in the next one)
         cell = np.floor((flat[:, :2] - self.grid.origin[:2]) / self.voxel_size)
         ok = np.all(np.isfinite(cell), axis=1)
@@ -308,7 +303,7 @@ class DensityField:
         near = near[np.all((near >= 0) & (near < shape[:2]), axis=1)]
         rows = np.flatnonzero(np.isin(packed, near[:, 0] * shape[1] + near[:, 1], kind="table"))
         packed = packed[rows]
-        along_z = self._blocks[rows].reshape(-1, BLOCK, BLOCK, BLOCK).sum(axis=3)
+        along_z = self.blocks.values[rows].reshape(-1, BLOCK, BLOCK, BLOCK).sum(axis=3)
         if np.any(packed[1:] < packed[:-1]):  # built fields keep a column's blocks together; accumulated ones may not
             order = np.argsort(packed, kind="stable")
             packed, along_z = packed[order], along_z[order]
@@ -320,7 +315,7 @@ class DensityField:
         directory[cols // shape[1], cols % shape[1], 0] = np.arange(len(cols), dtype=np.int32)
         values = np.repeat(sums[..., None], BLOCK, axis=3).reshape(len(cols), BLOCK**3)
         out = np.empty(len(flat))
-        K.trilinear(flat, self.grid.origin, self.voxel_size, directory, values, out)
+        trilinear(flat, self.grid.origin, self.voxel_size, directory, values, out)
         return out
 
     def field(self, points) -> np.ndarray:
@@ -337,6 +332,7 @@ class DensityField:
             raise ValueError("give exactly one of k= and h=")
         out = DensityField.__new__(DensityField)
         out.__dict__.update(self.__dict__)
+        out.blocks = self.blocks.view()
         out.h = threshold(k) if h is None else float(h)
         return out
 
@@ -346,26 +342,17 @@ class DensityField:
         Returns float32 (m, 512); blocks this field doesn't hold read as 0. Used to combine
         two fields on one lattice without interpolation.
         """
-        local = np.asarray(global_keys, np.int64) - self.grid.block_origin
-        shape = np.asarray(self.grid.shape_blocks)
-        ok = np.all((local >= 0) & (local < shape), axis=1)
-        idx = np.full(len(local), -1, np.int64)
-        idx[ok] = self._directory[tuple(local[ok].T)]
-        out = np.zeros((len(local), BLOCK**3), np.float32)
-        have = idx >= 0
-        out[have] = self._blocks[idx[have]]
-        return out
+        return self.blocks.take(np.asarray(global_keys, np.int64) - self.grid.block_origin)
 
     @property
     def global_keys(self) -> np.ndarray:
         """Global block coordinates (m, 3) of the allocated blocks."""
-        return self._keys + self.grid.block_origin
+        return self.blocks.keys + self.grid.block_origin
 
     def to_dense(self, *, memory_limit: int | str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """G on every node of the bounding box of blocks: ``(array float32, world origin)``."""
         check_memory(int(np.prod(self.grid.shape)) * 4, f"a dense {self.grid.shape} array", memory_limit)
-        dense = K.gather_box(self._directory, self._blocks, np.zeros(3, np.int64),
-                             np.asarray(self.grid.shape, np.int64))
+        dense = self.blocks.box(np.zeros(3, np.int64), np.asarray(self.grid.shape, np.int64))
         return dense, self.grid.origin
 
     # ------------------------------------------------------------------ derived fields
@@ -384,7 +371,13 @@ class DensityField:
         A peak-1 Gaussian of σ convolved with a normalized Gaussian of s = √3·σ is
         (1/8)·(peak-1 Gaussian of 2σ); so G at 2σ is 8 × (G blurred by s), sampled at every
         second node. Exact up to the kernels' truncation and the grid's sampling.
+
+        Raises
+        ------
+        IncompatibleFieldsError
+            The field is a Boolean result (:attr:`is_boolean`): not a sum of Gaussians.
         """
+        self._refuse_boolean("coarsen")
         l, sv = self.voxel_size, self.sigma / self.voxel_size
         s = math.sqrt(3.0) * sv
         taps = _gaussian_taps(s, int(math.floor(self.truncate * s)))
@@ -396,58 +389,37 @@ class DensityField:
         for dx in span:
             for dy in span:
                 for dz in span:
-                    idx = self._keys + pad + np.array([dx, dy, dz])
+                    idx = self.blocks.keys + pad + np.array([dx, dy, dz])
                     occ[tuple(idx.T)] = True
         grid = Grid(l, self.grid.block_origin - pad, tuple(occ.shape))
         keys = np.stack(np.nonzero(occ), axis=1)
         wide = DensityField(grid, keys, self.node_values(keys + grid.block_origin), h=self.h,
                             sigma=self.sigma, truncate=self.truncate)
-        wide._blur(taps)
+        wide.blocks.blur(taps)
         # coarse block K holds coarse nodes 8K…8K+7 = fine nodes 16K…16K+14 (global)
         ckeys = np.unique(np.floor_divide(wide.global_keys, 2), axis=0)
         cgrid = Grid(2 * l, ckeys.min(axis=0), tuple(int(v) for v in np.ptp(ckeys, axis=0) + 1))
         offs = np.stack(np.unravel_index(np.arange(BLOCK**3), (BLOCK,) * 3), axis=1)
         fine = (ckeys[:, None, :] * BLOCK + offs[None]) * 2 - wide.grid.block_origin * BLOCK
-        vals = K.node_values(fine.reshape(-1, 3), wide._directory, wide._blocks)
+        vals = wide.blocks.at_nodes(fine.reshape(-1, 3))
         return DensityField(cgrid, ckeys - cgrid.block_origin, vals.reshape(-1, BLOCK**3), h=self.h,
                             sigma=2 * self.sigma, truncate=self.truncate, n_points=self.n_points,
                             n_dropped=self.n_dropped, method=f"coarsen({self.method})")
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the field to ``path`` (compressed ``.sdpf``: a zip of arrays and JSON metadata).
+        """Write the field to ``path`` (compressed ``.sdpf``: a zip of arrays and JSON metadata,
+        :mod:`sdp.fieldfile`).
 
         The file is written under a temporary name and renamed, so a crash never leaves a
         half-written file and an existing file is replaced only once the new one is complete.
         """
-        path = Path(path)
-        meta = {"format": "sdp-field", "format_version": FORMAT_VERSION, "voxel_size": self.voxel_size,
-                "block_origin": self.grid.block_origin.tolist(), "shape_blocks": list(self.grid.shape_blocks),
-                "block": BLOCK, "h": self.h, "sigma": self.sigma, "truncate": self.truncate,
-                "n_points": self.n_points, "n_dropped": self.n_dropped, "method": self.method}
-        from .io import atomic_path
-
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, meta=np.array(json.dumps(meta)), keys=self._keys, blocks=self._blocks)
-        return path
+        return fieldfile.write(self, path)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "DensityField":
-        """Read a field written by :meth:`save`."""
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
-                keys, blocks = z["keys"], z["blocks"]
-        except FileNotFoundError:
-            raise FieldFileError(f"{path}: no such file") from None
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError) as exc:
-            raise FieldFileError(f"{path}: not a readable sdp field file ({type(exc).__name__}: {exc})") from None
-        if meta.get("format") != "sdp-field" or meta.get("format_version") != FORMAT_VERSION:
-            raise FieldFileError(f"{path}: format {meta.get('format')!r} version {meta.get('format_version')!r}; "
-                                 f"this sdp reads sdp-field version {FORMAT_VERSION}")
-        grid = Grid(meta["voxel_size"], np.asarray(meta["block_origin"], np.int64), tuple(meta["shape_blocks"]))
-        return cls(grid, keys, blocks, h=meta["h"], sigma=meta["sigma"], truncate=meta["truncate"],
-                   n_points=meta["n_points"], n_dropped=meta["n_dropped"], method=meta["method"])
+        """Read a field written by :meth:`save` (:func:`sdp.fieldfile.read`)."""
+        return cls(**fieldfile.read(path))
 
     def __repr__(self) -> str:
         return (f"DensityField(voxel_size={self.voxel_size:g}, sigma={self.sigma:g}, h={self.h:.4g}, "
@@ -460,7 +432,7 @@ def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size
                  memory_limit: int | str | None = None) -> tuple[list[DensityField], list[float]]:
     """:meth:`DensityField.from_points` of each cloud, on one lattice (the voxel resolved from all
     of them, :func:`sdp.params.resolve_voxel_size`): their single-threaded parts (block marking,
-    binning) at once on the threads of :func:`sdp._kernels.map_concurrently`, then the parallel
+    binning) at once on the threads of :func:`sdp._parallel.map_concurrently`, then the parallel
     blurs in turn. Returns the fields and the seconds each took (its first part, in its own
     thread, plus its blur: together more than the wall time when the first parts overlap)."""
     check_grid_options(voxel_size=None if grid_size is not None else voxel_size, sigma_voxels=sigma_voxels, k=k,
@@ -475,10 +447,10 @@ def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size
         return DensityField._binned(cloud, **options), time.perf_counter() - t
 
     fields, seconds = [], []
-    for (field, touched, taps), t_binned in K.map_concurrently(binned, clouds):
+    for (field, touched, taps), t_binned in map_concurrently(binned, clouds):
         t = time.perf_counter()
         if taps is not None:
-            field._blur(taps, nonzero=touched)
+            field.blocks.blur(taps, nonzero=touched)
         fields.append(field)
         seconds.append(t_binned + time.perf_counter() - t)
     return fields, seconds

@@ -724,7 +724,7 @@ class PointSource:
         if self.format == "las":  # one open file, sequential decoding
             import laspy
 
-            from ._kernels import scaled_xyz
+            from ._io_kernels import scaled_xyz
 
             with laspy.open(str(self.path)) as r:
                 scale, offset = np.asarray(r.header.scales, float), np.asarray(r.header.offsets, float)

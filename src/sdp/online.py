@@ -41,10 +41,10 @@ from dataclasses import field as dc_field
 import numpy as np
 import numpy.typing as npt
 
-from ._points import as_points
-from .align import _GicpTarget, transform_points
+from ._points import as_points, to_rows
+from .align import GicpTarget, transform_points
 from .align import align as align_density
-from .change import _inside_difference, _regions, _to_rows, judge_coverage
+from .change import inside_difference, judge_coverage, region_rules
 from .coverage import CHANGED, NOT_COMPARABLE, states_of
 from .defaults import DEFAULTS
 from .field import DensityField
@@ -191,7 +191,7 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.vox
                            truncate=base.truncate, h=base.h)
     model = base if update == "none" else base.copy()
     weight, history = 1.0, deque([base])
-    target = None if align != "gicp" else _GicpTarget(ref, resolution=base.sigma, max_distance=4 * base.sigma)
+    target = None if align != "gicp" else GicpTarget(ref, resolution=base.sigma, max_distance=4 * base.sigma)
     image = None if origin is None else RangeImage.from_points(ref, origin)
     matrix = None if align is None else np.eye(4)
     for index, item in enumerate(frames):
@@ -203,13 +203,12 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.vox
             t = time.perf_counter()
             matrix = (target.register(cur.xyz, matrix) if target is not None else
                       align_density(base, cur.xyz, init=matrix).matrix)
-            moved = transform_points(matrix, cur.xyz)
-            cur = cur._replace(xyz=moved, lo=moved.min(axis=0), hi=moved.max(axis=0))
+            cur = cur.moved(transform_points(matrix, cur.xyz))
             timings["align"] = time.perf_counter() - t
         frame = DensityField.from_points(cur, **opts)
         t1 = time.perf_counter()
         seen = model.with_threshold(h=h * weight)
-        mask, d = _inside_difference(frame, seen, cur.xyz)
+        mask, d = inside_difference(frame, seen, cur.xyz)
         # the model's footprint, or the reference's rays (imaged once)
         states = judge_coverage(cur.xyz, mask, ref, seen, origin, coverage=coverage, range_noise=range_noise,
                                 image=image, present=frame.inside)
@@ -217,7 +216,7 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.vox
         t2 = time.perf_counter()
         if regions:  # point-wise decision: only the appeared points need a region
             idx = np.flatnonzero(mask)
-            kept, regs, _ = _regions(frame, d, cur.xyz[idx], np.ones(len(idx), bool), regions=True,
+            kept, regs, _ = region_rules(frame, d, cur.xyz[idx], np.ones(len(idx), bool), regions=True,
                                      decision="point", min_region_points=min_region_points, cluster_fraction=0.5)
             mask[idx] = kept
         else:
@@ -234,6 +233,6 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.vox
             weight = float(len(history))
         t4 = time.perf_counter()
         timings.update(build=t1 - t0 - timings.get("align", 0.0), detect=t2 - t1, regions=t3 - t2, update=t4 - t3)
-        yield FrameChange(index=index, name=name, appeared=_to_rows(mask, cur, False),
-                          not_comparable=_to_rows(unseen, cur, False), regions=regs,
+        yield FrameChange(index=index, name=name, appeared=to_rows(mask, cur, False),
+                          not_comparable=to_rows(unseen, cur, False), regions=regs,
                           latency=t4 - t0, timings=timings, transform=matrix)

@@ -10,8 +10,8 @@ The spacing comes from exact k-th nearest-neighbour distances of a few thousand 
 (:func:`kth_neighbour_distance`): one pass puts the cloud into a hashed grid of cells, then each
 sampled point scans a few cells around its own. On a 200k-point Kinect frame that takes about a
 fifth of the time of building a k-d tree of the cloud for the same queries, with the same
-distances to the last bit. (Its Numba kernels live here rather than in ``sdp._kernels``: they
-serve only this estimate.)
+distances to the last bit. (Its Numba kernels live here, beside the only estimate they
+serve.)
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from collections.abc import Sequence
 import numba as nb
 import numpy as np
 
-from ._kernels import finite_bounds, map_concurrently
-from ._points import Points, as_points
+from ._parallel import map_concurrently
+from ._points import Points, as_points, finite_bounds
 
 __all__ = ["auto_voxel_size", "kth_neighbour_distance", "resolve_voxel_size"]
 

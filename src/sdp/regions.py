@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import _kernels as K
+from ._region_kernels import corner_labels, group_stats, label_nodes, volume_at, volume_masks
 from .boolean import check_compatible
 from .field import DensityField
 from .grid import BLOCK
@@ -84,7 +84,7 @@ class Volume(NamedTuple):
 
     ``A`` is float32 per node of the field's blocks; ``B`` the blocks of another field on the
     same lattice (found through ``b_directory`` at the field's block keys + ``shift``; 0 where
-    it holds none); with no ``B`` (``hb`` = inf), v = h_a − A. The kernels of ``sdp._kernels``
+    it holds none); with no ``B`` (``hb`` = inf), v = h_a − A. The kernels of ``sdp._region_kernels``
     compute v node by node where they need it: change detection labels and interpolates the
     difference max(F_a, −F_b) without writing it out (a field's worth of fresh memory per
     direction).
@@ -101,12 +101,13 @@ class Volume(NamedTuple):
     def difference(cls, a: DensityField, b: DensityField) -> "Volume":
         """max(F_a, −F_b) on a's blocks: a's points there are inside a and outside b."""
         check_compatible(a, b)
-        return cls(a._blocks, a.h, b._blocks, b._directory, a.grid.block_origin - b.grid.block_origin, b.h)
+        return cls(a.blocks.values, a.h, b.blocks.values, b.blocks.directory,
+                   a.grid.block_origin - b.grid.block_origin, b.h)
 
     @classmethod
     def inside(cls, a: DensityField) -> "Volume":
         """F_a = h − G_a on a's blocks: the cluster volume."""
-        return cls(a._blocks, a.h, _NO_BLOCKS, _NO_DIRECTORY, np.zeros(3, np.int64), np.inf)
+        return cls(a.blocks.values, a.h, _NO_BLOCKS, _NO_DIRECTORY, np.zeros(3, np.int64), np.inf)
 
     @classmethod
     def of_values(cls, values: np.ndarray) -> "Volume":
@@ -118,12 +119,12 @@ class Volume(NamedTuple):
         """v interpolated at finite world ``points``, as :meth:`DensityField.interpolate` would
         interpolate v stored on ``field``'s blocks."""
         out = np.empty(len(points))
-        K.volume_at(points, field.grid.origin, field.voxel_size, field._directory, *self.kernel_args(field), out)
+        volume_at(points, field.grid.origin, field.voxel_size, field.blocks.directory, *self.kernel_args(field), out)
         return out
 
     def kernel_args(self, field: DensityField) -> tuple:
-        """The arguments of the volume kernels of ``sdp._kernels``, on ``field``'s blocks."""
-        return field._keys, self.a_blocks, self.ha, self.b_blocks, self.b_directory, self.shift, self.hb
+        """The arguments of the volume kernels of ``sdp._region_kernels``, on ``field``'s blocks."""
+        return field.blocks.keys, self.a_blocks, self.ha, self.b_blocks, self.b_directory, self.shift, self.hb
 
 
 _NO_BLOCKS = np.zeros((0, BLOCK**3), np.float32)
@@ -133,8 +134,8 @@ _NO_DIRECTORY = np.full((1, 1, 1), -1, np.int32)
 def label_volume(field: DensityField, volume: Volume, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`label_points` of a :class:`Volume` on ``field``'s blocks."""
     args = volume.kernel_args(field)
-    slot, labels, node_counts = K.label_nodes(K.volume_masks(*args), field._directory, field._keys)
-    point_labels = K.corner_labels(field.grid.to_grid_units(points), field._directory, slot, labels, *args)
+    slot, labels, node_counts = label_nodes(volume_masks(*args), field.blocks.directory, field.blocks.keys)
+    point_labels = corner_labels(field.grid.to_grid_units(points), field.blocks.directory, slot, labels, *args)
     return point_labels, node_counts
 
 
@@ -145,7 +146,7 @@ def describe_regions(points: np.ndarray, point_labels: np.ndarray, node_counts: 
     Returns the regions and each point's region label (-1 for unlabelled points); regions
     are renumbered 0 … n−1 by decreasing point count.
     """
-    counts, sums, mins, maxs = K.group_stats(points, point_labels, len(node_counts))
+    counts, sums, mins, maxs = group_stats(points, point_labels, len(node_counts))
     used = np.flatnonzero(counts)
     order = used[np.argsort(-counts[used], kind="stable")]
     rank = np.full(len(node_counts) + 1, -1, np.int64)  # the last slot maps label -1 to -1

@@ -111,7 +111,7 @@ class FieldStore:
         mine = np.flatnonzero(np.all(np.floor_divide(keys[:, :2], self.tile_blocks) == key, axis=1))
         mine = mine[np.lexsort(keys[mine].T[::-1])]  # x, y, z order
         name = f"tiles/{int(key[0])}_{int(key[1])}"
-        for array, data in (("keys", keys[mine]), ("values", field._blocks[mine])):
+        for array, data in (("keys", keys[mine]), ("values", field.blocks.values[mine])):
             out = zarr.create_array(str(self.path), name=f"{name}/{array}", shape=data.shape, dtype=data.dtype,
                                     chunks=(_ROWS_PER_CHUNK, data.shape[1]), overwrite=True)
             out[...] = data

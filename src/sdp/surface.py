@@ -12,7 +12,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import _kernels as K
 from .errors import SurfaceError
 from .grid import BLOCK
 
@@ -52,11 +51,12 @@ def extract_surface(field, *, level: float = 0.0) -> Mesh:
     if field.n_blocks == 0:
         raise SurfaceError("the field is empty: there is no surface")
     g_level = field.h - level
-    gmin, gmax = min(0.0, float(field._blocks.min())), max(0.0, float(field._blocks.max()))
+    values = field.blocks.values
+    gmin, gmax = min(0.0, float(values.min())), max(0.0, float(values.max()))
     if not gmin < g_level < gmax:
         raise SurfaceError(f"level {level:g} is outside the field's range F ∈ [{field.h - gmax:.4g}, "
                            f"{field.h - gmin:.4g}]: no surface; choose a level inside it")
-    chunks = np.unique(np.floor_divide(field._keys, _CHUNK), axis=0)
+    chunks = np.unique(np.floor_divide(field.blocks.keys, _CHUNK), axis=0)
     # a cell on a chunk's low face belongs to the neighbouring chunk: add those neighbours
     shifts = np.array([[i, j, k] for i in (0, -1) for j in (0, -1) for k in (0, -1)])
     chunks = np.unique((chunks[:, None, :] + shifts[None]).reshape(-1, 3), axis=0)
@@ -64,7 +64,7 @@ def extract_surface(field, *, level: float = 0.0) -> Mesh:
     verts, faces, offset = [], [], 0
     for c in chunks:
         lo = c * n
-        vol = K.gather_box(field._directory, field._blocks, lo, np.full(3, n + 1, np.int64))
+        vol = field.blocks.box(lo, np.full(3, n + 1, np.int64))
         if not (vol.min() < g_level < vol.max()):
             continue
         v, f, _, _ = marching_cubes(vol, level=g_level, method="lewiner")

@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _kernels as K
+from . import _tile_kernels as K
 from ._progress import bar
 from .boolean import difference_on_own_blocks
 from .coverage import footprint_covered
