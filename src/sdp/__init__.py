@@ -46,7 +46,7 @@ from .metrics import confusion_matrix, kappa, scores
 from .online import FrameChange, watch
 from .params import auto_voxel_size
 from .regions import Region
-from .render import render_changes, render_changes_html, render_field
+from .render import render_changes, render_changes_html, render_distances, render_field
 from .store import FieldStore
 from .surface import Mesh, extract_surface
 from .tiles import TiledChanges, build_field_tiled, detect_changes_tiled
@@ -64,7 +64,7 @@ __all__ = [
     "extract_surface", "Mesh",
     "auto_voxel_size",
     "read_points", "write_points", "write_mesh", "PointSource", "write_points_streamed", "check_outputs",
-    "render_changes", "render_changes_html", "render_field",
+    "render_changes", "render_changes_html", "render_distances", "render_field",
     "kappa", "confusion_matrix", "scores",
     "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",
     "FieldFileError", "CloudFileError", "MissingDependencyError", "InvalidOptionError",

@@ -25,7 +25,7 @@ from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from .errors import MissingDependencyError
 from .io import atomic_path
 
-__all__ = ["render_changes", "render_changes_html", "render_field"]
+__all__ = ["render_changes", "render_changes_html", "render_distances", "render_field"]
 
 _VERMILLION, _BLUE, _GREY = "#D55E00", "#0072B2", "#B4B4B4"  # Okabe–Ito, and a neutral grey
 
@@ -79,31 +79,108 @@ def render_changes(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray
 
 def _map(plt, xyz, layers, lo, hi):
     """A top-down map: x, y relative to a round origin named on the axes, a scale bar, a north arrow."""
+    w, h = float(hi[0] - lo[0]), float(hi[1] - lo[1])
+    aspect = min(max(h / max(w, 1e-9), 0.3), 3.0)
+    fig, ax = plt.subplots(figsize=(9, 9 * aspect * 0.9 + 1.2), dpi=110, layout="constrained")
+    origin = _map_origin(lo, hi)
+    for idx, label, n, color, size, _ in layers:
+        ax.scatter(xyz[idx, 0] - origin[0], xyz[idx, 1] - origin[1], s=size * 2, c=color, linewidths=0,
+                   alpha=0.9 if color == _VERMILLION else 0.6, label=f"{label} ({n:,})")
+    ax.legend(loc="best", markerscale=6, fontsize=9, framealpha=0.9)
+    _map_axes(ax, origin, lo, hi)
+    return fig
+
+
+def _map_origin(lo, hi) -> np.ndarray:
+    """A round x, y origin below the scene's corner (a power of ten of its extent)."""
+    span = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]), 1e-9)
+    step = 10.0 ** math.floor(math.log10(span))
+    return np.floor(lo[:2] / step) * step
+
+
+def _map_axes(ax, origin, lo, hi):
+    """Relative-coordinate labels, a scale bar and a north arrow on a top-down map."""
     from matplotlib.ticker import MaxNLocator
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
     span = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]), 1e-9)
-    step = 10.0 ** math.floor(math.log10(span))
-    origin = np.floor(lo[:2] / step) * step
-    w, h = float(hi[0] - lo[0]), float(hi[1] - lo[1])
-    aspect = min(max(h / max(w, 1e-9), 0.3), 3.0)
-    fig, ax = plt.subplots(figsize=(9, 9 * aspect * 0.9 + 1.2), dpi=110, layout="constrained")
-    for idx, label, n, color, size, _ in layers:
-        ax.scatter(xyz[idx, 0] - origin[0], xyz[idx, 1] - origin[1], s=size * 2, c=color, linewidths=0,
-                   alpha=0.9 if color == _VERMILLION else 0.6, label=f"{label} ({n:,})")
     ax.set_aspect("equal")
     ax.set_xlabel(f"x − {origin[0]:,.0f}")
     ax.set_ylabel(f"y − {origin[1]:,.0f}")
     for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_locator(MaxNLocator(6))
-    ax.legend(loc="best", markerscale=6, fontsize=9, framealpha=0.9)
     bar = 10.0 ** math.floor(math.log10(span / 4))
     bar *= 5 if 5 * bar <= span / 4 else (2 if 2 * bar <= span / 4 else 1)
     ax.add_artist(AnchoredSizeBar(ax.transData, bar, f"{bar:g}", "lower right", pad=0.6, frameon=True,
                                   size_vertical=span / 300))
     ax.annotate("N", xy=(0.04, 0.95), xytext=(0.04, 0.84), xycoords="axes fraction", ha="center", va="center",
                 fontsize=12, fontweight="bold", arrowprops={"arrowstyle": "-|>", "color": "k", "lw": 1.5})
-    return fig
+
+
+def render_distances(path: str | os.PathLike, xyz: np.ndarray, distance: np.ndarray, significant: np.ndarray,
+                     lod: np.ndarray, *, title: str = "", max_points: int = 200_000, seed: int = 0,
+                     view: str = "auto") -> Path:
+    """Write a PNG of signed distances (:func:`sdp.distances`): a map (or, for rooms and objects,
+    an oblique 3-D view) of the significant distances on a diverging purple–orange scale
+    (readable by colour-blind readers), points within the level of detection pale, points
+    without a distance grey; beside it, the histogram of the distances with the median level of
+    detection marked. Above ``max_points`` points, a random subsample is drawn (the counts are
+    of all points)."""
+    from matplotlib.colors import TwoSlopeNorm
+
+    plt = _pyplot()
+    xyz, distance = np.asarray(xyz), np.asarray(distance, np.float64)
+    significant = np.asarray(significant, bool)
+    ok = np.isfinite(distance)
+    sig = ok & significant
+    idx = np.arange(len(xyz))
+    if len(idx) > max_points:
+        idx = np.sort(np.random.default_rng(seed).choice(len(xyz), max_points, replace=False))
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    if view not in ("auto", "map", "3d"):
+        raise ValueError(f"view must be 'auto', 'map' or '3d', got {view!r}")
+    flat = view == "map" or (view == "auto" and hi[2] - lo[2] < _FLAT * max(hi[0] - lo[0], hi[1] - lo[1]))
+    limit = float(np.quantile(np.abs(distance[sig]), 0.98)) if sig.any() else 1.0
+    norm = TwoSlopeNorm(vcenter=0.0, vmin=-max(limit, 1e-12), vmax=max(limit, 1e-12))
+    fig = plt.figure(figsize=(15, 6.5), dpi=110, layout="constrained")
+    ax = fig.add_subplot(1, 2, 1) if flat else fig.add_subplot(1, 2, 1, projection="3d")
+    origin = _map_origin(lo, hi) if flat else np.zeros(2)
+    groups = ((ok[idx] & ~sig[idx], "#D9D9D9", f"within the level of detection ({int((ok & ~sig).sum()):,})"),
+              (~ok[idx], _GREY, f"no distance ({int((~ok).sum()):,})"))
+    for mask, colour, label in groups:
+        p = xyz[idx[mask]]
+        coords = (p[:, 0] - origin[0], p[:, 1] - origin[1]) if flat else p.T
+        ax.scatter(*coords, s=1.0, c=colour, linewidths=0, alpha=0.6, label=label)
+    p = xyz[idx[sig[idx]]]
+    coords = (p[:, 0] - origin[0], p[:, 1] - origin[1]) if flat else p.T
+    sc = ax.scatter(*coords, s=2.0, c=distance[idx[sig[idx]]], cmap="PuOr_r", norm=norm, linewidths=0,
+                    label=f"significant ({int(sig.sum()):,})")
+    fig.colorbar(sc, ax=ax, shrink=0.8, label="signed distance (+: the current lies on the normal's side)")
+    ax.legend(loc="upper right", markerscale=6, fontsize=9, framealpha=0.9)  # the north arrow is upper left
+    if flat:
+        _map_axes(ax, origin, lo, hi)
+    else:
+        ax.view_init(elev=25, azim=-60)
+        ax.set_box_aspect(np.maximum(hi - lo, 1e-9))
+        ax.set_xlabel("x")
+        ax.set_ylabel("y")
+        ax.set_zlabel("z")
+    hx = fig.add_subplot(1, 2, 2)
+    if ok.any():
+        span = max(limit, float(np.quantile(np.abs(distance[ok]), 0.98)), 1e-12)
+        bins = np.linspace(-span, span, 81)
+        hx.hist(np.clip(distance[ok], -span, span), bins=bins, color="#D9D9D9", label="all with a distance")
+        hx.hist(np.clip(distance[sig], -span, span), bins=bins, color="#E69F00", label="significant")
+        m = float(np.median(np.asarray(lod)[ok]))
+        for x in (-m, m):
+            hx.axvline(x, color="k", ls="--", lw=1)
+        hx.plot([], [], "k--", lw=1, label=f"median level of detection ±{m:.3g}")
+    hx.set_xlabel("signed distance")
+    hx.set_ylabel("points")
+    hx.legend(fontsize=9)
+    if title:
+        fig.suptitle(title)
+    return _save_png(fig, path)
 
 
 def render_changes_html(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray, *, title: str = "",
