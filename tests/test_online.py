@@ -138,6 +138,7 @@ def test_watch_align_needs_what_it_registers_onto(rng):
         next(watch(field, [room_scene(rng, n=5000)], align="icp"))
 
 
+@pytest.mark.shared_data
 def test_watch_sensor_origin_applies_the_visibility_test_of_detect_changes(shared_data):
     ref, cur = (sdp.read_points(shared_data / f"mosd/learn/learn{i}.pcd") for i in (6, 7))  # an object added
     voxel = sdp.auto_voxel_size(ref.xyz)
@@ -154,6 +155,7 @@ def test_watch_sensor_origin_applies_the_visibility_test_of_detect_changes(share
     assert seen.appeared[old].mean() < 0.5 * plain.appeared[old].mean()  # its edges: seen by the reference
 
 
+@pytest.mark.shared_data
 def test_sdp_watch_sensor_origin_viewpoint(tmp_path, shared_data):
     import subprocess
     import sys
