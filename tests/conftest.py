@@ -27,6 +27,12 @@ def shared_data():
     return SHARED
 
 
+def slow_after(n, cases):
+    """Parametrize cases of which only the first ``n`` run in the quick tier (``make check``); the
+    rest are marked slow (each, say, a CLI process of a second or two). Ids stay as without it."""
+    return [c if i < n else pytest.param(c, marks=pytest.mark.slow) for i, c in enumerate(cases)]
+
+
 def room_scene(rng, n=40_000, noise=0.003):
     """Floor, two walls and a table top sampled uniformly, with Gaussian noise (metres)."""
     m = n // 4

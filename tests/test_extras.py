@@ -105,3 +105,11 @@ def test_cli_names_the_extra(without, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("sdp: error:") and "pip install 'sdp[tiles]'" in err[-1], err
     assert not (tmp_path / "out.laz").exists()
+
+
+def test_pictures_with_the_plots_extra(tmp_path):
+    """The quick tier's check of sdp.render (the slow CLI tests draw real scenes, and the HTML view)."""
+    xyz = np.random.default_rng(0).random((300, 3))
+    state = (xyz[:, 0] > 0.7).astype(np.uint8) + (xyz[:, 1] > 0.9)  # 0, 1 and 2
+    png = sdp.render_changes(tmp_path / "c.png", xyz, state)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
