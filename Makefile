@@ -1,23 +1,29 @@
-# make demo / make test work on a machine with only Python 3.11, pip and make:
-# each creates .venv if missing and installs the pinned dependencies into it.
+# make demo / make test / make check work on a machine with only Python 3.11, pip and make:
+# each creates .venv if missing and installs the pinned dependencies into it (every extra:
+# requirements.lock, the runtime; requirements-dev.lock, tests, benchmarks and the build).
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install test demo bench clean
+.PHONY: install test check demo bench clean
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml requirements.lock
+$(STAMP): pyproject.toml requirements.lock requirements-dev.lock
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -r requirements.lock
+	$(PY) -m pip install --quiet -r requirements.lock -r requirements-dev.lock
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	touch $(STAMP)
 
+# the full suite (CI runs it)
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# the quick tier while working: every module, no test marked slow (under a minute on 2 cores)
+check: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
 
 demo: $(STAMP)
 	$(VENV)/bin/sdp demo -o demo-output

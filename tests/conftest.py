@@ -11,12 +11,26 @@ def rng():
     return np.random.default_rng(12345)
 
 
+def pytest_collection_modifyitems(config, items):
+    """A test that takes the ``shared_data`` fixture carries the ``shared_data`` marker (so
+    ``-m "not shared_data"`` leaves it out) even when its author forgot the decorator."""
+    for item in items:
+        if "shared_data" in getattr(item, "fixturenames", ()) and item.get_closest_marker("shared_data") is None:
+            item.add_marker(pytest.mark.shared_data)
+
+
 @pytest.fixture
 def shared_data():
     """Path of ../shared/data; the test is skipped (with the reason shown) when it is absent."""
     if not SHARED.is_dir():
         pytest.skip(f"real scans not found at {SHARED} (CI provides ../shared/data beside the checkout)")
     return SHARED
+
+
+def slow_after(n, cases):
+    """Parametrize cases of which only the first ``n`` run in the quick tier (``make check``); the
+    rest are marked slow (each, say, a CLI process of a second or two). Ids stay as without it."""
+    return [c if i < n else pytest.param(c, marks=pytest.mark.slow) for i, c in enumerate(cases)]
 
 
 def room_scene(rng, n=40_000, noise=0.003):

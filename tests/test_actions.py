@@ -46,6 +46,7 @@ def test_bin_reader_and_back_projection(tmp_path, rng):
     np.testing.assert_allclose(centre, [[0, 0, 1000]])  # principal point at the image centre
 
 
+@pytest.mark.slow
 def test_descriptor_is_body_centred(rng):
     a = sequence_descriptor(sequence(1, rng))
     b = sequence_descriptor(sequence(1, rng, shift=40))  # the same action elsewhere in the image
@@ -69,6 +70,7 @@ def test_train_predict_save_load(tmp_path, rng):
         ActionModel.load(tmp_path / "bad.npz")
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 def test_real_sequences_two_actions(shared_data, tmp_path):
     """High arm wave vs. two-hand wave on MSR Action3D: trained on odd subjects, tested on even."""

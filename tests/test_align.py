@@ -22,6 +22,7 @@ def disagreement(a, b, pts):
     return float(np.sqrt((d**2).sum(axis=1).mean())), float(angle)
 
 
+@pytest.mark.slow
 def test_gradient_matches_finite_differences(rng):
     f = sdp.DensityField.from_points(room_scene(rng, n=8000), voxel_size=0.05)
     q = rng.uniform([0.2, 0.2, 0.05], [3.8, 2.8, 1.0], (500, 3))
@@ -36,6 +37,7 @@ def test_gradient_matches_finite_differences(rng):
         np.testing.assert_allclose(grad[:, axis], numeric, rtol=1e-3, atol=1e-3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["density", "gicp"])
 def test_recovers_a_known_transform_despite_a_change(rng, method):
     ref = room_scene(rng)
@@ -48,6 +50,7 @@ def test_recovers_a_known_transform_despite_a_change(rng, method):
     assert a.rmse < 0.03  # nearest-neighbour distances of a 40,000-point room: ~1.5 cm apart
 
 
+@pytest.mark.slow
 def test_density_alignment_works_from_a_saved_field(tmp_path, rng):
     ref = room_scene(rng)
     # σ as align() uses, sampled at 4 voxels: at 2 the trilinear sag biases planes by a few mm
@@ -61,6 +64,7 @@ def test_density_alignment_works_from_a_saved_field(tmp_path, rng):
         align(f, cur, method="gicp")
 
 
+@pytest.mark.slow
 def test_huge_coordinates(rng):
     """UTM-like offsets: the estimate is made in a local frame, so the result is as precise."""
     offset = np.array([634_000.0, 4_832_000.0, 80.0])
@@ -75,6 +79,7 @@ def test_huge_coordinates(rng):
         assert disagreement(a.matrix, truth_world, cur + offset)[0] < 0.003, method
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 @pytest.mark.parametrize("rescan", ["A603_rescan1.pcd", "A603_rescan2.pcd"])
 def test_density_agrees_with_gicp_on_dlut_rescans(shared_data, rescan):
@@ -86,6 +91,7 @@ def test_density_agrees_with_gicp_on_dlut_rescans(shared_data, rescan):
     assert rms < 0.004 and angle < 0.05, (rms, angle)
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 def test_toronto_ground_class_recovers_the_vertical_offset(shared_data):
     """The 2023 ground lies 0.41 m below 2015's (median of nearest ground pairs): registered on the
@@ -117,6 +123,7 @@ def test_uneven_sampling_does_not_pull_along_surfaces(rng):
     assert rms < 0.001 and angle < 0.02, (rms, angle)
 
 
+@pytest.mark.slow
 def test_flat_ground_keeps_the_horizontal_and_finds_the_vertical(rng):
     """Two epochs of gently rolling, nearly flat ground 0.4 m apart vertically: the horizontal is
     pinned by nothing but noise, so it stays where it was (reported as frozen directions) while

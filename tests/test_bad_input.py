@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import slow_after
 
 import sdp
 from sdp.io import CloudFileError, PointSource, atomic_path, check_outputs, las_scale_offset, read_points
@@ -77,12 +78,12 @@ def test_directory_and_unknown_format(tmp_path):
         read_points(tmp_path / "g.npy", format="foo")
 
 
-@pytest.mark.parametrize("args", [
+@pytest.mark.parametrize("args", slow_after(1, [
     ["build", "t.laz", "-o", "t.zarr", "--voxel-size", "0.1"],
     ["build", "header_only.las", "-o", "e.zarr", "--voxel-size", "0.1"],
     ["info", "t.las"],
     ["info", "a.las", "--format", "foo"],
-])
+]))
 def test_cli_bad_files(clouds, args):
     before = sorted(os.listdir(clouds))
     p = run(*args, cwd=clouds)
@@ -138,7 +139,7 @@ def test_atomic_path_leaves_nothing_on_any_exception(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("args", [
+@pytest.mark.parametrize("args", slow_after(1, [
     ["build", "g.npy", "-o", "nodir/o.sdpf"],
     ["mesh", "f.sdpf", "-o", "/sys/o.ply"],
     ["mesh", "f.sdpf", "-o", "existing_dir.ply"],
@@ -159,7 +160,7 @@ def test_atomic_path_leaves_nothing_on_any_exception(tmp_path):
     ["change", "g.npy", "g2.npy", "-o", "existing_dir.ply"],
     ["change", "g.npy", "g2.npy", "-o", "o.ply", "--voxel-size", "0.001", "--memory-limit", "1MB"],  # tiles: LAS
     ["action", "train", ".", "-o", "nodir/model.npz"],
-])
+]))
 def test_cli_output_paths_are_checked_first(tmp_path, args):
     xyz = np.random.default_rng(3).random((3000, 3))
     np.save(tmp_path / "g.npy", xyz)
@@ -185,6 +186,7 @@ def wait_for_buckets(folder, process, timeout=120):
     raise AssertionError("the tiled run wrote no bucket")
 
 
+@pytest.mark.slow
 def test_sigterm_on_the_tiled_path_cleans_up(tmp_path):
     rng = np.random.default_rng(4)
     for name in ("a.npy", "b.npy"):
@@ -203,6 +205,7 @@ def test_sigterm_on_the_tiled_path_cleans_up(tmp_path):
     assert sorted(f.name for f in tmp_path.iterdir()) == ["a.npy", "b.npy", "tmp"]  # no (hidden) output
 
 
+@pytest.mark.slow
 def test_interrupt_is_one_line(tmp_path):
     np.save(tmp_path / "a.npy", np.random.default_rng(5).random((300_000, 3)) * [20, 20, 2])
     p = subprocess.Popen([sys.executable, "-m", "sdp.cli", "change", "a.npy", "a.npy", "-o", "o.laz", "--tiled",

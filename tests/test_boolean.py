@@ -62,6 +62,7 @@ def test_mismatched_voxel_sizes_are_refused(rng):
         union(fa, fb)
 
 
+@pytest.mark.slow
 def test_difference_volume_equals_the_stored_difference(two_fields, rng):
     """Change detection evaluates max(F_a, -F_b) node by node (regions.Volume); the tiled path and
     the Boolean API store it. Both must give the same values, signs and regions, bit for bit."""

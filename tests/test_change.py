@@ -118,6 +118,7 @@ def test_no_change_at_all_with_a_region_size_filter(rng):
     assert not r.appeared.any() and not r.disappeared.any() and r.appeared_regions == []
 
 
+@pytest.mark.slow
 def test_two_directions_on_threads_equal_one_thread(monkeypatch):
     # the directions run on two threads (map_concurrently); one at a time must give the same result
     s = office_scene(seed=3)

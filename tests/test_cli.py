@@ -21,6 +21,7 @@ def pair(tmp_path, rng):
     return write_points(tmp_path / "ref.ply", ref), write_points(tmp_path / "cur.ply", cur)
 
 
+@pytest.mark.slow
 def test_change_end_to_end(tmp_path, pair):
     ref, cur = pair
     p = run("change", ref, cur, "-o", tmp_path / "out.ply", "--both", "--voxel-size", "0.02", "--json",
@@ -37,6 +38,7 @@ def test_change_end_to_end(tmp_path, pair):
     assert text.returncode == 0 and "appeared" in text.stdout and "time (ms)" in text.stdout
 
 
+@pytest.mark.slow
 def test_build_info_mesh(tmp_path, pair):
     ref, _ = pair
     assert run("build", ref, "-o", tmp_path / "ref.sdpf", "--voxel-size", "0.03").returncode == 0
@@ -47,6 +49,7 @@ def test_build_info_mesh(tmp_path, pair):
     assert m.returncode == 0 and (tmp_path / "ref.obj").stat().st_size > 1000
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("make_bad, match", [
     (lambda d: d / "missing.ply", "no such file"),
     (lambda d: (d / "x.foo").write_text("1 2 3") and d / "x.foo", "unknown point-cloud format"),
@@ -60,6 +63,7 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, pair, make_bad, match):
     assert not (tmp_path / "o.ply").exists()
 
 
+@pytest.mark.slow
 def test_refuses_to_overwrite_input(tmp_path, pair):
     ref, cur = pair
     before = cur.read_bytes()
@@ -68,6 +72,7 @@ def test_refuses_to_overwrite_input(tmp_path, pair):
     assert cur.read_bytes() == before
 
 
+@pytest.mark.slow
 def test_demo(tmp_path):
     p = run("demo", "-o", tmp_path / "demo")
     assert p.returncode == 0, p.stderr
@@ -78,6 +83,7 @@ def test_demo(tmp_path):
         assert (tmp_path / "demo" / name).stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_bool_fields_and_clouds(tmp_path, pair):
     ref, cur = pair
     assert run("build", ref, "-o", tmp_path / "ref.sdpf", "--voxel-size", "0.03").returncode == 0
@@ -97,6 +103,7 @@ def test_bool_fields_and_clouds(tmp_path, pair):
     assert again.returncode == 2 and "overwrite" in again.stderr
 
 
+@pytest.mark.slow
 def test_eval_matches_library_scores(tmp_path, rng):
     import sdp
 
@@ -112,6 +119,7 @@ def test_eval_matches_library_scores(tmp_path, rng):
     assert bad.returncode == 2 and "no per-point field 'change'" in bad.stderr and "label" in bad.stderr
 
 
+@pytest.mark.slow
 def test_render_cloud_and_field(tmp_path, pair):
     ref, cur = pair
     assert run("change", ref, cur, "-o", tmp_path / "c.ply", "--voxel-size", "0.03", "-q").returncode == 0
@@ -126,6 +134,7 @@ def test_render_cloud_and_field(tmp_path, pair):
     assert run("render", tmp_path / "ref.sdpf").returncode == 2  # nothing asked for
 
 
+@pytest.mark.slow
 def test_outputs_get_a_normal_file_mode(tmp_path, pair):
     ref, cur = pair
     assert run("build", ref, "-o", tmp_path / "ref.sdpf", "--voxel-size", "0.03").returncode == 0
@@ -136,6 +145,7 @@ def test_outputs_get_a_normal_file_mode(tmp_path, pair):
     assert (tmp_path / "ref.sdpf").stat().st_mode & 0o777 == 0o666 & ~umask  # not mkstemp's private 0o600
 
 
+@pytest.mark.slow
 def test_align_writes_a_loadable_matrix_and_change_uses_it(tmp_path, rng):
     from conftest import room_scene
 
@@ -156,6 +166,7 @@ def test_align_writes_a_loadable_matrix_and_change_uses_it(tmp_path, rng):
     assert aligned["alignment"]["method"] == "gicp" and "align" in aligned["timings"]
 
 
+@pytest.mark.slow
 def test_change_sensor_origin(tmp_path, pair):
     ref, cur = pair
     p = run("change", ref, cur, "-o", tmp_path / "o.ply", "--voxel-size", "0.02", "--json",
@@ -169,6 +180,7 @@ def test_change_sensor_origin(tmp_path, pair):
     assert bad.returncode == 2 and "records no sensor position" in bad.stderr
 
 
+@pytest.mark.slow
 def test_align_on_a_class_with_fixed_horizontal(tmp_path, rng):
     # two epochs of gently rolling ground (class 2) with shrubs (class 5) that grew; the second
     # epoch lies 0.3 m lower: registered on the ground with the horizontal fixed, the lift is

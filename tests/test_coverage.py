@@ -74,6 +74,7 @@ def test_scores_leave_not_comparable_points_out():
     assert sdp.scores(truth, pred)["not_comparable"] == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ext", ["ply", "las", "laz", "npz"])
 def test_the_third_state_survives_each_output_format(tmp_path, rng, ext):
     old, _ = flight(rng, 60, spacing=1.5)
@@ -94,6 +95,7 @@ def test_the_third_state_survives_each_output_format(tmp_path, rng, ext):
     assert s["coverage"]["appeared"] == "footprint" and s["sensor_origin"] == {"reference": None, "current": None}
 
 
+@pytest.mark.slow
 def test_the_tiled_path_marks_the_same_points_not_comparable(tmp_path, rng):
     old, _ = flight(rng, 60, spacing=1.5)
     new, _ = flight(rng, 90, building=(20, 20, 35, 35), spacing=1.5)
@@ -115,6 +117,7 @@ def test_the_tiled_path_marks_the_same_points_not_comparable(tmp_path, rng):
     np.testing.assert_array_equal(sdp.read_points(tmp_path / "t.laz").fields["change"], whole.current_state)
 
 
+@pytest.mark.slow
 def test_eval_scores_the_comparable_points_and_render_draws_them_grey(tmp_path, rng):
     old, _ = flight(rng, 60, spacing=1.5)
     new, roof = flight(rng, 90, building=(20, 20, 35, 35), spacing=1.5)
@@ -146,6 +149,7 @@ def test_watch_marks_what_the_reference_never_covered(rng):
     np.testing.assert_array_equal(r.state == NOT_COMPARABLE, r.not_comparable)
 
 
+@pytest.mark.slow
 def test_a_landscape_is_drawn_as_a_map_and_a_room_in_three_views(tmp_path, rng, monkeypatch):
     from sdp import render
 

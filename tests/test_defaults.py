@@ -92,6 +92,7 @@ def test_detect_changes_uses_the_sensor_a_cloud_brings(tmp_path):
     np.testing.assert_array_equal(one.appeared, auto.appeared)
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 def test_sdp_change_and_detect_changes_agree_with_no_option(tmp_path, shared_data):
     a, b = (shared_data / f"mosd/learn/learn{i}.pcd" for i in (6, 7))
@@ -107,6 +108,7 @@ def test_sdp_change_and_detect_changes_agree_with_no_option(tmp_path, shared_dat
     assert s["current"]["dropped"] == rb.n_dropped > 50_000 and r.summary()["current"]["dropped"] == rb.n_dropped
 
 
+@pytest.mark.slow
 def test_k_reaches_the_automatic_voxel_of_build_and_tiles(tmp_path, rng):
     pts = rng.random((4000, 3))
     np.save(tmp_path / "a.npy", pts)

@@ -94,6 +94,7 @@ def test_sparse_storage_follows_occupied_surface_not_box(rng):
     assert f.density([[20, 20, 20]])[0] > 10
 
 
+@pytest.mark.slow
 def test_block_layout_matches_dense_reference(rng):
     # every allocated node equals the exact sum computed densely with numpy over the box
     pts = rng.random((300, 3)) * 0.5

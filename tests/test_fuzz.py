@@ -89,6 +89,7 @@ def test_read_points_raises_only_sdp_errors(seeds, tmp_path, case):
             assert "\n" not in str(exc), str(exc)
 
 
+@pytest.mark.slow
 @settings(max_examples=4, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(case=mutated())

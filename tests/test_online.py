@@ -82,6 +82,7 @@ def test_window_forgets_what_left(rng):
     assert forgot[3].n_appeared > 0.5 * len(box)  # left the 2-frame window: new again
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("align", [None, "gicp"])
 def test_sdp_watch_folder(tmp_path, rng, align):
     import subprocess
@@ -111,6 +112,7 @@ def moved(points, degrees, shift, centre=(2.0, 2.0, 1.0)):
     return (points - centre) @ r.T + centre + shift
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("align", ["gicp", "density"])
 def test_watch_registers_the_frames_of_a_moving_camera(rng, align):
     frames, box = stream(rng)
@@ -138,6 +140,7 @@ def test_watch_align_needs_what_it_registers_onto(rng):
         next(watch(field, [room_scene(rng, n=5000)], align="icp"))
 
 
+@pytest.mark.shared_data
 def test_watch_sensor_origin_applies_the_visibility_test_of_detect_changes(shared_data):
     ref, cur = (sdp.read_points(shared_data / f"mosd/learn/learn{i}.pcd") for i in (6, 7))  # an object added
     voxel = sdp.auto_voxel_size(ref.xyz)
@@ -154,6 +157,8 @@ def test_watch_sensor_origin_applies_the_visibility_test_of_detect_changes(share
     assert seen.appeared[old].mean() < 0.5 * plain.appeared[old].mean()  # its edges: seen by the reference
 
 
+@pytest.mark.slow
+@pytest.mark.shared_data
 def test_sdp_watch_sensor_origin_viewpoint(tmp_path, shared_data):
     import subprocess
     import sys

@@ -83,6 +83,7 @@ def test_auto_voxel_size_equals_the_kd_tree_estimate(rng):
         reference_voxel(cs["room"], k=5, quantile=0.5, sample=1_000, seed=3), rel=1e-12)
 
 
+@pytest.mark.shared_data
 def test_auto_voxel_size_on_real_scans(shared_data):
     """The Kinect pair and the laser scans the benchmarks use."""
     mosd = shared_data / "mosd" / "learn"

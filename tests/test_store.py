@@ -16,6 +16,7 @@ def clouds(rng):
     return ref, cur
 
 
+@pytest.mark.slow
 def test_store_round_trip_queries_and_mesh(tmp_path, clouds):
     ref, _ = clouds
     f = sdp.DensityField.from_points(ref, voxel_size=0.1)
@@ -43,6 +44,7 @@ def test_tiled_build_equals_the_whole_field(tmp_path, clouds):
                                atol=1e-5 * float(f.blocks.values.max()))
 
 
+@pytest.mark.slow
 def test_out_of_core_boolean_equals_in_memory(tmp_path, clouds):
     ref, cur = clouds
     fa, fb = (sdp.DensityField.from_points(c, voxel_size=0.1) for c in (ref, cur))
@@ -57,6 +59,7 @@ def test_out_of_core_boolean_equals_in_memory(tmp_path, clouds):
         sa.combine(sb, "union", tmp_path / "a.zarr")
 
 
+@pytest.mark.slow
 def test_changes_against_a_stored_reference(tmp_path, clouds):
     ref, cur = clouds
     want = sdp.detect_changes(ref, cur, voxel_size=0.1)
@@ -77,6 +80,7 @@ def test_store_errors(tmp_path):
     assert (tmp_path / "plain" / "notes.txt").read_text() == "keep me"
 
 
+@pytest.mark.slow
 def test_cli_field_store(tmp_path, clouds):
     from test_tiles import run, write_las
 

@@ -52,6 +52,7 @@ def test_tiled_equals_untiled(epochs, min_region_points):
     assert b.n_dropped_current == 2 and b.summary()["current"]["appeared"] == a.appeared.sum()
 
 
+@pytest.mark.slow
 def test_tiled_on_dask_clusters(epochs):
     from dask.distributed import LocalCluster
 
@@ -82,6 +83,7 @@ def write_las(path, xyz):
     return path
 
 
+@pytest.mark.slow
 def test_point_source_slices_equal_the_whole_file(tmp_path, rng):
     xyz = rng.uniform(0, 10, (250_000, 3)) + UTM
     whole = {}
@@ -126,6 +128,7 @@ def run(*args):
     return subprocess.run([sys.executable, "-m", "sdp.cli", *map(str, args)], capture_output=True, text=True)
 
 
+@pytest.mark.slow
 def test_cli_switches_to_tiles_by_itself(tmp_path, epochs):
     ref, cur = epochs
     cur = cur[np.isfinite(cur).all(axis=1)]

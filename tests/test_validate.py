@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import slow_after
 
 import sdp
 from sdp import DensityField
@@ -93,6 +94,7 @@ def test_helpers():
     assert parse_bytes("2GB") == 2 * 2**30 and memory_limit(1000) == 1000  # numbers are bytes
 
 
+@pytest.mark.slow
 def test_unreachable_scheduler_is_one_line_error(cloud, tmp_path):
     with pytest.raises(sdp.SDPError, match="can't reach the Dask scheduler at tcp://127.0.0.1:1") as err:
         sdp.detect_changes_tiled(cloud, cloud, voxel_size=0.1, scheduler="tcp://127.0.0.1:1", workdir=tmp_path)
@@ -100,7 +102,7 @@ def test_unreachable_scheduler_is_one_line_error(cloud, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("args", [
+@pytest.mark.parametrize("args", slow_after(1, [
     ["build", "g.npy", "-o", "f.sdpf", "--voxel-size", "1e308"],
     ["build", "g.npy", "-o", "f.sdpf", "--voxel-size", "0"],
     ["build", "g.npy", "-o", "f.sdpf", "--voxel-size", "nan"],
@@ -118,7 +120,7 @@ def test_unreachable_scheduler_is_one_line_error(cloud, tmp_path):
     ["change", "g.npy", "g.npy", "-o", "o.laz", "--min-region-points", "-5"],
     ["change", "g.npy", "g.npy", "-o", "o.laz", "--tiled", "--workdir", "/nonexistent"],
     ["change", "g.npy", "g.npy", "-o", "o.laz", "--tiled", "--memory-limit", "garbage"],
-])
+]))
 def test_cli_refuses_bad_options_in_one_line(tmp_path, cloud, args):
     np.save(tmp_path / "g.npy", cloud)
     p = run(*args, cwd=tmp_path, timeout=60)

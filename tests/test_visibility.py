@@ -159,6 +159,7 @@ def test_real_kinect_pair_with_sensor_origin(shared_data):
     assert seen.appeared[objects].sum() > 0.9 * plain.appeared[objects].sum()
 
 
+@pytest.mark.slow
 def test_field_of_view_is_the_convex_hull_of_the_returned_cells():
     from scipy.spatial import Delaunay
 

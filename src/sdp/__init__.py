@@ -9,6 +9,12 @@ from the data by :mod:`sdp.params`. Clouds beyond memory: the same path in tiles
 (:mod:`sdp.tiles`), reading files in slices (:class:`PointSource`) and keeping fields on disk
 (:mod:`sdp.store`, Zarr). Every default is :data:`DEFAULTS` (:mod:`sdp.defaults`).
 
+``import sdp`` needs only the core dependencies. The tiles and the field store need the
+``tiles`` extra (Dask, Zarr), :mod:`sdp.actions`' classifier ``actions`` (scikit-learn), the
+pictures of :mod:`sdp.render` ``plots`` (matplotlib, plotly), GICP ``align`` (small_gicp): each
+is imported when first used, and a missing one raises :class:`MissingDependencyError` naming its
+``pip install 'sdp[EXTRA]'``.
+
 References
 ----------
 .. [1] A. W. Vieira et al., "Spatial Density Patterns as Representation for Point Cloud
@@ -69,4 +75,4 @@ __all__ = [
     "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",
     "FieldFileError", "CloudFileError", "MissingDependencyError", "InvalidOptionError",
 ]
-__version__ = "0.1.0"
+__version__ = "0.1.0"  # the one place it is written: pyproject.toml reads it (dynamic version)

@@ -41,7 +41,7 @@ import numba as nb
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from .errors import SDPError
+from .errors import SDPError, require
 from .io import atomic_path
 
 __all__ = ["read_sequence", "depth_to_points", "frame_densities", "sequence_descriptor", "list_sequences",
@@ -243,13 +243,18 @@ def _ridge_dual(gram, train, test, y, alpha):
     return classes[np.argmax(centred_te @ a + targets.mean(axis=0), axis=1)]
 
 
+def _linear_model():
+    """``sklearn.linear_model`` (the ``actions`` extra), or a one-line :class:`~sdp.MissingDependencyError`."""
+    return require("sklearn.linear_model", "actions", "the action classifier", package="scikit-learn")
+
+
 def train(descriptors: np.ndarray, actions: np.ndarray, subjects: np.ndarray, *,
           alphas=ALPHAS) -> tuple[ActionModel, float]:
     """Fit the classifier; ``alpha`` by leave-one-subject-out cross-validation on these data.
 
     Returns the model and its cross-validated accuracy (fraction).
     """
-    from sklearn.linear_model import RidgeClassifier
+    RidgeClassifier = _linear_model().RidgeClassifier
 
     x, y, s = np.asarray(descriptors, np.float64), np.asarray(actions), np.asarray(subjects)
     if len(np.unique(y)) < 2 or len(np.unique(s)) < 2:
@@ -270,6 +275,7 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
     (``alpha``) is made by cross-validation on the training subjects. Returns accuracies as
     fractions, the cross-validated accuracies, per-subset confusion data and timings.
     """
+    _linear_model()  # before describing the sequences
     t0 = time.perf_counter()
     rows = list_sequences(folder)
     x = describe_sequences([r[0] for r in rows], workers=workers)

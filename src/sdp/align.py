@@ -41,7 +41,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ._points import as_points
-from .errors import InvalidOptionError, InvalidPointsError, MissingDependencyError
+from .errors import InvalidOptionError, InvalidPointsError, require
 from .field import DensityField
 from .params import auto_voxel_size
 from .validate import positive_finite
@@ -384,14 +384,11 @@ class GicpTarget:
     Raises
     ------
     MissingDependencyError
-        small_gicp is not installed (``pip install "sdp[align]"``).
+        small_gicp is not installed (``pip install 'sdp[align]'``).
     """
 
     def __init__(self, reference: np.ndarray, *, resolution: float, max_distance: float):
-        try:
-            import small_gicp
-        except ImportError:
-            raise MissingDependencyError('GICP needs small_gicp: pip install "sdp[align]"') from None
+        small_gicp = require("small_gicp", "align", "GICP")
         self._gicp, self.resolution, self.max_distance = small_gicp, float(resolution), float(max_distance)
         self._o = reference.mean(axis=0)  # local frame: small_gicp's voxel keys hold 21 bits per axis
         self._target, self._tree = self._prepare(reference)

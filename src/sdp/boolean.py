@@ -78,7 +78,20 @@ def intersection(a: DensityField, b: DensityField) -> DensityField:
 
 
 def difference(a: DensityField, b: DensityField) -> DensityField:
-    """Difference a − b: F = max(F_a, −F_b), inside ``a`` and outside ``b``. See :func:`union`."""
+    """Difference a − b: F = max(F_a, −F_b), inside ``a`` and outside ``b``. See :func:`union`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import sdp
+    >>> rng = np.random.default_rng(0)
+    >>> a = sdp.DensityField.from_points(rng.normal(0.0, 0.1, (500, 3)), voxel_size=0.05)
+    >>> b = sdp.DensityField.from_points(rng.normal([0.6, 0, 0], 0.1, (500, 3)), voxel_size=0.05)
+    >>> sdp.difference(a, b).inside([[0, 0, 0], [0.6, 0, 0], [3, 0, 0]]).tolist()  # in a, in b, in neither
+    [True, False, False]
+    >>> sdp.difference(a, a).inside([[0, 0, 0]]).tolist()  # A − A is empty
+    [False]
+    """
     return _combine(a, b, "difference")
 
 

@@ -7,6 +7,9 @@ catches those keeps working.
 
 from __future__ import annotations
 
+import importlib
+from types import ModuleType
+
 __all__ = [
     "SDPError",
     "InvalidPointsError",
@@ -50,3 +53,21 @@ class MissingDependencyError(SDPError, ImportError):
 
 class InvalidOptionError(SDPError, ValueError):
     """An option is out of range: a voxel size, σ, threshold, count, memory limit or folder."""
+
+
+def require(module: str, extra: str, what: str, *, package: str | None = None) -> ModuleType:
+    """Import an optional dependency, or raise :class:`MissingDependencyError` in one line.
+
+    ``module`` is imported by name (``"zarr"``, ``"dask.distributed"``); ``extra`` is the extra
+    that installs it, ``what`` the feature that needs it and ``package`` the distribution's name
+    when it is not the module's (``scikit-learn`` for ``sklearn``), for the message, e.g.
+    ``require("zarr", "tiles", "a field store")`` raises "a field store needs zarr (not installed):
+    pip install 'sdp[tiles]'".
+    """
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        missing = (exc.name or module).split(".")[0]
+        if package and missing == module.split(".")[0]:
+            missing = package
+        raise MissingDependencyError(f"{what} needs {missing} (not installed): pip install 'sdp[{extra}]'") from None

@@ -136,6 +136,17 @@ class DensityField:
             Not an (n, 3) array, no finite point, or zero extent with ``grid_size``.
         GridTooLargeError
             The grid would need more memory than ``memory_limit``.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from sdp import DensityField
+        >>> pts = np.random.default_rng(0).random((1000, 3))
+        >>> field = DensityField.from_points(pts, voxel_size=0.05)  # σ = 2 voxels, h for k = 3
+        >>> field.voxel_size, round(field.sigma, 3), round(field.h, 2)
+        (0.05, 0.1, 2.82)
+        >>> bool(field.inside(pts).all()), bool(field.inside([[5.0, 5.0, 5.0]])[0])
+        (True, False)
         """
         (field,), _ = build_fields([points], voxel_size=voxel_size, grid_size=grid_size, sigma_voxels=sigma_voxels,
                                    k=k, h=h, truncate=truncate, method=method, memory_limit=memory_limit)

@@ -120,6 +120,20 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
     ------
     CloudFileError
         Unknown format, missing file, unreadable content, no x/y/z, or no finite point.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> import sdp
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> xyz = np.random.default_rng(0).random((100, 3))
+    >>> path = sdp.write_points(Path(folder.name) / "cloud.ply", xyz, {"high": xyz[:, 2] > 0.5})
+    >>> cloud = sdp.read_points(path)
+    >>> bool(np.array_equal(cloud.xyz, xyz)), sorted(cloud.fields), cloud.n_dropped
+    (True, ['high'], 0)
+    >>> folder.cleanup()
     """
     path = Path(path)
     fmt = _input_format(path, format)
@@ -493,6 +507,20 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
     only for clouds wider than ±2,147 km: :func:`las_scale_offset`) and an offset at the cloud's
     centre, so large coordinates stay exact. The file is written
     under a temporary name and renamed; ``inputs`` are never overwritten.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> import sdp
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> xyz = np.random.default_rng(0).random((1000, 3)) * 100 + [500_000, 4_000_000, 0]  # UTM-like
+    >>> path = sdp.write_points(Path(folder.name) / "labelled.laz", xyz, {"change": np.ones(1000, np.uint8)})
+    >>> cloud = sdp.read_points(path)  # LAS keeps 1 mm: coordinates within half of it
+    >>> bool(np.abs(cloud.xyz - xyz).max() <= 0.0005), int(cloud.fields["change"].sum())
+    (True, 1000)
+    >>> folder.cleanup()
     """
     path = Path(path)
     fields = dict(fields or {})

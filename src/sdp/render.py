@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
-from .errors import MissingDependencyError
+from .errors import require
 from .io import atomic_path
 
 __all__ = ["render_changes", "render_changes_html", "render_distances", "render_field"]
@@ -194,12 +194,9 @@ def render_changes_html(path: str | os.PathLike, xyz: np.ndarray, changed: np.nd
     Raises
     ------
     MissingDependencyError
-        plotly is not installed (``pip install "sdp[html]"``).
+        plotly is not installed (``pip install 'sdp[plots]'``).
     """
-    try:
-        import plotly.graph_objects as go
-    except ImportError:
-        raise MissingDependencyError('--html needs plotly: pip install "sdp[html]"') from None
+    go = require("plotly.graph_objects", "plots", "an HTML view")
     xyz = np.asarray(xyz)
     fig = go.Figure([go.Scatter3d(x=xyz[i, 0], y=xyz[i, 1], z=xyz[i, 2], mode="markers", name=f"{name} ({n:,})",
                                   marker={"size": size, "color": color})
@@ -220,9 +217,9 @@ def render_field(path: str | os.PathLike, field, *, center: np.ndarray | None = 
     and the black line is the boundary F = 0. ``center`` defaults to the middle of the
     allocated blocks.
     """
+    plt = _pyplot()
     from matplotlib.colors import TwoSlopeNorm
 
-    plt = _pyplot()
     l = field.voxel_size
     keys = field.global_keys
     lo, hi = keys.min(axis=0) * 8 * l, (keys.max(axis=0) + 1) * 8 * l
@@ -252,7 +249,7 @@ def render_field(path: str | os.PathLike, field, *, center: np.ndarray | None = 
 
 
 def _pyplot():
-    import matplotlib
+    matplotlib = require("matplotlib", "plots", "a PNG")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

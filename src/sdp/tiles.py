@@ -48,13 +48,13 @@ from ._progress import bar
 from .boolean import difference_on_own_blocks
 from .coverage import footprint_covered
 from .defaults import DEFAULTS
-from .errors import InvalidPointsError, SDPError
+from .errors import InvalidPointsError, SDPError, require
 from .field import DensityField, threshold
 from .grid import BLOCK, Grid, check_memory
 from .grid import memory_limit as _memory_limit
 from .io import PointSource
 from .regions import Region, describe_regions, label_points
-from .store import FieldStore
+from .store import FieldStore, _zarr
 from .validate import (
     check_grid_options,
     check_kernel,
@@ -391,6 +391,7 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float | str
     write (a folder, conventionally ``*.zarr``). Each tile's blocks equal those of
     :meth:`DensityField.from_points` on the whole cloud.
     """
+    _zarr()  # before any work
     with _Session({"cloud": cloud}, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                   method=method, tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit,
                   scheduler=scheduler, workers=workers, workdir=workdir) as run:
@@ -424,6 +425,7 @@ class _Session:
                            memory_limit=memory_limit)
         check_tile_options(tile_size=tile_size, tile_points=tile_points, workers=workers, workdir=workdir,
                            scheduler=scheduler)
+        _dask("dask" if scheduler in ("synchronous", "threads") else "dask.distributed")  # before any work
         if voxel_size is None or isinstance(voxel_size, str):  # "auto": the tiles need it before the points
             voxel_size = sampled_voxel_size(list(clouds.values()), k=k, sigma_voxels=sigma_voxels)
         self.voxel_size = float(voxel_size)
@@ -550,12 +552,18 @@ if threading.current_thread() is threading.main_thread():
 """
 
 
+def _dask(module: str):
+    """``dask`` or ``dask.distributed`` (the ``tiles`` extra), or a one-line :class:`~sdp.MissingDependencyError`."""
+    return require(module, "tiles", "the tiled path (Dask)")
+
+
 def _connect(scheduler: str | None, workers: int):
     """(executor, cluster): a distributed ``Client`` (and the local cluster it drives), or the
     name of a Dask local scheduler."""
     if scheduler in ("synchronous", "threads"):
         return scheduler, None
-    from dask.distributed import Client, LocalCluster
+    distributed = _dask("dask.distributed")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
 
     if scheduler is None:  # the tasks bound their own memory (``share``): no pausing by distributed
         with _sigint_deferred() as interrupted:  # a cluster half started can't be closed
@@ -600,10 +608,10 @@ def _run(executor, func, jobs: list, what: str) -> list:
     if not jobs:
         return []
     if isinstance(executor, str):
-        import dask
+        dask = _dask("dask")
 
         return list(dask.compute(*[dask.delayed(func, pure=False)(*job) for job in jobs], scheduler=executor))
-    from dask.distributed import as_completed
+    as_completed = _dask("dask.distributed").as_completed
 
     futures = executor.map(func, *zip(*jobs, strict=True), pure=False)
     with bar(len(futures), what) as pb:
