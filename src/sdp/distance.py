@@ -272,7 +272,7 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     # and the core points of a cell share one normal, taken at their centroid
     order, starts = lists.order(core, _CELL * sigma_p)
     core_sorted = lists.get(core, _CELL * sigma_p)[0]
-    centroids = _cell_moments(core_sorted, starts)[1]
+    centroids = np.ascontiguousarray(_cell_moments(core_sorted, starts)[:, 1:4])
     per_cell = np.diff(starts)
     if D_opt == "auto":
         sigma_n = 2.0 * sigma_p
@@ -380,7 +380,7 @@ class _CellLists:
         key = ("moments", id(xyz), cell)
         if key not in self._cache:
             self._cache[key] = _cell_moments(pts, starts)
-        return (*self._cache[key], table, rows, cell)
+        return self._cache[key], table, rows, cell
 
     def cylinder(self, xyz, queries, normals, sigma, max_half):
         """(weighted mean offset, spread, effective count, level) of ``xyz`` in the cylinders:
@@ -428,7 +428,7 @@ def _counting_sort(xyz, lo, cell, dims):
     inv = 1.0 / cell
     total = dims[0] * dims[1] * dims[2]
     linear = np.empty(n, np.int64)
-    table = np.zeros(total, np.int64)
+    table = np.zeros(total, np.int32)
     for i in range(n):
         ix = min(max(int((xyz[i, 0] - lo[0]) * inv), 0), dims[0] - 1)
         iy = min(max(int((xyz[i, 1] - lo[1]) * inv), 0), dims[1] - 1)
@@ -540,33 +540,31 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
 
 @nb.njit(cache=True)
 def _cell_moments(pts, starts):
-    """Per cell of a sorted cloud: point count, centroid, and scatter about the centroid
-    (xx, xy, xz, yy, yz, zz)."""
+    """Per cell of a sorted cloud, one row: point count, centroid (3), scatter about the centroid
+    (xx, xy, xz, yy, yz, zz); one row per cell keeps a query's reads to a cache line or two."""
     c = starts.shape[0] - 1
-    count = np.empty(c)
-    mean = np.zeros((c, 3))
-    scatter = np.zeros((c, 6))
+    m = np.zeros((c, 10))
     for r in range(c):
         a, b = starts[r], starts[r + 1]
-        count[r] = b - a
+        m[r, 0] = b - a
         for j in range(a, b):
             for k in range(3):
-                mean[r, k] += pts[j, k]
+                m[r, 1 + k] += pts[j, k]
         for k in range(3):
-            mean[r, k] /= b - a
+            m[r, 1 + k] /= b - a
         for j in range(a, b):
-            dx, dy, dz = pts[j, 0] - mean[r, 0], pts[j, 1] - mean[r, 1], pts[j, 2] - mean[r, 2]
-            scatter[r, 0] += dx * dx
-            scatter[r, 1] += dx * dy
-            scatter[r, 2] += dx * dz
-            scatter[r, 3] += dy * dy
-            scatter[r, 4] += dy * dz
-            scatter[r, 5] += dz * dz
-    return count, mean, scatter
+            dx, dy, dz = pts[j, 0] - m[r, 1], pts[j, 1] - m[r, 2], pts[j, 2] - m[r, 3]
+            m[r, 4] += dx * dx
+            m[r, 5] += dx * dy
+            m[r, 6] += dx * dz
+            m[r, 7] += dy * dy
+            m[r, 8] += dy * dz
+            m[r, 9] += dz * dz
+    return m
 
 
 @nb.njit(cache=True, parallel=True)
-def _normals(count, mean, scatter, table, dims, cell, lo, queries, sigma, reach, normal, rough):
+def _normals(cells, table, dims, cell, lo, queries, sigma, reach, normal, rough):
     inv2s2 = 0.5 / (sigma * sigma)
     r2max = reach * reach
     shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
@@ -586,24 +584,24 @@ def _normals(count, mean, scatter, table, dims, cell, lo, queries, sigma, reach,
                     r = _row(table, dims, shift, ix, iy, iz)
                     if r < 0:
                         continue
-                    dx, dy, dz = mean[r, 0] - qx, mean[r, 1] - qy, mean[r, 2] - qz
+                    dx, dy, dz = cells[r, 1] - qx, cells[r, 2] - qy, cells[r, 3] - qz
                     d2 = dx * dx + dy * dy + dz * dz
                     if d2 > r2max:
                         continue
                     g = math.exp(-d2 * inv2s2)
-                    n = count[r]
+                    n = cells[r, 0]
                     gn = g * n
                     npts += n
                     w += gn
                     sx += gn * dx
                     sy += gn * dy
                     sz += gn * dz
-                    sxx += g * scatter[r, 0] + gn * dx * dx
-                    sxy += g * scatter[r, 1] + gn * dx * dy
-                    sxz += g * scatter[r, 2] + gn * dx * dz
-                    syy += g * scatter[r, 3] + gn * dy * dy
-                    syz += g * scatter[r, 4] + gn * dy * dz
-                    szz += g * scatter[r, 5] + gn * dz * dz
+                    sxx += g * cells[r, 4] + gn * dx * dx
+                    sxy += g * cells[r, 5] + gn * dx * dy
+                    sxz += g * cells[r, 6] + gn * dx * dz
+                    syy += g * cells[r, 7] + gn * dy * dy
+                    syz += g * cells[r, 8] + gn * dy * dz
+                    szz += g * cells[r, 9] + gn * dz * dz
         if npts < 3:
             normal[i, 0] = normal[i, 1] = normal[i, 2] = np.nan
             rough[i] = np.nan
@@ -644,7 +642,7 @@ def _nearest_along(table, dims, cell, lo, queries, normals, reach, out):
 
 
 @nb.njit(cache=True, parallel=True)
-def _cylinders(count, mean, scatter, table, dims, cell, lo, queries, normals, sigma, radius, half, out):
+def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, half, out):
     """Per query: kernel-weighted mean offset along its normal, spread and effective count of the
     cells whose centroid lies within ``radius`` of its axis and ``half`` along it; each cell's
     points share the weight of its centroid, their offsets and spread are exact (the cell's
@@ -675,7 +673,7 @@ def _cylinders(count, mean, scatter, table, dims, cell, lo, queries, normals, si
                     r = _row(table, dims, shift, ix, iy, iz)
                     if r < 0:
                         continue
-                    dx, dy, dz = mean[r, 0] - qx, mean[r, 1] - qy, mean[r, 2] - qz
+                    dx, dy, dz = cells[r, 1] - qx, cells[r, 2] - qy, cells[r, 3] - qz
                     t = dx * nx + dy * ny + dz * nz
                     if t > half or t < -half:
                         continue
@@ -683,10 +681,10 @@ def _cylinders(count, mean, scatter, table, dims, cell, lo, queries, normals, si
                     if r2 > r2max:
                         continue
                     g = math.exp(-r2 * inv2s2)
-                    n = count[r]
-                    along = (nx * (scatter[r, 0] * nx + scatter[r, 1] * ny + scatter[r, 2] * nz)
-                             + ny * (scatter[r, 1] * nx + scatter[r, 3] * ny + scatter[r, 4] * nz)
-                             + nz * (scatter[r, 2] * nx + scatter[r, 4] * ny + scatter[r, 5] * nz))
+                    n = cells[r, 0]
+                    along = (nx * (cells[r, 4] * nx + cells[r, 5] * ny + cells[r, 6] * nz)
+                             + ny * (cells[r, 5] * nx + cells[r, 7] * ny + cells[r, 8] * nz)
+                             + nz * (cells[r, 6] * nx + cells[r, 8] * ny + cells[r, 9] * nz))
                     w += g * n
                     w2 += g * g * n
                     st += g * n * t
