@@ -111,3 +111,21 @@ def test_bad_options_are_refused(rng, kwargs):
     a = plane(rng, 1_000, 0.002)
     with pytest.raises(sdp.SDPError):
         sdp.distances(a, a, **kwargs)
+
+
+def test_bad_clouds_and_memory_are_refused_before_work(rng):
+    a = plane(rng, 1_000, 0.002)
+    for bad in (np.zeros((0, 3)), np.zeros((1, 3)), np.full((10, 3), np.nan), np.zeros((5, 2))):
+        with pytest.raises(sdp.SDPError):
+            sdp.distances(bad, a)
+    with pytest.raises(sdp.GridTooLargeError, match="would need"):
+        sdp.distances(a, a, memory_limit=10_000)
+    with pytest.raises(sdp.SDPError):
+        sdp.distances(a, a, memory_limit="lots")
+
+
+def test_huge_offsets_keep_sub_millimetre_distances(rng):
+    a = plane(rng, 20_000, 0.002) + [634_000.0, 4_831_000.0, 80.0]
+    b = plane(rng, 20_000, 0.002, z=0.01) + [634_000.0, 4_831_000.0, 80.0]
+    d = sdp.distances(a, b)
+    assert abs(np.median(d.distance) - 0.01) < 0.0005

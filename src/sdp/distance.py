@@ -64,7 +64,9 @@ import numpy.typing as npt
 
 from ._points import as_points
 from .defaults import DEFAULTS
-from .errors import InvalidOptionError
+from .errors import InvalidOptionError, InvalidPointsError
+from .grid import check_memory
+from .grid import memory_limit as grid_memory_limit
 from .params import resolve_voxel_size
 from .validate import auto_or_positive, nonnegative_finite
 from .visibility import resolve_sensor_origins
@@ -181,7 +183,8 @@ class Distances:
 def distances(reference, current, *, core_points=None, projection_scale: float | str = DEFAULTS.projection_scale,
               normal_scale: float | str = DEFAULTS.normal_scale, max_distance: float | str = DEFAULTS.max_distance,
               registration_error: float = DEFAULTS.registration_error,
-              orientation: npt.ArrayLike | None = None, sensor_origin=DEFAULTS.sensor_origin) -> Distances:
+              orientation: npt.ArrayLike | None = None, sensor_origin=DEFAULTS.sensor_origin,
+              memory_limit=None) -> Distances:
     """Signed distance from the reference to the current along the local normal, with M3C2's
     level of detection, at every core point.
 
@@ -207,6 +210,9 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     sensor_origin : "auto", None or array_like
         As :func:`sdp.detect_changes`: where known, normals point towards the sensor of the
         core points' epoch (the reference's for the default core points).
+    memory_limit : int, str or None
+        As :func:`sdp.detect_changes` (``$SDP_MEMORY_LIMIT``, else 4 GiB): checked against an
+        estimate of what the sorted clouds, their cells and the outputs need, before any work.
 
     Returns
     -------
@@ -216,6 +222,8 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     ------
     InvalidPointsError, InvalidOptionError
         Bad clouds or options (checked before any work).
+    GridTooLargeError
+        The work would need more than the memory limit.
 
     References
     ----------
@@ -233,10 +241,15 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     """
     t0 = time.perf_counter()
     ref, cur = as_points(reference, name="reference"), as_points(current, name="current")
+    for pts, name in ((ref, "reference"), (cur, "current")):
+        if len(pts.xyz) < 3:
+            raise InvalidPointsError(f"the {name} has {len(pts.xyz)} point(s): a surface normal and a spread need "
+                                     "at least 3")
     d_opt = auto_or_positive("projection_scale", projection_scale)
     D_opt = auto_or_positive("normal_scale", normal_scale)
     L_opt = auto_or_positive("max_distance", max_distance)
     reg = nonnegative_finite("registration_error", registration_error)
+    grid_memory_limit(memory_limit)  # readable and positive, before any work
     if orientation is None:
         towards = np.array([0.0, 0.0, 1.0])
     else:
@@ -264,6 +277,13 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     max_half = _AUTO_REACH * sigma_p if L_opt == "auto" else L_opt
     lo = np.minimum(np.minimum(ref.lo, cur.lo), core.min(axis=0)) - 1e-9
     hi = np.maximum(np.maximum(ref.hi, cur.hi), core.max(axis=0))
+    # per cloud point: a sorted copy, its permutation and cell (8 × 5 B) and its cell's moments
+    # at two cell sizes (at most 2 × 80 B); per core point: its copy, normal and results (≈ 30 × 8 B);
+    # the dense cell tables (4 B per cell of the box, for the cells of three clouds)
+    box_cells = min(float(np.prod((hi - lo) // (_CELL * sigma_p) + 1)), _DENSE_CELLS)
+    need = 200.0 * (len(ref.xyz) + len(cur.xyz)) + 240.0 * len(core) + 3 * 4.0 * box_cells
+    check_memory(need, f"distances between {len(ref.xyz):,} and {len(cur.xyz):,} points at {len(core):,} core points",
+                 memory_limit, advice="measure at fewer core points (core_points=), or compare in tiles")
     timings["scales"] = time.perf_counter() - t
 
     lists = _CellLists(lo, hi)
