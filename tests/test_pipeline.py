@@ -2,31 +2,20 @@
 
 import inspect
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
-from conftest import box_surface, room_scene
+import test_cli
 
 import sdp
 from sdp import pipeline
 from sdp.io import read_points, write_points
 
-
-def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "sdp.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+pair, run = test_cli.pair, test_cli.run  # the fixture of two clouds as PLY files; sdp on the command line
 
 
 def without_times(summary):
     return {k: v for k, v in summary.items() if k not in ("timings", "outputs")}
-
-
-@pytest.fixture
-def pair(tmp_path, rng):
-    ref = room_scene(rng, n=20_000)
-    cur = np.concatenate([room_scene(rng, n=20_000), box_surface(rng, [2.0, 1.2, 0.75], [2.4, 1.6, 1.35], 2000)])
-    return write_points(tmp_path / "ref.ply", ref), write_points(tmp_path / "cur.ply", cur)
 
 
 def test_compare_files_equals_sdp_change(tmp_path, pair):

@@ -1,4 +1,10 @@
-"""The ``sdp`` command: a thin layer over the Python API (one library call per command)."""
+"""The ``sdp`` command: a thin layer over the Python API.
+
+Each command is a ``cmd_NAME(a)`` that passes the parsed options ``a`` to one library function
+(:mod:`sdp.pipeline`: the commands as Python functions) and prints what it returns (the text of
+:mod:`sdp.report`, or JSON), plus its parser in :func:`build_parser`. Options are checked by
+:mod:`sdp.validate`; :func:`main` turns errors and signals into one line and an exit status.
+"""
 
 from __future__ import annotations
 
