@@ -7,7 +7,9 @@ sparse grid of :mod:`sdp.grid`) → Boolean operations (:mod:`sdp.boolean`) → 
 (:mod:`sdp.io`) and pictures (:mod:`sdp.render`); surfaces by :mod:`sdp.surface`, parameters
 from the data by :mod:`sdp.params`. Clouds beyond memory: the same path in tiles on Dask
 (:mod:`sdp.tiles`), reading files in slices (:class:`PointSource`) and keeping fields on disk
-(:mod:`sdp.store`, Zarr). Every default is :data:`DEFAULTS` (:mod:`sdp.defaults`).
+(:mod:`sdp.store`, Zarr). Files to files, as the ``sdp`` commands: :mod:`sdp.pipeline`
+(:func:`compare_files` chooses memory or tiles by itself). Every default is :data:`DEFAULTS`
+(:mod:`sdp.defaults`).
 
 ``import sdp`` needs only the core dependencies. The tiles and the field store need the
 ``tiles`` extra (Dask, Zarr), :mod:`sdp.actions`' classifier ``actions`` (scikit-learn), the
@@ -51,6 +53,7 @@ from .io import (
 from .metrics import confusion_matrix, kappa, scores
 from .online import FrameChange, watch
 from .params import auto_voxel_size
+from .pipeline import ChangePlan, FileComparison, compare_files, plan_change
 from .regions import Region
 from .render import render_changes, render_changes_html, render_distances, render_field
 from .store import FieldStore
@@ -65,6 +68,7 @@ __all__ = [
     "distances", "Distances",
     "UNCHANGED", "CHANGED", "NOT_COMPARABLE", "footprint_covered",
     "detect_changes_tiled", "TiledChanges", "build_field_tiled", "FieldStore",
+    "compare_files", "plan_change", "FileComparison", "ChangePlan",
     "align", "Alignment", "transform_points",
     "watch", "FrameChange",
     "extract_surface", "Mesh",

@@ -26,6 +26,7 @@ from .errors import InvalidOptionError, InvalidPointsError, SDPError
 __all__ = ["positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
            "memory_size", "existing_folder", "check_threshold", "check_grid_options", "check_tile_options",
            "check_lattice", "check_kernel", "kernel_reach", "check_workdir", "format_bytes", "cli_type",
+           "sensor_origin_option", "class_numbers", "check_alignment_options", "check_tiled_options",
            "MAX_GRID_UNITS"]
 
 #: Largest |coordinate| / voxel size accepted: beyond 2**40 voxels from the origin, float64 keeps
@@ -263,6 +264,59 @@ def memory_size(name: str, value) -> str:
 
     memory_limit(value)  # its messages say what a memory limit is
     return value
+
+
+def sensor_origin_option(name: str, value) -> str | np.ndarray:
+    """The ``--sensor-origin`` of ``sdp change`` / ``sdp watch`` (:func:`sdp.pipeline.compare_files`):
+    ``"auto"``, ``"none"`` (also None), ``"viewpoint"``, or a position ``"X,Y,Z"`` (or three
+    numbers) returned as an ndarray (3,) of finite floats."""
+    if value is None:
+        return "none"
+    if isinstance(value, str) and value in ("auto", "none", "viewpoint"):
+        return value
+    try:
+        xyz = [float(v) for v in (value.split(",") if isinstance(value, str) else np.ravel(value))]
+    except (TypeError, ValueError):
+        xyz = []
+    if len(xyz) != 3 or not np.isfinite(xyz).all():
+        raise InvalidOptionError(f"{name} must be auto, none, viewpoint or X,Y,Z (finite numbers), got {value!r}")
+    return np.array(xyz, dtype=np.float64)
+
+
+def class_numbers(name: str, value) -> list[int]:
+    """LAS class numbers from ``"2"``, ``"2,9"``, an int or a sequence of ints (``--align-class``)."""
+    parts = value.split(",") if isinstance(value, str) else [value] if np.ndim(value) == 0 else list(value)
+    if all(isinstance(c, str) or (isinstance(c, numbers.Integral) and not isinstance(c, bool)) for c in parts):
+        try:
+            return [int(c) for c in parts]
+        except ValueError:
+            pass
+    raise InvalidOptionError(f"{name} takes LAS class numbers such as 2 or 2,9, got {value!r}")
+
+
+def check_alignment_options(method: str | None, *, fix_horizontal: bool = False, align_class=None) -> list[int] | None:
+    """Check how a scan is to be aligned (``sdp align``, ``sdp change --align``) before any file is
+    read; returns the class numbers of ``align_class`` (None: all points).
+
+    ``fix_horizontal`` and ``align_class`` need a ``method``; ``fix_horizontal`` works with the
+    density alignment only.
+    """
+    classes = align_class is not None and not (isinstance(align_class, str) and align_class == "")
+    if (fix_horizontal or classes) and not method:
+        raise InvalidOptionError("--fix-horizontal and --align-class choose how to align: give --align density too")
+    if fix_horizontal and method != "density":
+        raise InvalidOptionError("--fix-horizontal works with the density alignment only")
+    return class_numbers("--align-class", align_class) if classes else None
+
+
+def check_tiled_options(*, grid_size=None, align=None, sensor_origin="auto", decision="point",
+                        pictures: bool = False) -> None:
+    """Refuse the options of ``sdp change`` that a comparison in tiles does not have (``--tiled``)."""
+    given_sensor = not (isinstance(sensor_origin, str) and sensor_origin in ("auto", "none"))
+    for flag, bad in (("--grid-size", grid_size is not None), ("--align", align), ("--sensor-origin", given_sensor),
+                      ("--decision cluster", decision != "point"), ("--png/--html", pictures)):
+        if bad:
+            raise InvalidOptionError(f"{flag} is not available with --tiled")
 
 
 def cli_type(check: Callable, *args) -> Callable[[str], object]:

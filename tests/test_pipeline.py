@@ -1,0 +1,108 @@
+"""sdp.pipeline: the commands as Python functions give what the commands give (issue 18)."""
+
+import inspect
+import json
+
+import numpy as np
+import pytest
+import test_cli
+
+import sdp
+from sdp import pipeline
+from sdp.io import read_points, write_points
+
+pair, run = test_cli.pair, test_cli.run  # the fixture of two clouds as PLY files; sdp on the command line
+
+
+def without_times(summary):
+    return {k: v for k, v in summary.items() if k not in ("timings", "outputs")}
+
+
+def test_compare_files_equals_sdp_change(tmp_path, pair):
+    ref, cur = pair
+    opts = ["--both", "--voxel-size", "0.03", "--min-region-points", "20", "--sensor-origin", "2,1.5,2"]
+    p = run("change", ref, cur, "-o", tmp_path / "cli.ply", "--json", *opts)
+    text = run("change", ref, cur, "-o", tmp_path / "cli2.ply", *opts)
+    assert p.returncode == 0 and text.returncode == 0, p.stderr + text.stderr
+    r = sdp.compare_files(ref, cur, output=tmp_path / "py.ply", both=True, voxel_size=0.03, min_region_points=20,
+                          sensor_origin="2,1.5,2")
+    assert not r.tiled and r.outputs == [str(tmp_path / "py.ply"), str(tmp_path / "py_disappeared.ply")]
+    assert without_times(json.loads(p.stdout)) == json.loads(json.dumps(without_times(r.summary)))
+    assert r.summary["current"]["appeared"] > 1500 and r.summary["coverage"]["appeared"] == "sensor rays"
+    for suffix in ("", "_disappeared"):
+        a, b = read_points(tmp_path / f"cli{suffix}.ply"), read_points(tmp_path / f"py{suffix}.ply")
+        for name in ("change", "region", "G", "F"):
+            np.testing.assert_array_equal(a.fields[name], b.fields[name])
+
+    def table(s):  # the printed table but for the times and the file names
+        return [ln for ln in s.splitlines() if not ln.startswith(("time (ms)", "wrote"))]
+
+    assert table(r.summary_text()) == table(text.stdout)
+
+
+def test_the_automatic_switch_to_tiles_from_python(tmp_path, rng):
+    from test_tiles import street, write_las
+
+    a = write_las(tmp_path / "a.laz", street(rng, [([2, 2, 0], [4, 5, 2.0])], n=40_000))
+    b = write_las(tmp_path / "b.laz", street(rng, [([2, 2, 0], [4, 5, 2.0]), ([20, 9, 0], [21.5, 10.5, 1.2])],
+                                             n=40_000))
+    plan = sdp.plan_change(a, b, voxel_size=0.1, memory_limit="15MB")
+    assert plan.tiled and "exceed the memory limit of 15 MB" in plan.reason
+    assert not sdp.plan_change(a, b, voxel_size=0.1).tiled  # fits in 4 GiB
+    assert not sdp.plan_change(a, b, voxel_size=0.1, memory_limit="15MB", decision="cluster").tiled
+    said = []
+    tiled = sdp.compare_files(a, b, output=tmp_path / "t.laz", both=True, voxel_size=0.1, memory_limit="15MB",
+                              tile_size=6, scheduler="synchronous", notify=said.append)
+    assert tiled.tiled and said == [plan.reason] and tiled.summary["tiles"] > 1
+    assert "tiles of 6.4" in tiled.summary_text()
+    whole = sdp.compare_files(a, b, output=tmp_path / "m.laz", both=True, voxel_size=0.1)
+    assert not whole.tiled and whole.summary["current"]["appeared"] == tiled.summary["current"]["appeared"] > 500
+    for suffix in ("", "_disappeared"):
+        x, y = read_points(tmp_path / f"t{suffix}.laz"), read_points(tmp_path / f"m{suffix}.laz")
+        np.testing.assert_array_equal(x.fields["change"], y.fields["change"])
+    with pytest.raises(sdp.SDPError, match="output streams to LAS/LAZ"):
+        sdp.compare_files(a, b, output=tmp_path / "t.ply", voxel_size=0.1, memory_limit="15MB")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.laz", "b.laz", "m.laz", "m_disappeared.laz", "t.laz",
+                                                          "t_disappeared.laz"]
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(align="gicp", fix_horizontal=True), "density alignment only"),
+    (dict(align_class="2"), "give --align density too"),
+    (dict(align="density", align_class="ground"), "class numbers"),
+    (dict(sensor_origin="1,2"), "X,Y,Z"),
+    (dict(tiled=True, decision="cluster"), "--decision cluster is not available with --tiled"),
+    (dict(voxel_size=-1), "voxel_size"),
+    (dict(min_region_points=-1), "min_region_points"),
+])
+def test_options_are_refused_before_any_file_is_read(tmp_path, kw, match):
+    with pytest.raises(sdp.SDPError, match=match):  # the inputs do not even exist
+        sdp.compare_files(tmp_path / "none.ply", tmp_path / "nothing.ply", output=tmp_path / "o.ply", **kw)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_other_commands_as_functions(tmp_path, pair):
+    ref, cur = pair
+    fld = pipeline.build_field_file(ref, output=tmp_path / "r.sdpf", voxel_size=0.03)
+    assert sdp.DensityField.load(tmp_path / "r.sdpf").n_blocks == fld.n_blocks
+    assert pipeline.describe_file(tmp_path / "r.sdpf")["voxel_size"] == pytest.approx(0.03)
+    new = pipeline.combine_files("difference", cur, tmp_path / "r.sdpf", output=tmp_path / "n.sdpf")
+    assert new.voxel_size == pytest.approx(0.03) and new.inside(np.array([[2.2, 1.4, 1.35]]))[0]
+    mesh = pipeline.mesh_file(tmp_path / "r.sdpf", output=tmp_path / "m.ply")
+    assert len(mesh.faces) > 1000 and (tmp_path / "m.ply").stat().st_size > 1000
+    r = sdp.compare_files(ref, cur, output=tmp_path / "c.ply", voxel_size=0.03)
+    e = pipeline.evaluate_files(tmp_path / "c.ply", tmp_path / "c.ply")
+    assert e.scores["kappa"] == pytest.approx(1.0) and e.predicted == r.summary["current"]["appeared"]
+    assert pipeline.render_file(tmp_path / "c.ply", png=tmp_path / "c.png") == [str(tmp_path / "c.png")]
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    write_points(frames / "f1.ply", read_points(cur).xyz)
+    [frame] = list(pipeline.watch_folder(ref, frames, voxel_size=0.03))
+    assert frame.name == "f1.ply" and frame.n_appeared > 1000
+
+
+def test_the_functions_take_the_defaults_objects():
+    for func in (sdp.compare_files, sdp.plan_change, pipeline.build_field_file, pipeline.watch_folder):
+        for name, p in inspect.signature(func).parameters.items():
+            if hasattr(sdp.DEFAULTS, name):
+                assert p.default is getattr(sdp.DEFAULTS, name), (func.__name__, name)
