@@ -146,7 +146,8 @@ def masks(out, rng, n):
         g0 = float(np.median(r.reference_field.density(a)))
         s = np.sqrt(sigma**2 + np.median(d.spread1) ** 2)
         threshold = s * np.sqrt(2 * np.log(g0 / r.h))
-        out(f"| {shift * 100:.1f} cm | {shift / sigma:.1f} | {r.appeared.mean():.1%} | {-np.median(d.distance) * 100:.2f} cm | "
+        out(f"| {shift * 100:.1f} cm | {shift / sigma:.1f} | {r.appeared.mean():.1%} | "
+            f"{-np.median(d.distance) * 100:.2f} cm | "
             f"{threshold * 100:.2f} cm |")
     out()
 
@@ -184,7 +185,8 @@ def side_by_side(out, name, ref, cur, rng, *, every=True, **kwargs):
         same = np.isfinite(d.distance) & np.isfinite(dn)
         agree_n = (d.significant[same] == (np.abs(dn[same]) > lod_n[same])).mean()
         rows.append(f"| {name} | {len(core):,} | {np.median(d.distance[both]):+.3f} | {np.median(dm[both]):+.3f} | "
-                    f"{np.median(diff):.4f} ({np.median(diff) / d.projection_scale:.3f} d) | {agree:.1%} | {agree_n:.1%} | "
+                    f"{np.median(diff):.4f} ({np.median(diff) / d.projection_scale:.3f} d) | {agree:.1%} | "
+                    f"{agree_n:.1%} | "
                     f"{d.significant[both].mean():.1%} / {(np.abs(dm[both]) > lod_m[both]).mean():.1%} | "
                     f"{(~np.isfinite(d.distance)).mean():.1%} / {(~np.isfinite(dm)).mean():.1%} | "
                     f"{d.projection_scale:.3f} | {t_sdp:.2f} s | {t_m:.2f} s | {t_m / t_sdp:.1f}× |")

@@ -129,3 +129,51 @@ def test_huge_offsets_keep_sub_millimetre_distances(rng):
     b = plane(rng, 20_000, 0.002, z=0.01) + [634_000.0, 4_831_000.0, 80.0]
     d = sdp.distances(a, b)
     assert abs(np.median(d.distance) - 0.01) < 0.0005
+
+
+def run_sdp(*args):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "sdp.cli", *map(str, args)], capture_output=True, text=True)
+
+
+@pytest.mark.slow
+def test_sdp_distance_writes_every_field_in_each_format(rng, tmp_path):
+    a, b = plane(rng, 8_000, 0.002), plane(rng, 8_000, 0.002, z=0.02)
+    sdp.write_points(tmp_path / "a.ply", a)
+    sdp.write_points(tmp_path / "b.ply", b)
+    expected = sdp.distances(a, b)
+    for ext in ("ply", "laz", "npz"):
+        r = run_sdp("distance", tmp_path / "a.ply", tmp_path / "b.ply", "-o", tmp_path / f"d.{ext}", "--json")
+        assert r.returncode == 0, r.stderr
+        out = sdp.read_points(tmp_path / f"d.{ext}")
+        assert set(sdp.distance.DISTANCE_FIELDS) <= set(out.fields)
+        tol = 2e-3 if ext == "laz" else 1e-6  # LAS coordinates on a 1 mm scale
+        assert np.allclose(out.fields["distance"], expected.distance, atol=tol)
+        assert (np.asarray(out.fields["significant"]) == expected.significant).all()
+    import json
+
+    s = json.loads(r.stdout)
+    assert s["comparable"] == 8_000 and s["significant"] == int(expected.significant.sum())
+
+
+def test_distance_files_core_points_png_and_refusals(rng, tmp_path):
+    a, b = plane(rng, 8_000, 0.002), plane(rng, 8_000, 0.002, z=0.02)
+    sdp.write_points(tmp_path / "a.ply", a)
+    sdp.write_points(tmp_path / "b.ply", b)
+    core = np.c_[rng.uniform(1, 3, (30, 2)), np.zeros(30)]
+    sdp.write_points(tmp_path / "core.npz", core)
+    r = sdp.distance_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "d.npz",
+                           core_points=tmp_path / "core.npz", png=tmp_path / "d.png")
+    assert (tmp_path / "d.png").stat().st_size > 10_000 and len(r.result.distance) == 30
+    assert "significant" in r.summary_text() and r.summary["registration_error"] == 0.0
+    for bad in (dict(output=tmp_path / "a.ply"), dict(output=tmp_path / "x.ply", projection_scale=-1),
+                dict(output=tmp_path / "x.ply", registration_error="big"),
+                dict(output=tmp_path / "x.ply", orientation="up"), dict(output=tmp_path / "x.txt")):
+        with pytest.raises(sdp.SDPError):
+            sdp.distance_files(tmp_path / "a.ply", tmp_path / "b.ply", **bad)
+    assert not (tmp_path / "x.ply").exists() and not (tmp_path / "x.txt").exists()
+    r = run_sdp("distance", tmp_path / "a.ply", tmp_path / "b.ply", "-o", tmp_path / "y.ply",
+                "--registration-error", "-1")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "y.ply").exists()

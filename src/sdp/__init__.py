@@ -53,7 +53,7 @@ from .io import (
 from .metrics import confusion_matrix, kappa, scores
 from .online import FrameChange, watch
 from .params import auto_voxel_size
-from .pipeline import ChangePlan, FileComparison, compare_files, plan_change
+from .pipeline import ChangePlan, FileComparison, FileDistances, compare_files, distance_files, plan_change
 from .regions import Region
 from .render import render_changes, render_changes_html, render_distances, render_field
 from .store import FieldStore
@@ -68,7 +68,7 @@ __all__ = [
     "distances", "Distances",
     "UNCHANGED", "CHANGED", "NOT_COMPARABLE", "footprint_covered",
     "detect_changes_tiled", "TiledChanges", "build_field_tiled", "FieldStore",
-    "compare_files", "plan_change", "FileComparison", "ChangePlan",
+    "compare_files", "plan_change", "FileComparison", "ChangePlan", "distance_files", "FileDistances",
     "align", "Alignment", "transform_points",
     "watch", "FrameChange",
     "extract_surface", "Mesh",

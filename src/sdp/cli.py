@@ -18,46 +18,20 @@ import threading
 from . import __version__, _progress
 from . import pipeline as P
 from . import validate as V
+from .cli_examples import (
+    EXAMPLES_ACTION,
+    EXAMPLES_ALIGN,
+    EXAMPLES_BOOL,
+    EXAMPLES_CHANGE,
+    EXAMPLES_DISTANCE,
+    EXAMPLES_EVAL,
+    EXAMPLES_RENDER,
+    EXAMPLES_WATCH,
+)
 from .defaults import DEFAULTS
 from .errors import SDPError
 from .io import all_or_none
 from .report import action_eval_text, alignment_text, frame_text, train_text, written_text
-
-EXAMPLES_CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                  appeared points of cur.pcd
-  sdp change ref.laz cur.laz -o out.laz --both --voxel-size 0.1
-  sdp change ref.ply cur.ply -o out.ply --grid-size 80        the paper's parameters
-  sdp change ref.pcd cur.pcd -o out.ply --json                summary as JSON
-  sdp change ref.pcd rescan.pcd -o out.ply --align density    register the rescan first
-  sdp change ref.ply cur.ply -o out.ply --sensor-origin 0,0,0   the sensor stood there (PCD: read from the file)
-  sdp change a.laz b.laz -o out.laz --voxel-size 0.1 --memory-limit 2GB   any size: tiles on Dask
-  sdp change a.laz b.laz -o out.laz --voxel-size 0.1 --scheduler tcp://host:8786   on a cluster
-"""
-
-EXAMPLES_BOOL = """  sdp bool difference cur.sdpf ref.sdpf -o new.sdpf          what cur has and ref lacks
-  sdp bool union a.pcd b.pcd -o both.ply                      surface of the union (auto voxel from both)
-  sdp bool intersection a.sdpf b.ply -o common.stl            b is built on a's lattice
-"""
-EXAMPLES_ALIGN = """  sdp align rescan.pcd reference.pcd -o T.txt               density-based, coarse to fine
-  sdp align rescan.pcd reference.pcd -o T.txt --method gicp  small_gicp (extra: align)
-  sdp change reference.pcd rescan.pcd -o out.ply --align density   align, then compare
-"""
-EXAMPLES_WATCH = """  sdp watch empty_room.pcd frames/                         each frame against a sliding window
-  sdp watch first.pcd frames/ --align gicp                  a hand-held camera: register each frame first
-  sdp watch first.ply frames/ --sensor-origin 0,0,0         the sensor's rays (a PCD's VIEWPOINT is read by itself)
-  sdp watch map.sdpf frames/ --update none --json           against a fixed reference field
-"""
-EXAMPLES_ACTION = """  sdp action eval ../shared/data/msr_action3d --json          the cross-subject protocol
-  sdp action train ../shared/data/msr_action3d -o model.npz --subjects 1,3,5,7,9
-  sdp action predict model.npz a05_s02_e01_sdepth.mat
-"""
-EXAMPLES_EVAL = """  sdp eval changes.ply truth.ply                              field 'change' of both
-  sdp eval demo-output/current_labelled.ply demo-output/current_labelled.ply --truth-field truth
-  sdp eval changes.las scan_labels.las --truth-field classification --json
-"""
-EXAMPLES_RENDER = """  sdp render changes.ply --png changes.png                    'change' field: changed in vermillion
-  sdp render changes.laz --html changes.html --field change   interactive, opens in a browser
-  sdp render scan.sdpf --png slices.png                       three slices of F = h - G
-"""
 
 
 def _grid_options(p):
@@ -116,6 +90,15 @@ def cmd_change(a):
                         sensor_origin=a.sensor_origin, range_noise=a.range_noise, align=a.align,
                         aligned_output=a.aligned_output, fix_horizontal=a.fix_horizontal, align_class=a.align_class,
                         tiled=a.tiled, notify=None if a.json else _say, **_grid(a), **_tiles(a))
+    return _show(r.summary_text(), r.summary, a.json)
+
+
+def cmd_distance(a):
+    r = P.distance_files(a.reference, a.current, output=a.output, core_points=a.core_points, png=a.png,
+                         format=a.format, projection_scale=a.projection_scale, normal_scale=a.normal_scale,
+                         max_distance=a.max_distance, registration_error=a.registration_error,
+                         orientation=a.orientation, sensor_origin=a.sensor_origin, align=a.align,
+                         fix_horizontal=a.fix_horizontal, align_class=a.align_class, memory_limit=a.memory_limit)
     return _show(r.summary_text(), r.summary, a.json)
 
 
@@ -237,6 +220,32 @@ def build_parser() -> argparse.ArgumentParser:
     _tile_options(c, "large clouds: tiles on Dask (taken by itself when the grids or points exceed --memory-limit, "
                      "or when REFERENCE is a .zarr field store; outputs LAS/LAZ with 'change' and 'region')")
 
+    ds = _command(sub, "distance", cmd_distance, "signed distance along the normal, its level of detection and "
+                 "significance (M3C2's answer)", EXAMPLES_DISTANCE)
+    ds.add_argument("reference")
+    ds.add_argument("current")
+    ds.add_argument("-o", "--output", required=True, help="core points with distance, lod, significant, n1, n2, "
+                   "spread1, spread2, normal_x/y/z (.ply, .las, .laz, .npz)")
+    ds.add_argument("--core-points", help="where to measure (a cloud file; default: every reference point)")
+    ds.add_argument("--projection-scale", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.projection_scale,
+                   help="M3C2's d, the cylinder's diameter (default auto: 4 sigma of the density kernel)")
+    ds.add_argument("--normal-scale", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.normal_scale,
+                   help="M3C2's D, the normal's diameter (default auto: 2d, up to 4d on rough surfaces)")
+    ds.add_argument("--max-distance", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.max_distance,
+                   help="how far along the normal an epoch is looked for (default auto: 12d)")
+    ds.add_argument("--registration-error", default="auto", type=V.cli_type(V.auto_or_nonnegative),
+                   help="added to the level of detection (default auto: the alignment's RMS with --align, else 0)")
+    ds.add_argument("--orientation", metavar="X,Y,Z", help="normals point this way where no sensor is known "
+                   "(default 0,0,1)")
+    ds.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
+                   help="normals point towards the sensor (auto: where a file records it)")
+    ds.add_argument("--png", help="map of the significant distances and their histogram")
+    ds.add_argument("--json", action="store_true", help="print the summary as JSON")
+    ds.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
+    _align_options(ds)
+    ds.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
+                   help="refuse work needing more (default $SDP_MEMORY_LIMIT or 4GiB)")
+
     b = _command(sub, "build", cmd_build, "build a density field and save it (.sdpf, or a .zarr store in tiles)",
                  "  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01\n"
                  "  sdp build city.laz -o city.zarr --voxel-size 0.1        any size: tiles on Dask, on disk")
@@ -329,7 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--field", default="change",
                    help="per-point field whose nonzero points are drawn as changed (default change)")
 
-    for q in (c, b, i, m, o, al, w, e, r):
+    for q in (c, ds, b, i, m, o, al, w, e, r):
         q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz)")
     for q in (c, b, m, o):
         _grid_options(q)
@@ -338,7 +347,7 @@ def build_parser() -> argparse.ArgumentParser:
                  "  sdp demo -o demo-output")
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
-    for q in (c, b, i, m, o, al, w, e, r, d):
+    for q in (c, ds, b, i, m, o, al, w, e, r, d):
         q.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     return p
 

@@ -34,9 +34,10 @@ from .defaults import DEFAULTS
 from .errors import SDPError
 from .io import all_or_none, check_outputs, read_points
 
-__all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files", "build_field_file", "mesh_file",
-           "combine_files", "describe_file", "align_files", "watch_folder", "Evaluation", "evaluate_files",
-           "render_file", "train_actions", "predict_actions", "evaluate_actions", "disappeared_path"]
+__all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files", "FileDistances", "distance_files",
+           "build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder",
+           "Evaluation", "evaluate_files", "render_file", "train_actions", "predict_actions", "evaluate_actions",
+           "disappeared_path"]
 
 
 def _is_store(path) -> bool:
@@ -430,6 +431,124 @@ def _pictures(png, html, xyz, changed, title) -> list[str]:
             render(path, xyz, changed, title=title)
             written.append(str(path))
     return written
+
+
+# --- sdp distance ------------------------------------------------------------------------------
+
+@dataclass
+class FileDistances:
+    """What :func:`distance_files` measured and wrote."""
+
+    reference: str
+    current: str
+    result: object  # sdp.Distances
+    summary: dict
+    alignment: object = None
+    outputs: list = field(default_factory=list)
+
+    def summary_text(self) -> str:
+        return report.distance_text(self.summary, self.reference, self.current)
+
+
+def distance_files(reference, current, *, output, core_points=None, png=None, format: str | None = None,
+                   projection_scale: float | str = DEFAULTS.projection_scale,
+                   normal_scale: float | str = DEFAULTS.normal_scale,
+                   max_distance: float | str = DEFAULTS.max_distance, registration_error: float | str = "auto",
+                   orientation=None, sensor_origin=DEFAULTS.sensor_origin, align: str | None = None,
+                   fix_horizontal: bool = False, align_class=None, memory_limit=None) -> FileDistances:
+    """Signed distances from the reference to the current along the normal, with M3C2's level of
+    detection, written per core point: ``sdp distance`` as a function.
+
+    The output holds the core points (default: every reference point, M3C2's epoch 1) with the
+    fields of :data:`sdp.distance.DISTANCE_FIELDS` (``distance``, ``lod``, ``significant``,
+    ``n1``, ``n2``, ``spread1``, ``spread2``, ``normal_x/y/z``; NaN distance where an epoch has
+    no points near: not comparable). LAS/LAZ output of LAS/LAZ core points keeps every input
+    dimension.
+
+    Parameters
+    ----------
+    reference, current : path-like
+        Point-cloud files (``format`` overrides the extension).
+    output : path-like
+        The core points with their distances (.ply, .las, .laz, .npz).
+    core_points : path-like, optional
+        A cloud file of core points (any format sdp reads).
+    png : path-like, optional
+        A map (or view) of the significant distances and their histogram
+        (:func:`sdp.render_distances`).
+    projection_scale, normal_scale, max_distance, orientation, sensor_origin, memory_limit
+        As in :func:`sdp.distances` (``sensor_origin`` also takes ``"viewpoint"`` and ``"X,Y,Z"``,
+        as :func:`compare_files`).
+    registration_error : float or "auto"
+        M3C2's registration error; ``"auto"``: the alignment's RMS residual with ``align``, else 0.
+    align, fix_horizontal, align_class
+        Register the current onto the reference first, as :func:`compare_files`; the distances are
+        between the aligned epochs.
+
+    Returns
+    -------
+    FileDistances
+
+    Raises
+    ------
+    SDPError
+        Bad options, outputs that can't be written or would overwrite an input, unreadable files.
+
+    References
+    ----------
+    .. [1] D. Lague, N. Brodu, J. Leroux, "Accurate 3D comparison of complex topography with
+       terrestrial laser scanner", ISPRS J. Photogramm. 82 (2013) (M3C2).
+    """
+    from .distance import distances
+    from .io import write_points
+
+    out = Path(output)
+    check_outputs([out, png], [reference, current, core_points])
+    for name, value in (("--projection-scale", projection_scale), ("--normal-scale", normal_scale),
+                        ("--max-distance", max_distance)):
+        V.auto_or_positive(name, value)
+    V.auto_or_nonnegative("--registration-error", registration_error)
+    if memory_limit is not None:
+        V.memory_size("--memory-limit", memory_limit) if isinstance(memory_limit, str) else None
+    classes = V.check_alignment_options(align, fix_horizontal=fix_horizontal, align_class=align_class)
+    sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)
+    if orientation is not None:
+        orientation = V.sensor_origin_option("--orientation", orientation)
+        if isinstance(orientation, str):
+            raise SDPError(f"--orientation must be X,Y,Z, got {orientation!r}")
+    with all_or_none():
+        t0 = time.perf_counter()
+        ref, cur = read_points(reference, format=format), read_points(current, format=format)
+        core = None if core_points is None else read_points(core_points, format=format)
+        t_read = time.perf_counter() - t0
+        alignment, moved = None, cur
+        if align:
+            alignment = _align_clouds(ref, cur, (reference, current), method=align, fix_horizontal=fix_horizontal,
+                                      classes=classes, align_class=align_class)
+            moved = cur.transformed(alignment.matrix)
+        reg = V.auto_or_nonnegative("--registration-error", registration_error)
+        if reg == "auto":
+            reg = float(alignment.rmse) if alignment is not None and np.isfinite(alignment.rmse) else 0.0
+        origin = _sensor_origins(sensor, (reference, ref), (current, moved), alignment)
+        d = distances(ref, moved, core_points=core, projection_scale=projection_scale, normal_scale=normal_scale,
+                      max_distance=max_distance, registration_error=reg, orientation=orientation,
+                      sensor_origin=origin, memory_limit=memory_limit)
+        like = core if core is not None else ref
+        like = like if like.n_dropped == 0 else None  # rows were dropped: the input's dimensions no longer line up
+        write_points(out, d.core_points, d.fields(), like=like, inputs=(reference, current, core_points))
+        outputs = [str(out)]
+        if png:
+            from .render import render_distances
+
+            render_distances(png, d.core_points, d.distance, d.significant, d.lod,
+                             title=f"{Path(reference).name} → {Path(current).name}: signed distance")
+            outputs.append(str(png))
+    summary = d.summary()
+    summary["timings"]["read"] = round(t_read, 4)
+    if alignment is not None:
+        summary["alignment"] = alignment.summary()
+    summary["outputs"] = outputs
+    return FileDistances(str(reference), str(current), d, summary, alignment, outputs)
 
 
 # --- fields: sdp build, mesh, bool, info ---------------------------------------------------------

@@ -101,3 +101,24 @@ def action_eval_text(summary: dict) -> str:
         lines.append(f"{name:8s} {acc:.3f}" + (f"   (cross-validated on training subjects {cv:.3f})" if cv else ""))
     lines.append("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in summary["timings"].items()))
     return "\n".join(lines)
+
+
+def distance_text(s: dict, reference, current) -> str:
+    """The table of ``sdp distance``."""
+    n = max(s["core_points"], 1)
+    lines = [f"{reference} → {current}: signed distance along the normal ({s['orientation']})",
+             f"  core points      {s['core_points']:>12,}",
+             f"  with a distance  {s['comparable']:>12,}  ({s['comparable'] / n:.1%}; the others: an epoch has no "
+             "points near, not comparable)",
+             f"  significant      {s['significant']:>12,}  ({s['significant_positive']:,} +, "
+             f"{s['significant_negative']:,} −; |distance| > level of detection at 95 %)",
+             f"  median distance  {s['median_distance']:>12.4g}  (5–95 %: {s['distance_p05']:.4g} … "
+             f"{s['distance_p95']:.4g})",
+             f"  median LoD95     {s['median_lod']:>12.4g}  (registration error {s['registration_error']:.4g})",
+             f"  scales           projection d = {s['projection_scale']:.4g}, normal D = {s['normal_scale']:.4g}, "
+             f"searched ±{s['max_distance']:.4g} along the normal",
+             f"  time             {s['timings'].get('total', 0):.2f} s"]
+    if "alignment" in s:
+        lines.append(alignment_text(s["alignment"]))
+    lines += [f"wrote {path}" for path in s.get("outputs", [])]
+    return "\n".join(lines)

@@ -24,6 +24,7 @@ import numpy as np
 from .errors import InvalidOptionError, InvalidPointsError, SDPError
 
 __all__ = ["positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
+           "auto_or_nonnegative",
            "memory_size", "existing_folder", "check_threshold", "check_grid_options", "check_tile_options",
            "check_lattice", "check_kernel", "kernel_reach", "check_workdir", "format_bytes", "cli_type",
            "sensor_origin_option", "class_numbers", "check_alignment_options", "check_tiled_options",
@@ -246,6 +247,16 @@ def check_tile_options(*, tile_size=None, tile_points=None, workers=None, workdi
     if scheduler is not None and not isinstance(scheduler, str):
         raise InvalidOptionError(f"scheduler must be an address such as tcp://host:8786, got {scheduler!r}")
     check_workdir("workdir", workdir)
+
+
+def auto_or_nonnegative(name: str, value) -> float | str:
+    """``"auto"``, or ``value`` as a finite float ≥ 0 (an error added to a tolerance)."""
+    if isinstance(value, str) and value.strip().lower() == "auto":
+        return "auto"
+    try:
+        return nonnegative_finite(name, value)
+    except InvalidOptionError:
+        raise InvalidOptionError(f"{name} must be 'auto' or a finite number ≥ 0, got {value!r}") from None
 
 
 def auto_or_positive(name: str, value) -> float | str:
