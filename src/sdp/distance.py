@@ -323,20 +323,12 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     stats = [lists.cylinder(xyz, core_sorted, normal, sigma_p, max_half) for xyz in (ref.xyz, cur.xyz)]
     timings["cylinders"] = time.perf_counter() - t
 
-    # back to the input order in one pass over rows (a permutation reads memory at random)
-    back = np.empty_like(order)
-    back[order] = np.arange(len(order))
-    packed = _gather(np.column_stack([*stats[0], *stats[1], normal]), back)
-    m1, s1, n1, k1, m2, s2, n2, k2 = packed[:, :8].T
-    normal = np.ascontiguousarray(packed[:, 8:])
-    dist = m2 - m1
-    lod = 1.96 * (np.sqrt(s1**2 / n1 + s2**2 / n2) + reg)
     reach = max(max_half, 3.0 * sigma_p)
-    with np.errstate(invalid="ignore"):  # both epochs found, but farther apart than asked: none
-        bad = ~(np.abs(dist) <= reach) | ~np.isfinite(normal[:, 0])
-    for a in (dist, lod):
-        a[bad] = np.nan
-    level = np.where(bad, -1, np.maximum(k1, k2)).astype(np.int8)
+    m = len(order)
+    dist, lod, n1, n2, s1, s2 = (np.empty(m) for _ in range(6))
+    out_normal, level = np.empty((m, 3)), np.empty(m, np.int8)
+    _results(order, stats[0], stats[1], normal, reg, reach, dist, lod, n1, n2, s1, s2, out_normal, level)
+    normal = out_normal
     timings["total"] = time.perf_counter() - t0
     return Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
                      n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
@@ -475,6 +467,28 @@ def _counting_sort(xyz, lo, cell, dims):
         order[fill[r]] = i
         fill[r] += 1
     return order, starts[: runs + 1].copy(), table
+
+
+@nb.njit(cache=True, parallel=True)
+def _results(order, ref, cur, normal, reg, reach, dist, lod, n1, n2, s1, s2, out_normal, level):
+    """The outputs, back in the core points' input order (``order``: sorted row → input row), in
+    one pass: distance = mean₂ − mean₁ and M3C2's level of detection; NaN (level -1) where an
+    epoch had no points or the two lie farther apart than ``reach``."""
+    m1, sp1, c1, k1 = ref
+    m2, sp2, c2, k2 = cur
+    for i in nb.prange(order.shape[0]):
+        j = order[i]
+        d = m2[i] - m1[i]
+        n1[j], n2[j], s1[j], s2[j] = c1[i], c2[i], sp1[i], sp2[i]
+        for a in range(3):
+            out_normal[j, a] = normal[i, a]
+        if abs(d) <= reach and np.isfinite(normal[i, 0]):
+            dist[j] = d
+            lod[j] = 1.96 * (math.sqrt(sp1[i] ** 2 / c1[i] + sp2[i] ** 2 / c2[i]) + reg)
+            level[j] = max(k1[i], k2[i])
+        else:
+            dist[j] = lod[j] = np.nan
+            level[j] = -1
 
 
 @nb.njit(cache=True, parallel=True)
