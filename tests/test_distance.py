@@ -177,3 +177,12 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path):
     r = run_sdp("distance", tmp_path / "a.ply", tmp_path / "b.ply", "-o", tmp_path / "y.ply",
                 "--registration-error", "-1")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "y.ply").exists()
+
+
+def test_hash_cells_equal_dense_cells(rng, monkeypatch):
+    a, b = plane(rng, 5_000, 0.002), plane(rng, 5_000, 0.002, z=0.3)  # the far search too
+    dense = sdp.distances(a, b, projection_scale=0.05)
+    monkeypatch.setattr(sdp.distance, "_DENSE_CELLS", 0)  # boxes beyond the dense limit: hashed cells
+    hashed = sdp.distances(a, b, projection_scale=0.05)
+    for name in sdp.distance.DISTANCE_FIELDS:
+        assert np.array_equal(dense.fields()[name], hashed.fields()[name], equal_nan=True), name
