@@ -33,8 +33,10 @@ projection scale ``d`` (M3C2's cylinder *diameter*) is ``4σ_p`` and the normal 
 (σ = 1.5 × the 90th percentile of the 3rd-neighbour spacing, :func:`sdp.auto_voxel_size`), so a
 cylinder holds about 28 points of a surface sampled like the cloud; ``D = 2d``, enlarged to
 20× the roughness found at that scale (Lague et al.'s rule that the normal scale be 20–25× the
-roughness, so that roughness does not tilt the normals) up to ``4d``. CloudCompare's "guess
-params" picks its scales from the cloud's density in the same spirit, from an octree level.
+roughness, so that roughness does not tilt the normals) up to ``4d``. CloudCompare's M3C2
+plugin has a "Guess params" button and advises reading the article before trusting it; here
+the guess is the spacing the density kernel already measures, checked by Lague's roughness rule
+(the scales used are in the summary).
 
 The binary change masks of :func:`sdp.detect_changes` and this distance agree where both apply:
 a current point is "appeared" when the reference's density at it is below h. For a reference
@@ -542,6 +544,14 @@ def _row(table, dims, shift, ix, iy, iz):
 
 
 @nb.njit(cache=True, inline="always")
+def _cell_box(qx, qy, qz, ex, ey, ez, lo, cell):
+    """First and last cell index per axis of the box (q ± e)."""
+    return (int(math.floor((qx - ex - lo[0]) / cell)), int(math.floor((qx + ex - lo[0]) / cell)),
+            int(math.floor((qy - ey - lo[1]) / cell)), int(math.floor((qy + ey - lo[1]) / cell)),
+            int(math.floor((qz - ez - lo[2]) / cell)), int(math.floor((qz + ez - lo[2]) / cell)))
+
+
+@nb.njit(cache=True, inline="always")
 def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     """Unit eigenvector of the smallest eigenvalue of a symmetric 3×3 matrix, and that eigenvalue
     (closed form: the trigonometric solution of the characteristic cubic, then the largest cross
@@ -604,12 +614,7 @@ def _normals(cells, table, dims, cell, lo, queries, sigma, reach, normal, rough)
     shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
     for i in nb.prange(queries.shape[0]):
         qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
-        x0 = int(math.floor((qx - reach - lo[0]) / cell))
-        x1 = int(math.floor((qx + reach - lo[0]) / cell))
-        y0 = int(math.floor((qy - reach - lo[1]) / cell))
-        y1 = int(math.floor((qy + reach - lo[1]) / cell))
-        z0 = int(math.floor((qz - reach - lo[2]) / cell))
-        z1 = int(math.floor((qz + reach - lo[2]) / cell))
+        x0, x1, y0, y1, z0, z1 = _cell_box(qx, qy, qz, reach, reach, reach, lo, cell)
         w = sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
         npts = 0.0
         for ix in range(x0, x1 + 1):
@@ -695,12 +700,7 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
         ex = half * abs(nx) + radius * math.sqrt(max(0.0, 1.0 - nx * nx))
         ey = half * abs(ny) + radius * math.sqrt(max(0.0, 1.0 - ny * ny))
         ez = half * abs(nz) + radius * math.sqrt(max(0.0, 1.0 - nz * nz))
-        x0 = int(math.floor((qx - ex - lo[0]) / cell))
-        x1 = int(math.floor((qx + ex - lo[0]) / cell))
-        y0 = int(math.floor((qy - ey - lo[1]) / cell))
-        y1 = int(math.floor((qy + ey - lo[1]) / cell))
-        z0 = int(math.floor((qz - ez - lo[2]) / cell))
-        z1 = int(math.floor((qz + ez - lo[2]) / cell))
+        x0, x1, y0, y1, z0, z1 = _cell_box(qx, qy, qz, ex, ey, ez, lo, cell)
         for ix in range(x0, x1 + 1):
             for iy in range(y0, y1 + 1):
                 for iz in range(z0, z1 + 1):
