@@ -41,7 +41,7 @@ STORE_FORMAT_VERSION = 1
 _ROWS_PER_CHUNK = 256  # blocks per Zarr chunk: 512 KiB of node values before compression
 
 
-def _zarr():
+def require_zarr():
     """The zarr module (the ``tiles`` extra), or a one-line :class:`~sdp.MissingDependencyError`."""
     return require("zarr", "tiles", "a field store (.zarr)")
 
@@ -63,7 +63,7 @@ class FieldStore:
     def create(cls, path: str | os.PathLike, *, voxel_size: float, sigma: float, truncate: float, h: float,
                tile_blocks: int = 64, method: str = "fast", inputs=()) -> "FieldStore":
         """An empty store at ``path`` (replaced if it is a store; ``inputs`` are never overwritten)."""
-        zarr = _zarr()
+        zarr = require_zarr()
 
         from .io import refuse_overwrite
 
@@ -84,7 +84,7 @@ class FieldStore:
     @classmethod
     def open(cls, path: str | os.PathLike) -> "FieldStore":
         """Open a store written by :meth:`create` (read-only use is safe from many processes)."""
-        zarr = _zarr()
+        zarr = require_zarr()
 
         path = Path(path)
         try:
@@ -110,7 +110,7 @@ class FieldStore:
 
     def write_tile(self, key, field: DensityField) -> int:
         """Store the blocks of ``field`` that lie in tile ``key`` = (i, j); returns their number."""
-        zarr = _zarr()
+        zarr = require_zarr()
 
         keys = field.global_keys
         mine = np.flatnonzero(np.all(np.floor_divide(keys[:, :2], self.tile_blocks) == key, axis=1))
@@ -138,7 +138,7 @@ class FieldStore:
     @property
     def tiles(self) -> list[tuple[int, int]]:
         """The tiles stored, sorted."""
-        zarr = _zarr()
+        zarr = require_zarr()
 
         group = zarr.open_group(str(self.path / "tiles"), mode="r")
         return sorted(tuple(int(v) for v in name.split("_")) for name in group.group_keys())
@@ -154,7 +154,7 @@ class FieldStore:
 
     # ------------------------------------------------------------------ reading
     def _tile_keys(self, key) -> np.ndarray:
-        zarr = _zarr()
+        zarr = require_zarr()
 
         try:
             return zarr.open_array(str(self.path / "tiles" / f"{key[0]}_{key[1]}" / "keys"), mode="r")[...]
@@ -164,7 +164,7 @@ class FieldStore:
     def read(self, lo=None, hi=None) -> DensityField:
         """The in-memory field of the blocks whose x, y block coordinates lie in [lo, hi)
         (2-vectors; the whole store when omitted)."""
-        zarr = _zarr()
+        zarr = require_zarr()
 
         lo = np.full(2, np.iinfo(np.int64).min // 2) if lo is None else np.asarray(lo, np.int64)
         hi = np.full(2, np.iinfo(np.int64).max // 2) if hi is None else np.asarray(hi, np.int64)

@@ -54,7 +54,7 @@ from .grid import BLOCK, Grid, check_memory
 from .grid import memory_limit as _memory_limit
 from .io import PointSource
 from .regions import Region, describe_regions, label_points
-from .store import FieldStore, _zarr
+from .store import FieldStore, require_zarr
 from .validate import (
     check_grid_options,
     check_kernel,
@@ -391,7 +391,7 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float | str
     write (a folder, conventionally ``*.zarr``). Each tile's blocks equal those of
     :meth:`DensityField.from_points` on the whole cloud.
     """
-    _zarr()  # before any work
+    require_zarr()  # before any work
     with _Session({"cloud": cloud}, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                   method=method, tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit,
                   scheduler=scheduler, workers=workers, workdir=workdir) as run:
