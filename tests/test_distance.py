@@ -186,3 +186,40 @@ def test_hash_cells_equal_dense_cells(rng, monkeypatch):
     hashed = sdp.distances(a, b, projection_scale=0.05)
     for name in sdp.distance.DISTANCE_FIELDS:
         assert np.array_equal(dense.fields()[name], hashed.fields()[name], equal_nan=True), name
+
+
+def test_tiles_give_the_same_distances(rng):
+    n = 60_000
+    a = np.c_[rng.uniform(0, [12, 3], (n, 2)), 0.003 * rng.standard_normal(n)]
+    xy = rng.uniform(0, [12, 3], (n, 2))
+    b = np.c_[xy, 0.02 * (xy[:, 0] > 6) + 0.003 * rng.standard_normal(n)]
+    a[5] = np.nan  # a row the reader would drop: no distance, in its place
+    kw = dict(projection_scale=0.08, normal_scale=0.16, max_distance=0.2)
+    whole = sdp.distances(a, b, sensor_origin=None, **kw)
+    tiled = sdp.distances_tiled(a, b, tile_size=1.0, scheduler="synchronous", **kw)
+    assert tiled.tiles > 4 and len(tiled.distance) == n and np.isnan(tiled.distance[5])
+    keep = np.isfinite(a).all(axis=1)
+    for name in sdp.distance.DISTANCE_FIELDS:
+        assert np.array_equal(whole.fields()[name], tiled.fields()[name][keep], equal_nan=True), name
+    auto = sdp.distances_tiled(a, b, scheduler="synchronous")  # scales from the first slices
+    assert abs(np.nanmedian(auto.distance[a[:, 0] > 7]) - 0.02) < 0.002
+
+
+@pytest.mark.slow
+def test_sdp_distance_in_tiles_streams_the_reference_with_its_distances(rng, tmp_path):
+    n = 30_000
+    a = np.c_[rng.uniform(0, [8, 3], (n, 2)), 0.003 * rng.standard_normal(n)]
+    b = np.c_[rng.uniform(0, [8, 3], (n, 2)), 0.02 + 0.003 * rng.standard_normal(n)]
+    sdp.write_points(tmp_path / "a.laz", a)
+    sdp.write_points(tmp_path / "b.laz", b)
+    common = ["--projection-scale", "0.08", "--normal-scale", "0.16", "--max-distance", "0.2", "--json"]
+    r = run_sdp("distance", tmp_path / "a.laz", tmp_path / "b.laz", "-o", tmp_path / "t.laz", "--tiled",
+                "--tile-size", "1", "--scheduler", "synchronous", *common)
+    assert r.returncode == 0, r.stderr
+    assert run_sdp("distance", tmp_path / "a.laz", tmp_path / "b.laz", "-o", tmp_path / "m.laz", *common).returncode == 0
+    tiled, whole = sdp.read_points(tmp_path / "t.laz"), sdp.read_points(tmp_path / "m.laz")
+    assert np.array_equal(tiled.xyz, whole.xyz)
+    for name in sdp.distance.DISTANCE_FIELDS:
+        assert np.array_equal(tiled.fields[name], whole.fields[name], equal_nan=True), name
+    refused = run_sdp("distance", tmp_path / "a.laz", tmp_path / "b.laz", "-o", tmp_path / "t.ply", "--tiled")
+    assert refused.returncode == 2 and "LAS/LAZ" in refused.stderr

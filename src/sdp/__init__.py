@@ -58,7 +58,7 @@ from .regions import Region
 from .render import render_changes, render_changes_html, render_distances, render_field
 from .store import FieldStore
 from .surface import Mesh, extract_surface
-from .tiles import TiledChanges, build_field_tiled, detect_changes_tiled
+from .tiles import TiledChanges, build_field_tiled, detect_changes_tiled, distances_tiled
 
 __all__ = [
     "DensityField", "threshold", "Grid", "BLOCK",
@@ -67,7 +67,7 @@ __all__ = [
     "detect_changes", "ChangeResult", "Region",
     "distances", "Distances",
     "UNCHANGED", "CHANGED", "NOT_COMPARABLE", "footprint_covered",
-    "detect_changes_tiled", "TiledChanges", "build_field_tiled", "FieldStore",
+    "detect_changes_tiled", "distances_tiled", "TiledChanges", "build_field_tiled", "FieldStore",
     "compare_files", "plan_change", "FileComparison", "ChangePlan", "distance_files", "FileDistances",
     "align", "Alignment", "transform_points",
     "watch", "FrameChange",

@@ -16,18 +16,9 @@ import sys
 import threading
 
 from . import __version__, _progress
+from . import cli_examples as X
 from . import pipeline as P
 from . import validate as V
-from .cli_examples import (
-    EXAMPLES_ACTION,
-    EXAMPLES_ALIGN,
-    EXAMPLES_BOOL,
-    EXAMPLES_CHANGE,
-    EXAMPLES_DISTANCE,
-    EXAMPLES_EVAL,
-    EXAMPLES_RENDER,
-    EXAMPLES_WATCH,
-)
 from .defaults import DEFAULTS
 from .errors import SDPError
 from .io import all_or_none
@@ -94,11 +85,10 @@ def cmd_change(a):
 
 
 def cmd_distance(a):
-    r = P.distance_files(a.reference, a.current, output=a.output, core_points=a.core_points, png=a.png,
-                         format=a.format, projection_scale=a.projection_scale, normal_scale=a.normal_scale,
-                         max_distance=a.max_distance, registration_error=a.registration_error,
-                         orientation=a.orientation, sensor_origin=a.sensor_origin, align=a.align,
-                         fix_horizontal=a.fix_horizontal, align_class=a.align_class, memory_limit=a.memory_limit)
+    names = ("core_points png format projection_scale normal_scale max_distance registration_error orientation "
+             "sensor_origin align fix_horizontal align_class memory_limit tiled").split()
+    r = P.distance_files(a.reference, a.current, output=a.output, notify=None if a.json else _say,
+                         **{n: getattr(a, n) for n in names}, **_tiles(a))
     return _show(r.summary_text(), r.summary, a.json)
 
 
@@ -195,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"sdp {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
-    c = _command(sub, "change", cmd_change, "appeared (and disappeared) points between two clouds", EXAMPLES_CHANGE)
+    c = _command(sub, "change", cmd_change, "appeared (and disappeared) points between two clouds", X.CHANGE)
     c.add_argument("reference")
     c.add_argument("current")
     c.add_argument("-o", "--output", required=True, help="labelled current cloud (.ply, .las, .laz, .npz)")
@@ -221,30 +211,29 @@ def build_parser() -> argparse.ArgumentParser:
                      "or when REFERENCE is a .zarr field store; outputs LAS/LAZ with 'change' and 'region')")
 
     ds = _command(sub, "distance", cmd_distance, "signed distance along the normal, its level of detection and "
-                 "significance (M3C2's answer)", EXAMPLES_DISTANCE)
-    ds.add_argument("reference")
-    ds.add_argument("current")
+                  "significance (M3C2's answer)", X.DISTANCE)
+    for name in ("reference", "current"):
+        ds.add_argument(name)
     ds.add_argument("-o", "--output", required=True, help="core points with distance, lod, significant, n1, n2, "
-                   "spread1, spread2, normal_x/y/z (.ply, .las, .laz, .npz)")
+                    "spread1, spread2, normal_x/y/z (.ply, .las, .laz, .npz)")
     ds.add_argument("--core-points", help="where to measure (a cloud file; default: every reference point)")
-    ds.add_argument("--projection-scale", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.projection_scale,
-                   help="M3C2's d, the cylinder's diameter (default auto: 4 sigma of the density kernel)")
-    ds.add_argument("--normal-scale", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.normal_scale,
-                   help="M3C2's D, the normal's diameter (default auto: 2d, up to 4d on rough surfaces)")
-    ds.add_argument("--max-distance", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.max_distance,
-                   help="how far along the normal an epoch is looked for (default auto: 12d)")
+    for flag, default, what in (
+            ("--projection-scale", DEFAULTS.projection_scale, "M3C2's d, the cylinder's diameter (4 sigma)"),
+            ("--normal-scale", DEFAULTS.normal_scale, "M3C2's D, the normal's diameter (2d, up to 4d when rough)"),
+            ("--max-distance", DEFAULTS.max_distance, "how far along the normal an epoch is looked for (12d)")):
+        ds.add_argument(flag, type=V.cli_type(V.auto_or_positive), default=default, help=f"{what}; default auto")
     ds.add_argument("--registration-error", default="auto", type=V.cli_type(V.auto_or_nonnegative),
-                   help="added to the level of detection (default auto: the alignment's RMS with --align, else 0)")
-    ds.add_argument("--orientation", metavar="X,Y,Z", help="normals point this way where no sensor is known "
-                   "(default 0,0,1)")
+                    help="added to the level of detection (default auto: the alignment's RMS with --align, else 0)")
+    ds.add_argument("--orientation", metavar="X,Y,Z", help="normals point this way without a sensor (default 0,0,1)")
     ds.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
-                   help="normals point towards the sensor (auto: where a file records it)")
+                    help="normals point towards the sensor (auto: where a file records it)")
     ds.add_argument("--png", help="map of the significant distances and their histogram")
     ds.add_argument("--json", action="store_true", help="print the summary as JSON")
     ds.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     _align_options(ds)
     ds.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
-                   help="refuse work needing more (default $SDP_MEMORY_LIMIT or 4GiB)")
+                    help="refuse work needing more (default $SDP_MEMORY_LIMIT or 4GiB)")
+    _tile_options(ds, "large clouds: tiles on Dask (taken by itself beyond --memory-limit; output LAS/LAZ)")
 
     b = _command(sub, "build", cmd_build, "build a density field and save it (.sdpf, or a .zarr store in tiles)",
                  "  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01\n"
@@ -264,14 +253,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="level of F = h - G (0: the cluster boundary)")
 
     o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds",
-                 EXAMPLES_BOOL)
+                 X.BOOL)
     o.add_argument("operation", choices=("union", "intersection", "difference"))
     o.add_argument("a", help="field (.sdpf) or cloud")
     o.add_argument("b", help="field (.sdpf) or cloud")
     o.add_argument("-o", "--output", required=True, help=".sdpf (the field) or .ply/.obj/.stl (its surface)")
 
     al = _command(sub, "align", cmd_align, "rigid transform mapping CURRENT onto REFERENCE (4x4, numpy.loadtxt)",
-                  EXAMPLES_ALIGN)
+                  X.ALIGN)
     al.add_argument("current")
     al.add_argument("reference", help="cloud, or field (.sdpf) for --method density")
     al.add_argument("-o", "--output", required=True, help="text file with the 4x4 matrix")
@@ -281,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
     al.add_argument("--json", action="store_true", help="print the result as JSON")
 
     w = _command(sub, "watch", cmd_watch, "compare each frame of a folder, in order, with a model that learns",
-                 EXAMPLES_WATCH)
+                 X.WATCH)
     w.add_argument("reference", help="cloud or field (.sdpf) of the scene before the frames")
     w.add_argument("frames", help="folder of frames, processed in natural name order")
     w.add_argument("--update", choices=("none", "window", "decay"), default=DEFAULTS.update,
@@ -304,7 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
 
     act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)",
-                   EXAMPLES_ACTION)
+                   X.ACTION)
     asub = act.add_subparsers(dest="action_command", required=True)
     t = asub.add_parser("train", help="fit a classifier on a folder of aXX_sYY_eZZ sequences")
     t.add_argument("data_dir")
@@ -321,7 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="processes reading sequences")
 
     e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth",
-                 EXAMPLES_EVAL)
+                 X.EVAL)
     e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
     e.add_argument("truth", help="cloud with the true labels, same points in the same order")
     e.add_argument("--predicted-field", default="change",
@@ -331,7 +320,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="print the scores as JSON")
 
     r = _command(sub, "render", cmd_render, "picture of a labelled cloud (red: changed) or slices of a field",
-                 EXAMPLES_RENDER)
+                 X.RENDER)
     r.add_argument("file", help="cloud with a label field, or a field (.sdpf)")
     r.add_argument("--png", help="picture (three views of a cloud; three slices of a field)")
     r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")

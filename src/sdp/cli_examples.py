@@ -1,6 +1,6 @@
-"""The examples that end each ``sdp`` command's ``--help`` (kept as written: columns align)."""
+"""The examples that end each ``sdp`` command's ``--help``, kept as written (the columns align)."""
 
-EXAMPLES_CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                  appeared points of cur.pcd
+CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                  appeared points of cur.pcd
   sdp change ref.laz cur.laz -o out.laz --both --voxel-size 0.1
   sdp change ref.ply cur.ply -o out.ply --grid-size 80        the paper's parameters
   sdp change ref.pcd cur.pcd -o out.ply --json                summary as JSON
@@ -10,35 +10,35 @@ EXAMPLES_CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                
   sdp change a.laz b.laz -o out.laz --voxel-size 0.1 --scheduler tcp://host:8786   on a cluster
 """
 
-EXAMPLES_DISTANCE = """  sdp distance 2015.laz 2023.laz -o d.laz --png d.png    how much, and is it significant
+DISTANCE = """  sdp distance 2015.laz 2023.laz -o d.laz --png d.png    how much, and is it significant
   sdp distance a.laz b.laz -o d.laz --align density --align-class 2 --fix-horizontal
                                                               register on the ground first
   sdp distance a.ply b.ply -o d.npz --core-points grid.ply --registration-error 0.02
   sdp distance a.ply b.ply -o d.ply --projection-scale 0.5 --normal-scale 1   M3C2's d and D, as diameters
 """
 
-EXAMPLES_BOOL = """  sdp bool difference cur.sdpf ref.sdpf -o new.sdpf          what cur has and ref lacks
+BOOL = """  sdp bool difference cur.sdpf ref.sdpf -o new.sdpf          what cur has and ref lacks
   sdp bool union a.pcd b.pcd -o both.ply                      surface of the union (auto voxel from both)
   sdp bool intersection a.sdpf b.ply -o common.stl            b is built on a's lattice
 """
-EXAMPLES_ALIGN = """  sdp align rescan.pcd reference.pcd -o T.txt               density-based, coarse to fine
+ALIGN = """  sdp align rescan.pcd reference.pcd -o T.txt               density-based, coarse to fine
   sdp align rescan.pcd reference.pcd -o T.txt --method gicp  small_gicp (extra: align)
   sdp change reference.pcd rescan.pcd -o out.ply --align density   align, then compare
 """
-EXAMPLES_WATCH = """  sdp watch empty_room.pcd frames/                         each frame against a sliding window
+WATCH = """  sdp watch empty_room.pcd frames/                         each frame against a sliding window
   sdp watch first.pcd frames/ --align gicp                  a hand-held camera: register each frame first
   sdp watch first.ply frames/ --sensor-origin 0,0,0         the sensor's rays (a PCD's VIEWPOINT is read by itself)
   sdp watch map.sdpf frames/ --update none --json           against a fixed reference field
 """
-EXAMPLES_ACTION = """  sdp action eval ../shared/data/msr_action3d --json          the cross-subject protocol
+ACTION = """  sdp action eval ../shared/data/msr_action3d --json          the cross-subject protocol
   sdp action train ../shared/data/msr_action3d -o model.npz --subjects 1,3,5,7,9
   sdp action predict model.npz a05_s02_e01_sdepth.mat
 """
-EXAMPLES_EVAL = """  sdp eval changes.ply truth.ply                              field 'change' of both
+EVAL = """  sdp eval changes.ply truth.ply                              field 'change' of both
   sdp eval demo-output/current_labelled.ply demo-output/current_labelled.ply --truth-field truth
   sdp eval changes.las scan_labels.las --truth-field classification --json
 """
-EXAMPLES_RENDER = """  sdp render changes.ply --png changes.png                    'change' field: changed in vermillion
+RENDER = """  sdp render changes.ply --png changes.png                    'change' field: changed in vermillion
   sdp render changes.laz --html changes.html --field change   interactive, opens in a browser
   sdp render scan.sdpf --png slices.png                       three slices of F = h - G
 """

@@ -121,6 +121,8 @@ class Distances:
         How the normals were oriented.
     timings : dict of str to float
         Seconds per step.
+    tiles : int
+        Tiles the work was cut into (:func:`sdp.distances_tiled`); 0: in memory.
     """
 
     core_points: np.ndarray
@@ -139,6 +141,7 @@ class Distances:
     registration_error: float
     orientation: str
     timings: dict = field(default_factory=dict)
+    tiles: int = 0
 
     @property
     def comparable(self) -> np.ndarray:
@@ -178,6 +181,7 @@ class Distances:
             "max_distance": self.max_distance,
             "registration_error": self.registration_error,
             "orientation": self.orientation,
+            "tiles": self.tiles,
             "timings": {k: round(v, 4) for k, v in self.timings.items()},
         }
 
@@ -186,7 +190,7 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
               normal_scale: float | str = DEFAULTS.normal_scale, max_distance: float | str = DEFAULTS.max_distance,
               registration_error: float = DEFAULTS.registration_error,
               orientation: npt.ArrayLike | None = None, sensor_origin=DEFAULTS.sensor_origin,
-              memory_limit=None) -> Distances:
+              memory_limit=None, corner: npt.ArrayLike | None = None) -> Distances:
     """Signed distance from the reference to the current along the local normal, with M3C2's
     level of detection, at every core point.
 
@@ -215,6 +219,10 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     memory_limit : int, str or None
         As :func:`sdp.detect_changes` (``$SDP_MEMORY_LIMIT``, else 4 GiB): checked against an
         estimate of what the sorted clouds, their cells and the outputs need, before any work.
+    corner : array_like (3,), optional
+        Where the cells start: a point below every input point in x, y and z (default: just
+        below the clouds' own lowest corner). Parts of a larger cloud given the same corner
+        (the tiles of :func:`sdp.distances_tiled`) are cut into the same cells.
 
     Returns
     -------
@@ -278,6 +286,11 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
         sigma_p = d_opt / 4.0
     max_half = _AUTO_REACH * sigma_p if L_opt == "auto" else L_opt
     lo = np.minimum(np.minimum(ref.lo, cur.lo), core.min(axis=0)) - 1e-9
+    if corner is not None:
+        corner = np.asarray(corner, np.float64).reshape(3)
+        if not (np.isfinite(corner).all() and (corner <= lo).all()):
+            raise InvalidOptionError(f"corner {corner} must be finite and below every point (lowest {lo})")
+        lo = corner
     hi = np.maximum(np.maximum(ref.hi, cur.hi), core.max(axis=0))
     # per cloud point: a sorted copy, its permutation and cell (8 × 5 B) and its cell's moments
     # at two cell sizes (at most 2 × 80 B); per core point: its copy, normal and results (≈ 30 × 8 B);

@@ -455,7 +455,9 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
                    normal_scale: float | str = DEFAULTS.normal_scale,
                    max_distance: float | str = DEFAULTS.max_distance, registration_error: float | str = "auto",
                    orientation=None, sensor_origin=DEFAULTS.sensor_origin, align: str | None = None,
-                   fix_horizontal: bool = False, align_class=None, memory_limit=None) -> FileDistances:
+                   fix_horizontal: bool = False, align_class=None, memory_limit=None, tiled: bool = False,
+                   tile_size: float | None = None, scheduler: str | None = None, workers: int | None = None,
+                   workdir=None, notify: Callable[[str], object] | None = None) -> FileDistances:
     """Signed distances from the reference to the current along the normal, with M3C2's level of
     detection, written per core point: ``sdp distance`` as a function.
 
@@ -484,6 +486,10 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
     align, fix_horizontal, align_class
         Register the current onto the reference first, as :func:`compare_files`; the distances are
         between the aligned epochs.
+    tiled, tile_size, scheduler, workers, workdir, notify
+        Measure in tiles on Dask (:func:`sdp.distances_tiled`: every reference row, normals along
+        ``orientation``, LAS/LAZ output streamed from the reference), also by itself when the
+        in-memory work would exceed the memory limit (``notify`` gets one line saying so).
 
     Returns
     -------
@@ -516,6 +522,14 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
         orientation = V.sensor_origin_option("--orientation", orientation)
         if isinstance(orientation, str):
             raise SDPError(f"--orientation must be X,Y,Z, got {orientation!r}")
+    V.check_tile_options(tile_size=tile_size, workers=workers, workdir=workdir, scheduler=scheduler)
+    if _distances_in_tiles(reference, current, output, format=format, tiled=tiled, memory_limit=memory_limit,
+                           notify=notify, core_points=core_points, align=align, png=png):
+        return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,
+                               orientation=orientation, memory_limit=memory_limit,
+                               kw=dict(projection_scale=projection_scale, normal_scale=normal_scale,
+                                       max_distance=max_distance, tile_size=tile_size, scheduler=scheduler,
+                                       workers=workers, workdir=workdir))
     with all_or_none():
         t0 = time.perf_counter()
         ref, cur = read_points(reference, format=format), read_points(current, format=format)
@@ -549,6 +563,52 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
         summary["alignment"] = alignment.summary()
     summary["outputs"] = outputs
     return FileDistances(str(reference), str(current), d, summary, alignment, outputs)
+
+
+def _distances_in_tiles(reference, current, output, *, format, tiled, memory_limit, notify, core_points, align,
+                        png) -> bool:
+    """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (about
+    450 bytes per reference point and 200 per current point) would exceed the memory limit."""
+    from .grid import memory_limit as limit
+    from .io import PointSource
+
+    try:
+        n_ref, n_cur = (PointSource.open(f, format=format).n_rows for f in (reference, current))
+    except SDPError:
+        if tiled:
+            raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; "
+                           "convert the clouds first") from None
+        return False
+    need, cap = 450.0 * n_ref + 200.0 * n_cur, limit(memory_limit)
+    if not (tiled or need > cap):
+        return False
+    for option, given in (("--core-points", core_points), ("--align", align), ("--png", png)):
+        if given:
+            raise SDPError(f"{option} is not available in tiles (the in-memory work would need "
+                           f"{V.format_bytes(need)}; the memory limit is {V.format_bytes(cap)})")
+    if Path(output).suffix.lower() not in (".las", ".laz"):
+        raise SDPError(f"{output}: distances in tiles stream to LAS/LAZ: give -o OUT.laz")
+    if not tiled and notify is not None:
+        notify(f"measuring in tiles on Dask: the in-memory work would need {V.format_bytes(need)}, above the "
+               f"memory limit of {V.format_bytes(cap)}")
+    return True
+
+
+def _distance_tiled(reference, current, out: Path, *, format, registration_error, orientation, memory_limit,
+                    kw) -> FileDistances:
+    from .io import PointSource, write_points_streamed
+    from .tiles import distances_tiled
+
+    reg = V.auto_or_nonnegative("--registration-error", registration_error)
+    with all_or_none():
+        d = distances_tiled(reference, current, registration_error=0.0 if reg == "auto" else reg,
+                            orientation=orientation, memory_limit=memory_limit, **kw)
+        fields = d.fields()
+        write_points_streamed(out, PointSource.open(reference, format=format),
+                              lambda a, b: {k: v[a:b] for k, v in fields.items()}, inputs=(reference, current))
+    summary = d.summary()
+    summary["outputs"] = [str(out)]
+    return FileDistances(str(reference), str(current), d, summary, None, [str(out)])
 
 
 # --- fields: sdp build, mesh, bool, info ---------------------------------------------------------

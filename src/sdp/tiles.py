@@ -56,6 +56,7 @@ from .io import PointSource
 from .regions import Region, describe_regions, label_points
 from .store import FieldStore, require_zarr
 from .validate import (
+    auto_or_positive,
     check_grid_options,
     check_kernel,
     check_lattice,
@@ -63,11 +64,12 @@ from .validate import (
     format_bytes,
     integer_at_least,
     kernel_reach,
+    nonnegative_finite,
     positive_finite,
 )
 
-__all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "dense_grid_bytes", "untiled_point_bytes",
-           "sampled_voxel_size"]
+__all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "distances_tiled", "dense_grid_bytes",
+           "untiled_point_bytes", "sampled_voxel_size"]
 
 _PART_ROWS = 8_000_000  # rows read by one bucketing task
 _BYTES_PER_ROW_READ = 600  # a decoded row in a bucketing task: record, x y z, tile keys, sort, bucket record
@@ -181,12 +183,15 @@ class _Tiling:
     def edge(self) -> float:
         return self.blocks * BLOCK * self.voxel_size
 
-    def owns(self, key, xyz: np.ndarray) -> np.ndarray:
-        """Mask of the points whose cell, floor(p / l), lies in tile ``key``'s blocks (x, y)."""
+    def owns(self, key, xyz: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Mask of the points whose cell, floor(p / l), lies in tile ``key``'s blocks (x, y), or
+        within ``margin`` (world units) of them."""
         n = self.blocks * BLOCK
+        m = margin / self.voxel_size
         u = xyz[:, 0] / self.voxel_size
         v = xyz[:, 1] / self.voxel_size
-        return (u >= key[0] * n) & (u < (key[0] + 1) * n) & (v >= key[1] * n) & (v < (key[1] + 1) * n)
+        return ((u >= key[0] * n - m) & (u < (key[0] + 1) * n + m) & (v >= key[1] * n - m)
+                & (v < (key[1] + 1) * n + m))
 
 
 def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: int, tiling: _Tiling,
@@ -379,6 +384,94 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
                         timings=run.timings)
 
 
+def distances_tiled(reference, current, *, projection_scale: float | str = DEFAULTS.projection_scale,
+                    normal_scale: float | str = DEFAULTS.normal_scale,
+                    max_distance: float | str = DEFAULTS.max_distance,
+                    registration_error: float = DEFAULTS.registration_error, orientation=None,
+                    tile_size: float | None = None, tile_points: int | None = None,
+                    memory_limit: int | str | None = None, scheduler: str | None = None, workers: int | None = None,
+                    workdir: str | os.PathLike | None = None):
+    """:func:`sdp.distances` in tiles, for clouds of any size: every reference row a core point.
+
+    Each tile measures its own reference points from its buckets, which hold every point within
+    a halo of the longest search (``max_distance`` + the cylinder and normal reach + two cells);
+    the cells start at the clouds' common corner, so with the same scales each distance equals
+    :func:`sdp.distances`' (tested). ``"auto"`` scales come from the first slice of each cloud
+    (the tiles need them before the points); normals point along ``orientation`` (+z: the tiles
+    follow no sensor). Parameters as in :func:`sdp.distances` and :func:`detect_changes_tiled`.
+
+    Returns
+    -------
+    Distances
+        One row per reference row, in row order (rows that held NaN/Inf: NaN, not comparable).
+    """
+    from ._points import as_points
+    from .distance import Distances, distances
+
+    for name, value in (("projection_scale", projection_scale), ("normal_scale", normal_scale),
+                        ("max_distance", max_distance)):
+        auto_or_positive(name, value)
+    reg = nonnegative_finite("registration_error", registration_error)
+    t0 = time.perf_counter()
+    d, D = projection_scale, normal_scale
+    if d == "auto" or D == "auto":  # from the first slice of each cloud, as the tiled change detection
+        firsts = [as_points(next(PointSource.open(c).chunks())[1] if isinstance(c, (str, os.PathLike)) else
+                            next(c.chunks())[1] if isinstance(c, PointSource) else c) for c in (reference, current)]
+        sample = firsts[0].xyz[:: max(1, len(firsts[0].xyz) // 20_000)]
+        probe = distances(*firsts, core_points=sample, projection_scale=d, normal_scale=D, max_distance=max_distance,
+                          sensor_origin=None, orientation=orientation, memory_limit=memory_limit)
+        d, D = probe.projection_scale, probe.normal_scale
+    sigma_p, sigma_n = d / 4.0, D / 4.0
+    reach = 12.0 * d if max_distance == "auto" else float(max_distance)
+    cell = max(1.5 * sigma_p, sigma_n)
+    margin = 2 * 1.5 * sigma_p  # core points this close to a tile: their cells' normals come out whole
+    halo = max(reach, 3.0 * sigma_p) + 3.0 * sigma_p + 2.0 * sigma_n + 4.0 * cell * math.sqrt(3.0) + margin
+    with _Session({"reference": reference, "current": current}, sigma_p / 2.0, sigma_voxels=2.0, k=DEFAULTS.k,
+                  h=None, truncate=DEFAULTS.truncate, method="auto", tile_size=tile_size, tile_points=tile_points,
+                  memory_limit=memory_limit, scheduler=scheduler, workers=workers, workdir=workdir,
+                  halo=halo) as run:
+        opts = dict(projection_scale=d, normal_scale=D, max_distance=reach, registration_error=reg,
+                    orientation=orientation, corner=run.lo - 1e-9, margin=margin,
+                    memory_limit=run.opts["memory_limit"])
+        results = run.tasks("distances", _distance_tile, [(key, run.root, run.tiling, opts) for key in run.tiles],
+                            ())
+    n = run.sources["reference"].n_rows
+    xyz, packed = np.full((n, 3), np.nan), np.full((n, 11), np.nan)
+    for rows, pts, values in results:
+        xyz[rows], packed[rows] = pts, values
+    level = np.where(np.isnan(packed[:, 10]), -1, packed[:, 10]).astype(np.int8)
+    timings = dict(run.timings, total=time.perf_counter() - t0)
+    return Distances(core_points=xyz, distance=packed[:, 0], lod=packed[:, 1], significant=packed[:, 2] == 1,
+                     n1=packed[:, 3], n2=packed[:, 4], spread1=packed[:, 5], spread2=packed[:, 6],
+                     normal=np.ascontiguousarray(packed[:, 7:10]), level=level, projection_scale=d, normal_scale=D,
+                     max_distance=max(reach, 3.0 * sigma_p), registration_error=reg,
+                     orientation="towards (0, 0, 1)" if orientation is None else f"towards {tuple(orientation)}",
+                     timings=timings, tiles=len(run.tiles))
+
+
+def _distance_tile(key, root: str, tiling: _Tiling, opts: dict):
+    """The distances of tile ``key``'s own reference rows: (rows, xyz, (m, 11) values)."""
+    from .distance import distances
+
+    opts = dict(opts)
+    margin = opts.pop("margin")
+    ref, cur = _load(root, "reference", key), _load(root, "current", key)
+    own = tiling.owns(key, ref)
+    if not own.any():
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 11))
+    values = np.full((int(own.sum()), 11), np.nan)
+    if len(cur) >= 3 and len(ref) >= 3:
+        near = tiling.owns(key, ref, margin)
+        d = distances(ref[:, :3], cur[:, :3], core_points=ref[near, :3], sensor_origin=None, **opts)
+        mine = own[near]
+        f = d.fields()
+        cols = [f[name] for name in ("distance", "lod", "significant", "n1", "n2", "spread1", "spread2",
+                                     "normal_x", "normal_y", "normal_z")]
+        values = np.column_stack([*cols, d.level])[mine].astype(np.float64)
+        values[values[:, 10] < 0, 10] = np.nan
+    return ref[own, 3].astype(np.int64), np.ascontiguousarray(ref[own, :3]), values
+
+
 def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float | str = DEFAULTS.voxel_size,
                       sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
                       truncate: float = DEFAULTS.truncate, method: str = "auto",
@@ -420,7 +513,7 @@ class _Session:
     """Workdir, Dask cluster and bucketed clouds of one tiled run; ``with`` closes them."""
 
     def __init__(self, clouds: dict, voxel_size, *, sigma_voxels, k, h, truncate, method, tile_size, tile_points,
-                 memory_limit, scheduler, workers, workdir):
+                 memory_limit, scheduler, workers, workdir, halo: float | None = None):
         check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                            memory_limit=memory_limit)
         check_tile_options(tile_size=tile_size, tile_points=tile_points, workers=workers, workdir=workdir,
@@ -447,7 +540,8 @@ class _Session:
             lo = np.min([src.lo for src in self.sources.values()], axis=0)
             hi = np.max([src.hi for src in self.sources.values()], axis=0)
             check_lattice(lo, hi, self.voxel_size, reach)
-            self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate)
+            self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo)
+            self.lo = lo
             _check_tile_directory(self.tiling, lo, hi, reach, share, budget)
             self.executor, self.cluster = _connect(scheduler, workers)
             jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
@@ -517,8 +611,9 @@ def _source(s, root: str, epoch: str) -> PointSource:
 
 
 def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_points: int, sigma_voxels: float,
-            truncate: float) -> _Tiling:
-    halo = (math.ceil(truncate * sigma_voxels) + 3) * voxel_size  # kernel reach + binning + interpolation + margin
+            truncate: float, halo: float | None = None) -> _Tiling:
+    if halo is None:
+        halo = (math.ceil(truncate * sigma_voxels) + 3) * voxel_size  # kernel reach + binning + interpolation + margin
     if tile_size is None:
         lo = np.min([s.lo for s in sources.values()], axis=0)
         hi = np.max([s.hi for s in sources.values()], axis=0)
