@@ -216,7 +216,8 @@ def test_sdp_distance_in_tiles_streams_the_reference_with_its_distances(rng, tmp
     r = run_sdp("distance", tmp_path / "a.laz", tmp_path / "b.laz", "-o", tmp_path / "t.laz", "--tiled",
                 "--tile-size", "1", "--scheduler", "synchronous", *common)
     assert r.returncode == 0, r.stderr
-    assert run_sdp("distance", tmp_path / "a.laz", tmp_path / "b.laz", "-o", tmp_path / "m.laz", *common).returncode == 0
+    whole_run = run_sdp("distance", tmp_path / "a.laz", tmp_path / "b.laz", "-o", tmp_path / "m.laz", *common)
+    assert whole_run.returncode == 0, whole_run.stderr
     tiled, whole = sdp.read_points(tmp_path / "t.laz"), sdp.read_points(tmp_path / "m.laz")
     assert np.array_equal(tiled.xyz, whole.xyz)
     for name in sdp.distance.DISTANCE_FIELDS:

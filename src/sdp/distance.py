@@ -73,13 +73,12 @@ from .params import resolve_voxel_size
 from .validate import auto_or_positive, nonnegative_finite
 from .visibility import resolve_sensor_origins
 
-__all__ = ["Distances", "distances", "DISTANCE_FIELDS"]
+__all__ = ["Distances", "distances", "search_reach", "DISTANCE_FIELDS"]
 
 #: The per-point outputs, in the order files store them.
 DISTANCE_FIELDS = ("distance", "lod", "significant", "n1", "n2", "spread1", "spread2",
                    "normal_x", "normal_y", "normal_z")
 
-_AUTO_REACH = 48.0  # max_distance="auto", in σ_p
 _MIN_POINTS = 2.0  # effective points an epoch needs in the cylinder: a spread needs two
 _NORMAL_REACH = 2.0  # normal kernels cut at 2σ_n: the covariance's direction is settled by then
 _ROUGHNESS_RATIO = 20.0  # Lague et al.: normal scale ≥ 20–25 × the roughness
@@ -284,7 +283,7 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
         sigma_p = DEFAULTS.sigma_voxels * voxel
     else:
         sigma_p = d_opt / 4.0
-    max_half = _AUTO_REACH * sigma_p if L_opt == "auto" else L_opt
+    max_half = search_reach(L_opt, 4.0 * sigma_p)
     lo = np.minimum(np.minimum(ref.lo, cur.lo), core.min(axis=0)) - 1e-9
     if corner is not None:
         corner = np.asarray(corner, np.float64).reshape(3)
@@ -349,6 +348,12 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
                      n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
                      projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
                      registration_error=reg, orientation=how, timings=timings)
+
+
+def search_reach(max_distance: float | str, projection_scale: float) -> float:
+    """How far along the normal an epoch is looked for: ``max_distance``, or for ``"auto"``
+    12 projection scales (48σ_p)."""
+    return 12.0 * projection_scale if max_distance == "auto" else float(max_distance)
 
 
 class _CellLists:

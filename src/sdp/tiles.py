@@ -406,7 +406,7 @@ def distances_tiled(reference, current, *, projection_scale: float | str = DEFAU
         One row per reference row, in row order (rows that held NaN/Inf: NaN, not comparable).
     """
     from ._points import as_points
-    from .distance import Distances, distances
+    from .distance import Distances, distances, search_reach
 
     for name, value in (("projection_scale", projection_scale), ("normal_scale", normal_scale),
                         ("max_distance", max_distance)):
@@ -422,7 +422,7 @@ def distances_tiled(reference, current, *, projection_scale: float | str = DEFAU
                           sensor_origin=None, orientation=orientation, memory_limit=memory_limit)
         d, D = probe.projection_scale, probe.normal_scale
     sigma_p, sigma_n = d / 4.0, D / 4.0
-    reach = 12.0 * d if max_distance == "auto" else float(max_distance)
+    reach = search_reach(max_distance, d)
     cell = max(1.5 * sigma_p, sigma_n)
     margin = 2 * 1.5 * sigma_p  # core points this close to a tile: their cells' normals come out whole
     halo = max(reach, 3.0 * sigma_p) + 3.0 * sigma_p + 2.0 * sigma_n + 4.0 * cell * math.sqrt(3.0) + margin
