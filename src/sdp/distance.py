@@ -84,7 +84,7 @@ _NORMAL_REACH = 2.0  # normal kernels cut at 2σ_n: the covariance's direction i
 _ROUGHNESS_RATIO = 20.0  # Lague et al.: normal scale ≥ 20–25 × the roughness
 _MAX_NORMAL_FACTOR = 4.0  # the roughness rule may enlarge D up to this many projection scales
 _BITS = 21  # per axis in a cell key
-_DENSE_CELLS = 2**25  # boxes of up to this many cells are sorted by counting (8 bytes per cell)
+_DENSE_CELLS = 2**25  # boxes of up to this many cells are sorted by counting (4 bytes per cell)
 _RADIUS = 3.0  # cylinder cut, in σ_p: the density kernel's truncation
 _CELL = 1.5  # cells of the cylinders' moments, in σ_p
 
@@ -407,7 +407,8 @@ class _CellLists:
         return normal, rough
 
     def moments(self, xyz, cell):
-        """(count, centroid, scatter) of each cell of ``xyz`` and the cells' hash table."""
+        """(one row of count, centroid, scatter per occupied cell of ``xyz``; the cell table, its
+        box of cells, the cell size), built once per cloud and cell size."""
         pts, starts, table, rows, cell, _ = self.get(xyz, cell)
         key = ("moments", id(xyz), cell)
         if key not in self._cache:
