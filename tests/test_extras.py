@@ -113,3 +113,14 @@ def test_pictures_with_the_plots_extra(tmp_path):
     state = (xyz[:, 0] > 0.7).astype(np.uint8) + (xyz[:, 1] > 0.9)  # 0, 1 and 2
     png = sdp.render_changes(tmp_path / "c.png", xyz, state)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_import_sdp_is_lazy_and_every_public_name_resolves():
+    import subprocess
+    import sys
+
+    code = ("import sys, sdp; heavy = [m for m in ('numba', 'scipy', 'dask', 'matplotlib') if m in sys.modules]; "
+            "assert not heavy, heavy; assert all(getattr(sdp, n) is not None for n in sdp.__all__); "
+            "assert sdp.distance.DISTANCE_FIELDS and 'numba' in sys.modules")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr

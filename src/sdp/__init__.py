@@ -23,12 +23,12 @@ References
    Comparison and Applications".
 """
 
-from .align import Alignment, align, transform_points
-from .boolean import difference, intersection, union
-from .change import ChangeResult, detect_changes
-from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered
+import sys
+import types
+from importlib import import_module
+from typing import TYPE_CHECKING
+
 from .defaults import DEFAULTS, Defaults
-from .distance import Distances, distances
 from .errors import (
                      FieldFileError,
                      GridTooLargeError,
@@ -39,26 +39,89 @@ from .errors import (
                      SDPError,
                      SurfaceError,
 )
-from .field import DensityField, threshold
-from .grid import BLOCK, Grid
-from .io import (
-                 CloudFileError,
-                 PointSource,
-                 check_outputs,
-                 read_points,
-                 write_mesh,
-                 write_points,
-                 write_points_streamed,
-)
-from .metrics import confusion_matrix, kappa, scores
-from .online import FrameChange, watch
-from .params import auto_voxel_size
-from .pipeline import ChangePlan, FileComparison, FileDistances, compare_files, distance_files, plan_change
-from .regions import Region
-from .render import render_changes, render_changes_html, render_distances, render_field
-from .store import FieldStore
-from .surface import Mesh, extract_surface
-from .tiles import TiledChanges, build_field_tiled, detect_changes_tiled, distances_tiled
+
+# The rest is imported when first used (as scikit-image does): ``import sdp`` then costs
+# milliseconds, and a command loads only the modules it needs (Numba, SciPy, Dask, …).
+_LAZY = {name: module for module, names in {
+    "align": ("Alignment", "align", "transform_points"),
+    "boolean": ("difference", "intersection", "union"),
+    "change": ("ChangeResult", "detect_changes"),
+    "coverage": ("CHANGED", "NOT_COMPARABLE", "UNCHANGED", "footprint_covered"),
+    "distance": ("Distances", "distances"),
+    "field": ("DensityField", "threshold"),
+    "grid": ("BLOCK", "Grid"),
+    "io": ("CloudFileError", "PointSource", "check_outputs", "read_points", "write_mesh", "write_points",
+           "write_points_streamed"),
+    "metrics": ("confusion_matrix", "kappa", "scores"),
+    "online": ("FrameChange", "watch"),
+    "params": ("auto_voxel_size",),
+    "pipeline": ("ChangePlan", "FileComparison", "FileDistances", "compare_files", "distance_files", "plan_change"),
+    "regions": ("Region",),
+    "render": ("render_changes", "render_changes_html", "render_distances", "render_field"),
+    "store": ("FieldStore",),
+    "surface": ("Mesh", "extract_surface"),
+    "tiles": ("TiledChanges", "build_field_tiled", "detect_changes_tiled", "distances_tiled"),
+}.items() for name in names}
+
+
+def __getattr__(name: str):
+    """A public name, or a submodule (``sdp.tiles``), imported on first use."""
+    module = _LAZY.get(name)
+    if module is None:
+        try:
+            return import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{__name__}.{name}":
+                raise
+            raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    value = getattr(import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+class _Package(types.ModuleType):
+    """``sdp`` itself: importing the submodule ``sdp.align`` must not hide the function
+    ``sdp.align`` (Python binds a submodule on its package once imported)."""
+
+    def __setattr__(self, name, value):
+        if not (isinstance(value, types.ModuleType) and name in _LAZY):
+            super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
+
+
+if TYPE_CHECKING:  # what static tools and IDEs read
+    from .align import Alignment, align, transform_points
+    from .boolean import difference, intersection, union
+    from .change import ChangeResult, detect_changes
+    from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered
+    from .distance import Distances, distances
+    from .field import DensityField, threshold
+    from .grid import BLOCK, Grid
+    from .io import (
+                     CloudFileError,
+                     PointSource,
+                     check_outputs,
+                     read_points,
+                     write_mesh,
+                     write_points,
+                     write_points_streamed,
+    )
+    from .metrics import confusion_matrix, kappa, scores
+    from .online import FrameChange, watch
+    from .params import auto_voxel_size
+    from .pipeline import ChangePlan, FileComparison, FileDistances, compare_files, distance_files, plan_change
+    from .regions import Region
+    from .render import render_changes, render_changes_html, render_distances, render_field
+    from .store import FieldStore
+    from .surface import Mesh, extract_surface
+    from .tiles import TiledChanges, build_field_tiled, detect_changes_tiled, distances_tiled
+
 
 __all__ = [
     "DensityField", "threshold", "Grid", "BLOCK",
