@@ -73,7 +73,7 @@ from .params import resolve_voxel_size
 from .validate import auto_or_positive, nonnegative_finite
 from .visibility import resolve_sensor_origins
 
-__all__ = ["Distances", "distances", "search_reach", "DISTANCE_FIELDS"]
+__all__ = ["Distances", "distances", "search_reach", "tile_halo", "DISTANCE_FIELDS"]
 
 #: The per-point outputs, in the order files store them.
 DISTANCE_FIELDS = ("distance", "lod", "significant", "n1", "n2", "spread1", "spread2",
@@ -354,6 +354,19 @@ def search_reach(max_distance: float | str, projection_scale: float) -> float:
     """How far along the normal an epoch is looked for: ``max_distance``, or for ``"auto"``
     12 projection scales (48σ_p)."""
     return 12.0 * projection_scale if max_distance == "auto" else float(max_distance)
+
+
+def tile_halo(projection_scale: float, normal_scale: float, reach: float) -> tuple[float, float]:
+    """(halo, margin) of a tile that measures its own core points as the whole cloud would:
+    ``margin``: core points this close to the tile are measured too, so that the cells whose
+    points share a normal are whole; ``halo``: every point a query of those reads (the search
+    along the normal, the cylinder's radius, the normal's reach) plus whole cells around them."""
+    sigma_p, sigma_n = projection_scale / 4.0, normal_scale / 4.0
+    margin = 2.0 * _CELL * sigma_p
+    cell = max(_CELL * sigma_p, sigma_n)
+    halo = (max(reach, _RADIUS * sigma_p) + _RADIUS * sigma_p + _NORMAL_REACH * sigma_n
+            + 4.0 * cell * math.sqrt(3.0) + margin)
+    return halo, margin
 
 
 class _CellLists:

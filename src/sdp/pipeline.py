@@ -514,8 +514,9 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
                         ("--max-distance", max_distance)):
         V.auto_or_positive(name, value)
     V.auto_or_nonnegative("--registration-error", registration_error)
-    if memory_limit is not None:
-        V.memory_size("--memory-limit", memory_limit) if isinstance(memory_limit, str) else None
+    from .grid import memory_limit as limit
+
+    limit(memory_limit)  # readable and positive, before any file is read
     classes = V.check_alignment_options(align, fix_horizontal=fix_horizontal, align_class=align_class)
     sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)
     if orientation is not None:

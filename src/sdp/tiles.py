@@ -68,8 +68,8 @@ from .validate import (
     positive_finite,
 )
 
-__all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "distances_tiled", "dense_grid_bytes",
-           "untiled_point_bytes", "sampled_voxel_size"]
+__all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "distances_tiled", "first_slices",
+           "dense_grid_bytes", "untiled_point_bytes", "sampled_voxel_size"]
 
 _PART_ROWS = 8_000_000  # rows read by one bucketing task
 _BYTES_PER_ROW_READ = 600  # a decoded row in a bucketing task: record, x y z, tile keys, sort, bucket record
@@ -405,8 +405,7 @@ def distances_tiled(reference, current, *, projection_scale: float | str = DEFAU
     Distances
         One row per reference row, in row order (rows that held NaN/Inf: NaN, not comparable).
     """
-    from ._points import as_points
-    from .distance import Distances, distances, search_reach
+    from .distance import Distances, distances, search_reach, tile_halo
 
     for name, value in (("projection_scale", projection_scale), ("normal_scale", normal_scale),
                         ("max_distance", max_distance)):
@@ -415,17 +414,14 @@ def distances_tiled(reference, current, *, projection_scale: float | str = DEFAU
     t0 = time.perf_counter()
     d, D = projection_scale, normal_scale
     if d == "auto" or D == "auto":  # from the first slice of each cloud, as the tiled change detection
-        firsts = [as_points(next(PointSource.open(c).chunks())[1] if isinstance(c, (str, os.PathLike)) else
-                            next(c.chunks())[1] if isinstance(c, PointSource) else c) for c in (reference, current)]
+        firsts = first_slices([reference, current])
         sample = firsts[0].xyz[:: max(1, len(firsts[0].xyz) // 20_000)]
         probe = distances(*firsts, core_points=sample, projection_scale=d, normal_scale=D, max_distance=max_distance,
                           sensor_origin=None, orientation=orientation, memory_limit=memory_limit)
         d, D = probe.projection_scale, probe.normal_scale
-    sigma_p, sigma_n = d / 4.0, D / 4.0
+    sigma_p = d / 4.0
     reach = search_reach(max_distance, d)
-    cell = max(1.5 * sigma_p, sigma_n)
-    margin = 2 * 1.5 * sigma_p  # core points this close to a tile: their cells' normals come out whole
-    halo = max(reach, 3.0 * sigma_p) + 3.0 * sigma_p + 2.0 * sigma_n + 4.0 * cell * math.sqrt(3.0) + margin
+    halo, margin = tile_halo(d, D, reach)
     with _Session({"reference": reference, "current": current}, sigma_p / 2.0, sigma_voxels=2.0, k=DEFAULTS.k,
                   h=None, truncate=DEFAULTS.truncate, method="auto", tile_size=tile_size, tile_points=tile_points,
                   memory_limit=memory_limit, scheduler=scheduler, workers=workers, workdir=workdir,
@@ -584,17 +580,24 @@ def sampled_voxel_size(clouds: list, *, voxel_size: float | str = DEFAULTS.voxel
                        sigma_voxels: float = DEFAULTS.sigma_voxels) -> float:
     """``voxel_size``, or for ``"auto"`` :func:`sdp.auto_voxel_size` of the first slice of each
     cloud (a path, :class:`~sdp.io.PointSource` or array): clouds too large to read whole."""
-    from ._points import as_points
     from .params import resolve_voxel_size
 
     if not isinstance(voxel_size, str):
         return resolve_voxel_size([], voxel_size=voxel_size)
+    return resolve_voxel_size(first_slices(clouds), voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+
+
+def first_slices(clouds: list) -> list:
+    """The first slice of each cloud (a path, :class:`~sdp.io.PointSource` or array), validated:
+    what the tiles measure spacing and scales on before they read the points."""
+    from ._points import as_points
+
     firsts = []
     for c in clouds:
         if isinstance(c, (str, os.PathLike)):
             c = PointSource.open(c)
-        firsts.append(next(c.chunks())[1] if isinstance(c, PointSource) else c)
-    return resolve_voxel_size([as_points(x) for x in firsts], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+        firsts.append(as_points(next(c.chunks())[1] if isinstance(c, PointSource) else c))
+    return firsts
 
 
 def _source(s, root: str, epoch: str) -> PointSource:
