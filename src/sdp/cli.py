@@ -76,7 +76,7 @@ def _show(text: str, summary=None, as_json: bool = False) -> int:
 # Each command: the parsed options → one call of sdp.pipeline → print (the text of sdp.report, or JSON).
 
 def cmd_change(a):
-    r = P.compare_files(a.reference, a.current, output=a.output, both=a.both, png=a.png, html=a.html,
+    r = P.compare_files(a.reference, a.current, output=a.output, both=a.both, png=a.png, html=a.html, report=a.report,
                         format=a.format, decision=a.decision, min_region_points=a.min_region_points,
                         sensor_origin=a.sensor_origin, range_noise=a.range_noise, align=a.align,
                         aligned_output=a.aligned_output, fix_horizontal=a.fix_horizontal, align_class=a.align_class,
@@ -85,7 +85,7 @@ def cmd_change(a):
 
 
 def cmd_distance(a):
-    names = ("core_points png format projection_scale normal_scale max_distance registration_error orientation "
+    names = ("core_points png report format projection_scale normal_scale max_distance registration_error orientation "
              "sensor_origin align fix_horizontal align_class memory_limit tiled").split()
     r = P.distance_files(a.reference, a.current, output=a.output, notify=None if a.json else _say,
                          **{n: getattr(a, n) for n in names}, **_tiles(a))
@@ -197,6 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop change regions with fewer points (default 50: smaller ones are noise and depth edges)")
     c.add_argument("--png", help="write a picture of the appeared points")
     c.add_argument("--html", help="write an interactive 3D view (needs the html extra: plotly)")
+    c.add_argument("--report", help=X.REPORT_HELP)
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
     c.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
@@ -228,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
                     help="normals point towards the sensor (auto: where a file records it)")
     ds.add_argument("--png", help="map of the significant distances and their histogram")
+    ds.add_argument("--report", help=X.REPORT_HELP)
     ds.add_argument("--json", action="store_true", help="print the summary as JSON")
     ds.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     _align_options(ds)

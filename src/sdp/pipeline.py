@@ -115,7 +115,7 @@ class FileComparison:
 
 
 def plan_change(reference, current, *, output=None, format: str | None = None, tiled: bool = False,
-                both: bool = False, png=None, html=None, voxel_size: float | str = DEFAULTS.voxel_size,
+                both: bool = False, png=None, html=None, report=None, voxel_size: float | str = DEFAULTS.voxel_size,
                 grid_size: int | None = None, sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k,
                 memory_limit: int | str | None = None, align: str | None = None,
                 decision: str = DEFAULTS.decision, sensor_origin=DEFAULTS.sensor_origin) -> ChangePlan:
@@ -132,8 +132,9 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
 
     Parameters
     ----------
-    reference, current, format, tiled, both, png, html, align, decision, sensor_origin
-        As in :func:`compare_files`.
+    reference, current, format, tiled, both, png, html, report, align, decision, sensor_origin
+        As in :func:`compare_files` (pictures and reports are made in memory only: refused when
+        tiles are taken).
     output : path-like, optional
         Checked here only to be LAS/LAZ when tiles are taken (they stream their output).
     voxel_size, grid_size, sigma_voxels, k, memory_limit
@@ -167,7 +168,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
         return ChangePlan(tiled=False)
     if tiled:
         V.check_tiled_options(grid_size=grid_size, align=align, sensor_origin=sensor_origin, decision=decision,
-                              pictures=bool(png or html))
+                              pictures=bool(png or html or report))
         if not streamed:
             raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; convert the clouds first")
     try:
@@ -190,10 +191,14 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
                        "output streams to LAS/LAZ: give -o OUT.laz, or a larger --memory-limit")
     reason = None if tiled else (f"comparing in tiles on Dask: dense grids of {V.format_bytes(grids)} and points of "
                                  f"{V.format_bytes(points)} exceed the memory limit of {V.format_bytes(cap)}")
+    if reason and (png or html or report):  # the pictures need every point in memory
+        raise SDPError(f"--png/--html/--report are made in memory, but dense grids of {V.format_bytes(grids)} "
+                       f"exceed the memory limit of {V.format_bytes(cap)}: give a larger --memory-limit or no pictures")
     return ChangePlan(tiled=True, reason=reason, voxel_size=float(voxel), sources=sources)
 
 
-def compare_files(reference, current, *, output, both: bool = False, png=None, html=None, format: str | None = None,
+def compare_files(reference, current, *, output, both: bool = False, png=None, html=None, report=None,
+                  format: str | None = None,
                   voxel_size: float | str = DEFAULTS.voxel_size, grid_size: int | None = None,
                   sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
                   memory_limit: int | str | None = None, decision: str = DEFAULTS.decision,
@@ -224,6 +229,10 @@ def compare_files(reference, current, *, output, both: bool = False, png=None, h
         Also write the reference's points labelled as disappeared, to :func:`disappeared_path`.
     png, html : path-like, optional
         Pictures of the appeared points (:func:`sdp.render_changes`, :func:`sdp.render_changes_html`).
+    report : path-like, optional
+        One self-contained HTML page (:func:`sdp.change_report`): summary, parameters and why,
+        maps of both directions, region sizes, the region table with thumbnails, a 3-D view.
+        In memory only (refused with tiles).
     voxel_size, grid_size, sigma_voxels, k, h, memory_limit, decision, min_region_points, range_noise
         As in :func:`sdp.detect_changes`.
     sensor_origin : "auto", "none", "viewpoint", "X,Y,Z" or array_like (3,)
@@ -270,16 +279,18 @@ def compare_files(reference, current, *, output, both: bool = False, png=None, h
     >>> print(r.summary_text()); r.tiled, r.summary["current"]["appeared"]  # doctest: +SKIP
     """
     out = Path(output)
-    check_outputs([out, disappeared_path(out) if both else None, png, html], [reference, current])
+    check_outputs([out, disappeared_path(out) if both else None, png, html, report], [reference, current])
+    _check_picture_extras(png=png, html=html, report=report)
     grid = _grid_options(voxel_size, grid_size, sigma_voxels, k, h, memory_limit)
     V.integer_at_least("min_region_points", min_region_points, 0)
     V.check_tile_options(tile_size=tile_size, workers=workers, workdir=workdir, scheduler=scheduler)
     if tiled and not _is_store(reference):
         V.check_tiled_options(grid_size=grid_size, align=align, sensor_origin=sensor_origin, decision=decision,
-                              pictures=bool(png or html))
+                              pictures=bool(png or html or report))
     classes = V.check_alignment_options(align, fix_horizontal=fix_horizontal, align_class=align_class)
     sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)
     plan = plan_change(reference, current, output=out, format=format, tiled=tiled, both=both, png=png, html=html,
+                       report=report,
                        voxel_size=voxel_size, grid_size=grid_size, sigma_voxels=sigma_voxels, k=k,
                        memory_limit=memory_limit, align=align, decision=decision, sensor_origin=sensor)
     if plan.reason and notify is not None:
@@ -290,7 +301,11 @@ def compare_files(reference, current, *, output, both: bool = False, png=None, h
                                   tiles=dict(sigma_voxels=sigma_voxels, k=k, h=h, tile_size=tile_size,
                                              memory_limit=memory_limit, scheduler=scheduler, workers=workers,
                                              workdir=workdir))
-        return _compare_in_memory(reference, current, out, both=both, png=png, html=html, format=format,
+        options = dict(voxel_size=voxel_size, grid_size=grid_size, sigma_voxels=sigma_voxels, k=k, h=h,
+                       decision=decision, min_region_points=min_region_points, sensor_origin=sensor_origin,
+                       range_noise=range_noise)
+        return _compare_in_memory(reference, current, out, both=both, png=png, html=html, report=report,
+                                  options=options, format=format,
                                   align=align, aligned_output=aligned_output, fix_horizontal=fix_horizontal,
                                   classes=classes, align_class=align_class, sensor=sensor, grid=grid,
                                   detect=dict(decision=decision, min_region_points=min_region_points,
@@ -307,7 +322,8 @@ def _grid_options(voxel_size, grid_size, sigma_voxels, k, h, memory_limit) -> di
     return dict(size, k=k, h=h, sigma_voxels=sigma_voxels, memory_limit=memory_limit)
 
 
-def _compare_in_memory(reference, current, out: Path, *, both, png, html, format, align, aligned_output,
+def _compare_in_memory(reference, current, out: Path, *, both, png, html, report, options, format, align,
+                       aligned_output,
                        fix_horizontal, classes, align_class, sensor, grid, detect) -> FileComparison:
     from .change import detect_changes
 
@@ -333,7 +349,16 @@ def _compare_in_memory(reference, current, out: Path, *, both, png, html, format
     if alignment is not None:
         summary["alignment"] = alignment.summary()
         summary["timings"]["align"] = alignment.seconds
+    if report:
+        outputs.append(str(report))
     summary["outputs"] = outputs
+    if report:
+        from .htmlreport import change_report
+
+        t = time.perf_counter()
+        change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options,
+                      names=(Path(reference).name, Path(current).name))
+        summary["timings"]["report"] = time.perf_counter() - t
     return FileComparison(str(reference), str(current), r, summary, tiled=False, alignment=alignment, outputs=outputs)
 
 
@@ -421,6 +446,20 @@ def _align_clouds(ref, cur, names, *, method: str, fix_horizontal: bool = False,
     return align(ref_xyz, cur_xyz, method=method, fix_horizontal=fix_horizontal)
 
 
+def _check_picture_extras(*, png=None, html=None, report=None) -> None:
+    """Before any work: the extras the asked-for pictures need (one-line :class:`sdp.MissingDependencyError`)."""
+    from .errors import require
+
+    if png:
+        require("matplotlib", "plots", "--png (a PNG)")
+    if html:
+        require("plotly", "plots", "--html (an HTML view)")
+    if report:
+        from .htmlreport import require_extras
+
+        require_extras()
+
+
 def _pictures(png, html, xyz, changed, title) -> list[str]:
     """Write the ``png`` / ``html`` pictures of changed points that were asked for."""
     from .render import render_changes, render_changes_html
@@ -450,7 +489,7 @@ class FileDistances:
         return report.distance_text(self.summary, self.reference, self.current)
 
 
-def distance_files(reference, current, *, output, core_points=None, png=None, format: str | None = None,
+def distance_files(reference, current, *, output, core_points=None, png=None, report=None, format: str | None = None,
                    projection_scale: float | str = DEFAULTS.projection_scale,
                    normal_scale: float | str = DEFAULTS.normal_scale,
                    max_distance: float | str = DEFAULTS.max_distance, registration_error: float | str = "auto",
@@ -478,6 +517,9 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
     png : path-like, optional
         A map (or view) of the significant distances and their histogram
         (:func:`sdp.render_distances`).
+    report : path-like, optional
+        One self-contained HTML page (:func:`sdp.distance_report`): summary, parameters and
+        why, the map and histogram, a 3-D view. In memory only (refused with tiles).
     projection_scale, normal_scale, max_distance, orientation, sensor_origin, memory_limit
         As in :func:`sdp.distances` (``sensor_origin`` also takes ``"viewpoint"`` and ``"X,Y,Z"``,
         as :func:`compare_files`).
@@ -509,7 +551,8 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
     from .io import write_points
 
     out = Path(output)
-    check_outputs([out, png], [reference, current, core_points])
+    check_outputs([out, png, report], [reference, current, core_points])
+    _check_picture_extras(png=png, report=report)
     for name, value in (("--projection-scale", projection_scale), ("--normal-scale", normal_scale),
                         ("--max-distance", max_distance)):
         V.auto_or_positive(name, value)
@@ -525,7 +568,7 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
             raise SDPError(f"--orientation must be X,Y,Z, got {orientation!r}")
     V.check_tile_options(tile_size=tile_size, workers=workers, workdir=workdir, scheduler=scheduler)
     if _distances_in_tiles(reference, current, output, format=format, tiled=tiled, memory_limit=memory_limit,
-                           notify=notify, core_points=core_points, align=align, png=png):
+                           notify=notify, core_points=core_points, align=align, png=png, report=report):
         return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,
                                orientation=orientation, memory_limit=memory_limit,
                                kw=dict(projection_scale=projection_scale, normal_scale=normal_scale,
@@ -558,16 +601,27 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
             render_distances(png, d.core_points, d.distance, d.significant, d.lod,
                              title=f"{Path(reference).name} → {Path(current).name}: signed distance")
             outputs.append(str(png))
-    summary = d.summary()
-    summary["timings"]["read"] = round(t_read, 4)
-    if alignment is not None:
-        summary["alignment"] = alignment.summary()
+        summary = d.summary()
+        summary["timings"]["read"] = round(t_read, 4)
+        if alignment is not None:
+            summary["alignment"] = alignment.summary()
+        if report:
+            from .htmlreport import distance_report
+
+            outputs.append(str(report))
+            summary["outputs"] = outputs
+            t = time.perf_counter()
+            distance_report(report, d, summary=summary, names=(Path(reference).name, Path(current).name),
+                            options=dict(projection_scale=projection_scale, normal_scale=normal_scale,
+                                         max_distance=max_distance, registration_error=registration_error,
+                                         orientation=orientation, sensor_origin=sensor_origin))
+            summary["timings"]["report"] = round(time.perf_counter() - t, 4)
     summary["outputs"] = outputs
     return FileDistances(str(reference), str(current), d, summary, alignment, outputs)
 
 
 def _distances_in_tiles(reference, current, output, *, format, tiled, memory_limit, notify, core_points, align,
-                        png) -> bool:
+                        png, report=None) -> bool:
     """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (about
     450 bytes per reference point and 200 per current point) would exceed the memory limit."""
     from .grid import memory_limit as limit
@@ -583,7 +637,7 @@ def _distances_in_tiles(reference, current, output, *, format, tiled, memory_lim
     need, cap = 450.0 * n_ref + 200.0 * n_cur, limit(memory_limit)
     if not (tiled or need > cap):
         return False
-    for option, given in (("--core-points", core_points), ("--align", align), ("--png", png)):
+    for option, given in (("--core-points", core_points), ("--align", align), ("--png", png), ("--report", report)):
         if given:
             raise SDPError(f"{option} is not available in tiles (the in-memory work would need "
                            f"{V.format_bytes(need)}; the memory limit is {V.format_bytes(cap)})")
