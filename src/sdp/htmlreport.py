@@ -132,7 +132,7 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
         if not len(xyz):
             continue
         fig = changes_figure(xyz, state, title=f"{kind} in {name} ({int((state == CHANGED).sum()):,} points, "
-                             f"{len(regions):,} regions)", regions=regions, seed=seed)
+                             f"{len(regions):,} regions)", regions=regions, seed=seed, bounds=(lo, hi))
         maps.append(_img(png_bytes(fig), f"{kind} points of {name}"))
         thumbs = [_thumbnail(xyz, state, labels, g, flat, png_bytes) for g in regions[:thumbnails]]
         tables.append(_region_table(kind, name, regions, thumbs))
@@ -201,11 +201,13 @@ def _thumbnail(xyz, state, labels, g: dict, flat: bool, png_bytes) -> str:
     mine = labels[near] == g["label"]
     fig = plt.figure(figsize=(2.2, 2.2), dpi=80)
     ax = fig.add_axes((0, 0, 1, 1)) if flat else fig.add_axes((0, 0, 1, 1), projection="3d")
-    for keep, colour, size in ((~mine & (state[near] == UNCHANGED), _BLUE, 1.5),
-                               (~mine & (state[near] == NOT_COMPARABLE), _GREY, 1.5),
-                               (~mine & (state[near] == CHANGED), "#E8A07A", 2.5), (mine, _VERMILLION, 3.0)):
+    small = 1.5 if len(near) > 3000 else 4.0
+    for keep, colour, size, alpha in ((~mine & (state[near] == UNCHANGED), _BLUE, small, 0.35),
+                                      (~mine & (state[near] == NOT_COMPARABLE), _GREY, small, 0.35),
+                                      (~mine & (state[near] == CHANGED), "#E8A07A", small * 1.5, 0.6),
+                                      (mine, _VERMILLION, 3 * small if mine.sum() < 2000 else small * 1.5, 1.0)):
         p = xyz[near[keep]]
-        ax.scatter(*(p[:, :2].T if flat else p.T), s=size, c=colour, linewidths=0)
+        ax.scatter(*(p[:, :2].T if flat else p.T), s=size, c=colour, alpha=alpha, linewidths=0)
     if flat:
         ax.set_xlim(a[0], b[0])
         ax.set_ylim(a[1], b[1])
@@ -236,6 +238,9 @@ def _region_histogram(s: dict):
         ax.legend()
     else:
         ax.text(0.5, 0.5, "no change region", ha="center", va="center", transform=ax.transAxes)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("points per region")
     ax.set_ylabel("regions")
     return fig

@@ -343,7 +343,8 @@ def _compare_in_memory(reference, current, out: Path, *, both, png, html, report
         jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_region,
                      r.reference_field, ref.xyz))
     outputs = _write_labelled(jobs, inputs=(reference, current))
-    outputs += _pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}")
+    outputs += _pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}",
+                         regions=r.appeared_regions if out_xyz is moved.xyz else ())  # boxes in the moved frame
     summary = r.summary()
     summary["timings"]["read"] = t_read
     if alignment is not None:
@@ -460,15 +461,17 @@ def _check_picture_extras(*, png=None, html=None, report=None) -> None:
         require_extras()
 
 
-def _pictures(png, html, xyz, changed, title) -> list[str]:
-    """Write the ``png`` / ``html`` pictures of changed points that were asked for."""
+def _pictures(png, html, xyz, changed, title, regions=()) -> list[str]:
+    """Write the ``png`` / ``html`` pictures of changed points that were asked for (a map outlines ``regions``)."""
     from .render import render_changes, render_changes_html
 
     written = []
-    for path, render in ((png, render_changes), (html, render_changes_html)):
-        if path:
-            render(path, xyz, changed, title=title)
-            written.append(str(path))
+    if png:
+        render_changes(png, xyz, changed, title=title, regions=regions)
+        written.append(str(png))
+    if html:
+        render_changes_html(html, xyz, changed, title=title)
+        written.append(str(html))
     return written
 
 

@@ -56,13 +56,14 @@ def render_changes(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray
 
 
 def changes_figure(xyz: np.ndarray, changed: np.ndarray, *, title: str = "", max_points: int = 80_000,
-                   seed: int = 0, view: str = "auto", regions=(), size: float = 1.0):
+                   seed: int = 0, view: str = "auto", regions=(), size: float = 1.0, bounds=None):
     """The matplotlib figure :func:`render_changes` saves (``size`` scales it), for other pages
-    (:mod:`sdp.htmlreport`)."""
+    (:mod:`sdp.htmlreport`); ``bounds`` (lo, hi) choose the view and a map's origin (default:
+    the points'), so that two maps of one scene share them."""
     plt = pyplot()
     xyz = np.asarray(xyz)
     layers = _drawn(changed, max_points, seed)
-    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    lo, hi = (xyz.min(axis=0), xyz.max(axis=0)) if bounds is None else (np.asarray(b) for b in bounds)
     if is_map(lo, hi, view):
         fig = _map(plt, xyz, layers, lo, hi, regions, size)
     else:
