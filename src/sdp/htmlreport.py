@@ -48,7 +48,7 @@ from .io import atomic_path
 __all__ = ["change_report", "distance_report", "require_extras", "decimation", "POINT_BUDGET", "THUMBNAILS"]
 
 #: Points drawn in the interactive 3-D view at most: above it, points are drawn 1 in ``factor``.
-POINT_BUDGET = 200_000
+POINT_BUDGET = 100_000
 #: Regions of each direction with a thumbnail (the largest).
 THUMBNAILS = 12
 _TABLE_ROWS = 200  # region table rows per direction (the largest); the count of all is stated
