@@ -120,8 +120,9 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
     t0 = time.perf_counter()
     reference, current = np.asarray(reference, np.float64), np.asarray(current, np.float64)
     s = summary if summary is not None else result.summary()
-    both = np.concatenate([reference, current]) if len(reference) else current
-    lo, hi = both.min(axis=0), both.max(axis=0)
+    clouds = [c for c in (reference, current) if len(c)]
+    lo = np.min([c.min(axis=0) for c in clouds], axis=0)
+    hi = np.max([c.max(axis=0) for c in clouds], axis=0)
     flat = is_map(lo, hi)
     directions = (("appeared", names[1], current, result.current_state, result.appeared_region,
                    s["appeared_regions"], _VERMILLION),

@@ -117,13 +117,15 @@ def _map(plt, xyz, layers, lo, hi, regions=(), size=1.0):
 
 
 def map_origin(lo, hi) -> np.ndarray:
-    """A round x, y origin below the scene's corner (a power of ten of its extent), or (0, 0) for a
-    scene near the origin (within ten extents of it), whose own coordinates read well."""
+    """A round x, y origin at the scene's corner (a multiple of the power of ten below its extent;
+    a corner within 1 % of the extent beyond a round value takes that value, so that 499,999.7 gives
+    500,000, not 499,000), or (0, 0) for a scene near the origin (within ten extents of it), whose
+    own coordinates read well."""
     span = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]), 1e-9)
     if max(abs(float(v)) for v in (*lo[:2], *hi[:2])) <= 10 * span:
         return np.zeros(2)
     step = 10.0 ** math.floor(math.log10(span))
-    return np.floor(lo[:2] / step) * step
+    return np.floor((np.asarray(lo[:2], np.float64) + 0.01 * span) / step) * step
 
 
 def axis_label(name: str, offset: float) -> str:
@@ -213,6 +215,7 @@ def distances_figure(xyz: np.ndarray, distance: np.ndarray, significant: np.ndar
         for x in (-m, m):
             hx.axvline(x, color="k", ls="--", lw=1)
         hx.plot([], [], "k--", lw=1, label=f"median level of detection ±{m:.3g}")
+        hx.set_yscale("log")  # the significant tails stay visible beside the peak within the level of detection
     hx.set_xlabel("signed distance")
     hx.set_ylabel("points")
     hx.legend(fontsize=9)
