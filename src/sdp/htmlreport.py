@@ -410,9 +410,10 @@ def _parameters(s: dict, options: dict | None, kind: str) -> str:
                   else f"given ({options['voxel_size']})")),
                 ("σ (kernel)", f"{s['sigma']:.4g} ({s['sigma'] / s['voxel_size']:.3g} voxels)", why("sigma_voxels")),
                 ("threshold h", f"{s['h']:.4f}", "given (--h)" if options.get("h") else why("k")),
-                ("decision", s["decision"], why("decision")),
-                ("min region points", str(options.get("min_region_points", "")), why("min_region_points")),
-                ("coverage", _coverage(s), why("sensor_origin"))]
+                ("decision", s["decision"], why("decision"))]
+        if "min_region_points" in options:  # not in the summary: known when the options are
+            rows.append(("min region points", str(options["min_region_points"]), why("min_region_points")))
+        rows.append(("coverage", _coverage(s), why("sensor_origin")))
         if "range_noise" in options and any(v == "sensor rays" for v in s["coverage"].values()):
             rows.append(("range noise", f"{options['range_noise']:g}", why("range_noise")))
     else:
