@@ -35,8 +35,8 @@ def _grid_options(p):
     g.add_argument("-k", type=V.cli_type(V.finite), default=DEFAULTS.k,
                    help="threshold h = 1 + k·e^-1/2 (default 3, the paper's)")
     g.add_argument("--h", type=V.cli_type(V.positive_finite), help="threshold h given directly")
-    g.add_argument("--sigma-voxels", type=V.cli_type(V.positive_finite), default=DEFAULTS.sigma_voxels,
-                   help="sigma in voxels (default 2, the paper's)")
+    g.add_argument("--sigma-voxels", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.sigma_voxels,
+                   help="sigma in voxels (default auto: 1.5 on the automatic voxel, the paper's 2 on a given one)")
     g.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
                    help="refuse grids needing more (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
 

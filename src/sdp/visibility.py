@@ -567,8 +567,7 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
     else:
         _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
         inverse = inverse.ravel()
-    centres = np.zeros((len(counts), 3))
-    np.add.at(centres, inverse, query)
+    centres = np.stack([np.bincount(inverse, weights=query[:, d], minlength=len(counts)) for d in range(3)], axis=1)
     centres /= counts[:, None]
     tree = cKDTree(static, balanced_tree=False, compact_nodes=False)  # built once, queried once
     _, idx = tree.query(centres, k=k, workers=1)  # one thread: detect_changes runs both directions at once

@@ -8,7 +8,8 @@ so that each kernel is compiled for the argument types real files give it, and c
 
 :func:`first_run_note` tells the command line whether a command is about to compile: a small
 stamp beside the cache records which commands ran against the present kernels (their sources'
-sizes and times, Python's and Numba's versions); a command not in it prints one line on stderr.
+sizes and times, Python's and Numba's versions); a command not in it prints one line on stderr
+(a terminal) when Numba starts compiling.
 
 References
 ----------
@@ -93,12 +94,31 @@ def first_run_note(command: str) -> str | None:
 
 @contextmanager
 def first_run(command: str, *, quiet: bool = False):
-    """Around a command: :func:`first_run_note` on stderr (unless ``quiet``) before it, and
-    :func:`record_warm` once it succeeded."""
+    """Around a command: :func:`first_run_note` on stderr when Numba starts compiling (on a
+    terminal, unless ``quiet``: like a progress bar), and :func:`record_warm` once it succeeded."""
     note = first_run_note(command)
-    if note and not quiet:
-        print(note, file=sys.stderr)
-    yield
+    if note and not quiet and sys.stderr.isatty():
+        from numba.core import event
+
+        class _Note(event.Listener):
+            said = False
+
+            def on_start(self, ev):
+                if not self.said:
+                    self.said = True
+                    print(note, file=sys.stderr, flush=True)
+
+            def on_end(self, ev):
+                pass
+
+        listener = _Note()
+        event.register("numba:compile", listener)
+        try:
+            yield
+        finally:
+            event.unregister("numba:compile", listener)
+    else:
+        yield
     if note:
         record_warm([command])
 
