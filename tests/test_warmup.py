@@ -42,6 +42,32 @@ def test_first_run_note_until_the_command_ran(tmp_path, monkeypatch):
     assert warmup.first_run_note("distance") is not None
 
 
+def test_the_note_shows_on_a_terminal_when_numba_compiles(tmp_path, monkeypatch):
+    import io
+
+    import numba
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    err = Terminal()
+    monkeypatch.setattr(sys, "stderr", err)
+    with warmup.first_run("change"):
+        pass  # nothing compiled: nothing said
+    assert err.getvalue() == "" and warmup.first_run_note("change") is None  # recorded as run
+    (tmp_path / "sdp-warm.json").unlink()
+    with warmup.first_run("change"):
+        numba.njit(lambda x: x + 1)(1)  # compiles
+        numba.njit(lambda x: x + 2)(1)
+    assert err.getvalue().count("compiling its kernels once") == 1
+    (tmp_path / "sdp-warm.json").unlink()
+    with warmup.first_run("change", quiet=True):
+        numba.njit(lambda x: x + 3)(1)
+    assert err.getvalue().count("compiling") == 1
+
+
 @pytest.mark.slow
 def test_after_warmup_the_commands_compile_nothing(tmp_path, rng):
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}

@@ -41,8 +41,8 @@ class Defaults:
         or grid size. With ``voxel_size="auto"`` σ comes from the point spacing and the lattice
         only samples the field: at 1.5 voxels it has 2.4× fewer nodes than at 2 and the
         builds and regions take about 35 % less time, for kappa 0.849 instead of 0.850 on the
-        27 mOSD pairs; at 1 voxel (0.846) a 4 cm object of the simulated office is lost
-        (``benchmarks/bench_speed.py``).
+        27 mOSD pairs (``benchmarks/bench_speed.py``); at 1 voxel (0.846) an object of the
+        simulated office is lost (``tests/test_visibility.py`` fails).
     k : float
         3: the paper's threshold h = 1 + k·e^(−1/2) (a point needs about k neighbours at σ).
     truncate : float
