@@ -15,6 +15,7 @@ $(STAMP): pyproject.toml requirements.lock requirements-dev.lock
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -r requirements.lock -r requirements-dev.lock
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	$(VENV)/bin/sdp warmup --quiet  # compiles and caches every kernel (~40 s): no command waits for it later
 	touch $(STAMP)
 
 # the full suite (CI runs it)

@@ -23,6 +23,7 @@ from .defaults import DEFAULTS
 from .errors import SDPError
 from .io import all_or_none
 from .report import action_eval_text, alignment_text, frame_text, train_text, written_text
+from .warmup import first_run
 
 
 def _grid_options(p):
@@ -34,8 +35,8 @@ def _grid_options(p):
     g.add_argument("-k", type=V.cli_type(V.finite), default=DEFAULTS.k,
                    help="threshold h = 1 + k·e^-1/2 (default 3, the paper's)")
     g.add_argument("--h", type=V.cli_type(V.positive_finite), help="threshold h given directly")
-    g.add_argument("--sigma-voxels", type=V.cli_type(V.positive_finite), default=DEFAULTS.sigma_voxels,
-                   help="sigma in voxels (default 2, the paper's)")
+    g.add_argument("--sigma-voxels", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.sigma_voxels,
+                   help="sigma in voxels (default auto: 1.5 on the automatic voxel, the paper's 2 on a given one)")
     g.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
                    help="refuse grids needing more (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
 
@@ -153,6 +154,13 @@ def cmd_demo(a):
     from .demo import run_demo
 
     run_demo(a.output, seed=a.seed)
+
+
+def cmd_warmup(a):
+    from .warmup import warmup
+
+    total = sum(warmup(echo=None if a.quiet else print).values())
+    print(f"kernels compiled and cached ({total:.0f} s)")
     return 0
 
 
@@ -338,7 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
                  "  sdp demo -o demo-output")
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
-    for q in (c, ds, b, i, m, o, al, w, e, r, d):
+    wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does), not on first use",
+                  "  sdp warmup")
+    for q in (c, ds, b, i, m, o, al, w, e, r, d, wu):
         q.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -365,7 +375,8 @@ def main(argv=None) -> int:
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
     try:
         with all_or_none():  # a command writes all its outputs or none
-            return args.func(args)
+            with first_run(args.command, quiet=getattr(args, "quiet", False)):
+                return args.func(args)
     except (SDPError, ValueError) as exc:
         print(f"sdp: error: {_one_line(exc)}", file=sys.stderr)
         return 2

@@ -67,8 +67,8 @@ class ChangePlan:
     reason : str or None
         Why tiles were taken without being asked for (the grids or points exceed the memory
         limit); None when they were asked for, or when the comparison runs in memory.
-    voxel_size : float or None
-        The tiled run's voxel (in memory, :func:`sdp.detect_changes` decides it).
+    voxel_size, sigma_voxels : float or None
+        The tiled run's voxel and σ in voxels (in memory, :func:`sdp.detect_changes` decides them).
     sources : list or None
         What the tiled run reads: (reference, current) as :class:`~sdp.io.PointSource`, the
         reference possibly a :class:`~sdp.FieldStore`.
@@ -77,6 +77,7 @@ class ChangePlan:
     tiled: bool
     reason: str | None = None
     voxel_size: float | None = None
+    sigma_voxels: float | None = None
     sources: list | None = None
 
 
@@ -152,7 +153,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
     """
     from .grid import memory_limit as limit
     from .io import FORMATS, PointSource
-    from .tiles import dense_grid_bytes, sampled_voxel_size, untiled_point_bytes
+    from .tiles import dense_grid_bytes, sampled_lattice, untiled_point_bytes
 
     if _is_store(reference):  # a stored reference field: its lattice, σ, h and tiles
         from .store import FieldStore
@@ -160,7 +161,8 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
         sources = [FieldStore.open(reference), PointSource.open(current, format=format)]
         if both:
             raise SDPError("--both needs the reference points; a .zarr field store only tells what appeared")
-        return ChangePlan(tiled=True, voxel_size=sources[0].voxel_size, sources=sources)
+        return ChangePlan(tiled=True, voxel_size=sources[0].voxel_size,
+                          sigma_voxels=sources[0].sigma / sources[0].voxel_size, sources=sources)
     streamed = all((format or FORMATS.get(Path(f).suffix.lower())) in ("las", "npy", "ply")
                    for f in (reference, current))
     given_sensor = not (isinstance(sensor_origin, str) and sensor_origin in ("auto", "none"))  # tiles follow no rays
@@ -177,7 +179,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
         if tiled:
             raise
         return ChangePlan(tiled=False)  # ASCII PLY and the like: the in-memory path reads them (or reports the error)
-    voxel = sampled_voxel_size(sources, voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+    voxel, sigma_voxels = sampled_lattice(sources, voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
     lo = np.minimum(sources[0].lo, sources[1].lo)
     hi = np.maximum(sources[0].hi, sources[1].hi)
     grids = 2 * dense_grid_bytes(lo, hi, voxel, sigma_voxels=sigma_voxels)
@@ -194,7 +196,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
     if reason and (png or html or report):  # the pictures need every point in memory
         raise SDPError(f"--png/--html/--report are made in memory, but dense grids of {V.format_bytes(grids)} "
                        f"exceed the memory limit of {V.format_bytes(cap)}: give a larger --memory-limit or no pictures")
-    return ChangePlan(tiled=True, reason=reason, voxel_size=float(voxel), sources=sources)
+    return ChangePlan(tiled=True, reason=reason, voxel_size=float(voxel), sigma_voxels=sigma_voxels, sources=sources)
 
 
 def compare_files(reference, current, *, output, both: bool = False, png=None, html=None, report=None,
@@ -298,7 +300,7 @@ def compare_files(reference, current, *, output, both: bool = False, png=None, h
     with all_or_none():
         if plan.tiled:
             return _compare_tiled(plan, reference, current, out, both=both, min_region_points=min_region_points,
-                                  tiles=dict(sigma_voxels=sigma_voxels, k=k, h=h, tile_size=tile_size,
+                                  tiles=dict(k=k, h=h, tile_size=tile_size,
                                              memory_limit=memory_limit, scheduler=scheduler, workers=workers,
                                              workdir=workdir))
         options = dict(voxel_size=voxel_size, grid_size=grid_size, sigma_voxels=sigma_voxels, k=k, h=h,
@@ -383,7 +385,8 @@ def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min
     from .io import write_points_streamed
     from .tiles import detect_changes_tiled
 
-    r = detect_changes_tiled(*plan.sources, voxel_size=plan.voxel_size, min_region_points=min_region_points, **tiles)
+    r = detect_changes_tiled(*plan.sources, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels,
+                             min_region_points=min_region_points, **tiles)
     jobs = [(out, plan.sources[1], r.appeared_rows, r.appeared_region, r.current_not_comparable_rows)]
     if both:
         jobs.append((disappeared_path(out), plan.sources[0], r.disappeared_rows, r.disappeared_region,
@@ -675,15 +678,15 @@ def _lattice(clouds, grid: dict, like=None) -> dict:
     """``DensityField.from_points`` options: ``grid`` (``auto``: from all ``clouds``' point
     spacing), or the lattice, σ and h of the field ``like`` so results can be combined."""
     from ._points import as_points
-    from .params import resolve_voxel_size
+    from .params import resolve_lattice
 
     if like is not None:
         return dict(voxel_size=like.voxel_size, sigma_voxels=like.sigma / like.voxel_size, h=like.h,
                     truncate=like.truncate, memory_limit=grid["memory_limit"])
     kw = dict(grid)
-    kw["voxel_size"] = resolve_voxel_size([as_points(c) for c in clouds], voxel_size=kw.pop("voxel_size", "auto"),
-                                          grid_size=kw.pop("grid_size", None), k=kw["k"],
-                                          sigma_voxels=kw["sigma_voxels"])
+    kw["voxel_size"], kw["sigma_voxels"] = resolve_lattice(
+        [as_points(c) for c in clouds], voxel_size=kw.pop("voxel_size", "auto"), grid_size=kw.pop("grid_size", None),
+        k=kw["k"], sigma_voxels=kw["sigma_voxels"])
     return kw
 
 
@@ -719,10 +722,10 @@ def build_field_file(cloud, *, output, format: str | None = None, voxel_size: fl
         _save_field(fld, output, inputs=(cloud,))
         return fld
     from .io import PointSource
-    from .tiles import build_field_tiled, sampled_voxel_size
+    from .tiles import build_field_tiled, sampled_lattice
 
     source = PointSource.open(cloud, format=format)
-    voxel = sampled_voxel_size([source], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+    voxel, sigma_voxels = sampled_lattice([source], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
     return build_field_tiled(source, output, voxel_size=voxel, sigma_voxels=sigma_voxels, k=k, h=h,
                              tile_size=tile_size, memory_limit=memory_limit, scheduler=scheduler, workers=workers,
                              workdir=workdir)
