@@ -154,14 +154,13 @@ def cmd_demo(a):
     from .demo import run_demo
 
     run_demo(a.output, seed=a.seed)
+    return 0
 
 
 def cmd_warmup(a):
     from .warmup import warmup
 
-    total = sum(warmup(echo=None if a.quiet else print).values())
-    print(f"kernels compiled and cached ({total:.0f} s)")
-    return 0
+    return _show(f"kernels compiled and cached ({sum(warmup(echo=None if a.quiet else print).values()):.0f} s)")
 
 
 def _align_options(p):
@@ -262,15 +261,13 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--level", type=V.cli_type(V.finite), default=0.0,
                    help="level of F = h - G (0: the cluster boundary)")
 
-    o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds",
-                 X.BOOL)
+    o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds", X.BOOL)
     o.add_argument("operation", choices=("union", "intersection", "difference"))
     o.add_argument("a", help="field (.sdpf) or cloud")
     o.add_argument("b", help="field (.sdpf) or cloud")
     o.add_argument("-o", "--output", required=True, help=".sdpf (the field) or .ply/.obj/.stl (its surface)")
 
-    al = _command(sub, "align", cmd_align, "rigid transform mapping CURRENT onto REFERENCE (4x4, numpy.loadtxt)",
-                  X.ALIGN)
+    al = _command(sub, "align", cmd_align, "rigid transform mapping CURRENT onto REFERENCE (4x4 text)", X.ALIGN)
     al.add_argument("current")
     al.add_argument("reference", help="cloud, or field (.sdpf) for --method density")
     al.add_argument("-o", "--output", required=True, help="text file with the 4x4 matrix")
@@ -279,8 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     _align_options(al)
     al.add_argument("--json", action="store_true", help="print the result as JSON")
 
-    w = _command(sub, "watch", cmd_watch, "compare each frame of a folder, in order, with a model that learns",
-                 X.WATCH)
+    w = _command(sub, "watch", cmd_watch, "compare each frame of a folder, in order, with a model that learns", X.WATCH)
     w.add_argument("reference", help="cloud or field (.sdpf) of the scene before the frames")
     w.add_argument("frames", help="folder of frames, processed in natural name order")
     w.add_argument("--update", choices=("none", "window", "decay"), default=DEFAULTS.update,
@@ -302,8 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
     w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
 
-    act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)",
-                   X.ACTION)
+    act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)", X.ACTION)
     asub = act.add_subparsers(dest="action_command", required=True)
     t = asub.add_parser("train", help="fit a classifier on a folder of aXX_sYY_eZZ sequences")
     t.add_argument("data_dir")
@@ -319,8 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
         q.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1), default=os.cpu_count() or 1,
                        help="processes reading sequences")
 
-    e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth",
-                 X.EVAL)
+    e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth", X.EVAL)
     e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
     e.add_argument("truth", help="cloud with the true labels, same points in the same order")
     e.add_argument("--predicted-field", default="change",
@@ -329,8 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--truth-field", default="change", help="field of TRUTH (nonzero: changed; default change)")
     e.add_argument("--json", action="store_true", help="print the scores as JSON")
 
-    r = _command(sub, "render", cmd_render, "picture of a labelled cloud (red: changed) or slices of a field",
-                 X.RENDER)
+    r = _command(sub, "render", cmd_render, "picture of a labelled cloud (red: changed) or slices of a field", X.RENDER)
     r.add_argument("file", help="cloud with a label field, or a field (.sdpf)")
     r.add_argument("--png", help="picture (three views of a cloud; three slices of a field)")
     r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")
@@ -346,8 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
                  "  sdp demo -o demo-output")
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
-    wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does), not on first use",
-                  "  sdp warmup")
+    wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does)", "  sdp warmup")
     for q in (c, ds, b, i, m, o, al, w, e, r, d, wu):
         q.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     return p
