@@ -57,7 +57,7 @@ def test_descriptor_is_body_centred(rng):
     b = sequence_descriptor(sequence(1, rng, shift=40))  # the same action elsewhere in the image
     c = sequence_descriptor(sequence(2, rng))  # the reverse action
     assert a.dtype == np.float32 and np.isfinite(a).all()
-    n_blocks = len(LEVELS) * (1 + 2 * len(GAPS))  # density, appeared and disappeared per gap
+    n_blocks = len(LEVELS) * (1 + 4 * len(GAPS))  # density; appeared, disappeared (sum, max) per gap
     assert a @ a == pytest.approx(n_blocks, rel=1e-5)  # every (level, channel) block L2-normalized
     assert a @ b > 0.95 * (a @ a) and a @ c < a @ b
     with pytest.raises(SDPError, match="foreground"):

@@ -17,9 +17,10 @@ occupancy patterns): a depth sequence becomes a 4-D (x, y, z, t) density pattern
 5. Time is measured by cumulative motion energy (|G_t+1 − G_t| summed), so a pattern does not
    depend on how fast an action is performed, and cut into a pyramid of 1, 2 and 4 segments with
    soft (triangular) membership: a frame between two segment centres counts in both, by its
-   distance. Density is averaged, motion summed per segment. Each (level, channel) block is
-   raised to the power 0.35 (a power normalization, stronger than the square root) and
-   L2-normalized, and all are concatenated.
+   distance. Density is averaged per segment; motion is summed, and also taken at its maximum
+   over each segment's frames (hard segments), which keeps a brief fast stroke. Each (level,
+   channel, pooling) block is raised to the power 0.35 (a power normalization, stronger than
+   the square root) and L2-normalized, and all are concatenated (39 blocks, 383,292 values).
 
 A linear ridge classifier (one-vs-rest least squares) separates the actions; its ``alpha`` is
 chosen by leave-one-subject-out cross-validation on the training subjects only. Comparing two
@@ -64,7 +65,7 @@ POWER = 0.35  # power normalization of each block, before its L2 normalization
 ALPHAS = (0.0003, 0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 #: What a saved model's descriptors depend on; a model made with other values is refused.
 PARAMETERS = {"grid": GRID, "half": HALF, "sigma": SIGMA, "step": STEP, "levels": LEVELS, "gaps": GAPS,
-              "power": POWER, "version": 2}
+              "power": POWER, "version": 3}
 #: The standard subsets of MSR Action3D (a classifier each) and all 20 actions.
 SUBSETS = {"AS1": (2, 3, 5, 6, 10, 13, 18, 20), "AS2": (1, 4, 7, 8, 9, 11, 12, 14),
            "AS3": (6, 14, 15, 16, 17, 18, 19, 20), "all": tuple(range(1, 21))}
@@ -195,7 +196,8 @@ def _space_time_pattern(grids: np.ndarray) -> list[np.ndarray]:
     """Blocks of the temporal pyramid, one per (level, channel): (level, *grid) arrays.
 
     ``grids`` (T, ...) are a sequence's frame densities; channels are the density (averaged per
-    segment) and, for each gap in :data:`GAPS`, the appeared and disappeared densities (summed).
+    segment) and, for each gap in :data:`GAPS`, the appeared and disappeared densities, each
+    summed (soft segments) and by its maximum (hard segments).
     """
     n_frames = len(grids)
     dg = np.diff(grids, axis=0) if n_frames > 1 else np.zeros_like(grids)
@@ -216,6 +218,12 @@ def _space_time_pattern(grids: np.ndarray) -> list[np.ndarray]:
             if mean:
                 pooled /= np.maximum(w.sum(axis=0), 1e-12)[:, None]
             blocks.append(pooled.reshape(level, *grids.shape[1:]))
+            if not mean:  # motion also by its maximum over each (hard) segment's frames
+                seg = np.minimum((at * level).astype(int), level - 1)
+                peak = np.zeros_like(pooled)
+                for k in np.unique(seg):
+                    peak[k] = values[seg == k].max(axis=0)
+                blocks.append(peak.reshape(level, *grids.shape[1:]))
     return blocks
 
 
