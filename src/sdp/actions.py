@@ -229,12 +229,12 @@ def _space_time_pattern(grids: np.ndarray) -> list[np.ndarray]:
 
 def sequence_descriptor(depth: np.ndarray) -> np.ndarray:
     """The space-time density pattern of a (T, H, W) depth sequence as one vector (float32)."""
-    out = []
-    for block in _space_time_pattern(frame_densities(depth, step=STEP)):
-        v = np.maximum(block.ravel().astype(np.float64), 0.0) ** POWER
-        norm = np.linalg.norm(v)
-        out.append(v / norm if norm > 0 else v)
-    return np.concatenate(out).astype(np.float32)
+    blocks = _space_time_pattern(frame_densities(depth, step=STEP))
+    v = np.power(np.maximum(np.concatenate([b.ravel() for b in blocks]), 0.0, dtype=np.float32), np.float32(POWER))
+    starts = np.cumsum([0] + [b.size for b in blocks[:-1]])
+    norms = np.sqrt(np.add.reduceat(np.square(v, dtype=np.float64), starts))  # each block's L2 norm
+    v /= np.repeat(np.where(norms > 0, norms, 1.0), [b.size for b in blocks]).astype(np.float32)
+    return v
 
 
 def list_sequences(folder: str | os.PathLike) -> list[tuple[Path, int, int]]:
@@ -262,8 +262,18 @@ def describe_sequences(paths, *, workers: int = os.cpu_count() or 1) -> np.ndarr
         from multiprocessing import get_context
 
         with ProcessPoolExecutor(workers, mp_context=get_context("fork")) as pool:
-            return np.stack(list(pool.map(_describe_file, paths, chunksize=4)))
-    return np.stack([_describe_file(p) for p in paths])
+            return _stack(pool.map(_describe_file, paths, chunksize=4), len(paths))
+    return _stack(map(_describe_file, paths), len(paths))
+
+
+def _stack(vectors, n: int) -> np.ndarray:
+    """``n`` vectors into one (n, d) array as they arrive (not a list of them and then a copy)."""
+    out = None
+    for i, v in enumerate(vectors):
+        if out is None:
+            out = np.empty((n, len(v)), v.dtype)
+        out[i] = v
+    return out
 
 
 @dataclass
@@ -277,7 +287,8 @@ class ActionModel:
 
     def predict(self, descriptors: np.ndarray) -> np.ndarray:
         """Action label of each descriptor (n, d)."""
-        scores = np.atleast_2d(descriptors) @ np.atleast_2d(self.coef).T + self.intercept
+        coef = np.atleast_2d(self.coef)
+        scores = np.atleast_2d(np.asarray(descriptors, coef.dtype)) @ coef.T + self.intercept  # one dtype: BLAS
         if scores.shape[1] == 1:  # two actions: one decision function, positive for the second
             return self.classes[(scores[:, 0] > 0).astype(int)]
         return self.classes[np.argmax(scores, axis=1)]
@@ -335,7 +346,7 @@ def train(descriptors: np.ndarray, actions: np.ndarray, subjects: np.ndarray, *,
     cv = {a: np.mean(np.concatenate([_ridge_dual(gram, tr, te, y, a) == y[te] for tr, te in folds]))
           for a in alphas}
     alpha = max(alphas, key=lambda a: (cv[a], a))  # ties: the stronger regularization
-    clf = RidgeClassifier(alpha=alpha).fit(x, y)
+    clf = RidgeClassifier(alpha=alpha, copy_X=False).fit(x, y)  # x is our float64 copy: centred in place
     return ActionModel(clf.coef_, clf.intercept_, clf.classes_, alpha), float(cv[alpha])
 
 
@@ -344,7 +355,7 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
 
     One classifier per subset (AS1, AS2, AS3) and one for all 20 actions; every choice
     (``alpha``) is made by cross-validation on the training subjects. Returns accuracies as
-    fractions, the cross-validated accuracies, per-subset confusion data and timings.
+    fractions, the cross-validated accuracies, per-subset confusion data, the models and timings.
     """
     _linear_model()  # before describing the sequences
     t0 = time.perf_counter()
@@ -352,7 +363,7 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
     x = describe_sequences([r[0] for r in rows], workers=workers)
     y, s = np.array([r[1] for r in rows]), np.array([r[2] for r in rows])
     t1 = time.perf_counter()
-    out = {"accuracy": {}, "cv_accuracy": {}, "alpha": {}, "confusion": {}}
+    out = {"accuracy": {}, "cv_accuracy": {}, "alpha": {}, "confusion": {}, "models": {}}
     for name, acts in SUBSETS.items():
         tr, te = np.isin(y, acts) & np.isin(s, TRAIN_SUBJECTS), np.isin(y, acts) & np.isin(s, TEST_SUBJECTS)
         if not tr.any() or not te.any():
@@ -362,6 +373,7 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
         out["accuracy"][name] = float(np.mean(pred == y[te]))
         out["cv_accuracy"][name], out["alpha"][name] = cv, model.alpha
         out["confusion"][name] = {"truth": y[te].tolist(), "predicted": pred.tolist()}
+        out["models"][name] = model
     out["accuracy"]["mean_AS"] = float(np.mean([out["accuracy"][k] for k in ("AS1", "AS2", "AS3")]))
     out["timings"] = {"read_and_describe": t1 - t0, "train_and_test": time.perf_counter() - t1}
     out["sequences"] = len(rows)
