@@ -1,5 +1,6 @@
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from sdp.actions import (
     LEVELS,
     PARAMETERS,
     ActionModel,
+    ActionStream,
     _soft_segments,
     depth_to_points,
     describe_sequences,
@@ -91,6 +93,18 @@ def test_real_sequences_two_actions(shared_data, tmp_path):
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "action", "predict", str(tmp_path / "m.npz"),
                         str(rows[0][0])], capture_output=True, text=True)
     assert p.returncode == 0 and p.stdout.strip().endswith("a01"), p.stderr
+    # A stream of two test sequences, one after the other: at the last frame of each, the report is
+    # that sequence's own prediction (the window then holds exactly it), well within a second.
+    test = [(r, read_sequence(r[0])) for r in rows if r[2] % 2 == 0]
+    first = next(d for r, d in test if r[1] == 1)
+    second = next(d for r, d in test if r[1] == 5 and len(d) >= len(first))
+    stream = ActionStream(model, window=len(second), every=1)
+    for depth in (first, second):
+        for frame in depth:
+            t0 = time.perf_counter()
+            label = stream.push(frame)
+            assert time.perf_counter() - t0 < 1.0
+        assert label == model.predict(sequence_descriptor(depth))[0]
 
 
 def test_frame_densities_unit_mass_and_exact_decimation(rng):
@@ -125,3 +139,33 @@ def test_model_refuses_other_parameters(tmp_path, rng):
     np.savez(tmp_path / "old.npz", **saved)
     with pytest.raises(SDPError, match="old.npz: not an sdp action model.*other pattern parameters \\(gaps\\)"):
         ActionModel.load(tmp_path / "old.npz")
+
+
+def test_action_stream_reports_each_action_soon_after_it_ends(tmp_path, rng):
+    """Raise-arm then lower-arm, 20 frames each, in one stream: reported every 5 frames from the
+    window of the last 20; the first action by frame 20, the second by frame 40."""
+    x = np.stack([sequence_descriptor(sequence(k, rng, shift=int(rng.integers(-30, 30))))
+                  for k in (1, 2) for _ in range(4)])
+    model, _ = train(x, np.repeat([1, 2], 4), np.tile([1, 2, 3, 4], 2))
+    stream = ActionStream(model, window=20, every=5)
+    frames = np.concatenate([sequence(1, rng), sequence(2, rng)])
+    reports = {i + 1: label for i, f in enumerate(frames) if (label := stream.push(f)) is not None}
+    assert sorted(reports) == [10, 15, 20, 25, 30, 35, 40]  # min_frames 10, then every 5
+    assert reports[20] == 1 and reports[40] == 2
+    with pytest.raises(SDPError, match="one \\(H, W\\) shape"):
+        stream.push(frames[0][:10])
+    with pytest.raises(SDPError, match="window >= min_frames"):
+        ActionStream(model, window=5, min_frames=10)
+    model.save(tmp_path / "m.npz")
+    (tmp_path / "frames").mkdir()
+    for i, f in enumerate(frames):
+        np.save(tmp_path / "frames" / f"{i:04d}.npy", f)
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "action", "predict", str(tmp_path / "m.npz"), "--stream",
+                        str(tmp_path / "frames"), "--window", "20", "--every", "10"], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.splitlines()
+    assert [line.split(":")[0] for line in lines] == ["frame 10", "frame 20", "frame 30", "frame 40"], p.stdout
+    assert lines[1] == "frame 20: a01" and lines[3] == "frame 40: a02", p.stdout
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "action", "predict", str(tmp_path / "m.npz")],
+                       capture_output=True, text=True)
+    assert p.returncode == 2 and "needs depth sequences, or --stream" in p.stderr
