@@ -26,7 +26,8 @@ A linear ridge classifier (one-vs-rest least squares) separates the actions; its
 chosen by leave-one-subject-out cross-validation on the training subjects only. Comparing two
 patterns is a dot product: linear in the grid. Every other constant here (gaps, soft pyramid,
 power, σ) was chosen by the same cross-validation, on the training subjects of MSR Action3D
-(docs/benchmarks.md lists the configurations compared).
+(docs/benchmarks.md lists the configurations compared). :class:`ActionStream` applies a model to
+a live stream of frames: the window of the last frames, every few frames.
 
 References
 ----------
