@@ -1,14 +1,21 @@
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 
 from sdp import SDPError
 from sdp.actions import (
+    GAPS,
+    LEVELS,
+    PARAMETERS,
     ActionModel,
+    ActionStream,
+    _soft_segments,
     depth_to_points,
     describe_sequences,
+    frame_densities,
     list_sequences,
     read_sequence,
     sequence_descriptor,
@@ -52,7 +59,9 @@ def test_descriptor_is_body_centred(rng):
     b = sequence_descriptor(sequence(1, rng, shift=40))  # the same action elsewhere in the image
     c = sequence_descriptor(sequence(2, rng))  # the reverse action
     assert a.dtype == np.float32 and np.isfinite(a).all()
-    assert a @ b > 0.95 * (a @ a) and a @ c < a @ b  # normalized blocks: a @ a = 9
+    n_blocks = len(LEVELS) * (1 + 4 * len(GAPS))  # density; appeared, disappeared (sum, max) per gap
+    assert a @ a == pytest.approx(n_blocks, rel=1e-5)  # every (level, channel) block L2-normalized
+    assert a @ b > 0.95 * (a @ a) and a @ c < a @ b
     with pytest.raises(SDPError, match="foreground"):
         sequence_descriptor(np.zeros((3, 10, 10), np.uint16))
 
@@ -84,3 +93,79 @@ def test_real_sequences_two_actions(shared_data, tmp_path):
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "action", "predict", str(tmp_path / "m.npz"),
                         str(rows[0][0])], capture_output=True, text=True)
     assert p.returncode == 0 and p.stdout.strip().endswith("a01"), p.stderr
+    # A stream of two test sequences, one after the other: at the last frame of each, the report is
+    # that sequence's own prediction (the window then holds exactly it), well within a second.
+    test = [(r, read_sequence(r[0])) for r in rows if r[2] % 2 == 0]
+    first = next(d for r, d in test if r[1] == 1)
+    second = next(d for r, d in test if r[1] == 5 and len(d) >= len(first))
+    stream = ActionStream(model, window=len(second), every=1)
+    for depth in (first, second):
+        for frame in depth:
+            t0 = time.perf_counter()
+            label = stream.push(frame)
+            assert time.perf_counter() - t0 < 1.0
+        assert label == model.predict(sequence_descriptor(depth))[0]
+
+
+def test_frame_densities_unit_mass_and_exact_decimation(rng):
+    depth = sequence(1, rng, frames=4)
+    full = frame_densities(depth)
+    assert full.shape == (4, 36, 36, 26)
+    np.testing.assert_allclose(full.sum(axis=(1, 2, 3)), 1.0, atol=0.02)  # unit mass per frame (blur edges)
+    np.testing.assert_array_equal(frame_densities(depth, step=2), full[:, ::2, ::2, ::2])
+    moved = np.roll(depth, 40, axis=2)  # the same body elsewhere in the image: the same grids
+    np.testing.assert_allclose(frame_densities(moved), full, atol=0.05 * full.max())
+
+
+def test_soft_temporal_segments():
+    at = np.linspace(0.0, 1.0, 101)
+    for level in (1, 2, 4):
+        w = _soft_segments(at, level)
+        assert w.shape == (101, level) and (w >= 0).all()
+        np.testing.assert_allclose(w.sum(axis=1), 1.0)  # every frame counted once in all
+    w = _soft_segments(np.array([0.125, 0.25, 0.375, 0.0, 1.0]), 4)
+    np.testing.assert_allclose(w, [[1, 0, 0, 0], [0.5, 0.5, 0, 0], [0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1]])
+
+
+def test_model_refuses_other_parameters(tmp_path, rng):
+    x = rng.random((8, 5)).astype(np.float32)
+    model, _ = train(x, np.repeat([1, 2], 4), np.tile([1, 2, 3, 4], 2))
+    path = model.save(tmp_path / "m.npz")
+    with np.load(path) as z:
+        saved = dict(z)
+    assert {k: tuple(np.atleast_1d(saved[k])) for k in PARAMETERS} == {
+        k: tuple(np.atleast_1d(v)) for k, v in PARAMETERS.items()}
+    saved["gaps"] = np.array([1, 2])
+    np.savez(tmp_path / "old.npz", **saved)
+    with pytest.raises(SDPError, match="old.npz: not an sdp action model.*other pattern parameters \\(gaps\\)"):
+        ActionModel.load(tmp_path / "old.npz")
+
+
+def test_action_stream_reports_each_action_soon_after_it_ends(tmp_path, rng):
+    """Raise-arm then lower-arm, 20 frames each, in one stream: reported every 5 frames from the
+    window of the last 20; the first action by frame 20, the second by frame 40."""
+    x = np.stack([sequence_descriptor(sequence(k, rng, shift=int(rng.integers(-30, 30))))
+                  for k in (1, 2) for _ in range(4)])
+    model, _ = train(x, np.repeat([1, 2], 4), np.tile([1, 2, 3, 4], 2))
+    stream = ActionStream(model, window=20, every=5)
+    frames = np.concatenate([sequence(1, rng), sequence(2, rng)])
+    reports = {i + 1: label for i, f in enumerate(frames) if (label := stream.push(f)) is not None}
+    assert sorted(reports) == [10, 15, 20, 25, 30, 35, 40]  # min_frames 10, then every 5
+    assert reports[20] == 1 and reports[40] == 2
+    with pytest.raises(SDPError, match="one \\(H, W\\) shape"):
+        stream.push(frames[0][:10])
+    with pytest.raises(SDPError, match="window >= min_frames"):
+        ActionStream(model, window=5, min_frames=10)
+    model.save(tmp_path / "m.npz")
+    (tmp_path / "frames").mkdir()
+    for i, f in enumerate(frames):
+        np.save(tmp_path / "frames" / f"{i:04d}.npy", f)
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "action", "predict", str(tmp_path / "m.npz"), "--stream",
+                        str(tmp_path / "frames"), "--window", "20", "--every", "10"], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.splitlines()
+    assert [line.split(":")[0] for line in lines] == ["frame 10", "frame 20", "frame 30", "frame 40"], p.stdout
+    assert lines[1] == "frame 20: a01" and lines[3] == "frame 40: a02", p.stdout
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "action", "predict", str(tmp_path / "m.npz")],
+                       capture_output=True, text=True)
+    assert p.returncode == 2 and "needs depth sequences, or --stream" in p.stderr

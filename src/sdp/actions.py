@@ -9,17 +9,25 @@ occupancy patterns): a depth sequence becomes a 4-D (x, y, z, t) density pattern
    frames of the 1–99 % vertical extent), so the pattern is body-centred and scale-free.
 3. Each frame's points add Gaussian RBFs (σ = 2 voxels) on a 36 × 36 × 26 grid over
    ±(0.75, 0.8, 0.6) body heights, each frame with unit mass (trilinear binning, then a
-   separable Gaussian blur, as :class:`sdp.DensityField`'s fast path).
-4. The frame grids G_t give three channels: density G_t, appeared density max(G_t+1 − G_t, 0)
-   and disappeared density max(G_t − G_t+1, 0) — the Boolean difference of consecutive frames
-   used by change detection, here as signed 3-D motion energy.
-5. Time is cut by cumulative motion energy into a pyramid of 1, 2 and 4 segments (density
-   averaged, motion summed per segment); grids are subsampled by 2 (the blur oversamples), each
-   (level, channel) block is square-rooted and L2-normalized, and all are concatenated.
+   separable Gaussian blur, as :class:`sdp.DensityField`'s fast path). The blur oversamples, so
+   grids keep every second node (18 × 18 × 13), each axis decimated right after its blur pass.
+4. The frame grids G_t give seven channels: density G_t and, for frame gaps k = 1, 2, 4, the
+   appeared density max(G_t+k − G_t, 0) and the disappeared density max(G_t − G_t+k, 0) — the
+   Boolean difference of change detection, here as signed 3-D motion energy at three speeds.
+5. Time is measured by cumulative motion energy (|G_t+1 − G_t| summed), so a pattern does not
+   depend on how fast an action is performed, and cut into a pyramid of 1, 2 and 4 segments with
+   soft (triangular) membership: a frame between two segment centres counts in both, by its
+   distance. Density is averaged per segment; motion is summed, and also taken at its maximum
+   over each segment's frames (hard segments), which keeps a brief fast stroke. Each (level,
+   channel, pooling) block is raised to the power 0.35 (a power normalization, stronger than
+   the square root) and L2-normalized, and all are concatenated (39 blocks, 383,292 values).
 
 A linear ridge classifier (one-vs-rest least squares) separates the actions; its ``alpha`` is
 chosen by leave-one-subject-out cross-validation on the training subjects only. Comparing two
-patterns is a dot product: linear in the grid.
+patterns is a dot product: linear in the grid. Every other constant here (gaps, soft pyramid,
+power, σ) was chosen by the same cross-validation, on the training subjects of MSR Action3D
+(docs/benchmarks.md lists the configurations compared). :class:`ActionStream` applies a model to
+a live stream of frames: the window of the last frames, every few frames.
 
 References
 ----------
@@ -45,14 +53,21 @@ from .errors import SDPError, require
 from .io import atomic_path
 
 __all__ = ["read_sequence", "depth_to_points", "frame_densities", "sequence_descriptor", "list_sequences",
-           "describe_sequences", "ActionModel", "train", "evaluate_protocol", "SUBSETS", "FOCAL"]
+           "describe_sequences", "ActionModel", "ActionStream", "read_frames", "train", "evaluate_protocol", "SUBSETS",
+           "FOCAL", "PARAMETERS"]
 
 FOCAL = 280.0
 GRID = (36, 36, 26)  # nodes along x, y (up), z (depth)
 HALF = (0.75, 0.8, 0.6)  # half extent of the box, in body heights
 SIGMA = 2.0  # voxels
+STEP = 2  # grids keep every STEP-th node (the blur oversamples)
 LEVELS = (1, 2, 4)  # temporal pyramid: segments per level
-ALPHAS = (0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
+GAPS = (1, 2, 4)  # frame gaps of the appeared / disappeared channels
+POWER = 0.35  # power normalization of each block, before its L2 normalization
+ALPHAS = (0.0003, 0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
+#: What a saved model's descriptors depend on; a model made with other values is refused.
+PARAMETERS = {"grid": GRID, "half": HALF, "sigma": SIGMA, "step": STEP, "levels": LEVELS, "gaps": GAPS,
+              "power": POWER, "version": 3}
 #: The standard subsets of MSR Action3D (a classifier each) and all 20 actions.
 SUBSETS = {"AS1": (2, 3, 5, 6, 10, 13, 18, 20), "AS2": (1, 4, 7, 8, 9, 11, 12, 14),
            "AS3": (6, 14, 15, 16, 17, 18, 19, 20), "all": tuple(range(1, 21))}
@@ -102,69 +117,126 @@ def depth_to_points(depth: np.ndarray, *, focal: float = FOCAL) -> tuple[np.ndar
 
 
 @nb.njit(cache=True)
-def _bin_frames(g, t, w, out):
-    """Add weight w[i] of point i (grid coordinates g[i]) of frame t[i] to out[t] trilinearly."""
+def _bin_depth(depth, focal, centre, scale, n_nodes, out):
+    """Back-project every foreground pixel of ``depth`` (T, H, W) and add it trilinearly to its
+    frame's grid ``out[t]`` with weight 1 / (the frame's foreground pixels): grid coordinates are
+    (point − centre) · scale + (n_nodes − 1) / 2 per axis, as :func:`depth_to_points` gives points."""
+    n_frames, h, w = depth.shape
     nx, ny, nz = out.shape[1], out.shape[2], out.shape[3]
-    for i in range(g.shape[0]):
-        fx, fy, fz = g[i, 0], g[i, 1], g[i, 2]
-        if fx < 0 or fy < 0 or fz < 0 or fx > nx - 1 or fy > ny - 1 or fz > nz - 1:
+    for t in range(n_frames):
+        count = 0
+        for r in range(h):
+            for c in range(w):
+                if depth[t, r, c] != 0:
+                    count += 1
+        if count == 0:
             continue
-        ix, iy, iz = min(int(fx), nx - 2), min(int(fy), ny - 2), min(int(fz), nz - 2)
-        ax, ay, az = fx - ix, fy - iy, fz - iz
-        for dx in range(2):
-            wx = w[i] * (ax if dx else 1.0 - ax)
-            for dy in range(2):
-                wy = wx * (ay if dy else 1.0 - ay)
-                for dz in range(2):
-                    out[t[i], ix + dx, iy + dy, iz + dz] += wy * (az if dz else 1.0 - az)
+        weight = 1.0 / count
+        for r in range(h):
+            for c in range(w):
+                if depth[t, r, c] == 0:
+                    continue
+                z = float(depth[t, r, c])
+                fx = ((c - (w - 1) / 2.0) * z / focal - centre[0]) * scale[0] + (n_nodes[0] - 1) / 2.0
+                fy = (((h - 1) / 2.0 - r) * z / focal - centre[1]) * scale[1] + (n_nodes[1] - 1) / 2.0
+                fz = (z - centre[2]) * scale[2] + (n_nodes[2] - 1) / 2.0
+                if fx < 0 or fy < 0 or fz < 0 or fx > nx - 1 or fy > ny - 1 or fz > nz - 1:
+                    continue
+                ix, iy, iz = min(int(fx), nx - 2), min(int(fy), ny - 2), min(int(fz), nz - 2)
+                ax, ay, az = fx - ix, fy - iy, fz - iz
+                for dx in range(2):
+                    wx = weight * (ax if dx else 1.0 - ax)
+                    for dy in range(2):
+                        wy = wx * (ay if dy else 1.0 - ay)
+                        for dz in range(2):
+                            out[t, ix + dx, iy + dy, iz + dz] += wy * (az if dz else 1.0 - az)
 
 
-def frame_densities(depth: np.ndarray) -> np.ndarray:
-    """Per-frame density grids (T, 36, 36, 26) float32 in the body-centred, height-scaled box."""
+def _body_frame(depth: np.ndarray) -> tuple[np.ndarray, float]:
+    """The body's centre (median point) and height (median over frames of the 1–99 % vertical
+    extent) of a sequence, estimated on every second pixel row and column."""
+    _, h, w = depth.shape
+    t, r, c = np.nonzero(depth[:, ::2, ::2])
+    r, c = 2 * r, 2 * c
+    z = depth[t, r, c].astype(np.float64)
+    p = np.stack([(c - (w - 1) / 2.0) * z / FOCAL, ((h - 1) / 2.0 - r) * z / FOCAL, z], axis=1)
+    bounds = np.searchsorted(t, np.arange(len(depth) + 1))
+    heights = [np.subtract(*np.percentile(p[a:b, 1], [99.0, 1.0])) for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+               if b - a > 12]
+    height = float(np.median(heights)) if heights else float(np.ptp(p[:, 1]))
+    return np.median(p, axis=0), height or 1.0
+
+
+def frame_densities(depth: np.ndarray, *, step: int = 1) -> np.ndarray:
+    """Per-frame density grids in the body-centred, height-scaled box, float32.
+
+    ``(T, 36, 36, 26)``, or every ``step``-th node of it (``step=2``: ``(T, 18, 18, 13)``,
+    identical to subsampling the full grids: each axis is decimated after its own blur pass).
+    """
     if depth.ndim != 3 or not depth.any():
         raise SDPError("a depth sequence needs shape (T, H, W) and some non-zero (foreground) pixels")
-    p, t = depth_to_points(depth)
-    n_frames = depth.shape[0]
-    bounds = np.searchsorted(t, np.arange(n_frames + 1))
-    heights = [np.subtract(*np.percentile(p[a:b, 1], [99.0, 1.0])) for a, b in zip(bounds[:-1], bounds[1:], strict=True)
-               if b - a > 50]
-    height = float(np.median(heights)) if heights else float(np.ptp(p[:, 1])) or 1.0
-    n, half = np.asarray(GRID), np.asarray(HALF)
-    g = ((p - np.median(p, axis=0)) / height + half) / (2.0 * half) * (n - 1)
-    counts = np.bincount(t, minlength=n_frames).astype(np.float64)
-    grids = np.zeros((n_frames, *GRID), np.float32)
-    _bin_frames(g, t.astype(np.int64), 1.0 / counts[t], grids)  # unit mass per frame
+    centre, height = _body_frame(depth)
+    n = np.asarray(GRID, np.float64)
+    scale = (n - 1) / (2.0 * np.asarray(HALF) * height)
+    grids = np.zeros((depth.shape[0], *GRID), np.float32)
+    _bin_depth(np.ascontiguousarray(depth), FOCAL, centre, scale, n, grids)  # unit mass per frame
     for axis in (1, 2, 3):
         grids = gaussian_filter1d(grids, SIGMA, axis=axis, mode="constant", truncate=3.0)
-    return grids
+        grids = grids[(slice(None),) * axis + (slice(None, None, step),)]
+    return np.ascontiguousarray(grids)
 
 
-def _space_time_pattern(grids: np.ndarray) -> list[list[np.ndarray]]:
-    """Blocks of the temporal pyramid: for each (level, channel), its segments' grids."""
+def _soft_segments(at: np.ndarray, level: int) -> np.ndarray:
+    """Membership (len(at), level) of times ``at`` in [0, 1] in ``level`` equal segments:
+    triangular around each segment's centre, reaching the neighbouring centres (a frame at a
+    centre belongs to that segment only; before the first or after the last centre, to it)."""
+    centres = (np.arange(level) + 0.5) / level
+    return np.maximum(0.0, 1.0 - np.abs(np.clip(at, centres[0], centres[-1])[:, None] - centres[None]) * level)
+
+
+def _space_time_pattern(grids: np.ndarray) -> list[np.ndarray]:
+    """Blocks of the temporal pyramid, one per (level, channel): (level, *grid) arrays.
+
+    ``grids`` (T, ...) are a sequence's frame densities; channels are the density (averaged per
+    segment) and, for each gap in :data:`GAPS`, the appeared and disappeared densities, each
+    summed (soft segments) and by its maximum (hard segments).
+    """
     n_frames = len(grids)
     dg = np.diff(grids, axis=0) if n_frames > 1 else np.zeros_like(grids)
     energy = np.concatenate([[0.0], np.cumsum(np.abs(dg).reshape(len(dg), -1).sum(axis=1))])
     tau = energy / energy[-1] if energy[-1] > 0 else np.linspace(0.0, 1.0, n_frames)  # motion time
-    tau_step = 0.5 * (tau[1:] + tau[:-1]) if n_frames > 1 else np.zeros(1)
-    channels = ((grids, tau, np.mean), (np.maximum(dg, 0.0), tau_step, np.sum),
-                (np.maximum(-dg, 0.0), tau_step, np.sum))
+    channels = [(grids.reshape(n_frames, -1), tau, True)]
+    for k in GAPS:
+        if n_frames > k:
+            d, at = (grids[k:] - grids[:-k]).reshape(n_frames - k, -1), 0.5 * (tau[k:] + tau[:-k])
+        else:
+            d, at = np.zeros((1, grids[0].size), grids.dtype), np.zeros(1)
+        channels += [(np.maximum(d, 0.0), at, False), (np.maximum(-d, 0.0), at, False)]
     blocks = []
     for level in LEVELS:
-        for values, at, reduce in channels:
-            seg = np.minimum((at * level).astype(int), level - 1)
-            blocks.append([reduce(values[seg == k], axis=0)[::2, ::2, ::2] if (seg == k).any()
-                           else np.zeros(values.shape[1:], values.dtype)[::2, ::2, ::2] for k in range(level)])
+        for values, at, mean in channels:
+            w = _soft_segments(at, level)
+            pooled = w.T @ values
+            if mean:
+                pooled /= np.maximum(w.sum(axis=0), 1e-12)[:, None]
+            blocks.append(pooled.reshape(level, *grids.shape[1:]))
+            if not mean:  # motion also by its maximum over each (hard) segment's frames
+                seg = np.minimum((at * level).astype(int), level - 1)
+                peak = np.zeros_like(pooled)
+                for k in np.unique(seg):
+                    peak[k] = values[seg == k].max(axis=0)
+                blocks.append(peak.reshape(level, *grids.shape[1:]))
     return blocks
 
 
 def sequence_descriptor(depth: np.ndarray) -> np.ndarray:
     """The space-time density pattern of a (T, H, W) depth sequence as one vector (float32)."""
-    out = []
-    for block in _space_time_pattern(frame_densities(depth)):
-        v = np.sqrt(np.maximum(np.concatenate([b.ravel() for b in block]).astype(np.float64), 0.0))
-        norm = np.linalg.norm(v)
-        out.append(v / norm if norm > 0 else v)
-    return np.concatenate(out).astype(np.float32)
+    blocks = _space_time_pattern(frame_densities(depth, step=STEP))
+    v = np.power(np.maximum(np.concatenate([b.ravel() for b in blocks]), 0.0, dtype=np.float32), np.float32(POWER))
+    starts = np.cumsum([0] + [b.size for b in blocks[:-1]])
+    norms = np.sqrt(np.add.reduceat(np.square(v, dtype=np.float64), starts))  # each block's L2 norm
+    v /= np.repeat(np.where(norms > 0, norms, 1.0), [b.size for b in blocks]).astype(np.float32)
+    return v
 
 
 def list_sequences(folder: str | os.PathLike) -> list[tuple[Path, int, int]]:
@@ -192,8 +264,18 @@ def describe_sequences(paths, *, workers: int = os.cpu_count() or 1) -> np.ndarr
         from multiprocessing import get_context
 
         with ProcessPoolExecutor(workers, mp_context=get_context("fork")) as pool:
-            return np.stack(list(pool.map(_describe_file, paths, chunksize=4)))
-    return np.stack([_describe_file(p) for p in paths])
+            return _stack(pool.map(_describe_file, paths, chunksize=4), len(paths))
+    return _stack(map(_describe_file, paths), len(paths))
+
+
+def _stack(vectors, n: int) -> np.ndarray:
+    """``n`` vectors into one (n, d) array as they arrive (not a list of them and then a copy)."""
+    out = None
+    for i, v in enumerate(vectors):
+        if out is None:
+            out = np.empty((n, len(v)), v.dtype)
+        out[i] = v
+    return out
 
 
 @dataclass
@@ -207,7 +289,8 @@ class ActionModel:
 
     def predict(self, descriptors: np.ndarray) -> np.ndarray:
         """Action label of each descriptor (n, d)."""
-        scores = np.atleast_2d(descriptors) @ np.atleast_2d(self.coef).T + self.intercept
+        coef = np.atleast_2d(self.coef)
+        scores = np.atleast_2d(np.asarray(descriptors, coef.dtype)) @ coef.T + self.intercept  # one dtype: BLAS
         if scores.shape[1] == 1:  # two actions: one decision function, positive for the second
             return self.classes[(scores[:, 0] > 0).astype(int)]
         return self.classes[np.argmax(scores, axis=1)]
@@ -217,18 +300,68 @@ class ActionModel:
         path = Path(path)
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(fh, coef=self.coef, intercept=self.intercept, classes=self.classes,
-                                alpha=self.alpha, grid=np.asarray(GRID), levels=np.asarray(LEVELS))
+                                alpha=self.alpha, **{k: np.asarray(v) for k, v in PARAMETERS.items()})
         return path
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "ActionModel":
         try:
             with np.load(path, allow_pickle=False) as z:
-                if tuple(z["grid"]) != GRID or tuple(z["levels"]) != LEVELS:
-                    raise SDPError("made with other pattern parameters")
+                for key, value in PARAMETERS.items():
+                    if key not in z or not np.array_equal(z[key], np.asarray(value)):
+                        raise SDPError(f"made with other pattern parameters ({key})")
                 return cls(z["coef"], z["intercept"], z["classes"], float(z["alpha"]))
         except (OSError, KeyError, ValueError, SDPError) as exc:
             raise SDPError(f"{path}: not an sdp action model ({exc})") from None
+
+
+class ActionStream:
+    """Actions in a stream of depth frames: the last ``window`` frames are classified every
+    ``every`` frames, so an action is reported ``every`` frames (+ one descriptor, ~40 ms) after it
+    ends at the latest: a third of a second at MSR Action3D's 15 frames per second with the defaults.
+
+    ``push(frame)`` takes one (H, W) depth frame and returns the action label when a report is
+    due (``None`` otherwise, or while the window holds no foreground). A window spans about one
+    action: MSR Action3D's sequences hold 13–100 frames, 40 on average.
+    """
+
+    def __init__(self, model: ActionModel, *, window: int = 40, every: int = 5, min_frames: int = 10):
+        if not (window >= 2 and every >= 1 and 2 <= min_frames <= window):
+            raise SDPError(f"an action stream needs window >= min_frames >= 2 and every >= 1, got window {window}, "
+                           f"min_frames {min_frames}, every {every}")
+        self.model, self.window, self.every, self.min_frames = model, window, every, min_frames
+        self._frames: list[np.ndarray] = []
+        self.n_frames = 0
+
+    def push(self, frame: np.ndarray) -> int | None:
+        frame = np.asarray(frame)
+        if frame.ndim != 2 or (self._frames and frame.shape != self._frames[-1].shape):
+            raise SDPError(f"a stream's frames need one (H, W) shape, got {frame.shape}")
+        self._frames = (self._frames + [frame])[-self.window:]
+        self.n_frames += 1
+        if len(self._frames) < self.min_frames or self.n_frames % self.every:
+            return None
+        depth = np.stack(self._frames)
+        if not depth.any():
+            return None
+        return int(self.model.predict(sequence_descriptor(depth))[0])
+
+
+def read_frames(source: str | os.PathLike):
+    """Depth frames, one (H, W) array at a time, from a folder of ``.npy`` frames (sorted by name)
+    or from a depth-sequence file (``.mat``, ``.bin``: replayed frame by frame)."""
+    source = Path(source)
+    if source.is_dir():
+        files = sorted(p for p in source.iterdir() if p.suffix.lower() == ".npy")
+        if not files:
+            raise SDPError(f"{source}: no .npy depth frame in the folder")
+        for path in files:
+            try:
+                yield np.load(path, allow_pickle=False)
+            except (OSError, ValueError) as exc:
+                raise SDPError(f"{path}: can't read a depth frame ({exc})") from None
+    else:
+        yield from read_sequence(source)
 
 
 def _ridge_dual(gram, train, test, y, alpha):
@@ -264,7 +397,7 @@ def train(descriptors: np.ndarray, actions: np.ndarray, subjects: np.ndarray, *,
     cv = {a: np.mean(np.concatenate([_ridge_dual(gram, tr, te, y, a) == y[te] for tr, te in folds]))
           for a in alphas}
     alpha = max(alphas, key=lambda a: (cv[a], a))  # ties: the stronger regularization
-    clf = RidgeClassifier(alpha=alpha).fit(x, y)
+    clf = RidgeClassifier(alpha=alpha, copy_X=False).fit(x, y)  # x is our float64 copy: centred in place
     return ActionModel(clf.coef_, clf.intercept_, clf.classes_, alpha), float(cv[alpha])
 
 
@@ -273,7 +406,7 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
 
     One classifier per subset (AS1, AS2, AS3) and one for all 20 actions; every choice
     (``alpha``) is made by cross-validation on the training subjects. Returns accuracies as
-    fractions, the cross-validated accuracies, per-subset confusion data and timings.
+    fractions, the cross-validated accuracies, per-subset confusion data, the models and timings.
     """
     _linear_model()  # before describing the sequences
     t0 = time.perf_counter()
@@ -281,7 +414,7 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
     x = describe_sequences([r[0] for r in rows], workers=workers)
     y, s = np.array([r[1] for r in rows]), np.array([r[2] for r in rows])
     t1 = time.perf_counter()
-    out = {"accuracy": {}, "cv_accuracy": {}, "alpha": {}, "confusion": {}}
+    out = {"accuracy": {}, "cv_accuracy": {}, "alpha": {}, "confusion": {}, "models": {}}
     for name, acts in SUBSETS.items():
         tr, te = np.isin(y, acts) & np.isin(s, TRAIN_SUBJECTS), np.isin(y, acts) & np.isin(s, TEST_SUBJECTS)
         if not tr.any() or not te.any():
@@ -291,6 +424,7 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
         out["accuracy"][name] = float(np.mean(pred == y[te]))
         out["cv_accuracy"][name], out["alpha"][name] = cv, model.alpha
         out["confusion"][name] = {"truth": y[te].tolist(), "predicted": pred.tolist()}
+        out["models"][name] = model
     out["accuracy"]["mean_AS"] = float(np.mean([out["accuracy"][k] for k in ("AS1", "AS2", "AS3")]))
     out["timings"] = {"read_and_describe": t1 - t0, "train_and_test": time.perf_counter() - t1}
     out["sequences"] = len(rows)

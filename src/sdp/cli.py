@@ -134,6 +134,12 @@ def cmd_action(a):
         model, cv, n = P.train_actions(a.data_dir, output=a.output, subjects=a.subjects, workers=a.workers)
         return _show(train_text(model, cv, n, a.output))
     if a.action_command == "predict":
+        if a.stream is not None:
+            for frame, label in P.stream_actions(a.model, a.stream, window=a.window, every=a.every):
+                print(f"frame {frame}: a{label:02d}", flush=True)
+            return 0
+        if not a.sequences:
+            raise SDPError("sdp action predict needs depth sequences, or --stream FRAMES")
         return _show("\n".join(f"{path}: a{label:02d}" for path, label in P.predict_actions(a.model, a.sequences)))
     s = P.evaluate_actions(a.data_dir, workers=a.workers)
     return _show(action_eval_text(s), s, a.json)
@@ -306,7 +312,13 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--subjects", help="comma-separated subjects to train on (default: all)")
     pr = asub.add_parser("predict", help="action label of each sequence")
     pr.add_argument("model")
-    pr.add_argument("sequences", nargs="+", help=".mat or .bin depth sequences")
+    pr.add_argument("sequences", nargs="*", help=".mat or .bin depth sequences")
+    pr.add_argument("--stream", metavar="FRAMES",
+                    help="a folder of .npy depth frames (or a sequence file, replayed): the action of the last "
+                         "--window frames, every --every frames")
+    pr.add_argument("--window", type=V.cli_type(V.integer_at_least, 2), default=40, help="frames (default 40)")
+    pr.add_argument("--every", type=V.cli_type(V.integer_at_least, 1), default=5,
+                    help="report every N frames (default 5)")
     ev = asub.add_parser("eval", help="the cross-subject protocol: accuracy on AS1, AS2, AS3 and all")
     ev.add_argument("data_dir")
     ev.add_argument("--json", action="store_true", help="print the accuracies (fractions) and timings as JSON")

@@ -38,6 +38,7 @@ WATCH = """  sdp watch empty_room.pcd frames/                         each frame
 ACTION = """  sdp action eval ../shared/data/msr_action3d --json          the cross-subject protocol
   sdp action train ../shared/data/msr_action3d -o model.npz --subjects 1,3,5,7,9
   sdp action predict model.npz a05_s02_e01_sdepth.mat
+  sdp action predict model.npz --stream frames/               a folder of .npy depth frames, as they come
 """
 EVAL = """  sdp eval changes.ply truth.ply                              field 'change' of both
   sdp eval demo-output/current_labelled.ply demo-output/current_labelled.ply --truth-field truth

@@ -36,8 +36,8 @@ from .io import all_or_none, check_outputs, read_points
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files", "FileDistances", "distance_files",
            "build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder",
-           "Evaluation", "evaluate_files", "render_file", "train_actions", "predict_actions", "evaluate_actions",
-           "disappeared_path"]
+           "Evaluation", "evaluate_files", "render_file", "train_actions", "predict_actions", "stream_actions",
+           "evaluate_actions", "disappeared_path"]
 
 
 def _is_store(path) -> bool:
@@ -986,6 +986,19 @@ def predict_actions(model, sequences) -> list[tuple[str, int]]:
 
     m = actions.ActionModel.load(model)
     return [(str(p), int(m.predict(actions.sequence_descriptor(actions.read_sequence(p)))[0])) for p in sequences]
+
+
+def stream_actions(model, source, *, window: int = 40, every: int = 5):
+    """(frame number from 1, action label) at each report of an :class:`sdp.actions.ActionStream`
+    over the frames of ``source`` (``sdp action predict MODEL --stream SOURCE``)."""
+    from . import actions
+
+    stream = actions.ActionStream(actions.ActionModel.load(model), window=window, every=every,
+                                  min_frames=min(10, window))
+    for frame in actions.read_frames(source):
+        label = stream.push(frame)
+        if label is not None:
+            yield stream.n_frames, label
 
 
 def evaluate_actions(data_dir, *, workers: int = os.cpu_count() or 1) -> dict:
