@@ -133,13 +133,11 @@ def cmd_action(a):
     if a.action_command == "train":
         model, cv, n = P.train_actions(a.data_dir, output=a.output, subjects=a.subjects, workers=a.workers)
         return _show(train_text(model, cv, n, a.output))
+    if a.action_command == "predict" and a.stream is not None:
+        for frame, label in P.stream_actions(a.model, a.stream, window=a.window, every=a.every):
+            print(f"frame {frame}: a{label:02d}", flush=True)  # as it comes
+        return 0
     if a.action_command == "predict":
-        if a.stream is not None:
-            for frame, label in P.stream_actions(a.model, a.stream, window=a.window, every=a.every):
-                print(f"frame {frame}: a{label:02d}", flush=True)
-            return 0
-        if not a.sequences:
-            raise SDPError("sdp action predict needs depth sequences, or --stream FRAMES")
         return _show("\n".join(f"{path}: a{label:02d}" for path, label in P.predict_actions(a.model, a.sequences)))
     s = P.evaluate_actions(a.data_dir, workers=a.workers)
     return _show(action_eval_text(s), s, a.json)
@@ -250,9 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="refuse work needing more (default $SDP_MEMORY_LIMIT or 4GiB)")
     _tile_options(ds, "large clouds: tiles on Dask (taken by itself beyond --memory-limit; output LAS/LAZ)")
 
-    b = _command(sub, "build", cmd_build, "build a density field and save it (.sdpf, or a .zarr store in tiles)",
-                 "  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01\n"
-                 "  sdp build city.laz -o city.zarr --voxel-size 0.1        any size: tiles on Dask, on disk")
+    b = _command(sub, "build", cmd_build, "density field of a cloud, saved (.sdpf; a .zarr store in tiles)", X.BUILD)
     b.add_argument("cloud")
     b.add_argument("-o", "--output", required=True, help=".sdpf (in memory) or .zarr (a field store, built in tiles)")
     _tile_options(b, "field stores (.zarr output)", tiled=False)
@@ -260,12 +256,10 @@ def build_parser() -> argparse.ArgumentParser:
     i = _command(sub, "info", cmd_info, "describe a cloud or a field file", "  sdp info scan.laz\n  sdp info scan.sdpf")
     i.add_argument("file")
 
-    m = _command(sub, "mesh", cmd_mesh, "iso-surface of a field or cloud (Lewiner marching cubes)",
-                 "  sdp mesh scan.sdpf -o surface.ply\n  sdp mesh scan.pcd -o surface.obj --level 0")
+    m = _command(sub, "mesh", cmd_mesh, "iso-surface of a field or cloud (Lewiner marching cubes)", X.MESH)
     m.add_argument("input")
     m.add_argument("-o", "--output", required=True, help=".ply, .obj or .stl")
-    m.add_argument("--level", type=V.cli_type(V.finite), default=0.0,
-                   help="level of F = h - G (0: the cluster boundary)")
+    m.add_argument("--level", type=V.cli_type(V.finite), default=0.0, help="level of F = h - G (0: the boundary)")
 
     o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds", X.BOOL)
     o.add_argument("operation", choices=("union", "intersection", "difference"))
@@ -313,12 +307,9 @@ def build_parser() -> argparse.ArgumentParser:
     pr = asub.add_parser("predict", help="action label of each sequence")
     pr.add_argument("model")
     pr.add_argument("sequences", nargs="*", help=".mat or .bin depth sequences")
-    pr.add_argument("--stream", metavar="FRAMES",
-                    help="a folder of .npy depth frames (or a sequence file, replayed): the action of the last "
-                         "--window frames, every --every frames")
-    pr.add_argument("--window", type=V.cli_type(V.integer_at_least, 2), default=40, help="frames (default 40)")
-    pr.add_argument("--every", type=V.cli_type(V.integer_at_least, 1), default=5,
-                    help="report every N frames (default 5)")
+    pr.add_argument("--stream", metavar="FRAMES", help="a folder of .npy depth frames (or a sequence file, replayed)")
+    pr.add_argument("--window", type=V.cli_type(V.integer_at_least, 2), default=40, help="frames used (default 40)")
+    pr.add_argument("--every", type=V.cli_type(V.integer_at_least, 1), default=5, help="say it each N frames (5)")
     ev = asub.add_parser("eval", help="the cross-subject protocol: accuracy on AS1, AS2, AS3 and all")
     ev.add_argument("data_dir")
     ev.add_argument("--json", action="store_true", help="print the accuracies (fractions) and timings as JSON")
@@ -347,8 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
     for q in (c, b, m, o):
         _grid_options(q)
 
-    d = _command(sub, "demo", cmd_demo, "run change detection on a simulated office scan; write results",
-                 "  sdp demo -o demo-output")
+    d = _command(sub, "demo", cmd_demo, "change detection on a simulated office scan; write results", X.DEMO)
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
     wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does)", "  sdp warmup")

@@ -22,6 +22,14 @@ DISTANCE = """  sdp distance 2015.laz 2023.laz -o d.laz --png d.png    how much,
   sdp distance a.ply b.ply -o d.ply --projection-scale 0.5 --normal-scale 1   M3C2's d and D, as diameters
 """
 
+BUILD = """  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01
+  sdp build city.laz -o city.zarr --voxel-size 0.1        any size: tiles on Dask, on disk
+"""
+MESH = """  sdp mesh scan.sdpf -o surface.ply
+  sdp mesh scan.pcd -o surface.obj --level 0
+"""
+DEMO = """  sdp demo -o demo-output
+"""
 BOOL = """  sdp bool difference cur.sdpf ref.sdpf -o new.sdpf          what cur has and ref lacks
   sdp bool union a.pcd b.pcd -o both.ply                      surface of the union (auto voxel from both)
   sdp bool intersection a.sdpf b.ply -o common.stl            b is built on a's lattice

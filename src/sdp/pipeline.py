@@ -984,6 +984,8 @@ def predict_actions(model, sequences) -> list[tuple[str, int]]:
     """(sequence, action label) of each depth-sequence file, by a saved model (``sdp action predict``)."""
     from . import actions
 
+    if not sequences:
+        raise SDPError("sdp action predict needs depth sequences, or --stream FRAMES")
     m = actions.ActionModel.load(model)
     return [(str(p), int(m.predict(actions.sequence_descriptor(actions.read_sequence(p)))[0])) for p in sequences]
 
