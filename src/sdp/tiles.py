@@ -48,7 +48,7 @@ from ._progress import bar
 from .boolean import difference_on_own_blocks
 from .coverage import footprint_covered
 from .defaults import DEFAULTS
-from .errors import InvalidPointsError, SDPError, require
+from .errors import InvalidPointsError, SDPError, WorkerLostError, require
 from .field import DensityField, threshold
 from .grid import BLOCK, Grid, check_memory
 from .grid import memory_limit as _memory_limit
@@ -215,8 +215,10 @@ def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: i
         for b in np.flatnonzero(sizes):
             key = (int(i0 + b // nj), int(j0 + b % nj))
             path = Path(root, epoch, f"{key[0]}_{key[1]}")
-            path.mkdir(parents=True, exist_ok=True)
-            with open(path / f"{part:06d}.bin", "ab") as f:
+            path.mkdir(exist_ok=True)  # not its parents: a run that ended removed them, and stays removed
+            # the task's first write to a bucket truncates it: a task run again (its worker died) writes
+            # its rows once
+            with open(path / f"{part:06d}.bin", "ab" if key in counts else "wb") as f:
                 records[ends[b] - sizes[b]:ends[b]].tofile(f)
             counts[key] = counts.get(key, 0) + int(sizes[b])
     return counts, dropped, t_read
@@ -539,10 +541,12 @@ class _Session:
             self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo)
             self.lo = lo
             _check_tile_directory(self.tiling, lo, hi, reach, share, budget)
+            for e in self.sources:
+                Path(self.root, e).mkdir()
             self.executor, self.cluster = _connect(scheduler, workers)
             jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
                     for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
-            done = self.tasks("bucket", _bucket_part, jobs, ())
+            done = self.tasks("bucket", _bucket_part, jobs, (), unit="slice")
         except BaseException:
             self.__exit__()
             raise
@@ -550,10 +554,11 @@ class _Session:
         self.dropped = {e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in self.sources}
         self.tiles = sorted({key for d in done for key in d[0]})
 
-    def tasks(self, step: str, func, jobs: list, summed: tuple) -> list:
-        """Run the jobs; time the step (wall) and sum the tasks' own timings named ``summed``."""
+    def tasks(self, step: str, func, jobs: list, summed: tuple, unit: str = "tile") -> list:
+        """Run the jobs; time the step (wall) and sum the tasks' own timings named ``summed``;
+        the progress bar counts ``unit`` (a tile, a slice of a file)."""
         t = time.perf_counter()
-        results = _run(self.executor, func, jobs, {"bucket": "reading and tiling"}.get(step, f"{step} tiles"))
+        results = _run(self.executor, func, jobs, {"bucket": "reading and tiling"}.get(step, f"{step} tiles"), unit)
         self.timings[step] = time.perf_counter() - t
         for name in summed:
             self.timings[name] = self.timings.get(name, 0.0) + sum(r[name] for r in results)
@@ -701,18 +706,37 @@ def _sigint_deferred():
         signal.signal(signal.SIGINT, previous)
 
 
-def _run(executor, func, jobs: list, what: str) -> list:
-    """func(*job) for every job, in order, on a distributed ``Client`` or a local Dask scheduler (its name)."""
+#: Retries of a task that raised (a shared file system's passing error); a task whose worker died
+#: is rescheduled by Dask itself, up to its scheduler's ``allowed-failures``.
+TASK_RETRIES = 1
+
+
+def _run(executor, func, jobs: list, what: str, unit: str = "tile") -> list:
+    """func(*job) for every job, in order, on a distributed ``Client`` or a local Dask scheduler (its name).
+
+    The first task that fails for good stops the run: the others are cancelled and its error
+    is raised (a worker lost more often than the scheduler allows: :class:`WorkerLostError`).
+    """
     if not jobs:
         return []
     if isinstance(executor, str):
         dask = _dask("dask")
 
         return list(dask.compute(*[dask.delayed(func, pure=False)(*job) for job in jobs], scheduler=executor))
-    as_completed = _dask("dask.distributed").as_completed
+    distributed = _dask("dask.distributed")
 
-    futures = executor.map(func, *zip(*jobs, strict=True), pure=False)
-    with bar(len(futures), what) as pb:
-        for _ in as_completed(futures):
-            pb.update(1)
-    return executor.gather(futures)
+    futures = executor.map(func, *zip(*jobs, strict=True), pure=False, retries=TASK_RETRIES)
+    try:
+        with bar(len(futures), what, unit=unit) as pb:
+            for future in distributed.as_completed(futures):
+                if future.status == "error":
+                    future.result()  # raises the task's error: no waiting for the other tasks
+                pb.update(1)
+        return executor.gather(futures)
+    except distributed.KilledWorker as exc:
+        worker = getattr(exc.args[1], "address", "?") if len(exc.args) > 1 else "?"
+        tries = exc.args[2] + 1 if len(exc.args) > 2 else 1
+        raise WorkerLostError(f"{what}: the Dask workers running one task died {tries} time(s) (the last: {worker}); "
+                              "the run was stopped: check the workers' memory and logs") from None
+    finally:
+        executor.cancel([f for f in futures if not f.done()])
