@@ -52,6 +52,25 @@ def test_tiled_equals_untiled(epochs, min_region_points):
     assert b.n_dropped_current == 2 and b.summary()["current"]["appeared"] == a.appeared.sum()
 
 
+def test_tiled_regions_join_across_many_tiles(rng):
+    """Regions labelled tile by tile and joined across the faces equal the whole volume's, for
+    objects over many tiles: a wall along x, a staircase along the diagonal, a ring around a
+    tile corner (its halves meet again in another tile), at the smallest tiles the halo allows."""
+    stairs = [([8 + i, 8 + i, 0], [9.2 + i, 9.2 + i, 0.8]) for i in range(8)]
+    ring = [([20, 4, 0], [26, 4.4, 1]), ([20, 9.6, 0], [26, 10, 1]), ([20, 4, 0], [20.4, 10, 1]),
+            ([25.6, 4, 0], [26, 10, 1])]
+    ref = street(rng, [])
+    cur = street(rng, [([1, 1, 0], [19, 1.5, 1.2]), *stairs, *ring])
+    a = sdp.detect_changes(ref, cur, voxel_size=0.1, min_region_points=1)
+    b = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=2.4, scheduler="synchronous", min_region_points=1)
+    assert b.n_tiles >= 100 and b.tile_size == pytest.approx(2.4)
+    np.testing.assert_array_equal(b.appeared, a.appeared)
+    big = [r for r in a.appeared_regions if r.n_points > 2000]
+    assert len(big) == 3 and all(r.size[0] > 5 for r in big)  # the wall, the stairs, the ring: over tiles
+    assert regions_of(b.appeared_regions) == regions_of(a.appeared_regions)
+    np.testing.assert_array_equal(b.appeared_region, a.appeared_region[b.appeared_rows])
+
+
 @pytest.mark.slow
 def test_tiled_on_dask_clusters(epochs):
     from dask.distributed import LocalCluster

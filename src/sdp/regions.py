@@ -13,12 +13,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._region_kernels import corner_labels, group_stats, label_nodes, volume_at, volume_masks
+from ._region_kernels import corner_labels, difference_blocks, group_stats, label_nodes, volume_at, volume_masks
 from .boolean import check_compatible
 from .field import DensityField
-from .grid import BLOCK
+from .grid import BLOCK, Grid
 
-__all__ = ["Region", "label_points", "describe_regions"]
+__all__ = ["Region", "label_points", "describe_regions", "PartLabels", "label_part", "join_parts"]
 
 
 @dataclass(frozen=True)
@@ -155,3 +155,119 @@ def describe_regions(points: np.ndarray, point_labels: np.ndarray, node_counts: 
                       bbox_max=maxs[j], volume=float(node_counts[j]) * voxel_size**3)
                for i, j in enumerate(order)]
     return regions, rank[point_labels]
+
+
+# ---------------------------------------------------------------------------- regions in parts (tiles)
+# A tile labels the components of its own nodes plus the node planes just beyond its +x and +y faces
+# (its points' cells reach them; their values are exact there, inside the halo). Every edge of the
+# whole graph lies in some tile's part and parts overlap only in face nodes, so joining the parts'
+# labels wherever two parts hold the same node gives the whole volume's components: only the face
+# nodes travel (as in distributed connected-component labelling).
+_NODE = np.arange(BLOCK**3)
+_NODE_XYZ = np.c_[_NODE // (BLOCK * BLOCK), (_NODE // BLOCK) % BLOCK, _NODE % BLOCK]
+_NO_NODE = np.iinfo(np.int64).max
+
+
+@dataclass
+class PartLabels:
+    """The components of one part (a tile) of a volume, as :func:`join_parts` needs them.
+
+    Attributes
+    ----------
+    point_labels : ndarray of int64 (n,)
+        The part's component of each point given to :func:`label_part` (-1: none).
+    node_counts : ndarray of int64 (n_labels,)
+        Negative nodes of each component that are the part's own (not those beyond its faces).
+    first_node : ndarray of int64 (n_labels, 4)
+        The component's first own node in the order of an untiled field's labels (global block
+        key x, y, z, node index in the block); ``_NO_NODE`` for a component holding none.
+    face_nodes : ndarray of int64 (f, 3)
+        Global node coordinates of the negative nodes the part shares with its neighbours (its
+        own nodes on its −x and −y faces, its nodes beyond its +x and +y faces).
+    face_labels : ndarray of int64 (f,)
+        Their components.
+    """
+
+    point_labels: np.ndarray
+    node_counts: np.ndarray
+    first_node: np.ndarray
+    face_nodes: np.ndarray
+    face_labels: np.ndarray
+
+
+def label_part(field: DensityField, volume: Volume, points: np.ndarray, blocks_lo, blocks_hi) -> PartLabels:
+    """Components of ``volume`` < 0 in one part of ``field``'s blocks: the blocks whose global x, y
+    keys lie in [``blocks_lo``, ``blocks_hi``) (a tile's own column), and the first node plane
+    beyond its +x and +y faces; and the component of each of ``points`` (cells in the part).
+
+    ``field`` must hold exact values there (a tile's field built with its halo). Components are
+    numbered in the order of their first node, as :func:`label_points` numbers them.
+    """
+    lo, hi = np.asarray(blocks_lo, np.int64), np.asarray(blocks_hi, np.int64)
+    keys = field.global_keys
+    in_x, in_y = (keys[:, 0] >= lo[0]) & (keys[:, 0] < hi[0]), (keys[:, 1] >= lo[1]) & (keys[:, 1] < hi[1])
+    past_x, past_y = keys[:, 0] == hi[0], keys[:, 1] == hi[1]
+    own = in_x & in_y
+    negative = volume_masks(*volume.kernel_args(field)).any(axis=1)
+    rows = np.flatnonzero(negative & (own | (past_x & (in_y | past_y)) | (in_x & past_y)))
+    rows = rows[np.lexsort(keys[rows].T[::-1])]  # the order of an untiled field's blocks
+    values = difference_blocks(volume.a_blocks[rows], field.blocks.keys[rows], volume.ha, volume.b_blocks,
+                               volume.b_directory, volume.shift, volume.hb)
+    beyond = (past_x[rows, None] & (_NODE_XYZ[None, :, 0] > 0)) | (past_y[rows, None] & (_NODE_XYZ[None, :, 1] > 0))
+    values[beyond] = 1.0  # beyond the faces, only their first plane: farther, the values are not exact
+    k = keys[rows]
+    if len(rows) == 0:
+        none = np.zeros(0, np.int64)
+        return PartLabels(np.full(len(points), -1, np.int64), none, np.zeros((0, 4), np.int64),
+                          np.zeros((0, 3), np.int64), none)
+    origin = k.min(axis=0)
+    holder = DensityField(Grid(field.voxel_size, origin, tuple(int(v) for v in k.max(axis=0) - origin + 1)),
+                          k - origin, values, h=0.0, sigma=field.voxel_size, truncate=1.0)
+    args = Volume.of_values(values).kernel_args(holder)
+    slot, labels, counts = label_nodes(volume_masks(*args), holder.blocks.directory, holder.blocks.keys)
+    point_labels = corner_labels(holder.grid.to_grid_units(points), holder.blocks.directory, slot, labels, *args)
+    active = np.flatnonzero(slot >= 0)  # holder blocks (= positions in rows) with a negative node
+    lab = labels[slot[active]]
+    mine = own[rows[active]]
+    node_counts = np.bincount(lab[mine][lab[mine] >= 0], minlength=len(counts)).astype(np.int64)
+    first_node = np.full((len(counts), 4), _NO_NODE, np.int64)
+    flat = lab[mine].ravel()
+    found, where = np.unique(flat, return_index=True)
+    where, found = where[found >= 0], found[found >= 0]
+    first_node[found, :3] = k[active[mine]][where // BLOCK**3]
+    first_node[found, 3] = where % BLOCK**3
+    shared = np.where(mine[:, None], ((k[active, 0] == lo[0])[:, None] & (_NODE_XYZ[None, :, 0] == 0))
+                      | ((k[active, 1] == lo[1])[:, None] & (_NODE_XYZ[None, :, 1] == 0)), True) & (lab >= 0)
+    s, n = np.nonzero(shared)
+    return PartLabels(point_labels, node_counts, first_node, k[active[s]] * BLOCK + _NODE_XYZ[n],
+                      lab[s, n].astype(np.int64))
+
+
+def join_parts(parts: list[PartLabels]) -> tuple[list[np.ndarray], np.ndarray]:
+    """The whole volume's components from its parts' (:func:`label_part`): each part's point
+    labels in the whole's numbering (that of :func:`label_points` on the whole volume), and the
+    negative nodes of each component."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    sizes = np.array([len(p.node_counts) for p in parts], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    total = int(offsets[-1])
+    nodes = np.concatenate([p.face_nodes for p in parts]) if parts else np.zeros((0, 3), np.int64)
+    ids = np.concatenate([p.face_labels + o for p, o in zip(parts, offsets, strict=False)]) if parts else nodes[:, 0]
+    order = np.lexsort(nodes.T[::-1])
+    nodes, ids = nodes[order], ids[order]
+    same = np.flatnonzero(np.all(nodes[1:] == nodes[:-1], axis=1))
+    graph = coo_matrix((np.ones(len(same)), (ids[same], ids[same + 1])), shape=(total, total))
+    _, component = connected_components(graph, directed=False)
+    first = np.concatenate([p.first_node for p in parts]) if parts else np.zeros((0, 4), np.int64)
+    by_first = np.lexsort(first.T[::-1])
+    seen, at = np.unique(component[by_first], return_index=True)  # each component's first position
+    rank = np.empty(len(seen), np.int64)
+    rank[seen[np.argsort(at, kind="stable")]] = np.arange(len(seen))
+    label = rank[component] if total else np.zeros(0, np.int64)
+    counts = np.bincount(label, weights=np.concatenate([p.node_counts for p in parts]) if parts else None,
+                         minlength=len(seen)).astype(np.int64)
+    point_labels = [np.where(p.point_labels >= 0, label[np.maximum(p.point_labels, 0) + o], -1)
+                    for p, o in zip(parts, offsets, strict=False)]
+    return point_labels, counts

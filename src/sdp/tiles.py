@@ -45,15 +45,14 @@ import numpy as np
 
 from . import _tile_kernels as K
 from ._progress import bar
-from .boolean import difference_on_own_blocks
 from .coverage import footprint_covered
 from .defaults import DEFAULTS
 from .errors import InvalidPointsError, SDPError, WorkerLostError, require
 from .field import DensityField, threshold
-from .grid import BLOCK, Grid, check_memory
+from .grid import BLOCK, check_memory
 from .grid import memory_limit as _memory_limit
 from .io import PointSource
-from .regions import Region, describe_regions, label_points
+from .regions import Region, Volume, describe_regions, join_parts, label_part
 from .store import FieldStore, require_zarr
 from .validate import (
     auto_or_positive,
@@ -238,13 +237,15 @@ def _empty_field(like: DensityField) -> DensityField:
                         sigma=like.sigma, truncate=like.truncate)
 
 
-def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None) -> dict:
+def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None, regions: bool = True) -> dict:
     """Fields of both epochs in one tile, its own changed rows and its own not comparable rows
-    (outside the other field's footprint; see the module docstring). With ``store`` (a
-    :class:`FieldStore` path) the reference field is read from it."""
+    (outside the other field's footprint; see the module docstring), and with ``regions`` the
+    components of the difference volume in the tile (:func:`sdp.regions.label_part`: what the
+    regions across tiles are joined from). With ``store`` (a :class:`FieldStore` path) the
+    reference field is read from it."""
     t0 = time.perf_counter()
     recs = {e: _load(root, e, key) for e in ("reference", "current")}
-    out = {"read": time.perf_counter() - t0, "build_reference": 0.0, "build_current": 0.0}
+    out = {"read": time.perf_counter() - t0, "build_reference": 0.0, "build_current": 0.0, "label": 0.0}
     fields = {}
     for e, rec in recs.items():
         t = time.perf_counter()
@@ -254,44 +255,42 @@ def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None
             fields[e] = DensityField.from_points(rec[:, :3], **opts) if len(rec) else None
         out[f"build_{e}"] = time.perf_counter() - t
     t = time.perf_counter()
+    blocks_lo = np.asarray(key, np.int64) * tiling.blocks
     for e, other, kind in (("current", "reference", "appeared"), ("reference", "current", "disappeared")):
         fld, rec = fields[e], recs[e]
-        own = np.zeros(len(rec), bool)
-        if fld is not None and len(rec):
-            own = tiling.owns(key, rec)
-        if not own.any():
-            out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.int64),
-                         np.zeros((0, BLOCK**3), np.float32), np.zeros(0, np.int64))
-            continue
+        own = np.zeros(len(rec), bool) if fld is None else tiling.owns(key, rec)
+        out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), None, np.zeros(0, np.int64))
+        if fld is None or (not own.any() and not regions):
+            continue  # no field: no difference volume either
         pts = np.ascontiguousarray(rec[own, :3])
-        d = difference_on_own_blocks(fld, fields[other] or _empty_field(fld))  # shipped: the regions span tiles
-        mask = fld.interpolate(d, pts) < 0
+        d = Volume.difference(fld, fields[other] or _empty_field(fld))  # evaluated where needed, never stored
+        mask = d.at(fld, pts) < 0 if len(pts) else np.zeros(0, bool)
         rows = rec[own, 3].astype(np.int64)
         cand = np.flatnonzero(mask)
         unseen = cand if fields[other] is None else cand[~footprint_covered(pts[cand], fields[other])]
         mask[unseen] = False
-        keys = fld.global_keys
-        mine = np.all(np.floor_divide(keys[:, :2], tiling.blocks) == key, axis=1) & (d.min(axis=1) < 0)
-        out[kind] = (rows[mask], pts[mask], keys[mine], d[mine], rows[unseen])
-    out["detect"] = time.perf_counter() - t
+        part = None
+        if regions:
+            t1 = time.perf_counter()
+            part = label_part(fld, d, pts[mask], blocks_lo, blocks_lo + tiling.blocks)  # the regions span tiles
+            out["label"] += time.perf_counter() - t1
+        out[kind] = (rows[mask], pts[mask], part, rows[unseen])
+    out["detect"] = time.perf_counter() - t - out["label"]
     return out
 
 
 def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
-    """Rows, region labels and regions of one kind of change from the tiles' pieces."""
+    """Rows, region labels and regions of one kind of change from the tiles' pieces: the tiles'
+    components joined across their faces (:func:`sdp.regions.join_parts`)."""
     rows = np.concatenate([p[0] for p in parts])
     order = np.argsort(rows, kind="stable")
     rows, xyz = rows[order], np.concatenate([p[1] for p in parts])[order]
     if not regions or len(rows) == 0:
         return rows, np.zeros(len(rows), np.int64), []
-    keys = np.concatenate([p[2] for p in parts])
-    values = np.concatenate([p[3] for p in parts])
-    order = np.lexsort(keys.T[::-1])  # the order of an untiled field's blocks
-    keys, values = keys[order], values[order]
-    lo = keys.min(axis=0)
-    grid = Grid(voxel_size, lo, tuple(int(v) for v in keys.max(axis=0) - lo + 1))
-    holder = DensityField(grid, keys - lo, values, h=0.0, sigma=voxel_size, truncate=1.0)
-    labels, counts = label_points(holder, values, xyz)
+    joined, counts = join_parts([p[2] for p in parts if p[2] is not None])
+    joined = iter(joined)
+    labels = np.concatenate([next(joined) if p[2] is not None else np.full(len(p[0]), -1, np.int64)
+                             for p in parts])[order]
     if min_region_points > 1 and len(counts):
         big = (np.bincount(labels, minlength=len(counts)) >= min_region_points)[labels]
         rows, xyz, labels = rows[big], xyz[big], labels[big]
@@ -366,12 +365,13 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
     with _Session(clouds, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
                   tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit, scheduler=scheduler,
                   workers=workers, workdir=workdir) as run:
-        jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path)) for key in run.tiles]
-        results = run.tasks("compare", _compare_tile, jobs, ("read", "build_reference", "build_current", "detect"))
+        jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path), regions) for key in run.tiles]
+        results = run.tasks("compare", _compare_tile, jobs,
+                            ("read", "build_reference", "build_current", "detect", "label"))
         t = time.perf_counter()
         out = {kind: _regions([r[kind] for r in results], run.voxel_size, min_region_points, regions)
                for kind in ("appeared", "disappeared")}
-        unseen = {kind: np.sort(np.concatenate([r[kind][4] for r in results])) for kind in ("appeared", "disappeared")}
+        unseen = {kind: np.sort(np.concatenate([r[kind][3] for r in results])) for kind in ("appeared", "disappeared")}
         run.timings["regions"] = time.perf_counter() - t
     n_ref = run.sources["reference"].n_rows if store is None else store.n_points
     return TiledChanges(appeared_rows=out["appeared"][0], disappeared_rows=out["disappeared"][0],
