@@ -13,7 +13,15 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._region_kernels import corner_labels, difference_blocks, group_stats, label_nodes, volume_at, volume_masks
+from ._region_kernels import (
+    corner_labels,
+    difference_blocks,
+    group_stats,
+    label_nodes,
+    part_summary,
+    volume_at,
+    volume_masks,
+)
 from .boolean import check_compatible
 from .field import DensityField
 from .grid import BLOCK, Grid
@@ -165,7 +173,6 @@ def describe_regions(points: np.ndarray, point_labels: np.ndarray, node_counts: 
 # nodes travel (as in distributed connected-component labelling).
 _NODE = np.arange(BLOCK**3)
 _NODE_XYZ = np.c_[_NODE // (BLOCK * BLOCK), (_NODE // BLOCK) % BLOCK, _NODE % BLOCK]
-_NO_NODE = np.iinfo(np.int64).max
 
 
 @dataclass
@@ -180,7 +187,7 @@ class PartLabels:
         Negative nodes of each component that are the part's own (not those beyond its faces).
     first_node : ndarray of int64 (n_labels, 4)
         The component's first own node in the order of an untiled field's labels (global block
-        key x, y, z, node index in the block); ``_NO_NODE`` for a component holding none.
+        key x, y, z, node index in the block); the int64 maximum for a component holding none.
     face_nodes : ndarray of int64 (f, 3)
         Global node coordinates of the negative nodes the part shares with its neighbours (its
         own nodes on its −x and −y faces, its nodes beyond its +x and +y faces).
@@ -227,20 +234,9 @@ def label_part(field: DensityField, volume: Volume, points: np.ndarray, blocks_l
     slot, labels, counts = label_nodes(volume_masks(*args), holder.blocks.directory, holder.blocks.keys)
     point_labels = corner_labels(holder.grid.to_grid_units(points), holder.blocks.directory, slot, labels, *args)
     active = np.flatnonzero(slot >= 0)  # holder blocks (= positions in rows) with a negative node
-    lab = labels[slot[active]]
-    mine = own[rows[active]]
-    node_counts = np.bincount(lab[mine][lab[mine] >= 0], minlength=len(counts)).astype(np.int64)
-    first_node = np.full((len(counts), 4), _NO_NODE, np.int64)
-    flat = lab[mine].ravel()
-    found, where = np.unique(flat, return_index=True)
-    where, found = where[found >= 0], found[found >= 0]
-    first_node[found, :3] = k[active[mine]][where // BLOCK**3]
-    first_node[found, 3] = where % BLOCK**3
-    shared = np.where(mine[:, None], ((k[active, 0] == lo[0])[:, None] & (_NODE_XYZ[None, :, 0] == 0))
-                      | ((k[active, 1] == lo[1])[:, None] & (_NODE_XYZ[None, :, 1] == 0)), True) & (lab >= 0)
-    s, n = np.nonzero(shared)
-    return PartLabels(point_labels, node_counts, first_node, k[active[s]] * BLOCK + _NODE_XYZ[n],
-                      lab[s, n].astype(np.int64))
+    node_counts, first_node, nodes, node_labels = part_summary(labels[slot[active]], own[rows[active]], k[active],
+                                                               lo, len(counts))
+    return PartLabels(point_labels, node_counts, first_node, nodes, node_labels)
 
 
 def join_parts(parts: list[PartLabels]) -> tuple[list[np.ndarray], np.ndarray]:
