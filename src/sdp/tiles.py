@@ -47,7 +47,7 @@ from . import _tile_kernels as K
 from ._progress import bar
 from .coverage import footprint_covered
 from .defaults import DEFAULTS
-from .errors import InvalidPointsError, SDPError, WorkerLostError, require
+from .errors import GridTooLargeError, InvalidPointsError, SDPError, WorkerLostError, require
 from .field import DensityField, threshold
 from .grid import BLOCK, check_memory
 from .grid import memory_limit as _memory_limit
@@ -165,9 +165,19 @@ def dense_grid_bytes(lo, hi, voxel_size: float, *, sigma_voxels: float = 2.0, tr
     return int(np.prod(nodes + 2 * reach + 2) * 4)
 
 
+#: Resident bytes of ``sdp change`` in memory, per point of both clouds: float64 x, y, z, the file
+#: records, the fields' share, masks, labels and the output's records (measured: 1.26 GiB at the peak
+#: for two LAZ clouds of 2.9 M and 3 M points at 1 m voxels, the process itself included).
+_BYTES_PER_POINT_IN_MEMORY = 200
+#: The in-memory command's process before any data: the interpreter, NumPy, SciPy and Numba's kernels
+#: (measured: 197 MiB after a small comparison).
+PROCESS_BYTES = 224 * 2**20
+
+
 def untiled_point_bytes(n_points: int) -> int:
-    """Bytes the in-memory path holds per cloud point (float64 x, y, z, a file record, temporaries)."""
-    return int(n_points) * 96
+    """Bytes the in-memory comparison of ``n_points`` (both clouds) holds at its peak, the process
+    itself included (the fields' blocks are checked against the memory limit when allocated)."""
+    return PROCESS_BYTES + int(n_points) * _BYTES_PER_POINT_IN_MEMORY
 
 
 @dataclass(frozen=True)
@@ -507,6 +517,92 @@ def _build_tile(key, root: str, tiling: _Tiling, opts: dict, store: str) -> int:
     return int(tiling.owns(key, rec).sum())
 
 
+#: Resident memory of the processes themselves, before any data (measured here: 220 MiB for the
+#: command with NumPy, Numba's kernels, Dask's client and the local scheduler; 210 MiB for a Dask
+#: worker that has run a tile), and of the streamed output in the command (a chunk of LAS records
+#: read, its labelled copy and the LAZ encoder's buffers).
+CLIENT_BYTES = 256 * 2**20
+WORKER_BYTES = 256 * 2**20
+WRITE_BYTES = 2_000_000 * 120
+
+
+def _mb(nbytes: float) -> str:
+    """A size in whole MB, rounded up, as ``--memory-limit`` reads it."""
+    return f"{math.ceil(nbytes / 2**20)}MB"
+
+
+@dataclass(frozen=True)
+class JobBudget:
+    """How one memory limit is shared by the processes of a tiled run: the command (``client``:
+    itself, the changed rows, the streamed output) and each of ``workers`` (itself and one task's
+    data); with ``separate=False`` the tasks run in the command's own process (Dask's local
+    schedulers), ``workers`` of them at once."""
+
+    limit: int
+    workers: int
+    separate: bool = True
+
+    @property
+    def client(self) -> int:
+        return CLIENT_BYTES + WRITE_BYTES
+
+    @property
+    def worker(self) -> int:
+        """The memory of one worker: what the command leaves, over the workers."""
+        return (self.limit - self.client) // self.workers
+
+    @property
+    def task(self) -> int:
+        """The data one task may hold: a worker's share less the worker process itself."""
+        return self.worker - (WORKER_BYTES if self.separate else 0)
+
+    @property
+    def task_budget(self) -> str:
+        """What :attr:`task` is, for messages."""
+        itself = f", less {format_bytes(WORKER_BYTES)} for the worker itself" if self.separate else ""
+        return (f"a task's share of the memory limit of {format_bytes(self.limit)} (less {format_bytes(self.client)} "
+                f"for the command, over {self.workers} worker(s){itself})")
+
+    def parts(self) -> str:
+        """Who takes what, for messages."""
+        each = (f"each of {self.workers} Dask worker(s) {format_bytes(WORKER_BYTES)} plus its tile" if self.separate
+                else f"each of {self.workers} task(s) its tile")
+        return f"the command itself takes {format_bytes(self.client)} and {each}"
+
+    def smallest(self, task_bytes: float) -> int:
+        """The smallest limit under which a task may hold ``task_bytes``."""
+        return int(self.client + self.workers * (task_bytes + (WORKER_BYTES if self.separate else 0)))
+
+
+def _check_tile_points(tiling: _Tiling, sources: dict, plan: JobBudget, *, given: bool) -> None:
+    """Refuse, before any task runs, tiles whose points (with their halo, at the clouds' mean
+    density) would need more than a task's share of the memory limit."""
+    need = 2 * _tile_points(tiling, sources) * _BYTES_PER_TILE_POINT
+    if need <= plan.task:
+        return
+    points = f"about {_tile_points(tiling, sources):,} points per epoch with their halo"
+    if given and plan.task > 0:
+        raise GridTooLargeError(f"tiles of {tiling.edge:.4g} ({points}) would need {format_bytes(need)}, above "
+                                f"{plan.task_budget} of {format_bytes(plan.task)}: give a smaller --tile-size, or "
+                                f"--memory-limit {_mb(plan.smallest(need))} or more")
+    raise GridTooLargeError(f"the memory limit of {format_bytes(plan.limit)} can't hold this job: {plan.parts()}, and "
+                            f"{'these' if given else 'the smallest'} tiles (edge {tiling.edge:.4g}, {points}) need "
+                            f"{format_bytes(need)}; give --memory-limit {_mb(plan.smallest(need))} or more")
+
+
+def _tile_points(tiling: _Tiling, sources: dict) -> int:
+    """Points of the denser cloud in one tile and its halo, at its mean density in x, y (at most all of them)."""
+    return min(max(s.n_rows for s in sources.values()),
+               int(math.ceil(_density(sources) * (tiling.edge + 2 * tiling.halo) ** 2)))
+
+
+def _density(sources: dict) -> float:
+    lo = np.min([s.lo for s in sources.values()], axis=0)
+    hi = np.max([s.hi for s in sources.values()], axis=0)
+    area = max(float(np.prod(hi[:2] - lo[:2])), 1e-12)
+    return max(s.n_rows for s in sources.values()) / area
+
+
 class _Session:
     """Workdir, Dask cluster and bucketed clouds of one tiled run; ``with`` closes them."""
 
@@ -521,35 +617,43 @@ class _Session:
             voxel_size = sampled_voxel_size(list(clouds.values()), k=k, sigma_voxels=sigma_voxels)
         self.voxel_size = float(voxel_size)
         workers = workers or os.cpu_count() or 1
-        local = scheduler in (None, "threads")
-        share = _memory_limit(memory_limit) // (workers if local else 1)
-        budget = (f"a worker's share (1/{workers} of the memory limit of {format_bytes(_memory_limit(memory_limit))})"
-                  if local and workers > 1 else "the memory limit")
-        reach = check_kernel(sigma_voxels, truncate, share, budget=budget)
-        self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
-                         method=method, memory_limit=share)
-        if tile_points is None:
-            tile_points = max(10_000, share // (2 * _BYTES_PER_TILE_POINT))
-        chunk_rows = int(min(2_000_000, max(10_000, share // (4 * _BYTES_PER_ROW_READ))))
+        in_process = scheduler in ("synchronous", "threads")
         self.root = tempfile.mkdtemp(prefix="sdp-tiles-", dir=workdir)
         self.timings: dict[str, float] = {}
+        self.executor = self.cluster = None
         try:
+            if not (scheduler is None or in_process):  # a cluster of its own: its workers share the limit
+                self.executor, self.cluster = _connect(scheduler, workers)
+                workers = max(1, len(self.executor.scheduler_info()["workers"]))
+            plan = JobBudget(_memory_limit(memory_limit), 1 if scheduler == "synchronous" else workers,
+                             separate=not in_process)
+            share, budget = plan.task, plan.task_budget
+            if tile_points is None:  # what a task's share holds (none: the smallest tiles, refused below)
+                tile_points = max(0, share // (2 * _BYTES_PER_TILE_POINT))
             self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
             lo = np.min([src.lo for src in self.sources.values()], axis=0)
             hi = np.max([src.hi for src in self.sources.values()], axis=0)
+            # with no share left, the reach alone is checked here and the tiles are refused below
+            reach = check_kernel(sigma_voxels, truncate, share if share > 0 else 2**62, budget=budget)
             check_lattice(lo, hi, self.voxel_size, reach)
-            self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo)
             self.lo = lo
+            self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo)
+            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None)
+            self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
+                             method=method, memory_limit=share)
+            chunk_rows = int(min(2_000_000, max(10_000, share // (4 * _BYTES_PER_ROW_READ))))
             _check_tile_directory(self.tiling, lo, hi, reach, share, budget)
             for e in self.sources:
                 Path(self.root, e).mkdir()
-            self.executor, self.cluster = _connect(scheduler, workers)
+            if self.executor is None:
+                self.executor, self.cluster = _connect(scheduler, workers)
             jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
                     for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
             done = self.tasks("bucket", _bucket_part, jobs, (), unit="slice")
         except BaseException:
             self.__exit__()
             raise
+        self.budget = plan
         self.timings["read"] = sum(d[2] for d in done)
         self.dropped = {e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in self.sources}
         self.tiles = sorted({key for d in done for key in d[0]})
@@ -571,7 +675,7 @@ class _Session:
         """Close the client and the local cluster, and remove the work folder whatever happens
         (an error, Ctrl-C, SIGTERM turned into an exception by ``sdp``'s ``main``)."""
         try:
-            if not isinstance(getattr(self, "executor", "none"), str):
+            if getattr(self, "executor", None) is not None and not isinstance(self.executor, str):
                 self.executor.close()
         finally:
             try:
@@ -622,13 +726,12 @@ def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_poin
             truncate: float, halo: float | None = None) -> _Tiling:
     if halo is None:
         halo = (math.ceil(truncate * sigma_voxels) + 3) * voxel_size  # kernel reach + binning + interpolation + margin
-    if tile_size is None:
-        lo = np.min([s.lo for s in sources.values()], axis=0)
-        hi = np.max([s.hi for s in sources.values()], axis=0)
-        area = max(float(np.prod(hi[:2] - lo[:2])), voxel_size**2)
-        density = max(s.n_rows for s in sources.values()) / area
-        tile_size = math.sqrt(tile_points / max(density, 1e-12))
-    blocks = max(1, math.ceil(tile_size / (BLOCK * voxel_size)), math.ceil(2 * halo / (BLOCK * voxel_size)))
+    cell = BLOCK * voxel_size
+    if tile_size is None:  # tile_points in the tile and its halo at the mean density: whole blocks, rounded down
+        blocks = math.floor((math.sqrt(tile_points / max(_density(sources), 1e-12)) - 2 * halo) / cell)
+    else:
+        blocks = math.ceil(tile_size / cell)
+    blocks = max(1, blocks, math.ceil(2 * halo / cell))
     return _Tiling(voxel_size, blocks, halo)
 
 
