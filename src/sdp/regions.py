@@ -15,7 +15,6 @@ import numpy as np
 
 from ._region_kernels import (
     corner_labels,
-    difference_blocks,
     group_stats,
     label_nodes,
     part_summary,
@@ -24,7 +23,7 @@ from ._region_kernels import (
 )
 from .boolean import check_compatible
 from .field import DensityField
-from .grid import BLOCK, Grid
+from .grid import BLOCK
 
 __all__ = ["Region", "label_points", "describe_regions", "PartLabels", "label_part", "join_parts"]
 
@@ -171,8 +170,7 @@ def describe_regions(points: np.ndarray, point_labels: np.ndarray, node_counts: 
 # whole graph lies in some tile's part and parts overlap only in face nodes, so joining the parts'
 # labels wherever two parts hold the same node gives the whole volume's components: only the face
 # nodes travel (as in distributed connected-component labelling).
-_NODE = np.arange(BLOCK**3)
-_NODE_XYZ = np.c_[_NODE // (BLOCK * BLOCK), (_NODE // BLOCK) % BLOCK, _NODE % BLOCK]
+_LINE_X, _LINE_Y = np.divmod(np.arange(BLOCK * BLOCK), BLOCK)
 
 
 @dataclass
@@ -207,35 +205,24 @@ def label_part(field: DensityField, volume: Volume, points: np.ndarray, blocks_l
     keys lie in [``blocks_lo``, ``blocks_hi``) (a tile's own column), and the first node plane
     beyond its +x and +y faces; and the component of each of ``points`` (cells in the part).
 
-    ``field`` must hold exact values there (a tile's field built with its halo). Components are
-    numbered in the order of their first node, as :func:`label_points` numbers them.
+    ``field`` must hold exact values there (a tile's field built with its halo). Labels are the
+    part's own; :func:`join_parts` numbers the whole's components as :func:`label_points` does.
     """
     lo, hi = np.asarray(blocks_lo, np.int64), np.asarray(blocks_hi, np.int64)
     keys = field.global_keys
     in_x, in_y = (keys[:, 0] >= lo[0]) & (keys[:, 0] < hi[0]), (keys[:, 1] >= lo[1]) & (keys[:, 1] < hi[1])
     past_x, past_y = keys[:, 0] == hi[0], keys[:, 1] == hi[1]
     own = in_x & in_y
-    negative = volume_masks(*volume.kernel_args(field)).any(axis=1)
-    rows = np.flatnonzero(negative & (own | (past_x & (in_y | past_y)) | (in_x & past_y)))
-    rows = rows[np.lexsort(keys[rows].T[::-1])]  # the order of an untiled field's blocks
-    values = difference_blocks(volume.a_blocks[rows], field.blocks.keys[rows], volume.ha, volume.b_blocks,
-                               volume.b_directory, volume.shift, volume.hb)
-    beyond = (past_x[rows, None] & (_NODE_XYZ[None, :, 0] > 0)) | (past_y[rows, None] & (_NODE_XYZ[None, :, 1] > 0))
-    values[beyond] = 1.0  # beyond the faces, only their first plane: farther, the values are not exact
-    k = keys[rows]
-    if len(rows) == 0:
-        none = np.zeros(0, np.int64)
-        return PartLabels(np.full(len(points), -1, np.int64), none, np.zeros((0, 4), np.int64),
-                          np.zeros((0, 3), np.int64), none)
-    origin = k.min(axis=0)
-    holder = DensityField(Grid(field.voxel_size, origin, tuple(int(v) for v in k.max(axis=0) - origin + 1)),
-                          k - origin, values, h=0.0, sigma=field.voxel_size, truncate=1.0)
-    args = Volume.of_values(values).kernel_args(holder)
-    slot, labels, counts = label_nodes(volume_masks(*args), holder.blocks.directory, holder.blocks.keys)
-    point_labels = corner_labels(holder.grid.to_grid_units(points), holder.blocks.directory, slot, labels, *args)
-    active = np.flatnonzero(slot >= 0)  # holder blocks (= positions in rows) with a negative node
-    node_counts, first_node, nodes, node_labels = part_summary(labels[slot[active]], own[rows[active]], k[active],
-                                                               lo, len(counts))
+    args = volume.kernel_args(field)
+    masks = volume_masks(*args)  # per block, per line of nodes along z (line = x·8 + y)
+    masks[~(own | (past_x & (in_y | past_y)) | (in_x & past_y))] = 0
+    # beyond the faces, only their first plane: farther, the values are not exact
+    masks[np.ix_(past_x, _LINE_X > 0)] = 0
+    masks[np.ix_(past_y, _LINE_Y > 0)] = 0
+    slot, labels, counts = label_nodes(masks, field.blocks.directory, field.blocks.keys)
+    point_labels = corner_labels(field.grid.to_grid_units(points), field.blocks.directory, slot, labels, *args)
+    active = np.flatnonzero(slot >= 0)  # the blocks of the rows of ``labels``, in order
+    node_counts, first_node, nodes, node_labels = part_summary(labels, own[active], keys[active], lo, len(counts))
     return PartLabels(point_labels, node_counts, first_node, nodes, node_labels)
 
 
