@@ -6,14 +6,15 @@ The data path of :func:`sdp.detect_changes`, cut into square columns of the glob
    PLY slices; :class:`sdp.io.PointSource`), and append each point, with its row number, to the
    bucket of its tile and of every tile whose *halo* it lies in (on disk, in ``workdir``);
 2. **compare** (one task per tile): build the two fields from the tile's buckets, form the
-   difference volumes and flag the tile's own points, as :func:`sdp.detect_changes` does;
-   return the changed rows and the negative blocks of the difference;
-3. **regions** (here): label the connected components of the gathered negative blocks.
+   difference volumes and flag the tile's own points, as :func:`sdp.detect_changes` does, and
+   label the tile's own change regions (:func:`sdp.regions.label_part`); return the changed rows
+   and the labels of the tile's face nodes;
+3. **regions** (here): join the tiles' labels across their faces (:func:`sdp.regions.join_parts`).
 
-A tile's points plus its halo of ``ceil(truncate·σ) + 2`` voxels hold every point whose kernel
+A tile's points plus its halo of ``ceil(truncate·σ) + 3`` voxels hold every point whose kernel
 reaches the nodes a tile point is interpolated from, so each tile's decisions equal the untiled
-run's (tested). Memory per task is bounded by the tile (sized from the memory limit), not by the cloud; the
-result keeps the changed rows only.
+run's (tested). The memory limit is the whole job's (:class:`JobBudget`): the command's share,
+then each worker's, of which one task's data sizes the tiles; the result keeps the changed rows only.
 
 Tasks run on a Dask local cluster (one single-threaded worker process per core) by default, or
 on any ``dask.distributed`` cluster given its scheduler address; ``workdir`` must then be on a
@@ -344,13 +345,15 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
         Tile edge in world units (rounded up to whole blocks of 8 voxels). Default: about
         ``tile_points`` points of the larger cloud per tile, from its mean density in x, y.
     tile_points : int, optional
-        Target points per tile and epoch when ``tile_size`` is not given; default: what a
-        worker's share of ``memory_limit`` holds (≈ 1.2 KB per point and epoch: 0.9 M points
-        for 2 GiB).
+        Target points per tile and epoch, its halo included, when ``tile_size`` is not given;
+        default: what one task's share of ``memory_limit`` holds (≈ 1.2 KB per point and epoch:
+        230 k points with 2 GiB and 2 workers).
     memory_limit : int or str, optional
-        Memory of all workers together (default ``$SDP_MEMORY_LIMIT`` or 4 GiB): each of the
-        ``workers`` gets its share, which sets the tile size and the rows decoded at a time;
-        a tile whose fields need more than the share is refused.
+        Memory of the whole job (default ``$SDP_MEMORY_LIMIT`` or 4 GiB), shared as
+        :class:`JobBudget` says: this process's share, then each worker's (of a local cluster, or
+        of the scheduler's workers), which less the worker process itself sets the tile size and
+        the rows decoded at a time. Tiles that need more are refused before any work, with the
+        smallest limit that would hold them.
     scheduler : str, optional
         ``None``: a Dask local cluster of ``workers`` processes; ``"tcp://host:8786"``: that
         ``dask.distributed`` scheduler; ``"synchronous"`` or ``"threads"``: Dask's local
@@ -736,7 +739,7 @@ def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_poin
 
 
 def _check_tile_directory(tiling: _Tiling, lo, hi, reach: int, share: int, budget: str) -> None:
-    """Refuse, before any task runs, tiles whose block directory alone exceeds a worker's share of
+    """Refuse, before any task runs, tiles whose block directory alone exceeds a task's share of
     the memory limit (a voxel far below the point spacing: 1e-9 for metres)."""
     span = (tiling.edge + 2 * tiling.halo) / tiling.voxel_size + 2 * reach + 2 * BLOCK
     z = (float(hi[2]) - float(lo[2])) / tiling.voxel_size + 2 * reach + 2 * BLOCK
