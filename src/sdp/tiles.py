@@ -271,8 +271,8 @@ def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None
         fld, rec = fields[e], recs[e]
         own = np.zeros(len(rec), bool) if fld is None else tiling.owns(key, rec)
         out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), None, np.zeros(0, np.int64))
-        if fld is None or (not own.any() and not regions):
-            continue  # no field: no difference volume either
+        if fld is None or len(rec) == 0 or (not own.any() and not regions):
+            continue  # no points of this epoch here (a stored reference has none): no difference volume
         pts = np.ascontiguousarray(rec[own, :3])
         d = Volume.difference(fld, fields[other] or _empty_field(fld))  # evaluated where needed, never stored
         mask = d.at(fld, pts) < 0 if len(pts) else np.zeros(0, bool)
