@@ -343,10 +343,9 @@ def part_summary(lab, own, keys, lo, n_labels):
 
     ``lab`` (m, 512) int32 labels of the part's blocks with a negative node (-1 elsewhere), ``own``
     (m,) whether a block is the part's own, ``keys`` (m, 3) their global keys (any order), ``lo``
-    the part's first block along x and y. Returns the own nodes of each
-    label, each label's first own node (key x, y, z, node; int64 max where none) and the shared
-    nodes (own nodes on the −x/−y faces, every node beyond the +x/+y faces) as global node
-    coordinates (f, 3) with their labels (f,).
+    the part's first block along x and y. Returns the own nodes of each label, each label's first
+    own node (key x, y, z, node; int64 max where none) and the shared nodes (own nodes on the −x/−y
+    faces, every node beyond the +x/+y faces) as global node coordinates (f, 3) with their labels (f,).
     """
     counts = np.zeros(n_labels, np.int64)
     first = np.full((n_labels, 4), np.iinfo(np.int64).max, np.int64)
