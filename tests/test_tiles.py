@@ -203,3 +203,17 @@ def test_cli_refuses_tiles_under_a_tiny_memory_limit_in_a_second(tmp_path, epoch
     assert time.perf_counter() - t < 20  # it used to run minutes of worker errors
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "give --memory-limit" in r.stderr, r.stderr
     assert list(work.iterdir()) == [] and not (tmp_path / "c.laz").exists()
+
+
+@pytest.mark.parametrize("workers, separate", [(1, True), (2, True), (7, True), (2, False)])
+def test_the_shares_of_a_job_add_up_to_its_limit(workers, separate):
+    from sdp.tiles import WORKER_BYTES, JobBudget
+
+    for limit in (2**30, 2 * 2**30, 64 * 2**30):
+        plan = JobBudget(limit, workers, separate=separate)
+        assert plan.client + workers * plan.worker <= limit  # the command and every worker, within the limit
+        assert plan.task == plan.worker - (WORKER_BYTES if separate else 0)
+        for task in (0, 10 * 2**20, 3 * 2**30):
+            smallest = JobBudget(plan.smallest(task), workers, separate=separate)
+            assert smallest.task >= task - workers and JobBudget(plan.smallest(task) - 2 * workers, workers,
+                                                                 separate=separate).task < task
