@@ -537,7 +537,8 @@ def _mb(nbytes: float) -> str:
 @dataclass(frozen=True)
 class JobBudget:
     """How one memory limit is shared by the processes of a tiled run: the command (``client``:
-    itself, the changed rows, the streamed output) and each of ``workers`` (itself and one task's
+    its process and the streamed output; the changed rows and the face nodes of the regions, ≈ 48
+    bytes per changed point, are not counted) and each of ``workers`` (its process and one task's
     data); with ``separate=False`` the tasks run in the command's own process (Dask's local
     schedulers), ``workers`` of them at once."""
 
