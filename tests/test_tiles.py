@@ -217,3 +217,14 @@ def test_the_shares_of_a_job_add_up_to_its_limit(workers, separate):
             smallest = JobBudget(plan.smallest(task), workers, separate=separate)
             assert smallest.task >= task - workers and JobBudget(plan.smallest(task) - 2 * workers, workers,
                                                                  separate=separate).task < task
+
+
+def test_face_nodes_are_grouped_whatever_their_range():
+    from sdp.regions import _node_key
+
+    rng = np.random.default_rng(5)
+    for span in (1_000, 2**40):  # packed into one int64, or compared as bytes
+        nodes = rng.integers(-span, span, (20_000, 3))
+        nodes[10_000:] = nodes[rng.permutation(10_000)]
+        key = np.sort(_node_key(nodes))
+        assert np.count_nonzero(key[1:] == key[:-1]) == len(nodes) - len(np.unique(nodes, axis=0))

