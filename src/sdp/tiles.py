@@ -548,6 +548,7 @@ class JobBudget:
 
     @property
     def client(self) -> int:
+        """The command's share: its process and the streamed output's chunk."""
         return CLIENT_BYTES + WRITE_BYTES
 
     @property
