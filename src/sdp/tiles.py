@@ -351,8 +351,8 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
     memory_limit : int or str, optional
         Memory of the whole job (default ``$SDP_MEMORY_LIMIT`` or 4 GiB), shared as
         :class:`JobBudget` says: this process's share, then each worker's (of a local cluster, or
-        of the scheduler's workers), which less the worker process itself sets the tile size and
-        the rows decoded at a time. Tiles that need more are refused before any work, with the
+        each thread of the scheduler's workers: a task at once each), which less the worker process
+        itself sets the tile size and the rows decoded at a time. Tiles that need more are refused before any work, with the
         smallest limit that would hold them.
     scheduler : str, optional
         ``None``: a Dask local cluster of ``workers`` processes; ``"tcp://host:8786"``: that
@@ -627,9 +627,9 @@ class _Session:
         self.timings: dict[str, float] = {}
         self.executor = self.cluster = None
         try:
-            if not (scheduler is None or in_process):  # a cluster of its own: its workers share the limit
-                self.executor, self.cluster = _connect(scheduler, workers)
-                workers = max(1, len(self.executor.scheduler_info()["workers"]))
+            if not (scheduler is None or in_process):  # a cluster of its own: its workers share the limit,
+                self.executor, self.cluster = _connect(scheduler, workers)  # one task per thread at once
+                workers = max(1, sum(self.executor.nthreads().values()))
             plan = JobBudget(_memory_limit(memory_limit), 1 if scheduler == "synchronous" else workers,
                              separate=not in_process)
             share, budget = plan.task, plan.task_budget
