@@ -6,7 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install test check demo bench clean
+.PHONY: install test check demo bench browser clean
 
 install: $(STAMP)
 
@@ -15,6 +15,7 @@ $(STAMP): pyproject.toml requirements.lock requirements-dev.lock
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -r requirements.lock -r requirements-dev.lock
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	$(VENV)/bin/sdp warmup --quiet  # compiles and caches every kernel (~40 s): no command waits for it later
 	touch $(STAMP)
 
 # the full suite (CI runs it)
@@ -24,6 +25,12 @@ test: $(STAMP)
 # the quick tier while working: every module, no test marked slow (under a minute on 2 cores)
 check: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
+
+# headless Chromium and its driver for the HTML report's browser test (tests/test_htmlreport.py), from
+# the distribution's packages (Debian: chromium, chromium-driver); nothing to do when already there
+browser:
+	@if [ -x /usr/bin/chromium ] && [ -x /usr/bin/chromedriver ]; then echo "chromium: $$(/usr/bin/chromium --version 2>/dev/null)"; \
+	else $$( [ "$$(id -u)" = 0 ] || echo sudo ) sh -c 'apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver'; fi
 
 demo: $(STAMP)
 	$(VENV)/bin/sdp demo -o demo-output

@@ -156,6 +156,9 @@ def test_atomic_path_leaves_nothing_on_any_exception(tmp_path):
     ["change", "o_disappeared.ply", "g2.npy", "-o", "o.ply", "--both"],  # OUT_disappeared is the reference
     ["change", "g.npy", "g2.npy", "-o", "o.ply", "--both", "--png", "o_disappeared.ply"],
     ["change", "g.npy", "g2.npy", "-o", "o.ply", "--png", "nodir/x.png"],
+    ["change", "g.npy", "g2.npy", "-o", "o.ply", "--report", "g.npy"],
+    ["change", "g.npy", "g2.npy", "-o", "o.laz", "--report", "r.html", "--tiled"],
+    ["distance", "g.npy", "g2.npy", "-o", "d.ply", "--report", "d.ply"],
     ["change", "g.npy", "g2.npy", "-o", "nodir/o.ply"],
     ["change", "g.npy", "g2.npy", "-o", "existing_dir.ply"],
     ["change", "g.npy", "g2.npy", "-o", "o.ply", "--voxel-size", "0.001", "--memory-limit", "1MB"],  # tiles: LAS

@@ -48,6 +48,8 @@ def test_the_papers_grid_stays_one_option_away(rng):
     auto = sdp.detect_changes(a, b)
     assert auto.voxel_size == pytest.approx(sdp.auto_voxel_size(a, b))
     assert sdp.DensityField.from_points(a).voxel_size == pytest.approx(sdp.auto_voxel_size(a))
+    assert auto.current_field.sigma == pytest.approx(1.5 * auto.voxel_size)  # σ from the spacing
+    assert r.current_field.sigma == pytest.approx(2 * r.voxel_size)  # the paper's σ of 2 voxels
     with pytest.raises(ValueError, match="not both"):
         sdp.detect_changes(a, b, grid_size=80, voxel_size=0.1)
 

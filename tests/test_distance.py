@@ -98,9 +98,10 @@ def test_fields_and_summary(rng):
 
 def test_scales_are_the_density_kernel(rng):
     a, b = plane(rng, 20_000, 0.002), plane(rng, 20_000, 0.002)
-    voxel = sdp.auto_voxel_size(a, b)
+    sigma = sdp.detect_changes(a, b).current_field.sigma  # the density kernel's σ, from the point spacing
     d = sdp.distances(a, b)
-    assert d.projection_scale == pytest.approx(4 * 2 * voxel)
+    assert d.projection_scale == pytest.approx(4 * sigma)
+    assert sigma == pytest.approx(2 * sdp.auto_voxel_size(a, b, sigma_voxels=2))
 
 
 @pytest.mark.parametrize("kwargs", [dict(projection_scale=0), dict(projection_scale=float("nan")),

@@ -87,6 +87,27 @@ def test_pictures_without_matplotlib_or_plotly(without, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("hidden", [("plotly",), ("matplotlib", "mpl_toolkits")])
+def test_report_without_its_extras_fails_before_any_work(without, tmp_path, hidden):
+    rng = np.random.default_rng(0)
+    for name in ("a.npy", "b.npy"):
+        np.save(tmp_path / name, rng.random((300, 3)))
+    without(*hidden)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    with pytest.raises(sdp.MissingDependencyError, match=f"--report.*needs {hidden[0]}") as err:
+        sdp.compare_files(tmp_path / "a.npy", tmp_path / "b.npy", output=tmp_path / "o.ply",
+                          report=tmp_path / "r.html")
+    _one_line(err, "plots")
+    with pytest.raises(sdp.MissingDependencyError, match=f"needs {hidden[0]}"):
+        sdp.distance_files(tmp_path / "a.npy", tmp_path / "b.npy", output=tmp_path / "d.ply",
+                           report=tmp_path / "d.html")
+    if hidden[0] == "matplotlib":
+        with pytest.raises(sdp.MissingDependencyError, match="--png.*needs matplotlib"):
+            sdp.compare_files(tmp_path / "a.npy", tmp_path / "b.npy", output=tmp_path / "o.ply",
+                              png=tmp_path / "c.png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
 def test_gicp_without_small_gicp(without):
     pts = np.random.default_rng(0).random((500, 3))
     without("small_gicp")

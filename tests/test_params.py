@@ -9,7 +9,7 @@ import sdp
 from sdp.params import kth_neighbour_distance
 
 
-def reference_voxel(*clouds, k=3, quantile=0.9, scale=1.5, sigma_voxels=2.0, sample=5_000, seed=0):
+def reference_voxel(*clouds, k=3, quantile=0.9, scale=1.5, sigma_voxels=1.5, sample=5_000, seed=0):
     """auto_voxel_size as it was first written: a k-d tree over each whole cloud."""
     rng = np.random.default_rng(seed)
     dists = []

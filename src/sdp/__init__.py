@@ -4,8 +4,9 @@ The data path, one module per step: points → :class:`DensityField` (:mod:`sdp.
 sparse grid of :mod:`sdp.grid`) → Boolean operations (:mod:`sdp.boolean`) → change masks
 (:mod:`sdp.change`), where the other epoch could see (:mod:`sdp.coverage`, :mod:`sdp.visibility`)
 → regions (:mod:`sdp.regions`) → scores (:mod:`sdp.metrics`) and files
-(:mod:`sdp.io`) and pictures (:mod:`sdp.render`); surfaces by :mod:`sdp.surface`, parameters
-from the data by :mod:`sdp.params`. Clouds beyond memory: the same path in tiles on Dask
+(:mod:`sdp.io`) and pictures (:mod:`sdp.render`; one page per comparison: :mod:`sdp.htmlreport`);
+surfaces by :mod:`sdp.surface`, parameters from the data by :mod:`sdp.params`. Clouds beyond
+memory: the same path in tiles on Dask
 (:mod:`sdp.tiles`), reading files in slices (:class:`PointSource`) and keeping fields on disk
 (:mod:`sdp.store`, Zarr). Files to files, as the ``sdp`` commands: :mod:`sdp.pipeline`
 (:func:`compare_files` chooses memory or tiles by itself). Every default is :data:`DEFAULTS`
@@ -51,6 +52,7 @@ _LAZY = {name: module for module, names in {
     "distance": ("Distances", "distances"),
     "field": ("DensityField", "threshold"),
     "grid": ("BLOCK", "Grid"),
+    "htmlreport": ("change_report", "distance_report"),
     "io": ("CloudFileError", "PointSource", "check_outputs", "read_points", "write_mesh", "write_points",
            "write_points_streamed"),
     "metrics": ("confusion_matrix", "kappa", "scores"),
@@ -104,6 +106,7 @@ if TYPE_CHECKING:  # what static tools and IDEs read
     from .distance import Distances, distances
     from .field import DensityField, threshold
     from .grid import BLOCK, Grid
+    from .htmlreport import change_report, distance_report
     from .io import (
                      CloudFileError,
                      PointSource,
@@ -139,6 +142,7 @@ __all__ = [
     "auto_voxel_size",
     "read_points", "write_points", "write_mesh", "PointSource", "write_points_streamed", "check_outputs",
     "render_changes", "render_changes_html", "render_distances", "render_field",
+    "change_report", "distance_report",
     "kappa", "confusion_matrix", "scores",
     "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",
     "FieldFileError", "CloudFileError", "MissingDependencyError", "InvalidOptionError",

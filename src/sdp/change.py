@@ -23,7 +23,7 @@ from .coverage import CHANGED, NOT_COMPARABLE, footprint_covered, states_of
 from .defaults import DEFAULTS
 from .errors import InvalidOptionError
 from .field import DensityField, build_fields
-from .params import resolve_voxel_size
+from .params import resolve_lattice
 from .regions import Region, Volume, describe_regions, label_volume
 from .validate import check_grid_options, finite, integer_at_least, nonnegative_finite
 from .visibility import resolve_sensor_origins, visibility_states
@@ -221,11 +221,12 @@ def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAU
     ref = as_points(reference, name="reference")
     cur = as_points(current, name="current")
     timings = {}
-    if grid_size is None and voxel_size in (None, "auto"):
-        t = time.perf_counter()
-        voxel_size = resolve_voxel_size([ref, cur], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+    automatic, t = grid_size is None and voxel_size in (None, "auto"), time.perf_counter()
+    voxel_size, sigma_voxels = resolve_lattice([ref, cur], voxel_size=voxel_size, grid_size=grid_size, k=k,
+                                               sigma_voxels=sigma_voxels)
+    if automatic:
         timings["voxel_size"] = time.perf_counter() - t
-    opts = dict(voxel_size=voxel_size, grid_size=grid_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
+    opts = dict(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                 method=method, memory_limit=memory_limit)
     (f_ref, f_cur), (timings["build_reference"], timings["build_current"]) = build_fields([ref, cur], **opts)
     t = time.perf_counter()

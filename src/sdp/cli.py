@@ -23,6 +23,7 @@ from .defaults import DEFAULTS
 from .errors import SDPError
 from .io import all_or_none
 from .report import action_eval_text, alignment_text, frame_text, train_text, written_text
+from .warmup import first_run
 
 
 def _grid_options(p):
@@ -34,8 +35,8 @@ def _grid_options(p):
     g.add_argument("-k", type=V.cli_type(V.finite), default=DEFAULTS.k,
                    help="threshold h = 1 + k·e^-1/2 (default 3, the paper's)")
     g.add_argument("--h", type=V.cli_type(V.positive_finite), help="threshold h given directly")
-    g.add_argument("--sigma-voxels", type=V.cli_type(V.positive_finite), default=DEFAULTS.sigma_voxels,
-                   help="sigma in voxels (default 2, the paper's)")
+    g.add_argument("--sigma-voxels", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.sigma_voxels,
+                   help="sigma in voxels (default auto: 1.5 on the automatic voxel, the paper's 2 on a given one)")
     g.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
                    help="memory of the whole command, its Dask workers included; refuse work needing more "
                    "(e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
@@ -77,7 +78,7 @@ def _show(text: str, summary=None, as_json: bool = False) -> int:
 # Each command: the parsed options → one call of sdp.pipeline → print (the text of sdp.report, or JSON).
 
 def cmd_change(a):
-    r = P.compare_files(a.reference, a.current, output=a.output, both=a.both, png=a.png, html=a.html,
+    r = P.compare_files(a.reference, a.current, output=a.output, both=a.both, png=a.png, html=a.html, report=a.report,
                         format=a.format, decision=a.decision, min_region_points=a.min_region_points,
                         sensor_origin=a.sensor_origin, range_noise=a.range_noise, align=a.align,
                         aligned_output=a.aligned_output, fix_horizontal=a.fix_horizontal, align_class=a.align_class,
@@ -86,7 +87,7 @@ def cmd_change(a):
 
 
 def cmd_distance(a):
-    names = ("core_points png format projection_scale normal_scale max_distance registration_error orientation "
+    names = ("core_points png report format projection_scale normal_scale max_distance registration_error orientation "
              "sensor_origin align fix_horizontal align_class memory_limit tiled").split()
     r = P.distance_files(a.reference, a.current, output=a.output, notify=None if a.json else _say,
                          **{n: getattr(a, n) for n in names}, **_tiles(a))
@@ -157,6 +158,12 @@ def cmd_demo(a):
     return 0
 
 
+def cmd_warmup(a):
+    from .warmup import warmup
+
+    return _show(f"kernels compiled and cached ({sum(warmup(echo=None if a.quiet else print).values()):.0f} s)")
+
+
 def _align_options(p):
     p.add_argument("--fix-horizontal", action="store_true",
                    help="density alignment: estimate only the vertical shift and the tilts (z up); for epochs of "
@@ -198,6 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop change regions with fewer points (default 50: smaller ones are noise and depth edges)")
     c.add_argument("--png", help="write a picture of the appeared points")
     c.add_argument("--html", help="write an interactive 3D view (needs the html extra: plotly)")
+    c.add_argument("--report", help=X.REPORT_HELP)
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
     c.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
@@ -229,6 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
                     help="normals point towards the sensor (auto: where a file records it)")
     ds.add_argument("--png", help="map of the significant distances and their histogram")
+    ds.add_argument("--report", help=X.REPORT_HELP)
     ds.add_argument("--json", action="store_true", help="print the summary as JSON")
     ds.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     _align_options(ds)
@@ -253,15 +262,13 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--level", type=V.cli_type(V.finite), default=0.0,
                    help="level of F = h - G (0: the cluster boundary)")
 
-    o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds",
-                 X.BOOL)
+    o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds", X.BOOL)
     o.add_argument("operation", choices=("union", "intersection", "difference"))
     o.add_argument("a", help="field (.sdpf) or cloud")
     o.add_argument("b", help="field (.sdpf) or cloud")
     o.add_argument("-o", "--output", required=True, help=".sdpf (the field) or .ply/.obj/.stl (its surface)")
 
-    al = _command(sub, "align", cmd_align, "rigid transform mapping CURRENT onto REFERENCE (4x4, numpy.loadtxt)",
-                  X.ALIGN)
+    al = _command(sub, "align", cmd_align, "rigid transform mapping CURRENT onto REFERENCE (4x4 text)", X.ALIGN)
     al.add_argument("current")
     al.add_argument("reference", help="cloud, or field (.sdpf) for --method density")
     al.add_argument("-o", "--output", required=True, help="text file with the 4x4 matrix")
@@ -270,8 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
     _align_options(al)
     al.add_argument("--json", action="store_true", help="print the result as JSON")
 
-    w = _command(sub, "watch", cmd_watch, "compare each frame of a folder, in order, with a model that learns",
-                 X.WATCH)
+    w = _command(sub, "watch", cmd_watch, "compare each frame of a folder, in order, with a model that learns", X.WATCH)
     w.add_argument("reference", help="cloud or field (.sdpf) of the scene before the frames")
     w.add_argument("frames", help="folder of frames, processed in natural name order")
     w.add_argument("--update", choices=("none", "window", "decay"), default=DEFAULTS.update,
@@ -293,8 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
     w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
 
-    act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)",
-                   X.ACTION)
+    act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)", X.ACTION)
     asub = act.add_subparsers(dest="action_command", required=True)
     t = asub.add_parser("train", help="fit a classifier on a folder of aXX_sYY_eZZ sequences")
     t.add_argument("data_dir")
@@ -310,8 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
         q.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1), default=os.cpu_count() or 1,
                        help="processes reading sequences")
 
-    e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth",
-                 X.EVAL)
+    e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth", X.EVAL)
     e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
     e.add_argument("truth", help="cloud with the true labels, same points in the same order")
     e.add_argument("--predicted-field", default="change",
@@ -320,8 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--truth-field", default="change", help="field of TRUTH (nonzero: changed; default change)")
     e.add_argument("--json", action="store_true", help="print the scores as JSON")
 
-    r = _command(sub, "render", cmd_render, "picture of a labelled cloud (red: changed) or slices of a field",
-                 X.RENDER)
+    r = _command(sub, "render", cmd_render, "picture of a labelled cloud (red: changed) or slices of a field", X.RENDER)
     r.add_argument("file", help="cloud with a label field, or a field (.sdpf)")
     r.add_argument("--png", help="picture (three views of a cloud; three slices of a field)")
     r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")
@@ -337,7 +340,8 @@ def build_parser() -> argparse.ArgumentParser:
                  "  sdp demo -o demo-output")
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
-    for q in (c, ds, b, i, m, o, al, w, e, r, d):
+    wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does)", "  sdp warmup")
+    for q in (c, ds, b, i, m, o, al, w, e, r, d, wu):
         q.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -364,7 +368,8 @@ def main(argv=None) -> int:
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
     try:
         with all_or_none():  # a command writes all its outputs or none
-            return args.func(args)
+            with first_run(args.command, quiet=getattr(args, "quiet", False)):
+                return args.func(args)
     except (SDPError, ValueError) as exc:
         print(f"sdp: error: {_one_line(exc)}", file=sys.stderr)
         return 2

@@ -1,6 +1,10 @@
 """The examples that end each ``sdp`` command's ``--help``, kept as written (the columns align)."""
 
+REPORT_HELP = ("one self-contained HTML page: summary, parameters and why, map, histogram, regions with "
+               "thumbnails, 3-D view (needs the plots extra; in memory only)")
+
 CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                  appeared points of cur.pcd
+  sdp change ref.laz cur.laz -o out.laz --report report.html  one page to read or send
   sdp change ref.laz cur.laz -o out.laz --both --voxel-size 0.1
   sdp change ref.ply cur.ply -o out.ply --grid-size 80        the paper's parameters
   sdp change ref.pcd cur.pcd -o out.ply --json                summary as JSON
@@ -11,6 +15,7 @@ CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                  appeare
 """
 
 DISTANCE = """  sdp distance 2015.laz 2023.laz -o d.laz --png d.png    how much, and is it significant
+  sdp distance 2015.laz 2023.laz -o d.laz --report d.html one page: summary, map, histogram, 3-D view
   sdp distance a.laz b.laz -o d.laz --align density --align-class 2 --fix-horizontal
                                                               register on the ground first
   sdp distance a.ply b.ply -o d.npz --core-points grid.ply --registration-error 0.02

@@ -69,7 +69,7 @@ from .defaults import DEFAULTS
 from .errors import InvalidOptionError, InvalidPointsError
 from .grid import check_memory
 from .grid import memory_limit as grid_memory_limit
-from .params import resolve_voxel_size
+from .params import resolve_lattice
 from .validate import auto_or_positive, nonnegative_finite
 from .visibility import resolve_sensor_origins
 
@@ -279,8 +279,8 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
 
     t = time.perf_counter()
     if d_opt == "auto":
-        voxel = resolve_voxel_size([ref, cur], voxel_size="auto", k=DEFAULTS.k, sigma_voxels=DEFAULTS.sigma_voxels)
-        sigma_p = DEFAULTS.sigma_voxels * voxel
+        voxel, sigma_voxels = resolve_lattice([ref, cur], k=DEFAULTS.k)  # the density kernel's σ
+        sigma_p = sigma_voxels * voxel
     else:
         sigma_p = d_opt / 4.0
     max_half = search_reach(L_opt, 4.0 * sigma_p)

@@ -25,7 +25,7 @@ from .defaults import DEFAULTS
 from .errors import IncompatibleFieldsError, InvalidOptionError, InvalidPointsError
 from .fieldfile import FORMAT_VERSION
 from .grid import BLOCK, Grid, check_memory
-from .params import resolve_voxel_size
+from .params import resolve_lattice
 from .validate import check_grid_options, check_kernel
 
 __all__ = ["DensityField", "threshold", "FORMAT_VERSION", "BOOLEAN_METHODS"]  # FORMAT_VERSION: of sdp.fieldfile
@@ -112,8 +112,10 @@ class DensityField:
         grid_size : int, optional
             The paper's level of detail: the bounding box's longest side divided into
             ``grid_size`` segments (80 in the paper); wins over ``voxel_size="auto"``.
-        sigma_voxels : float
-            σ in voxels (2 in the paper).
+        sigma_voxels : float or "auto"
+            σ in voxels; ``"auto"`` (default): 1.5 on the automatic lattice (σ is the point
+            spacing's, the lattice only samples it), the paper's 2 with a given voxel or grid
+            size (:func:`sdp.params.resolve_sigma_voxels`).
         k, h : float
             Threshold h = 1 + k·e^(−1/2) (k = 3 neighbours), or ``h`` given directly.
         truncate : float
@@ -442,14 +444,15 @@ def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size
                  truncate: float = DEFAULTS.truncate, method: str = "auto",
                  memory_limit: int | str | None = None) -> tuple[list[DensityField], list[float]]:
     """:meth:`DensityField.from_points` of each cloud, on one lattice (the voxel resolved from all
-    of them, :func:`sdp.params.resolve_voxel_size`): their single-threaded parts (block marking,
+    of them, :func:`sdp.params.resolve_lattice`): their single-threaded parts (block marking,
     binning) at once on the threads of :func:`sdp._parallel.map_concurrently`, then the parallel
     blurs in turn. Returns the fields and the seconds each took (its first part, in its own
     thread, plus its blur: together more than the wall time when the first parts overlap)."""
     check_grid_options(voxel_size=None if grid_size is not None else voxel_size, sigma_voxels=sigma_voxels, k=k,
                        h=h, truncate=truncate, memory_limit=memory_limit)  # before any work
     clouds = [c if isinstance(c, Points) else as_points(c) for c in clouds]  # Points: validated already
-    voxel = resolve_voxel_size(clouds, voxel_size=voxel_size, grid_size=grid_size, k=k, sigma_voxels=sigma_voxels)
+    voxel, sigma_voxels = resolve_lattice(clouds, voxel_size=voxel_size, grid_size=grid_size, k=k,
+                                          sigma_voxels=sigma_voxels)
     options = dict(voxel_size=voxel, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
                    memory_limit=memory_limit)
 

@@ -48,7 +48,7 @@ from .change import inside_difference, judge_coverage, region_rules
 from .coverage import CHANGED, NOT_COMPARABLE, states_of
 from .defaults import DEFAULTS
 from .field import DensityField
-from .params import resolve_voxel_size
+from .params import resolve_lattice
 from .regions import Region
 from .validate import check_grid_options, integer_at_least, nonnegative_finite
 from .visibility import RangeImage, resolve_sensor_origins
@@ -185,8 +185,8 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.vox
         origin = resolve_sensor_origins(sensor_origin, reference, None)[0]
         pts = as_points(reference, name="reference")
         ref = pts.xyz
-        l = resolve_voxel_size([pts], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
-        base = DensityField.from_points(pts, voxel_size=l, sigma_voxels=sigma_voxels, k=k)
+        l, sv = resolve_lattice([pts], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+        base = DensityField.from_points(pts, voxel_size=l, sigma_voxels=sv, k=k)
     h, opts = base.h, dict(voxel_size=base.voxel_size, sigma_voxels=base.sigma / base.voxel_size,
                            truncate=base.truncate, h=base.h)
     model = base if update == "none" else base.copy()

@@ -25,7 +25,7 @@ import numpy as np
 from ._parallel import map_concurrently
 from ._points import Points, as_points, finite_bounds
 
-__all__ = ["auto_voxel_size", "kth_neighbour_distance", "resolve_voxel_size"]
+__all__ = ["auto_voxel_size", "kth_neighbour_distance", "resolve_lattice", "resolve_sigma_voxels"]
 
 _MAX_CELL_INDEX = 2**21  # cells per axis: three 21-bit cell coordinates packed in one int64 key
 _MAX_RING = 2  # rings of cells scanned around a query before a 4x coarser grid takes it over
@@ -39,7 +39,7 @@ _SLACK = 1e-6  # cell units: keeps the stop and skip tests safe from rounding of
 
 
 def auto_voxel_size(*clouds, k: int = 3, quantile: float = 0.9, scale: float = 1.5,
-                    sigma_voxels: float = 2.0, sample: int = 5_000, seed: int = 0) -> float:
+                    sigma_voxels: float = 1.5, sample: int = 5_000, seed: int = 0) -> float:
     """A voxel size for clouds sampled like these: σ = ``scale`` × the ``quantile`` of each
     point's distance to its ``k``-th nearest neighbour, l = σ / ``sigma_voxels``.
 
@@ -60,7 +60,8 @@ def auto_voxel_size(*clouds, k: int = 3, quantile: float = 0.9, scale: float = 1
     scale : float
         σ in units of that distance.
     sigma_voxels : float
-        σ in voxels (2 in the paper).
+        σ in voxels: 1.5 (default) gives the lattice ``voxel_size="auto"`` uses (pass it on with
+        ``sigma_voxels=1.5``); 2 gives the lattice on which the paper's σ of 2 voxels is this σ.
     sample : int
         Points drawn from each cloud to measure spacing.
     seed : int
@@ -75,13 +76,28 @@ def auto_voxel_size(*clouds, k: int = 3, quantile: float = 0.9, scale: float = 1
                               quantile=quantile, scale=scale, sigma_voxels=sigma_voxels, sample=sample, seed=seed)
 
 
-def resolve_voxel_size(clouds: Sequence[Points], *, voxel_size: float | str | None = "auto",
-                       grid_size: int | None = None, k: float = 3, sigma_voxels: float = 2.0) -> float:
-    """The voxel length of a comparison of ``clouds`` (validated), one for all of them.
+def resolve_sigma_voxels(sigma_voxels: float | str, *, automatic: bool) -> float:
+    """σ in voxels: ``"auto"`` is :data:`~sdp.defaults.AUTO_SIGMA_VOXELS` on the automatic
+    lattice (``automatic``), :data:`~sdp.defaults.PAPER_SIGMA_VOXELS` on a given one; a number
+    is checked (positive, finite) and used."""
+    from .defaults import AUTO_SIGMA_VOXELS, PAPER_SIGMA_VOXELS
+    from .validate import auto_or_positive
+
+    sigma_voxels = auto_or_positive("sigma_voxels", sigma_voxels)
+    if sigma_voxels == "auto":
+        return AUTO_SIGMA_VOXELS if automatic else PAPER_SIGMA_VOXELS
+    return sigma_voxels
+
+
+def resolve_lattice(clouds: Sequence[Points], *, voxel_size: float | str | None = "auto",
+                    grid_size: int | None = None, k: float = 3,
+                    sigma_voxels: float | str = "auto") -> tuple[float, float]:
+    """(voxel length, σ in voxels) of a comparison of ``clouds`` (validated), one for all of them.
 
     ``grid_size`` (the paper's parameterization: the longest side of the box holding all the
     clouds in ``grid_size`` segments) wins over the default ``voxel_size="auto"``
-    (:func:`auto_voxel_size` of all the clouds, neighbour rank ``k``); a length is used as given.
+    (:func:`auto_voxel_size` of all the clouds, neighbour rank ``k``: σ from the point
+    spacing); a length is used as given. ``sigma_voxels`` as :func:`resolve_sigma_voxels`.
 
     Raises
     ------
@@ -92,17 +108,19 @@ def resolve_voxel_size(clouds: Sequence[Points], *, voxel_size: float | str | No
     from .grid import voxel_size_for_grid_size
     from .validate import positive_finite
 
+    automatic = grid_size is None and (voxel_size is None or isinstance(voxel_size, str))
+    sv = resolve_sigma_voxels(sigma_voxels, automatic=automatic)
     if grid_size is not None:
         if voxel_size not in (None, "auto"):
             raise InvalidOptionError("give grid_size= or voxel_size=, not both")
         lo = np.min([c.lo for c in clouds], axis=0)
         hi = np.max([c.hi for c in clouds], axis=0)
-        return voxel_size_for_grid_size(lo, hi, grid_size)
-    if voxel_size is None or isinstance(voxel_size, str):
+        return voxel_size_for_grid_size(lo, hi, grid_size), sv
+    if automatic:
         if voxel_size not in (None, "auto"):
             raise InvalidOptionError(f"voxel_size must be a length or 'auto', got {voxel_size!r}")
-        return auto_voxel_size_of(clouds, k=int(round(k)), sigma_voxels=sigma_voxels)
-    return positive_finite("voxel_size", voxel_size)
+        return auto_voxel_size_of(clouds, k=int(round(k)), sigma_voxels=sv), sv
+    return positive_finite("voxel_size", voxel_size), sv
 
 
 def auto_voxel_size_of(clouds: Sequence[Points], *, k: int = 3, quantile: float = 0.9, scale: float = 1.5,

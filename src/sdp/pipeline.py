@@ -68,8 +68,8 @@ class ChangePlan:
     reason : str or None
         Why tiles were taken without being asked for (the grids or points exceed the memory
         limit); None when they were asked for, or when the comparison runs in memory.
-    voxel_size : float or None
-        The tiled run's voxel (in memory, :func:`sdp.detect_changes` decides it).
+    voxel_size, sigma_voxels : float or None
+        The tiled run's voxel and σ in voxels (in memory, :func:`sdp.detect_changes` decides them).
     sources : list or None
         What the tiled run reads: (reference, current) as :class:`~sdp.io.PointSource`, the
         reference possibly a :class:`~sdp.FieldStore`.
@@ -78,6 +78,7 @@ class ChangePlan:
     tiled: bool
     reason: str | None = None
     voxel_size: float | None = None
+    sigma_voxels: float | None = None
     sources: list | None = None
 
 
@@ -116,7 +117,7 @@ class FileComparison:
 
 
 def plan_change(reference, current, *, output=None, format: str | None = None, tiled: bool = False,
-                both: bool = False, png=None, html=None, voxel_size: float | str = DEFAULTS.voxel_size,
+                both: bool = False, png=None, html=None, report=None, voxel_size: float | str = DEFAULTS.voxel_size,
                 grid_size: int | None = None, sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k,
                 memory_limit: int | str | None = None, align: str | None = None,
                 decision: str = DEFAULTS.decision, sensor_origin=DEFAULTS.sensor_origin) -> ChangePlan:
@@ -133,8 +134,9 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
 
     Parameters
     ----------
-    reference, current, format, tiled, both, png, html, align, decision, sensor_origin
-        As in :func:`compare_files`.
+    reference, current, format, tiled, both, png, html, report, align, decision, sensor_origin
+        As in :func:`compare_files` (pictures and reports are made in memory only: refused when
+        tiles are taken).
     output : path-like, optional
         Checked here only to be LAS/LAZ when tiles are taken (they stream their output).
     voxel_size, grid_size, sigma_voxels, k, memory_limit
@@ -152,7 +154,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
     """
     from .grid import memory_limit as limit
     from .io import FORMATS, PointSource
-    from .tiles import dense_grid_bytes, sampled_voxel_size, untiled_point_bytes
+    from .tiles import dense_grid_bytes, sampled_lattice, untiled_point_bytes
 
     if _is_store(reference):  # a stored reference field: its lattice, σ, h and tiles
         from .store import FieldStore
@@ -160,7 +162,8 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
         sources = [FieldStore.open(reference), PointSource.open(current, format=format)]
         if both:
             raise SDPError("--both needs the reference points; a .zarr field store only tells what appeared")
-        return ChangePlan(tiled=True, voxel_size=sources[0].voxel_size, sources=sources)
+        return ChangePlan(tiled=True, voxel_size=sources[0].voxel_size,
+                          sigma_voxels=sources[0].sigma / sources[0].voxel_size, sources=sources)
     streamed = all((format or FORMATS.get(Path(f).suffix.lower())) in ("las", "npy", "ply")
                    for f in (reference, current))
     given_sensor = not (isinstance(sensor_origin, str) and sensor_origin in ("auto", "none"))  # tiles follow no rays
@@ -168,7 +171,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
         return ChangePlan(tiled=False)
     if tiled:
         V.check_tiled_options(grid_size=grid_size, align=align, sensor_origin=sensor_origin, decision=decision,
-                              pictures=bool(png or html))
+                              pictures=bool(png or html or report))
         if not streamed:
             raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; convert the clouds first")
     try:
@@ -177,7 +180,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
         if tiled:
             raise
         return ChangePlan(tiled=False)  # ASCII PLY and the like: the in-memory path reads them (or reports the error)
-    voxel = sampled_voxel_size(sources, voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+    voxel, sigma_voxels = sampled_lattice(sources, voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
     lo = np.minimum(sources[0].lo, sources[1].lo)
     hi = np.maximum(sources[0].hi, sources[1].hi)
     grids = 2 * dense_grid_bytes(lo, hi, voxel, sigma_voxels=sigma_voxels)
@@ -192,10 +195,14 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
     reason = None if tiled else (f"comparing in tiles on Dask: dense grids of {V.format_bytes(grids)} or the points "
                                  f"in memory ({V.format_bytes(points)} with the process) exceed the memory limit of "
                                  f"{V.format_bytes(cap)}")
-    return ChangePlan(tiled=True, reason=reason, voxel_size=float(voxel), sources=sources)
+    if reason and (png or html or report):  # the pictures need every point in memory
+        raise SDPError(f"--png/--html/--report are made in memory, but dense grids of {V.format_bytes(grids)} "
+                       f"exceed the memory limit of {V.format_bytes(cap)}: give a larger --memory-limit or no pictures")
+    return ChangePlan(tiled=True, reason=reason, voxel_size=float(voxel), sigma_voxels=sigma_voxels, sources=sources)
 
 
-def compare_files(reference, current, *, output, both: bool = False, png=None, html=None, format: str | None = None,
+def compare_files(reference, current, *, output, both: bool = False, png=None, html=None, report=None,
+                  format: str | None = None,
                   voxel_size: float | str = DEFAULTS.voxel_size, grid_size: int | None = None,
                   sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
                   memory_limit: int | str | None = None, decision: str = DEFAULTS.decision,
@@ -226,6 +233,10 @@ def compare_files(reference, current, *, output, both: bool = False, png=None, h
         Also write the reference's points labelled as disappeared, to :func:`disappeared_path`.
     png, html : path-like, optional
         Pictures of the appeared points (:func:`sdp.render_changes`, :func:`sdp.render_changes_html`).
+    report : path-like, optional
+        One self-contained HTML page (:func:`sdp.change_report`): summary, parameters and why,
+        maps of both directions, region sizes, the region table with thumbnails, a 3-D view.
+        In memory only (refused with tiles).
     voxel_size, grid_size, sigma_voxels, k, h, memory_limit, decision, min_region_points, range_noise
         As in :func:`sdp.detect_changes`.
     sensor_origin : "auto", "none", "viewpoint", "X,Y,Z" or array_like (3,)
@@ -272,16 +283,18 @@ def compare_files(reference, current, *, output, both: bool = False, png=None, h
     >>> print(r.summary_text()); r.tiled, r.summary["current"]["appeared"]  # doctest: +SKIP
     """
     out = Path(output)
-    check_outputs([out, disappeared_path(out) if both else None, png, html], [reference, current])
+    check_outputs([out, disappeared_path(out) if both else None, png, html, report], [reference, current])
+    _check_picture_extras(png=png, html=html, report=report)
     grid = _grid_options(voxel_size, grid_size, sigma_voxels, k, h, memory_limit)
     V.integer_at_least("min_region_points", min_region_points, 0)
     V.check_tile_options(tile_size=tile_size, workers=workers, workdir=workdir, scheduler=scheduler)
     if tiled and not _is_store(reference):
         V.check_tiled_options(grid_size=grid_size, align=align, sensor_origin=sensor_origin, decision=decision,
-                              pictures=bool(png or html))
+                              pictures=bool(png or html or report))
     classes = V.check_alignment_options(align, fix_horizontal=fix_horizontal, align_class=align_class)
     sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)
     plan = plan_change(reference, current, output=out, format=format, tiled=tiled, both=both, png=png, html=html,
+                       report=report,
                        voxel_size=voxel_size, grid_size=grid_size, sigma_voxels=sigma_voxels, k=k,
                        memory_limit=memory_limit, align=align, decision=decision, sensor_origin=sensor)
     if plan.reason and notify is not None:
@@ -289,10 +302,14 @@ def compare_files(reference, current, *, output, both: bool = False, png=None, h
     with all_or_none():
         if plan.tiled:
             return _compare_tiled(plan, reference, current, out, both=both, min_region_points=min_region_points,
-                                  tiles=dict(sigma_voxels=sigma_voxels, k=k, h=h, tile_size=tile_size,
+                                  tiles=dict(k=k, h=h, tile_size=tile_size,
                                              memory_limit=memory_limit, scheduler=scheduler, workers=workers,
                                              workdir=workdir))
-        return _compare_in_memory(reference, current, out, both=both, png=png, html=html, format=format,
+        options = dict(voxel_size=voxel_size, grid_size=grid_size, sigma_voxels=sigma_voxels, k=k, h=h,
+                       decision=decision, min_region_points=min_region_points, sensor_origin=sensor_origin,
+                       range_noise=range_noise)
+        return _compare_in_memory(reference, current, out, both=both, png=png, html=html, report=report,
+                                  options=options, format=format,
                                   align=align, aligned_output=aligned_output, fix_horizontal=fix_horizontal,
                                   classes=classes, align_class=align_class, sensor=sensor, grid=grid,
                                   detect=dict(decision=decision, min_region_points=min_region_points,
@@ -309,7 +326,8 @@ def _grid_options(voxel_size, grid_size, sigma_voxels, k, h, memory_limit) -> di
     return dict(size, k=k, h=h, sigma_voxels=sigma_voxels, memory_limit=memory_limit)
 
 
-def _compare_in_memory(reference, current, out: Path, *, both, png, html, format, align, aligned_output,
+def _compare_in_memory(reference, current, out: Path, *, both, png, html, report, options, format, align,
+                       aligned_output,
                        fix_horizontal, classes, align_class, sensor, grid, detect) -> FileComparison:
     from .change import detect_changes
 
@@ -330,13 +348,23 @@ def _compare_in_memory(reference, current, out: Path, *, both, png, html, format
         jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_region,
                      r.reference_field, ref.xyz))
     outputs = _write_labelled(jobs, inputs=(reference, current))
-    outputs += _pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}")
+    outputs += _pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}",
+                         regions=r.appeared_regions if out_xyz is moved.xyz else ())  # boxes in the moved frame
     summary = r.summary()
     summary["timings"]["read"] = t_read
     if alignment is not None:
         summary["alignment"] = alignment.summary()
         summary["timings"]["align"] = alignment.seconds
+    if report:
+        outputs.append(str(report))
     summary["outputs"] = outputs
+    if report:
+        from .htmlreport import change_report
+
+        t = time.perf_counter()
+        change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options,
+                      names=(Path(reference).name, Path(current).name))
+        summary["timings"]["report"] = time.perf_counter() - t
     return FileComparison(str(reference), str(current), r, summary, tiled=False, alignment=alignment, outputs=outputs)
 
 
@@ -375,7 +403,8 @@ def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min
     from .io import write_points_streamed
     from .tiles import detect_changes_tiled
 
-    r = detect_changes_tiled(*plan.sources, voxel_size=plan.voxel_size, min_region_points=min_region_points, **tiles)
+    r = detect_changes_tiled(*plan.sources, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels,
+                             min_region_points=min_region_points, **tiles)
     jobs = [(out, plan.sources[1], r.appeared_rows, r.appeared_region, r.current_not_comparable_rows)]
     if both:
         jobs.append((disappeared_path(out), plan.sources[0], r.disappeared_rows, r.disappeared_region,
@@ -439,15 +468,31 @@ def _align_clouds(ref, cur, names, *, method: str, fix_horizontal: bool = False,
     return align(ref_xyz, cur_xyz, method=method, fix_horizontal=fix_horizontal)
 
 
-def _pictures(png, html, xyz, changed, title) -> list[str]:
-    """Write the ``png`` / ``html`` pictures of changed points that were asked for."""
+def _check_picture_extras(*, png=None, html=None, report=None) -> None:
+    """Before any work: the extras the asked-for pictures need (one-line :class:`sdp.MissingDependencyError`)."""
+    from .errors import require
+
+    if png:
+        require("matplotlib", "plots", "--png (a PNG)")
+    if html:
+        require("plotly", "plots", "--html (an HTML view)")
+    if report:
+        from .htmlreport import require_extras
+
+        require_extras()
+
+
+def _pictures(png, html, xyz, changed, title, regions=()) -> list[str]:
+    """Write the ``png`` / ``html`` pictures of changed points that were asked for (a map outlines ``regions``)."""
     from .render import render_changes, render_changes_html
 
     written = []
-    for path, render in ((png, render_changes), (html, render_changes_html)):
-        if path:
-            render(path, xyz, changed, title=title)
-            written.append(str(path))
+    if png:
+        render_changes(png, xyz, changed, title=title, regions=regions)
+        written.append(str(png))
+    if html:
+        render_changes_html(html, xyz, changed, title=title)
+        written.append(str(html))
     return written
 
 
@@ -468,7 +513,7 @@ class FileDistances:
         return report.distance_text(self.summary, self.reference, self.current)
 
 
-def distance_files(reference, current, *, output, core_points=None, png=None, format: str | None = None,
+def distance_files(reference, current, *, output, core_points=None, png=None, report=None, format: str | None = None,
                    projection_scale: float | str = DEFAULTS.projection_scale,
                    normal_scale: float | str = DEFAULTS.normal_scale,
                    max_distance: float | str = DEFAULTS.max_distance, registration_error: float | str = "auto",
@@ -496,6 +541,9 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
     png : path-like, optional
         A map (or view) of the significant distances and their histogram
         (:func:`sdp.render_distances`).
+    report : path-like, optional
+        One self-contained HTML page (:func:`sdp.distance_report`): summary, parameters and
+        why, the map and histogram, a 3-D view. In memory only (refused with tiles).
     projection_scale, normal_scale, max_distance, orientation, sensor_origin, memory_limit
         As in :func:`sdp.distances` (``sensor_origin`` also takes ``"viewpoint"`` and ``"X,Y,Z"``,
         as :func:`compare_files`).
@@ -527,7 +575,8 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
     from .io import write_points
 
     out = Path(output)
-    check_outputs([out, png], [reference, current, core_points])
+    check_outputs([out, png, report], [reference, current, core_points])
+    _check_picture_extras(png=png, report=report)
     for name, value in (("--projection-scale", projection_scale), ("--normal-scale", normal_scale),
                         ("--max-distance", max_distance)):
         V.auto_or_positive(name, value)
@@ -543,7 +592,7 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
             raise SDPError(f"--orientation must be X,Y,Z, got {orientation!r}")
     V.check_tile_options(tile_size=tile_size, workers=workers, workdir=workdir, scheduler=scheduler)
     if _distances_in_tiles(reference, current, output, format=format, tiled=tiled, memory_limit=memory_limit,
-                           notify=notify, core_points=core_points, align=align, png=png):
+                           notify=notify, core_points=core_points, align=align, png=png, report=report):
         return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,
                                orientation=orientation, memory_limit=memory_limit,
                                kw=dict(projection_scale=projection_scale, normal_scale=normal_scale,
@@ -576,16 +625,27 @@ def distance_files(reference, current, *, output, core_points=None, png=None, fo
             render_distances(png, d.core_points, d.distance, d.significant, d.lod,
                              title=f"{Path(reference).name} → {Path(current).name}: signed distance")
             outputs.append(str(png))
-    summary = d.summary()
-    summary["timings"]["read"] = round(t_read, 4)
-    if alignment is not None:
-        summary["alignment"] = alignment.summary()
+        summary = d.summary()
+        summary["timings"]["read"] = round(t_read, 4)
+        if alignment is not None:
+            summary["alignment"] = alignment.summary()
+        if report:
+            from .htmlreport import distance_report
+
+            outputs.append(str(report))
+            summary["outputs"] = outputs
+            t = time.perf_counter()
+            distance_report(report, d, summary=summary, names=(Path(reference).name, Path(current).name),
+                            options=dict(projection_scale=projection_scale, normal_scale=normal_scale,
+                                         max_distance=max_distance, registration_error=registration_error,
+                                         orientation=orientation, sensor_origin=sensor_origin))
+            summary["timings"]["report"] = round(time.perf_counter() - t, 4)
     summary["outputs"] = outputs
     return FileDistances(str(reference), str(current), d, summary, alignment, outputs)
 
 
 def _distances_in_tiles(reference, current, output, *, format, tiled, memory_limit, notify, core_points, align,
-                        png) -> bool:
+                        png, report=None) -> bool:
     """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (about
     450 bytes per reference point and 200 per current point) would exceed the memory limit."""
     from .grid import memory_limit as limit
@@ -601,7 +661,7 @@ def _distances_in_tiles(reference, current, output, *, format, tiled, memory_lim
     need, cap = 450.0 * n_ref + 200.0 * n_cur, limit(memory_limit)
     if not (tiled or need > cap):
         return False
-    for option, given in (("--core-points", core_points), ("--align", align), ("--png", png)):
+    for option, given in (("--core-points", core_points), ("--align", align), ("--png", png), ("--report", report)):
         if given:
             raise SDPError(f"{option} is not available in tiles (the in-memory work would need "
                            f"{V.format_bytes(need)}; the memory limit is {V.format_bytes(cap)})")
@@ -636,15 +696,15 @@ def _lattice(clouds, grid: dict, like=None) -> dict:
     """``DensityField.from_points`` options: ``grid`` (``auto``: from all ``clouds``' point
     spacing), or the lattice, σ and h of the field ``like`` so results can be combined."""
     from ._points import as_points
-    from .params import resolve_voxel_size
+    from .params import resolve_lattice
 
     if like is not None:
         return dict(voxel_size=like.voxel_size, sigma_voxels=like.sigma / like.voxel_size, h=like.h,
                     truncate=like.truncate, memory_limit=grid["memory_limit"])
     kw = dict(grid)
-    kw["voxel_size"] = resolve_voxel_size([as_points(c) for c in clouds], voxel_size=kw.pop("voxel_size", "auto"),
-                                          grid_size=kw.pop("grid_size", None), k=kw["k"],
-                                          sigma_voxels=kw["sigma_voxels"])
+    kw["voxel_size"], kw["sigma_voxels"] = resolve_lattice(
+        [as_points(c) for c in clouds], voxel_size=kw.pop("voxel_size", "auto"), grid_size=kw.pop("grid_size", None),
+        k=kw["k"], sigma_voxels=kw["sigma_voxels"])
     return kw
 
 
@@ -680,10 +740,10 @@ def build_field_file(cloud, *, output, format: str | None = None, voxel_size: fl
         _save_field(fld, output, inputs=(cloud,))
         return fld
     from .io import PointSource
-    from .tiles import build_field_tiled, sampled_voxel_size
+    from .tiles import build_field_tiled, sampled_lattice
 
     source = PointSource.open(cloud, format=format)
-    voxel = sampled_voxel_size([source], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+    voxel, sigma_voxels = sampled_lattice([source], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
     return build_field_tiled(source, output, voxel_size=voxel, sigma_voxels=sigma_voxels, k=k, h=h,
                              tile_size=tile_size, memory_limit=memory_limit, scheduler=scheduler, workers=workers,
                              workdir=workdir)

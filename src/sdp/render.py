@@ -25,7 +25,8 @@ from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from .errors import require
 from .io import atomic_path
 
-__all__ = ["render_changes", "render_changes_html", "render_distances", "render_field"]
+__all__ = ["render_changes", "render_changes_html", "render_distances", "render_field", "changes_figure",
+           "distances_figure", "png_bytes", "is_map", "map_origin", "map_axes", "axis_label", "pyplot"]
 
 _VERMILLION, _BLUE, _GREY = "#D55E00", "#0072B2", "#B4B4B4"  # Okabe–Ito, and a neutral grey
 
@@ -34,10 +35,11 @@ _VIEWS = ((25, -60, "oblique"), (90, -90, "top"), (0, -90, "front"))
 _LAYERS = ((UNCHANGED, "unchanged", _BLUE, 0.6, 1), (NOT_COMPARABLE, "not comparable", _GREY, 0.8, 1),
            (CHANGED, "changed", _VERMILLION, 1.5, 2))
 _FLAT = 0.1  # height below this share of the horizontal extent: a map
+_MAP_REGIONS = 12  # regions outlined on a map, largest first
 
 
 def render_changes(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray, *, title: str = "",
-                   max_points: int = 80_000, seed: int = 0, view: str = "auto") -> Path:
+                   max_points: int = 80_000, seed: int = 0, view: str = "auto", regions=()) -> Path:
     """Write a PNG of ``xyz``: changed points vermillion, unchanged blue, not comparable grey,
     with counts.
 
@@ -46,21 +48,30 @@ def render_changes(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray
     ``max_points`` each for drawing; changed points are all drawn, on top. ``view``: ``"map"``
     (top-down, relative coordinates, scale bar, north arrow), ``"3d"`` (three views) or
     ``"auto"`` (a map when the scene's height is below a tenth of its horizontal extent).
+    ``regions`` (:class:`sdp.Region`, or their ``to_dict()``): on a map, each is outlined and
+    numbered by its label.
     """
-    plt = _pyplot()
+    return _save_png(changes_figure(xyz, changed, title=title, max_points=max_points, seed=seed, view=view,
+                                    regions=regions), path)
+
+
+def changes_figure(xyz: np.ndarray, changed: np.ndarray, *, title: str = "", max_points: int = 80_000,
+                   seed: int = 0, view: str = "auto", regions=(), size: float = 1.0, bounds=None):
+    """The matplotlib figure :func:`render_changes` saves (``size`` scales it), for other pages
+    (:mod:`sdp.htmlreport`); ``bounds`` (lo, hi) choose the view and a map's origin (default:
+    the points'), so that two maps of one scene share them."""
+    plt = pyplot()
     xyz = np.asarray(xyz)
     layers = _drawn(changed, max_points, seed)
-    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
-    if view not in ("auto", "map", "3d"):
-        raise ValueError(f"view must be 'auto', 'map' or '3d', got {view!r}")
-    if view == "map" or (view == "auto" and hi[2] - lo[2] < _FLAT * max(hi[0] - lo[0], hi[1] - lo[1])):
-        fig = _map(plt, xyz, layers, lo, hi)
+    lo, hi = (xyz.min(axis=0), xyz.max(axis=0)) if bounds is None else (np.asarray(b) for b in bounds)
+    if is_map(lo, hi, view):
+        fig = _map(plt, xyz, layers, lo, hi, regions, size)
     else:
-        fig = plt.figure(figsize=(15, 5.4), dpi=110, layout="constrained")
+        fig = plt.figure(figsize=(15 * size, 5.4 * size), dpi=110, layout="constrained")
         for i, (elev, azim, name) in enumerate(_VIEWS):
             ax = fig.add_subplot(1, 3, i + 1, projection="3d")
-            for idx, label, n, color, size, _ in layers:
-                ax.scatter(*xyz[idx].T, s=size, c=color, alpha=0.9 if color == _VERMILLION else 0.5, linewidths=0,
+            for idx, label, n, color, size_, _ in layers:
+                ax.scatter(*xyz[idx].T, s=size_, c=color, alpha=0.9 if color == _VERMILLION else 0.5, linewidths=0,
                            label=f"{label} ({n:,})")
             ax.view_init(elev=elev, azim=azim)
             ax.set_box_aspect(np.maximum(hi - lo, 1e-9))
@@ -74,39 +85,63 @@ def render_changes(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray
                 ax.legend(loc="upper left", markerscale=8, fontsize=9)
     if title:
         fig.suptitle(title)
-    return _save_png(fig, path)
-
-
-def _map(plt, xyz, layers, lo, hi):
-    """A top-down map: x, y relative to a round origin named on the axes, a scale bar, a north arrow."""
-    w, h = float(hi[0] - lo[0]), float(hi[1] - lo[1])
-    aspect = min(max(h / max(w, 1e-9), 0.3), 3.0)
-    fig, ax = plt.subplots(figsize=(9, 9 * aspect * 0.9 + 1.2), dpi=110, layout="constrained")
-    origin = _map_origin(lo, hi)
-    for idx, label, n, color, size, _ in layers:
-        ax.scatter(xyz[idx, 0] - origin[0], xyz[idx, 1] - origin[1], s=size * 2, c=color, linewidths=0,
-                   alpha=0.9 if color == _VERMILLION else 0.6, label=f"{label} ({n:,})")
-    ax.legend(loc="best", markerscale=6, fontsize=9, framealpha=0.9)
-    _map_axes(ax, origin, lo, hi)
     return fig
 
 
-def _map_origin(lo, hi) -> np.ndarray:
-    """A round x, y origin below the scene's corner (a power of ten of its extent)."""
+def is_map(lo, hi, view: str = "auto") -> bool:
+    """Whether a scene of bounds ``lo``, ``hi`` is drawn as a top-down map: ``view="map"``, or
+    ``"auto"`` and its height below a tenth of its horizontal extent (``"3d"``: never)."""
+    if view not in ("auto", "map", "3d"):
+        raise ValueError(f"view must be 'auto', 'map' or '3d', got {view!r}")
+    return view == "map" or (view == "auto" and hi[2] - lo[2] < _FLAT * max(hi[0] - lo[0], hi[1] - lo[1]))
+
+
+def _map(plt, xyz, layers, lo, hi, regions=(), size=1.0):
+    """A top-down map: x, y relative to a round origin named on the axes, a scale bar, a north
+    arrow; changed points drawn large enough to be found at a glance, regions outlined."""
+    w, h = float(hi[0] - lo[0]), float(hi[1] - lo[1])
+    aspect = min(max(h / max(w, 1e-9), 0.3), 3.0)
+    fig, ax = plt.subplots(figsize=(9 * size, (9 * aspect * 0.9 + 1.2) * size), dpi=110, layout="constrained")
+    origin = map_origin(lo, hi)
+    for idx, label, n, color, size_, _ in layers:
+        ax.scatter(xyz[idx, 0] - origin[0], xyz[idx, 1] - origin[1], s=size_ * (4 if color == _VERMILLION else 2),
+                   c=color, linewidths=0, alpha=0.9 if color == _VERMILLION else 0.5, label=f"{label} ({n:,})")
+    for g in list(regions)[:_MAP_REGIONS]:
+        g = g if isinstance(g, dict) else g.to_dict()
+        (x0, y0), (x1, y1) = (np.asarray(g["bbox_min"][:2]) - origin), (np.asarray(g["bbox_max"][:2]) - origin)
+        ax.add_patch(plt.Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="k", lw=0.8))
+        ax.annotate(str(g["label"]), (x1, y1), fontsize=8, ha="left", va="bottom")
+    ax.legend(loc="best", markerscale=6, fontsize=9, framealpha=0.9)
+    map_axes(ax, origin, lo, hi)
+    return fig
+
+
+def map_origin(lo, hi) -> np.ndarray:
+    """A round x, y origin at the scene's corner (a multiple of the power of ten below its extent;
+    a corner within 1 % of the extent beyond a round value takes that value, so that 499,999.7 gives
+    500,000, not 499,000), or (0, 0) for a scene near the origin (within ten extents of it), whose
+    own coordinates read well."""
     span = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]), 1e-9)
+    if max(abs(float(v)) for v in (*lo[:2], *hi[:2])) <= 10 * span:
+        return np.zeros(2)
     step = 10.0 ** math.floor(math.log10(span))
-    return np.floor(lo[:2] / step) * step
+    return np.floor((np.asarray(lo[:2], np.float64) + 0.01 * span) / step) * step
 
 
-def _map_axes(ax, origin, lo, hi):
+def axis_label(name: str, offset: float) -> str:
+    """``"x − 634,000"``, or ``"x"`` without an offset."""
+    return f"{name} − {offset:,.0f}" if offset else name
+
+
+def map_axes(ax, origin, lo, hi):
     """Relative-coordinate labels, a scale bar and a north arrow on a top-down map."""
     from matplotlib.ticker import MaxNLocator
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
     span = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]), 1e-9)
     ax.set_aspect("equal")
-    ax.set_xlabel(f"x − {origin[0]:,.0f}")
-    ax.set_ylabel(f"y − {origin[1]:,.0f}")
+    ax.set_xlabel(axis_label("x", origin[0]))
+    ax.set_ylabel(axis_label("y", origin[1]))
     for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_locator(MaxNLocator(6))
     bar = 10.0 ** math.floor(math.log10(span / 4))
@@ -126,9 +161,16 @@ def render_distances(path: str | os.PathLike, xyz: np.ndarray, distance: np.ndar
     without a distance grey; beside it, the histogram of the distances with the median level of
     detection marked. Above ``max_points`` points, a random subsample is drawn (the counts are
     of all points)."""
+    return _save_png(distances_figure(xyz, distance, significant, lod, title=title, max_points=max_points, seed=seed,
+                                      view=view), path)
+
+
+def distances_figure(xyz: np.ndarray, distance: np.ndarray, significant: np.ndarray, lod: np.ndarray, *,
+                     title: str = "", max_points: int = 200_000, seed: int = 0, view: str = "auto"):
+    """The matplotlib figure :func:`render_distances` saves, for other pages (:mod:`sdp.htmlreport`)."""
     from matplotlib.colors import TwoSlopeNorm
 
-    plt = _pyplot()
+    plt = pyplot()
     xyz, distance = np.asarray(xyz), np.asarray(distance, np.float64)
     significant = np.asarray(significant, bool)
     ok = np.isfinite(distance)
@@ -137,14 +179,12 @@ def render_distances(path: str | os.PathLike, xyz: np.ndarray, distance: np.ndar
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(len(xyz), max_points, replace=False))
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
-    if view not in ("auto", "map", "3d"):
-        raise ValueError(f"view must be 'auto', 'map' or '3d', got {view!r}")
-    flat = view == "map" or (view == "auto" and hi[2] - lo[2] < _FLAT * max(hi[0] - lo[0], hi[1] - lo[1]))
+    flat = is_map(lo, hi, view)
     limit = float(np.quantile(np.abs(distance[sig]), 0.98)) if sig.any() else 1.0
     norm = TwoSlopeNorm(vcenter=0.0, vmin=-max(limit, 1e-12), vmax=max(limit, 1e-12))
     fig = plt.figure(figsize=(15, 6.5), dpi=110, layout="constrained")
     ax = fig.add_subplot(1, 2, 1) if flat else fig.add_subplot(1, 2, 1, projection="3d")
-    origin = _map_origin(lo, hi) if flat else np.zeros(2)
+    origin = map_origin(lo, hi) if flat else np.zeros(2)
     groups = ((ok[idx] & ~sig[idx], "#D9D9D9", f"within the level of detection ({int((ok & ~sig).sum()):,})"),
               (~ok[idx], _GREY, f"no distance ({int((~ok).sum()):,})"))
     for mask, colour, label in groups:
@@ -158,7 +198,7 @@ def render_distances(path: str | os.PathLike, xyz: np.ndarray, distance: np.ndar
     fig.colorbar(sc, ax=ax, shrink=0.8, label="signed distance (+: the current lies on the normal's side)")
     ax.legend(loc="upper right", markerscale=6, fontsize=9, framealpha=0.9)  # the north arrow is upper left
     if flat:
-        _map_axes(ax, origin, lo, hi)
+        map_axes(ax, origin, lo, hi)
     else:
         ax.view_init(elev=25, azim=-60)
         ax.set_box_aspect(np.maximum(hi - lo, 1e-9))
@@ -175,12 +215,13 @@ def render_distances(path: str | os.PathLike, xyz: np.ndarray, distance: np.ndar
         for x in (-m, m):
             hx.axvline(x, color="k", ls="--", lw=1)
         hx.plot([], [], "k--", lw=1, label=f"median level of detection ±{m:.3g}")
+        hx.set_yscale("log")  # the significant tails stay visible beside the peak within the level of detection
     hx.set_xlabel("signed distance")
     hx.set_ylabel("points")
     hx.legend(fontsize=9)
     if title:
         fig.suptitle(title)
-    return _save_png(fig, path)
+    return fig
 
 
 def render_changes_html(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray, *, title: str = "",
@@ -217,7 +258,7 @@ def render_field(path: str | os.PathLike, field, *, center: np.ndarray | None = 
     and the black line is the boundary F = 0. ``center`` defaults to the middle of the
     allocated blocks.
     """
-    plt = _pyplot()
+    plt = pyplot()
     from matplotlib.colors import TwoSlopeNorm
 
     l = field.voxel_size
@@ -248,7 +289,8 @@ def render_field(path: str | os.PathLike, field, *, center: np.ndarray | None = 
     return _save_png(fig, path)
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend, or :class:`sdp.MissingDependencyError` (``sdp[plots]``)."""
     matplotlib = require("matplotlib", "plots", "a PNG")
 
     matplotlib.use("Agg")
@@ -281,3 +323,15 @@ def _save_png(fig, path) -> Path:
         fig.savefig(tmp, format="png")
     plt.close(fig)
     return path
+
+
+def png_bytes(fig, *, dpi: float | None = None) -> bytes:
+    """The PNG of a matplotlib figure, as bytes (the figure is closed)."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi or fig.dpi)
+    plt.close(fig)
+    return buf.getvalue()

@@ -69,7 +69,7 @@ from .validate import (
 )
 
 __all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "distances_tiled", "first_slices",
-           "dense_grid_bytes", "untiled_point_bytes", "sampled_voxel_size"]
+           "dense_grid_bytes", "untiled_point_bytes", "sampled_lattice"]
 
 _PART_ROWS = 8_000_000  # rows read by one bucketing task
 _BYTES_PER_ROW_READ = 600  # a decoded row in a bucketing task: record, x y z, tile keys, sort, bucket record
@@ -352,8 +352,8 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
         Memory of the whole job (default ``$SDP_MEMORY_LIMIT`` or 4 GiB), shared as
         :class:`JobBudget` says: this process's share, then each worker's (of a local cluster, or
         each thread of the scheduler's workers: a task at once each), which less the worker process
-        itself sets the tile size and the rows decoded at a time. Tiles that need more are refused before any work, with the
-        smallest limit that would hold them.
+        itself sets the tile size and the rows decoded at a time. Tiles that need more are refused
+        before any work, with the smallest limit that would hold them.
     scheduler : str, optional
         ``None``: a Dask local cluster of ``workers`` processes; ``"tcp://host:8786"``: that
         ``dask.distributed`` scheduler; ``"synchronous"`` or ``"threads"``: Dask's local
@@ -394,7 +394,7 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
                         reference_not_comparable_rows=unseen["disappeared"],
                         n_current=run.sources["current"].n_rows, n_reference=n_ref,
                         n_dropped_current=run.dropped["current"], n_dropped_reference=run.dropped.get("reference", 0),
-                        voxel_size=run.voxel_size, sigma=sigma_voxels * run.voxel_size,
+                        voxel_size=run.voxel_size, sigma=run.sigma_voxels * run.voxel_size,
                         h=threshold(k) if h is None else float(h), n_tiles=len(run.tiles), tile_size=run.tiling.edge,
                         timings=run.timings)
 
@@ -499,7 +499,7 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float | str
     with _Session({"cloud": cloud}, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                   method=method, tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit,
                   scheduler=scheduler, workers=workers, workdir=workdir) as run:
-        store = FieldStore.create(path, voxel_size=run.voxel_size, sigma=sigma_voxels * run.voxel_size,
+        store = FieldStore.create(path, voxel_size=run.voxel_size, sigma=run.sigma_voxels * run.voxel_size,
                                   truncate=truncate, h=threshold(k) if h is None else float(h),
                                   tile_blocks=run.tiling.blocks,
                                   inputs=(cloud,) if isinstance(cloud, (str, Path)) else ())
@@ -618,9 +618,10 @@ class _Session:
         check_tile_options(tile_size=tile_size, tile_points=tile_points, workers=workers, workdir=workdir,
                            scheduler=scheduler)
         _dask("dask" if scheduler in ("synchronous", "threads") else "dask.distributed")  # before any work
-        if voxel_size is None or isinstance(voxel_size, str):  # "auto": the tiles need it before the points
-            voxel_size = sampled_voxel_size(list(clouds.values()), k=k, sigma_voxels=sigma_voxels)
-        self.voxel_size = float(voxel_size)
+        # "auto": the tiles need the lattice before the points
+        voxel_size, sigma_voxels = sampled_lattice(list(clouds.values()), voxel_size=voxel_size or "auto", k=k,
+                                                   sigma_voxels=sigma_voxels)
+        self.voxel_size, self.sigma_voxels = float(voxel_size), float(sigma_voxels)
         workers = workers or os.cpu_count() or 1
         in_process = scheduler in ("synchronous", "threads")
         self.root = tempfile.mkdtemp(prefix="sdp-tiles-", dir=workdir)
@@ -690,15 +691,16 @@ class _Session:
                 shutil.rmtree(self.root, ignore_errors=True)
 
 
-def sampled_voxel_size(clouds: list, *, voxel_size: float | str = DEFAULTS.voxel_size, k: float = DEFAULTS.k,
-                       sigma_voxels: float = DEFAULTS.sigma_voxels) -> float:
-    """``voxel_size``, or for ``"auto"`` :func:`sdp.auto_voxel_size` of the first slice of each
-    cloud (a path, :class:`~sdp.io.PointSource` or array): clouds too large to read whole."""
-    from .params import resolve_voxel_size
+def sampled_lattice(clouds: list, *, voxel_size: float | str = DEFAULTS.voxel_size, k: float = DEFAULTS.k,
+                    sigma_voxels: float | str = DEFAULTS.sigma_voxels) -> tuple[float, float]:
+    """(voxel, σ in voxels) as :func:`sdp.params.resolve_lattice`, ``"auto"`` measured on the
+    first slice of each cloud (a path, :class:`~sdp.io.PointSource` or array): clouds too large
+    to read whole."""
+    from .params import resolve_lattice
 
     if not isinstance(voxel_size, str):
-        return resolve_voxel_size([], voxel_size=voxel_size)
-    return resolve_voxel_size(first_slices(clouds), voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+        return resolve_lattice([], voxel_size=voxel_size, sigma_voxels=sigma_voxels)
+    return resolve_lattice(first_slices(clouds), voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
 
 
 def first_slices(clouds: list) -> list:

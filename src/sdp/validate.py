@@ -117,16 +117,18 @@ def check_threshold(k: float | None, h: float | None, *, names: tuple[str, str] 
                                      "below it; use k > -1.65")
 
 
-def check_grid_options(*, voxel_size=None, sigma_voxels: float = 2.0, k: float | None = 3, h: float | None = None,
-                       truncate: float = 3.0, memory_limit=None) -> float | None:
+def check_grid_options(*, voxel_size=None, sigma_voxels: float | str = "auto", k: float | None = 3,
+                       h: float | None = None, truncate: float = 3.0, memory_limit=None) -> float | None:
     """Check the options of a density field before anything is read or allocated.
 
     Parameters
     ----------
     voxel_size : float, "auto" or None
         A length must be positive and finite; ``"auto"`` and None (decided later) pass.
-    sigma_voxels, truncate : float
-        Positive finite numbers.
+    sigma_voxels : float or "auto"
+        A positive finite number, or ``"auto"`` (:func:`sdp.params.resolve_sigma_voxels`).
+    truncate : float
+        A positive finite number.
     k, h : float or None
         See :func:`check_threshold`.
     memory_limit : int, float, str or None
@@ -139,7 +141,7 @@ def check_grid_options(*, voxel_size=None, sigma_voxels: float = 2.0, k: float |
     """
     from .grid import memory_limit as _limit
 
-    positive_finite("sigma_voxels", sigma_voxels)
+    auto_or_positive("sigma_voxels", sigma_voxels)
     positive_finite("truncate", truncate)
     check_threshold(k, h)
     _limit(memory_limit)
@@ -266,7 +268,7 @@ def auto_or_positive(name: str, value) -> float | str:
     try:
         return positive_finite(name, value)
     except InvalidOptionError:
-        raise InvalidOptionError(f"{name} must be 'auto' or a positive finite length, got {value!r}") from None
+        raise InvalidOptionError(f"{name} must be 'auto' or a positive finite number, got {value!r}") from None
 
 
 def memory_size(name: str, value) -> str:
@@ -325,7 +327,7 @@ def check_tiled_options(*, grid_size=None, align=None, sensor_origin="auto", dec
     """Refuse the options of ``sdp change`` that a comparison in tiles does not have (``--tiled``)."""
     given_sensor = not (isinstance(sensor_origin, str) and sensor_origin in ("auto", "none"))
     for flag, bad in (("--grid-size", grid_size is not None), ("--align", align), ("--sensor-origin", given_sensor),
-                      ("--decision cluster", decision != "point"), ("--png/--html", pictures)):
+                      ("--decision cluster", decision != "point"), ("--png/--html/--report", pictures)):
         if bad:
             raise InvalidOptionError(f"{flag} is not available with --tiled")
 

@@ -70,7 +70,57 @@ _DIRECTION_SAMPLE = 5_000  # points used to choose the image's frame
 # Serial on purpose: a few ms of work each, where a thread pool on busy shared cores costs more
 # than it saves (measured: the plane fits 0.5 ms serial, 16 ms parallel on a loaded 2-core machine).
 
+@nb.njit(cache=True, inline="always")
+def _atan01(a):
+    """atan(a) for 0 ≤ a ≤ 1 within 4e-10 rad: above tan(π/8), π/4 + atan((a − 1)/(a + 1)), so
+    the argument of the alternating Taylor series stays within ±tan(π/8), where its terms up to
+    t¹⁹ leave less than the next (twice as fast as libm's atan2, far below a range-image cell)."""
+    off = 0.0
+    if a > 0.41421356237309503:
+        a = (a - 1.0) / (a + 1.0)
+        off = 0.7853981633974483
+    s = a * a
+    p = -1.0 / 19.0
+    p = p * s + 1.0 / 17.0
+    p = p * s - 1.0 / 15.0
+    p = p * s + 1.0 / 13.0
+    p = p * s - 1.0 / 11.0
+    p = p * s + 1.0 / 9.0
+    p = p * s - 1.0 / 7.0
+    p = p * s + 1.0 / 5.0
+    p = p * s - 1.0 / 3.0
+    return off + a + a * s * p
+
+
+@nb.njit(cache=True, inline="always")
+def _atan2(y, x):
+    """atan2(y, x) by :func:`_atan01` (atan2(0, 0) = 0)."""
+    ax, ay = abs(x), abs(y)
+    if ax >= ay:
+        r = _atan01(ay / ax) if ax > 0.0 else 0.0
+    else:
+        r = 1.5707963267948966 - _atan01(ax / ay)
+    if x < 0.0:
+        r = 3.141592653589793 - r
+    return -r if y < 0.0 else r
+
+
 @nb.njit(cache=True, nogil=True)
+def _angle_box(az, el):
+    """(lowest azimuth, lowest elevation, highest azimuth, highest elevation, count) of the
+    finite angles, in one pass."""
+    lo_a = lo_e = np.inf
+    hi_a = hi_e = -np.inf
+    n = 0
+    for i in range(az.shape[0]):
+        if math.isfinite(az[i]):
+            lo_a, hi_a = min(lo_a, az[i]), max(hi_a, az[i])
+            lo_e, hi_e = min(lo_e, el[i]), max(hi_e, el[i])
+            n += 1
+    return lo_a, lo_e, hi_a, hi_e, n
+
+
+@nb.njit(cache=True, nogil=True, fastmath={"contract", "arcp"})  # no NaN or inf assumptions
 def _angles(points, origin, frame):
     """Azimuth, elevation (radians) and range of each point seen from ``origin``; frame rows are
     forward (azimuth 0), left (azimuth +π/2) and pole (elevation +π/2). Range 0 gives NaN angles."""
@@ -85,11 +135,12 @@ def _angles(points, origin, frame):
         f = dx * frame[0, 0] + dy * frame[0, 1] + dz * frame[0, 2]
         lf = dx * frame[1, 0] + dy * frame[1, 1] + dz * frame[1, 2]
         p = dx * frame[2, 0] + dy * frame[2, 1] + dz * frame[2, 2]
-        r = math.sqrt(f * f + lf * lf + p * p)
+        h2 = f * f + lf * lf
+        r = math.sqrt(h2 + p * p)
         rng[i] = r
         if r > 0.0:
-            az[i] = math.atan2(lf, f)
-            el[i] = math.asin(min(1.0, max(-1.0, p / r)))
+            az[i] = _atan2(lf, f)
+            el[i] = _atan2(p, math.sqrt(h2))
         else:
             az[i] = np.nan
             el[i] = np.nan
@@ -313,13 +364,13 @@ class RangeImage:
         origin = np.asarray(origin, dtype=np.float64)
         frame = _view_frame(points, origin)
         az, el, rng = _angles(points, origin, frame)
-        ok = np.isfinite(az)
-        if not ok.any():
+        lo_a, lo_e, hi_a, hi_e, n = _angle_box(az, el)
+        if n == 0:
             raise InvalidPointsError("sensor_origin coincides with every point: no ray to follow")
-        lo = np.array([az[ok].min(), el[ok].min()])
-        extent = np.array([az[ok].max(), el[ok].max()]) - lo
+        lo = np.array([lo_a, lo_e])
+        extent = np.array([hi_a, hi_e]) - lo
         if spacing is None:
-            spacing = _angular_spacing(az, el, lo, extent, int(ok.sum()))
+            spacing = _angular_spacing(az, el, lo, extent, n)
         cell = max(cell_factor * spacing, 1e-9, float(np.sqrt(np.prod(extent + 1e-9) / _MAX_CELLS)))
         shape = (int(extent[0] // cell) + 1, int(extent[1] // cell) + 1)
         near, far = _near_far(az, el, rng, lo[0], lo[1], cell, shape[0], shape[1])
@@ -567,8 +618,7 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
     else:
         _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
         inverse = inverse.ravel()
-    centres = np.zeros((len(counts), 3))
-    np.add.at(centres, inverse, query)
+    centres = np.stack([np.bincount(inverse, weights=query[:, d], minlength=len(counts)) for d in range(3)], axis=1)
     centres /= counts[:, None]
     tree = cKDTree(static, balanced_tree=False, compact_nodes=False)  # built once, queried once
     _, idx = tree.query(centres, k=k, workers=1)  # one thread: detect_changes runs both directions at once

@@ -1,0 +1,150 @@
+"""Speed of the whole job (issue 20): sdp change step by step on real Kinect pairs, the command
+warm and cold, and the baselines in the same run.
+
+1. In-process, the 27 fixed-camera mOSD pairs (ground truth of bench_decision.py), read by
+   ``sdp.read_points`` (each PCD's VIEWPOINT gives the sensor origin): ``sdp.detect_changes``
+   with the defaults, the median over pairs of each step and of the whole call, and kappa; the
+   paper's σ of 2 voxels on the automatic voxel beside it (what the default gave before it took
+   1.5 voxels); and, interleaved pair by pair, C2C both ways (a k-d tree on each cloud queried
+   with the other, as sdp finds both what appeared and what disappeared) with pykdtree and with
+   scipy's cKDTree (all cores), and M3C2 (py4dgeo) on 20,000 core points. Each method runs
+   ``REPEAT`` times per pair; the fastest counts (the machine is shared: say its load).
+2. Start-up: ``import sdp``; ``sdp --version``; ``sdp change A.pcd B.pcd -o OUT.ply`` warm (median
+   of 5 runs); cold: in a new Numba cache (the first run compiles every kernel it needs), and
+   in another new cache after ``sdp warmup`` (what a fresh install's first command adds).
+
+Prints markdown and writes benchmarks/results/speed.md. Needs ../shared/data (about 5 minutes).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from functools import partial
+from pathlib import Path
+
+import baselines as B
+import numpy as np
+from bench_decision import LEARN, labelled_pairs
+
+import sdp
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+SDP = str(Path(sys.executable).with_name("sdp"))
+REPEAT = 3
+M3C2_CORE_POINTS = 20_000
+CLI_PAIR = ("learn12.pcd", "learn13.pcd")
+
+
+def both_ways(c2c, ref, cur):
+    """C2C in both directions: what appeared (current → reference) and what disappeared."""
+    return c2c(ref, cur), c2c(cur, ref)
+
+
+def in_process(out):
+    pairs = [(sdp.read_points(LEARN / f"learn{t - 1}.pcd"), sdp.read_points(LEARN / f"learn{t}.pcd"), truth, scored)
+             for t, _, _, truth, scored in labelled_pairs()]
+    methods = {"sdp (defaults, sensor origin)": lambda a, b: sdp.detect_changes(a, b),
+               "sdp, σ = 2 voxels (the paper's, on the automatic voxel)":
+                   lambda a, b: sdp.detect_changes(a, b, sigma_voxels=2.0),
+               "pykdtree C2C, both ways": lambda a, b: both_ways(B.c2c_pykdtree, a.xyz, b.xyz),
+               "cKDTree C2C, both ways": lambda a, b: both_ways(B.c2c_ckdtree, a.xyz, b.xyz),
+               f"M3C2, {M3C2_CORE_POINTS:,} core points": lambda a, b: partial(
+                   B.m3c2, max_core_points=M3C2_CORE_POINTS)(a.xyz, b.xyz)}
+    a, b = pairs[0][0], pairs[0][1]
+    for m in methods.values():  # warm-up: kernels loaded, imports done
+        m(a, b)
+    seconds = {name: [] for name in methods}
+    steps = {name: {} for name in methods if name.startswith("sdp")}
+    kappa = {name: [] for name in steps}
+    load = [os.getloadavg()[0]]
+    for ref, cur, truth, scored in pairs:
+        for name, m in methods.items():
+            best = None
+            for _ in range(REPEAT):
+                t = time.perf_counter()
+                r = m(ref, cur)
+                dt = time.perf_counter() - t
+                if best is None or dt < best[0]:
+                    best = (dt, r)
+            seconds[name].append(best[0])
+            if name in steps:
+                for step, v in best[1].timings.items():
+                    steps[name].setdefault(step, []).append(v)
+                kappa[name].append(sdp.kappa(truth[scored], best[1].appeared[scored]))
+        load.append(os.getloadavg()[0])
+    n_pts = np.mean([len(p[1]) for p in pairs])
+    out(f"## 1. In-process, {len(pairs)} mOSD pairs ({n_pts:,.0f} current points on average)\n")
+    out(f"Load average (1 min) {min(load):.1f}–{max(load):.1f} during the run; each method "
+        f"{REPEAT}× per pair, the fastest counted; medians over the pairs.\n")
+    base = np.median(seconds["sdp (defaults, sensor origin)"])
+    out("| method | median per pair (ms) | its time ÷ sdp's | kappa (mean over pairs with an appeared object) |")
+    out("|---|---:|---:|---:|")
+    for name, s in seconds.items():
+        k = f"{np.nanmean(kappa[name]):.3f}" if name in kappa else "—"
+        out(f"| {name} | {1e3 * np.median(s):.1f} | {np.median(s) / base:.2f}× | {k} |")
+    out("\nSteps of sdp (median ms per pair; the two directions' coverage and regions run on two threads "
+        "at once and are summed here):\n")
+    names = list(steps)
+    out("| step | " + " | ".join(names) + " |")
+    out("|---|" + "---:|" * len(names))
+    for step in steps[names[0]]:
+        out(f"| {step} | " + " | ".join(f"{1e3 * np.median(steps[n][step]):.1f}" for n in names) + " |")
+    out("")
+
+
+def run(args, env=None) -> float:
+    t = time.perf_counter()
+    subprocess.run(args, check=True, capture_output=True, env=env)
+    return time.perf_counter() - t
+
+
+def start_up(out):
+    a, b = (str(LEARN / f) for f in CLI_PAIR)
+    with tempfile.TemporaryDirectory() as tmp:
+        change = [SDP, "change", a, b, "-o", str(Path(tmp) / "out.ply")]
+        imports = [run([sys.executable, "-c", "import sdp"]) for _ in range(5)]
+        version = [run([SDP, "--version"]) for _ in range(5)]
+        run(change)
+        warm = [run(change) for _ in range(5)]
+        fresh = {**os.environ, "NUMBA_CACHE_DIR": str(Path(tmp) / "cold")}
+        cold = run(change, fresh)
+        warmed = {**os.environ, "NUMBA_CACHE_DIR": str(Path(tmp) / "warmed")}
+        t_warmup = run([SDP, "warmup", "--quiet"], warmed)
+        after = run(change, warmed)
+    out(f"## 2. Start-up (`sdp change {CLI_PAIR[0]} {CLI_PAIR[1]} -o out.ply`, labelled PLY written)\n")
+    out(f"Load average (1 min) {os.getloadavg()[0]:.1f} at the end.\n")
+    out("| what | seconds |\n|---|---:|")
+    out(f"| `python -c 'import sdp'` (median of 5) | {np.median(imports):.2f} |")
+    out(f"| `sdp --version` (median of 5) | {np.median(version):.2f} |")
+    out(f"| `sdp change`, warm (median of 5) | {np.median(warm):.2f} |")
+    out(f"| `sdp change`, first run in a new Numba cache (compiles) | {cold:.1f} |")
+    out(f"| `sdp warmup` in another new cache | {t_warmup:.1f} |")
+    out(f"| `sdp change` after it: first run (compilation added: {after - np.median(warm):+.2f}) | {after:.2f} |")
+    out("")
+
+
+def main():
+    if not LEARN.is_dir():
+        print(f"skipped: {LEARN} not found")
+        return
+    lines = []
+
+    def out(line=""):
+        print(line, flush=True)
+        lines.append(line)
+
+    out("# Speed of the whole job\n")
+    out(f"`python benchmarks/bench_speed.py`, {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores.\n")
+    in_process(out)
+    start_up(out)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "speed.md").write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()

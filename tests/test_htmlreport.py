@@ -1,0 +1,192 @@
+"""The HTML report (sdp.htmlreport, `--report`): one self-contained page, its checks before any work,
+and the page itself in headless Chromium (tests/browser.py; `make browser` installs Chromium)."""
+
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import sdp
+
+sys.path.insert(0, str(Path(__file__).parent))
+import browser  # noqa: E402
+
+IMAGES = re.compile(r'<img class="\w+" alt="[^"]*" src="data:image/png;base64,')
+OUTSIDE = re.compile(r"<(?:script|img|link|iframe)\b[^>]*\b(?:src|href)\s*=\s*[\"'](?!data:)", re.I)
+
+
+def landscape(rng, *, building=True):
+    """An airborne-like pair (wider than tall: drawn as a map) at UTM-sized coordinates; the current
+    epoch has a 20 m × 15 m roof 8 m up (the ground under it unseen) and a shed of 6 m × 6 m."""
+    gx, gy = np.meshgrid(np.arange(0, 100, 1.0), np.arange(0, 60, 1.0))
+    xy = np.c_[gx.ravel(), gy.ravel()] + rng.uniform(-0.3, 0.3, (gx.size, 2))
+    ref = np.c_[xy, 0.05 * rng.standard_normal(len(xy))]
+    cur = ref.copy()
+    if building:
+        for x0, y0, x1, y1 in ((30, 20, 50, 35), (80, 50, 86, 56)):
+            roof = (xy[:, 0] > x0) & (xy[:, 0] < x1) & (xy[:, 1] > y0) & (xy[:, 1] < y1)
+            cur[roof, 2] += 8.0
+    offset = np.array([634_000.0, 4_831_000.0, 80.0])
+    return ref + offset, cur + offset
+
+
+def drawn_note(page: str):
+    """(drawn, total, factor of the others) from the sentence above the 3-D view."""
+    m = re.search(r"([\d,]+) of ([\d,]+) (?:core )?points drawn", page)
+    f = re.search(r"the others 1 in (\d+)", page)
+    return int(m[1].replace(",", "")), int(m[2].replace(",", "")), int(f[1]) if f else 1
+
+
+def test_change_report_is_one_self_contained_page(tmp_path, rng):
+    ref, cur = landscape(rng)
+    np.save(tmp_path / "ref.npy", ref)
+    np.save(tmp_path / "cur.npy", cur)
+    r = sdp.compare_files(tmp_path / "ref.npy", tmp_path / "cur.npy", output=tmp_path / "out.ply", both=True,
+                          report=tmp_path / "report.html")
+    assert str(tmp_path / "report.html") in r.outputs and "report" in r.summary["timings"]
+    page = (tmp_path / "report.html").read_text()
+    assert not OUTSIDE.findall(page)  # nothing fetched: every picture and script is inside
+    assert "<script" in page and "Plotly.newPlot" in page and "sdpRendered" in page
+    n_regions = len(r.summary["appeared_regions"]) + len(r.summary["disappeared_regions"])
+    assert n_regions >= 2
+    # two maps, the histogram and a thumbnail per region
+    assert len(IMAGES.findall(page)) == 3 + n_regions
+    assert page.count('class="thumb"') == n_regions
+    assert re.search(r"relative to \(63\d,\d\d0, 4,83\d,\d\d0\)", page)  # the stated round origin
+    for text in ("ref.npy", "cur.npy", "default: ", "Timings", f"{r.summary['current']['appeared']:,} appeared"):
+        assert text in page, text
+    drawn, total, factor = drawn_note(page)
+    assert drawn == total == len(cur) + r.summary["reference"]["disappeared"] and factor == 1  # within the budget
+
+
+def test_the_3d_view_is_decimated_above_the_budget_by_the_stated_factor(tmp_path, rng):
+    from sdp.htmlreport import decimation
+
+    ref, cur = landscape(rng)
+    r = sdp.detect_changes(ref, cur)
+    path = sdp.change_report(tmp_path / "r.html", r, ref, cur, max_points=2_000, thumbnails=1)
+    page = path.read_text()
+    drawn, total, factor = drawn_note(page)
+    n_changed = int(r.appeared.sum() + r.disappeared.sum())
+    assert total == len(cur) + int(r.disappeared.sum())
+    assert factor == decimation(total - n_changed, 2_000 - int(np.ceil(n_changed / decimation(n_changed, 1_000))))
+    assert factor > 1 and drawn < 2_000 * 1.1  # a random 1 in factor: the budget, give or take the sampling
+    assert page.count('class="thumb"') == 2  # one per direction
+
+
+def test_distance_report(tmp_path, rng):
+    ref, cur = landscape(rng)
+    d = sdp.distances(ref, cur)
+    page = sdp.distance_report(tmp_path / "d.html", d, names=("a.laz", "b.laz"), max_points=5_000).read_text()
+    assert not OUTSIDE.findall(page) and "Plotly.newPlot" in page
+    assert len(IMAGES.findall(page)) == 1  # the map with its histogram
+    drawn, total, _ = drawn_note(page)
+    assert total == len(ref) and drawn < 5_500 and f"{d.summary()['significant']:,}" in page
+    assert "level of detection" in page
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"report": "nodir/r.html"}, "does not exist"),
+    ({"report": "ref.npy"}, "overwrite an input"),
+    ({"report": "out.ply"}, "two outputs"),
+    ({"report": "r.html", "png": "r.html"}, "two outputs"),
+    ({"report": "r.html", "tiled": True}, "--png/--html/--report is not available with --tiled"),
+    ({"report": "r.html", "memory_limit": "1MB", "output": "out.laz"}, "made in memory"),  # tiles by themselves
+])
+def test_report_is_checked_before_any_work(tmp_path, rng, monkeypatch, kw, match):
+    ref, cur = landscape(rng, building=False)
+    np.save(tmp_path / "ref.npy", ref)
+    np.save(tmp_path / "cur.npy", cur)
+    monkeypatch.chdir(tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    kw = {"output": "out.ply", **kw}
+    with pytest.raises(sdp.SDPError, match=match) as err:
+        sdp.compare_files("ref.npy", "cur.npy", **kw)
+    assert "\n" not in str(err.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_distance_report_is_refused_in_tiles(tmp_path, rng):
+    ref, _ = landscape(rng, building=False)
+    np.save(tmp_path / "ref.npy", ref)
+    with pytest.raises(sdp.SDPError, match="--report is not available in tiles"):
+        sdp.distance_files(tmp_path / "ref.npy", tmp_path / "ref.npy", output=tmp_path / "d.laz", tiled=True,
+                           report=tmp_path / "d.html")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ref.npy"]
+
+
+def test_a_failing_report_leaves_no_output(tmp_path, rng, monkeypatch):
+    from sdp import htmlreport
+
+    ref, cur = landscape(rng)
+    np.save(tmp_path / "ref.npy", ref)
+    np.save(tmp_path / "cur.npy", cur)
+
+    def broken(*a, **k):
+        raise sdp.SDPError("the report broke")
+
+    monkeypatch.setattr(htmlreport, "_thumbnail", broken)
+    with pytest.raises(sdp.SDPError, match="the report broke"):
+        sdp.compare_files(tmp_path / "ref.npy", tmp_path / "cur.npy", output=tmp_path / "out.ply",
+                          png=tmp_path / "c.png", report=tmp_path / "r.html")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cur.npy", "ref.npy"]  # all the outputs or none
+
+
+# --- in a real browser ---------------------------------------------------------------------------
+
+@pytest.fixture
+def chromium():
+    why = browser.missing()
+    if why:
+        pytest.skip(f"no headless browser: {why}")
+    return browser
+
+
+def assert_drawn(visit, *, seconds=60.0):
+    assert visit.errors == [], visit.errors
+    assert visit.rendered, "the 3-D view never drew"
+    assert browser.blankness(visit.screenshot) > 0.05  # not one flat colour
+    assert visit.seconds < seconds
+
+
+@pytest.mark.slow
+def test_the_browser_check_sees_a_javascript_error(tmp_path, chromium):
+    page = tmp_path / "bad.html"
+    page.write_text("<html><body><h1>a page</h1><script>undefinedFunction();</script></body></html>")
+    v = chromium.visit(page)
+    assert any("undefinedFunction" in e for e in v.errors), v.errors
+    blank = tmp_path / "blank.html"
+    blank.write_text("<html><body style='background:#fff'></body></html>")
+    assert chromium.blankness(chromium.visit(blank).screenshot) < 0.01
+
+
+@pytest.mark.slow
+def test_the_report_opens_in_headless_chromium(tmp_path, rng, chromium):
+    ref, cur = landscape(rng)
+    r = sdp.detect_changes(ref, cur)
+    path = sdp.change_report(tmp_path / "r.html", r, ref, cur)
+    v = chromium.visit(path)
+    assert_drawn(v)
+    (tmp_path / "shot.png").write_bytes(v.screenshot)
+    d = sdp.distances(ref, cur)
+    assert_drawn(chromium.visit(sdp.distance_report(tmp_path / "d.html", d)))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["toronto", "mosd"])
+def test_real_scan_reports_open_in_headless_chromium(tmp_path, shared_data, chromium, case):
+    if case == "toronto":
+        a, b = shared_data / "als_toronto" / "TTP_2015.laz", shared_data / "als_toronto" / "TTP_2023.laz"
+        kw = dict(align="density", align_class="2", fix_horizontal=True)
+    else:
+        a, b = shared_data / "mosd" / "learn" / "learn0.pcd", shared_data / "mosd" / "learn" / "learn1.pcd"
+        kw = {}
+    r = sdp.compare_files(a, b, output=tmp_path / "out.ply", both=True, report=tmp_path / "r.html", **kw)
+    page = (tmp_path / "r.html").read_text()
+    assert not OUTSIDE.findall(page)
+    if case == "toronto":  # a map, in coordinates relative to a stated round origin
+        assert "Where it changed" in page and re.search(r"relative to \(63\d,\d\d0, 4,83\d,\d\d0\)", page)
+    assert r.summary["current"]["appeared"] > 0
+    assert_drawn(chromium.visit(tmp_path / "r.html"))
