@@ -38,8 +38,7 @@ def _grid_options(p):
     g.add_argument("--sigma-voxels", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.sigma_voxels,
                    help="sigma in voxels (default auto: 1.5 on the automatic voxel, the paper's 2 on a given one)")
     g.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
-                   help="memory of the whole command, its Dask workers included; refuse work needing more "
-                   "(e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
+                   help="memory of the whole job, Dask workers included (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
 
 
 def _tile_options(p, title, *, tiled: bool = True):
