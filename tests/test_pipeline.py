@@ -43,15 +43,15 @@ def test_compare_files_equals_sdp_change(tmp_path, pair):
 def test_the_automatic_switch_to_tiles_from_python(tmp_path, rng):
     from test_tiles import street, write_las
 
-    a = write_las(tmp_path / "a.laz", street(rng, [([2, 2, 0], [4, 5, 2.0])], n=40_000))
+    a = write_las(tmp_path / "a.laz", street(rng, [([2, 2, 0], [4, 5, 2.0])], n=40_000, mast=True))
     b = write_las(tmp_path / "b.laz", street(rng, [([2, 2, 0], [4, 5, 2.0]), ([20, 9, 0], [21.5, 10.5, 1.2])],
-                                             n=40_000))
-    plan = sdp.plan_change(a, b, voxel_size=0.1, memory_limit="15MB")
-    assert plan.tiled and "exceed the memory limit of 15 MB" in plan.reason
+                                             n=40_000, mast=True))
+    plan = sdp.plan_change(a, b, voxel_size=0.1, memory_limit="1GB")
+    assert plan.tiled and "exceed the memory limit of 1 GB" in plan.reason
     assert not sdp.plan_change(a, b, voxel_size=0.1).tiled  # fits in 4 GiB
-    assert not sdp.plan_change(a, b, voxel_size=0.1, memory_limit="15MB", decision="cluster").tiled
+    assert not sdp.plan_change(a, b, voxel_size=0.1, memory_limit="1GB", decision="cluster").tiled
     said = []
-    tiled = sdp.compare_files(a, b, output=tmp_path / "t.laz", both=True, voxel_size=0.1, memory_limit="15MB",
+    tiled = sdp.compare_files(a, b, output=tmp_path / "t.laz", both=True, voxel_size=0.1, memory_limit="1GB",
                               tile_size=6, scheduler="synchronous", notify=said.append)
     assert tiled.tiled and said == [plan.reason] and tiled.summary["tiles"] > 1
     assert "tiles of 6.4" in tiled.summary_text()
@@ -61,9 +61,30 @@ def test_the_automatic_switch_to_tiles_from_python(tmp_path, rng):
         x, y = read_points(tmp_path / f"t{suffix}.laz"), read_points(tmp_path / f"m{suffix}.laz")
         np.testing.assert_array_equal(x.fields["change"], y.fields["change"])
     with pytest.raises(sdp.SDPError, match="output streams to LAS/LAZ"):
-        sdp.compare_files(a, b, output=tmp_path / "t.ply", voxel_size=0.1, memory_limit="15MB")
+        sdp.compare_files(a, b, output=tmp_path / "t.ply", voxel_size=0.1, memory_limit="1GB")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.laz", "b.laz", "m.laz", "m_disappeared.laz", "t.laz",
                                                           "t_disappeared.laz"]
+
+
+def test_in_memory_the_limit_counts_the_whole_command(tmp_path, rng):
+    """Files only the in-memory path reads (here XYZ text) under a limit the comparison would pass:
+    refused after reading, before any field, with the smallest limit, which then works."""
+    import re
+
+    from sdp.tiles import untiled_point_bytes
+
+    xyz = rng.uniform(0, 10, (30_000, 3))
+    a, b = tmp_path / "a.xyz", tmp_path / "b.xyz"
+    np.savetxt(a, xyz)
+    np.savetxt(b, xyz[:20_000] + 0.01)
+    need = untiled_point_bytes(50_000)
+    assert need > 50_000 * 150 + 150 * 2**20  # the points and the process itself
+    with pytest.raises(sdp.GridTooLargeError, match=r"comparing 50,000 points in memory needs about .*give "
+                       r"--memory-limit \d+MB or more") as err:
+        sdp.compare_files(a, b, output=tmp_path / "c.ply", voxel_size=0.2, memory_limit=need - 2**20)
+    assert not (tmp_path / "c.ply").exists()
+    smallest = re.search(r"--memory-limit (\d+)MB", str(err.value)).group(1)
+    assert sdp.compare_files(a, b, output=tmp_path / "c.ply", voxel_size=0.2, memory_limit=f"{smallest}MB").outputs
 
 
 @pytest.mark.parametrize("kw, match", [

@@ -16,10 +16,13 @@ from sdp.tiles import detect_changes_tiled
 UTM = np.array([630_000.0, 4_830_000.0, 100.0])
 
 
-def street(rng, boxes, n=120_000):
-    """A 30 m × 20 m ground with box-shaped objects on it, at UTM-like coordinates."""
+def street(rng, boxes, n=120_000, mast=False):
+    """A 30 m × 20 m ground with box-shaped objects on it, at UTM-like coordinates; with ``mast``
+    a 300 m radio mast too, whose height makes dense grids over the box large (1.6 GB at 0.1 m)."""
     ground = np.c_[rng.uniform(0, 30, n), rng.uniform(0, 20, n), 0.01 * rng.standard_normal(n)]
     objects = [box_surface(rng, lo, hi, 4000) for lo, hi in boxes]
+    if mast:
+        objects.append(box_surface(rng, [28, 18, 0], [28.3, 18.3, 300], 20_000))
     return np.concatenate([ground, *objects]) + UTM
 
 
@@ -50,6 +53,25 @@ def test_tiled_equals_untiled(epochs, min_region_points):
     assert regions_of(b.disappeared_regions) == regions_of(a.disappeared_regions)
     np.testing.assert_array_equal(b.appeared_region, a.appeared_region[b.appeared_rows])
     assert b.n_dropped_current == 2 and b.summary()["current"]["appeared"] == a.appeared.sum()
+
+
+def test_tiled_regions_join_across_many_tiles(rng):
+    """Regions labelled tile by tile and joined across the faces equal the whole volume's, for
+    objects over many tiles: a wall along x, a staircase along the diagonal, a ring around a
+    tile corner (its halves meet again in another tile), at the smallest tiles the halo allows."""
+    stairs = [([8 + i, 8 + i, 0], [9.2 + i, 9.2 + i, 0.8]) for i in range(8)]
+    ring = [([20, 4, 0], [26, 4.4, 1]), ([20, 9.6, 0], [26, 10, 1]), ([20, 4, 0], [20.4, 10, 1]),
+            ([25.6, 4, 0], [26, 10, 1])]
+    ref = street(rng, [])
+    cur = street(rng, [([1, 1, 0], [19, 1.5, 1.2]), *stairs, *ring])
+    a = sdp.detect_changes(ref, cur, voxel_size=0.1, min_region_points=1)
+    b = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=2.4, scheduler="synchronous", min_region_points=1)
+    assert b.n_tiles >= 100 and b.tile_size == pytest.approx(2.4)
+    np.testing.assert_array_equal(b.appeared, a.appeared)
+    big = [r for r in a.appeared_regions if r.n_points > 2000]
+    assert len(big) == 3 and all(r.size[0] > 5 for r in big)  # the wall, the stairs, the ring: over tiles
+    assert regions_of(b.appeared_regions) == regions_of(a.appeared_regions)
+    np.testing.assert_array_equal(b.appeared_region, a.appeared_region[b.appeared_rows])
 
 
 @pytest.mark.slow
@@ -129,12 +151,13 @@ def run(*args):
 
 
 @pytest.mark.slow
-def test_cli_switches_to_tiles_by_itself(tmp_path, epochs):
-    ref, cur = epochs
-    cur = cur[np.isfinite(cur).all(axis=1)]
+def test_cli_switches_to_tiles_by_itself(tmp_path, rng):
+    ref = street(rng, [([2, 2, 0], [4, 5, 1.5]), ([14, 9.5, 0], [16, 10.5, 2])], mast=True)
+    cur = street(rng, [([2, 2, 0], [4, 5, 1.5]), ([9.5, 15.5, 0], [10.8, 16.8, 1.2]), ([25, 3, 0], [26, 4, 1])],
+                 mast=True)
     a, b = write_las(tmp_path / "a.laz", ref), write_las(tmp_path / "b.laz", cur)
     small = run("change", a, b, "-o", tmp_path / "small.laz", "--voxel-size", "0.1", "--both", "--json")
-    big = run("change", a, b, "-o", tmp_path / "big.laz", "--voxel-size", "0.1", "--both", "--memory-limit", "15MB",
+    big = run("change", a, b, "-o", tmp_path / "big.laz", "--voxel-size", "0.1", "--both", "--memory-limit", "1GB",
               "--workers", "1", "--tile-size", "6")
     assert small.returncode == 0 and big.returncode == 0, big.stderr
     assert "comparing in tiles" in big.stderr and "tiles of 6.4" in big.stdout
@@ -146,3 +169,62 @@ def test_cli_switches_to_tiles_by_itself(tmp_path, epochs):
     assert json.loads(small.stdout)["current"]["appeared"] == laspy.read(str(tmp_path / "big.laz")).change.sum()
     bad = run("change", a, b, "-o", tmp_path / "x.laz", "--tiled", "--align", "gicp")
     assert bad.returncode == 2 and "--align is not available with --tiled" in bad.stderr
+
+
+def test_a_memory_limit_the_job_cannot_meet_is_refused_at_once_with_the_smallest_that_works(tmp_path, epochs):
+    import re
+
+    ref, cur = epochs
+    work = tmp_path / "work"
+    work.mkdir()
+    with pytest.raises(sdp.GridTooLargeError, match=r"can't hold this job.*give --memory-limit \d+MB or more") as err:
+        detect_changes_tiled(ref, cur, voxel_size=0.1, memory_limit="1MB", workers=2, workdir=work)
+    assert list(work.iterdir()) == []  # no bucket, no folder left behind
+    smallest = int(re.search(r"--memory-limit (\d+)MB", str(err.value)).group(1))
+    assert 700 < smallest < 1100  # the command and two worker processes, before any data
+    with pytest.raises(sdp.GridTooLargeError, match=f"give --memory-limit {smallest}MB"):
+        detect_changes_tiled(ref, cur, voxel_size=0.1, memory_limit=f"{smallest - 1}MB", workers=2, workdir=work)
+    # in this process (one task at a time): the command alone, and the smallest tiles fit
+    one = detect_changes_tiled(ref, cur, voxel_size=0.1, memory_limit="600MB", scheduler="synchronous", workdir=work)
+    assert one.n_tiles > 4 and one.tile_size < 15 and one.appeared_rows.size > 4000  # tiles sized from the share
+    assert list(work.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_cli_refuses_tiles_under_a_tiny_memory_limit_in_a_second(tmp_path, epochs):
+    import time
+
+    cur = epochs[1][np.isfinite(epochs[1]).all(axis=1)]
+    a, b = write_las(tmp_path / "a.laz", epochs[0]), write_las(tmp_path / "b.laz", cur)
+    work = tmp_path / "work"
+    work.mkdir()
+    t = time.perf_counter()
+    r = run("change", a, b, "-o", tmp_path / "c.laz", "--tiled", "--memory-limit", "1MB", "--workdir", work)
+    assert time.perf_counter() - t < 20  # it used to run minutes of worker errors
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "give --memory-limit" in r.stderr, r.stderr
+    assert list(work.iterdir()) == [] and not (tmp_path / "c.laz").exists()
+
+
+@pytest.mark.parametrize("workers, separate", [(1, True), (2, True), (7, True), (2, False)])
+def test_the_shares_of_a_job_add_up_to_its_limit(workers, separate):
+    from sdp.tiles import WORKER_BYTES, JobBudget
+
+    for limit in (2**30, 2 * 2**30, 64 * 2**30):
+        plan = JobBudget(limit, workers, separate=separate)
+        assert plan.client + workers * plan.worker <= limit  # the command and every worker, within the limit
+        assert plan.task == plan.worker - (WORKER_BYTES if separate else 0)
+        for task in (0, 10 * 2**20, 3 * 2**30):
+            smallest = JobBudget(plan.smallest(task), workers, separate=separate)
+            assert smallest.task >= task - workers and JobBudget(plan.smallest(task) - 2 * workers, workers,
+                                                                 separate=separate).task < task
+
+
+def test_face_nodes_are_grouped_whatever_their_range():
+    from sdp.regions import _node_key
+
+    rng = np.random.default_rng(5)
+    for span in (1_000, 2**40):  # packed into one int64, or compared as bytes
+        nodes = rng.integers(-span, span, (20_000, 3))
+        nodes[10_000:] = nodes[rng.permutation(10_000)]
+        key = np.sort(_node_key(nodes))
+        assert np.count_nonzero(key[1:] == key[:-1]) == len(nodes) - len(np.unique(nodes, axis=0))

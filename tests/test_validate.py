@@ -132,6 +132,7 @@ def test_cli_refuses_bad_options_in_one_line(tmp_path, cloud, args):
 
 def test_a_tile_refusal_names_the_workers_share_of_the_limit(tmp_path, cloud, monkeypatch):
     monkeypatch.setattr("sdp.tiles._connect", lambda *a: pytest.fail("reached Dask"))
-    with pytest.raises(sdp.GridTooLargeError, match=r"a worker's share \(1/2 of the memory limit of 4 GB\) of 2 GB"):
+    with pytest.raises(sdp.GridTooLargeError, match=r"a task's share of the memory limit of 4 GB \(less 485 MB for the "
+                       r"command, over 2 worker\(s\), less 256 MB for the worker itself\) of 1.51 GB"):
         sdp.detect_changes_tiled(cloud, cloud, voxel_size=0.05, sigma_voxels=1000, workers=2, memory_limit="4GB",
                                  workdir=tmp_path)

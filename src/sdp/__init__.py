@@ -39,6 +39,7 @@ from .errors import (
                      MissingDependencyError,
                      SDPError,
                      SurfaceError,
+                     WorkerLostError,
 )
 
 # The rest is imported when first used (as scikit-image does): ``import sdp`` then costs
@@ -145,5 +146,6 @@ __all__ = [
     "kappa", "confusion_matrix", "scores",
     "SDPError", "InvalidPointsError", "GridTooLargeError", "IncompatibleFieldsError", "SurfaceError",
     "FieldFileError", "CloudFileError", "MissingDependencyError", "InvalidOptionError",
+    "WorkerLostError",
 ]
 __version__ = "0.1.0"  # the one place it is written: pyproject.toml reads it (dynamic version)

@@ -323,3 +323,59 @@ def group_stats(points, labels, n_labels):
             hi[g, d] = max(hi[g, d], v)
     return count, sums, lo, hi
 
+
+
+@nb.njit(cache=True, inline="always")
+def _before(k0, k1, k2, n, first):
+    """(k0, k1, k2, n) comes before ``first`` (4,) in lexicographic order."""
+    if k0 != first[0]:
+        return k0 < first[0]
+    if k1 != first[1]:
+        return k1 < first[1]
+    if k2 != first[2]:
+        return k2 < first[2]
+    return n < first[3]
+
+
+@nb.njit(cache=True, nogil=True)
+def part_summary(lab, own, keys, lo, n_labels):
+    """One pass over the labels of a part's blocks (:func:`sdp.regions.label_part`).
+
+    ``lab`` (m, 512) int32 labels of the part's blocks with a negative node (-1 elsewhere), ``own``
+    (m,) whether a block is the part's own, ``keys`` (m, 3) their global keys (any order), ``lo``
+    the part's first block along x and y. Returns the own nodes of each label, each label's first
+    own node (key x, y, z, node; int64 max where none) and the shared nodes (own nodes on the −x/−y
+    faces, every node beyond the +x/+y faces) as global node coordinates (f, 3) with their labels (f,).
+    """
+    counts = np.zeros(n_labels, np.int64)
+    first = np.full((n_labels, 4), np.iinfo(np.int64).max, np.int64)
+    n_shared = 0
+    for s in range(lab.shape[0]):
+        for n in range(B3):
+            g = lab[s, n]
+            if g < 0:
+                continue
+            if own[s]:
+                counts[g] += 1
+                if _before(keys[s, 0], keys[s, 1], keys[s, 2], n, first[g]):
+                    first[g, 0], first[g, 1], first[g, 2], first[g, 3] = keys[s, 0], keys[s, 1], keys[s, 2], n
+                if (keys[s, 0] == lo[0] and n // B2 == 0) or (keys[s, 1] == lo[1] and (n // B) % B == 0):
+                    n_shared += 1
+            else:
+                n_shared += 1
+    nodes = np.empty((n_shared, 3), np.int64)
+    labels = np.empty(n_shared, np.int64)
+    i = 0
+    for s in range(lab.shape[0]):
+        for n in range(B3):
+            g = lab[s, n]
+            if g < 0:
+                continue
+            if own[s] and not ((keys[s, 0] == lo[0] and n // B2 == 0) or (keys[s, 1] == lo[1] and (n // B) % B == 0)):
+                continue
+            nodes[i, 0] = keys[s, 0] * B + n // B2
+            nodes[i, 1] = keys[s, 1] * B + (n // B) % B
+            nodes[i, 2] = keys[s, 2] * B + n % B
+            labels[i] = g
+            i += 1
+    return counts, first, nodes, labels

@@ -38,7 +38,7 @@ def _grid_options(p):
     g.add_argument("--sigma-voxels", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.sigma_voxels,
                    help="sigma in voxels (default auto: 1.5 on the automatic voxel, the paper's 2 on a given one)")
     g.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
-                   help="refuse grids needing more (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
+                   help="memory of the whole job, Dask workers included (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
 
 
 def _tile_options(p, title, *, tiled: bool = True):
@@ -46,7 +46,7 @@ def _tile_options(p, title, *, tiled: bool = True):
     if tiled:
         t.add_argument("--tiled", action="store_true", help="work in tiles even if the clouds fit in memory")
     t.add_argument("--tile-size", type=V.cli_type(V.positive_finite),
-                   help="tile edge in world units (default: ~2M points per tile)")
+                   help="tile edge in world units (default: what a worker's share of --memory-limit holds)")
     t.add_argument("--scheduler", help="dask.distributed scheduler address, e.g. tcp://host:8786 "
                    "(default: a local cluster of --workers processes)")
     t.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1),

@@ -19,6 +19,7 @@ __all__ = [
     "FieldFileError",
     "MissingDependencyError",
     "InvalidOptionError",
+    "WorkerLostError",
 ]
 
 
@@ -53,6 +54,10 @@ class MissingDependencyError(SDPError, ImportError):
 
 class InvalidOptionError(SDPError, ValueError):
     """An option is out of range: a voxel size, σ, threshold, count, memory limit or folder."""
+
+
+class WorkerLostError(SDPError, RuntimeError):
+    """Dask workers died running a task more often than the scheduler retries it (a tiled run)."""
 
 
 def require(module: str, extra: str, what: str, *, package: str | None = None) -> ModuleType:

@@ -20,6 +20,7 @@ References
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -191,8 +192,9 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
         raise SDPError(f"{output}: the clouds are compared in tiles (two dense grids would need "
                        f"{V.format_bytes(grids)}, above the memory limit of {V.format_bytes(cap)}), whose "
                        "output streams to LAS/LAZ: give -o OUT.laz, or a larger --memory-limit")
-    reason = None if tiled else (f"comparing in tiles on Dask: dense grids of {V.format_bytes(grids)} and points of "
-                                 f"{V.format_bytes(points)} exceed the memory limit of {V.format_bytes(cap)}")
+    reason = None if tiled else (f"comparing in tiles on Dask: dense grids of {V.format_bytes(grids)} or the points "
+                                 f"in memory ({V.format_bytes(points)} with the process) exceed the memory limit of "
+                                 f"{V.format_bytes(cap)}")
     if reason and (png or html or report):  # the pictures need every point in memory
         raise SDPError(f"--png/--html/--report are made in memory, but dense grids of {V.format_bytes(grids)} "
                        f"exceed the memory limit of {V.format_bytes(cap)}: give a larger --memory-limit or no pictures")
@@ -332,6 +334,7 @@ def _compare_in_memory(reference, current, out: Path, *, both, png, html, report
     t0 = time.perf_counter()
     ref, cur = read_points(reference, format=format), read_points(current, format=format)
     t_read = time.perf_counter() - t0
+    _check_in_memory(len(ref.xyz) + len(cur.xyz), grid["memory_limit"])
     alignment, moved = None, cur
     if align:
         alignment = _align_clouds(ref, cur, (reference, current), method=align, fix_horizontal=fix_horizontal,
@@ -363,6 +366,21 @@ def _compare_in_memory(reference, current, out: Path, *, both, png, html, report
                       names=(Path(reference).name, Path(current).name))
         summary["timings"]["report"] = time.perf_counter() - t
     return FileComparison(str(reference), str(current), r, summary, tiled=False, alignment=alignment, outputs=outputs)
+
+
+def _check_in_memory(n_points: int, memory_limit) -> None:
+    """Refuse, before any field is built, a comparison in memory that would exceed the memory
+    limit as a whole (:func:`sdp.tiles.untiled_point_bytes`), with the smallest limit that holds it."""
+    from .errors import GridTooLargeError
+    from .grid import memory_limit as limit
+    from .tiles import untiled_point_bytes
+
+    need, cap = untiled_point_bytes(n_points), limit(memory_limit)
+    if need > cap:
+        raise GridTooLargeError(
+            f"comparing {n_points:,} points in memory needs about {V.format_bytes(need)}, above the memory limit "
+            f"of {V.format_bytes(cap)}: give --memory-limit {math.ceil(need / 2**20)}MB or more (LAS/LAZ, NPY or "
+            "binary PLY files with the point decision are compared in tiles instead)")
 
 
 def _write_labelled(jobs, inputs) -> list[str]:

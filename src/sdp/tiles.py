@@ -6,14 +6,15 @@ The data path of :func:`sdp.detect_changes`, cut into square columns of the glob
    PLY slices; :class:`sdp.io.PointSource`), and append each point, with its row number, to the
    bucket of its tile and of every tile whose *halo* it lies in (on disk, in ``workdir``);
 2. **compare** (one task per tile): build the two fields from the tile's buckets, form the
-   difference volumes and flag the tile's own points, as :func:`sdp.detect_changes` does;
-   return the changed rows and the negative blocks of the difference;
-3. **regions** (here): label the connected components of the gathered negative blocks.
+   difference volumes and flag the tile's own points, as :func:`sdp.detect_changes` does, and
+   label the tile's own change regions (:func:`sdp.regions.label_part`); return the changed rows
+   and the labels of the tile's face nodes;
+3. **regions** (here): join the tiles' labels across their faces (:func:`sdp.regions.join_parts`).
 
-A tile's points plus its halo of ``ceil(truncate·σ) + 2`` voxels hold every point whose kernel
+A tile's points plus its halo of ``ceil(truncate·σ) + 3`` voxels hold every point whose kernel
 reaches the nodes a tile point is interpolated from, so each tile's decisions equal the untiled
-run's (tested). Memory per task is bounded by the tile (sized from the memory limit), not by the cloud; the
-result keeps the changed rows only.
+run's (tested). The memory limit is the whole job's (:class:`JobBudget`): the command's share,
+then each worker's, of which one task's data sizes the tiles; the result keeps the changed rows only.
 
 Tasks run on a Dask local cluster (one single-threaded worker process per core) by default, or
 on any ``dask.distributed`` cluster given its scheduler address; ``workdir`` must then be on a
@@ -45,15 +46,14 @@ import numpy as np
 
 from . import _tile_kernels as K
 from ._progress import bar
-from .boolean import difference_on_own_blocks
 from .coverage import footprint_covered
 from .defaults import DEFAULTS
-from .errors import InvalidPointsError, SDPError, require
+from .errors import GridTooLargeError, InvalidPointsError, SDPError, WorkerLostError, require
 from .field import DensityField, threshold
-from .grid import BLOCK, Grid, check_memory
+from .grid import BLOCK, check_memory
 from .grid import memory_limit as _memory_limit
 from .io import PointSource
-from .regions import Region, describe_regions, label_points
+from .regions import Region, Volume, describe_regions, join_parts, label_part
 from .store import FieldStore, require_zarr
 from .validate import (
     auto_or_positive,
@@ -166,9 +166,19 @@ def dense_grid_bytes(lo, hi, voxel_size: float, *, sigma_voxels: float = 2.0, tr
     return int(np.prod(nodes + 2 * reach + 2) * 4)
 
 
+#: Resident bytes of ``sdp change`` in memory, per point of both clouds: float64 x, y, z, the file
+#: records, the fields' share, masks, labels and the output's records (measured: 1.26 GiB at the peak
+#: for two LAZ clouds of 2.9 M and 3 M points at 1 m voxels, the process itself included).
+_BYTES_PER_POINT_IN_MEMORY = 200
+#: The in-memory command's process before any data: the interpreter, NumPy, SciPy and Numba's kernels
+#: (measured: 197 MiB after a small comparison).
+PROCESS_BYTES = 224 * 2**20
+
+
 def untiled_point_bytes(n_points: int) -> int:
-    """Bytes the in-memory path holds per cloud point (float64 x, y, z, a file record, temporaries)."""
-    return int(n_points) * 96
+    """Bytes the in-memory comparison of ``n_points`` (both clouds) holds at its peak, the process
+    itself included (the fields' blocks are checked against the memory limit when allocated)."""
+    return PROCESS_BYTES + int(n_points) * _BYTES_PER_POINT_IN_MEMORY
 
 
 @dataclass(frozen=True)
@@ -215,8 +225,10 @@ def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: i
         for b in np.flatnonzero(sizes):
             key = (int(i0 + b // nj), int(j0 + b % nj))
             path = Path(root, epoch, f"{key[0]}_{key[1]}")
-            path.mkdir(parents=True, exist_ok=True)
-            with open(path / f"{part:06d}.bin", "ab") as f:
+            path.mkdir(exist_ok=True)  # not its parents: a run that ended removed them, and stays removed
+            # the task's first write to a bucket truncates it: a task run again (its worker died) writes
+            # its rows once
+            with open(path / f"{part:06d}.bin", "ab" if key in counts else "wb") as f:
                 records[ends[b] - sizes[b]:ends[b]].tofile(f)
             counts[key] = counts.get(key, 0) + int(sizes[b])
     return counts, dropped, t_read
@@ -236,13 +248,15 @@ def _empty_field(like: DensityField) -> DensityField:
                         sigma=like.sigma, truncate=like.truncate)
 
 
-def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None) -> dict:
+def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None, regions: bool = True) -> dict:
     """Fields of both epochs in one tile, its own changed rows and its own not comparable rows
-    (outside the other field's footprint; see the module docstring). With ``store`` (a
-    :class:`FieldStore` path) the reference field is read from it."""
+    (outside the other field's footprint; see the module docstring), and with ``regions`` the
+    components of the difference volume in the tile (:func:`sdp.regions.label_part`: what the
+    regions across tiles are joined from). With ``store`` (a :class:`FieldStore` path) the
+    reference field is read from it."""
     t0 = time.perf_counter()
     recs = {e: _load(root, e, key) for e in ("reference", "current")}
-    out = {"read": time.perf_counter() - t0, "build_reference": 0.0, "build_current": 0.0}
+    out = {"read": time.perf_counter() - t0, "build_reference": 0.0, "build_current": 0.0, "label": 0.0}
     fields = {}
     for e, rec in recs.items():
         t = time.perf_counter()
@@ -252,44 +266,42 @@ def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None
             fields[e] = DensityField.from_points(rec[:, :3], **opts) if len(rec) else None
         out[f"build_{e}"] = time.perf_counter() - t
     t = time.perf_counter()
+    blocks_lo = np.asarray(key, np.int64) * tiling.blocks
     for e, other, kind in (("current", "reference", "appeared"), ("reference", "current", "disappeared")):
         fld, rec = fields[e], recs[e]
-        own = np.zeros(len(rec), bool)
-        if fld is not None and len(rec):
-            own = tiling.owns(key, rec)
-        if not own.any():
-            out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.int64),
-                         np.zeros((0, BLOCK**3), np.float32), np.zeros(0, np.int64))
-            continue
+        own = np.zeros(len(rec), bool) if fld is None else tiling.owns(key, rec)
+        out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), None, np.zeros(0, np.int64))
+        if fld is None or len(rec) == 0 or (not own.any() and not regions):
+            continue  # no points of this epoch here (a stored reference has none): no difference volume
         pts = np.ascontiguousarray(rec[own, :3])
-        d = difference_on_own_blocks(fld, fields[other] or _empty_field(fld))  # shipped: the regions span tiles
-        mask = fld.interpolate(d, pts) < 0
+        d = Volume.difference(fld, fields[other] or _empty_field(fld))  # evaluated where needed, never stored
+        mask = d.at(fld, pts) < 0 if len(pts) else np.zeros(0, bool)
         rows = rec[own, 3].astype(np.int64)
         cand = np.flatnonzero(mask)
         unseen = cand if fields[other] is None else cand[~footprint_covered(pts[cand], fields[other])]
         mask[unseen] = False
-        keys = fld.global_keys
-        mine = np.all(np.floor_divide(keys[:, :2], tiling.blocks) == key, axis=1) & (d.min(axis=1) < 0)
-        out[kind] = (rows[mask], pts[mask], keys[mine], d[mine], rows[unseen])
-    out["detect"] = time.perf_counter() - t
+        part = None
+        if regions:
+            t1 = time.perf_counter()
+            part = label_part(fld, d, pts[mask], blocks_lo, blocks_lo + tiling.blocks)  # the regions span tiles
+            out["label"] += time.perf_counter() - t1
+        out[kind] = (rows[mask], pts[mask], part, rows[unseen])
+    out["detect"] = time.perf_counter() - t - out["label"]
     return out
 
 
 def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
-    """Rows, region labels and regions of one kind of change from the tiles' pieces."""
+    """Rows, region labels and regions of one kind of change from the tiles' pieces: the tiles'
+    components joined across their faces (:func:`sdp.regions.join_parts`)."""
     rows = np.concatenate([p[0] for p in parts])
     order = np.argsort(rows, kind="stable")
     rows, xyz = rows[order], np.concatenate([p[1] for p in parts])[order]
     if not regions or len(rows) == 0:
         return rows, np.zeros(len(rows), np.int64), []
-    keys = np.concatenate([p[2] for p in parts])
-    values = np.concatenate([p[3] for p in parts])
-    order = np.lexsort(keys.T[::-1])  # the order of an untiled field's blocks
-    keys, values = keys[order], values[order]
-    lo = keys.min(axis=0)
-    grid = Grid(voxel_size, lo, tuple(int(v) for v in keys.max(axis=0) - lo + 1))
-    holder = DensityField(grid, keys - lo, values, h=0.0, sigma=voxel_size, truncate=1.0)
-    labels, counts = label_points(holder, values, xyz)
+    joined, counts = join_parts([p[2] for p in parts if p[2] is not None])
+    joined = iter(joined)
+    labels = np.concatenate([next(joined) if p[2] is not None else np.full(len(p[0]), -1, np.int64)
+                             for p in parts])[order]
     if min_region_points > 1 and len(counts):
         big = (np.bincount(labels, minlength=len(counts)) >= min_region_points)[labels]
         rows, xyz, labels = rows[big], xyz[big], labels[big]
@@ -333,13 +345,15 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
         Tile edge in world units (rounded up to whole blocks of 8 voxels). Default: about
         ``tile_points`` points of the larger cloud per tile, from its mean density in x, y.
     tile_points : int, optional
-        Target points per tile and epoch when ``tile_size`` is not given; default: what a
-        worker's share of ``memory_limit`` holds (≈ 1.2 KB per point and epoch: 0.9 M points
-        for 2 GiB).
+        Target points per tile and epoch, its halo included, when ``tile_size`` is not given;
+        default: what one task's share of ``memory_limit`` holds (≈ 1.2 KB per point and epoch:
+        230 k points with 2 GiB and 2 workers).
     memory_limit : int or str, optional
-        Memory of all workers together (default ``$SDP_MEMORY_LIMIT`` or 4 GiB): each of the
-        ``workers`` gets its share, which sets the tile size and the rows decoded at a time;
-        a tile whose fields need more than the share is refused.
+        Memory of the whole job (default ``$SDP_MEMORY_LIMIT`` or 4 GiB), shared as
+        :class:`JobBudget` says: this process's share, then each worker's (of a local cluster, or
+        each thread of the scheduler's workers: a task at once each), which less the worker process
+        itself sets the tile size and the rows decoded at a time. Tiles that need more are refused
+        before any work, with the smallest limit that would hold them.
     scheduler : str, optional
         ``None``: a Dask local cluster of ``workers`` processes; ``"tcp://host:8786"``: that
         ``dask.distributed`` scheduler; ``"synchronous"`` or ``"threads"``: Dask's local
@@ -364,12 +378,13 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
     with _Session(clouds, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
                   tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit, scheduler=scheduler,
                   workers=workers, workdir=workdir) as run:
-        jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path)) for key in run.tiles]
-        results = run.tasks("compare", _compare_tile, jobs, ("read", "build_reference", "build_current", "detect"))
+        jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path), regions) for key in run.tiles]
+        results = run.tasks("compare", _compare_tile, jobs,
+                            ("read", "build_reference", "build_current", "detect", "label"))
         t = time.perf_counter()
         out = {kind: _regions([r[kind] for r in results], run.voxel_size, min_region_points, regions)
                for kind in ("appeared", "disappeared")}
-        unseen = {kind: np.sort(np.concatenate([r[kind][4] for r in results])) for kind in ("appeared", "disappeared")}
+        unseen = {kind: np.sort(np.concatenate([r[kind][3] for r in results])) for kind in ("appeared", "disappeared")}
         run.timings["regions"] = time.perf_counter() - t
     n_ref = run.sources["reference"].n_rows if store is None else store.n_points
     return TiledChanges(appeared_rows=out["appeared"][0], disappeared_rows=out["disappeared"][0],
@@ -505,6 +520,94 @@ def _build_tile(key, root: str, tiling: _Tiling, opts: dict, store: str) -> int:
     return int(tiling.owns(key, rec).sum())
 
 
+#: Resident memory of the processes themselves, before any data (measured here: 220 MiB for the
+#: command with NumPy, Numba's kernels, Dask's client and the local scheduler; 210 MiB for a Dask
+#: worker that has run a tile), and of the streamed output in the command (a chunk of LAS records
+#: read, its labelled copy and the LAZ encoder's buffers).
+CLIENT_BYTES = 256 * 2**20
+WORKER_BYTES = 256 * 2**20
+WRITE_BYTES = 2_000_000 * 120
+
+
+def _mb(nbytes: float) -> str:
+    """A size in whole MB, rounded up, as ``--memory-limit`` reads it."""
+    return f"{math.ceil(nbytes / 2**20)}MB"
+
+
+@dataclass(frozen=True)
+class JobBudget:
+    """How one memory limit is shared by the processes of a tiled run: the command (``client``:
+    its process and the streamed output; the changed rows and the face nodes of the regions, ≈ 48
+    bytes per changed point, are not counted) and each of ``workers`` (its process and one task's
+    data); with ``separate=False`` the tasks run in the command's own process (Dask's local
+    schedulers), ``workers`` of them at once."""
+
+    limit: int
+    workers: int
+    separate: bool = True
+
+    @property
+    def client(self) -> int:
+        """The command's share: its process and the streamed output's chunk."""
+        return CLIENT_BYTES + WRITE_BYTES
+
+    @property
+    def worker(self) -> int:
+        """The memory of one worker: what the command leaves, over the workers."""
+        return (self.limit - self.client) // self.workers
+
+    @property
+    def task(self) -> int:
+        """The data one task may hold: a worker's share less the worker process itself."""
+        return self.worker - (WORKER_BYTES if self.separate else 0)
+
+    @property
+    def task_budget(self) -> str:
+        """What :attr:`task` is, for messages."""
+        itself = f", less {format_bytes(WORKER_BYTES)} for the worker itself" if self.separate else ""
+        return (f"a task's share of the memory limit of {format_bytes(self.limit)} (less {format_bytes(self.client)} "
+                f"for the command, over {self.workers} worker(s){itself})")
+
+    def parts(self) -> str:
+        """Who takes what, for messages."""
+        each = (f"each of {self.workers} Dask worker(s) {format_bytes(WORKER_BYTES)} plus its tile" if self.separate
+                else f"each of {self.workers} task(s) its tile")
+        return f"the command itself takes {format_bytes(self.client)} and {each}"
+
+    def smallest(self, task_bytes: float) -> int:
+        """The smallest limit under which a task may hold ``task_bytes``."""
+        return int(self.client + self.workers * (task_bytes + (WORKER_BYTES if self.separate else 0)))
+
+
+def _check_tile_points(tiling: _Tiling, sources: dict, plan: JobBudget, *, given: bool) -> None:
+    """Refuse, before any task runs, tiles whose points (with their halo, at the clouds' mean
+    density) would need more than a task's share of the memory limit."""
+    need = 2 * _tile_points(tiling, sources) * _BYTES_PER_TILE_POINT
+    if need <= plan.task:
+        return
+    points = f"about {_tile_points(tiling, sources):,} points per epoch with their halo"
+    if given and plan.task > 0:
+        raise GridTooLargeError(f"tiles of {tiling.edge:.4g} ({points}) would need {format_bytes(need)}, above "
+                                f"{plan.task_budget} of {format_bytes(plan.task)}: give a smaller --tile-size, or "
+                                f"--memory-limit {_mb(plan.smallest(need))} or more")
+    raise GridTooLargeError(f"the memory limit of {format_bytes(plan.limit)} can't hold this job: {plan.parts()}, and "
+                            f"{'these' if given else 'the smallest'} tiles (edge {tiling.edge:.4g}, {points}) need "
+                            f"{format_bytes(need)}; give --memory-limit {_mb(plan.smallest(need))} or more")
+
+
+def _tile_points(tiling: _Tiling, sources: dict) -> int:
+    """Points of the denser cloud in one tile and its halo, at its mean density in x, y (at most all of them)."""
+    return min(max(s.n_rows for s in sources.values()),
+               int(math.ceil(_density(sources) * (tiling.edge + 2 * tiling.halo) ** 2)))
+
+
+def _density(sources: dict) -> float:
+    lo = np.min([s.lo for s in sources.values()], axis=0)
+    hi = np.max([s.hi for s in sources.values()], axis=0)
+    area = max(float(np.prod(hi[:2] - lo[:2])), 1e-12)
+    return max(s.n_rows for s in sources.values()) / area
+
+
 class _Session:
     """Workdir, Dask cluster and bucketed clouds of one tiled run; ``with`` closes them."""
 
@@ -520,41 +623,52 @@ class _Session:
                                                    sigma_voxels=sigma_voxels)
         self.voxel_size, self.sigma_voxels = float(voxel_size), float(sigma_voxels)
         workers = workers or os.cpu_count() or 1
-        local = scheduler in (None, "threads")
-        share = _memory_limit(memory_limit) // (workers if local else 1)
-        budget = (f"a worker's share (1/{workers} of the memory limit of {format_bytes(_memory_limit(memory_limit))})"
-                  if local and workers > 1 else "the memory limit")
-        reach = check_kernel(sigma_voxels, truncate, share, budget=budget)
-        self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
-                         method=method, memory_limit=share)
-        if tile_points is None:
-            tile_points = max(10_000, share // (2 * _BYTES_PER_TILE_POINT))
-        chunk_rows = int(min(2_000_000, max(10_000, share // (4 * _BYTES_PER_ROW_READ))))
+        in_process = scheduler in ("synchronous", "threads")
         self.root = tempfile.mkdtemp(prefix="sdp-tiles-", dir=workdir)
         self.timings: dict[str, float] = {}
+        self.executor = self.cluster = None
         try:
+            if not (scheduler is None or in_process):  # a cluster of its own: its workers share the limit,
+                self.executor, self.cluster = _connect(scheduler, workers)  # one task per thread at once
+                workers = max(1, sum(self.executor.nthreads().values()))
+            plan = JobBudget(_memory_limit(memory_limit), 1 if scheduler == "synchronous" else workers,
+                             separate=not in_process)
+            share, budget = plan.task, plan.task_budget
+            if tile_points is None:  # what a task's share holds (none: the smallest tiles, refused below)
+                tile_points = max(0, share // (2 * _BYTES_PER_TILE_POINT))
             self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
             lo = np.min([src.lo for src in self.sources.values()], axis=0)
             hi = np.max([src.hi for src in self.sources.values()], axis=0)
+            # with no share left, the reach alone is checked here and the tiles are refused below
+            reach = check_kernel(sigma_voxels, truncate, share if share > 0 else 2**62, budget=budget)
             check_lattice(lo, hi, self.voxel_size, reach)
-            self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo)
             self.lo = lo
+            self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo)
+            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None)
+            self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
+                             method=method, memory_limit=share)
+            chunk_rows = int(min(2_000_000, max(10_000, share // (4 * _BYTES_PER_ROW_READ))))
             _check_tile_directory(self.tiling, lo, hi, reach, share, budget)
-            self.executor, self.cluster = _connect(scheduler, workers)
+            for e in self.sources:
+                Path(self.root, e).mkdir()
+            if self.executor is None:
+                self.executor, self.cluster = _connect(scheduler, workers)
             jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
                     for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
-            done = self.tasks("bucket", _bucket_part, jobs, ())
+            done = self.tasks("bucket", _bucket_part, jobs, (), unit="slice")
         except BaseException:
             self.__exit__()
             raise
+        self.budget = plan
         self.timings["read"] = sum(d[2] for d in done)
         self.dropped = {e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in self.sources}
         self.tiles = sorted({key for d in done for key in d[0]})
 
-    def tasks(self, step: str, func, jobs: list, summed: tuple) -> list:
-        """Run the jobs; time the step (wall) and sum the tasks' own timings named ``summed``."""
+    def tasks(self, step: str, func, jobs: list, summed: tuple, unit: str = "tile") -> list:
+        """Run the jobs; time the step (wall) and sum the tasks' own timings named ``summed``;
+        the progress bar counts ``unit`` (a tile, a slice of a file)."""
         t = time.perf_counter()
-        results = _run(self.executor, func, jobs, {"bucket": "reading and tiling"}.get(step, f"{step} tiles"))
+        results = _run(self.executor, func, jobs, {"bucket": "reading and tiling"}.get(step, f"{step} tiles"), unit)
         self.timings[step] = time.perf_counter() - t
         for name in summed:
             self.timings[name] = self.timings.get(name, 0.0) + sum(r[name] for r in results)
@@ -567,7 +681,7 @@ class _Session:
         """Close the client and the local cluster, and remove the work folder whatever happens
         (an error, Ctrl-C, SIGTERM turned into an exception by ``sdp``'s ``main``)."""
         try:
-            if not isinstance(getattr(self, "executor", "none"), str):
+            if getattr(self, "executor", None) is not None and not isinstance(self.executor, str):
                 self.executor.close()
         finally:
             try:
@@ -619,18 +733,17 @@ def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_poin
             truncate: float, halo: float | None = None) -> _Tiling:
     if halo is None:
         halo = (math.ceil(truncate * sigma_voxels) + 3) * voxel_size  # kernel reach + binning + interpolation + margin
-    if tile_size is None:
-        lo = np.min([s.lo for s in sources.values()], axis=0)
-        hi = np.max([s.hi for s in sources.values()], axis=0)
-        area = max(float(np.prod(hi[:2] - lo[:2])), voxel_size**2)
-        density = max(s.n_rows for s in sources.values()) / area
-        tile_size = math.sqrt(tile_points / max(density, 1e-12))
-    blocks = max(1, math.ceil(tile_size / (BLOCK * voxel_size)), math.ceil(2 * halo / (BLOCK * voxel_size)))
+    cell = BLOCK * voxel_size
+    if tile_size is None:  # tile_points in the tile and its halo at the mean density: whole blocks, rounded down
+        blocks = math.floor((math.sqrt(tile_points / max(_density(sources), 1e-12)) - 2 * halo) / cell)
+    else:
+        blocks = math.ceil(tile_size / cell)
+    blocks = max(1, blocks, math.ceil(2 * halo / cell))
     return _Tiling(voxel_size, blocks, halo)
 
 
 def _check_tile_directory(tiling: _Tiling, lo, hi, reach: int, share: int, budget: str) -> None:
-    """Refuse, before any task runs, tiles whose block directory alone exceeds a worker's share of
+    """Refuse, before any task runs, tiles whose block directory alone exceeds a task's share of
     the memory limit (a voxel far below the point spacing: 1e-9 for metres)."""
     span = (tiling.edge + 2 * tiling.halo) / tiling.voxel_size + 2 * reach + 2 * BLOCK
     z = (float(hi[2]) - float(lo[2])) / tiling.voxel_size + 2 * reach + 2 * BLOCK
@@ -703,18 +816,37 @@ def _sigint_deferred():
         signal.signal(signal.SIGINT, previous)
 
 
-def _run(executor, func, jobs: list, what: str) -> list:
-    """func(*job) for every job, in order, on a distributed ``Client`` or a local Dask scheduler (its name)."""
+#: Retries of a task that raised (a shared file system's passing error); a task whose worker died
+#: is rescheduled by Dask itself, up to its scheduler's ``allowed-failures``.
+TASK_RETRIES = 1
+
+
+def _run(executor, func, jobs: list, what: str, unit: str = "tile") -> list:
+    """func(*job) for every job, in order, on a distributed ``Client`` or a local Dask scheduler (its name).
+
+    The first task that fails for good stops the run: the others are cancelled and its error
+    is raised (a worker lost more often than the scheduler allows: :class:`WorkerLostError`).
+    """
     if not jobs:
         return []
     if isinstance(executor, str):
         dask = _dask("dask")
 
         return list(dask.compute(*[dask.delayed(func, pure=False)(*job) for job in jobs], scheduler=executor))
-    as_completed = _dask("dask.distributed").as_completed
+    distributed = _dask("dask.distributed")
 
-    futures = executor.map(func, *zip(*jobs, strict=True), pure=False)
-    with bar(len(futures), what) as pb:
-        for _ in as_completed(futures):
-            pb.update(1)
-    return executor.gather(futures)
+    futures = executor.map(func, *zip(*jobs, strict=True), pure=False, retries=TASK_RETRIES)
+    try:
+        with bar(len(futures), what, unit=unit) as pb:
+            for future in distributed.as_completed(futures):
+                if future.status == "error":
+                    future.result()  # raises the task's error: no waiting for the other tasks
+                pb.update(1)
+        return executor.gather(futures)
+    except distributed.KilledWorker as exc:
+        worker = getattr(exc.args[1], "address", "?") if len(exc.args) > 1 else "?"
+        tries = exc.args[2] + 1 if len(exc.args) > 2 else 1
+        raise WorkerLostError(f"{what}: the Dask workers running one task died {tries} time(s) (the last: {worker}); "
+                              "the run was stopped: check the workers' memory and logs") from None
+    finally:
+        executor.cancel([f for f in futures if not f.done()])

@@ -1,0 +1,29 @@
+"""A Dask worker preload for tests/test_cluster.py (``dask worker --preload cluster_stall.py``).
+
+On a worker started with ``$SDP_TEST_STALL`` (a folder), the first compare task writes
+``stalled-<pid>`` into that folder and then waits, so that the test can kill the worker while it
+holds a tile of the compare stage, at a moment it knows, instead of guessing one with a timer.
+Other workers, and every other task, run the library's own function.
+"""
+
+import os
+import time
+from pathlib import Path
+
+import sdp.tiles
+
+_compare_tile = getattr(sdp.tiles._compare_tile, "__wrapped__", sdp.tiles._compare_tile)  # imported twice by Dask
+
+
+def _stalling_compare_tile(*args, **kwargs):
+    folder = os.environ.get("SDP_TEST_STALL")
+    if folder:
+        os.environ.pop("SDP_TEST_STALL")  # once: if the test does not kill this worker, it goes on
+        Path(folder, f"stalled-{os.getpid()}").write_text(str(args[0]))
+        time.sleep(60)
+    return _compare_tile(*args, **kwargs)
+
+
+# Tasks name their function by module and name (cloudpickle), so the worker runs this one.
+_stalling_compare_tile.__wrapped__ = _compare_tile
+sdp.tiles._compare_tile = _stalling_compare_tile
