@@ -54,3 +54,16 @@ def box_surface(rng, lo, hi, n):
         axis, side = divmod(f, 2) if f < 4 else (2, 1)
         pts[sel, axis] = hi[axis] if side else lo[axis]
     return pts
+
+
+def write_las(path, xyz):
+    """A LAS/LAZ file of ``xyz`` (1 mm scale) with an intensity per row, as scanners write them."""
+    import laspy
+
+    h = laspy.LasHeader(point_format=1, version="1.4")
+    h.scales, h.offsets = [0.001] * 3, np.floor(xyz.min(axis=0))
+    las = laspy.LasData(h)
+    las.x, las.y, las.z = xyz.T
+    las.intensity = np.arange(len(xyz)) % 60_000
+    las.write(str(path))
+    return path

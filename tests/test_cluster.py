@@ -13,23 +13,13 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
-from conftest import box_surface
+from conftest import box_surface, write_las
 
 pytestmark = pytest.mark.slow
 
 BIN = Path(sys.executable).parent
 PRELOAD = Path(__file__).with_name("cluster_stall.py")
 UTM = np.array([630_000.0, 4_830_000.0, 100.0])
-
-
-def write_las(path, xyz):
-    h = laspy.LasHeader(point_format=1, version="1.4")
-    h.scales, h.offsets = [0.001] * 3, np.floor(xyz.min(axis=0))
-    las = laspy.LasData(h)
-    las.x, las.y, las.z = xyz.T
-    las.intensity = np.arange(len(xyz)) % 60_000
-    las.write(str(path))
-    return path
 
 
 @pytest.fixture(scope="module")

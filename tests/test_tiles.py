@@ -7,7 +7,7 @@ import sys
 import laspy
 import numpy as np
 import pytest
-from conftest import box_surface
+from conftest import box_surface, write_las
 
 import sdp
 from sdp.io import CloudFileError, PointSource, write_points, write_points_streamed
@@ -93,16 +93,6 @@ def test_tiled_refuses_a_tile_above_the_memory_limit(epochs):
     ref, cur = epochs
     with pytest.raises(sdp.GridTooLargeError, match="memory limit"):
         detect_changes_tiled(ref, cur, voxel_size=0.01, tile_size=30, memory_limit="20MB", scheduler="synchronous")
-
-
-def write_las(path, xyz):
-    h = laspy.LasHeader(point_format=1, version="1.4")
-    h.scales, h.offsets = [0.001] * 3, np.floor(xyz.min(axis=0))
-    las = laspy.LasData(h)
-    las.x, las.y, las.z = xyz.T
-    las.intensity = np.arange(len(xyz)) % 60_000
-    las.write(str(path))
-    return path
 
 
 @pytest.mark.slow

@@ -337,6 +337,12 @@ def _before(k0, k1, k2, n, first):
     return n < first[3]
 
 
+@nb.njit(cache=True, inline="always")
+def _on_low_face(keys, s, n, lo):
+    """Is node ``n`` of block ``s`` on the part's −x or −y face (its first block along x or y)?"""
+    return (keys[s, 0] == lo[0] and n // B2 == 0) or (keys[s, 1] == lo[1] and (n // B) % B == 0)
+
+
 @nb.njit(cache=True, nogil=True)
 def part_summary(lab, own, keys, lo, n_labels):
     """One pass over the labels of a part's blocks (:func:`sdp.regions.label_part`).
@@ -359,7 +365,7 @@ def part_summary(lab, own, keys, lo, n_labels):
                 counts[g] += 1
                 if _before(keys[s, 0], keys[s, 1], keys[s, 2], n, first[g]):
                     first[g, 0], first[g, 1], first[g, 2], first[g, 3] = keys[s, 0], keys[s, 1], keys[s, 2], n
-                if (keys[s, 0] == lo[0] and n // B2 == 0) or (keys[s, 1] == lo[1] and (n // B) % B == 0):
+                if _on_low_face(keys, s, n, lo):
                     n_shared += 1
             else:
                 n_shared += 1
@@ -371,7 +377,7 @@ def part_summary(lab, own, keys, lo, n_labels):
             g = lab[s, n]
             if g < 0:
                 continue
-            if own[s] and not ((keys[s, 0] == lo[0] and n // B2 == 0) or (keys[s, 1] == lo[1] and (n // B) % B == 0)):
+            if own[s] and not _on_low_face(keys, s, n, lo):
                 continue
             nodes[i, 0] = keys[s, 0] * B + n // B2
             nodes[i, 1] = keys[s, 1] * B + (n // B) % B
