@@ -7,7 +7,9 @@ warm and cold, and the baselines in the same run.
    paper's σ of 2 voxels on the automatic voxel beside it (what the default gave before it took
    1.5 voxels); and, interleaved pair by pair, C2C both ways (a k-d tree on each cloud queried
    with the other, as sdp finds both what appeared and what disappeared) with pykdtree and with
-   scipy's cKDTree (all cores), and M3C2 (py4dgeo) on 20,000 core points. Each method runs
+   scipy's cKDTree (all cores), M3C2 (py4dgeo) on 20,000 core points, and depth differencing
+   (pixel by pixel on the organized images: the pairs share one fixed camera; its kappa at a
+   threshold tuned two-fold on the other pairs, ``baselines.two_fold``). Each method runs
    ``REPEAT`` times per pair; the fastest counts (the machine is shared: say its load).
 2. Start-up: ``import sdp``; ``sdp --version``; ``sdp change A.pcd B.pcd -o OUT.ply`` warm (median
    of 5 runs); cold: in a new Numba cache (the first run compiles every kernel it needs), and
@@ -46,28 +48,31 @@ def both_ways(c2c, ref, cur):
 
 
 def in_process(out):
-    pairs = [(sdp.read_points(LEARN / f"learn{t - 1}.pcd"), sdp.read_points(LEARN / f"learn{t}.pcd"), truth, scored)
+    pairs = [(sdp.read_points(LEARN / f"learn{t - 1}.pcd"), sdp.read_points(LEARN / f"learn{t}.pcd"), truth, scored,
+              (B.organized_image(LEARN / f"learn{t - 1}.pcd"), B.organized_image(LEARN / f"learn{t}.pcd")))
              for t, _, _, truth, scored in labelled_pairs()]
-    methods = {"sdp (defaults, sensor origin)": lambda a, b: sdp.detect_changes(a, b),
+    depth = "depth differencing, pixel by pixel (one fixed camera)"
+    methods = {"sdp (defaults, sensor origin)": lambda a, b, _: sdp.detect_changes(a, b),
                "sdp, σ = 2 voxels (the paper's, on the automatic voxel)":
-                   lambda a, b: sdp.detect_changes(a, b, sigma_voxels=2.0),
-               "pykdtree C2C, both ways": lambda a, b: both_ways(B.c2c_pykdtree, a.xyz, b.xyz),
-               "cKDTree C2C, both ways": lambda a, b: both_ways(B.c2c_ckdtree, a.xyz, b.xyz),
-               f"M3C2, {M3C2_CORE_POINTS:,} core points": lambda a, b: partial(
-                   B.m3c2, max_core_points=M3C2_CORE_POINTS)(a.xyz, b.xyz)}
-    a, b = pairs[0][0], pairs[0][1]
+                   lambda a, b, _: sdp.detect_changes(a, b, sigma_voxels=2.0),
+               "pykdtree C2C, both ways": lambda a, b, _: both_ways(B.c2c_pykdtree, a.xyz, b.xyz),
+               "cKDTree C2C, both ways": lambda a, b, _: both_ways(B.c2c_ckdtree, a.xyz, b.xyz),
+               f"M3C2, {M3C2_CORE_POINTS:,} core points": lambda a, b, _: partial(
+                   B.m3c2, max_core_points=M3C2_CORE_POINTS)(a.xyz, b.xyz),
+               depth: lambda a, b, images: B.depth_difference(*images)}
     for m in methods.values():  # warm-up: kernels loaded, imports done
-        m(a, b)
+        m(*pairs[0][:2], pairs[0][4])
     seconds = {name: [] for name in methods}
     steps = {name: {} for name in methods if name.startswith("sdp")}
     kappa = {name: [] for name in steps}
+    depth_scores = []
     load = [os.getloadavg()[0]]
-    for ref, cur, truth, scored in pairs:
+    for ref, cur, truth, scored, images in pairs:
         for name, m in methods.items():
             best = None
             for _ in range(REPEAT):
                 t = time.perf_counter()
-                r = m(ref, cur)
+                r = m(ref, cur, images)
                 dt = time.perf_counter() - t
                 if best is None or dt < best[0]:
                     best = (dt, r)
@@ -76,13 +81,17 @@ def in_process(out):
                 for step, v in best[1].timings.items():
                     steps[name].setdefault(step, []).append(v)
                 kappa[name].append(sdp.kappa(truth[scored], best[1].appeared[scored]))
+            elif name == depth:
+                depth_scores.append(best[1].score[scored])
         load.append(os.getloadavg()[0])
+    kappa[depth] = B.two_fold(depth_scores, [p[2][p[3]] for p in pairs])
     n_pts = np.mean([len(p[1]) for p in pairs])
     out(f"## 1. In-process, {len(pairs)} mOSD pairs ({n_pts:,.0f} current points on average)\n")
     out(f"Load average (1 min) {min(load):.1f}–{max(load):.1f} during the run; each method "
         f"{REPEAT}× per pair, the fastest counted; medians over the pairs.\n")
     base = np.median(seconds["sdp (defaults, sensor origin)"])
-    out("| method | median per pair (ms) | its time ÷ sdp's | kappa (mean over pairs with an appeared object) |")
+    out("| method | median per pair (ms) | its time ÷ sdp's | kappa (mean over pairs with an appeared object; "
+        "depth differencing: threshold tuned two-fold) |")
     out("|---|---:|---:|---:|")
     for name, s in seconds.items():
         k = f"{np.nanmean(kappa[name]):.3f}" if name in kappa else "—"
