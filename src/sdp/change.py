@@ -12,8 +12,8 @@
    where they need it, in the same float32 arithmetic as the stored Boolean result
    (:func:`sdp.boolean.difference_on_own_blocks`, which the tiled path ships), so a comparison
    allocates no field-sized array besides the two fields (touching fresh memory costs about
-   0.2 ms per MB). Every point with D(p) < 0 has a negative cell corner, so the masks agree with the
-   regions.
+   0.2 ms per MB). Every point with D(p) < 0 has a negative cell corner, so the masks agree
+   with the regions.
 3. Coverage (:mod:`sdp.coverage`, :func:`judge_coverage`): each changed point becomes changed,
    unchanged or not comparable, by the other scan's rays (:mod:`sdp.visibility`) when its sensor
    position is known (``sensor_origin="auto"``: ``Cloud.sensor_origin``, an organized PCD's
