@@ -18,6 +18,10 @@ pictures of :mod:`sdp.render` ``plots`` (matplotlib, plotly), GICP ``align`` (sm
 is imported when first used, and a missing one raises :class:`MissingDependencyError` naming its
 ``pip install 'sdp[EXTRA]'``.
 
+``import sdp`` imports only :mod:`sdp.defaults` and :mod:`sdp.errors`; every other public name
+loads its module on first use (a module ``__getattr__``, as scikit-image's lazy loading): 27 ms
+instead of 1.27 s, and a command loads only the modules it needs.
+
 References
 ----------
 .. [1] A. W. Vieira et al., "Spatial Density Patterns as Representation for Point Cloud

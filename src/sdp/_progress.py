@@ -1,7 +1,8 @@
 """Progress bars (tqdm, on stderr) for steps that may take more than a second.
 
 Off by default, so the library stays silent; the command line turns them on unless ``--quiet``
-or ``--json`` is given. A bar appears only once its step has run for a second.
+or ``--json`` is given. A bar appears only once its step has run for a second. Bars step per
+chunk of points read (LAS/LAZ) or binned (4 M points per kernel call, :mod:`sdp.field`).
 """
 
 from __future__ import annotations

@@ -18,6 +18,12 @@ Two methods behind one function, :func:`align`:
   constrain (a flat ground leaves the horizontal free, a corridor its axis) are kept at the
   initial value instead of drifting with noise: see ``min_constraint`` and
   ``fix_horizontal``. Works from a saved field alone (no reference points needed).
+  The residuals use G's gradient and Hessian from node differences of the same blocks; thin
+  surfaces (ground, walls) weigh more than foliage; a direction constrained less than 1 % as
+  strongly as the best (``min_constraint``) is frozen. The pyramid's reference levels are
+  rebuilt from the reference points when given (about 10× faster), else
+  :meth:`sdp.DensityField.coarsen`; the rotation is a rotation vector about the current
+  points' centroid.
 - ``"gicp"``: generalized ICP from small_gicp (the ``align`` extra), the proven baseline.
 
 References

@@ -3,7 +3,12 @@
 The encoding of a field, apart from its geometry (:class:`sdp.grid.Grid`: voxel, origin and box
 of blocks), as OpenVDB's leaves [1]: node values are float32 in blocks of ``BLOCK**3`` nodes
 (2 KiB), allocated only where needed; a dense int32 *directory* over the box of blocks maps a
-block's position to its row (-1: not allocated), an O(1) lookup at 1/128 byte per box node.
+block's position to its row (-1: not allocated), an O(1) lookup at 1/128 byte per box node
+(a 500³ box costs 1 MB). City-scale scenes never need one directory for the whole box: they are
+cut into tiles (:mod:`sdp.tiles`), each with its own. There is no separate dense path: on small
+grids every block is simply allocated, so the numbers are the same by construction.
+:class:`Blocks` holds the values, keys and directory and the operations on them (rows of keys,
+allocation, gathers, the blur).
 Positions here are *local* block coordinates (0 … ``shape - 1``); the grid's ``block_origin``
 makes them global. :class:`sdp.DensityField` holds one :class:`Blocks` (``field.blocks``); the
 Numba kernels of :mod:`sdp._grid_kernels` and :mod:`sdp._region_kernels` take its three arrays.

@@ -14,9 +14,13 @@ not seen. Without it (airborne and mobile scans, merged maps), by its footprint
 (:func:`footprint_covered`): a place whose column (its x, y, at any height) the other epoch did
 not sample densely enough for the density threshold lies outside that epoch's extent or in a
 gap of its sampling. Any height, because a new building stands on ground the earlier flight
-did cover: the footprint swallows no change inside the covered area. M3C2 answers NaN at such
-points (no point of one epoch in its cylinder), and CloudCompare and PDAL leave them out of
-their statistics; here they are counted, written and drawn as their own state.
+did cover: the footprint swallows no change inside the covered area. M3C2 answers NaN at
+points not seen (no point of one epoch in its cylinder), and CloudCompare and PDAL leave them
+out of their statistics; here they are counted, written and drawn as their own state.
+
+The footprint (:meth:`sdp.DensityField.footprint`: G summed along z at the node columns,
+× l/(√(2π)·σ), bilinear in x, y) is compared with the same h. It is never below the density,
+so it only splits the changed points, and it fades at a flight's edge as the density does.
 
 References
 ----------

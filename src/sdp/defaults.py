@@ -1,5 +1,8 @@
 """The defaults of sdp, defined once: the Python API, the ``sdp`` command, streams, tiles and
-the benchmarks all read them from :data:`DEFAULTS`.
+the benchmarks all read them from :data:`DEFAULTS`, a frozen dataclass whose docstring gives
+each default's reason (the HTML report quotes it). The library's signatures and the command
+line's ``argparse`` defaults are these very objects (``tests/test_defaults.py``), so they
+cannot drift apart.
 
 Each default is the best setting measured on real scans (``benchmarks/bench_defaults.py``,
 ``docs/benchmarks.md``), not the paper's: the paper's parameters stay one option away

@@ -8,7 +8,8 @@ and their weighted moments are what M3C2 needs.
 
 - **Normal**: the eigenvector of the smallest eigenvalue of the reference's kernel-weighted
   covariance at the normal scale (the current's where the reference has no points), oriented
-  towards the sensor when it is known, else along ``orientation`` (default +z, as M3C2).
+  towards the sensor when it is known, else along ``orientation`` (default +z, as M3C2). The
+  core points of one cell (of the moments below) share one normal, taken at their centroid.
 - **Distance**: along that normal, each epoch's kernel-weighted mean offset in a cylinder
   around the core point: weight ``exp(−r²/2σ_p²)`` of the distance ``r`` to the axis, radius
   and half-length cut at 3σ_p (the kernel's truncation). Where an epoch has too few points
@@ -21,7 +22,9 @@ and their weighted moments are what M3C2 needs.
 - **Moments on cells**: each epoch's points are summed once, in O(n), into cubic cells of
   1.5σ_p (count, centroid, scatter); a cylinder reads at most 5³ cells and gives each cell's
   points the weight of its centroid (their offsets and spread along the normal stay exact), so
-  a query costs the same however dense the cloud is.
+  a query costs the same however dense the cloud is. A counting sort over the box of cells
+  orders them (a hash table beyond 2²⁵ cells); the search along a normal's line goes in steps of
+  half a cell until the line passes an occupied cell or one of its 26 neighbours.
 - **Uncertainty**: ``spread`` = the weighted standard deviation along the normal, ``n`` = the
   effective number of points ``(Σw)²/Σw²`` (the count of an equivalent uniform cylinder), and
   M3C2's level of detection ``lod = 1.96·(√(spread₁²/n₁ + spread₂²/n₂) + registration_error)``;
@@ -44,6 +47,12 @@ surface of peak density G₀ at distance δ along the normal, G_ref ≈ G₀·ex
 s² = σ² + spread², so the point is appeared when ``|δ| > s·√(2 ln(G₀/h))``: about 2σ on a
 plane sampled as densely as the automatic σ assumes (``benchmarks/bench_distance.py`` moves a
 plane step by step: none appeared at 1.5σ, all at 2.5σ, the formula said 2.1σ).
+
+In tiles (:func:`sdp.distances_tiled`, on the buckets and Dask session of :mod:`sdp.tiles`) each
+tile measures its own reference points from buckets with a halo of the longest search plus the
+cylinder's and the normal's reach and whole cells (:func:`tile_halo`); core points just outside
+the tile are measured too, so that the cells whose points share a normal are whole, and the
+cells start at the clouds' common corner: the numbers equal the in-memory ones.
 
 References
 ----------

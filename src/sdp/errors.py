@@ -3,6 +3,28 @@
 Every error sdp raises on purpose is an :class:`SDPError`. The subclasses also derive from
 the matching built-in exception (``ValueError``, ``MemoryError``), so code that already
 catches those keeps working.
+
+- :class:`InvalidPointsError` (``ValueError``): a point array of the wrong shape, empty or all
+  NaN, of zero extent with ``grid_size``, a bad ``sensor_origin``, or coordinates too far from
+  the origin for the voxel (:mod:`sdp.validate`);
+- :class:`InvalidOptionError` (``ValueError``): an option out of range (:mod:`sdp.validate`);
+- :class:`GridTooLargeError` (``MemoryError``): a grid or a tile beyond the memory limit;
+- :class:`IncompatibleFieldsError`, :class:`SurfaceError` (``ValueError``);
+- :class:`FieldFileError` (``OSError``), and :class:`sdp.io.CloudFileError` (``OSError``), which
+  turns every reader library's error into one line naming the file;
+- :class:`MissingDependencyError` (``ImportError``): an optional extra not installed, raised by
+  :func:`require` with the ``pip install 'sdp[EXTRA]'`` to run;
+- :class:`WorkerLostError` (``RuntimeError``): Dask workers died running one task more often
+  than the scheduler allows.
+
+Rows with a NaN or infinite coordinate are not an error: they are dropped and counted
+(``n_dropped``, ``summary()["current"]["dropped"]``, with the rows a file reader dropped before),
+and masks still cover every input row. Bad input ends before any work with one line: the
+command line prints ``sdp: error: …`` and exits with status 2 (argparse's own errors too),
+never a traceback, and leaves no file behind. :func:`sdp.cli.main` also turns SIGTERM into an
+exception (``sdp: terminated``, status 143) and Ctrl-C into ``sdp: interrupted`` (130), so
+temporary outputs, the tiles' work folder and a half-built field store are removed and a Dask
+cluster is closed.
 """
 
 from __future__ import annotations

@@ -4,8 +4,21 @@ Node ``i`` (a triple of integers) of every grid with voxel length ``l`` sits at 
 ``i * l``: the lattice is global, so two fields built with the same ``l`` share their nodes and
 combine without resampling. A :class:`Grid` covers a box of *blocks* of ``BLOCK**3`` nodes;
 its ``origin`` is the world position of its first node, an integer multiple of ``BLOCK * l``
-kept as exact integers (``block_origin``) so that coordinates 10⁶ m from zero (UTM) keep
-sub-millimetre precision: points are converted to grid units as ``(p - origin) / l`` in float64.
+kept as exact integers (``block_origin``, int64 global block coordinates) so that coordinates
+10⁶ m from zero (UTM) keep sub-micrometre precision: points are converted to grid units as
+``(p - origin) / l`` in float64. (How far from the origin a voxel may go: :mod:`sdp.validate`.)
+
+The voxel ``l`` comes from one of three parameterizations, all resolved in one place
+(:func:`sdp.params.resolve_lattice`, which the tiled path feeds with the first slice of each
+file): ``grid_size=N``, the paper's (the longest side of the box over N, σ = 2 voxels);
+``voxel_size=`` a length in world units (σ = 2 voxels); ``voxel_size="auto"``, the default
+(σ = 1.5 × the 90th percentile of the k-th neighbour distance, k = the threshold's 3, sampled at
+``sigma_voxels="auto"`` = 1.5 voxels: the lattice only samples a σ the data set).
+
+Memory is checked against one limit (:func:`memory_limit`: ``memory_limit=``,
+``$SDP_MEMORY_LIMIT``, else 4 GiB) before anything is allocated: first the block directory,
+then the blocks. Refusals give both sizes in human units (``12.3 MB``; binary units, as
+:func:`parse_bytes` reads them).
 
 References
 ----------

@@ -18,6 +18,16 @@ Colours are the Okabe–Ito palette [1] (appeared vermillion, disappeared reddis
 blue, not comparable a neutral grey). Both extras of ``sdp[plots]`` are needed (matplotlib for the
 pictures, plotly for the 3-D view); :func:`require_extras` checks them before any work.
 
+The 3-D view draws at most :data:`POINT_BUDGET` points: the changed points get up to half, the
+rest a random 1 in f, and the page states f. Its WebGL markers are squares, two triangles each:
+a circle costs many, which made 200k points take 2.4× as long in software rendering. The page
+is built in memory and written through :func:`sdp.io.atomic_path` with the command's other
+outputs (:func:`sdp.io.all_or_none`); the tiled path refuses ``--report`` before any work (the
+page needs every point in memory). ``tests/test_htmlreport.py`` opens reports in headless
+Chromium (``tests/browser.py``: Selenium and Debian's chromedriver, SwiftShader for WebGL) and
+checks that there is no console error, that the 3-D view drew and that the screenshot is not
+one flat colour; ``make browser`` installs Chromium, and without it those tests skip.
+
 References
 ----------
 .. [1] M. Okabe, K. Ito, "Color Universal Design (CUD): how to make figures and presentations that

@@ -6,6 +6,19 @@ plyfile (PLY), laspy with the lazrs backend (LAS/LAZ, scaled integers kept exact
 organized Kinect PCD files), and points at exactly (0, 0, 0) in organized PCD files (the other
 marker of a missing return, e.g. the DLUT laser scans), are dropped and counted; other per-point fields (``label``,
 ``rgb``, ``intensity``, ``classification``, …) stay aligned with the points kept.
+
+Every reader's library error becomes a one-line :class:`CloudFileError` naming the file
+(pydantic's PCD header reports summarized). LAS/LAZ headers are checked first for counts that
+cannot fit the file: a corrupt VLR count makes laspy loop for hours, a corrupt chunk-table count
+makes lazrs abort the process. ``tests/test_fuzz.py`` feeds cut, bit-flipped and random files of
+every format to the readers and to ``sdp change``. :class:`PointSource` reads clouds larger than
+memory in row slices, for :mod:`sdp.tiles`.
+
+Outputs: :func:`check_outputs` runs first in every writing command (the folder exists and takes
+files; an output is not a directory nor an input, by resolved path or hard link; no two outputs
+coincide). Every writer writes through :func:`atomic_path` (a temporary name, renamed), and
+:func:`all_or_none` renames all the outputs of a command at its end, or removes them all: a
+command writes all its outputs or none, and inputs are never overwritten.
 """
 
 from __future__ import annotations

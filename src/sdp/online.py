@@ -22,7 +22,9 @@ transform: GICP against the reference points (small_gicp [1], prepared once for 
 the density method of :func:`sdp.align` against the reference field. ``sensor_origin=`` adds
 the visibility test of :func:`sdp.detect_changes` against the reference scan's rays (its range
 image built once for the stream): depth edges and surfaces the reference could not see are not
-changes.
+changes. The appeared points go through :func:`sdp.change.judge_coverage` as in
+:func:`sdp.detect_changes`: by the reference's rays when its sensor is known (read from its
+file by default), else by the model's footprint.
 
 References
 ----------

@@ -4,6 +4,23 @@ A region is a 6-connected component of the grid nodes where a field is negative;
 belongs to the region of the lowest-valued negative corner of its cell. For change
 detection the volume is the difference max(F_cur, −F_ref) < 0, so every changed point (whose
 interpolated value is negative) has at least one negative corner and gets a region.
+
+Labelling is union-find over runs of negative nodes along z, not over nodes
+(:mod:`sdp._region_kernels`): a run joins the runs it overlaps in the lines before it along x
+and y, and the run that ends its line in the block below (6-connectivity). Per region:
+points, centroid, bounding box and volume (negative nodes × l³), largest region first;
+``min_region_points`` drops strays.
+
+In tiles (:mod:`sdp.tiles`) each tile labels its own part (:func:`label_part`): the components
+of D < 0 over the tile's own nodes and the node planes just beyond its +x and +y faces (its
+points' cells reach them; the tile's halo makes their values exact). It returns each label's
+node count and first node and the labels of its shared face nodes (its −x/−y faces, the planes
+beyond its +x/+y faces), not the blocks. :func:`join_parts` then joins them: every edge of the
+whole graph lies in some tile's part and parts overlap only in face nodes, so (tile, label)
+pairs holding the same node are joined (the connected components of that small graph, as
+distributed connected-component labelling does), and the components are numbered by their
+first node, as the untiled labelling numbers them: labels, volumes and point labels equal the
+untiled run's.
 """
 
 from __future__ import annotations

@@ -5,7 +5,12 @@ extra), and slices of a field.
 The picture is chosen by the data: a scene much wider than tall (airborne, mobile, terrain) is
 drawn as a top-down map, in coordinates relative to a stated round origin, with a scale bar and a
 north arrow (+y, as in projected coordinate systems); a room or an object as three 3-D views.
-Colours are the Okabe–Ito palette, told apart by colour-blind readers [1].
+"Much wider" is :func:`is_map`: a height below a tenth of the horizontal extent. A map has no
+origin for scenes near zero, and outlines and numbers the 12 largest regions. Colours are the
+Okabe–Ito palette, told apart by colour-blind readers [1]: changed vermillion, unchanged blue,
+not comparable a neutral grey; distances on a diverging purple–orange scale. Each picture is a
+figure function (:func:`changes_figure`, :func:`distances_figure`) that the file writers and
+:mod:`sdp.htmlreport` share.
 
 References
 ----------

@@ -11,14 +11,43 @@ The data path of :func:`sdp.detect_changes`, cut into square columns of the glob
    and the labels of the tile's face nodes;
 3. **regions** (here): join the tiles' labels across their faces (:func:`sdp.regions.join_parts`).
 
-A tile's points plus its halo of ``ceil(truncate·σ) + 3`` voxels hold every point whose kernel
-reaches the nodes a tile point is interpolated from, so each tile's decisions equal the untiled
-run's (tested). The memory limit is the whole job's (:class:`JobBudget`): the command's share,
-then each worker's, of which one task's data sizes the tiles; the result keeps the changed rows only.
+Tiles are square columns of ``T × T`` blocks (all z) of the global lattice. A tile's points plus
+its halo of ``ceil(truncate·σ) + 3`` voxels (kernel reach, binning, interpolation, margin) hold
+every point whose kernel reaches the nodes a tile point is interpolated from, so each tile's
+decisions equal the untiled run's (tested on a scene whose objects straddle tile corners, and on
+objects over 100+ tiles).
 
-Tasks run on a Dask local cluster (one single-threaded worker process per core) by default, or
-on any ``dask.distributed`` cluster given its scheduler address; ``workdir`` must then be on a
-file system every worker can reach, and so must the input files.
+- **Bucket**: one task per 8 M rows of each file. :class:`~sdp.io.PointSource` reads row slices
+  (LAS/LAZ by seeking the LAZ chunk table, NPY and binary PLY through memory maps); each finite
+  point goes, with its row number, to the bucket file of its tile and of every tile whose halo
+  holds it. A task's first write to each bucket truncates it, so a task run again after its
+  worker died writes its rows once.
+- **Compare**: both fields from the tile's buckets (rows in file order, so the sums run in the
+  same order as untiled), D and the masks of the tile's own points as in :mod:`sdp.change`, the
+  footprint of the other field (the halo holds every kernel that reaches a column), and the
+  tile's part of the change regions (:mod:`sdp.regions` explains the join over face nodes). A
+  task returns the changed rows and points and their labels, not the blocks.
+- The first task that fails for good stops the run (the others are cancelled); Dask workers
+  that die running one task more often than the scheduler allows raise
+  :class:`~sdp.WorkerLostError`. A scheduler that does not answer within 10 s is an error, not
+  a hang. Local workers ignore SIGINT: the client ends the run, and removes the work folder.
+
+**Memory** (:class:`JobBudget`): the memory limit is the whole job's. The command takes a fixed
+share (its process, counted as 256 MiB, measured 220 MiB; the streamed output's chunk; not the
+changed rows nor the face nodes, ≈ 48 bytes per changed point); the rest is split over the
+workers (a local cluster's, or a remote scheduler's worker threads, counted when connecting),
+and each worker's share less its own process (256 MiB, measured 210 MiB) is one task's. A tile
+holds what that share holds at ≈ 1.2 KB per point and epoch, its halo included, at the clouds'
+mean density. Tiles that share cannot hold (a limit below the processes themselves, or a given
+``--tile-size``) are refused before any cluster starts, with the smallest limit that works.
+:func:`sdp.io.write_points_streamed` writes the output chunk by chunk (LAS/LAZ keeps every input
+dimension). ``sdp change`` takes this path by itself (:func:`sdp.pipeline.plan_change`) when two
+dense grids over the box (:func:`dense_grid_bytes`), or the points in memory (the process and
+≈ 200 bytes per point: :func:`untiled_point_bytes`), would exceed the memory limit.
+
+Tasks run on a Dask local cluster (one single-threaded worker process per core, Numba at one
+thread each) by default, or on any ``dask.distributed`` cluster given its scheduler address;
+``workdir`` must then be on a file system every worker can reach, and so must the input files.
 
 References
 ----------

@@ -8,6 +8,22 @@ through :func:`cli_type`). Every refusal is an :class:`~sdp.errors.InvalidOption
 :class:`~sdp.SDPError` and a ``ValueError``) with a one-line message, or a
 :class:`~sdp.GridTooLargeError` / :class:`~sdp.InvalidPointsError` where the grid, not the
 option alone, is at fault.
+
+What is refused: voxel size, σ in voxels, ``truncate`` and ``h`` not positive and finite; ``k``
+not finite, or giving h ≤ 0; a tile size not positive; workers, grid size or window below 1;
+``min_region_points`` below 0; a memory limit given as text (``--memory-limit``,
+``$SDP_MEMORY_LIMIT``) below 1 MB (a smaller one is a size without its unit); a ``--workdir``
+that is not an existing writable folder. A kernel reaching more than 2¹⁶ voxels is a mistake
+long before memory runs out (:func:`kernel_reach`), and one point's kernel cube must fit the
+memory limit (σ = 1000 voxels would need 808 GB: :func:`check_kernel`).
+
+Precision (:func:`check_lattice`): beyond 2⁴⁰ ≈ 1.1·10¹² voxels from the world origin (max
+|coordinate| / voxel size), float64 keeps less than 1/4096 of a voxel and masks would change
+silently (1e12 m offsets at a 1 cm voxel), so such a grid is an :class:`~sdp.InvalidPointsError`;
+a voxel so large that the grid's corners overflow float64 (1e308) is an
+:class:`~sdp.errors.InvalidOptionError`. The tiled path runs the same checks on the files'
+bounds, and also refuses tiles whose points or block directory exceed a task's share of the
+memory limit, all before the buckets are written or a local Dask cluster is started.
 """
 
 from __future__ import annotations

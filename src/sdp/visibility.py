@@ -4,7 +4,8 @@ A density difference says "the other cloud has no point here". For scans taken f
 sensor positions that has several causes, which the other scan's rays tell apart. Each changed
 point is compared with the returns of the other scan along its ray (the range image cells
 within one cell of the ray's own, in azimuth and elevation about the other scan's origin), with
-a band ``b(r) = max(range_noise·r², band_floor·σ)`` of range noise:
+a band ``b(r) = max(range_noise·r², band_floor·σ)`` of range noise (by default 0.015·r², at
+least σ):
 
 - **same surface** (:data:`SAME_SURFACE`): some return near the ray lies at the point's range
   (within [nearest − b, farthest + b] of a cell): range noise or drift of the sensor, not a
@@ -17,7 +18,7 @@ a band ``b(r) = max(range_noise·r², band_floor·σ)`` of range noise:
 - **unobserved** (:data:`UNOBSERVED`): no return near the ray. Inside the other scan's field
   of view and nearer than its farthest return, the ray found nothing in range: the place was
   free (as seen free; a surface that returns nothing is the exception). Outside the field of
-  view, or beyond the sensor's reach: not seen.
+  view (the convex hull of the cells with a return), or beyond the sensor's reach: not seen.
 
 A hidden or unobserved point is explained, not a change, when it continues the unchanged
 surface around it (it lies on the least-squares plane of its nearest unchanged neighbours,
