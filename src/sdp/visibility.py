@@ -52,8 +52,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import ConvexHull, QhullError, cKDTree
-
+from ._kdtree import k_nearest
 from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from .errors import InvalidPointsError
 
@@ -412,6 +411,26 @@ class RangeImage:
             return cls, self.origin + (points - self.origin) * (hide / rng)[:, None]
 
 
+@nb.njit(cache=True, nogil=True)
+def _hull_polygon(p):
+    """Vertices of the convex hull of points ``p`` sorted by x then y, counter-clockwise from the
+    lowest-x point, collinear points left out (Andrew's monotone chain)."""
+    n = p.shape[0]
+    hull = np.empty((2 * n, 2))
+    m = 0
+    for sweep in range(2):  # the lower chain left to right, then the upper one back
+        first = m
+        for j in range(n):
+            i = j if sweep == 0 else n - 1 - j
+            while m - first >= 2 and ((hull[m - 1, 0] - hull[m - 2, 0]) * (p[i, 1] - hull[m - 2, 1])
+                                     - (hull[m - 1, 1] - hull[m - 2, 1]) * (p[i, 0] - hull[m - 2, 0])) <= 0.0:
+                m -= 1
+            hull[m] = p[i]
+            m += 1
+        m -= 1  # each chain's last point starts the other
+    return hull[:max(m, 1)]
+
+
 def _convex_hull(seen: np.ndarray) -> np.ndarray:
     """The cells whose centre lies inside the convex hull of the True cells' squares: the hull of
     each row's outermost cells, filled row by row (a convex polygon cuts each row in one
@@ -424,10 +443,7 @@ def _convex_hull(seen: np.ndarray) -> np.ndarray:
     last = seen.shape[1] - 1 - seen[rows, ::-1].argmax(axis=1)
     ends = np.r_[np.c_[rows, first], np.c_[rows, last]].astype(np.float64)
     corners = (ends[:, None, :] + np.array([[-0.5, -0.5], [-0.5, 0.5], [0.5, -0.5], [0.5, 0.5]])).reshape(-1, 2)
-    try:
-        v = corners[ConvexHull(corners).vertices]
-    except QhullError:  # all in one line of cells: the corners span it already
-        v = corners
+    v = _hull_polygon(corners[np.lexsort((corners[:, 1], corners[:, 0]))])
     p, q = v, np.roll(v, -1, axis=0)
     a = np.arange(seen.shape[0], dtype=np.float64)[:, None]
     lo_x, hi_x = np.minimum(p[:, 0], q[:, 0]), np.maximum(p[:, 0], q[:, 0])
@@ -621,8 +637,7 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
         inverse = inverse.ravel()
     centres = np.stack([np.bincount(inverse, weights=query[:, d], minlength=len(counts)) for d in range(3)], axis=1)
     centres /= counts[:, None]
-    tree = cKDTree(static, balanced_tree=False, compact_nodes=False)  # built once, queried once
-    _, idx = tree.query(centres, k=k, workers=1)  # one thread: detect_changes runs both directions at once
-    mean, normal, rms = _plane_fits(static, np.ascontiguousarray(idx.reshape(len(centres), k)))
+    idx = k_nearest(static, centres, k)  # one thread: detect_changes runs both directions at once
+    mean, normal, rms = _plane_fits(static, idx)
     off = np.abs(np.einsum("ij,ij->i", query - mean[inverse], normal[inverse]))
     return (rms < flatness)[inverse] & (off < distance)

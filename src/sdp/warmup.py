@@ -32,7 +32,7 @@ from pathlib import Path
 __all__ = ["warmup", "first_run", "first_run_note", "record_warm"]
 
 #: Modules holding Numba kernels (their sources key the stamp).
-KERNEL_MODULES = ("_grid_kernels", "_region_kernels", "_tile_kernels", "_io_kernels", "_points", "actions",
+KERNEL_MODULES = ("_grid_kernels", "_kdtree", "_region_kernels", "_tile_kernels", "_io_kernels", "_points", "actions",
                   "distance", "params", "visibility")
 #: Commands whose first run compiles kernels, and what warmup runs for each.
 COMMANDS = ("change", "distance", "build", "bool", "mesh", "align", "watch", "action")
