@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 import numpy.typing as npt
+
 from ._kdtree import k_nearest
 from .coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from .errors import InvalidPointsError
