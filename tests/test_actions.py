@@ -7,11 +7,13 @@ import pytest
 
 from sdp import SDPError
 from sdp.actions import (
+    FLOW_WEIGHT,
     GAPS,
     LEVELS,
     PARAMETERS,
     ActionModel,
     ActionStream,
+    _flow_pattern,
     _soft_segments,
     depth_to_points,
     describe_sequences,
@@ -60,7 +62,8 @@ def test_descriptor_is_body_centred(rng):
     c = sequence_descriptor(sequence(2, rng))  # the reverse action
     assert a.dtype == np.float32 and np.isfinite(a).all()
     n_blocks = len(LEVELS) * (1 + 4 * len(GAPS))  # density; appeared, disappeared (sum, max) per gap
-    assert a @ a == pytest.approx(n_blocks, rel=1e-5)  # every (level, channel) block L2-normalized
+    # every (level, channel) block L2-normalized; the flow blocks together hold FLOW_WEIGHT of that
+    assert a @ a == pytest.approx(n_blocks * (1 + FLOW_WEIGHT), rel=1e-5)
     assert a @ b > 0.95 * (a @ a) and a @ c < a @ b
     with pytest.raises(SDPError, match="foreground"):
         sequence_descriptor(np.zeros((3, 10, 10), np.uint16))
@@ -74,6 +77,7 @@ def test_train_predict_save_load(tmp_path, rng):
     assert cv == 1.0 and (model.predict(x) == y).all()
     again = ActionModel.load(model.save(tmp_path / "m.npz"))
     np.testing.assert_array_equal(again.predict(x), y)
+    assert again.coef.dtype == np.float32  # half the size of float64, and faster to load
     (tmp_path / "bad.npz").write_bytes(b"not a model")
     with pytest.raises(SDPError, match="not an sdp action model"):
         ActionModel.load(tmp_path / "bad.npz")
@@ -169,3 +173,36 @@ def test_action_stream_reports_each_action_soon_after_it_ends(tmp_path, rng):
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "action", "predict", str(tmp_path / "m.npz")],
                        capture_output=True, text=True)
     assert p.returncode == 2 and "needs depth sequences, or --stream" in p.stderr
+
+
+def test_flow_channels_point_the_way_the_density_moves():
+    """A blob carried along +x (then along −y) lights the +x (then −y) channel, not its opposite."""
+    x = np.arange(18.0)[:, None, None]
+    y, z = np.arange(18.0)[None, :, None], np.arange(13.0)[None, None, :]
+    blob = [np.exp(-((x - 5 - t) ** 2 + (y - 9) ** 2 + (z - 6) ** 2) / 8) for t in range(8)]
+    blocks = _flow_pattern(np.stack(blob).astype(np.float32))
+    assert len(blocks) == 6 * len(LEVELS) and blocks[0].shape == (1, 18, 18, 13)
+    plus_x, minus_x, plus_y, minus_y = (blocks[i].sum() for i in range(4))  # level 1: +x, −x, +y, −y, +z, −z
+    assert plus_x > 20 * minus_x
+    # normal flow sees the blob's flanks move along y too, as much one way as the other: no net y motion
+    assert abs(plus_y - minus_y) < 0.01 * plus_x
+    down = [np.exp(-((x - 9) ** 2 + (y - 12 + t) ** 2 + (z - 6) ** 2) / 8) for t in range(8)]
+    blocks = _flow_pattern(np.stack(down).astype(np.float32))
+    assert blocks[3].sum() > 20 * blocks[2].sum()
+    assert all((b == 0).all() for b in _flow_pattern(np.stack(blob[:1]).astype(np.float32)))  # one frame: no motion
+
+
+@pytest.mark.parametrize("n_classes", [2, 4])
+def test_dual_fit_is_scikit_learns_ridge_classifier(rng, n_classes):
+    """The classifier fitted from the Gram matrix is RidgeClassifier(alpha) on the float64 data:
+    the same decision function (float32 coefficients) and the same labels."""
+    from sklearn.linear_model import RidgeClassifier
+
+    x = rng.random((48, 700)).astype(np.float32)
+    y, subjects = rng.integers(1, n_classes + 1, 48), np.tile([1, 2, 3, 4], 12)
+    model, _ = train(x, y, subjects)
+    ref = RidgeClassifier(alpha=model.alpha).fit(x.astype(np.float64), y)
+    assert model.coef.dtype == np.float32
+    scores = x @ np.atleast_2d(model.coef).T + model.intercept
+    np.testing.assert_allclose(scores.reshape(len(x), -1), ref.decision_function(x).reshape(len(x), -1), atol=1e-5)
+    np.testing.assert_array_equal(model.predict(x), ref.predict(x))

@@ -20,13 +20,22 @@ occupancy patterns): a depth sequence becomes a 4-D (x, y, z, t) density pattern
    distance. Density is averaged per segment; motion is summed, and also taken at its maximum
    over each segment's frames (hard segments), which keeps a brief fast stroke. Each (level,
    channel, pooling) block is raised to the power 0.35 (a power normalization, stronger than
-   the square root) and L2-normalized, and all are concatenated (39 blocks, 383,292 values).
+   the square root) and L2-normalized (39 blocks, 383,292 values).
+6. Directional motion: the normal flow of the density between consecutive frames,
+   −(G_t+1 − G_t) · ∂G/∂a for a = x, y, z (for a density carried at velocity v it is
+   v_a (∂G/∂a)²), split by sign into motion towards +a and −a: six channels, each taken at its
+   maximum over the hard segments of the pyramid, powered and L2-normalized as above, then
+   scaled so that the 18 flow blocks together weigh a quarter of the 39 others in a dot product
+   (176,904 values; 560,196 in all).
 
 A linear ridge classifier (one-vs-rest least squares) separates the actions; its ``alpha`` is
-chosen by leave-one-subject-out cross-validation on the training subjects only. Comparing two
-patterns is a dot product: linear in the grid. Every other constant here (gaps, soft pyramid,
-power, σ) was chosen by the same cross-validation, on the training subjects of MSR Action3D
-(docs/benchmarks.md lists the configurations compared). :class:`ActionStream` applies a model to
+chosen by leave-one-subject-out cross-validation on the training subjects only. It is solved in
+the dual, from the Gram matrix of the training descriptors (a few hundred sequences against half a
+million values), which is also what the cross-validation needs; the coefficients are kept in
+float32. Comparing two patterns is a dot product: linear in the grid. Every other constant here
+(gaps, soft pyramid, power, σ, the flow channels and their weight) was chosen by the same
+cross-validation, on the training subjects of MSR Action3D
+(``benchmarks/actions_configurations.tsv`` lists the configurations compared). :class:`ActionStream` applies a model to
 a live stream of frames: the window of the last frames, every few frames.
 
 References
@@ -64,10 +73,12 @@ STEP = 2  # grids keep every STEP-th node (the blur oversamples)
 LEVELS = (1, 2, 4)  # temporal pyramid: segments per level
 GAPS = (1, 2, 4)  # frame gaps of the appeared / disappeared channels
 POWER = 0.35  # power normalization of each block, before its L2 normalization
+FLOW_GAP = 1  # frame gap of the directional-motion (normal flow) channels
+FLOW_WEIGHT = 0.25  # the flow blocks' share of the kernel, relative to the density and motion blocks'
 ALPHAS = (0.0003, 0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 #: What a saved model's descriptors depend on; a model made with other values is refused.
 PARAMETERS = {"grid": GRID, "half": HALF, "sigma": SIGMA, "step": STEP, "levels": LEVELS, "gaps": GAPS,
-              "power": POWER, "version": 3}
+              "power": POWER, "flow_gap": FLOW_GAP, "flow_weight": FLOW_WEIGHT, "version": 4}
 #: The standard subsets of MSR Action3D (a classifier each) and all 20 actions.
 SUBSETS = {"AS1": (2, 3, 5, 6, 10, 13, 18, 20), "AS2": (1, 4, 7, 8, 9, 11, 12, 14),
            "AS3": (6, 14, 15, 16, 17, 18, 19, 20), "all": tuple(range(1, 21))}
@@ -194,6 +205,25 @@ def _soft_segments(at: np.ndarray, level: int) -> np.ndarray:
     return np.maximum(0.0, 1.0 - np.abs(np.clip(at, centres[0], centres[-1])[:, None] - centres[None]) * level)
 
 
+def _hard_max(values: np.ndarray, at: np.ndarray, level: int) -> np.ndarray:
+    """Maximum of ``values`` (n, m) over the frames of each of ``level`` equal (hard) segments of
+    the times ``at`` (non-decreasing, in [0, 1]); zero for a segment without frames."""
+    seg = np.minimum((at * level).astype(int), level - 1)
+    peak = np.zeros((level, values.shape[1]), values.dtype)
+    for k in np.unique(seg):
+        peak[k] = values[seg == k].max(axis=0)
+    return peak
+
+
+def _motion_time(grids: np.ndarray) -> np.ndarray:
+    """Each frame's time in [0, 1] by cumulative motion energy (|G_t+1 − G_t| summed); uniform
+    when nothing moves."""
+    n_frames = len(grids)
+    dg = np.diff(grids, axis=0) if n_frames > 1 else np.zeros_like(grids)
+    energy = np.concatenate([[0.0], np.cumsum(np.abs(dg).reshape(len(dg), -1).sum(axis=1))])
+    return energy / energy[-1] if energy[-1] > 0 else np.linspace(0.0, 1.0, n_frames)
+
+
 def _space_time_pattern(grids: np.ndarray) -> list[np.ndarray]:
     """Blocks of the temporal pyramid, one per (level, channel): (level, *grid) arrays.
 
@@ -202,9 +232,7 @@ def _space_time_pattern(grids: np.ndarray) -> list[np.ndarray]:
     summed (soft segments) and by its maximum (hard segments).
     """
     n_frames = len(grids)
-    dg = np.diff(grids, axis=0) if n_frames > 1 else np.zeros_like(grids)
-    energy = np.concatenate([[0.0], np.cumsum(np.abs(dg).reshape(len(dg), -1).sum(axis=1))])
-    tau = energy / energy[-1] if energy[-1] > 0 else np.linspace(0.0, 1.0, n_frames)  # motion time
+    tau = _motion_time(grids)
     channels = [(grids.reshape(n_frames, -1), tau, True)]
     for k in GAPS:
         if n_frames > k:
@@ -220,22 +248,48 @@ def _space_time_pattern(grids: np.ndarray) -> list[np.ndarray]:
             if mean:
                 pooled /= np.maximum(w.sum(axis=0), 1e-12)[:, None]
             blocks.append(pooled.reshape(level, *grids.shape[1:]))
-            if not mean:  # motion also by its maximum over each (hard) segment's frames
-                seg = np.minimum((at * level).astype(int), level - 1)
-                peak = np.zeros_like(pooled)
-                for k in np.unique(seg):
-                    peak[k] = values[seg == k].max(axis=0)
-                blocks.append(peak.reshape(level, *grids.shape[1:]))
+            if not mean:  # motion also by its maximum over each (hard) segment's frames, which keeps a brief stroke
+                blocks.append(_hard_max(values, at, level).reshape(level, *grids.shape[1:]))
     return blocks
 
 
+def _flow_pattern(grids: np.ndarray) -> list[np.ndarray]:
+    """Blocks of directional motion, one per (level, direction): (level, *grid) arrays.
+
+    The normal flow of the density between frames t and t + :data:`FLOW_GAP`: for a density
+    carried at velocity v, −∂G/∂t · ∂G/∂a = v_a (∂G/∂a)², so −(G_t+k − G_t) times the spatial
+    gradient of their mean, split by sign, is the motion towards +a and −a for a = x, y, z (six
+    channels: where the appeared/disappeared densities say that something moved, these say which
+    way). Each is taken at its maximum over the hard segments of every pyramid level.
+    """
+    n_frames, k = len(grids), FLOW_GAP
+    tau = _motion_time(grids)
+    if n_frames <= k:
+        return [np.zeros((level, *grids.shape[1:]), grids.dtype) for level in LEVELS for _ in range(6)]
+    change = grids[k:] - grids[:-k]
+    mean = 0.5 * (grids[k:] + grids[:-k])
+    at = 0.5 * (tau[k:] + tau[:-k])
+    channels = []
+    for axis in (1, 2, 3):
+        p = (-change * np.gradient(mean, axis=axis)).reshape(n_frames - k, -1)
+        channels += [np.maximum(p, 0.0), np.maximum(-p, 0.0)]
+    return [_hard_max(values, at, level).reshape(level, *grids.shape[1:]) for level in LEVELS for values in channels]
+
+
 def sequence_descriptor(depth: np.ndarray) -> np.ndarray:
-    """The space-time density pattern of a (T, H, W) depth sequence as one vector (float32)."""
-    blocks = _space_time_pattern(frame_densities(depth, step=STEP))
+    """The space-time density pattern of a (T, H, W) depth sequence as one vector (float32):
+    the density and motion blocks, then the directional-motion (flow) blocks."""
+    grids = frame_densities(depth, step=STEP)
+    pattern, flow = _space_time_pattern(grids), _flow_pattern(grids)
+    blocks = pattern + flow
     v = np.power(np.maximum(np.concatenate([b.ravel() for b in blocks]), 0.0, dtype=np.float32), np.float32(POWER))
-    starts = np.cumsum([0] + [b.size for b in blocks[:-1]])
+    sizes = [b.size for b in blocks]
+    starts = np.cumsum([0] + sizes[:-1])
     norms = np.sqrt(np.add.reduceat(np.square(v, dtype=np.float64), starts))  # each block's L2 norm
-    v /= np.repeat(np.where(norms > 0, norms, 1.0), [b.size for b in blocks]).astype(np.float32)
+    # unit blocks, the flow blocks scaled so that they hold FLOW_WEIGHT of the kernel (a dot product of descriptors)
+    scale = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0)
+    scale[len(pattern):] *= np.sqrt(FLOW_WEIGHT * len(pattern) / len(flow))
+    v *= np.repeat(scale, sizes).astype(np.float32)
     return v
 
 
@@ -280,7 +334,8 @@ def _stack(vectors, n: int) -> np.ndarray:
 
 @dataclass
 class ActionModel:
-    """A linear classifier of space-time density patterns: score = X · coef.T + intercept."""
+    """A linear classifier of space-time density patterns: score = X · coef.T + intercept
+    (``coef`` float32, one row per action; two actions: one row, positive for the second)."""
 
     coef: np.ndarray
     intercept: np.ndarray
@@ -296,11 +351,12 @@ class ActionModel:
         return self.classes[np.argmax(scores, axis=1)]
 
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the model as a NumPy ``.npz`` (no pickle), atomically."""
+        """Write the model as a NumPy ``.npz`` (no pickle), atomically; uncompressed: the float32
+        coefficients hardly compress, and they load 5× faster so."""
         path = Path(path)
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, coef=self.coef, intercept=self.intercept, classes=self.classes,
-                                alpha=self.alpha, **{k: np.asarray(v) for k, v in PARAMETERS.items()})
+            np.savez(fh, coef=self.coef, intercept=self.intercept, classes=self.classes,
+                     alpha=self.alpha, **{k: np.asarray(v) for k, v in PARAMETERS.items()})
         return path
 
     @classmethod
@@ -377,8 +433,54 @@ def _ridge_dual(gram, train, test, y, alpha):
 
 
 def _linear_model():
-    """``sklearn.linear_model`` (the ``actions`` extra), or a one-line :class:`~sdp.MissingDependencyError`."""
+    """``sklearn.linear_model`` (the ``actions`` extra), or a one-line :class:`~sdp.MissingDependencyError`.
+
+    The classifier is solved here in the dual (:func:`_fit`), scikit-learn's ``RidgeClassifier``
+    being its reference (tested); the extra still gates training, so that an install without it
+    fails before any work, as before."""
     return require("sklearn.linear_model", "actions", "the action classifier", package="scikit-learn")
+
+
+_CHUNK = 16384  # descriptor columns per float64 block: the Gram and coefficients without a float64 copy of X
+
+
+def _gram(x: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """X Xᵀ (float64) of the rows ``rows`` of ``x``, accumulated over column blocks."""
+    gram = np.zeros((len(rows), len(rows)))
+    for i in range(0, x.shape[1], _CHUNK):
+        block = x[rows, i:i + _CHUNK].astype(np.float64)
+        gram += block @ block.T
+    return gram
+
+
+def _fit(x: np.ndarray, rows: np.ndarray, gram: np.ndarray, y: np.ndarray, s: np.ndarray,
+         alphas) -> tuple[ActionModel, float]:
+    """Ridge classifier on the rows ``rows`` of ``x`` (``gram``: their Gram matrix, labels ``y``,
+    subjects ``s``): ``alpha`` by leave-one-subject-out CV, then the fit in the dual.
+
+    The same model as scikit-learn's ``RidgeClassifier(alpha)`` (intercept, ±1 targets; two
+    classes: one decision function, positive for the second): with K the centred Gram matrix and
+    T the centred targets, a = (K + αI)⁻¹ T, coef = Xᵀ a (Σa = 0, so X need not be centred) and
+    intercept = mean(targets) − mean(X) · coef.
+    """
+    folds = [(np.flatnonzero(s != v), np.flatnonzero(s == v)) for v in np.unique(s)]
+    cv = {a: np.mean(np.concatenate([_ridge_dual(gram, tr, te, y, a) == y[te] for tr, te in folds]))
+          for a in alphas}
+    alpha = max(alphas, key=lambda a: (cv[a], a))  # ties: the stronger regularization
+    classes = np.unique(y)
+    targets = np.where(y[:, None] == classes[None], 1.0, -1.0)
+    if len(classes) == 2:
+        targets = targets[:, 1:]
+    mean = gram.mean(axis=0)
+    centred = gram - mean[:, None] - mean[None] + mean.mean()
+    dual = np.linalg.solve(centred + alpha * np.eye(len(gram)), targets - targets.mean(axis=0))
+    coef = np.empty((dual.shape[1], x.shape[1]), np.float32)
+    offset = targets.mean(axis=0)
+    for i in range(0, x.shape[1], _CHUNK):
+        block = x[rows, i:i + _CHUNK].astype(np.float64)
+        coef[:, i:i + _CHUNK] = (block.T @ dual).T
+        offset -= block.mean(axis=0) @ coef[:, i:i + _CHUNK].T.astype(np.float64)
+    return ActionModel(coef, offset, classes, alpha), float(cv[alpha])
 
 
 def train(descriptors: np.ndarray, actions: np.ndarray, subjects: np.ndarray, *,
@@ -387,18 +489,12 @@ def train(descriptors: np.ndarray, actions: np.ndarray, subjects: np.ndarray, *,
 
     Returns the model and its cross-validated accuracy (fraction).
     """
-    RidgeClassifier = _linear_model().RidgeClassifier
-
-    x, y, s = np.asarray(descriptors, np.float64), np.asarray(actions), np.asarray(subjects)
+    _linear_model()
+    x, y, s = np.asarray(descriptors), np.asarray(actions), np.asarray(subjects)
     if len(np.unique(y)) < 2 or len(np.unique(s)) < 2:
         raise SDPError("training needs at least two actions and two subjects")
-    gram = x @ x.T
-    folds = [(np.flatnonzero(s != v), np.flatnonzero(s == v)) for v in np.unique(s)]
-    cv = {a: np.mean(np.concatenate([_ridge_dual(gram, tr, te, y, a) == y[te] for tr, te in folds]))
-          for a in alphas}
-    alpha = max(alphas, key=lambda a: (cv[a], a))  # ties: the stronger regularization
-    clf = RidgeClassifier(alpha=alpha, copy_X=False).fit(x, y)  # x is our float64 copy: centred in place
-    return ActionModel(clf.coef_, clf.intercept_, clf.classes_, alpha), float(cv[alpha])
+    rows = np.arange(len(x))
+    return _fit(x, rows, _gram(x, rows), y, s, alphas)
 
 
 def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count() or 1) -> dict:
@@ -415,12 +511,15 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
     y, s = np.array([r[1] for r in rows]), np.array([r[2] for r in rows])
     t1 = time.perf_counter()
     out = {"accuracy": {}, "cv_accuracy": {}, "alpha": {}, "confusion": {}, "models": {}}
+    training = np.flatnonzero(np.isin(s, TRAIN_SUBJECTS))
+    gram = _gram(x, training)  # every subset's training rows are among these: one pass over the descriptors
     for name, acts in SUBSETS.items():
-        tr, te = np.isin(y, acts) & np.isin(s, TRAIN_SUBJECTS), np.isin(y, acts) & np.isin(s, TEST_SUBJECTS)
+        tr, te = np.isin(y[training], acts), np.flatnonzero(np.isin(y, acts) & np.isin(s, TEST_SUBJECTS))
         if not tr.any() or not te.any():
             raise SDPError(f"{folder}: subset {name} needs sequences of training and test subjects")
-        model, cv = train(x[tr], y[tr], s[tr])
-        pred = model.predict(x[te])
+        rows = training[tr]
+        model, cv = _fit(x, rows, gram[np.ix_(tr, tr)], y[rows], s[rows], ALPHAS)
+        pred = np.concatenate([model.predict(x[te[i:i + 64]]) for i in range(0, len(te), 64)])  # no copy of x[te]
         out["accuracy"][name] = float(np.mean(pred == y[te]))
         out["cv_accuracy"][name], out["alpha"][name] = cv, model.alpha
         out["confusion"][name] = {"truth": y[te].tolist(), "predicted": pred.tolist()}
