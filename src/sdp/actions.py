@@ -517,8 +517,8 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
         tr, te = np.isin(y[training], acts), np.flatnonzero(np.isin(y, acts) & np.isin(s, TEST_SUBJECTS))
         if not tr.any() or not te.any():
             raise SDPError(f"{folder}: subset {name} needs sequences of training and test subjects")
-        rows = training[tr]
-        model, cv = _fit(x, rows, gram[np.ix_(tr, tr)], y[rows], s[rows], ALPHAS)
+        fit = training[tr]
+        model, cv = _fit(x, fit, gram[np.ix_(tr, tr)], y[fit], s[fit], ALPHAS)
         pred = np.concatenate([model.predict(x[te[i:i + 64]]) for i in range(0, len(te), 64)])  # no copy of x[te]
         out["accuracy"][name] = float(np.mean(pred == y[te]))
         out["cv_accuracy"][name], out["alpha"][name] = cv, model.alpha
