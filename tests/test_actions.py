@@ -4,6 +4,7 @@ import time
 
 import numpy as np
 import pytest
+from scipy.ndimage import gaussian_filter1d
 
 from sdp import SDPError
 from sdp.actions import (
@@ -11,8 +12,10 @@ from sdp.actions import (
     GAPS,
     LEVELS,
     PARAMETERS,
+    SIGMA,
     ActionModel,
     ActionStream,
+    _blur_matrix,
     _flow_pattern,
     _soft_segments,
     depth_to_points,
@@ -116,7 +119,11 @@ def test_frame_densities_unit_mass_and_exact_decimation(rng):
     full = frame_densities(depth)
     assert full.shape == (4, 36, 36, 26)
     np.testing.assert_allclose(full.sum(axis=(1, 2, 3)), 1.0, atol=0.02)  # unit mass per frame (blur edges)
-    np.testing.assert_array_equal(frame_densities(depth, step=2), full[:, ::2, ::2, ::2])
+    np.testing.assert_allclose(frame_densities(depth, step=2), full[:, ::2, ::2, ::2], rtol=1e-5, atol=1e-9)
+    for n in (36, 26):  # the blur is scipy's Gaussian filter (zero outside the grid), as a matrix
+        impulses = gaussian_filter1d(np.eye(n), SIGMA, axis=0, mode="constant", truncate=3.0)
+        np.testing.assert_allclose(_blur_matrix(n, 1), impulses, atol=1e-7)
+        np.testing.assert_allclose(_blur_matrix(n, 2), impulses[::2], atol=1e-7)
     moved = np.roll(depth, 40, axis=2)  # the same body elsewhere in the image: the same grids
     np.testing.assert_allclose(frame_densities(moved), full, atol=0.05 * full.max())
 
