@@ -20,6 +20,7 @@ from sdp.actions import (
     _soft_segments,
     depth_to_points,
     describe_sequences,
+    evaluate_protocol,
     frame_densities,
     list_sequences,
     read_sequence,
@@ -213,3 +214,27 @@ def test_dual_fit_is_scikit_learns_ridge_classifier(rng, n_classes):
     scores = x @ np.atleast_2d(model.coef).T + model.intercept
     np.testing.assert_allclose(scores.reshape(len(x), -1), ref.decision_function(x).reshape(len(x), -1), atol=1e-5)
     np.testing.assert_array_equal(model.predict(x), ref.predict(x))
+
+
+@pytest.mark.slow
+def test_evaluate_protocol_trains_then_classifies_the_test_subjects(tmp_path, rng):
+    """Two actions per subset (raise arm / lower arm), training subjects 1, 3, 5 and test subjects
+    2, 4: each subset's classifier is right on every test sequence, and the summary counts them."""
+    raising, lowering = (1, 2, 15), (4, 3, 16)  # AS2: 1 / 4, AS1: 2 / 3, AS3: 15 / 16
+    for action in raising + lowering:
+        for subject in (1, 2, 3, 4, 5):
+            depth = sequence(1 if action in raising else 2, rng, frames=12, shift=int(rng.integers(-30, 30)))
+            t, h, w = depth.shape
+            (tmp_path / f"a{action:02d}_s{subject:02d}_e01_sdepth.bin").write_bytes(
+                np.array([t, w, h], "<u4").tobytes() + depth.astype("<u4").tobytes())
+    r = evaluate_protocol(tmp_path, workers=1)
+    assert r["sequences"] == 30
+    assert {k: r["accuracy"][k] for k in ("AS1", "AS2", "AS3")} == {"AS1": 1.0, "AS2": 1.0, "AS3": 1.0}
+    assert len(r["confusion"]["all"]["truth"]) == 12 and len(r["confusion"]["AS1"]["predicted"]) == 4
+    assert set(r["models"]) == {"AS1", "AS2", "AS3", "all"} and all(0 <= v <= 1 for v in r["cv_accuracy"].values())
+    (tmp_path / "a02_s02_e01_sdepth.bin").unlink()
+    (tmp_path / "a03_s04_e01_sdepth.bin").unlink()  # AS1 has no test sequence any more
+    (tmp_path / "a03_s02_e01_sdepth.bin").unlink()
+    (tmp_path / "a02_s04_e01_sdepth.bin").unlink()
+    with pytest.raises(SDPError, match="subset AS1 needs sequences of training and test subjects"):
+        evaluate_protocol(tmp_path, workers=1)
