@@ -34,9 +34,9 @@ the dual, from the Gram matrix of the training descriptors (a few hundred sequen
 million values), which is also what the cross-validation needs; the coefficients are kept in
 float32. Comparing two patterns is a dot product: linear in the grid. Every other constant here
 (gaps, soft pyramid, power, σ, the flow channels and their weight) was chosen by the same
-cross-validation, on the training subjects of MSR Action3D
-(``benchmarks/actions_configurations.tsv`` lists the configurations compared). :class:`ActionStream` applies a model to
-a live stream of frames: the window of the last frames, every few frames.
+cross-validation, on the training subjects of MSR Action3D (``benchmarks/actions_configurations.tsv``
+lists the configurations compared). :class:`ActionStream` applies a model to a live stream of
+frames: the window of the last frames, every few frames.
 
 References
 ----------
