@@ -86,8 +86,9 @@ def main():
     r = evaluate_protocol(DATA, workers=2)
     total = time.perf_counter() - t0
     with tempfile.TemporaryDirectory() as tmp:  # one sequence at a time, by the saved model of all 20 actions
+        saved = r["models"]["all"].save(Path(tmp) / "model.npz")
         t1 = time.perf_counter()
-        model = ActionModel.load(r["models"]["all"].save(Path(tmp) / "model.npz"))
+        model = ActionModel.load(saved)
         load = time.perf_counter() - t1
     per_sequence, reading = [], []
     for path, *_ in list_sequences(DATA)[1::28]:  # 20 sequences across actions and subjects
