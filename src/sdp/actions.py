@@ -296,14 +296,18 @@ def sequence_descriptor(depth: np.ndarray) -> np.ndarray:
     grids = frame_densities(depth, step=STEP)
     pattern, flow = _space_time_pattern(grids), _flow_pattern(grids)
     blocks = pattern + flow
-    v = np.power(np.maximum(np.concatenate([b.ravel() for b in blocks]), 0.0, dtype=np.float32), np.float32(POWER))
-    sizes = [b.size for b in blocks]
-    starts = np.cumsum([0] + sizes[:-1])
-    norms = np.sqrt(np.add.reduceat(np.square(v, dtype=np.float64), starts))  # each block's L2 norm
-    # unit blocks, the flow blocks scaled so that they hold FLOW_WEIGHT of the kernel (a dot product of descriptors)
-    scale = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0)
-    scale[len(pattern):] *= np.sqrt(FLOW_WEIGHT * len(pattern) / len(flow))
-    v *= np.repeat(scale, sizes).astype(np.float32)
+    # unit blocks, the flow blocks scaled so that they hold FLOW_WEIGHT of the kernel (a dot product of
+    # descriptors); block by block, in place in the output: no full-length temporaries
+    flow_scale = np.sqrt(FLOW_WEIGHT * len(pattern) / len(flow))
+    v = np.empty(sum(b.size for b in blocks), np.float32)
+    start = 0
+    for i, block in enumerate(blocks):
+        part = v[start:start + block.size]
+        start += block.size
+        np.maximum(block.reshape(-1), 0.0, out=part, casting="same_kind")
+        np.power(part, np.float32(POWER), out=part)
+        norm = np.sqrt(np.square(part, dtype=np.float64).sum())
+        part *= np.float32((1.0 / norm if norm > 0 else 0.0) * (flow_scale if i >= len(pattern) else 1.0))
     return v
 
 
