@@ -4,17 +4,23 @@ import time
 
 import numpy as np
 import pytest
+from scipy.ndimage import gaussian_filter1d
 
 from sdp import SDPError
 from sdp.actions import (
+    FLOW_WEIGHT,
     GAPS,
     LEVELS,
     PARAMETERS,
+    SIGMA,
     ActionModel,
     ActionStream,
+    _blur_matrix,
+    _flow_pattern,
     _soft_segments,
     depth_to_points,
     describe_sequences,
+    evaluate_protocol,
     frame_densities,
     list_sequences,
     read_sequence,
@@ -60,7 +66,8 @@ def test_descriptor_is_body_centred(rng):
     c = sequence_descriptor(sequence(2, rng))  # the reverse action
     assert a.dtype == np.float32 and np.isfinite(a).all()
     n_blocks = len(LEVELS) * (1 + 4 * len(GAPS))  # density; appeared, disappeared (sum, max) per gap
-    assert a @ a == pytest.approx(n_blocks, rel=1e-5)  # every (level, channel) block L2-normalized
+    # every (level, channel) block L2-normalized; the flow blocks together hold FLOW_WEIGHT of that
+    assert a @ a == pytest.approx(n_blocks * (1 + FLOW_WEIGHT), rel=1e-5)
     assert a @ b > 0.95 * (a @ a) and a @ c < a @ b
     with pytest.raises(SDPError, match="foreground"):
         sequence_descriptor(np.zeros((3, 10, 10), np.uint16))
@@ -74,6 +81,7 @@ def test_train_predict_save_load(tmp_path, rng):
     assert cv == 1.0 and (model.predict(x) == y).all()
     again = ActionModel.load(model.save(tmp_path / "m.npz"))
     np.testing.assert_array_equal(again.predict(x), y)
+    assert again.coef.dtype == np.float32  # half the size of float64, and faster to load
     (tmp_path / "bad.npz").write_bytes(b"not a model")
     with pytest.raises(SDPError, match="not an sdp action model"):
         ActionModel.load(tmp_path / "bad.npz")
@@ -112,7 +120,11 @@ def test_frame_densities_unit_mass_and_exact_decimation(rng):
     full = frame_densities(depth)
     assert full.shape == (4, 36, 36, 26)
     np.testing.assert_allclose(full.sum(axis=(1, 2, 3)), 1.0, atol=0.02)  # unit mass per frame (blur edges)
-    np.testing.assert_array_equal(frame_densities(depth, step=2), full[:, ::2, ::2, ::2])
+    np.testing.assert_allclose(frame_densities(depth, step=2), full[:, ::2, ::2, ::2], rtol=1e-5, atol=1e-9)
+    for n in (36, 26):  # the blur is scipy's Gaussian filter (zero outside the grid), as a matrix
+        impulses = gaussian_filter1d(np.eye(n), SIGMA, axis=0, mode="constant", truncate=3.0)
+        np.testing.assert_allclose(_blur_matrix(n, 1), impulses, atol=1e-7)
+        np.testing.assert_allclose(_blur_matrix(n, 2), impulses[::2], atol=1e-7)
     moved = np.roll(depth, 40, axis=2)  # the same body elsewhere in the image: the same grids
     np.testing.assert_allclose(frame_densities(moved), full, atol=0.05 * full.max())
 
@@ -169,3 +181,60 @@ def test_action_stream_reports_each_action_soon_after_it_ends(tmp_path, rng):
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "action", "predict", str(tmp_path / "m.npz")],
                        capture_output=True, text=True)
     assert p.returncode == 2 and "needs depth sequences, or --stream" in p.stderr
+
+
+def test_flow_channels_point_the_way_the_density_moves():
+    """A blob carried along +x (then along −y) lights the +x (then −y) channel, not its opposite."""
+    x = np.arange(18.0)[:, None, None]
+    y, z = np.arange(18.0)[None, :, None], np.arange(13.0)[None, None, :]
+    blob = [np.exp(-((x - 5 - t) ** 2 + (y - 9) ** 2 + (z - 6) ** 2) / 8) for t in range(8)]
+    blocks = _flow_pattern(np.stack(blob).astype(np.float32))
+    assert len(blocks) == 6 * len(LEVELS) and blocks[0].shape == (1, 18, 18, 13)
+    plus_x, minus_x, plus_y, minus_y = (blocks[i].sum() for i in range(4))  # level 1: +x, −x, +y, −y, +z, −z
+    assert plus_x > 20 * minus_x
+    # normal flow sees the blob's flanks move along y too, as much one way as the other: no net y motion
+    assert abs(plus_y - minus_y) < 0.01 * plus_x
+    down = [np.exp(-((x - 9) ** 2 + (y - 12 + t) ** 2 + (z - 6) ** 2) / 8) for t in range(8)]
+    blocks = _flow_pattern(np.stack(down).astype(np.float32))
+    assert blocks[3].sum() > 20 * blocks[2].sum()
+    assert all((b == 0).all() for b in _flow_pattern(np.stack(blob[:1]).astype(np.float32)))  # one frame: no motion
+
+
+@pytest.mark.parametrize("n_classes", [2, 4])
+def test_dual_fit_is_scikit_learns_ridge_classifier(rng, n_classes):
+    """The classifier fitted from the Gram matrix is RidgeClassifier(alpha) on the float64 data:
+    the same decision function (float32 coefficients) and the same labels."""
+    from sklearn.linear_model import RidgeClassifier
+
+    x = rng.random((48, 700)).astype(np.float32)
+    y, subjects = rng.integers(1, n_classes + 1, 48), np.tile([1, 2, 3, 4], 12)
+    model, _ = train(x, y, subjects)
+    ref = RidgeClassifier(alpha=model.alpha).fit(x.astype(np.float64), y)
+    assert model.coef.dtype == np.float32
+    scores = x @ np.atleast_2d(model.coef).T + model.intercept
+    np.testing.assert_allclose(scores.reshape(len(x), -1), ref.decision_function(x).reshape(len(x), -1), atol=1e-5)
+    np.testing.assert_array_equal(model.predict(x), ref.predict(x))
+
+
+@pytest.mark.slow
+def test_evaluate_protocol_trains_then_classifies_the_test_subjects(tmp_path, rng):
+    """Two actions per subset (raise arm / lower arm), training subjects 1, 3, 5 and test subjects
+    2, 4: each subset's classifier is right on every test sequence, and the summary counts them."""
+    raising, lowering = (1, 2, 15), (4, 3, 16)  # AS2: 1 / 4, AS1: 2 / 3, AS3: 15 / 16
+    for action in raising + lowering:
+        for subject in (1, 2, 3, 4, 5):
+            depth = sequence(1 if action in raising else 2, rng, frames=12, shift=int(rng.integers(-30, 30)))
+            t, h, w = depth.shape
+            (tmp_path / f"a{action:02d}_s{subject:02d}_e01_sdepth.bin").write_bytes(
+                np.array([t, w, h], "<u4").tobytes() + depth.astype("<u4").tobytes())
+    r = evaluate_protocol(tmp_path, workers=1)
+    assert r["sequences"] == 30
+    assert {k: r["accuracy"][k] for k in ("AS1", "AS2", "AS3")} == {"AS1": 1.0, "AS2": 1.0, "AS3": 1.0}
+    assert len(r["confusion"]["all"]["truth"]) == 12 and len(r["confusion"]["AS1"]["predicted"]) == 4
+    assert set(r["models"]) == {"AS1", "AS2", "AS3", "all"} and all(0 <= v <= 1 for v in r["cv_accuracy"].values())
+    (tmp_path / "a02_s02_e01_sdepth.bin").unlink()
+    (tmp_path / "a03_s04_e01_sdepth.bin").unlink()  # AS1 has no test sequence any more
+    (tmp_path / "a03_s02_e01_sdepth.bin").unlink()
+    (tmp_path / "a02_s04_e01_sdepth.bin").unlink()
+    with pytest.raises(SDPError, match="subset AS1 needs sequences of training and test subjects"):
+        evaluate_protocol(tmp_path, workers=1)
