@@ -13,7 +13,7 @@ memory: the same path in tiles on Dask
 (:mod:`sdp.defaults`).
 
 ``import sdp`` needs only the core dependencies. The tiles and the field store need the
-``tiles`` extra (Dask, Zarr), :mod:`sdp.actions`' classifier ``actions`` (scikit-learn), the
+``tiles`` extra (Dask, Zarr), the
 pictures of :mod:`sdp.render` ``plots`` (matplotlib, plotly), GICP ``align`` (small_gicp): each
 is imported when first used, and a missing one raises :class:`MissingDependencyError` naming its
 ``pip install 'sdp[EXTRA]'``.

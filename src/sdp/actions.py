@@ -58,7 +58,7 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
-from .errors import SDPError, require
+from .errors import SDPError
 from .io import atomic_path
 
 __all__ = ["read_sequence", "depth_to_points", "frame_densities", "sequence_descriptor", "list_sequences",
@@ -456,15 +456,6 @@ def _ridge_dual(gram, train, test, y, alpha):
     return classes[np.argmax(centred_te @ a + targets.mean(axis=0), axis=1)]
 
 
-def _linear_model():
-    """``sklearn.linear_model`` (the ``actions`` extra), or a one-line :class:`~sdp.MissingDependencyError`.
-
-    The classifier is solved here in the dual (:func:`_fit`), scikit-learn's ``RidgeClassifier``
-    being its reference (tested); the extra still gates training, so that an install without it
-    fails before any work, as before."""
-    return require("sklearn.linear_model", "actions", "the action classifier", package="scikit-learn")
-
-
 _CHUNK = 16384  # descriptor columns per float64 block: the Gram and coefficients without a float64 copy of X
 
 
@@ -513,7 +504,6 @@ def train(descriptors: np.ndarray, actions: np.ndarray, subjects: np.ndarray, *,
 
     Returns the model and its cross-validated accuracy (fraction).
     """
-    _linear_model()
     x, y, s = np.asarray(descriptors), np.asarray(actions), np.asarray(subjects)
     if len(np.unique(y)) < 2 or len(np.unique(s)) < 2:
         raise SDPError("training needs at least two actions and two subjects")
@@ -531,7 +521,6 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
     accuracies as fractions, the cross-validated accuracies, per-subset confusion data, the models
     and timings.
     """
-    _linear_model()  # before describing the sequences
     t0 = time.perf_counter()
     rows = list_sequences(folder)
     y, s = np.array([r[1] for r in rows]), np.array([r[2] for r in rows])
