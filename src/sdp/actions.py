@@ -26,16 +26,25 @@ occupancy patterns): a depth sequence becomes a 4-D (x, y, z, t) density pattern
    v_a (∂G/∂a)²), split by sign into motion towards +a and −a: six channels, each taken at its
    maximum over the hard segments of the pyramid, powered and L2-normalized as above, then
    scaled so that the 18 flow blocks together weigh a quarter of the 39 others in a dot product
-   (176,904 values; 560,196 in all).
+   (176,904 values; 560,196 for the body).
+7. The hand box: the same 57 blocks (on the body's motion time) in a finer box that follows the
+   moving hand, 16³ nodes over ±0.25 body heights (every second node kept: 8³, 0.031 body heights
+   apart, the body's 0.083). The hand is tracked as the centroid of the motion energy
+   |G_t+1 − G_t| above the body's centre, smoothed over time (σ = 2 frames, weighted by motion
+   mass): the hand-trajectory actions (draw x, hand catch) move one hand, and the body's box sees
+   it at a coarse scale only (68,096 values; 628,292 in all).
 
-A linear ridge classifier (one-vs-rest least squares) separates the actions; its ``alpha`` is
-chosen by leave-one-subject-out cross-validation on the training subjects only. It is solved in
-the dual, from the Gram matrix of the training descriptors (a few hundred sequences against half a
-million values), which is also what the cross-validation needs; the coefficients are kept in
-float32. Comparing two patterns is a dot product: linear in the grid. Every other constant here
-(gaps, soft pyramid, power, σ, the flow channels and their weight) was chosen by the same
-cross-validation, on the training subjects of MSR Action3D (``benchmarks/actions_configurations.tsv``
-lists the configurations compared). :class:`ActionStream` applies a model to a live stream of
+Two linear ridge classifiers (one-vs-rest least squares), one on the body's part of the
+descriptor and one on the hand's, separate the actions; their decision values are averaged (score
+fusion; a mix of linear models is one linear model, so a model is one coefficient matrix). Each
+part's ``alpha`` is chosen by its own leave-one-subject-out cross-validation on the training
+subjects only. Each is solved in the dual, from the Gram matrix of the training descriptors' part
+(a few hundred sequences against half a million values), which is also what the cross-validation
+needs; the coefficients are kept in float32. Comparing two patterns is a dot product: linear in
+the grid. Every other constant here (gaps, soft pyramid, power, σ, the flow channels and their
+weight, the hand box, its track and its share) was chosen by the same cross-validation, on the
+training subjects of MSR Action3D (``benchmarks/actions_configurations.tsv`` lists the
+configurations compared). :class:`ActionStream` applies a model to a live stream of
 frames: the window of the last frames, every few frames.
 
 References
@@ -471,7 +480,7 @@ class ActionModel:
 
 class ActionStream:
     """Actions in a stream of depth frames: the last ``window`` frames are classified every
-    ``every`` frames, so an action is reported ``every`` frames (+ one descriptor, ~40 ms) after it
+    ``every`` frames, so an action is reported ``every`` frames (+ one descriptor, ~40–50 ms) after it
     ends at the latest: a third of a second at MSR Action3D's 15 frames per second with the defaults.
 
     ``push(frame)`` takes one (H, W) depth frame and returns the action label when a report is
