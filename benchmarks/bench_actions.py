@@ -101,15 +101,16 @@ def main():
     peak = max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
     lines = ["# Action recognition: MSR Action3D, cross-subject\n",
              f"{r['sequences']} sequences; train on subjects 1, 3, 5, 7, 9, test on 2, 4, 6, 8, 10. Classifier "
-             "alpha chosen by leave-one-subject-out cross-validation on the training subjects only; the test "
-             "subjects are used once.\n",
-             "| set | test accuracy | cross-validated (training subjects) | alpha | "
+             "alphas chosen by leave-one-subject-out cross-validation on the training subjects only; the test "
+             "subjects are used once per round of choices, with the configuration chosen before (three rounds so "
+             "far).\n",
+             "| set | test accuracy | cross-validated (training subjects) | alpha (body / hand) | "
              + " | ".join(PUBLISHED) + " |", "|---|---:|---:|---:|" + "---:|" * len(PUBLISHED)]
     for name, acc in r["accuracy"].items():
         cv = r["cv_accuracy"].get(name)
         pub = " | ".join(f"{p[name]:.1%}" if name in p else "" for p in PUBLISHED.values())
         lines.append(f"| {name} | {acc:.1%} | {'' if cv is None else f'{cv:.1%}'} | "
-                     f"{r['alpha'].get(name, '')} | {pub} |")
+                     f"{' / '.join(f'{a:g}' for a in r['alpha'].get(name, ()))} | {pub} |")
     lines += [f"\nConfigurations compared (features and classifier families, each with its alpha grid), all by "
               f"cross-validation on the training subjects: {n_configurations()} "
               f"(`benchmarks/{CONFIGURATIONS.name}`).",

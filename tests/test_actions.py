@@ -8,15 +8,24 @@ from scipy.ndimage import gaussian_filter1d
 
 from sdp import SDPError
 from sdp.actions import (
+    BODY_SIZE,
     FLOW_WEIGHT,
+    FOCAL,
     GAPS,
+    HAND_GRID,
+    HAND_HALF,
+    HAND_SIZE,
     LEVELS,
     PARAMETERS,
     SIGMA,
+    STEP,
     ActionModel,
     ActionStream,
     _blur_matrix,
+    _body_frame,
+    _densities,
     _flow_pattern,
+    _hand_track,
     _soft_segments,
     depth_to_points,
     describe_sequences,
@@ -66,8 +75,10 @@ def test_descriptor_is_body_centred(rng):
     c = sequence_descriptor(sequence(2, rng))  # the reverse action
     assert a.dtype == np.float32 and np.isfinite(a).all()
     n_blocks = len(LEVELS) * (1 + 4 * len(GAPS))  # density; appeared, disappeared (sum, max) per gap
-    # every (level, channel) block L2-normalized; the flow blocks together hold FLOW_WEIGHT of that
-    assert a @ a == pytest.approx(n_blocks * (1 + FLOW_WEIGHT), rel=1e-5)
+    # every (level, channel) block L2-normalized; the flow blocks together hold FLOW_WEIGHT of that; body and hand
+    assert len(a) == BODY_SIZE + HAND_SIZE
+    assert a[:BODY_SIZE] @ a[:BODY_SIZE] == pytest.approx(n_blocks * (1 + FLOW_WEIGHT), rel=1e-5)
+    assert a[BODY_SIZE:] @ a[BODY_SIZE:] == pytest.approx(n_blocks * (1 + FLOW_WEIGHT), rel=1e-5)
     assert a @ b > 0.95 * (a @ a) and a @ c < a @ b
     with pytest.raises(SDPError, match="foreground"):
         sequence_descriptor(np.zeros((3, 10, 10), np.uint16))
@@ -209,11 +220,52 @@ def test_dual_fit_is_scikit_learns_ridge_classifier(rng, n_classes):
     x = rng.random((48, 700)).astype(np.float32)
     y, subjects = rng.integers(1, n_classes + 1, 48), np.tile([1, 2, 3, 4], 12)
     model, _ = train(x, y, subjects)
-    ref = RidgeClassifier(alpha=model.alpha).fit(x.astype(np.float64), y)
-    assert model.coef.dtype == np.float32
+    ref = RidgeClassifier(alpha=model.alpha[0]).fit(x.astype(np.float64), y)
+    assert model.coef.dtype == np.float32 and len(model.alpha) == 1
     scores = x @ np.atleast_2d(model.coef).T + model.intercept
     np.testing.assert_allclose(scores.reshape(len(x), -1), ref.decision_function(x).reshape(len(x), -1), atol=1e-5)
     np.testing.assert_array_equal(model.predict(x), ref.predict(x))
+    # two parts (as the body's and the hand's): the mix of a RidgeClassifier on each part's columns
+    x[:, 500:] *= 3.0  # another scale: another alpha
+    model, _ = train(x, y, subjects, parts=((0, 500, 0.7), (500, 700, 0.3)))
+    assert len(model.alpha) == 2
+    refs = [RidgeClassifier(alpha=a).fit(x[:, cols].astype(np.float64), y)
+            for a, cols in zip(model.alpha, (slice(0, 500), slice(500, 700)), strict=True)]
+    mixed = 0.7 * refs[0].decision_function(x[:, :500]) + 0.3 * refs[1].decision_function(x[:, 500:])
+    scores = x @ np.atleast_2d(model.coef).T + model.intercept
+    np.testing.assert_allclose(scores.reshape(len(x), -1), mixed.reshape(len(x), -1), atol=1e-5)
+
+
+def test_hand_box_follows_the_moving_hand(rng):
+    """A hand raised beside a still body: the hand track follows it (the body's still parts and
+    sensor noise do not pull it), and the hand box holds the hand, centred."""
+    frames, h, w = 16, 240, 320
+    depth = np.stack([person(t, 0.0, rng) for t in range(frames)])
+    rows = 110 - 4 * np.arange(frames)  # left of the body (columns 145-175; the box's half: 36 columns), upwards
+    for t, r in enumerate(rows):
+        depth[t, r:r + 8, 90:98] = 2400
+    centre, height = _body_frame(depth)
+    grids = frame_densities(depth, step=STEP)
+    track = _hand_track(grids, centre, height)
+    expected_x = (93.5 - (w - 1) / 2.0) * 2400 / FOCAL
+    expected_y = ((h - 1) / 2.0 - rows - 3.5) * 2400 / FOCAL
+    middle = slice(3, frames - 3)  # the temporal smoothing pulls the ends in
+    assert np.abs(track[middle, 0] - expected_x).max() < 0.05 * height  # the box: ±0.25 body heights
+    assert np.abs(track[middle, 1] - expected_y[middle]).max() < 0.05 * height
+    assert (np.diff(track[:, 1]) > 0).all()
+    # the hand box (the body is out of it): the hand's share of the frame's points, centred on the box
+    box = _densities(depth, track, np.full(3, HAND_HALF * height), (HAND_GRID,) * 3, 1)[middle]
+    share = 64 / (depth[middle] > 0).sum(axis=(1, 2))
+    np.testing.assert_allclose(box.sum(axis=(1, 2, 3)), share, rtol=0.1)
+    nodes = np.arange(HAND_GRID) - (HAND_GRID - 1) / 2.0
+    for axis in (1, 2, 3):
+        profile = box.sum(axis=tuple(a for a in (1, 2, 3) if a != axis))
+        assert np.abs(profile @ nodes / profile.sum(axis=1)).max() < 2.0  # within two nodes (0.06 body heights)
+    # a still sequence: nothing to follow, the chest point
+    still = np.stack([person(0, 0.0, rng)] * 4)
+    c, hgt = _body_frame(still)
+    np.testing.assert_allclose(_hand_track(frame_densities(still, step=STEP), c, hgt),
+                               np.tile(c + [0, 0.25 * hgt, 0], (4, 1)))
 
 
 @pytest.mark.slow

@@ -26,16 +26,25 @@ occupancy patterns): a depth sequence becomes a 4-D (x, y, z, t) density pattern
    v_a (∂G/∂a)²), split by sign into motion towards +a and −a: six channels, each taken at its
    maximum over the hard segments of the pyramid, powered and L2-normalized as above, then
    scaled so that the 18 flow blocks together weigh a quarter of the 39 others in a dot product
-   (176,904 values; 560,196 in all).
+   (176,904 values; 560,196 for the body).
+7. The hand box: the same 57 blocks (on the body's motion time) in a finer box that follows the
+   moving hand, 16³ nodes over ±0.25 body heights (every second node kept: 8³, 0.031 body heights
+   apart, the body's 0.083). The hand is tracked as the centroid of the motion energy
+   |G_t+1 − G_t| above the body's centre, smoothed over time (σ = 2 frames, weighted by motion
+   mass): the hand-trajectory actions (draw x, hand catch) move one hand, and the body's box sees
+   it at a coarse scale only (68,096 values; 628,292 in all).
 
-A linear ridge classifier (one-vs-rest least squares) separates the actions; its ``alpha`` is
-chosen by leave-one-subject-out cross-validation on the training subjects only. It is solved in
-the dual, from the Gram matrix of the training descriptors (a few hundred sequences against half a
-million values), which is also what the cross-validation needs; the coefficients are kept in
-float32. Comparing two patterns is a dot product: linear in the grid. Every other constant here
-(gaps, soft pyramid, power, σ, the flow channels and their weight) was chosen by the same
-cross-validation, on the training subjects of MSR Action3D (``benchmarks/actions_configurations.tsv``
-lists the configurations compared). :class:`ActionStream` applies a model to a live stream of
+Two linear ridge classifiers (one-vs-rest least squares), one on the body's part of the
+descriptor and one on the hand's, separate the actions; their decision values are averaged (score
+fusion; a mix of linear models is one linear model, so a model is one coefficient matrix). Each
+part's ``alpha`` is chosen by its own leave-one-subject-out cross-validation on the training
+subjects only. Each is solved in the dual, from the Gram matrix of the training descriptors' part
+(a few hundred sequences against half a million values), which is also what the cross-validation
+needs; the coefficients are kept in float32. Comparing two patterns is a dot product: linear in
+the grid. Every other constant here (gaps, soft pyramid, power, σ, the flow channels and their
+weight, the hand box, its track and its share) was chosen by the same cross-validation, on the
+training subjects of MSR Action3D (``benchmarks/actions_configurations.tsv`` lists the
+configurations compared). :class:`ActionStream` applies a model to a live stream of
 frames: the window of the last frames, every few frames.
 
 References
@@ -75,10 +84,21 @@ GAPS = (1, 2, 4)  # frame gaps of the appeared / disappeared channels
 POWER = 0.35  # power normalization of each block, before its L2 normalization
 FLOW_GAP = 1  # frame gap of the directional-motion (normal flow) channels
 FLOW_WEIGHT = 0.25  # the flow blocks' share of the kernel, relative to the density and motion blocks'
+HAND_GRID = 16  # nodes per axis of the hand box (every STEP-th kept, as the body's)
+HAND_HALF = 0.25  # half extent of the hand box, in body heights
+HAND_SMOOTH = 2.0  # frames: the temporal σ of the hand track
+HAND_WEIGHT = 0.5  # the hand classifier's share of the decision values (score fusion with the body's)
 ALPHAS = (0.0003, 0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 #: What a saved model's descriptors depend on; a model made with other values is refused.
 PARAMETERS = {"grid": GRID, "half": HALF, "sigma": SIGMA, "step": STEP, "levels": LEVELS, "gaps": GAPS,
-              "power": POWER, "flow_gap": FLOW_GAP, "flow_weight": FLOW_WEIGHT, "version": 4}
+              "power": POWER, "flow_gap": FLOW_GAP, "flow_weight": FLOW_WEIGHT, "hand_grid": HAND_GRID,
+              "hand_half": HAND_HALF, "hand_smooth": HAND_SMOOTH, "hand_weight": HAND_WEIGHT, "version": 5}
+_BLOCK_SEGMENTS = sum(LEVELS) * (1 + 4 * len(GAPS) + 6)  # segments × channels: density, motion (sum, max), flow
+#: Values of the body's pattern and of the hand's in a descriptor (body first).
+BODY_SIZE = _BLOCK_SEGMENTS * int(np.prod([-(-n // STEP) for n in GRID]))
+HAND_SIZE = _BLOCK_SEGMENTS * (-(-HAND_GRID // STEP)) ** 3
+#: The descriptor's parts, each with a ridge classifier of its own: (first value, end, share of the decision values).
+PARTS = ((0, BODY_SIZE, 1.0 - HAND_WEIGHT), (BODY_SIZE, BODY_SIZE + HAND_SIZE, HAND_WEIGHT))
 #: The standard subsets of MSR Action3D (a classifier each) and all 20 actions.
 SUBSETS = {"AS1": (2, 3, 5, 6, 10, 13, 18, 20), "AS2": (1, 4, 7, 8, 9, 11, 12, 14),
            "AS3": (6, 14, 15, 16, 17, 18, 19, 20), "all": tuple(range(1, 21))}
@@ -128,10 +148,11 @@ def depth_to_points(depth: np.ndarray, *, focal: float = FOCAL) -> tuple[np.ndar
 
 
 @nb.njit(cache=True)
-def _bin_depth(depth, focal, centre, scale, n_nodes, out):
+def _bin_depth(depth, focal, centres, scale, n_nodes, out):
     """Back-project every foreground pixel of ``depth`` (T, H, W) and add it trilinearly to its
     frame's grid ``out[t]`` with weight 1 / (the frame's foreground pixels): grid coordinates are
-    (point − centre) · scale + (n_nodes − 1) / 2 per axis, as :func:`depth_to_points` gives points."""
+    (point − centres[t]) · scale + (n_nodes − 1) / 2 per axis, as :func:`depth_to_points` gives
+    points (one centre per frame: the body's box stays, the hand's follows the hand)."""
     n_frames, h, w = depth.shape
     nx, ny, nz = out.shape[1], out.shape[2], out.shape[3]
     for t in range(n_frames):
@@ -148,9 +169,9 @@ def _bin_depth(depth, focal, centre, scale, n_nodes, out):
                 if depth[t, r, c] == 0:
                     continue
                 z = float(depth[t, r, c])
-                fx = ((c - (w - 1) / 2.0) * z / focal - centre[0]) * scale[0] + (n_nodes[0] - 1) / 2.0
-                fy = (((h - 1) / 2.0 - r) * z / focal - centre[1]) * scale[1] + (n_nodes[1] - 1) / 2.0
-                fz = (z - centre[2]) * scale[2] + (n_nodes[2] - 1) / 2.0
+                fx = ((c - (w - 1) / 2.0) * z / focal - centres[t, 0]) * scale[0] + (n_nodes[0] - 1) / 2.0
+                fy = (((h - 1) / 2.0 - r) * z / focal - centres[t, 1]) * scale[1] + (n_nodes[1] - 1) / 2.0
+                fz = (z - centres[t, 2]) * scale[2] + (n_nodes[2] - 1) / 2.0
                 if fx < 0 or fy < 0 or fz < 0 or fx > nx - 1 or fy > ny - 1 or fz > nz - 1:
                     continue
                 ix, iy, iz = min(int(fx), nx - 2), min(int(fy), ny - 2), min(int(fz), nz - 2)
@@ -197,13 +218,25 @@ def frame_densities(depth: np.ndarray, *, step: int = 1) -> np.ndarray:
     ``(T, 36, 36, 26)``, or every ``step``-th node of it (``step=2``: ``(T, 18, 18, 13)``, the
     full grids subsampled, to float rounding: each axis is decimated by its own blur pass).
     """
+    _check_depth(depth)
+    centre, height = _body_frame(depth)
+    return _densities(depth, np.tile(centre, (len(depth), 1)), np.asarray(HALF) * height, GRID, step)
+
+
+def _check_depth(depth: np.ndarray) -> None:
     if depth.ndim != 3 or not depth.any():
         raise SDPError("a depth sequence needs shape (T, H, W) and some non-zero (foreground) pixels")
-    centre, height = _body_frame(depth)
-    n = np.asarray(GRID, np.float64)
-    scale = (n - 1) / (2.0 * np.asarray(HALF) * height)
-    grids = np.zeros((depth.shape[0], *GRID), np.float32)
-    _bin_depth(np.ascontiguousarray(depth), FOCAL, centre, scale, n, grids)  # unit mass per frame
+
+
+def _densities(depth: np.ndarray, centres: np.ndarray, half: np.ndarray, shape: tuple[int, int, int],
+               step: int) -> np.ndarray:
+    """Blurred per-frame density grids (T, ...) of ``shape`` nodes over ±``half`` around each
+    frame's centre ``centres[t]`` (depth units), every ``step``-th node kept."""
+    n = np.asarray(shape, np.float64)
+    scale = (n - 1) / (2.0 * half)
+    grids = np.zeros((depth.shape[0], *shape), np.float32)
+    _bin_depth(np.ascontiguousarray(depth), FOCAL, np.ascontiguousarray(centres, np.float64), scale, n,
+               grids)  # unit mass per frame
     # the separable blur as three small matrix products (BLAS), each computing only the kept nodes
     t, nx, ny, nz = grids.shape
     grids = np.matmul(_blur_matrix(nx, step), grids.reshape(t, nx, ny * nz)).reshape(t, -1, ny, nz)
@@ -238,15 +271,16 @@ def _motion_time(grids: np.ndarray) -> np.ndarray:
     return energy / energy[-1] if energy[-1] > 0 else np.linspace(0.0, 1.0, n_frames)
 
 
-def _space_time_pattern(grids: np.ndarray) -> list[np.ndarray]:
+def _space_time_pattern(grids: np.ndarray, tau: np.ndarray | None = None) -> list[np.ndarray]:
     """Blocks of the temporal pyramid, one per (level, channel): (level, *grid) arrays.
 
     ``grids`` (T, ...) are a sequence's frame densities; channels are the density (averaged per
     segment) and, for each gap in :data:`GAPS`, the appeared and disappeared densities, each
-    summed (soft segments) and by its maximum (hard segments).
+    summed (soft segments) and by its maximum (hard segments). ``tau``: each frame's time in
+    [0, 1] (default: the grids' own motion time; the hand box takes the body's).
     """
     n_frames = len(grids)
-    tau = _motion_time(grids)
+    tau = _motion_time(grids) if tau is None else tau
     channels = [(grids.reshape(n_frames, -1), tau, True)]
     for k in GAPS:
         if n_frames > k:
@@ -267,17 +301,18 @@ def _space_time_pattern(grids: np.ndarray) -> list[np.ndarray]:
     return blocks
 
 
-def _flow_pattern(grids: np.ndarray) -> list[np.ndarray]:
+def _flow_pattern(grids: np.ndarray, tau: np.ndarray | None = None) -> list[np.ndarray]:
     """Blocks of directional motion, one per (level, direction): (level, *grid) arrays.
 
     The normal flow of the density between frames t and t + :data:`FLOW_GAP`: for a density
     carried at velocity v, −∂G/∂t · ∂G/∂a = v_a (∂G/∂a)², so −(G_t+k − G_t) times the spatial
     gradient of their mean, split by sign, is the motion towards +a and −a for a = x, y, z (six
     channels: where the appeared/disappeared densities say that something moved, these say which
-    way). Each is taken at its maximum over the hard segments of every pyramid level.
+    way). Each is taken at its maximum over the hard segments of every pyramid level (times
+    ``tau`` as in :func:`_space_time_pattern`).
     """
     n_frames, k = len(grids), FLOW_GAP
-    tau = _motion_time(grids)
+    tau = _motion_time(grids) if tau is None else tau
     if n_frames <= k:
         return [np.zeros((level, *grids.shape[1:]), grids.dtype) for level in LEVELS for _ in range(6)]
     change = grids[k:] - grids[:-k]
@@ -290,24 +325,68 @@ def _flow_pattern(grids: np.ndarray) -> list[np.ndarray]:
     return [_hard_max(values, at, level).reshape(level, *grids.shape[1:]) for level in LEVELS for values in channels]
 
 
+def _hand_track(grids: np.ndarray, centre: np.ndarray, height: float) -> np.ndarray:
+    """The moving hand's position in each frame (T, 3), in the depth's units, from the body's
+    frame densities ``grids`` (every :data:`STEP`-th node of the :data:`GRID` box).
+
+    The centroid of the motion energy |G_t+1 − G_t| above the body's centre (where the hands
+    move; the legs' motion would pull it down), each frame taking its two frame pairs' by their
+    motion mass, then smoothed over time with a Gaussian of :data:`HAND_SMOOTH` frames weighted
+    by motion mass, so that still frames follow their moving neighbours. Without motion, a chest
+    point (a quarter of the body height above the centre).
+    """
+    n_frames = len(grids)
+    n = np.asarray(GRID, np.float64)
+    scale = (n - 1) / (2.0 * np.asarray(HALF) * height)
+    coords = [(np.arange(0, int(n[a]), STEP) - (n[a] - 1) / 2.0) / scale[a] for a in range(3)]
+    upper = coords[1] > 0
+    position = np.tile(centre + np.array([0.0, 0.25 * height, 0.0]), (n_frames, 1))
+    mass = np.zeros(n_frames)
+    if n_frames > 1:
+        energy = np.abs(np.diff(grids, axis=0))[:, :, upper, :]
+        m = energy.sum(axis=(1, 2, 3), dtype=np.float64)
+        c = np.stack([energy.sum(axis=(2, 3)) @ coords[0], energy.sum(axis=(1, 3)) @ coords[1][upper],
+                      energy.sum(axis=(1, 2)) @ coords[2]], axis=1) / np.maximum(m, 1e-12)[:, None] + centre
+        total = np.zeros((n_frames, 3))
+        total[:-1] += c * m[:, None]
+        total[1:] += c * m[:, None]
+        mass[:-1] += m
+        mass[1:] += m
+        moving = mass > 0
+        position[moving] = total[moving] / mass[moving, None]
+    t = np.arange(n_frames)
+    weight = mass + 1e-9 * mass.max() if mass.max() > 0 else np.ones(n_frames)
+    kernel = np.exp(-0.5 * ((t[:, None] - t[None]) / HAND_SMOOTH) ** 2) * weight[None]
+    return (kernel @ position) / kernel.sum(axis=1, keepdims=True)
+
+
 def sequence_descriptor(depth: np.ndarray) -> np.ndarray:
-    """The space-time density pattern of a (T, H, W) depth sequence as one vector (float32):
-    the density and motion blocks, then the directional-motion (flow) blocks."""
-    grids = frame_densities(depth, step=STEP)
-    pattern, flow = _space_time_pattern(grids), _flow_pattern(grids)
-    blocks = pattern + flow
-    # unit blocks, the flow blocks scaled so that they hold FLOW_WEIGHT of the kernel (a dot product of
-    # descriptors); block by block, in place in the output: no full-length temporaries
+    """The space-time density pattern of a (T, H, W) depth sequence as one vector (float32): the
+    body's density and motion blocks, then its directional-motion (flow) blocks (:data:`BODY_SIZE`
+    values), then the same blocks of the hand box (:data:`HAND_SIZE` values)."""
+    _check_depth(depth)
+    centre, height = _body_frame(depth)
+    grids = _densities(depth, np.tile(centre, (len(depth), 1)), np.asarray(HALF) * height, GRID, STEP)
+    tau = _motion_time(grids)
+    # the hand box: a finer pattern (0.031 body heights a kept node, the body's 0.083) that follows the hand,
+    # on the body's time
+    hand = _densities(depth, _hand_track(grids, centre, height), np.full(3, HAND_HALF * height), (HAND_GRID,) * 3,
+                      STEP)
+    pattern, flow = _space_time_pattern(grids, tau), _flow_pattern(grids, tau)
+    # unit blocks, the flow blocks scaled so that they hold FLOW_WEIGHT of their part's kernel (a dot product
+    # of descriptors)
     flow_scale = np.sqrt(FLOW_WEIGHT * len(pattern) / len(flow))
-    v = np.empty(sum(b.size for b in blocks), np.float32)
+    scaled = [(b, 1.0) for b in pattern] + [(b, flow_scale) for b in flow]
+    scaled += [(b, 1.0) for b in _space_time_pattern(hand, tau)] + [(b, flow_scale) for b in _flow_pattern(hand, tau)]
+    v = np.empty(sum(b.size for b, _ in scaled), np.float32)
     start = 0
-    for i, block in enumerate(blocks):
+    for block, scale in scaled:  # block by block, in place in the output: no full-length temporaries
         part = v[start:start + block.size]
         start += block.size
         np.maximum(block.reshape(-1), 0.0, out=part, casting="same_kind")
         np.power(part, np.float32(POWER), out=part)
         norm = np.sqrt(np.square(part, dtype=np.float64).sum())
-        part *= np.float32((1.0 / norm if norm > 0 else 0.0) * (flow_scale if i >= len(pattern) else 1.0))
+        part *= np.float32((1.0 / norm if norm > 0 else 0.0) * scale)
     return v
 
 
@@ -359,12 +438,15 @@ def _stack(vectors, n: int) -> np.ndarray:
 @dataclass
 class ActionModel:
     """A linear classifier of space-time density patterns: score = X · coef.T + intercept
-    (``coef`` float32, one row per action; two actions: one row, positive for the second)."""
+    (``coef`` float32, one row per action; two actions: one row, positive for the second).
+
+    ``alpha``: the ridge regularization of each part of the descriptor (:data:`PARTS`: the body's,
+    the hand's), whose classifiers' decision values the coefficients mix."""
 
     coef: np.ndarray
     intercept: np.ndarray
     classes: np.ndarray
-    alpha: float
+    alpha: tuple[float, ...]
 
     def predict(self, descriptors: np.ndarray) -> np.ndarray:
         """Action label of each descriptor (n, d)."""
@@ -380,7 +462,7 @@ class ActionModel:
         path = Path(path)
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, coef=self.coef, intercept=self.intercept, classes=self.classes,
-                     alpha=self.alpha, **{k: np.asarray(v) for k, v in PARAMETERS.items()})
+                     alpha=np.asarray(self.alpha, np.float64), **{k: np.asarray(v) for k, v in PARAMETERS.items()})
         return path
 
     @classmethod
@@ -390,14 +472,15 @@ class ActionModel:
                 for key, value in PARAMETERS.items():
                     if key not in z or not np.array_equal(z[key], np.asarray(value)):
                         raise SDPError(f"made with other pattern parameters ({key})")
-                return cls(z["coef"], z["intercept"], z["classes"], float(z["alpha"]))
+                alpha = tuple(float(a) for a in np.atleast_1d(z["alpha"]))
+                return cls(z["coef"], z["intercept"], z["classes"], alpha)
         except (OSError, KeyError, ValueError, SDPError) as exc:
             raise SDPError(f"{path}: not an sdp action model ({exc})") from None
 
 
 class ActionStream:
     """Actions in a stream of depth frames: the last ``window`` frames are classified every
-    ``every`` frames, so an action is reported ``every`` frames (+ one descriptor, ~40 ms) after it
+    ``every`` frames, so an action is reported ``every`` frames (+ one descriptor, ~40–50 ms) after it
     ends at the latest: a third of a second at MSR Action3D's 15 frames per second with the defaults.
 
     ``push(frame)`` takes one (H, W) depth frame and returns the action label when a report is
@@ -444,8 +527,9 @@ def read_frames(source: str | os.PathLike):
         yield from read_sequence(source)
 
 
-def _ridge_dual(gram, train, test, y, alpha):
-    """Predictions of RidgeClassifier(alpha) (intercept, ±1 targets), solved from a Gram matrix."""
+def _ridge_scores(gram, train, test, y, alpha):
+    """Classes and decision values (test, classes) of RidgeClassifier(alpha) (intercept, ±1 targets,
+    one column per class), solved from a Gram matrix."""
     classes = np.unique(y[train])
     targets = np.where(y[train][:, None] == classes[None], 1.0, -1.0)
     k_tr, k_te = gram[np.ix_(train, train)], gram[np.ix_(test, train)]
@@ -453,69 +537,99 @@ def _ridge_dual(gram, train, test, y, alpha):
     centred = k_tr - mean[:, None] - mean[None] + mean.mean()
     centred_te = k_te - k_te.mean(axis=1, keepdims=True) - mean[None] + mean.mean()
     a = np.linalg.solve(centred + alpha * np.eye(len(centred)), targets - targets.mean(axis=0))
-    return classes[np.argmax(centred_te @ a + targets.mean(axis=0), axis=1)]
+    return classes, centred_te @ a + targets.mean(axis=0)
 
 
 _CHUNK = 16384  # descriptor columns per float64 block: the Gram and coefficients without a float64 copy of X
 
 
-def _gram(x: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """X Xᵀ (float64) of the rows ``rows`` of ``x``, accumulated over column blocks."""
-    gram = np.zeros((len(rows), len(rows)))
-    for i in range(0, x.shape[1], _CHUNK):
-        block = x[rows, i:i + _CHUNK].astype(np.float64)
-        gram += block @ block.T
-    return gram
+def _grams(x: np.ndarray, rows: np.ndarray, parts=PARTS) -> list[np.ndarray]:
+    """X Xᵀ (float64) of the rows ``rows`` of ``x``, one per part (columns start:end) of ``parts``,
+    accumulated over column blocks."""
+    grams = []
+    for start, end, _ in parts:
+        gram = np.zeros((len(rows), len(rows)))
+        for i in range(start, end, _CHUNK):
+            block = x[rows, i:min(i + _CHUNK, end)].astype(np.float64)
+            gram += block @ block.T
+        grams.append(gram)
+    return grams
 
 
-def _fit(x: np.ndarray, rows: np.ndarray, gram: np.ndarray, y: np.ndarray, s: np.ndarray,
-         alphas) -> tuple[ActionModel, float]:
-    """Ridge classifier on the rows ``rows`` of ``x`` (``gram``: their Gram matrix, labels ``y``,
-    subjects ``s``): ``alpha`` by leave-one-subject-out CV, then the fit in the dual.
+def _loso_accuracy(grams, alphas, shares, y, folds) -> float:
+    """Accuracy over the folds (train, test) of the ridge classifiers of ``grams`` at ``alphas``,
+    their decision values mixed by ``shares``."""
+    hits = []
+    for tr, te in folds:
+        mixed = sum(share * _ridge_scores(gram, tr, te, y, a)[1]
+                    for gram, a, share in zip(grams, alphas, shares, strict=True))
+        hits.append(np.unique(y[tr])[np.argmax(mixed, axis=1)] == y[te])
+    return float(np.mean(np.concatenate(hits)))
 
-    The same model as scikit-learn's ``RidgeClassifier(alpha)`` (intercept, ±1 targets; two
-    classes: one decision function, positive for the second): with K the centred Gram matrix and
-    T the centred targets, a = (K + αI)⁻¹ T, coef = Xᵀ a (Σa = 0, so X need not be centred) and
-    intercept = mean(targets) − mean(X) · coef.
+
+def _fit(x: np.ndarray, rows: np.ndarray, grams: list[np.ndarray], y: np.ndarray, s: np.ndarray,
+         alphas, parts=PARTS) -> tuple[ActionModel, float]:
+    """Ridge classifiers on the rows ``rows`` of ``x``, one per part of ``parts`` (``grams``: their
+    Gram matrices, labels ``y``, subjects ``s``), their decision values mixed by the parts' shares:
+    each part's ``alpha`` by its own leave-one-subject-out CV, then the fits in the dual.
+
+    Each part's is the same model as scikit-learn's ``RidgeClassifier(alpha)`` on its columns
+    (intercept, ±1 targets; two classes: one decision function, positive for the second): with K
+    the centred Gram matrix and T the centred targets, a = (K + αI)⁻¹ T, coef = Xᵀ a (Σa = 0, so X
+    need not be centred) and intercept = mean(targets) − mean(X) · coef. A mix of linear models is
+    one: the parts' coefficients, each times its share, side by side. Returns the model and the
+    mix's leave-one-subject-out accuracy (the parts at their chosen alphas).
     """
     folds = [(np.flatnonzero(s != v), np.flatnonzero(s == v)) for v in np.unique(s)]
-    cv = {a: np.mean(np.concatenate([_ridge_dual(gram, tr, te, y, a) == y[te] for tr, te in folds]))
-          for a in alphas}
-    alpha = max(alphas, key=lambda a: (cv[a], a))  # ties: the stronger regularization
+    shares = [share for _, _, share in parts]
+    chosen = []
+    for gram in grams:
+        cv = {a: _loso_accuracy([gram], [a], [1.0], y, folds) for a in alphas}
+        chosen.append(max(alphas, key=lambda a: (cv[a], a)))  # ties: the stronger regularization
     classes = np.unique(y)
     targets = np.where(y[:, None] == classes[None], 1.0, -1.0)
     if len(classes) == 2:
         targets = targets[:, 1:]
-    mean = gram.mean(axis=0)
-    centred = gram - mean[:, None] - mean[None] + mean.mean()
-    dual = np.linalg.solve(centred + alpha * np.eye(len(gram)), targets - targets.mean(axis=0))
-    coef = np.empty((dual.shape[1], x.shape[1]), np.float32)
+    coef = np.empty((targets.shape[1], x.shape[1]), np.float32)
     offset = targets.mean(axis=0)
-    for i in range(0, x.shape[1], _CHUNK):
-        block = x[rows, i:i + _CHUNK].astype(np.float64)
-        coef[:, i:i + _CHUNK] = (block.T @ dual).T
-        offset -= block.mean(axis=0) @ coef[:, i:i + _CHUNK].T.astype(np.float64)
-    return ActionModel(coef, offset, classes, alpha), float(cv[alpha])
+    for gram, alpha, (start, end, share) in zip(grams, chosen, parts, strict=True):
+        mean = gram.mean(axis=0)
+        centred = gram - mean[:, None] - mean[None] + mean.mean()
+        dual = share * np.linalg.solve(centred + alpha * np.eye(len(gram)), targets - targets.mean(axis=0))
+        for i in range(start, end, _CHUNK):
+            j = min(i + _CHUNK, end)
+            block = x[rows, i:j].astype(np.float64)
+            coef[:, i:j] = (block.T @ dual).T
+            offset -= block.mean(axis=0) @ coef[:, i:j].T.astype(np.float64)
+    return ActionModel(coef, offset, classes, tuple(float(a) for a in chosen)), _loso_accuracy(grams, chosen, shares, y,
+                                                                                                folds)
 
 
 def train(descriptors: np.ndarray, actions: np.ndarray, subjects: np.ndarray, *,
-          alphas=ALPHAS) -> tuple[ActionModel, float]:
-    """Fit the classifier; ``alpha`` by leave-one-subject-out cross-validation on these data.
+          alphas=ALPHAS, parts=None) -> tuple[ActionModel, float]:
+    """Fit the classifier; each part's ``alpha`` by leave-one-subject-out cross-validation on these data.
 
-    Returns the model and its cross-validated accuracy (fraction).
+    ``parts``: (first column, end, share) of each part of the descriptors with a classifier of its
+    own; by default the body's and the hand's (:data:`PARTS`) for descriptors of
+    :func:`sequence_descriptor`'s length, else one over all the columns. Returns the model and its
+    cross-validated accuracy (fraction).
     """
     x, y, s = np.asarray(descriptors), np.asarray(actions), np.asarray(subjects)
     if len(np.unique(y)) < 2 or len(np.unique(s)) < 2:
         raise SDPError("training needs at least two actions and two subjects")
+    if parts is None:
+        parts = PARTS if x.shape[-1] == PARTS[-1][1] else ((0, x.shape[-1], 1.0),)
+    if x.ndim != 2 or parts[-1][1] != x.shape[1]:
+        raise SDPError(f"descriptors of {x.shape[-1]} values; the classifier's parts end at {parts[-1][1]}")
     rows = np.arange(len(x))
-    return _fit(x, rows, _gram(x, rows), y, s, alphas)
+    return _fit(x, rows, _grams(x, rows, parts), y, s, alphas, parts)
 
 
 def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count() or 1) -> dict:
     """The cross-subject protocol: train on subjects 1, 3, 5, 7, 9, test on 2, 4, 6, 8, 10.
 
     One classifier per subset (AS1, AS2, AS3) and one for all 20 actions; every choice
-    (``alpha``) is made by cross-validation on the training subjects. The training sequences are
+    (each part's ``alpha``) is made by cross-validation on the training subjects. The training sequences are
     described and the four classifiers fitted before any test sequence is read; each test
     sequence is then described and classified as it comes (its descriptor is not kept). Returns
     accuracies as fractions, the cross-validated accuracies, per-subset confusion data, the models
@@ -530,11 +644,11 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
             raise SDPError(f"{folder}: subset {name} needs sequences of training and test subjects")
     x = describe_sequences([rows[i][0] for i in training], workers=workers)
     t1 = time.perf_counter()
-    gram = _gram(x, np.arange(len(x)))  # every subset's training rows are among these: one pass over x
+    grams = _grams(x, np.arange(len(x)))  # every subset's training rows are among these: one pass over x
     out = {"accuracy": {}, "cv_accuracy": {}, "alpha": {}, "confusion": {}, "models": {}}
     for name, acts in SUBSETS.items():
         fit = np.flatnonzero(np.isin(y[training], acts))
-        model, cv = _fit(x, fit, gram[np.ix_(fit, fit)], y[training][fit], s[training][fit], ALPHAS)
+        model, cv = _fit(x, fit, [g[np.ix_(fit, fit)] for g in grams], y[training][fit], s[training][fit], ALPHAS)
         out["cv_accuracy"][name], out["alpha"][name], out["models"][name] = cv, model.alpha, model
     del x  # the test sequences' turn: only one descriptor at a time
     t2 = time.perf_counter()

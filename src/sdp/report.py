@@ -87,7 +87,8 @@ def written_text(thing, path) -> str:
 
 def train_text(model, cv: float, n_sequences: int, path) -> str:
     """The lines of ``sdp action train``."""
-    return (f"{n_sequences} sequences, {len(model.classes)} actions; alpha {model.alpha:g}, "
+    alphas = " / ".join(f"{a:g}" for a in model.alpha)
+    return (f"{n_sequences} sequences, {len(model.classes)} actions; alpha {alphas} (body / hand), "
             f"leave-one-subject-out accuracy {cv:.3f}\nwrote {path}")
 
 
