@@ -31,6 +31,15 @@ def test_k_nearest_equals_a_kd_tree(rng, k):
         np.testing.assert_array_equal(k_nearest(pts, queries, k_), expected.reshape(len(queries), k_), err_msg=name)
 
 
+def test_a_deep_tree(rng):
+    """Points at 2⁻ⁱ along a line: each split at a box's middle peels off two of them, so the tree
+    is about a hundred levels deep."""
+    pts = np.c_[2.0 ** -np.arange(240), np.zeros((240, 2))]
+    queries = np.r_[pts[::3], rng.random((50, 3))]
+    _, expected = cKDTree(pts).query(queries, k=10)
+    np.testing.assert_array_equal(k_nearest(pts, queries, 10), expected)
+
+
 def test_ties_come_in_index_order(rng):
     """Repeated points are at equal distances: nearest first, then by row (cKDTree's tie order is
     unspecified, so the distances are compared, and the rows of each tie must ascend)."""
