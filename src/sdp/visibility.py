@@ -638,7 +638,7 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
         inverse = inverse.ravel()
     centres = np.stack([np.bincount(inverse, weights=query[:, d], minlength=len(counts)) for d in range(3)], axis=1)
     centres /= counts[:, None]
-    idx = k_nearest(static, centres, k)  # one thread: detect_changes runs both directions at once
+    idx = k_nearest(static, centres, k)
     mean, normal, rms = _plane_fits(static, idx)
     off = np.abs(np.einsum("ij,ij->i", query - mean[inverse], normal[inverse]))
     return (rms < flatness)[inverse] & (off < distance)
