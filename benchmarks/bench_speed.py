@@ -106,6 +106,45 @@ def in_process(out):
     out("")
 
 
+def plane_fit_neighbours(out):
+    """The sensor test's neighbour query (the 50 nearest of every 8th unchanged current point to
+    the mean of each cube of 2σ of changed points), by sdp's k-d tree and by scipy's cKDTree, built
+    and queried, on every 9th pair (the same neighbours' distances: checked; equal distances may
+    come in another order)."""
+    from scipy.spatial import cKDTree
+
+    from sdp._kdtree import k_nearest
+    from sdp.change import inside_difference
+
+    out("## 1b. The plane fits' neighbours: sdp's k-d tree against cKDTree\n")
+    out("| pair | unchanged points | cubes | sdp._kdtree (ms) | cKDTree (ms) | same distances |")
+    out("|---|---:|---:|---:|---:|---|")
+    for t, _, _, _, _ in list(labelled_pairs())[::9]:
+        ref, cur = sdp.read_points(LEARN / f"learn{t - 1}.pcd"), sdp.read_points(LEARN / f"learn{t}.pcd")
+        r = sdp.detect_changes(ref, cur, regions=False)
+        changed, _ = inside_difference(r.current_field, r.reference_field, cur.xyz)
+        static = np.ascontiguousarray(cur.xyz[np.flatnonzero(~changed)[::8]])
+        q = cur.xyz[changed]
+        cubes = np.floor(q / (2 * r.current_field.sigma)).astype(np.int64)
+        inverse = np.unique(cubes, axis=0, return_inverse=True)[1].ravel()
+        centres = np.stack([np.bincount(inverse, weights=q[:, d]) for d in range(3)], axis=1)
+        centres /= np.bincount(inverse)[:, None]
+        ms, found = {}, {}
+        for name, fn in (("sdp", partial(k_nearest, static, centres, 50)),
+                         ("ckdtree", lambda s=static, c=centres: cKDTree(s, balanced_tree=False, compact_nodes=False)
+                          .query(c, k=50, workers=1)[1])):
+            seconds = []
+            for _ in range(3 * REPEAT):
+                t0 = time.perf_counter()
+                found[name] = fn()
+                seconds.append(time.perf_counter() - t0)
+            ms[name] = 1e3 * min(seconds)
+        same = np.array_equal(*(np.linalg.norm(static[i] - centres[:, None], axis=2) for i in found.values()))
+        out(f"| learn{t - 1} → learn{t} | {len(static):,} | {len(centres):,} | {ms['sdp']:.1f} | {ms['ckdtree']:.1f} "
+            f"| {same} |")
+    out("")
+
+
 def run(args, env=None) -> float:
     t = time.perf_counter()
     subprocess.run(args, check=True, capture_output=True, env=env)
@@ -150,6 +189,7 @@ def main():
     out("# Speed of the whole job\n")
     out(f"`python benchmarks/bench_speed.py`, {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores.\n")
     in_process(out)
+    plane_fit_neighbours(out)
     start_up(out)
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "speed.md").write_text("\n".join(lines) + "\n")
