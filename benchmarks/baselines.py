@@ -11,7 +11,7 @@ Methods: :func:`c2c_ckdtree`, :func:`c2c_pykdtree` (cloud-to-cloud nearest dista
 CloudCompare's C2C), :func:`m3c2` (py4dgeo), :func:`gmm` (Gaussian mixtures fitted by EM, as
 Drews et al. and Núñez et al.), :func:`voxel_occupancy` (PCL's octree change detector rule) and
 :func:`depth_difference` (pixel by pixel on the depth images of one fixed camera; it takes the
-organized images, not the clouds).
+depth images, not the clouds).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 from sdp.metrics import kappa
 
 __all__ = ["Scored", "METHODS", "c2c_ckdtree", "c2c_pykdtree", "m3c2", "gmm", "voxel_occupancy",
-           "depth_difference", "organized_image", "tune_threshold", "two_fold"]
+           "depth_difference", "depth_image", "tune_threshold", "two_fold"]
 
 _STEPS = ("build_reference", "build_current", "detect")
 
@@ -211,33 +211,33 @@ def voxel_occupancy(reference_xyz: np.ndarray, current_xyz: np.ndarray, *, voxel
     return Scored(score.astype(np.float64), 0.5, t)
 
 
-def organized_image(path) -> np.ndarray:
-    """The (height, width, 3) float64 image of an organized PCD, NaN where the sensor had no return
-    (NaN or 0, 0, 0 in the file, as :func:`sdp.read_points` reads them); its finite pixels in
-    row-major order are the rows :func:`sdp.read_points` keeps."""
+def depth_image(path) -> np.ndarray:
+    """The (height, width) depth image (the z coordinate, float64) of an organized PCD, NaN where
+    the sensor had no return (NaN or 0, 0, 0 in the file, as :func:`sdp.read_points` reads them):
+    its finite pixels in row-major order are the rows :func:`sdp.read_points` keeps."""
     from pypcd4 import PointCloud
 
     pc = PointCloud.from_path(path)
     names = list(pc.fields)
     data = pc.numpy()
-    xyz = np.c_[[data[:, names.index(c)] for c in "xyz"]].T.astype(np.float64)
-    xyz[~xyz.any(axis=1)] = np.nan
-    return xyz.reshape(pc.metadata.height, pc.metadata.width, 3)
+    xyz = np.stack([data[:, names.index(c)] for c in "xyz"], axis=1).astype(np.float64)
+    missing = ~np.isfinite(xyz).all(axis=1) | ~xyz.any(axis=1)
+    return np.where(missing, np.nan, xyz[:, 2]).reshape(pc.metadata.height, pc.metadata.width)
 
 
-def depth_difference(reference_image: np.ndarray, current_image: np.ndarray) -> Scored:
+def depth_difference(reference_depth: np.ndarray, current_depth: np.ndarray) -> Scored:
     """Depth differencing, the rule of a fixed depth camera: per pixel, how much nearer the current
     return is than the reference's, ``z_ref − z_cur`` (along the optical axis, the PCD's z).
 
-    Both images come from one camera that did not move (:func:`organized_image`). A pixel that
+    Both depth images come from one camera that did not move (:func:`depth_image`). A pixel that
     either image has no return at is not compared (score ``-inf``: never flagged). One score per
     finite pixel of the current image, in row-major order (the rows :func:`sdp.read_points`
     keeps). No default threshold. Timings: all in "detect" (there is no representation to build).
     """
     t = _zero_timings()
     with _timed(t, "detect"):
-        z_ref, z_cur = reference_image[..., 2].ravel(), current_image[..., 2].ravel()
-        kept = np.isfinite(current_image).all(axis=-1).ravel()
+        z_ref, z_cur = reference_depth.ravel(), current_depth.ravel()
+        kept = np.isfinite(z_cur)
         with np.errstate(invalid="ignore"):
             score = z_ref[kept] - z_cur[kept]
         score[np.isnan(score)] = -np.inf

@@ -8,7 +8,7 @@ warm and cold, and the baselines in the same run.
    1.5 voxels); and, interleaved pair by pair, C2C both ways (a k-d tree on each cloud queried
    with the other, as sdp finds both what appeared and what disappeared) with pykdtree and with
    scipy's cKDTree (all cores), M3C2 (py4dgeo) on 20,000 core points, and depth differencing
-   (pixel by pixel on the organized images: the pairs share one fixed camera; its kappa at a
+   (pixel by pixel on the depth images: the pairs share one fixed camera; its kappa at a
    threshold tuned two-fold on the other pairs, ``baselines.two_fold``). Each method runs
    ``REPEAT`` times per pair; the fastest counts (the machine is shared: say its load).
 2. Start-up: ``import sdp``; ``sdp --version``; ``sdp change A.pcd B.pcd -o OUT.ply`` warm (median
@@ -49,7 +49,7 @@ def both_ways(c2c, ref, cur):
 
 def in_process(out):
     pairs = [(sdp.read_points(LEARN / f"learn{t - 1}.pcd"), sdp.read_points(LEARN / f"learn{t}.pcd"), truth, scored,
-              (B.organized_image(LEARN / f"learn{t - 1}.pcd"), B.organized_image(LEARN / f"learn{t}.pcd")))
+              (B.depth_image(LEARN / f"learn{t - 1}.pcd"), B.depth_image(LEARN / f"learn{t}.pcd")))
              for t, _, _, truth, scored in labelled_pairs()]
     depth = "depth differencing, pixel by pixel (one fixed camera)"
     methods = {"sdp (defaults, sensor origin)": lambda a, b, _: sdp.detect_changes(a, b),
@@ -115,6 +115,7 @@ def plane_fit_neighbours(out):
 
     from sdp._kdtree import k_nearest
     from sdp.change import inside_difference
+    from sdp.visibility import _cube_means
 
     out("## 1b. The plane fits' neighbours: sdp's k-d tree against cKDTree\n")
     out("| pair | unchanged points | cubes | sdp._kdtree (ms) | cKDTree (ms) | same distances |")
@@ -124,11 +125,7 @@ def plane_fit_neighbours(out):
         r = sdp.detect_changes(ref, cur, regions=False)
         changed, _ = inside_difference(r.current_field, r.reference_field, cur.xyz)
         static = np.ascontiguousarray(cur.xyz[np.flatnonzero(~changed)[::8]])
-        q = cur.xyz[changed]
-        cubes = np.floor(q / (2 * r.current_field.sigma)).astype(np.int64)
-        inverse = np.unique(cubes, axis=0, return_inverse=True)[1].ravel()
-        centres = np.stack([np.bincount(inverse, weights=q[:, d]) for d in range(3)], axis=1)
-        centres /= np.bincount(inverse)[:, None]
+        _, centres = _cube_means(cur.xyz[changed], 2 * r.current_field.sigma)
         ms, found = {}, {}
         for name, fn in (("sdp", partial(k_nearest, static, centres, 50)),
                          ("ckdtree", lambda s=static, c=centres: cKDTree(s, balanced_tree=False, compact_nodes=False)

@@ -40,6 +40,18 @@ def test_a_deep_tree(rng):
     np.testing.assert_array_equal(k_nearest(pts, queries, 10), expected)
 
 
+def test_a_box_too_thin_to_split_at_its_middle():
+    """Coordinates one float apart: the box's middle rounds onto one of them, every point falls on
+    one side, and the node is split at the median instead."""
+    x = np.repeat([1.0, np.nextafter(1.0, 2.0)], 100)
+    pts = np.c_[x, np.zeros((200, 2))]
+    queries = np.array([[1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    idx = k_nearest(pts, queries, 120)
+    d = np.linalg.norm(pts[idx] - queries[:, None], axis=2)
+    np.testing.assert_array_equal(d, cKDTree(pts).query(queries, k=120)[0])
+    assert all(len(set(row)) == 120 for row in idx.tolist())
+
+
 def test_ties_come_in_index_order(rng):
     """Repeated points are at equal distances: nearest first, then by row (cKDTree's tie order is
     unspecified, so the distances are compared, and the rows of each tie must ascend)."""

@@ -627,6 +627,16 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
     it, the patch being flat (RMS off-plane deviation < ``flatness``) and the point within
     ``distance`` of the plane? Query points sharing a cube of side ``bin_size`` share one patch:
     the one nearest to their mean (one neighbour query per cube, not per point)."""
+    inverse, centres = _cube_means(query, bin_size)
+    idx = k_nearest(static, centres, k)
+    mean, normal, rms = _plane_fits(static, idx)
+    off = np.abs(np.einsum("ij,ij->i", query - mean[inverse], normal[inverse]))
+    return (rms < flatness)[inverse] & (off < distance)
+
+
+def _cube_means(query: np.ndarray, bin_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """(cube of each point, mean point of each cube) of the cubes of side ``bin_size`` holding
+    ``query``."""
     cells = np.floor(query / bin_size).astype(np.int64)
     cells -= cells.min(axis=0)
     dims = cells.max(axis=0) + 1
@@ -638,7 +648,4 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
         inverse = inverse.ravel()
     centres = np.stack([np.bincount(inverse, weights=query[:, d], minlength=len(counts)) for d in range(3)], axis=1)
     centres /= counts[:, None]
-    idx = k_nearest(static, centres, k)
-    mean, normal, rms = _plane_fits(static, idx)
-    off = np.abs(np.einsum("ij,ij->i", query - mean[inverse], normal[inverse]))
-    return (rms < flatness)[inverse] & (off < distance)
+    return inverse, centres
