@@ -327,7 +327,7 @@ def inside_difference(fld: DensityField, other: DensityField, pts: np.ndarray):
     """Mask of ``pts`` (the finite points ``fld`` was built from) inside fld − other, and the
     difference volume D = max(F_fld, −F_other) < 0 on ``fld``'s blocks (D interpolated at the points)."""
     d = Volume.difference(fld, other)
-    return d.at(fld, pts) < 0, d
+    return d.negative_at(fld, pts), d
 
 
 def region_rules(fld: DensityField, d: Volume, pts: np.ndarray, mask: np.ndarray, *, regions: bool,

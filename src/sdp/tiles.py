@@ -304,7 +304,7 @@ def _compare_tile(key, root: str, tiling: _Tiling, opts: dict, store: str | None
             continue  # no points of this epoch here (a stored reference has none): no difference volume
         pts = np.ascontiguousarray(rec[own, :3])
         d = Volume.difference(fld, fields[other] or _empty_field(fld))  # evaluated where needed, never stored
-        mask = d.at(fld, pts) < 0 if len(pts) else np.zeros(0, bool)
+        mask = d.negative_at(fld, pts) if len(pts) else np.zeros(0, bool)
         rows = rec[own, 3].astype(np.int64)
         cand = np.flatnonzero(mask)
         unseen = cand if fields[other] is None else cand[~footprint_covered(pts[cand], fields[other])]
