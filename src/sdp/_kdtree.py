@@ -5,7 +5,9 @@ scipy's ``cKDTree`` does this as well, but importing ``scipy.spatial`` costs abo
 queries. It splits each node at the middle of its bounding box's widest side (as cKDTree's
 unbalanced tree; at the median, by quickselect, when every point falls on one side) down to
 leaves of ``_LEAF`` points, and keeps each node's bounding box. A query visits the nearer child
-first and skips a node whose box is farther than the k-th distance found so far. Neighbours come
+first and skips a node whose box is farther than the k-th distance found so far; it starts from
+the previous query's k nearest (a tight bound when queries come in spatial order, as the sensor
+test's cube means do: 1.5× faster on its queries). Neighbours come
 sorted by (distance, index), so the result equals ``cKDTree(points).query(queries, k)`` (ties
 aside, which it orders by index).
 

@@ -435,7 +435,7 @@ def _hull_polygon(p):
 def _convex_hull(seen: np.ndarray) -> np.ndarray:
     """The cells whose centre lies inside the convex hull of the True cells' squares: the hull of
     each row's outermost cells, filled row by row (a convex polygon cuts each row in one
-    interval), 0.2 ms on a Kinect frame's image where ``skimage.morphology.convex_hull_image``,
+    interval), 0.25 ms on a Kinect frame's image where ``skimage.morphology.convex_hull_image``,
     whose border rule differs slightly, takes 18 ms."""
     rows = np.flatnonzero(seen.any(axis=1))
     if len(rows) == 0:
