@@ -107,8 +107,8 @@ def volume_at(points, origin, voxel, a_directory, a_keys, a_blocks, ha, b_blocks
         gx, gy, gz = 1.0 - fx, 1.0 - fy, 1.0 - fz
         if ix >= 0 and iy >= 0 and iz >= 0 and (ix & 7) < 7 and (iy & 7) < 7 and (iz & 7) < 7 and \
                 ix < d0 * B and iy < d1 * B and iz < d2 * B:
-            # the cell lies in one block (7 cells in 8³/9³): one lookup in each field, the sum below
-            # unrolled in the same order
+            # the cell lies in one block (as (7/8)³ of the cells do): one lookup in each field, the
+            # sum below unrolled in the same order
             blk = a_directory[ix >> 3, iy >> 3, iz >> 3]
             if blk < 0:
                 out[p] = 0.0

@@ -663,9 +663,10 @@ def _group_means(query, keys):
     """(group of each row, mean row of each group) of the rows sharing a key (an open-addressing
     hash table; groups numbered by their first row; sums in row order, as ``np.bincount``)."""
     n = keys.shape[0]
-    cap = 64
-    while cap < 2 * n:
-        cap *= 2
+    bits = 6
+    while (1 << bits) < 2 * n:
+        bits += 1
+    cap = 1 << bits
     table = np.full(cap, -1, np.int64)  # group of the slot
     inverse = np.empty(n, np.int64)
     first = np.empty(n, np.int64)  # a row of each group (its key)
@@ -673,7 +674,7 @@ def _group_means(query, keys):
     counts = np.zeros(n, np.int64)
     groups = 0
     for i in range(n):
-        s = ((keys[i] * -7046029254386353131) >> 20) & (cap - 1)  # Fibonacci hashing (the product wraps)
+        s = ((keys[i] * -7046029254386353131) >> (64 - bits)) & (cap - 1)  # Fibonacci hashing (the product wraps)
         while table[s] >= 0 and keys[first[table[s]]] != keys[i]:
             s = (s + 1) & (cap - 1)
         if table[s] < 0:
