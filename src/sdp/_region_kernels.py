@@ -63,6 +63,11 @@ def volume_masks(a_keys, a_blocks, ha, b_blocks, b_directory, shift, hb):
         j = _partner(a_keys, blk, b_directory, shift)
         if j < 0 and not fb_h > 0:
             continue  # v >= -hb >= 0 throughout
+        above = 0
+        for n in range(B3):  # a count, not a search: it vectorizes
+            above += a_blocks[blk, n] > fa_h
+        if above == 0:
+            continue  # A <= ha throughout (most blocks of the halo): v >= 0
         for line in range(B2):
             mk = 0
             if j >= 0:
