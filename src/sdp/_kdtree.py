@@ -75,15 +75,15 @@ def _build(points, leaf):
         top -= 1
         a, b = start[node], end[node]
         left[node] = right[node] = -1
-        for d in range(3):
-            lo[node, d] = np.inf
-            hi[node, d] = -np.inf
+        lo0 = lo1 = lo2 = np.inf  # in locals: the loop then keeps them in registers
+        hi0 = hi1 = hi2 = -np.inf
         for i in range(a, b):
             p = order[i]
-            for d in range(3):
-                v = points[p, d]
-                lo[node, d] = min(lo[node, d], v)
-                hi[node, d] = max(hi[node, d], v)
+            x, y, z = points[p, 0], points[p, 1], points[p, 2]
+            lo0, lo1, lo2 = min(lo0, x), min(lo1, y), min(lo2, z)
+            hi0, hi1, hi2 = max(hi0, x), max(hi1, y), max(hi2, z)
+        lo[node, 0], lo[node, 1], lo[node, 2] = lo0, lo1, lo2
+        hi[node, 0], hi[node, 1], hi[node, 2] = hi0, hi1, hi2
         if b - a <= leaf:
             continue
         dim = 0
