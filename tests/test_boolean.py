@@ -76,6 +76,10 @@ def test_difference_volume_equals_the_stored_difference(two_fields, rng):
     lo, hi = a.grid.origin, a.grid.origin + np.asarray(a.grid.shape) * a.voxel_size
     pts = lo + rng.random((20_000, 3)) * (hi - lo)
     np.testing.assert_array_equal(volume.at(a, pts), a.interpolate(stored, pts))
+    # the masks' sign-only evaluation: the same signs, also where it exits early (inside b)
+    on_points = np.concatenate([pts, rng.normal([0.2, 0.0, 0.0], 0.3, (20_000, 3))])
+    np.testing.assert_array_equal(volume.negative_at(a, on_points), volume.at(a, on_points) < 0)
+    assert volume.negative_at(a, on_points).sum() > 1000 and (a.inside(on_points) & b.inside(on_points)).sum() > 1000
     labels, counts = label_volume(a, volume, pts)
     expected_labels, expected_counts = label_points(a, stored, pts)
     assert (stored < 0).any() and len(counts) > 0

@@ -176,3 +176,26 @@ def test_field_of_view_is_the_convex_hull_of_the_returned_cells():
         centres = np.argwhere(np.ones_like(seen)).astype(float)
         brute = (Delaunay(corners).find_simplex(centres, tol=1e-9) >= 0).reshape(seen.shape)
         np.testing.assert_array_equal(_convex_hull(seen), brute)
+
+
+def test_plane_test_helpers_match_numpy(rng):
+    """The sensor test's kernels give what the NumPy expressions they replace gave."""
+    from sdp.visibility import _cube_means, _every_nth_unchanged
+
+    query = rng.normal(size=(5_000, 3)) * [1.0, 2.0, 0.5] + 1e3  # far from the origin, as world coordinates
+    inverse, centres = _cube_means(query, 0.4)
+    cells = np.floor(query / 0.4).astype(np.int64)
+    keys, ref_inverse = np.unique(cells, axis=0, return_inverse=True)
+    ref_inverse = ref_inverse.ravel()
+    ref = np.stack([np.bincount(ref_inverse, weights=query[:, d]) for d in range(3)], axis=1)
+    ref /= np.bincount(ref_inverse)[:, None]
+    assert len(centres) == len(keys) and inverse.max() == len(centres) - 1
+    # the same grouping (numbered otherwise) and the same means, bit for bit
+    order = np.empty(len(keys), np.int64)
+    order[inverse] = ref_inverse
+    np.testing.assert_array_equal(order[inverse], ref_inverse)
+    np.testing.assert_array_equal(centres, ref[order])
+    changed = rng.random(len(query)) < 0.3
+    for stride in (1, 3, 8):
+        np.testing.assert_array_equal(_every_nth_unchanged(query, changed, stride),
+                                      query[np.flatnonzero(~changed)[::stride]])
