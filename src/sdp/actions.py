@@ -534,10 +534,15 @@ def _ridge_scores(gram, train, test, y, alpha):
     targets = np.where(y[train][:, None] == classes[None], 1.0, -1.0)
     k_tr, k_te = gram[np.ix_(train, train)], gram[np.ix_(test, train)]
     mean = k_tr.mean(axis=0)
-    centred = k_tr - mean[:, None] - mean[None] + mean.mean()
     centred_te = k_te - k_te.mean(axis=1, keepdims=True) - mean[None] + mean.mean()
-    a = np.linalg.solve(centred + alpha * np.eye(len(centred)), targets - targets.mean(axis=0))
-    return classes, centred_te @ a + targets.mean(axis=0)
+    return classes, centred_te @ _dual(k_tr, targets, alpha) + targets.mean(axis=0)
+
+
+def _dual(gram, targets, alpha):
+    """The ridge's dual coefficients a = (K + αI)⁻¹ (T − mean T), K the centred Gram matrix."""
+    mean = gram.mean(axis=0)
+    centred = gram - mean[:, None] - mean[None] + mean.mean()
+    return np.linalg.solve(centred + alpha * np.eye(len(centred)), targets - targets.mean(axis=0))
 
 
 _CHUNK = 16384  # descriptor columns per float64 block: the Gram and coefficients without a float64 copy of X
@@ -593,9 +598,7 @@ def _fit(x: np.ndarray, rows: np.ndarray, grams: list[np.ndarray], y: np.ndarray
     coef = np.empty((targets.shape[1], x.shape[1]), np.float32)
     offset = targets.mean(axis=0)
     for gram, alpha, (start, end, share) in zip(grams, chosen, parts, strict=True):
-        mean = gram.mean(axis=0)
-        centred = gram - mean[:, None] - mean[None] + mean.mean()
-        dual = share * np.linalg.solve(centred + alpha * np.eye(len(gram)), targets - targets.mean(axis=0))
+        dual = share * _dual(gram, targets, alpha)
         for i in range(start, end, _CHUNK):
             j = min(i + _CHUNK, end)
             block = x[rows, i:j].astype(np.float64)

@@ -142,18 +142,18 @@ class Volume(NamedTuple):
     def at(self, field: DensityField, points: np.ndarray) -> np.ndarray:
         """v interpolated at finite world ``points``, as :meth:`DensityField.interpolate` would
         interpolate v stored on ``field``'s blocks."""
-        out = np.empty(len(points))
-        volume_at(points, field.grid.origin, field.voxel_size, field.blocks.directory, *self.kernel_args(field), out,
-                  False)
-        return out
+        return self._at(field, points, signs=False)
 
     def negative_at(self, field: DensityField, points: np.ndarray) -> np.ndarray:
         """``self.at(field, points) < 0``, without interpolating v where B exceeds h_b at every
         corner of a point's cell (v > 0 there)."""
+        return self._at(field, points, signs=True) < 0
+
+    def _at(self, field: DensityField, points: np.ndarray, *, signs: bool) -> np.ndarray:
         out = np.empty(len(points))
         volume_at(points, field.grid.origin, field.voxel_size, field.blocks.directory, *self.kernel_args(field), out,
-                  True)
-        return out < 0
+                  signs)
+        return out
 
     def kernel_args(self, field: DensityField) -> tuple:
         """The arguments of the volume kernels of ``sdp._region_kernels``, on ``field``'s blocks."""

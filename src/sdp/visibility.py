@@ -647,35 +647,33 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
 def _cube_means(query: np.ndarray, bin_size: float) -> tuple[np.ndarray, np.ndarray]:
     """(cube of each point, mean point of each cube) of the cubes of side ``bin_size`` holding
     ``query``; cubes numbered in the order their first point comes."""
-    cells = np.floor(query / bin_size).astype(np.int64)
-    cells -= cells.min(axis=0)
-    dims = cells.max(axis=0) + 1
-    if np.prod(dims.astype(np.float64)) < 2.0**62:  # one int64 key per cube
-        return _group_means(query, (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2])
-    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    centres = np.stack([np.bincount(inverse, weights=query[:, d], minlength=len(counts)) for d in range(3)], axis=1)
-    return inverse, centres / counts[:, None]
+    return _group_means(query, np.floor(query / bin_size).astype(np.int64))
 
 
 @nb.njit(cache=True, nogil=True)
-def _group_means(query, keys):
-    """(group of each row, mean row of each group) of the rows sharing a key (an open-addressing
-    hash table; groups numbered by their first row; sums in row order, as ``np.bincount``)."""
-    n = keys.shape[0]
+def _group_means(query, cells):
+    """(group of each row, mean row of each group) of the rows sharing a cell (x, y, z) of
+    ``cells`` (an open-addressing hash table; groups numbered by their first row; sums in row
+    order, as ``np.bincount``)."""
+    n = cells.shape[0]
     bits = 6
     while (1 << bits) < 2 * n:
         bits += 1
     cap = 1 << bits
     table = np.full(cap, -1, np.int64)  # group of the slot
     inverse = np.empty(n, np.int64)
-    first = np.empty(n, np.int64)  # a row of each group (its key)
+    first = np.empty(n, np.int64)  # a row of each group (its cell)
     sums = np.zeros((n, 3))
     counts = np.zeros(n, np.int64)
     groups = 0
     for i in range(n):
-        s = ((keys[i] * -7046029254386353131) >> (64 - bits)) & (cap - 1)  # Fibonacci hashing (the product wraps)
-        while table[s] >= 0 and keys[first[table[s]]] != keys[i]:
+        cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
+        key = (cx * 73856093) ^ (cy * 19349663) ^ (cz * 83492791)
+        s = ((key * -7046029254386353131) >> (64 - bits)) & (cap - 1)  # Fibonacci hashing (the product wraps)
+        while table[s] >= 0:
+            f = first[table[s]]
+            if cells[f, 0] == cx and cells[f, 1] == cy and cells[f, 2] == cz:
+                break
             s = (s + 1) & (cap - 1)
         if table[s] < 0:
             table[s] = groups
