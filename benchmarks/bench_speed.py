@@ -13,7 +13,10 @@ warm and cold, and the baselines in the same run.
    ``REPEAT`` times per pair; the fastest counts (the machine is shared: say its load).
 2. Start-up: ``import sdp``; ``sdp --version``; ``sdp change A.pcd B.pcd -o OUT.ply`` warm (median
    of 5 runs); cold: in a new Numba cache (the first run compiles every kernel it needs), and
-   in another new cache after ``sdp warmup`` (what a fresh install's first command adds).
+   in another new cache after ``sdp warmup`` (what a fresh install's first command adds). Beside
+   them, Numba's own floor: ``import numba``, and a script that calls one trivial kernel cached on
+   disk (serial, and ``parallel=True``), warm: what any command built on Numba's cached kernels
+   pays before its own work.
 
 Prints markdown and writes benchmarks/results/speed.md. Needs ../shared/data (about 5 minutes).
 """
@@ -142,6 +145,23 @@ def plane_fit_neighbours(out):
     out("")
 
 
+# the least a program calling one Numba kernel cached on disk can take (a sum, nothing of sdp)
+NUMBA_FLOOR = """import numba
+import numpy as np
+
+
+@numba.njit(cache=True, parallel={parallel})
+def total(x):
+    s = 0.0
+    for i in numba.prange(x.shape[0]):
+        s += x[i]
+    return s
+
+
+total(np.ones(3))
+"""
+
+
 def run(args, env=None) -> float:
     t = time.perf_counter()
     subprocess.run(args, check=True, capture_output=True, env=env)
@@ -161,6 +181,14 @@ def start_up(out):
         warmed = {**os.environ, "NUMBA_CACHE_DIR": str(Path(tmp) / "warmed")}
         t_warmup = run([SDP, "warmup", "--quiet"], warmed)
         after = run(change, warmed)
+        floor_env = {**os.environ, "NUMBA_CACHE_DIR": str(Path(tmp) / "floor")}
+        import_numba = [run([sys.executable, "-c", "import numba"]) for _ in range(5)]
+        floor = {}
+        for parallel in (False, True):
+            script = Path(tmp) / f"floor_{parallel}.py"
+            script.write_text(NUMBA_FLOOR.format(parallel=parallel))
+            run([sys.executable, str(script)], floor_env)  # compiles and caches
+            floor[parallel] = [run([sys.executable, str(script)], floor_env) for _ in range(5)]
     out(f"## 2. Start-up (`sdp change {CLI_PAIR[0]} {CLI_PAIR[1]} -o out.ply`, labelled PLY written)\n")
     out(f"Load average (1 min) {os.getloadavg()[0]:.1f} at the end.\n")
     out("| what | seconds |\n|---|---:|")
@@ -170,6 +198,10 @@ def start_up(out):
     out(f"| `sdp change`, first run in a new Numba cache (compiles) | {cold:.1f} |")
     out(f"| `sdp warmup` in another new cache | {t_warmup:.1f} |")
     out(f"| `sdp change` after it: first run (compilation added: {after - np.median(warm):+.2f}) | {after:.2f} |")
+    out(f"| Numba's floor: `python -c 'import numba'` (median of 5) | {np.median(import_numba):.2f} |")
+    out(f"| Numba's floor: one trivial kernel cached on disk, called by a script (median of 5) | "
+        f"{np.median(floor[False]):.2f} |")
+    out(f"| the same kernel with `parallel=True` (median of 5) | {np.median(floor[True]):.2f} |")
     out("")
 
 
