@@ -145,8 +145,11 @@ def plane_fit_neighbours(out):
     out("")
 
 
-# the least a program calling one Numba kernel cached on disk can take (a sum, nothing of sdp)
-NUMBA_FLOOR = """import numba
+# the least a program calling one Numba kernel cached on disk can take (a sum, nothing of sdp); it
+# ends as the sdp program does (sdp.cli.run: gc.freeze() before the interpreter shuts down)
+NUMBA_FLOOR = """import gc
+
+import numba
 import numpy as np
 
 
@@ -159,6 +162,7 @@ def total(x):
 
 
 total(np.ones(3))
+gc.freeze()
 """
 
 

@@ -217,3 +217,26 @@ def test_align_on_a_class_with_fixed_horizontal(tmp_path, rng):
     assert bad.returncode == 2 and "classification" in bad.stderr
     bad = run("change", tmp_path / "ref.las", tmp_path / "cur.las", "-o", tmp_path / "d.las", "--align-class", "2")
     assert bad.returncode == 2 and "--align density" in bad.stderr and not (tmp_path / "d.las").exists()
+
+
+def test_the_program_exits_with_the_status_of_main_and_freezes_what_is_left(tmp_path, monkeypatch):
+    import gc
+    from importlib.metadata import entry_points
+
+    from sdp import cli
+
+    assert entry_points(group="console_scripts")["sdp"].value == "sdp.cli:run"  # the installed `sdp`
+    np.save(tmp_path / "a.npy", np.zeros((0, 3)))
+    monkeypatch.setattr(sys, "argv", ["sdp", "change", str(tmp_path / "a.npy"), str(tmp_path / "a.npy"), "-o",
+                                      str(tmp_path / "o.ply")])
+    threshold = gc.get_threshold()
+    try:
+        with pytest.raises(SystemExit) as exit_:
+            cli.run()
+        frozen, tuned = gc.get_freeze_count(), gc.get_threshold()
+    finally:  # this process goes on: give the collector back
+        gc.unfreeze()
+        gc.set_threshold(*threshold)
+    assert exit_.value.code == 2  # an empty cloud: main's one-line error
+    assert frozen > 0 and tuned == (*threshold[:2], 100)
+    assert not (tmp_path / "o.ply").exists()

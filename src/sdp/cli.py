@@ -3,12 +3,14 @@
 Each command is a ``cmd_NAME(a)`` that passes the parsed options ``a`` to one library function
 (:mod:`sdp.pipeline`: the commands as Python functions) and prints what it returns (the text of
 :mod:`sdp.report`, or JSON), plus its parser in :func:`build_parser`. Options are checked by
-:mod:`sdp.validate`; :func:`main` turns errors and signals into one line and an exit status.
+:mod:`sdp.validate`; :func:`main` turns errors and signals into one line and an exit status, and
+:func:`run` is the program (the console script and ``python -m sdp.cli``).
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import signal
@@ -395,5 +397,29 @@ def main(argv=None) -> int:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
+def run() -> None:
+    """The ``sdp`` program: :func:`main` on ``sys.argv``, then exit with its status.
+
+    The garbage collector is tuned for a program that loads Numba, whose type registries (some
+    125,000 objects, alive until the end) dominate the heap: full collections run a tenth as often
+    (every 100 collections of the middle generation instead of 10), and before the interpreter
+    shuts down the objects still alive are put out of the collector's reach (:func:`gc.freeze`),
+    so the collections of the shutdown do not traverse them again and again. Together 0.25–0.3 s
+    of every command that runs a kernel (measured on ``sdp change`` with a Kinect pair: full
+    collections 0.06–0.07 s, shutdown 0.2 s, a quarter of the command). Cyclic garbage is still
+    collected while the command runs. Nothing is lost at exit: every output is written and closed
+    by then, the streams are flushed and ``atexit`` handlers run as before, and the memory goes
+    back to the system with the process (Python never promised to finalize objects still alive
+    at exit).
+    """
+    young, middle, _ = gc.get_threshold()
+    gc.set_threshold(young, middle, 100)
+    try:
+        status = main()
+    finally:
+        gc.freeze()
+    sys.exit(status)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
