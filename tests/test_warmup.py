@@ -91,3 +91,14 @@ def test_after_warmup_the_commands_compile_nothing(tmp_path, rng):
                               text=True, timeout=300)
         assert done.stdout.strip().splitlines()[-1] == "0 []", (command, done.stdout, done.stderr)
         assert "compiling" not in done.stderr
+
+
+def test_warmup_writes_bytecode_where_python_would_not(tmp_path, monkeypatch):
+    import importlib.util
+
+    module = tmp_path / "kernel_module.py"
+    module.write_text("VALUE = 1\n")
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)  # as PYTHONDONTWRITEBYTECODE=1 sets it
+    monkeypatch.setattr(warmup, "_package_dir", lambda: tmp_path)
+    warmup._write_bytecode()
+    assert Path(importlib.util.cache_from_source(str(module))).is_file()
