@@ -484,6 +484,8 @@ def _check_picture_extras(*, png=None, html=None, report=None) -> None:
 
 def _pictures(png, html, xyz, changed, title, regions=()) -> list[str]:
     """Write the ``png`` / ``html`` pictures of changed points that were asked for (a map outlines ``regions``)."""
+    if not (png or html):
+        return []
     from .render import render_changes, render_changes_html
 
     written = []
