@@ -179,6 +179,11 @@ def test_cli_output_paths_are_checked_first(tmp_path, args):
     assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == before
 
 
+# the signalled tiled runs: big enough that 2-3 s of work remain when the first buckets appear
+# (300,000 points at 0.05 left 1.0-1.5 s, and a fast run could end before its signal arrived)
+SIGNALLED_POINTS, SIGNALLED_VOXEL = 1_000_000, "0.03"
+
+
 def wait_for_buckets(folder, process, timeout=120):
     """Wait until the tiled run under ``folder`` has written bucket files (its cluster is up)."""
     end = time.monotonic() + timeout
@@ -193,14 +198,15 @@ def wait_for_buckets(folder, process, timeout=120):
 def test_sigterm_on_the_tiled_path_cleans_up(tmp_path):
     rng = np.random.default_rng(4)
     for name in ("a.npy", "b.npy"):
-        np.save(tmp_path / name, rng.random((300_000, 3)) * [20, 20, 2])
+        np.save(tmp_path / name, rng.random((SIGNALLED_POINTS, 3)) * [20, 20, 2])
     scratch = tmp_path / "tmp"
     scratch.mkdir()
     env = dict(os.environ, TMPDIR=str(scratch))
     p = subprocess.Popen([sys.executable, "-m", "sdp.cli", "change", "a.npy", "b.npy", "-o", "o.laz", "--tiled",
-                          "--voxel-size", "0.05", "-q"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                          "--voxel-size", SIGNALLED_VOXEL, "-q"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
     wait_for_buckets(scratch, p)
+    assert p.poll() is None, "the run ended before the signal: nothing was interrupted"
     p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=120)
     assert p.returncode != 0 and "Traceback" not in err, err
@@ -210,11 +216,13 @@ def test_sigterm_on_the_tiled_path_cleans_up(tmp_path):
 
 @pytest.mark.slow
 def test_interrupt_is_one_line(tmp_path):
-    np.save(tmp_path / "a.npy", np.random.default_rng(5).random((300_000, 3)) * [20, 20, 2])
+    np.save(tmp_path / "a.npy", np.random.default_rng(5).random((SIGNALLED_POINTS, 3)) * [20, 20, 2])
     p = subprocess.Popen([sys.executable, "-m", "sdp.cli", "change", "a.npy", "a.npy", "-o", "o.laz", "--tiled",
-                          "--voxel-size", "0.05", "-q", "--workers", "1"], cwd=tmp_path, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True, env=dict(os.environ, TMPDIR=str(tmp_path)))
+                          "--voxel-size", SIGNALLED_VOXEL, "-q", "--workers", "1"], cwd=tmp_path,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=dict(os.environ, TMPDIR=str(tmp_path)))
     wait_for_buckets(tmp_path, p)
+    assert p.poll() is None, "the run ended before the signal: nothing was interrupted"
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=120)
     assert p.returncode == 130 and err.strip().splitlines()[-1] == "sdp: interrupted" and "Traceback" not in err, err
