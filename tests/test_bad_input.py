@@ -179,9 +179,15 @@ def test_cli_output_paths_are_checked_first(tmp_path, args):
     assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == before
 
 
-# the signalled tiled runs: big enough that 2-3 s of work remain when the first buckets appear
-# (300,000 points at 0.05 left 1.0-1.5 s, and a fast run could end before its signal arrived)
-SIGNALLED_POINTS, SIGNALLED_VOXEL = 1_000_000, "0.03"
+# the signalled tiled runs: 1-1.5 s of work are left when their first buckets appear
+SIGNALLED_POINTS, SIGNALLED_VOXEL = 300_000, "0.05"
+
+
+def default_sigint():
+    """In a child about to be interrupted: Ctrl-C's default disposition, whatever the test run's
+    (a test run started in the background of a shell inherits SIGINT ignored, and so would the
+    command: Python keeps an ignored SIGINT ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def wait_for_buckets(folder, process, timeout=120):
@@ -220,7 +226,7 @@ def test_interrupt_is_one_line(tmp_path):
     p = subprocess.Popen([sys.executable, "-m", "sdp.cli", "change", "a.npy", "a.npy", "-o", "o.laz", "--tiled",
                           "--voxel-size", SIGNALLED_VOXEL, "-q", "--workers", "1"], cwd=tmp_path,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         env=dict(os.environ, TMPDIR=str(tmp_path)))
+                         env=dict(os.environ, TMPDIR=str(tmp_path)), preexec_fn=default_sigint)
     wait_for_buckets(tmp_path, p)
     assert p.poll() is None, "the run ended before the signal: nothing was interrupted"
     p.send_signal(signal.SIGINT)
