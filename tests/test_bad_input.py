@@ -183,11 +183,10 @@ def test_cli_output_paths_are_checked_first(tmp_path, args):
 SIGNALLED_POINTS, SIGNALLED_VOXEL = 300_000, "0.05"
 
 
-def default_sigint():
-    """In a child about to be interrupted: Ctrl-C's default disposition, whatever the test run's
-    (a test run started in the background of a shell inherits SIGINT ignored, and so would the
-    command: Python keeps an ignored SIGINT ignored)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+# `python -m sdp.cli` with Ctrl-C's default handler, whatever the test run's: a test run started in
+# the background of a shell inherits SIGINT ignored, and Python would keep it so in the command
+INTERRUPTIBLE = [sys.executable, "-c", ("import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+                                        "runpy.run_module('sdp.cli', run_name='__main__', alter_sys=True)")]
 
 
 def wait_for_buckets(folder, process, timeout=120):
@@ -223,10 +222,10 @@ def test_sigterm_on_the_tiled_path_cleans_up(tmp_path):
 @pytest.mark.slow
 def test_interrupt_is_one_line(tmp_path):
     np.save(tmp_path / "a.npy", np.random.default_rng(5).random((SIGNALLED_POINTS, 3)) * [20, 20, 2])
-    p = subprocess.Popen([sys.executable, "-m", "sdp.cli", "change", "a.npy", "a.npy", "-o", "o.laz", "--tiled",
+    p = subprocess.Popen([*INTERRUPTIBLE, "change", "a.npy", "a.npy", "-o", "o.laz", "--tiled",
                           "--voxel-size", SIGNALLED_VOXEL, "-q", "--workers", "1"], cwd=tmp_path,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         env=dict(os.environ, TMPDIR=str(tmp_path)), preexec_fn=default_sigint)
+                         env=dict(os.environ, TMPDIR=str(tmp_path)))
     wait_for_buckets(tmp_path, p)
     assert p.poll() is None, "the run ended before the signal: nothing was interrupted"
     p.send_signal(signal.SIGINT)
