@@ -13,7 +13,8 @@ warm and cold, and the baselines in the same run.
    ``REPEAT`` times per pair; the fastest counts (the machine is shared: say its load).
 2. Start-up: ``import sdp``; ``sdp --version``; ``sdp change A.pcd B.pcd -o OUT.ply`` warm (median
    of 5 runs); cold: in a new Numba cache (the first run compiles every kernel it needs), and
-   in another new cache after ``sdp warmup`` (what a fresh install's first command adds). Beside
+   in another new cache after ``sdp warmup`` (what a fresh install's first command adds); the
+   warm command also through ``sdp.cli.main`` alone, without the program's collector tuning. Beside
    them, Numba's own floor: ``import numba``, and a script that calls one trivial kernel cached on
    disk (serial, and ``parallel=True``), warm: what any command built on Numba's cached kernels
    pays before its own work.
@@ -178,8 +179,14 @@ def start_up(out):
         change = [SDP, "change", a, b, "-o", str(Path(tmp) / "out.ply")]
         imports = [run([sys.executable, "-c", "import sdp"]) for _ in range(5)]
         version = [run([SDP, "--version"]) for _ in range(5)]
+        # the same command through main() alone, without the program's collector tuning
+        # (sdp.cli.run), alternating with it
+        untuned = [sys.executable, "-c", "import sys; from sdp.cli import main; sys.exit(main())", *change[1:]]
         run(change)
-        warm = [run(change) for _ in range(5)]
+        warm, warm_untuned = [], []
+        for _ in range(5):
+            warm.append(run(change))
+            warm_untuned.append(run(untuned))
         fresh = {**os.environ, "NUMBA_CACHE_DIR": str(Path(tmp) / "cold")}
         cold = run(change, fresh)
         warmed = {**os.environ, "NUMBA_CACHE_DIR": str(Path(tmp) / "warmed")}
@@ -199,6 +206,8 @@ def start_up(out):
     out(f"| `python -c 'import sdp'` (median of 5) | {np.median(imports):.2f} |")
     out(f"| `sdp --version` (median of 5) | {np.median(version):.2f} |")
     out(f"| `sdp change`, warm (median of 5) | {np.median(warm):.2f} |")
+    out(f"| the same through `main()` alone, without the program's collector tuning (median of 5, alternating) | "
+        f"{np.median(warm_untuned):.2f} |")
     out(f"| `sdp change`, first run in a new Numba cache (compiles) | {cold:.1f} |")
     out(f"| `sdp warmup` in another new cache | {t_warmup:.1f} |")
     out(f"| `sdp change` after it: first run (compilation added: {after - np.median(warm):+.2f}) | {after:.2f} |")

@@ -137,7 +137,8 @@ def _write_bytecode() -> None:
 
 
 def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
-    """Compile (or load from the cache) the kernels of every command; seconds per command.
+    """Compile (or load from the cache) the kernels of every command, after writing sdp's
+    bytecode; seconds per command (and ``"bytecode"``).
 
     Each command runs once on a small simulated office scan written to a temporary folder
     (PLY with the camera's position, LAZ, field files), as the command line runs it; the tiled
