@@ -26,7 +26,7 @@ from types import ModuleType
 import numpy as np
 from scipy.spatial import cKDTree
 
-from sdp.metrics import kappa
+from sdp.change._metrics import kappa
 
 __all__ = ["Scored", "METHODS", "c2c_ckdtree", "c2c_pykdtree", "m3c2", "gmm", "voxel_occupancy",
            "depth_difference", "depth_image", "tune_threshold", "two_fold"]

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sdp.actions import ActionModel, evaluate_protocol, list_sequences, read_sequence, sequence_descriptor
+from sdp.actions._actions import ActionModel, evaluate_protocol, list_sequences, read_sequence, sequence_descriptor
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "msr_action3d"

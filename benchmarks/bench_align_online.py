@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import sdp
-from sdp.io import read_points
+from sdp.io._io import read_points
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -40,7 +40,7 @@ def legacy_density(ref, cur, levels=4, max_points=100_000, seed=0):
     from the trilinear-gradient kernel, coarse to fine over ``coarsen()``. Returns (matrix, s)."""
     from scipy.optimize import minimize
 
-    from sdp import _grid_kernels as K
+    from sdp.fields import _kernels as K
 
     start = time.perf_counter()
     field = sdp.DensityField.from_points(ref, voxel_size=sdp.auto_voxel_size(ref) / 2, sigma_voxels=4)

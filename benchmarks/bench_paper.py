@@ -413,7 +413,7 @@ def summary(runs: dict[str, Run], changed) -> list[str]:
              "Baselines: threshold tuned two-fold (held-out kappa). **sdp is untuned**: its rows use fixed "
              "parameters and no threshold is fitted to the ground truth. sdp default = "
              f"`detect_changes(ref_xyz, cur_xyz)` (`sdp.DEFAULTS`, arrays: no sensor); {SDP_ORIGIN} = "
-             "the same with `sensor_origin=` each scan's PCD VIEWPOINT (the visibility test of `sdp.visibility`, "
+             "the same with `sensor_origin=` each scan's PCD VIEWPOINT (the visibility test of `sdp.change._visibility`, "
              "its defaults; section 5b checks its range noise two-fold). GMM: the number of Gaussians with the "
              "best held-out kappa in the sweep (an optimistic pick). Time: wall time of the whole call per pair "
              "(Table I), ratio to sdp default in the same run.\n",

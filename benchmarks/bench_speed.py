@@ -14,7 +14,7 @@ warm and cold, and the baselines in the same run.
 2. Start-up: ``import sdp``; ``sdp --version``; ``sdp change A.pcd B.pcd -o OUT.ply`` warm (median
    of 5 runs); cold: in a new Numba cache (the first run compiles every kernel it needs), and
    in another new cache after ``sdp warmup`` (what a fresh install's first command adds); the
-   warm command also through ``sdp.cli.main`` alone, without the program's collector tuning. Beside
+   warm command also through ``sdp.cli._main.main`` alone, without the program's collector tuning. Beside
    them, Numba's own floor: ``import numba``, and a script that calls one trivial kernel cached on
    disk (serial, and ``parallel=True``), warm: what any command built on Numba's cached kernels
    pays before its own work.
@@ -117,9 +117,9 @@ def plane_fit_neighbours(out):
     come in another order)."""
     from scipy.spatial import cKDTree
 
-    from sdp._kdtree import k_nearest
-    from sdp.change import inside_difference
-    from sdp.visibility import _cube_means
+    from sdp._core._kdtree import k_nearest
+    from sdp.change._detect import inside_difference
+    from sdp.change._visibility import _cube_means
 
     out("## 1b. The plane fits' neighbours: sdp's k-d tree against cKDTree\n")
     out("| pair | unchanged points | cubes | sdp._kdtree (ms) | cKDTree (ms) | same distances |")
@@ -147,7 +147,7 @@ def plane_fit_neighbours(out):
 
 
 # the least a program calling one Numba kernel cached on disk can take (a sum, nothing of sdp); it
-# ends as the sdp program does (sdp.cli.run: gc.freeze() before the interpreter shuts down)
+# ends as the sdp program does (sdp.cli._main.run: gc.freeze() before the interpreter shuts down)
 NUMBA_FLOOR = """import gc
 
 import numba
@@ -180,8 +180,8 @@ def start_up(out):
         imports = [run([sys.executable, "-c", "import sdp"]) for _ in range(5)]
         version = [run([SDP, "--version"]) for _ in range(5)]
         # the same command through main() alone, without the program's collector tuning
-        # (sdp.cli.run), alternating with it
-        untuned = [sys.executable, "-c", "import sys; from sdp.cli import main; sys.exit(main())", *change[1:]]
+        # (sdp.cli._main.run), alternating with it
+        untuned = [sys.executable, "-c", "import sys; from sdp.cli._main import main; sys.exit(main())", *change[1:]]
         run(change)
         warm, warm_untuned = [], []
         for _ in range(5):

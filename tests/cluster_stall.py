@@ -10,9 +10,9 @@ import os
 import time
 from pathlib import Path
 
-import sdp.tiles
+import sdp.scale._tiles
 
-_compare_tile = getattr(sdp.tiles._compare_tile, "__wrapped__", sdp.tiles._compare_tile)  # imported twice by Dask
+_compare_tile = getattr(sdp.scale._tiles._compare_tile, "__wrapped__", sdp.scale._tiles._compare_tile)  # imported twice by Dask
 
 
 def _stalling_compare_tile(*args, **kwargs):
@@ -26,4 +26,4 @@ def _stalling_compare_tile(*args, **kwargs):
 
 # Tasks name their function by module and name (cloudpickle), so the worker runs this one.
 _stalling_compare_tile.__wrapped__ = _compare_tile
-sdp.tiles._compare_tile = _stalling_compare_tile
+sdp.scale._tiles._compare_tile = _stalling_compare_tile

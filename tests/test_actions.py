@@ -7,7 +7,7 @@ import pytest
 from scipy.ndimage import gaussian_filter1d
 
 from sdp import SDPError
-from sdp.actions import (
+from sdp.actions._actions import (
     BODY_SIZE,
     FLOW_WEIGHT,
     FOCAL,

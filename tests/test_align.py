@@ -4,8 +4,8 @@ from conftest import box_surface, room_scene
 from scipy.spatial.transform import Rotation
 
 import sdp
-from sdp import _grid_kernels as K
-from sdp.align import align, transform_points
+from sdp.fields import _kernels as K
+from sdp.registration._align import align, transform_points
 
 
 def rigid(deg, axis, t):
@@ -159,7 +159,7 @@ def test_options_are_checked(rng):
 
 
 def test_closed_form_top_eigenpair_matches_eigh(rng):
-    from sdp.align import _top_eigen
+    from sdp.registration._align import _top_eigen
 
     x = rng.standard_normal((3000, 3, 3))
     m = x + x.transpose(0, 2, 1)

@@ -5,7 +5,8 @@ import pytest
 from conftest import box_surface, room_scene
 
 import sdp
-from sdp.scene import office_scene
+import sdp.change._detect
+from sdp.data._scene import office_scene
 
 
 @pytest.fixture
@@ -124,7 +125,7 @@ def test_two_directions_on_threads_equal_one_thread(monkeypatch):
     s = office_scene(seed=3)
     kw = dict(voxel_size="auto", min_region_points=20, sensor_origin=(0.3, 0.2, 2.2))
     threaded = sdp.detect_changes(s.reference, s.current, **kw)
-    monkeypatch.setattr(sdp.change, "map_concurrently", lambda fn, items, **_: [fn(x) for x in items])
+    monkeypatch.setattr(sdp.change._detect, "map_concurrently", lambda fn, items, **_: [fn(x) for x in items])
     serial = sdp.detect_changes(s.reference, s.current, **kw)
     for a, b in ((threaded.appeared, serial.appeared), (threaded.disappeared, serial.disappeared),
                  (threaded.appeared_region, serial.appeared_region)):
@@ -133,7 +134,7 @@ def test_two_directions_on_threads_equal_one_thread(monkeypatch):
 
 
 def test_map_concurrently_keeps_order_and_raises():
-    from sdp._parallel import map_concurrently
+    from sdp._core._parallel import map_concurrently
 
     assert map_concurrently(lambda x: x * x, range(5)) == [0, 1, 4, 9, 16]
     with pytest.raises(ZeroDivisionError):

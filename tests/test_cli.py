@@ -5,7 +5,7 @@ import sys
 import numpy as np
 import pytest
 
-from sdp.io import read_points, write_points
+from sdp.io._io import read_points, write_points
 
 
 def run(*args, cwd=None):
@@ -149,7 +149,7 @@ def test_outputs_get_a_normal_file_mode(tmp_path, pair):
 def test_align_writes_a_loadable_matrix_and_change_uses_it(tmp_path, rng):
     from conftest import room_scene
 
-    from sdp.align import transform_points
+    from sdp.registration._align import transform_points
 
     truth = np.eye(4)
     truth[:3, 3] = [0.04, -0.03, 0.02]

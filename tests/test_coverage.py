@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import sdp
-from sdp.coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered
+from sdp.change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered
 
 
 def flight(rng, x_max, *, building=None, spacing=1.0):
@@ -131,7 +131,7 @@ def test_eval_scores_the_comparable_points_and_render_draws_them_grey(tmp_path, 
     assert s["not_comparable"] == r.current_not_comparable.sum() > 0
     assert s["kappa"] == pytest.approx(sdp.scores(roof, r.appeared, comparable=~r.current_not_comparable)["kappa"])
     assert s["kappa"] > 0.95
-    from sdp.render import _drawn
+    from sdp.viz._render import _drawn
 
     names = [layer[1] for layer in _drawn(r.current_state, 1000, 0)]
     assert names == ["unchanged", "not comparable", "changed"]
@@ -151,7 +151,7 @@ def test_watch_marks_what_the_reference_never_covered(rng):
 
 @pytest.mark.slow
 def test_a_landscape_is_drawn_as_a_map_and_a_room_in_three_views(tmp_path, rng, monkeypatch):
-    from sdp import render
+    from sdp.viz import _render as render
 
     old, _ = flight(rng, 60, spacing=1.5)
     new, _ = flight(rng, 90, building=(20, 20, 35, 35), spacing=1.5)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import sdp
-from sdp.cli import build_parser
+from sdp.cli._main import build_parser
 
 PYTHON = {  # function → the DEFAULTS fields it takes as keyword options
     sdp.detect_changes: ("voxel_size", "sigma_voxels", "k", "truncate", "min_region_points", "sensor_origin",
@@ -77,10 +77,10 @@ def test_which_files_know_their_sensor(tmp_path, rng):
 
 
 def test_detect_changes_uses_the_sensor_a_cloud_brings(tmp_path):
-    from sdp.scene import CAMERA, office_scene
+    from sdp.data._scene import CAMERA, office_scene
 
     s = office_scene(seed=1, width=160, height=120)
-    ref, cur = sdp.io.Cloud(s.reference), sdp.io.Cloud(s.current)
+    ref, cur = sdp.io._io.Cloud(s.reference), sdp.io._io.Cloud(s.current)
     ref.viewpoint = cur.viewpoint = np.r_[CAMERA, 1, 0, 0, 0]
     ref.organized = cur.organized = True
     auto = sdp.detect_changes(ref, cur)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import sdp
+import sdp.distance._distances
 
 
 def plane(rng, n, noise, z=0.0, size=4.0):
@@ -89,7 +90,7 @@ def test_core_points_and_registration_error(rng):
 def test_fields_and_summary(rng):
     d = sdp.distances(plane(rng, 5_000, 0.002), plane(rng, 5_000, 0.002, z=0.05))
     f = d.fields()
-    assert list(f) == list(sdp.distance.DISTANCE_FIELDS)
+    assert list(f) == list(sdp.distance._distances.DISTANCE_FIELDS)
     assert all(len(v) == 5_000 for v in f.values()) and f["significant"].dtype == np.uint8
     s = d.summary()
     assert s["significant_positive"] == s["significant"] > 4_900
@@ -149,7 +150,7 @@ def test_sdp_distance_writes_every_field_in_each_format(rng, tmp_path):
         r = run_sdp("distance", tmp_path / "a.ply", tmp_path / "b.ply", "-o", tmp_path / f"d.{ext}", "--json")
         assert r.returncode == 0, r.stderr
         out = sdp.read_points(tmp_path / f"d.{ext}")
-        assert set(sdp.distance.DISTANCE_FIELDS) <= set(out.fields)
+        assert set(sdp.distance._distances.DISTANCE_FIELDS) <= set(out.fields)
         tol = 2e-3 if ext == "laz" else 1e-6  # LAS coordinates on a 1 mm scale
         assert np.allclose(out.fields["distance"], expected.distance, atol=tol)
         assert (np.asarray(out.fields["significant"]) == expected.significant).all()
@@ -183,9 +184,9 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path):
 def test_hash_cells_equal_dense_cells(rng, monkeypatch):
     a, b = plane(rng, 5_000, 0.002), plane(rng, 5_000, 0.002, z=0.3)  # the far search too
     dense = sdp.distances(a, b, projection_scale=0.05)
-    monkeypatch.setattr(sdp.distance, "_DENSE_CELLS", 0)  # boxes beyond the dense limit: hashed cells
+    monkeypatch.setattr(sdp.distance._distances, "_DENSE_CELLS", 0)  # boxes beyond the dense limit: hashed cells
     hashed = sdp.distances(a, b, projection_scale=0.05)
-    for name in sdp.distance.DISTANCE_FIELDS:
+    for name in sdp.distance._distances.DISTANCE_FIELDS:
         assert np.array_equal(dense.fields()[name], hashed.fields()[name], equal_nan=True), name
 
 
@@ -200,7 +201,7 @@ def test_tiles_give_the_same_distances(rng):
     tiled = sdp.distances_tiled(a, b, tile_size=1.0, scheduler="synchronous", **kw)
     assert tiled.tiles > 4 and len(tiled.distance) == n and np.isnan(tiled.distance[5])
     keep = np.isfinite(a).all(axis=1)
-    for name in sdp.distance.DISTANCE_FIELDS:
+    for name in sdp.distance._distances.DISTANCE_FIELDS:
         assert np.array_equal(whole.fields()[name], tiled.fields()[name][keep], equal_nan=True), name
     auto = sdp.distances_tiled(a, b, scheduler="synchronous")  # scales from the first slices
     assert abs(np.nanmedian(auto.distance[a[:, 0] > 7]) - 0.02) < 0.002
@@ -221,7 +222,7 @@ def test_sdp_distance_in_tiles_streams_the_reference_with_its_distances(rng, tmp
     assert whole_run.returncode == 0, whole_run.stderr
     tiled, whole = sdp.read_points(tmp_path / "t.laz"), sdp.read_points(tmp_path / "m.laz")
     assert np.array_equal(tiled.xyz, whole.xyz)
-    for name in sdp.distance.DISTANCE_FIELDS:
+    for name in sdp.distance._distances.DISTANCE_FIELDS:
         assert np.array_equal(tiled.fields[name], whole.fields[name], equal_nan=True), name
     refused = run_sdp("distance", tmp_path / "a.laz", tmp_path / "b.laz", "-o", tmp_path / "t.ply", "--tiled")
     assert refused.returncode == 2 and "LAS/LAZ" in refused.stderr

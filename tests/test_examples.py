@@ -4,12 +4,12 @@ import doctest
 
 import pytest
 
-import sdp.boolean
-import sdp.change
-import sdp.field
-import sdp.io
+import sdp.fields._boolean
+import sdp.change._detect
+import sdp.fields._density
+import sdp.io._io
 
-MODULES = [sdp.change, sdp.field, sdp.io, sdp.boolean]
+MODULES = [sdp.change._detect, sdp.fields._density, sdp.io._io, sdp.fields._boolean]
 ENTRY_POINTS = [sdp.detect_changes, sdp.DensityField.from_points, sdp.read_points, sdp.write_points, sdp.difference]
 
 

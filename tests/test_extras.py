@@ -13,7 +13,7 @@ EXTRAS = {"tiles": ["dask", "distributed", "zarr"], "plots": ["matplotlib", "plo
 
 
 def test_import_sdp_loads_no_extra():
-    code = ("import sys, sdp, sdp.cli, sdp.tiles, sdp.store, sdp.actions, sdp.render, sdp.online\n"
+    code = ("import sys, sdp, sdp.cli._main, sdp.scale._tiles, sdp.scale._store, sdp.actions._actions, sdp.viz._render, sdp.stream._watch\n"
             f"print(sorted(m for m in {sum(EXTRAS.values(), [])!r} if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
@@ -63,7 +63,7 @@ def test_field_store_without_zarr(without, tmp_path):
 
 def test_action_classifier_without_scikit_learn(without):
     """The classifier is NumPy's (a ridge solved in the dual): no extra to install."""
-    from sdp import actions
+    from sdp.actions import _actions as actions
 
     without("sklearn")
     rng = np.random.default_rng(0)
@@ -141,6 +141,6 @@ def test_import_sdp_is_lazy_and_every_public_name_resolves():
 
     code = ("import sys, sdp; heavy = [m for m in ('numba', 'scipy', 'dask', 'matplotlib') if m in sys.modules]; "
             "assert not heavy, heavy; assert all(getattr(sdp, n) is not None for n in sdp.__all__); "
-            "assert sdp.distance.DISTANCE_FIELDS and 'numba' in sys.modules")
+            "assert sdp.distance._distances.DISTANCE_FIELDS and 'numba' in sys.modules")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

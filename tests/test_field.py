@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import sdp
+import sdp.fields._density
 from sdp import DensityField
 
 
@@ -150,19 +151,19 @@ def test_coarsen_matches_a_field_built_at_twice_the_voxel(rng):
 
 @pytest.mark.parametrize("method", ["fast", "exact"])
 def test_building_in_chunks_gives_the_same_field(rng, monkeypatch, method):
-    import sdp.field
+    import sdp.fields._density
 
     pts = rng.random((5000, 3))
     whole = DensityField.from_points(pts, voxel_size=0.05, method=method)
-    monkeypatch.setattr(sdp.field, "_CHUNK", 777)  # large clouds are binned chunk by chunk
+    monkeypatch.setattr(sdp.fields._density, "_CHUNK", 777)  # large clouds are binned chunk by chunk
     chunked = DensityField.from_points(pts, voxel_size=0.05, method=method)
     np.testing.assert_allclose(chunked.density(pts), whole.density(pts), rtol=1e-5)
 
 
 @pytest.mark.parametrize("method", ["fast", "exact"])
 def test_building_two_clouds_at_once_gives_each_field_bit_for_bit(rng, method):
-    from sdp._points import as_points
-    from sdp.field import build_fields
+    from sdp._core._points import as_points
+    from sdp.fields._density import build_fields
 
     a, b = rng.random((4000, 3)), rng.random((3000, 3)) + 0.3
     b[::97] = np.nan  # counted as dropped, as from_points does
@@ -178,7 +179,7 @@ def test_building_two_clouds_at_once_gives_each_field_bit_for_bit(rng, method):
 
 @pytest.mark.parametrize("sigma_voxels", [0.5, 1.0, 2.0, 3.7])
 def test_allocated_blocks_are_exactly_those_the_kernels_reach(rng, sigma_voxels):
-    from sdp.grid import BLOCK
+    from sdp.fields._lattice import BLOCK
 
     pts = rng.random((300, 3)) * [1.0, 0.6, 0.3]
     f = DensityField.from_points(pts, voxel_size=0.013, sigma_voxels=sigma_voxels)
@@ -216,7 +217,7 @@ def test_fast_build_is_trilinear_binning_then_a_separable_blur(rng, sigma_voxels
 def test_regions_are_the_6_connected_components_of_the_negative_nodes(rng):
     from scipy.ndimage import label
 
-    from sdp.regions import label_points
+    from sdp.change._regions import label_points
 
     centres = rng.random((40, 3)) * [0.5, 0.4, 0.3]  # 32 components, some merged, over ~1000 blocks
     pts = np.concatenate([rng.normal(c, 0.008, (60, 3)) for c in centres])
@@ -243,7 +244,7 @@ def test_regions_of_a_speckled_volume_match_scipy(rng):
     """Components made of many short runs of nodes, crossing blocks along every axis."""
     from scipy.ndimage import label
 
-    from sdp.regions import label_points
+    from sdp.change._regions import label_points
 
     f = DensityField.from_points(rng.random((300, 3)) * 0.2, voxel_size=0.005)
     speckled = f.copy()

@@ -62,7 +62,7 @@ def test_change_report_is_one_self_contained_page(tmp_path, rng):
 
 
 def test_the_3d_view_is_decimated_above_the_budget_by_the_stated_factor(tmp_path, rng):
-    from sdp.htmlreport import decimation
+    from sdp.viz._report import decimation
 
     ref, cur = landscape(rng)
     r = sdp.detect_changes(ref, cur)
@@ -118,7 +118,7 @@ def test_distance_report_is_refused_in_tiles(tmp_path, rng):
 
 
 def test_a_failing_report_leaves_no_output(tmp_path, rng, monkeypatch):
-    from sdp import htmlreport
+    from sdp.viz import _report as htmlreport
 
     ref, cur = landscape(rng)
     np.save(tmp_path / "ref.npy", ref)

@@ -6,8 +6,8 @@ import pytest
 from conftest import room_scene
 from scipy.spatial import ConvexHull, cKDTree
 
-from sdp._kdtree import k_nearest
-from sdp.visibility import _hull_polygon
+from sdp._core._kdtree import k_nearest
+from sdp.change._visibility import _hull_polygon
 
 
 def clouds(rng):

@@ -5,7 +5,7 @@ import pytest
 from conftest import box_surface, room_scene
 
 import sdp
-from sdp.online import watch
+from sdp.stream._watch import watch
 
 
 def test_accumulate_equals_a_rebuild_and_subtracting_undoes_it(rng):

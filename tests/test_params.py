@@ -6,7 +6,7 @@ from conftest import room_scene
 from scipy.spatial import cKDTree
 
 import sdp
-from sdp.params import kth_neighbour_distance
+from sdp.fields._spacing import kth_neighbour_distance
 
 
 def reference_voxel(*clouds, k=3, quantile=0.9, scale=1.5, sigma_voxels=1.5, sample=5_000, seed=0):

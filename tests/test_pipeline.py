@@ -8,8 +8,8 @@ import pytest
 import test_cli
 
 import sdp
-from sdp import pipeline
-from sdp.io import read_points, write_points
+from sdp.cli import _commands as pipeline
+from sdp.io._io import read_points, write_points
 
 pair, run = test_cli.pair, test_cli.run  # the fixture of two clouds as PLY files; sdp on the command line
 
@@ -71,7 +71,7 @@ def test_in_memory_the_limit_counts_the_whole_command(tmp_path, rng):
     refused after reading, before any field, with the smallest limit, which then works."""
     import re
 
-    from sdp.tiles import untiled_point_bytes
+    from sdp.scale._tiles import untiled_point_bytes
 
     xyz = rng.uniform(0, 10, (30_000, 3))
     a, b = tmp_path / "a.xyz", tmp_path / "b.xyz"

@@ -5,8 +5,8 @@ import pytest
 from test_tiles import street
 
 import sdp
-from sdp.store import FieldStore
-from sdp.tiles import build_field_tiled, detect_changes_tiled
+from sdp.scale._store import FieldStore
+from sdp.scale._tiles import build_field_tiled, detect_changes_tiled
 
 
 @pytest.fixture

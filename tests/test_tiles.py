@@ -10,8 +10,8 @@ import pytest
 from conftest import box_surface, write_las
 
 import sdp
-from sdp.io import CloudFileError, PointSource, write_points, write_points_streamed
-from sdp.tiles import detect_changes_tiled
+from sdp.io._io import CloudFileError, PointSource, write_points, write_points_streamed
+from sdp.scale._tiles import detect_changes_tiled
 
 UTM = np.array([630_000.0, 4_830_000.0, 100.0])
 
@@ -197,7 +197,7 @@ def test_cli_refuses_tiles_under_a_tiny_memory_limit_in_a_second(tmp_path, epoch
 
 @pytest.mark.parametrize("workers, separate", [(1, True), (2, True), (7, True), (2, False)])
 def test_the_shares_of_a_job_add_up_to_its_limit(workers, separate):
-    from sdp.tiles import WORKER_BYTES, JobBudget
+    from sdp.scale._tiles import WORKER_BYTES, JobBudget
 
     for limit in (2**30, 2 * 2**30, 64 * 2**30):
         plan = JobBudget(limit, workers, separate=separate)
@@ -210,7 +210,7 @@ def test_the_shares_of_a_job_add_up_to_its_limit(workers, separate):
 
 
 def test_face_nodes_are_grouped_whatever_their_range():
-    from sdp.regions import _node_key
+    from sdp.change._regions import _node_key
 
     rng = np.random.default_rng(5)
     for span in (1_000, 2**40):  # packed into one int64, or compared as bytes

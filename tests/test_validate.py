@@ -10,8 +10,8 @@ from conftest import slow_after
 
 import sdp
 from sdp import DensityField
-from sdp.grid import memory_limit, parse_bytes
-from sdp.validate import check_lattice, format_bytes, integer_at_least, positive_finite
+from sdp.fields._lattice import memory_limit, parse_bytes
+from sdp._core._validate import check_lattice, format_bytes, integer_at_least, positive_finite
 
 
 def run(*args, cwd=None, **kw):
@@ -73,7 +73,7 @@ def test_far_coordinates_are_refused_not_silently_wrong(cloud):
     (dict(voxel_size=0.05, workdir="/nonexistent/sdp"), "no such folder"),
 ])
 def test_tiled_refuses_bad_options_before_any_work(tmp_path, cloud, kw, match, monkeypatch):
-    monkeypatch.setattr("sdp.tiles._connect", lambda *a: pytest.fail("reached Dask"))
+    monkeypatch.setattr("sdp.scale._tiles._connect", lambda *a: pytest.fail("reached Dask"))
     kw.setdefault("workdir", tmp_path)
     with pytest.raises(sdp.SDPError, match=match):
         sdp.detect_changes_tiled(cloud, cloud, scheduler="synchronous", **kw)
@@ -131,7 +131,7 @@ def test_cli_refuses_bad_options_in_one_line(tmp_path, cloud, args):
 
 
 def test_a_tile_refusal_names_the_workers_share_of_the_limit(tmp_path, cloud, monkeypatch):
-    monkeypatch.setattr("sdp.tiles._connect", lambda *a: pytest.fail("reached Dask"))
+    monkeypatch.setattr("sdp.scale._tiles._connect", lambda *a: pytest.fail("reached Dask"))
     with pytest.raises(sdp.GridTooLargeError, match=r"a task's share of the memory limit of 4 GB \(less 485 MB for the "
                        r"command, over 2 worker\(s\), less 256 MB for the worker itself\) of 1.51 GB"):
         sdp.detect_changes_tiled(cloud, cloud, voxel_size=0.05, sigma_voxels=1000, workers=2, memory_limit="4GB",

@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 
 import sdp
-from sdp.scene import FURNITURE, INSERTED, office_scene, scan
-from sdp.visibility import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage, visibility_states
+from sdp.data._scene import FURNITURE, INSERTED, office_scene, scan
+from sdp.change._visibility import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage, visibility_states
 
-CAMERA = (0.3, 0.2, 2.2)  # sdp.scene's default camera
+CAMERA = (0.3, 0.2, 2.2)  # sdp.data._scene's default camera
 BOX = INSERTED[0]  # a 30 cm box on the table
 
 
@@ -163,7 +163,7 @@ def test_real_kinect_pair_with_sensor_origin(shared_data):
 def test_field_of_view_is_the_convex_hull_of_the_returned_cells():
     from scipy.spatial import Delaunay
 
-    from sdp.visibility import _convex_hull
+    from sdp.change._visibility import _convex_hull
 
     rng = np.random.default_rng(7)
     squares = np.array([[-0.5, -0.5], [-0.5, 0.5], [0.5, -0.5], [0.5, 0.5]])
@@ -180,7 +180,7 @@ def test_field_of_view_is_the_convex_hull_of_the_returned_cells():
 
 def test_plane_test_helpers_match_numpy(rng):
     """The sensor test's kernels give what the NumPy expressions they replace gave."""
-    from sdp.visibility import _cube_means, _every_nth_unchanged
+    from sdp.change._visibility import _cube_means, _every_nth_unchanged
 
     query = rng.normal(size=(5_000, 3)) * [1.0, 2.0, 0.5] + 1e3  # far from the origin, as world coordinates
     inverse, centres = _cube_means(query, 0.4)

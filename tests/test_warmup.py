@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import sdp
-from sdp import warmup
+from sdp.cli import _warmup as warmup
 
 SDP = str(Path(sys.executable).with_name("sdp"))
 
@@ -17,7 +17,7 @@ SDP = str(Path(sys.executable).with_name("sdp"))
 COUNT_COMPILES = """
 import sys
 from numba.core import event
-from sdp.cli import main
+from sdp.cli._main import main
 compiled = []
 class Listener(event.Listener):
     def on_start(self, ev):

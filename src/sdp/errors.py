@@ -6,11 +6,11 @@ catches those keeps working.
 
 - :class:`InvalidPointsError` (``ValueError``): a point array of the wrong shape, empty or all
   NaN, of zero extent with ``grid_size``, a bad ``sensor_origin``, or coordinates too far from
-  the origin for the voxel (:mod:`sdp.validate`);
-- :class:`InvalidOptionError` (``ValueError``): an option out of range (:mod:`sdp.validate`);
+  the origin for the voxel (:mod:`sdp._core._validate`);
+- :class:`InvalidOptionError` (``ValueError``): an option out of range (:mod:`sdp._core._validate`);
 - :class:`GridTooLargeError` (``MemoryError``): a grid or a tile beyond the memory limit;
 - :class:`IncompatibleFieldsError`, :class:`SurfaceError` (``ValueError``);
-- :class:`FieldFileError` (``OSError``), and :class:`sdp.io.CloudFileError` (``OSError``), which
+- :class:`FieldFileError` (``OSError``), and :class:`sdp.io._io.CloudFileError` (``OSError``), which
   turns every reader library's error into one line naming the file;
 - :class:`MissingDependencyError` (``ImportError``): an optional extra not installed, raised by
   :func:`require` with the ``pip install 'sdp[EXTRA]'`` to run;

@@ -1,0 +1,1 @@
+from ._validate import format_bytes

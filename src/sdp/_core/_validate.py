@@ -1,0 +1,362 @@
+"""Checks of the options shared by the Python API and the command line.
+
+One set of functions refuses bad options before any work starts: the Python entry points
+(:meth:`sdp.DensityField.from_points`, :func:`sdp.detect_changes` through it,
+:func:`sdp.detect_changes_tiled`, :func:`sdp.build_field_tiled`, :func:`sdp.align`) call them
+with their keyword names (``voxel_size``), the command line with its flags (``--voxel-size``,
+through :func:`cli_type`). Every refusal is an :class:`~sdp.errors.InvalidOptionError` (an
+:class:`~sdp.SDPError` and a ``ValueError``) with a one-line message, or a
+:class:`~sdp.GridTooLargeError` / :class:`~sdp.InvalidPointsError` where the grid, not the
+option alone, is at fault.
+
+What is refused: voxel size, σ in voxels, ``truncate`` and ``h`` not positive and finite; ``k``
+not finite, or giving h ≤ 0; a tile size not positive; workers, grid size or window below 1;
+``min_region_points`` below 0; a memory limit given as text (``--memory-limit``,
+``$SDP_MEMORY_LIMIT``) below 1 MB (a smaller one is a size without its unit); a ``--workdir``
+that is not an existing writable folder. A kernel reaching more than 2¹⁶ voxels is a mistake
+long before memory runs out (:func:`kernel_reach`), and one point's kernel cube must fit the
+memory limit (σ = 1000 voxels would need 808 GB: :func:`check_kernel`).
+
+Precision (:func:`check_lattice`): beyond 2⁴⁰ ≈ 1.1·10¹² voxels from the world origin (max
+|coordinate| / voxel size), float64 keeps less than 1/4096 of a voxel and masks would change
+silently (1e12 m offsets at a 1 cm voxel), so such a grid is an :class:`~sdp.InvalidPointsError`;
+a voxel so large that the grid's corners overflow float64 (1e308) is an
+:class:`~sdp.errors.InvalidOptionError`. The tiled path runs the same checks on the files'
+bounds, and also refuses tiles whose points or block directory exceed a task's share of the
+memory limit, all before the buckets are written or a local Dask cluster is started.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import numbers
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InvalidOptionError, InvalidPointsError, SDPError
+
+__all__ = ["positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
+           "auto_or_nonnegative",
+           "memory_size", "existing_folder", "check_threshold", "check_grid_options", "check_tile_options",
+           "check_lattice", "check_kernel", "kernel_reach", "check_workdir", "format_bytes", "cli_type",
+           "sensor_origin_option", "class_numbers", "check_alignment_options", "check_tiled_options",
+           "MAX_GRID_UNITS"]
+
+#: Largest |coordinate| / voxel size accepted: beyond 2**40 voxels from the origin, float64 keeps
+#: less than 2**-12 of a voxel, and the grid's integer node and block coordinates near their limits.
+MAX_GRID_UNITS = 2.0**40
+_MAX_REACH = 2**16  # kernel reach in voxels (truncate·σ): far beyond any memory limit already
+
+
+def format_bytes(nbytes: float) -> str:
+    """A byte count for people: ``"512 B"``, ``"12.3 MB"``, ``"4.0 GB"`` (binary units, 1 MB = 2**20
+    bytes, as :func:`sdp.fields._lattice.parse_bytes` reads them)."""
+    n = float(nbytes)
+    if not math.isfinite(n):
+        return "an unbounded amount"
+    for unit in ("B", "KB", "MB", "GB", "TB", "PB", "EB"):
+        if abs(n) < 1024 or unit == "EB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
+        n /= 1024
+    raise AssertionError("unreachable")
+
+
+def _number(name: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (numbers.Real, str, np.ndarray)):
+        raise InvalidOptionError(f"{name} must be a number, got {value!r}")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise InvalidOptionError(f"{name} must be a number, got {value!r}") from None
+
+
+def positive_finite(name: str, value) -> float:
+    """``value`` as a float if it is a positive finite number, else :class:`InvalidOptionError`.
+
+    Parameters
+    ----------
+    name : str
+        How the caller spells the option (``"voxel_size"``, ``"--voxel-size"``); used in the message.
+    value : float or str
+        The option's value.
+
+    Returns
+    -------
+    float
+    """
+    v = _number(name, value)
+    if not (v > 0 and math.isfinite(v)):
+        raise InvalidOptionError(f"{name} must be a positive finite number, got {value!r}")
+    return v
+
+
+def finite(name: str, value) -> float:
+    """``value`` as a float if it is finite (any sign), else :class:`InvalidOptionError`."""
+    v = _number(name, value)
+    if not math.isfinite(v):
+        raise InvalidOptionError(f"{name} must be a finite number, got {value!r}")
+    return v
+
+
+def nonnegative_finite(name: str, value) -> float:
+    """``value`` as a float if it is finite and ≥ 0, else :class:`InvalidOptionError`."""
+    v = finite(name, value)
+    if v < 0:
+        raise InvalidOptionError(f"{name} must be a finite number >= 0, got {value!r}")
+    return v
+
+
+def integer_at_least(name: str, value, minimum: int) -> int:
+    """``value`` as an int if it is a whole number ≥ ``minimum``, else :class:`InvalidOptionError`."""
+    try:
+        v = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError):
+        v = math.nan
+    if not (math.isfinite(v) and v == int(v) and v >= minimum):
+        raise InvalidOptionError(f"{name} must be a whole number of at least {minimum}, got {value!r}")
+    return int(v)
+
+
+def check_threshold(k: float | None, h: float | None, *, names: tuple[str, str] = ("k", "h")) -> None:
+    """Refuse a threshold that is not a positive finite density: ``h`` given directly, or
+    h = 1 + k·e^(−1/2) from ``k``."""
+    if h is not None:
+        positive_finite(names[1], h)
+    elif k is not None:
+        kv = finite(names[0], k)
+        if not 1.0 + kv * math.exp(-0.5) > 0:
+            raise InvalidOptionError(f"{names[0]} = {k!r} gives a threshold h = 1 + k·e^-1/2 ≤ 0: no density is "
+                                     "below it; use k > -1.65")
+
+
+def check_grid_options(*, voxel_size=None, sigma_voxels: float | str = "auto", k: float | None = 3,
+                       h: float | None = None, truncate: float = 3.0, memory_limit=None) -> float | None:
+    """Check the options of a density field before anything is read or allocated.
+
+    Parameters
+    ----------
+    voxel_size : float, "auto" or None
+        A length must be positive and finite; ``"auto"`` and None (decided later) pass.
+    sigma_voxels : float or "auto"
+        A positive finite number, or ``"auto"`` (:func:`sdp.fields._spacing.resolve_sigma_voxels`).
+    truncate : float
+        A positive finite number.
+    k, h : float or None
+        See :func:`check_threshold`.
+    memory_limit : int, float, str or None
+        See :func:`sdp.fields._lattice.memory_limit`.
+
+    Returns
+    -------
+    float or None
+        The voxel size as a float, or None when it is ``"auto"`` or not given.
+    """
+    from ..fields._lattice import memory_limit as _limit
+
+    auto_or_positive("sigma_voxels", sigma_voxels)
+    positive_finite("truncate", truncate)
+    check_threshold(k, h)
+    _limit(memory_limit)
+    if voxel_size is None or (isinstance(voxel_size, str) and voxel_size == "auto"):
+        return None
+    try:
+        return positive_finite("voxel_size", voxel_size)
+    except InvalidOptionError:
+        raise InvalidOptionError(f"voxel_size must be 'auto' or a positive finite length, got {voxel_size!r}") from None
+
+
+def kernel_reach(sigma_voxels: float, truncate: float = 3.0) -> int:
+    """⌈truncate·σ⌉, the kernel's reach in nodes, refusing one beyond 2**16 voxels (an
+    :class:`InvalidOptionError`: such a σ is a mistake long before memory runs out)."""
+    rmax = positive_finite("truncate", truncate) * positive_finite("sigma_voxels", sigma_voxels)
+    if not rmax <= _MAX_REACH:
+        raise InvalidOptionError(f"a kernel of sigma {sigma_voxels:g} voxels cut off at {truncate:g} sigma reaches "
+                                 f"{rmax:.3g} voxels, more than {_MAX_REACH:,}: use a smaller sigma in voxels (and "
+                                 "a larger voxel size)")
+    return int(math.ceil(rmax))
+
+
+def check_kernel(sigma_voxels: float, truncate: float, memory_limit=None, *, budget: str = "the memory limit") -> int:
+    """The kernel's reach in nodes, ⌈truncate·σ⌉, once one point's kernel fits the memory limit.
+
+    Raises
+    ------
+    GridTooLargeError
+        The blocks under a single point's kernel cube alone exceed the limit (e.g. σ of 1000 voxels).
+    """
+    from ..fields._lattice import BLOCK, check_memory
+
+    rmax = float(truncate) * float(sigma_voxels)
+    kernel_reach(sigma_voxels, truncate)
+    blocks = math.ceil((2 * rmax + 1) / BLOCK) ** 3
+    check_memory(blocks * BLOCK**3 * 4, f"the kernel of one point (σ = {sigma_voxels:g} voxels, reaching "
+                 f"{rmax:.4g} voxels each way)", memory_limit, advice="use a smaller sigma in voxels", budget=budget)
+    return int(math.ceil(rmax))
+
+
+def check_lattice(lo, hi, voxel_size: float, reach: int = 0) -> None:
+    """Refuse a voxel size whose grid over the box [lo, hi] can't be placed in float64 and int64.
+
+    Points are converted to grid units as ``(p − origin) / l``; more than :data:`MAX_GRID_UNITS`
+    (2**40) voxels from the world origin, float64 keeps less than 1/4096 of a voxel and change
+    masks would change silently; a voxel so large that the grid's corners overflow float64
+    (e.g. 1e308) can't be placed at all.
+
+    Raises
+    ------
+    InvalidPointsError
+        The coordinates are too far from the origin for this voxel size.
+    InvalidOptionError
+        The voxel size is too large to place the grid's nodes.
+    """
+    from ..fields._lattice import BLOCK
+
+    l = float(voxel_size)
+    span = float(np.max(np.abs(np.r_[np.asarray(lo, float), np.asarray(hi, float)])))
+    if not math.isfinite(span):
+        raise InvalidPointsError("the cloud's bounds are not finite")
+    units = span / l
+    if not units <= MAX_GRID_UNITS:
+        raise InvalidPointsError(
+            f"coordinates up to {span:.6g} are {units:.3g} voxels of {l:g} from the origin, beyond 2**40 "
+            f"(≈{MAX_GRID_UNITS:.3g}): float64 can't place points within a voxel there; subtract an offset "
+            "(e.g. the cloud's minimum) or use a larger voxel size")
+    corner = (units + reach + 2 * BLOCK) * l * BLOCK  # the farthest node and block corner, in world units
+    if not (math.isfinite(corner) and math.isfinite((reach * l) ** 2 + corner**2)):
+        raise InvalidOptionError(f"voxel size {l:g} is too large: the grid's nodes would lie beyond the range of "
+                                 "floating-point numbers; use a voxel size near the cloud's point spacing")
+
+
+def check_workdir(name: str, workdir) -> None:
+    """Refuse a work folder that does not exist, is not a folder, or can't be written."""
+    if workdir is None:
+        return
+    path = Path(workdir)
+    if not path.exists():
+        raise InvalidOptionError(f"{name} {str(path)!r}: no such folder")
+    if not path.is_dir():
+        raise InvalidOptionError(f"{name} {str(path)!r}: not a folder")
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise InvalidOptionError(f"{name} {str(path)!r}: folder is not writable")
+
+
+def existing_folder(name: str, value) -> str:
+    """``value`` unchanged if it names a writable folder (:func:`check_workdir`)."""
+    check_workdir(name, value)
+    return value
+
+
+def check_tile_options(*, tile_size=None, tile_points=None, workers=None, workdir=None,
+                       min_region_points=None, scheduler=None) -> None:
+    """Check the options of a tiled run (:func:`sdp.detect_changes_tiled`, :func:`sdp.build_field_tiled`)
+    before a work folder is made or a cluster started."""
+    if tile_size is not None:
+        positive_finite("tile_size", tile_size)
+    if tile_points is not None:
+        integer_at_least("tile_points", tile_points, 1)
+    if workers is not None:
+        integer_at_least("workers", workers, 1)
+    if min_region_points is not None:
+        integer_at_least("min_region_points", min_region_points, 0)
+    if scheduler is not None and not isinstance(scheduler, str):
+        raise InvalidOptionError(f"scheduler must be an address such as tcp://host:8786, got {scheduler!r}")
+    check_workdir("workdir", workdir)
+
+
+def auto_or_nonnegative(name: str, value) -> float | str:
+    """``"auto"``, or ``value`` as a finite float ≥ 0 (an error added to a tolerance)."""
+    if isinstance(value, str) and value.strip().lower() == "auto":
+        return "auto"
+    try:
+        return nonnegative_finite(name, value)
+    except InvalidOptionError:
+        raise InvalidOptionError(f"{name} must be 'auto' or a finite number ≥ 0, got {value!r}") from None
+
+
+def auto_or_positive(name: str, value) -> float | str:
+    """``"auto"``, or ``value`` as a positive finite float (a voxel size)."""
+    if isinstance(value, str) and value.strip().lower() == "auto":
+        return "auto"
+    try:
+        return positive_finite(name, value)
+    except InvalidOptionError:
+        raise InvalidOptionError(f"{name} must be 'auto' or a positive finite number, got {value!r}") from None
+
+
+def memory_size(name: str, value) -> str:
+    """``value`` unchanged once :func:`sdp.fields._lattice.memory_limit` accepts it (e.g. ``"2GB"``)."""
+    from ..fields._lattice import memory_limit
+
+    memory_limit(value)  # its messages say what a memory limit is
+    return value
+
+
+def sensor_origin_option(name: str, value) -> str | np.ndarray:
+    """The ``--sensor-origin`` of ``sdp change`` / ``sdp watch`` (:func:`sdp.cli._commands.compare_files`):
+    ``"auto"``, ``"none"`` (also None), ``"viewpoint"``, or a position ``"X,Y,Z"`` (or three
+    numbers) returned as an ndarray (3,) of finite floats."""
+    if value is None:
+        return "none"
+    if isinstance(value, str) and value in ("auto", "none", "viewpoint"):
+        return value
+    try:
+        xyz = [float(v) for v in (value.split(",") if isinstance(value, str) else np.ravel(value))]
+    except (TypeError, ValueError):
+        xyz = []
+    if len(xyz) != 3 or not np.isfinite(xyz).all():
+        raise InvalidOptionError(f"{name} must be auto, none, viewpoint or X,Y,Z (finite numbers), got {value!r}")
+    return np.array(xyz, dtype=np.float64)
+
+
+def class_numbers(name: str, value) -> list[int]:
+    """LAS class numbers from ``"2"``, ``"2,9"``, an int or a sequence of ints (``--align-class``)."""
+    parts = value.split(",") if isinstance(value, str) else [value] if np.ndim(value) == 0 else list(value)
+    if all(isinstance(c, str) or (isinstance(c, numbers.Integral) and not isinstance(c, bool)) for c in parts):
+        try:
+            return [int(c) for c in parts]
+        except ValueError:
+            pass
+    raise InvalidOptionError(f"{name} takes LAS class numbers such as 2 or 2,9, got {value!r}")
+
+
+def check_alignment_options(method: str | None, *, fix_horizontal: bool = False, align_class=None) -> list[int] | None:
+    """Check how a scan is to be aligned (``sdp align``, ``sdp change --align``) before any file is
+    read; returns the class numbers of ``align_class`` (None: all points).
+
+    ``fix_horizontal`` and ``align_class`` need a ``method``; ``fix_horizontal`` works with the
+    density alignment only.
+    """
+    classes = align_class is not None and not (isinstance(align_class, str) and align_class == "")
+    if (fix_horizontal or classes) and not method:
+        raise InvalidOptionError("--fix-horizontal and --align-class choose how to align: give --align density too")
+    if fix_horizontal and method != "density":
+        raise InvalidOptionError("--fix-horizontal works with the density alignment only")
+    return class_numbers("--align-class", align_class) if classes else None
+
+
+def check_tiled_options(*, grid_size=None, align=None, sensor_origin="auto", decision="point",
+                        pictures: bool = False) -> None:
+    """Refuse the options of ``sdp change`` that a comparison in tiles does not have (``--tiled``)."""
+    given_sensor = not (isinstance(sensor_origin, str) and sensor_origin in ("auto", "none"))
+    for flag, bad in (("--grid-size", grid_size is not None), ("--align", align), ("--sensor-origin", given_sensor),
+                      ("--decision cluster", decision != "point"), ("--png/--html/--report", pictures)):
+        if bad:
+            raise InvalidOptionError(f"{flag} is not available with --tiled")
+
+
+def cli_type(check: Callable, *args) -> Callable[[str], object]:
+    """An argparse ``type=`` callable running ``check("value", text, *args)``, with its
+    :class:`SDPError` turned into ``argparse.ArgumentTypeError`` (argparse names the flag; the
+    ``sdp`` parser prints that one line and exits with status 2)."""
+    def convert(text: str):
+        try:
+            return check("value", text, *args)
+        except SDPError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    convert.__name__ = getattr(check, "__name__", "value")
+    return convert

@@ -1,0 +1,5 @@
+"""``python -m sdp.cli``: the ``sdp`` program."""
+
+from ._main import run
+
+run()

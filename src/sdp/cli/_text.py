@@ -1,0 +1,125 @@
+"""The text the ``sdp`` commands print, made from the library's results and summaries.
+
+Each function returns the lines (joined, without a final newline) that a command prints when
+``--json`` is not given; the JSON is the summary itself.
+"""
+
+from __future__ import annotations
+
+__all__ = ["change_text", "coverage_text", "alignment_text", "frame_text", "evaluation_text", "written_text",
+           "train_text", "action_eval_text"]
+
+
+def change_text(s: dict, reference, current) -> str:
+    """The table of ``sdp change``, from :attr:`sdp.cli._commands.FileComparison.summary`."""
+    lines = []
+    for role, name, kind in (("reference", reference, "disappeared"), ("current", current, "appeared")):
+        c = s[role]
+        lines.append(f"{role:<10} {name}: {c['points']:,} points ({c['dropped']:,} dropped), {c[kind]:,} {kind}, "
+                     f"{c['not_comparable']:,} not comparable")
+    if "alignment" in s:
+        lines.append(alignment_text(s["alignment"]))
+    lines.append(f"voxel {s['voxel_size']:.4g}, sigma {s['sigma']:.4g}, h {s['h']:.4f}, decision {s['decision']}"
+                 + (f", {s['tiles']} tiles of {s['tile_size']:.4g}" if "tiles" in s else ""))
+    lines.append(coverage_text(s))
+    for kind in ("appeared", "disappeared"):
+        regs = s[f"{kind}_regions"]
+        if regs:
+            lines.append(f"\n{kind} regions ({len(regs)}; largest 10):")
+            lines.append(f"  {'#':>3} {'points':>8}  {'centroid':>30}  {'size':>26}")
+            for g in regs[:10]:
+                c = " ".join(f"{v:9.3f}" for v in g["centroid"])
+                size = " ".join(f"{hi - lo:8.3f}" for lo, hi in zip(g["bbox_min"], g["bbox_max"], strict=True))
+                lines.append(f"  {g['label']:>3} {g['n_points']:>8,}  {c}  {size}")
+    lines.append("\ntime (ms): " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in s["timings"].items()))
+    lines += [f"wrote {o}" for o in s.get("outputs", [])]
+    return "\n".join(lines)
+
+
+def coverage_text(s: dict) -> str:
+    """One line: how each direction decided what the other scan saw (sensor rays or footprint)."""
+    origins = s.get("sensor_origin", {})
+
+    def one(kind, other):
+        how = s["coverage"][kind]
+        if how == "sensor rays":
+            o = ", ".join(f"{v:.4g}" for v in origins[other])
+            return f"{kind}: the {other}'s sensor rays (origin {o})"
+        return f"{kind}: the {other}'s footprint (no sensor position known)" if how == "footprint" else f"{kind}: off"
+    return "coverage: " + "; ".join((one("appeared", "reference"), one("disappeared", "current")))
+
+
+def alignment_text(al: dict) -> str:
+    """One line from :meth:`sdp.Alignment.summary`: rotation, translation, overlap, residual, time."""
+    t = " ".join(f"{v:.4f}" for v in al["translation"])
+    return (f"aligned current onto reference ({al['method']}): rotation {al['rotation_degrees']:.3f}°, "
+            f"translation [{t}], inside the reference's volume {al['inside_before']:.1%} → {al['inside_after']:.1%}, "
+            f"residual {al['rmse']:.4g} (RMS), {al['seconds']:.2f} s")
+
+
+def frame_text(frame) -> str:
+    """One line per :class:`sdp.FrameChange` of ``sdp watch``: counts, latency, the largest regions."""
+    s = frame.summary()
+    where = "; ".join(f"{g['n_points']:,} at ({', '.join(f'{v:.2f}' for v in g['centroid'])})"
+                      for g in s["regions"][:3])
+    return (f"{frame.name}: {s['points']:,} points, {frame.n_appeared:,} appeared in {len(frame.regions)} regions, "
+            f"{s['not_comparable']:,} not comparable ({frame.latency * 1e3:.1f} ms){': ' + where if where else ''}")
+
+
+def evaluation_text(e) -> str:
+    """The lines of ``sdp eval`` from a :class:`sdp.cli._commands.Evaluation`."""
+    sc = e.scores
+    return "\n".join((f"{e.points:,} points ({sc['not_comparable']:,} not comparable, left out); changed: "
+                      f"predicted {e.predicted:,}, true {e.true:,} of the comparable",
+                      "  ".join(f"{k} {v:.4f}" for k, v in sc.items() if isinstance(v, float)),
+                      "  ".join(f"{k} {v:,}" for k, v in sc.items() if isinstance(v, int))))
+
+
+def written_text(thing, path) -> str:
+    """What was written to ``path``: a mesh's size and area, else the field's (or store's) repr."""
+    from ..fields._surface import Mesh
+
+    if isinstance(thing, Mesh):
+        return (f"{len(thing.vertices):,} vertices, {len(thing.faces):,} triangles, area {thing.area:.4g}\n"
+                f"wrote {path}")
+    return f"{thing!r}\nwrote {path}"
+
+
+def train_text(model, cv: float, n_sequences: int, path) -> str:
+    """The lines of ``sdp action train``."""
+    alphas = " / ".join(f"{a:g}" for a in model.alpha)
+    return (f"{n_sequences} sequences, {len(model.classes)} actions; alpha {alphas} (body / hand), "
+            f"leave-one-subject-out accuracy {cv:.3f}\nwrote {path}")
+
+
+def action_eval_text(summary: dict) -> str:
+    """The lines of ``sdp action eval`` from :func:`sdp.cli._commands.evaluate_actions`."""
+    lines = []
+    for name, acc in summary.items():
+        if name in ("cv", "alpha", "timings", "sequences"):
+            continue
+        cv = summary["cv"].get(name)
+        lines.append(f"{name:8s} {acc:.3f}" + (f"   (cross-validated on training subjects {cv:.3f})" if cv else ""))
+    lines.append("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in summary["timings"].items()))
+    return "\n".join(lines)
+
+
+def distance_text(s: dict, reference, current) -> str:
+    """The table of ``sdp distance``."""
+    n = max(s["core_points"], 1)
+    lines = [f"{reference} → {current}: signed distance along the normal ({s['orientation']})",
+             f"  core points      {s['core_points']:>12,}",
+             f"  with a distance  {s['comparable']:>12,}  ({s['comparable'] / n:.1%}; the others: an epoch has no "
+             "points near, not comparable)",
+             f"  significant      {s['significant']:>12,}  ({s['significant_positive']:,} +, "
+             f"{s['significant_negative']:,} −; |distance| > level of detection at 95 %)",
+             f"  median distance  {s['median_distance']:>12.4g}  (5–95 %: {s['distance_p05']:.4g} … "
+             f"{s['distance_p95']:.4g})",
+             f"  median LoD95     {s['median_lod']:>12.4g}  (registration error {s['registration_error']:.4g})",
+             f"  scales           projection d = {s['projection_scale']:.4g}, normal D = {s['normal_scale']:.4g}, "
+             f"searched ±{s['max_distance']:.4g} along the normal",
+             f"  time             {s['timings'].get('total', 0):.2f} s"]
+    if "alignment" in s:
+        lines.append(alignment_text(s["alignment"]))
+    lines += [f"wrote {path}" for path in s.get("outputs", [])]
+    return "\n".join(lines)

@@ -1,0 +1,6 @@
+"""Simulated scenes with known truth (the demo's office and its Kinect-like camera)."""
+
+import lazy_loader as _lazy
+
+# the public names are those of __init__.pyi, each loaded when first used
+__getattr__, __dir__, __all__ = _lazy.attach_stub(__name__, __file__)

@@ -1,0 +1,2 @@
+from ._demo import run_demo
+from ._scene import office_scene, scan

@@ -1,0 +1,1 @@
+from ._distances import DISTANCE_FIELDS, Distances, distances

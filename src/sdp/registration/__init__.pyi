@@ -1,0 +1,1 @@
+from ._align import Alignment, align, transform_points

@@ -1,0 +1,1 @@
+from ._watch import FrameChange, watch

@@ -1,0 +1,240 @@
+"""Change detection on a stream of frames against a reference field that can learn and forget.
+
+A robot keeps a model field; each frame that arrives is compared with it (Algorithm 1: the
+frame's points inside frame − model have appeared), then optionally merged into it. The
+model is a weighted mean of frame fields, G_model = Σ w_k·G_k / Σ w_k, held as the sum
+Σ w_k·G_k with the threshold scaled by Σ w_k, so a static surface keeps one frame's density
+whatever the history:
+
+- ``update="none"``: the model is the reference, never changed;
+- ``update="window"``: the mean of the reference and the last ``window − 1`` frames; a frame
+  leaving the window is subtracted (the field is linear in its points), so its objects are
+  forgotten;
+- ``update="decay"``: exponential forgetting, weights λ^age (``decay`` = λ per frame).
+
+Each update costs the frame's own field (built once, used for detection too) plus a pass over
+its blocks: time proportional to the frame, not to the history.
+
+A camera that moves (a hand-held sensor, a robot without a pose estimate) sees a static scene
+from a new pose at every frame, and every surface then looks changed. ``align=`` registers each
+frame onto the reference before it is compared and merged, starting from the previous frame's
+transform: GICP against the reference points (small_gicp [1], prepared once for the stream) or
+the density method of :func:`sdp.align` against the reference field. ``sensor_origin=`` adds
+the visibility test of :func:`sdp.detect_changes` against the reference scan's rays (its range
+image built once for the stream): depth edges and surfaces the reference could not see are not
+changes. The appeared points go through :func:`sdp.change._detect.judge_coverage` as in
+:func:`sdp.detect_changes`: by the reference's rays when its sensor is known (read from its
+file by default), else by the model's footprint.
+
+References
+----------
+.. [1] K. Koide, "small_gicp: Efficient and parallel algorithms for point cloud registration",
+   Journal of Open Source Software 9(100), 2024.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+
+import numpy as np
+import numpy.typing as npt
+
+from .._core._points import as_points, to_rows
+from ..registration._align import GicpTarget, transform_points
+from ..registration._align import align as align_density
+from ..change._detect import inside_difference, judge_coverage, region_rules
+from ..change._coverage import CHANGED, NOT_COMPARABLE, states_of
+from ..defaults import DEFAULTS
+from ..fields._density import DensityField
+from ..fields._spacing import resolve_lattice
+from ..change._regions import Region
+from .._core._validate import check_grid_options, integer_at_least, nonnegative_finite
+from ..change._visibility import RangeImage, resolve_sensor_origins
+
+__all__ = ["FrameChange", "watch"]
+
+
+@dataclass
+class FrameChange:
+    """What appeared in one frame, relative to the model before that frame.
+
+    Attributes
+    ----------
+    index : int
+        Position of the frame in the stream (0 = first frame after the reference).
+    name : str
+        The frame's name (its file name from the command line), else its index.
+    appeared : ndarray of bool
+        One flag per row of the frame (False for NaN rows).
+    not_comparable : ndarray of bool
+        Rows where the reference could not see (outside its footprint or field of view, or
+        hidden from its sensor): neither appeared nor unchanged (:mod:`sdp.change._coverage`).
+    regions : list of Region
+        Connected appeared regions, largest first.
+    latency : float
+        Seconds from receiving the frame to the answer, model update included.
+    timings : dict of str to float
+        Seconds per step: ``build``, ``detect``, ``regions``, ``update`` (and ``align`` with
+        ``align=``).
+    transform : ndarray (4, 4) or None
+        With ``align=``: the rigid transform that mapped the frame onto the reference (its
+        points were compared and merged after it); None otherwise.
+    """
+
+    index: int
+    name: str
+    appeared: np.ndarray
+    not_comparable: np.ndarray
+    regions: list[Region]
+    latency: float
+    timings: dict[str, float] = dc_field(default_factory=dict)
+    transform: np.ndarray | None = None
+
+    @property
+    def n_appeared(self) -> int:
+        return int(self.appeared.sum())
+
+    @property
+    def state(self) -> np.ndarray:
+        """The ``change`` field of the frame's rows (uint8): 0 unchanged, 1 appeared, 2 not comparable."""
+        return states_of(self.appeared, self.not_comparable)
+
+    def summary(self) -> dict:
+        return {"index": self.index, "name": self.name, "points": int(self.appeared.size),
+                "appeared": self.n_appeared, "not_comparable": int(self.not_comparable.sum()),
+                "latency": self.latency, "timings": dict(self.timings),
+                "transform": None if self.transform is None else self.transform.tolist(),
+                "regions": [{"n_points": r.n_points, "centroid": r.centroid.tolist(), "size": r.size.tolist()}
+                            for r in self.regions]}
+
+
+def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.voxel_size,
+          sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, update: str = DEFAULTS.update,
+          window: int = DEFAULTS.window, decay: float = DEFAULTS.decay,
+          min_region_points: int = DEFAULTS.min_region_points, regions: bool = True, align: str | None = None,
+          sensor_origin: npt.ArrayLike | str | None = DEFAULTS.sensor_origin,
+          range_noise: float = DEFAULTS.range_noise, coverage: bool = True) -> Iterator[FrameChange]:
+    """Compare each frame of a stream with a model of the scene, in order; yield as they come.
+
+    Every default is :data:`sdp.DEFAULTS`, as for :func:`sdp.detect_changes` and ``sdp watch``.
+
+    Parameters
+    ----------
+    reference : array_like (n, 3), Cloud or DensityField
+        The scene before the stream: points (a :func:`sdp.read_points` cloud brings its sensor
+        position), or a field (its lattice, σ and h are used).
+    frames : iterable
+        Arrays (m, 3) or clouds, or ``(name, array)`` pairs; consumed lazily.
+    voxel_size : float or "auto"
+        Lattice of the reference points (``"auto"``, default: :func:`sdp.auto_voxel_size`).
+    sigma_voxels, k
+        As in :meth:`DensityField.from_points`.
+    update : {"window", "none", "decay"}
+        How the model learns (see the module docstring); default ``"window"``.
+    window : int
+        Frames in the model (the reference counts as one) for ``update="window"``.
+    decay : float
+        λ in (0, 1) for ``update="decay"``.
+    min_region_points : int
+        Appeared regions with fewer points are dropped (noise); default 50.
+    regions : bool
+        Group appeared points into regions (skip for the lowest latency).
+    align : {None, "gicp", "density"}
+        Register each frame onto the reference first (see the module docstring), starting
+        from the previous frame's transform: ``"gicp"`` needs reference points (not a field)
+        and the ``align`` extra, downsamples both at σ and pairs points up to 4σ apart;
+        ``"density"`` is :func:`sdp.align` on the reference field. None: the frames are
+        already in the reference's frame (a fixed camera, or poses applied by the caller).
+    sensor_origin : "auto", None or array_like (3,)
+        The reference scan's sensor position (reference points only); ``"auto"`` (default):
+        what a reference read from a file says (an organized PCD's VIEWPOINT). Adds the
+        visibility test of :func:`sdp.detect_changes` against the reference's rays
+        (:func:`sdp.change._visibility.visibility_states`): an appeared point the reference saw at the
+        same range is not a change, one it could not see is not comparable.
+    range_noise : float
+        With a sensor: as in :func:`sdp.detect_changes`.
+    coverage : bool
+        Tell what the model could not see (default True): without a sensor, a frame point whose
+        column the model did not sample densely enough is not comparable (its footprint, as in
+        :func:`sdp.detect_changes`); with one, the reference's rays decide.
+
+    Yields
+    ------
+    FrameChange
+    """
+    if update not in ("none", "window", "decay"):
+        raise ValueError(f"update must be 'none', 'window' or 'decay', got {update!r}")
+    if update == "window" and window < 1:
+        raise ValueError("window must be at least 1 frame")
+    if update == "decay" and not 0 < decay < 1:
+        raise ValueError("decay must be in (0, 1)")
+    if align not in (None, "gicp", "density"):
+        raise ValueError(f"align must be None, 'gicp' or 'density', got {align!r}")
+    nonnegative_finite("range_noise", range_noise)
+    integer_at_least("min_region_points", min_region_points, 0)
+    check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k)
+    is_field = isinstance(reference, DensityField)
+    origin = None
+    if is_field:
+        if align == "gicp" or not (sensor_origin is None or isinstance(sensor_origin, str)):
+            raise ValueError("align='gicp' and sensor_origin= need the reference points, not a field")
+        base, ref = reference, None
+    else:
+        origin = resolve_sensor_origins(sensor_origin, reference, None)[0]
+        pts = as_points(reference, name="reference")
+        ref = pts.xyz
+        l, sv = resolve_lattice([pts], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+        base = DensityField.from_points(pts, voxel_size=l, sigma_voxels=sv, k=k)
+    h, opts = base.h, dict(voxel_size=base.voxel_size, sigma_voxels=base.sigma / base.voxel_size,
+                           truncate=base.truncate, h=base.h)
+    model = base if update == "none" else base.copy()
+    weight, history = 1.0, deque([base])
+    target = None if align != "gicp" else GicpTarget(ref, resolution=base.sigma, max_distance=4 * base.sigma)
+    image = None if origin is None else RangeImage.from_points(ref, origin)
+    matrix = None if align is None else np.eye(4)
+    for index, item in enumerate(frames):
+        name, pts = item if isinstance(item, tuple) else (str(index), item)
+        t0 = time.perf_counter()
+        timings = {}
+        cur = as_points(pts, name=f"frame {name}")
+        if align is not None:  # from the previous frame's pose: the sensor moved little since
+            t = time.perf_counter()
+            matrix = (target.register(cur.xyz, matrix) if target is not None else
+                      align_density(base, cur.xyz, init=matrix).matrix)
+            cur = cur.moved(transform_points(matrix, cur.xyz))
+            timings["align"] = time.perf_counter() - t
+        frame = DensityField.from_points(cur, **opts)
+        t1 = time.perf_counter()
+        seen = model.with_threshold(h=h * weight)
+        mask, d = inside_difference(frame, seen, cur.xyz)
+        # the model's footprint, or the reference's rays (imaged once)
+        states = judge_coverage(cur.xyz, mask, ref, seen, origin, coverage=coverage, range_noise=range_noise,
+                                image=image, present=frame.inside)
+        mask, unseen = states == CHANGED, states == NOT_COMPARABLE
+        t2 = time.perf_counter()
+        if regions:  # point-wise decision: only the appeared points need a region
+            idx = np.flatnonzero(mask)
+            kept, regs, _ = region_rules(frame, d, cur.xyz[idx], np.ones(len(idx), bool), regions=True,
+                                     decision="point", min_region_points=min_region_points, cluster_fraction=0.5)
+            mask[idx] = kept
+        else:
+            regs = []
+        t3 = time.perf_counter()
+        if update == "decay":
+            model.scale(decay).accumulate(frame)
+            weight = decay * weight + 1
+        elif update == "window":
+            model.accumulate(frame)
+            history.append(frame)
+            if len(history) > window:
+                model.accumulate(history.popleft(), weight=-1)
+            weight = float(len(history))
+        t4 = time.perf_counter()
+        timings.update(build=t1 - t0 - timings.get("align", 0.0), detect=t2 - t1, regions=t3 - t2, update=t4 - t3)
+        yield FrameChange(index=index, name=name, appeared=to_rows(mask, cur, False),
+                          not_comparable=to_rows(unseen, cur, False), regions=regs,
+                          latency=t4 - t0, timings=timings, transform=matrix)
