@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+import flat
 import sdp
 from sdp.io._io import read_points
 
@@ -301,7 +302,7 @@ def align_table():
             for voxel in ("auto", 0.02):
                 base = None
                 for label, xyz, kw in variants:
-                    r = sdp.detect_changes(ref, xyz, voxel_size=voxel, **kw)
+                    r = flat.detect_changes(ref, xyz, voxel_size=voxel, **kw)
                     found = sum(r.appeared[m].mean() >= 0.5 for m in persons)
                     flagged = r.appeared & static
                     n_static = int(flagged.sum())
@@ -361,9 +362,9 @@ def online_table(repeats=3):
             configs += [("window", True, "gicp", None), ("window", True, "gicp", ref.sensor_origin)]
         for update, regions, align, origin in configs:
             kw = dict(update=update, regions=regions, align=align, sensor_origin=origin)
-            list(sdp.watch(ref.xyz, frames[:2], **kw))  # warm the compiled kernels
+            list(flat.watch(ref.xyz, frames[:2], **kw))  # warm the compiled kernels
             least = sdp.DEFAULTS.min_region_points if regions else 1
-            runs = [list(sdp.watch(ref.xyz, frames, min_region_points=least, **kw)) for _ in range(repeats)]
+            runs = [list(flat.watch(ref.xyz, frames, min_region_points=least, **kw)) for _ in range(repeats)]
             reps = runs[0]
             lat = np.array([r.latency for run in runs for r in run]) * 1e3
             step = " / ".join(f"{1e3 * np.median([r.timings.get(k, 0.0) for run in runs for r in run]):.1f}"

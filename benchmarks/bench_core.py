@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+import flat
 import sdp
 from sdp.io._io import read_points
 
@@ -72,11 +73,11 @@ def load_pair():
 
 
 def compare(ref, cur, repeat, **opts):
-    t_sdp = median_time(lambda: sdp.detect_changes(ref, cur, regions=False, **opts), repeat)
-    t_sdp_regions = median_time(lambda: sdp.detect_changes(ref, cur, **opts), repeat)
+    t_sdp = median_time(lambda: flat.detect_changes(ref, cur, regions=False, **opts), repeat)
+    t_sdp_regions = median_time(lambda: flat.detect_changes(ref, cur, **opts), repeat)
     t_ck = median_time(lambda: c2c_ckdtree(ref, cur), repeat)
     t_py = median_time(lambda: c2c_pykdtree(ref, cur), repeat)
-    r = sdp.detect_changes(ref, cur, **opts)
+    r = flat.detect_changes(ref, cur, **opts)
     return t_sdp, t_sdp_regions, t_ck, t_py, r
 
 
@@ -85,7 +86,7 @@ def compile_times():
     import tempfile
 
     code = ("import time,numpy as np;t=time.perf_counter();import sdp;"
-            "p=np.random.default_rng(0).random((1000,3));r=sdp.detect_changes(p,p+0.01,voxel_size=0.05);"
+            "p=np.random.default_rng(0).random((1000,3));r=sdp.detect_changes(p,p+0.01,lattice=sdp.Lattice(voxel_size=0.05));"
             "r.current_field.mesh();print(time.perf_counter()-t)")
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache)

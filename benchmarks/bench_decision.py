@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+import flat
 import sdp
 from sdp.io._io import read_points
 
@@ -67,7 +68,7 @@ def main():
         for v, vs in voxels.items():
             for c, kw in configs.items():
                 grid = dict(grid_size=80) if vs is None else dict(voxel_size=vs)
-                r = sdp.detect_changes(ref, cur, **grid, **kw)
+                r = flat.detect_changes(ref, cur, **grid, **kw)
                 rows[(v, c)].append(sdp.kappa(truth[scored], r.appeared[scored]))
     lines = ["# Decision rule on real Kinect pairs (mOSD)\n",
              f"{n_pairs} fixed-camera pairs, {n_changed} with an appeared object; kappa over scored points "

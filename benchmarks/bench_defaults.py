@@ -30,6 +30,7 @@ import numpy as np
 from bench_decision import LEARN, labelled_pairs
 from scipy.spatial import cKDTree
 
+import flat
 import sdp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,7 +57,7 @@ def mosd(out, tmp: Path):
         py = sdp.detect_changes(sdp.read_points(a), sdp.read_points(b))
         same &= bool(np.array_equal(py.current_state, state))
         ra, rb = sdp.read_points(a), sdp.read_points(b)
-        before = sdp.detect_changes(ra.xyz, rb.xyz, sensor_origin=[ra.sensor_origin, rb.sensor_origin], **BEFORE)
+        before = flat.detect_changes(ra.xyz, rb.xyz, sensor_origin=[ra.sensor_origin, rb.sensor_origin], **BEFORE)
         appeared, comparable = state == sdp.CHANGED, state != sdp.NOT_COMPARABLE
         rows.append(dict(t=t, truth=int(truth.sum()),
                          all=sdp.kappa(truth[scored], appeared[scored]),
@@ -132,7 +133,7 @@ def toronto(out, tmp: Path):
     for name, kw in (("before (no coverage test), min_region_points=1", dict(coverage=False, min_region_points=1)),
                      ("after (the defaults), min_region_points=1", dict(min_region_points=1)),
                      ("after, the defaults (min_region_points=50)", {})):
-        r = sdp.detect_changes(a, moved, **kw)
+        r = flat.detect_changes(a, moved, **kw)
         regs = ", ".join(f"{g.n_points} at ({g.centroid[0]:.0f}, {g.centroid[1]:.0f}; "
                          f"{tree.query(g.centroid[:2])[0]:.0f} m)" for g in r.appeared_regions)
         out(f"- {name}: {regs or 'none'}")

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+import flat
 import sdp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -140,7 +141,7 @@ def masks(out, rng, n):
     for shift in sigma * np.array([0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0]):
         b, _ = rough_plane(rng, n)
         b = b + NOISE * rng.standard_normal(b.shape) + [0, 0, shift]
-        r = sdp.detect_changes(a, b, sensor_origin=None)
+        r = flat.detect_changes(a, b, sensor_origin=None)
         d = sdp.distances(b, a)  # core points on the current: the reference lies −shift away
         sigma = r.reference_field.sigma
         g0 = float(np.median(r.reference_field.density(a)))
@@ -175,7 +176,7 @@ def side_by_side(out, name, ref, cur, rng, *, every=True, **kwargs):
     for m in sizes:
         core = ref if m >= len(ref) else ref[np.sort(rng.choice(len(ref), m, replace=False))]
         t0 = time.perf_counter()
-        d = sdp.distances(ref, cur, core_points=core, sensor_origin=None, **kwargs)
+        d = flat.distances(ref, cur, core_points=core, sensor_origin=None, **kwargs)
         t_sdp = time.perf_counter() - t0
         dm, lod_m, t_m = m3c2(ref, cur, core, d)
         both = np.isfinite(d.distance) & np.isfinite(dm)

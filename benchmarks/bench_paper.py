@@ -34,6 +34,7 @@ import matplotlib
 import numpy as np
 from bench_decision import labelled_pairs
 
+import flat
 import sdp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -88,7 +89,7 @@ def sdp_method(*, with_origin: bool = False, **kw):
     def detect(ref, cur, origins=None):
         if with_origin and origins is None:
             raise ValueError("this sdp method needs the pair's sensor origins")
-        r = sdp.detect_changes(ref, cur, **kw, **({"sensor_origin": origins} if with_origin else {}))
+        r = flat.detect_changes(ref, cur, **kw, **({"sensor_origin": origins} if with_origin else {}))
         return B.Scored(r.appeared.astype(np.float64), 0.5, r.timings)
     detect.with_origin = with_origin
     return detect
@@ -191,7 +192,7 @@ def grid_sweep(out, runs: dict[int, Run], changed, default: Run):
 
 def timed_steps(kw, ref, cur) -> float:
     """Median over REPEAT calls of the sum of sdp's step timings."""
-    return float(np.median([sum(sdp.detect_changes(ref, cur, **kw).timings.values()) for _ in range(REPEAT)]))
+    return float(np.median([sum(flat.detect_changes(ref, cur, **kw).timings.values()) for _ in range(REPEAT)]))
 
 
 def linear_fit(n, t):
@@ -323,9 +324,9 @@ def static_sequence(out):
     seconds = {}
     for i, j in order:  # unaligned: the frames as recorded, one sensor origin each
         o = np.stack([clouds[i].sensor_origin, clouds[j].sensor_origin])
-        rows["sdp default"].append(sdp.detect_changes(clouds[i].xyz, clouds[j].xyz, **SDP_DEFAULT).appeared.mean())
+        rows["sdp default"].append(flat.detect_changes(clouds[i].xyz, clouds[j].xyz, **SDP_DEFAULT).appeared.mean())
         t = perf_counter()
-        rows[SDP_ORIGIN].append(sdp.detect_changes(clouds[i].xyz, clouds[j].xyz, **SDP_DEFAULT,
+        rows[SDP_ORIGIN].append(flat.detect_changes(clouds[i].xyz, clouds[j].xyz, **SDP_DEFAULT,
                                                    sensor_origin=o).appeared.mean())
         seconds.setdefault(SDP_ORIGIN, []).append(perf_counter() - t)
     for method in aligners:  # sdp.align first: current onto reference; its sensor origin moves along
@@ -337,8 +338,8 @@ def static_sequence(out):
             seconds.setdefault(f"align {method}", []).append(perf_counter() - t)
             cur = al.apply(clouds[j].xyz)
             o = np.stack([clouds[i].sensor_origin, al.apply(clouds[j].sensor_origin[None])[0]])
-            rows[plain].append(sdp.detect_changes(clouds[i].xyz, cur, **SDP_DEFAULT).appeared.mean())
-            rows[seen].append(sdp.detect_changes(clouds[i].xyz, cur, **SDP_DEFAULT, sensor_origin=o).appeared.mean())
+            rows[plain].append(flat.detect_changes(clouds[i].xyz, cur, **SDP_DEFAULT).appeared.mean())
+            rows[seen].append(flat.detect_changes(clouds[i].xyz, cur, **SDP_DEFAULT, sensor_origin=o).appeared.mean())
     out("## 6. Static Kinect sequence (nothing changed)\n")
     out(f"PCL grabber sequence, {len(frames)} frames ({', '.join(f'{len(c):,}' for c in clouds)} points), each of "
         f"the {len(order)} ordered pairs: fraction of current points flagged appeared (the bar: < 0.5 %). Sensor "
@@ -355,7 +356,7 @@ def static_sequence(out):
 def range_noise_two_fold(out, pairs, origins, changed, default: Run):
     """detect_changes(range_noise=) chosen on one half of the pairs and scored on the other (the
     protocol of baselines.two_fold, over a grid instead of a threshold)."""
-    kappas = {c: np.array([sdp.kappa(truth[scored], sdp.detect_changes(ref, cur, **SDP_DEFAULT, sensor_origin=o,
+    kappas = {c: np.array([sdp.kappa(truth[scored], flat.detect_changes(ref, cur, **SDP_DEFAULT, sensor_origin=o,
                                                                        range_noise=c).appeared[scored])
                            for (_, ref, cur, truth, scored), o in zip(pairs, origins)]) for c in RANGE_NOISES}
     held_out = np.full(len(pairs), np.nan)
@@ -389,8 +390,8 @@ def person_like(region) -> bool:
 def dlut_regions(out, dlut):
     out("## 7. DLUT laser re-scans: change regions (sdp default, re-scans not aligned)\n")
     for name, ref, cur, origins in dlut:
-        r = sdp.detect_changes(ref, cur, **SDP_DEFAULT)
-        v = sdp.detect_changes(ref, cur, **SDP_DEFAULT, sensor_origin=origins)
+        r = flat.detect_changes(ref, cur, **SDP_DEFAULT)
+        v = flat.detect_changes(ref, cur, **SDP_DEFAULT, sensor_origin=origins)
         path = RESULTS / f"paper_dlut_{name}.png"
         sdp.render_changes(path, cur, r.appeared, title=f"DLUT A603 reference → {name}: sdp default, appeared red")
         out(f"**{name}** ({len(cur):,} points, voxel {r.voxel_size * 1e3:.1f} mm): {r.appeared.sum():,} points "

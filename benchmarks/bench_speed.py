@@ -36,6 +36,7 @@ import baselines as B
 import numpy as np
 from bench_decision import LEARN, labelled_pairs
 
+import flat
 import sdp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,7 +59,7 @@ def in_process(out):
     depth = "depth differencing, pixel by pixel (one fixed camera)"
     methods = {"sdp (defaults, sensor origin)": lambda a, b, _: sdp.detect_changes(a, b),
                "sdp, σ = 2 voxels (the paper's, on the automatic voxel)":
-                   lambda a, b, _: sdp.detect_changes(a, b, sigma_voxels=2.0),
+                   lambda a, b, _: flat.detect_changes(a, b, sigma_voxels=2.0),
                "pykdtree C2C, both ways": lambda a, b, _: both_ways(B.c2c_pykdtree, a.xyz, b.xyz),
                "cKDTree C2C, both ways": lambda a, b, _: both_ways(B.c2c_ckdtree, a.xyz, b.xyz),
                f"M3C2, {M3C2_CORE_POINTS:,} core points": lambda a, b, _: partial(

@@ -21,14 +21,14 @@ def scene_pair(rng):
 
 def test_identical_clouds_give_no_change(rng):
     pts = room_scene(rng, n=20000)
-    r = sdp.detect_changes(pts, pts, voxel_size=0.02)
+    r = sdp.detect_changes(pts, pts, lattice=sdp.Lattice(voxel_size=0.02))
     assert not r.appeared.any() and not r.disappeared.any()
     assert r.appeared_regions == [] and r.disappeared_regions == []
 
 
 def test_inserted_box_is_found_as_one_region(scene_pair):
     reference, current, truth = scene_pair
-    r = sdp.detect_changes(reference, current, voxel_size=0.015)
+    r = sdp.detect_changes(reference, current, lattice=sdp.Lattice(voxel_size=0.015))
     assert sdp.kappa(truth, r.appeared) > 0.9
     assert r.disappeared.mean() < 0.001
     big = r.appeared_regions[0]
@@ -41,13 +41,13 @@ def test_inserted_box_is_found_as_one_region(scene_pair):
     np.testing.assert_array_equal(r.appeared_region == 0, r.appeared & (r.appeared_region == big.label))
     assert set(r.timings) == {"build_reference", "build_current", "detect", "coverage", "regions"}
     # dropping stray regions leaves exactly the box
-    s = sdp.detect_changes(reference, current, voxel_size=0.015, min_region_points=20)
+    s = sdp.detect_changes(reference, current, min_region_points=20, lattice=sdp.Lattice(voxel_size=0.015))
     assert len(s.appeared_regions) == 1 and sdp.kappa(truth, s.appeared) >= sdp.kappa(truth, r.appeared)
 
 
 def test_removed_box_is_disappeared(scene_pair):
     reference, current, truth = scene_pair
-    r = sdp.detect_changes(current, reference, voxel_size=0.015)  # swap: the box disappeared
+    r = sdp.detect_changes(current, reference, lattice=sdp.Lattice(voxel_size=0.015))  # swap: the box disappeared
     assert sdp.kappa(truth, r.disappeared) > 0.9
     assert not r.appeared.mean() > 0.001
 
@@ -60,8 +60,9 @@ def test_cluster_decision_promotes_mostly_changed_clusters(rng):
     new = box_surface(rng, [2.0, 1.2, 1.5], [2.4, 1.6, 2.1], 4000)
     current = np.concatenate([room_scene(rng, n=80_000), new])
     truth = np.r_[np.zeros(80_000, bool), np.ones(len(new), bool)]
-    point = sdp.detect_changes(np.concatenate([reference, old]), current, voxel_size=0.015)
-    cluster = sdp.detect_changes(np.concatenate([reference, old]), current, voxel_size=0.015, decision="cluster")
+    point = sdp.detect_changes(np.concatenate([reference, old]), current, lattice=sdp.Lattice(voxel_size=0.015))
+    cluster = sdp.detect_changes(np.concatenate([reference, old]), current, decision="cluster",
+                                 lattice=sdp.Lattice(voxel_size=0.015))
     assert point.appeared[truth].mean() < 0.95
     assert cluster.appeared[truth].mean() > 0.99
     assert sdp.kappa(truth, cluster.appeared) > sdp.kappa(truth, point.appeared)
@@ -71,21 +72,21 @@ def test_cluster_decision_promotes_mostly_changed_clusters(rng):
 def test_far_from_origin_gives_the_same_result(scene_pair):
     reference, current, truth = scene_pair
     shift = np.array([1e6, 2e6, 100.0])  # a multiple of 8·l: the lattice phase is unchanged
-    a = sdp.detect_changes(reference, current, voxel_size=0.025)
-    b = sdp.detect_changes(reference + shift, current + shift, voxel_size=0.025)
+    a = sdp.detect_changes(reference, current, lattice=sdp.Lattice(voxel_size=0.025))
+    b = sdp.detect_changes(reference + shift, current + shift, lattice=sdp.Lattice(voxel_size=0.025))
     np.testing.assert_array_equal(a.appeared, b.appeared)
     np.testing.assert_array_equal(a.disappeared, b.disappeared)
     np.testing.assert_allclose(b.appeared_regions[0].centroid - shift, a.appeared_regions[0].centroid, atol=1e-6)
     # the paper's grid_size: the voxel is a fraction of the box, the same at both places
-    c = sdp.detect_changes(reference, current, grid_size=200)
-    d = sdp.detect_changes(reference + shift, current + shift, grid_size=200)
+    c = sdp.detect_changes(reference, current, lattice=sdp.Lattice(grid_size=200))
+    d = sdp.detect_changes(reference + shift, current + shift, lattice=sdp.Lattice(grid_size=200))
     assert c.voxel_size == pytest.approx(d.voxel_size, rel=1e-9)
     assert (c.appeared == d.appeared).mean() > 0.999
 
 
 def test_both_fields_share_one_lattice(scene_pair):
     reference, current, _ = scene_pair
-    r = sdp.detect_changes(reference, current[:1000], grid_size=80)
+    r = sdp.detect_changes(reference, current[:1000], lattice=sdp.Lattice(grid_size=80))
     assert r.reference_field.voxel_size == r.current_field.voxel_size
     lo = np.minimum(reference.min(0), current[:1000].min(0))
     hi = np.maximum(reference.max(0), current[:1000].max(0))
@@ -97,25 +98,25 @@ def test_auto_voxel_size_follows_point_spacing(rng):
     sparse = plane[::16]  # spacing ~ 2 cm
     l1, l2 = sdp.auto_voxel_size(plane), sdp.auto_voxel_size(sparse)
     assert 2.5 < l2 / l1 < 6
-    r = sdp.detect_changes(sparse, sparse[::-1].copy(), voxel_size="auto")
+    r = sdp.detect_changes(sparse, sparse[::-1].copy(), lattice=sdp.Lattice(voxel_size="auto"))
     assert not r.appeared.any()
     # with the automatic voxel a resampled surface is not "new"
     resampled = np.c_[rng.random((2500, 2)), np.zeros(2500)]
-    assert sdp.detect_changes(sparse, resampled, voxel_size="auto").appeared.mean() < 0.01
+    assert sdp.detect_changes(sparse, resampled, lattice=sdp.Lattice(voxel_size="auto")).appeared.mean() < 0.01
 
 
 def test_summary_is_json_serializable(scene_pair):
     import json
 
     reference, current, _ = scene_pair
-    s = sdp.detect_changes(reference, current, voxel_size=0.02).summary()
+    s = sdp.detect_changes(reference, current, lattice=sdp.Lattice(voxel_size=0.02)).summary()
     again = json.loads(json.dumps(s))
     assert again["current"]["appeared"] > 0 and again["appeared_regions"][0]["n_points"] > 0
 
 
 def test_no_change_at_all_with_a_region_size_filter(rng):
     pts = room_scene(rng, n=8000)
-    r = sdp.detect_changes(pts, pts, voxel_size=0.05, min_region_points=10)
+    r = sdp.detect_changes(pts, pts, min_region_points=10, lattice=sdp.Lattice(voxel_size=0.05))
     assert not r.appeared.any() and not r.disappeared.any() and r.appeared_regions == []
 
 
@@ -123,7 +124,8 @@ def test_no_change_at_all_with_a_region_size_filter(rng):
 def test_two_directions_on_threads_equal_one_thread(monkeypatch):
     # the directions run on two threads (map_concurrently); one at a time must give the same result
     s = office_scene(seed=3)
-    kw = dict(voxel_size="auto", min_region_points=20, sensor_origin=(0.3, 0.2, 2.2))
+    kw = dict(lattice=sdp.Lattice(voxel_size="auto"), min_region_points=20,
+              coverage=sdp.Coverage(sensor_origin=(0.3, 0.2, 2.2)))
     threaded = sdp.detect_changes(s.reference, s.current, **kw)
     monkeypatch.setattr(sdp.change._detect, "map_concurrently", lambda fn, items, **_: [fn(x) for x in items])
     serial = sdp.detect_changes(s.reference, s.current, **kw)

@@ -59,7 +59,7 @@ def test_a_strip_only_one_flight_covered_is_not_comparable_and_a_new_building_is
     back = sdp.detect_changes(new, old)
     np.testing.assert_array_equal(back.disappeared, r.appeared)
     np.testing.assert_array_equal(back.reference_not_comparable, r.current_not_comparable)
-    off = sdp.detect_changes(old, new, coverage=False)  # every point comparable: the strip looks new
+    off = sdp.detect_changes(old, new, coverage=sdp.Coverage(enabled=False))  # every point comparable: the strip looks new
     assert off.appeared[strip].mean() > 0.9 and not off.current_not_comparable.any()
     assert off.coverage["appeared"] == "off"
 
@@ -99,9 +99,9 @@ def test_the_third_state_survives_each_output_format(tmp_path, rng, ext):
 def test_the_tiled_path_marks_the_same_points_not_comparable(tmp_path, rng):
     old, _ = flight(rng, 60, spacing=1.5)
     new, _ = flight(rng, 90, building=(20, 20, 35, 35), spacing=1.5)
-    whole = sdp.detect_changes(old, new, voxel_size=1.0)
-    tiled = sdp.detect_changes_tiled(old, new, voxel_size=1.0, tile_size=20.0, scheduler="synchronous",
-                                     workdir=tmp_path)
+    whole = sdp.detect_changes(old, new, lattice=sdp.Lattice(voxel_size=1.0))
+    tiled = sdp.detect_changes_tiled(old, new, lattice=sdp.Lattice(voxel_size=1.0),
+                                     execution=sdp.Execution(tile_size=20.0, scheduler="synchronous", workdir=tmp_path))
     assert tiled.n_tiles > 4
     np.testing.assert_array_equal(tiled.current_not_comparable_rows, np.flatnonzero(whole.current_not_comparable))
     np.testing.assert_array_equal(tiled.appeared_rows, np.flatnonzero(whole.appeared))

@@ -11,14 +11,16 @@ import pytest
 import sdp
 from sdp.cli._main import build_parser
 
-PYTHON = {  # function → the DEFAULTS fields it takes as keyword options
-    sdp.detect_changes: ("voxel_size", "sigma_voxels", "k", "truncate", "min_region_points", "sensor_origin",
-                         "range_noise", "decision", "cluster_fraction"),
-    sdp.DensityField.from_points: ("voxel_size", "sigma_voxels", "k", "truncate"),
-    sdp.watch: ("voxel_size", "sigma_voxels", "k", "min_region_points", "sensor_origin", "range_noise", "update",
-                "window", "decay"),
-    sdp.detect_changes_tiled: ("voxel_size", "sigma_voxels", "k", "truncate", "min_region_points"),
-    sdp.build_field_tiled: ("voxel_size", "sigma_voxels", "k", "truncate"),
+PYTHON = {  # function or option object → the DEFAULTS fields it takes as keyword options
+    sdp.Lattice: ("voxel_size", "sigma_voxels", "k", "truncate", "method"),
+    sdp.Coverage: ("sensor_origin", "range_noise"),
+    sdp.Cylinder: ("projection_scale", "normal_scale", "max_distance"),
+    sdp.detect_changes: ("min_region_points", "decision", "cluster_fraction"),
+    sdp.DensityField.from_points: ("voxel_size", "sigma_voxels", "k", "truncate", "method"),
+    sdp.watch: ("min_region_points", "update", "window", "decay"),
+    sdp.detect_changes_tiled: ("min_region_points",),
+    sdp.distances: ("registration_error",),
+    sdp.align: ("voxel_size",),
 }
 CLI = {"change": ("voxel_size", "sigma_voxels", "k", "min_region_points", "sensor_origin", "range_noise", "decision"),
        "watch": ("voxel_size", "min_region_points", "sensor_origin", "range_noise", "update", "window", "decay"),
@@ -30,6 +32,8 @@ def test_python_and_cli_defaults_are_the_same_objects():
         params = inspect.signature(func).parameters
         for name in names:
             assert params[name].default is getattr(sdp.DEFAULTS, name), (func.__name__, name)
+    assert inspect.signature(sdp.Registration).parameters["method"].default is sdp.DEFAULTS.align_method
+    assert inspect.signature(sdp.align).parameters["method"].default is sdp.DEFAULTS.align_method
     sub = next(a for a in build_parser()._actions if a.dest == "command").choices
     for command, names in CLI.items():
         defaults = {a.dest: a.default for a in sub[command]._actions}
@@ -42,7 +46,7 @@ def test_python_and_cli_defaults_are_the_same_objects():
 
 def test_the_papers_grid_stays_one_option_away(rng):
     a, b = rng.random((3000, 3)), rng.random((3000, 3))
-    r = sdp.detect_changes(a, b, grid_size=80)
+    r = sdp.detect_changes(a, b, lattice=sdp.Lattice(grid_size=80))
     extent = np.max(np.maximum(a.max(0), b.max(0)) - np.minimum(a.min(0), b.min(0)))
     assert r.voxel_size == pytest.approx(extent / 80)
     auto = sdp.detect_changes(a, b)
@@ -51,7 +55,7 @@ def test_the_papers_grid_stays_one_option_away(rng):
     assert auto.current_field.sigma == pytest.approx(1.5 * auto.voxel_size)  # σ from the spacing
     assert r.current_field.sigma == pytest.approx(2 * r.voxel_size)  # the paper's σ of 2 voxels
     with pytest.raises(ValueError, match="not both"):
-        sdp.detect_changes(a, b, grid_size=80, voxel_size=0.1)
+        sdp.detect_changes(a, b, lattice=sdp.Lattice(grid_size=80, voxel_size=0.1))
 
 
 def pcd(path, xyz, *, width, height, viewpoint="0 0 0 1 0 0 0"):
@@ -84,10 +88,10 @@ def test_detect_changes_uses_the_sensor_a_cloud_brings(tmp_path):
     ref.viewpoint = cur.viewpoint = np.r_[CAMERA, 1, 0, 0, 0]
     ref.organized = cur.organized = True
     auto = sdp.detect_changes(ref, cur)
-    given = sdp.detect_changes(s.reference, s.current, sensor_origin=CAMERA)
+    given = sdp.detect_changes(s.reference, s.current, coverage=sdp.Coverage(sensor_origin=CAMERA))
     np.testing.assert_array_equal(auto.current_state, given.current_state)
     assert auto.coverage["appeared"] == "sensor rays" and auto.summary()["sensor_origin"]["current"] == list(CAMERA)
-    plain = sdp.detect_changes(ref, cur, sensor_origin=None)
+    plain = sdp.detect_changes(ref, cur, coverage=sdp.Coverage(sensor_origin=None))
     assert plain.coverage == {"appeared": "footprint", "disappeared": "footprint"}
     one = sdp.detect_changes(ref, s.current)  # only the reference knows: appeared follows its rays
     assert one.coverage == {"appeared": "sensor rays", "disappeared": "footprint"}
@@ -120,5 +124,6 @@ def test_k_reaches_the_automatic_voxel_of_build_and_tiles(tmp_path, rng):
     built = sdp.DensityField.load(tmp_path / "a.sdpf")
     assert built.voxel_size == pytest.approx(sdp.auto_voxel_size(pts, k=5))
     assert built.h == pytest.approx(sdp.threshold(5))
-    tiled = sdp.detect_changes_tiled(pts, pts + 0.001, scheduler="synchronous", workdir=tmp_path)  # "auto" too
+    tiled = sdp.detect_changes_tiled(pts, pts + 0.001,
+                                     execution=sdp.Execution(scheduler="synchronous", workdir=tmp_path))  # "auto" too
     assert tiled.voxel_size == pytest.approx(sdp.auto_voxel_size(pts, pts + 0.001))

@@ -36,12 +36,12 @@ def test_static_pair_flags_about_five_percent(rng):
 
 def test_large_shift_found_on_a_longer_cylinder(rng):
     a = plane(rng, 30_000, 0.002)
-    d = sdp.distances(a, a + [0, 0, 1.0], projection_scale=0.1)
+    d = sdp.distances(a, a + [0, 0, 1.0], cylinder=sdp.Cylinder(projection_scale=0.1))
     inner = ((a[:, :2] > 0.3) & (a[:, :2] < 3.7)).all(axis=1)  # a corner's normal tilts
     assert (d.level[inner] == 1).all()
     error = np.abs(d.distance - d.normal[:, 2])[inner]  # 1 m measured along the normal
     assert np.median(error) < 1e-4 and error.max() < 2e-3
-    short = sdp.distances(a, a + [0, 0, 1.0], projection_scale=0.1, max_distance=0.5)
+    short = sdp.distances(a, a + [0, 0, 1.0], cylinder=sdp.Cylinder(projection_scale=0.1, max_distance=0.5))
     assert not short.comparable.any() and not short.significant.any()
 
 
@@ -105,14 +105,16 @@ def test_scales_are_the_density_kernel(rng):
     assert sigma == pytest.approx(2 * sdp.auto_voxel_size(a, b, sigma_voxels=2))
 
 
-@pytest.mark.parametrize("kwargs", [dict(projection_scale=0), dict(projection_scale=float("nan")),
-                                    dict(normal_scale=-1), dict(max_distance="far"),
+@pytest.mark.parametrize("kwargs", [lambda: dict(cylinder=sdp.Cylinder(projection_scale=0)),
+                                    lambda: dict(cylinder=sdp.Cylinder(projection_scale=float("nan"))),
+                                    lambda: dict(cylinder=sdp.Cylinder(normal_scale=-1)),
+                                    lambda: dict(cylinder=sdp.Cylinder(max_distance="far")),
                                     dict(registration_error=-0.1), dict(orientation=[0, 0, 0]),
                                     dict(core_points="both"), dict(core_points=np.zeros((0, 3)))])
 def test_bad_options_are_refused(rng, kwargs):
     a = plane(rng, 1_000, 0.002)
     with pytest.raises(sdp.SDPError):
-        sdp.distances(a, a, **kwargs)
+        sdp.distances(a, a, **(kwargs() if callable(kwargs) else kwargs))
 
 
 def test_bad_clouds_and_memory_are_refused_before_work(rng):
@@ -167,10 +169,10 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path):
     core = np.c_[rng.uniform(1, 3, (30, 2)), np.zeros(30)]
     sdp.write_points(tmp_path / "core.npz", core)
     r = sdp.distance_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "d.npz",
-                           core_points=tmp_path / "core.npz", png=tmp_path / "d.png")
+                           core_points=tmp_path / "core.npz", outputs=sdp.Outputs(png=tmp_path / "d.png"))
     assert (tmp_path / "d.png").stat().st_size > 10_000 and len(r.result.distance) == 30
     assert "significant" in r.summary_text() and r.summary["registration_error"] == 0.0
-    for bad in (dict(output=tmp_path / "a.ply"), dict(output=tmp_path / "x.ply", projection_scale=-1),
+    for bad in (dict(output=tmp_path / "a.ply"), dict(output=tmp_path / "x.ply", registration_error=-1),
                 dict(output=tmp_path / "x.ply", registration_error="big"),
                 dict(output=tmp_path / "x.ply", orientation="up"), dict(output=tmp_path / "x.txt")):
         with pytest.raises(sdp.SDPError):
@@ -183,9 +185,9 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path):
 
 def test_hash_cells_equal_dense_cells(rng, monkeypatch):
     a, b = plane(rng, 5_000, 0.002), plane(rng, 5_000, 0.002, z=0.3)  # the far search too
-    dense = sdp.distances(a, b, projection_scale=0.05)
+    dense = sdp.distances(a, b, cylinder=sdp.Cylinder(projection_scale=0.05))
     monkeypatch.setattr(sdp.distance._distances, "_DENSE_CELLS", 0)  # boxes beyond the dense limit: hashed cells
-    hashed = sdp.distances(a, b, projection_scale=0.05)
+    hashed = sdp.distances(a, b, cylinder=sdp.Cylinder(projection_scale=0.05))
     for name in sdp.distance._distances.DISTANCE_FIELDS:
         assert np.array_equal(dense.fields()[name], hashed.fields()[name], equal_nan=True), name
 
@@ -196,14 +198,14 @@ def test_tiles_give_the_same_distances(rng):
     xy = rng.uniform(0, [12, 3], (n, 2))
     b = np.c_[xy, 0.02 * (xy[:, 0] > 6) + 0.003 * rng.standard_normal(n)]
     a[5] = np.nan  # a row the reader would drop: no distance, in its place
-    kw = dict(projection_scale=0.08, normal_scale=0.16, max_distance=0.2)
+    kw = dict(cylinder=sdp.Cylinder(projection_scale=0.08, normal_scale=0.16, max_distance=0.2))
     whole = sdp.distances(a, b, sensor_origin=None, **kw)
-    tiled = sdp.distances_tiled(a, b, tile_size=1.0, scheduler="synchronous", **kw)
+    tiled = sdp.distances_tiled(a, b, **kw, execution=sdp.Execution(tile_size=1.0, scheduler="synchronous"))
     assert tiled.tiles > 4 and len(tiled.distance) == n and np.isnan(tiled.distance[5])
     keep = np.isfinite(a).all(axis=1)
     for name in sdp.distance._distances.DISTANCE_FIELDS:
         assert np.array_equal(whole.fields()[name], tiled.fields()[name][keep], equal_nan=True), name
-    auto = sdp.distances_tiled(a, b, scheduler="synchronous")  # scales from the first slices
+    auto = sdp.distances_tiled(a, b, execution=sdp.Execution(scheduler="synchronous"))  # scales from the first slices
     assert abs(np.nanmedian(auto.distance[a[:, 0] > 7]) - 0.02) < 0.002
 
 

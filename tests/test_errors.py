@@ -31,7 +31,7 @@ def test_nan_rows_are_dropped_and_counted(rng):
     pts[7] = [np.inf, 1, 1]
     f = DensityField.from_points(pts, voxel_size=0.1)
     assert (f.n_points, f.n_dropped) == (97, 3)
-    r = sdp.detect_changes(pts, pts, voxel_size=0.1)
+    r = sdp.detect_changes(pts, pts, lattice=sdp.Lattice(voxel_size=0.1))
     assert r.appeared.shape == (100,) and not r.appeared[[3, 7, 50]].any()
     assert r.summary()["current"]["dropped"] == 3
 
@@ -41,7 +41,7 @@ def test_flat_cloud_works(rng):
     pts = np.c_[rng.random((5000, 2)), np.zeros(5000)]
     f = DensityField.from_points(pts, grid_size=40)
     assert f.inside(pts).mean() > 0.95
-    r = sdp.detect_changes(pts, pts + [0, 0, 0.5], grid_size=40)
+    r = sdp.detect_changes(pts, pts + [0, 0, 0.5], lattice=sdp.Lattice(grid_size=40))
     assert r.appeared.all() and r.disappeared.all()
 
 

@@ -40,10 +40,12 @@ def test_tiles_without_dask(without, tmp_path):
     without("dask", "distributed")
     pts = np.random.default_rng(0).random((200, 3))
     with pytest.raises(sdp.MissingDependencyError, match="needs dask") as err:
-        sdp.detect_changes_tiled(pts, pts, voxel_size=0.1, workdir=tmp_path)
+        sdp.detect_changes_tiled(pts, pts, lattice=sdp.Lattice(voxel_size=0.1),
+                                 execution=sdp.Execution(workdir=tmp_path))
     _one_line(err, "tiles")
     with pytest.raises(sdp.MissingDependencyError, match="needs dask") as err:
-        sdp.detect_changes_tiled(pts, pts, voxel_size=0.1, scheduler="synchronous", workdir=tmp_path)
+        sdp.detect_changes_tiled(pts, pts, lattice=sdp.Lattice(voxel_size=0.1),
+                                 execution=sdp.Execution(scheduler="synchronous", workdir=tmp_path))
     _one_line(err, "tiles")
     assert list(tmp_path.iterdir()) == []  # refused before any work
 
@@ -57,7 +59,8 @@ def test_field_store_without_zarr(without, tmp_path):
     with pytest.raises(sdp.MissingDependencyError, match="needs zarr"):
         sdp.FieldStore.open(tmp_path / "f.zarr")
     with pytest.raises(sdp.MissingDependencyError, match="needs zarr"):
-        sdp.build_field_tiled(np.random.default_rng(0).random((200, 3)), tmp_path / "g.zarr", voxel_size=0.1)
+        sdp.build_field_tiled(np.random.default_rng(0).random((200, 3)), tmp_path / "g.zarr",
+                              lattice=sdp.Lattice(voxel_size=0.1))
     assert list(tmp_path.iterdir()) == []
 
 
@@ -95,15 +98,15 @@ def test_report_without_its_extras_fails_before_any_work(without, tmp_path, hidd
     before = sorted(p.name for p in tmp_path.iterdir())
     with pytest.raises(sdp.MissingDependencyError, match=f"--report.*needs {hidden[0]}") as err:
         sdp.compare_files(tmp_path / "a.npy", tmp_path / "b.npy", output=tmp_path / "o.ply",
-                          report=tmp_path / "r.html")
+                          outputs=sdp.Outputs(report=tmp_path / "r.html"))
     _one_line(err, "plots")
     with pytest.raises(sdp.MissingDependencyError, match=f"needs {hidden[0]}"):
         sdp.distance_files(tmp_path / "a.npy", tmp_path / "b.npy", output=tmp_path / "d.ply",
-                           report=tmp_path / "d.html")
+                           outputs=sdp.Outputs(report=tmp_path / "d.html"))
     if hidden[0] == "matplotlib":
         with pytest.raises(sdp.MissingDependencyError, match="--png.*needs matplotlib"):
             sdp.compare_files(tmp_path / "a.npy", tmp_path / "b.npy", output=tmp_path / "o.ply",
-                              png=tmp_path / "c.png")
+                              outputs=sdp.Outputs(png=tmp_path / "c.png"))
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 

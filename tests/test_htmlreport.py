@@ -43,8 +43,8 @@ def test_change_report_is_one_self_contained_page(tmp_path, rng):
     ref, cur = landscape(rng)
     np.save(tmp_path / "ref.npy", ref)
     np.save(tmp_path / "cur.npy", cur)
-    r = sdp.compare_files(tmp_path / "ref.npy", tmp_path / "cur.npy", output=tmp_path / "out.ply", both=True,
-                          report=tmp_path / "report.html")
+    r = sdp.compare_files(tmp_path / "ref.npy", tmp_path / "cur.npy", output=tmp_path / "out.ply",
+                          outputs=sdp.Outputs(both=True, report=tmp_path / "report.html"))
     assert str(tmp_path / "report.html") in r.outputs and "report" in r.summary["timings"]
     page = (tmp_path / "report.html").read_text()
     assert not OUTSIDE.findall(page)  # nothing fetched: every picture and script is inside
@@ -101,9 +101,10 @@ def test_report_is_checked_before_any_work(tmp_path, rng, monkeypatch, kw, match
     np.save(tmp_path / "cur.npy", cur)
     monkeypatch.chdir(tmp_path)
     before = sorted(p.name for p in tmp_path.iterdir())
-    kw = {"output": "out.ply", **kw}
+    execution = sdp.Execution(tiled=kw.pop("tiled", False), memory_limit=kw.pop("memory_limit", None))
     with pytest.raises(sdp.SDPError, match=match) as err:
-        sdp.compare_files("ref.npy", "cur.npy", **kw)
+        sdp.compare_files("ref.npy", "cur.npy", output=kw.pop("output", "out.ply"), outputs=sdp.Outputs(**kw),
+                          execution=execution)
     assert "\n" not in str(err.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
@@ -112,8 +113,9 @@ def test_distance_report_is_refused_in_tiles(tmp_path, rng):
     ref, _ = landscape(rng, building=False)
     np.save(tmp_path / "ref.npy", ref)
     with pytest.raises(sdp.SDPError, match="--report is not available in tiles"):
-        sdp.distance_files(tmp_path / "ref.npy", tmp_path / "ref.npy", output=tmp_path / "d.laz", tiled=True,
-                           report=tmp_path / "d.html")
+        sdp.distance_files(tmp_path / "ref.npy", tmp_path / "ref.npy", output=tmp_path / "d.laz",
+                           execution=sdp.Execution(tiled=True),
+                           outputs=sdp.Outputs(report=tmp_path / "d.html"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ref.npy"]
 
 
@@ -130,7 +132,7 @@ def test_a_failing_report_leaves_no_output(tmp_path, rng, monkeypatch):
     monkeypatch.setattr(htmlreport, "_thumbnail", broken)
     with pytest.raises(sdp.SDPError, match="the report broke"):
         sdp.compare_files(tmp_path / "ref.npy", tmp_path / "cur.npy", output=tmp_path / "out.ply",
-                          png=tmp_path / "c.png", report=tmp_path / "r.html")
+                          outputs=sdp.Outputs(png=tmp_path / "c.png", report=tmp_path / "r.html"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cur.npy", "ref.npy"]  # all the outputs or none
 
 
@@ -179,11 +181,12 @@ def test_the_report_opens_in_headless_chromium(tmp_path, rng, chromium):
 def test_real_scan_reports_open_in_headless_chromium(tmp_path, shared_data, chromium, case):
     if case == "toronto":
         a, b = shared_data / "als_toronto" / "TTP_2015.laz", shared_data / "als_toronto" / "TTP_2023.laz"
-        kw = dict(align="density", align_class="2", fix_horizontal=True)
+        kw = dict(align=sdp.Registration(method="density", align_class="2", fix_horizontal=True))
     else:
         a, b = shared_data / "mosd" / "learn" / "learn0.pcd", shared_data / "mosd" / "learn" / "learn1.pcd"
         kw = {}
-    r = sdp.compare_files(a, b, output=tmp_path / "out.ply", both=True, report=tmp_path / "r.html", **kw)
+    r = sdp.compare_files(a, b, output=tmp_path / "out.ply", **kw,
+                          outputs=sdp.Outputs(both=True, report=tmp_path / "r.html"))
     page = (tmp_path / "r.html").read_text()
     assert not OUTSIDE.findall(page)
     if case == "toronto":  # a map, in coordinates relative to a stated round origin

@@ -27,7 +27,7 @@ def test_real_kinect_pair_change_detection(shared_data):
     # mOSD learn0 -> learn1: fixed camera; objects (label // 10 >= 2) moved between the scenes
     ref = read_points(shared_data / "mosd/learn/learn0.pcd")
     cur = read_points(shared_data / "mosd/learn/learn1.pcd")
-    r = sdp.detect_changes(ref.xyz, cur.xyz, voxel_size="auto", min_region_points=20)
+    r = sdp.detect_changes(ref.xyz, cur.xyz, min_region_points=20, lattice=sdp.Lattice(voxel_size="auto"))
     table = (cur.fields["label"] >= 1) & (cur.fields["label"] < 10)
     assert r.appeared[table].mean() < r.appeared[~table].mean()  # changes concentrate off the table
     assert r.appeared_regions and r.timings["detect"] > 0

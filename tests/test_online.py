@@ -59,8 +59,8 @@ def stream(rng):
 @pytest.mark.parametrize("update", ["none", "window", "decay"])
 def test_watch_reports_an_object_when_it_appears(rng, update):
     frames, box = stream(rng)
-    reports = list(watch(room_scene(rng), frames, voxel_size=0.03, update=update, window=3, decay=0.5,
-                         min_region_points=50))
+    reports = list(watch(room_scene(rng), frames, update=update, window=3, decay=0.5, min_region_points=50,
+                         lattice=sdp.Lattice(voxel_size=0.03)))
     assert [r.index for r in reports] == list(range(6))
     assert all(r.n_appeared == 0 for r in reports[:3])  # static: nothing
     first = reports[3]
@@ -76,8 +76,9 @@ def test_watch_reports_an_object_when_it_appears(rng, update):
 def test_window_forgets_what_left(rng):
     frames, box = stream(rng)
     ref = np.concatenate([room_scene(rng), box])  # the box stands in the reference, leaves, comes back
-    kept = list(watch(ref, frames, voxel_size=0.03, update="none", min_region_points=50))
-    forgot = list(watch(ref, frames, voxel_size=0.03, update="window", window=2, min_region_points=50))
+    kept = list(watch(ref, frames, update="none", min_region_points=50, lattice=sdp.Lattice(voxel_size=0.03)))
+    forgot = list(watch(ref, frames, update="window", window=2, min_region_points=50,
+                        lattice=sdp.Lattice(voxel_size=0.03)))
     assert kept[3].n_appeared < 0.1 * len(box)  # still in the fixed reference
     assert forgot[3].n_appeared > 0.5 * len(box)  # left the 2-frame window: new again
 
@@ -118,10 +119,11 @@ def test_watch_registers_the_frames_of_a_moving_camera(rng, align):
     frames, box = stream(rng)
     poses = [(1.5 * (i + 1), np.array([0.03, -0.02, 0.01]) * (i + 1)) for i in range(len(frames))]
     seen = [moved(f, deg, shift) for f, (deg, shift) in zip(frames, poses, strict=True)]  # 1.5° and 4 cm more per frame
-    still = list(watch(room_scene(rng), seen, voxel_size=0.03, update="window", window=3, min_region_points=50))
+    still = list(watch(room_scene(rng), seen, update="window", window=3, min_region_points=50,
+                       lattice=sdp.Lattice(voxel_size=0.03)))
     assert all(r.n_appeared + r.not_comparable.sum() > 0 for r in still[:3])  # not registered: walls look new
-    reports = list(watch(room_scene(rng), seen, voxel_size=0.03, update="window", window=3, min_region_points=50,
-                         align=align))
+    reports = list(watch(room_scene(rng), seen, update="window", window=3, min_region_points=50, align=align,
+                         lattice=sdp.Lattice(voxel_size=0.03)))
     assert all(r.n_appeared == 0 and r.not_comparable.sum() < 20 for r in reports[:3])  # registered: the room again
     assert reports[3].n_appeared > 0.5 * len(box)
     assert np.allclose(reports[3].regions[0].centroid, [2.2, 1.4, 0.95], atol=0.1)  # in the reference's frame
@@ -135,8 +137,8 @@ def test_watch_align_needs_what_it_registers_onto(rng):
     with pytest.raises(ValueError, match="need the reference points"):
         next(watch(field, [room_scene(rng, n=5000)], align="gicp"))
     with pytest.raises(ValueError, match="need the reference points"):
-        next(watch(field, [room_scene(rng, n=5000)], sensor_origin=[0, 0, 1]))
-    with pytest.raises(ValueError, match="align must be"):
+        next(watch(field, [room_scene(rng, n=5000)], coverage=sdp.Coverage(sensor_origin=[0, 0, 1])))
+    with pytest.raises(ValueError, match="method must be 'density' or 'gicp'"):
         next(watch(field, [room_scene(rng, n=5000)], align="icp"))
 
 
@@ -144,12 +146,12 @@ def test_watch_align_needs_what_it_registers_onto(rng):
 def test_watch_sensor_origin_applies_the_visibility_test_of_detect_changes(shared_data):
     ref, cur = (sdp.read_points(shared_data / f"mosd/learn/learn{i}.pcd") for i in (6, 7))  # an object added
     voxel = sdp.auto_voxel_size(ref.xyz)
-    plain = next(watch(ref.xyz, [cur.xyz], voxel_size=voxel, update="none", min_region_points=50,
-                       coverage=False))
-    seen = next(watch(ref.xyz, [cur.xyz], voxel_size=voxel, update="none", min_region_points=50,
-                      sensor_origin=ref.sensor_origin))
-    pair = sdp.detect_changes(ref.xyz, cur.xyz, voxel_size=voxel, min_region_points=50,
-                              sensor_origin=np.stack([ref.sensor_origin, cur.sensor_origin]))
+    plain = next(watch(ref.xyz, [cur.xyz], update="none", min_region_points=50,
+                       lattice=sdp.Lattice(voxel_size=voxel), coverage=sdp.Coverage(enabled=False)))
+    seen = next(watch(ref.xyz, [cur.xyz], update="none", min_region_points=50, lattice=sdp.Lattice(voxel_size=voxel),
+                      coverage=sdp.Coverage(sensor_origin=ref.sensor_origin)))
+    pair = sdp.detect_changes(ref.xyz, cur.xyz, min_region_points=50, lattice=sdp.Lattice(voxel_size=voxel),
+                              coverage=sdp.Coverage(sensor_origin=np.stack([ref.sensor_origin, cur.sensor_origin])))
     np.testing.assert_array_equal(seen.appeared, pair.appeared)
     obj = cur.fields["label"] // 10
     new, old = obj == 3, obj == 2  # learn7 adds object 3 beside object 2

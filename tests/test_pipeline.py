@@ -24,8 +24,9 @@ def test_compare_files_equals_sdp_change(tmp_path, pair):
     p = run("change", ref, cur, "-o", tmp_path / "cli.ply", "--json", *opts)
     text = run("change", ref, cur, "-o", tmp_path / "cli2.ply", *opts)
     assert p.returncode == 0 and text.returncode == 0, p.stderr + text.stderr
-    r = sdp.compare_files(ref, cur, output=tmp_path / "py.ply", both=True, voxel_size=0.03, min_region_points=20,
-                          sensor_origin="2,1.5,2")
+    r = sdp.compare_files(ref, cur, output=tmp_path / "py.ply", min_region_points=20,
+                          lattice=sdp.Lattice(voxel_size=0.03),
+                          coverage=sdp.Coverage(sensor_origin="2,1.5,2"), outputs=sdp.Outputs(both=True))
     assert not r.tiled and r.outputs == [str(tmp_path / "py.ply"), str(tmp_path / "py_disappeared.ply")]
     assert without_times(json.loads(p.stdout)) == json.loads(json.dumps(without_times(r.summary)))
     assert r.summary["current"]["appeared"] > 1500 and r.summary["coverage"]["appeared"] == "sensor rays"
@@ -46,22 +47,26 @@ def test_the_automatic_switch_to_tiles_from_python(tmp_path, rng):
     a = write_las(tmp_path / "a.laz", street(rng, [([2, 2, 0], [4, 5, 2.0])], n=40_000, mast=True))
     b = write_las(tmp_path / "b.laz", street(rng, [([2, 2, 0], [4, 5, 2.0]), ([20, 9, 0], [21.5, 10.5, 1.2])],
                                              n=40_000, mast=True))
-    plan = sdp.plan_change(a, b, voxel_size=0.1, memory_limit="1GB")
+    plan = sdp.plan_change(a, b, lattice=sdp.Lattice(voxel_size=0.1), execution=sdp.Execution(memory_limit="1GB"))
     assert plan.tiled and "exceed the memory limit of 1 GB" in plan.reason
-    assert not sdp.plan_change(a, b, voxel_size=0.1).tiled  # fits in 4 GiB
-    assert not sdp.plan_change(a, b, voxel_size=0.1, memory_limit="1GB", decision="cluster").tiled
+    assert not sdp.plan_change(a, b, lattice=sdp.Lattice(voxel_size=0.1)).tiled  # fits in 4 GiB
+    assert not sdp.plan_change(a, b, decision="cluster", lattice=sdp.Lattice(voxel_size=0.1),
+                               execution=sdp.Execution(memory_limit="1GB")).tiled
     said = []
-    tiled = sdp.compare_files(a, b, output=tmp_path / "t.laz", both=True, voxel_size=0.1, memory_limit="1GB",
-                              tile_size=6, scheduler="synchronous", notify=said.append)
+    tiled = sdp.compare_files(a, b, output=tmp_path / "t.laz", lattice=sdp.Lattice(voxel_size=0.1),
+                              execution=sdp.Execution(memory_limit="1GB", tile_size=6, scheduler="synchronous", notify=said.append),
+                              outputs=sdp.Outputs(both=True))
     assert tiled.tiled and said == [plan.reason] and tiled.summary["tiles"] > 1
     assert "tiles of 6.4" in tiled.summary_text()
-    whole = sdp.compare_files(a, b, output=tmp_path / "m.laz", both=True, voxel_size=0.1)
+    whole = sdp.compare_files(a, b, output=tmp_path / "m.laz", lattice=sdp.Lattice(voxel_size=0.1),
+                              outputs=sdp.Outputs(both=True))
     assert not whole.tiled and whole.summary["current"]["appeared"] == tiled.summary["current"]["appeared"] > 500
     for suffix in ("", "_disappeared"):
         x, y = read_points(tmp_path / f"t{suffix}.laz"), read_points(tmp_path / f"m{suffix}.laz")
         np.testing.assert_array_equal(x.fields["change"], y.fields["change"])
     with pytest.raises(sdp.SDPError, match="output streams to LAS/LAZ"):
-        sdp.compare_files(a, b, output=tmp_path / "t.ply", voxel_size=0.1, memory_limit="1GB")
+        sdp.compare_files(a, b, output=tmp_path / "t.ply", lattice=sdp.Lattice(voxel_size=0.1),
+                          execution=sdp.Execution(memory_limit="1GB"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.laz", "b.laz", "m.laz", "m_disappeared.laz", "t.laz",
                                                           "t_disappeared.laz"]
 
@@ -81,44 +86,47 @@ def test_in_memory_the_limit_counts_the_whole_command(tmp_path, rng):
     assert need > 50_000 * 150 + 150 * 2**20  # the points and the process itself
     with pytest.raises(sdp.GridTooLargeError, match=r"comparing 50,000 points in memory needs about .*give "
                        r"--memory-limit \d+MB or more") as err:
-        sdp.compare_files(a, b, output=tmp_path / "c.ply", voxel_size=0.2, memory_limit=need - 2**20)
+        sdp.compare_files(a, b, output=tmp_path / "c.ply", lattice=sdp.Lattice(voxel_size=0.2),
+                          execution=sdp.Execution(memory_limit=need - 2**20))
     assert not (tmp_path / "c.ply").exists()
     smallest = re.search(r"--memory-limit (\d+)MB", str(err.value)).group(1)
-    assert sdp.compare_files(a, b, output=tmp_path / "c.ply", voxel_size=0.2, memory_limit=f"{smallest}MB").outputs
+    assert sdp.compare_files(a, b, output=tmp_path / "c.ply", lattice=sdp.Lattice(voxel_size=0.2),
+                             execution=sdp.Execution(memory_limit=f"{smallest}MB")).outputs
 
 
-@pytest.mark.parametrize("kw, match", [
-    (dict(align="gicp", fix_horizontal=True), "density alignment only"),
-    (dict(align_class="2"), "give --align density too"),
-    (dict(align="density", align_class="ground"), "class numbers"),
-    (dict(sensor_origin="1,2"), "X,Y,Z"),
-    (dict(tiled=True, decision="cluster"), "--decision cluster is not available with --tiled"),
-    (dict(voxel_size=-1), "voxel_size"),
-    (dict(min_region_points=-1), "min_region_points"),
+@pytest.mark.parametrize("make, match", [
+    (lambda: dict(align=sdp.Registration(method="gicp", fix_horizontal=True)), "density alignment only"),
+    (lambda: dict(align=sdp.Registration(align_class="ground")), "class numbers"),
+    (lambda: dict(coverage=sdp.Coverage(sensor_origin="1,2")), "X,Y,Z"),
+    (lambda: dict(execution=sdp.Execution(tiled=True), decision="cluster"),
+     "--decision cluster is not available with --tiled"),
+    (lambda: dict(lattice=sdp.Lattice(voxel_size=-1)), "voxel_size"),
+    (lambda: dict(min_region_points=-1), "min_region_points"),
+    (lambda: dict(align="icp"), "method must be 'density' or 'gicp'"),
 ])
-def test_options_are_refused_before_any_file_is_read(tmp_path, kw, match):
+def test_options_are_refused_before_any_file_is_read(tmp_path, make, match):
     with pytest.raises(sdp.SDPError, match=match):  # the inputs do not even exist
-        sdp.compare_files(tmp_path / "none.ply", tmp_path / "nothing.ply", output=tmp_path / "o.ply", **kw)
+        sdp.compare_files(tmp_path / "none.ply", tmp_path / "nothing.ply", output=tmp_path / "o.ply", **make())
     assert list(tmp_path.iterdir()) == []
 
 
 def test_the_other_commands_as_functions(tmp_path, pair):
     ref, cur = pair
-    fld = pipeline.build_field_file(ref, output=tmp_path / "r.sdpf", voxel_size=0.03)
+    fld = pipeline.build_field_file(ref, output=tmp_path / "r.sdpf", lattice=sdp.Lattice(voxel_size=0.03))
     assert sdp.DensityField.load(tmp_path / "r.sdpf").n_blocks == fld.n_blocks
     assert pipeline.describe_file(tmp_path / "r.sdpf")["voxel_size"] == pytest.approx(0.03)
     new = pipeline.combine_files("difference", cur, tmp_path / "r.sdpf", output=tmp_path / "n.sdpf")
     assert new.voxel_size == pytest.approx(0.03) and new.inside(np.array([[2.2, 1.4, 1.35]]))[0]
     mesh = pipeline.mesh_file(tmp_path / "r.sdpf", output=tmp_path / "m.ply")
     assert len(mesh.faces) > 1000 and (tmp_path / "m.ply").stat().st_size > 1000
-    r = sdp.compare_files(ref, cur, output=tmp_path / "c.ply", voxel_size=0.03)
+    r = sdp.compare_files(ref, cur, output=tmp_path / "c.ply", lattice=sdp.Lattice(voxel_size=0.03))
     e = pipeline.evaluate_files(tmp_path / "c.ply", tmp_path / "c.ply")
     assert e.scores["kappa"] == pytest.approx(1.0) and e.predicted == r.summary["current"]["appeared"]
     assert pipeline.render_file(tmp_path / "c.ply", png=tmp_path / "c.png") == [str(tmp_path / "c.png")]
     frames = tmp_path / "frames"
     frames.mkdir()
     write_points(frames / "f1.ply", read_points(cur).xyz)
-    [frame] = list(pipeline.watch_folder(ref, frames, voxel_size=0.03))
+    [frame] = list(pipeline.watch_folder(ref, frames, lattice=sdp.Lattice(voxel_size=0.03)))
     assert frame.name == "f1.ply" and frame.n_appeared > 1000
 
 

@@ -113,7 +113,8 @@ def test_shifting_by_whole_blocks_shifts_the_field(pts, blocks, method):
 @SETTINGS
 @given(clouds(100, 600), clouds(100, 600), st.booleans())
 def test_change_masks_swap_with_the_clouds(pa, pb, coverage):
-    opts = dict(voxel_size=VOXEL, sensor_origin=None, coverage=coverage, min_region_points=5)
+    opts = dict(lattice=sdp.Lattice(voxel_size=VOXEL), coverage=sdp.Coverage(sensor_origin=None, enabled=coverage),
+                min_region_points=5)
     ab, ba = sdp.detect_changes(pa, pb, **opts), sdp.detect_changes(pb, pa, **opts)
     np.testing.assert_array_equal(ab.appeared, ba.disappeared)
     np.testing.assert_array_equal(ab.disappeared, ba.appeared)
@@ -125,7 +126,9 @@ def test_the_properties_hold_on_a_known_change(rng):
     """A fixed example of the last property, so a failure there is not only ever a random one."""
     ref = rng.random((2000, 3))
     cur = np.concatenate([ref, [0.5, 0.5, 1.4] + 0.05 * rng.standard_normal((300, 3))])
-    ab = sdp.detect_changes(ref, cur, voxel_size=VOXEL, sensor_origin=None, coverage=False)
-    ba = sdp.detect_changes(cur, ref, voxel_size=VOXEL, sensor_origin=None, coverage=False)
+    ab = sdp.detect_changes(ref, cur, lattice=sdp.Lattice(voxel_size=VOXEL),
+                            coverage=sdp.Coverage(sensor_origin=None, enabled=False))
+    ba = sdp.detect_changes(cur, ref, lattice=sdp.Lattice(voxel_size=VOXEL),
+                            coverage=sdp.Coverage(sensor_origin=None, enabled=False))
     assert ab.appeared[2000:].mean() > 0.9 and not ab.disappeared.any()
     np.testing.assert_array_equal(ab.appeared, ba.disappeared)

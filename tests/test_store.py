@@ -36,7 +36,8 @@ def test_store_round_trip_queries_and_mesh(tmp_path, clouds):
 def test_tiled_build_equals_the_whole_field(tmp_path, clouds):
     ref, _ = clouds
     f = sdp.DensityField.from_points(ref, voxel_size=0.1)
-    store = build_field_tiled(ref, tmp_path / "t.zarr", voxel_size=0.1, tile_size=5.0, scheduler="synchronous")
+    store = build_field_tiled(ref, tmp_path / "t.zarr", lattice=sdp.Lattice(voxel_size=0.1),
+                              execution=sdp.Execution(tile_size=5.0, scheduler="synchronous"))
     assert len(store.tiles) >= 20 and store.n_points == len(ref)
     g = store.read()
     assert g.n_blocks == f.n_blocks
@@ -62,9 +63,9 @@ def test_out_of_core_boolean_equals_in_memory(tmp_path, clouds):
 @pytest.mark.slow
 def test_changes_against_a_stored_reference(tmp_path, clouds):
     ref, cur = clouds
-    want = sdp.detect_changes(ref, cur, voxel_size=0.1)
+    want = sdp.detect_changes(ref, cur, lattice=sdp.Lattice(voxel_size=0.1))
     store = FieldStore.from_field(want.reference_field, tmp_path / "ref.zarr", tile_blocks=8)
-    got = detect_changes_tiled(store, cur, scheduler="synchronous")
+    got = detect_changes_tiled(store, cur, execution=sdp.Execution(scheduler="synchronous"))
     assert got.n_tiles >= 20 and want.appeared.sum() > 1000
     np.testing.assert_array_equal(got.appeared, want.appeared)
     assert got.disappeared_rows.size == 0

@@ -41,10 +41,10 @@ def regions_of(rs):
 @pytest.mark.parametrize("min_region_points", [1, 500])
 def test_tiled_equals_untiled(epochs, min_region_points):
     ref, cur = epochs
-    a = sdp.detect_changes(ref, cur, voxel_size=0.1, min_region_points=min_region_points)
+    a = sdp.detect_changes(ref, cur, min_region_points=min_region_points, lattice=sdp.Lattice(voxel_size=0.1))
     # 4 m tiles: objects straddle tile borders (one sits across a corner of four tiles)
-    b = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=4.0, scheduler="synchronous",
-                             min_region_points=min_region_points)
+    b = detect_changes_tiled(ref, cur, min_region_points=min_region_points, lattice=sdp.Lattice(voxel_size=0.1),
+                             execution=sdp.Execution(tile_size=4.0, scheduler="synchronous"))
     assert b.n_tiles >= 35
     assert a.appeared.sum() > 4000 and a.disappeared.sum() > 2000
     np.testing.assert_array_equal(b.appeared, a.appeared)
@@ -64,8 +64,9 @@ def test_tiled_regions_join_across_many_tiles(rng):
             ([25.6, 4, 0], [26, 10, 1])]
     ref = street(rng, [])
     cur = street(rng, [([1, 1, 0], [19, 1.5, 1.2]), *stairs, *ring])
-    a = sdp.detect_changes(ref, cur, voxel_size=0.1, min_region_points=1)
-    b = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=2.4, scheduler="synchronous", min_region_points=1)
+    a = sdp.detect_changes(ref, cur, min_region_points=1, lattice=sdp.Lattice(voxel_size=0.1))
+    b = detect_changes_tiled(ref, cur, min_region_points=1, lattice=sdp.Lattice(voxel_size=0.1),
+                             execution=sdp.Execution(tile_size=2.4, scheduler="synchronous"))
     assert b.n_tiles >= 100 and b.tile_size == pytest.approx(2.4)
     np.testing.assert_array_equal(b.appeared, a.appeared)
     big = [r for r in a.appeared_regions if r.n_points > 2000]
@@ -79,10 +80,13 @@ def test_tiled_on_dask_clusters(epochs):
     from dask.distributed import LocalCluster
 
     ref, cur = epochs
-    a = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=8.0, scheduler="synchronous")
-    b = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=8.0, workers=2)  # its own local cluster
+    a = detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.1),
+                             execution=sdp.Execution(tile_size=8.0, scheduler="synchronous"))
+    b = detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.1),
+                             execution=sdp.Execution(tile_size=8.0, workers=2))  # its own local cluster
     with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None) as cluster:  # "a remote one"
-        c = detect_changes_tiled(ref, cur, voxel_size=0.1, tile_size=8.0, scheduler=cluster.scheduler_address)
+        c = detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.1),
+                                 execution=sdp.Execution(tile_size=8.0, scheduler=cluster.scheduler_address))
     for r in (b, c):
         np.testing.assert_array_equal(a.appeared_rows, r.appeared_rows)
         np.testing.assert_array_equal(a.disappeared_rows, r.disappeared_rows)
@@ -92,7 +96,8 @@ def test_tiled_on_dask_clusters(epochs):
 def test_tiled_refuses_a_tile_above_the_memory_limit(epochs):
     ref, cur = epochs
     with pytest.raises(sdp.GridTooLargeError, match="memory limit"):
-        detect_changes_tiled(ref, cur, voxel_size=0.01, tile_size=30, memory_limit="20MB", scheduler="synchronous")
+        detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.01),
+                             execution=sdp.Execution(tile_size=30, memory_limit="20MB", scheduler="synchronous"))
 
 
 @pytest.mark.slow
@@ -168,14 +173,17 @@ def test_a_memory_limit_the_job_cannot_meet_is_refused_at_once_with_the_smallest
     work = tmp_path / "work"
     work.mkdir()
     with pytest.raises(sdp.GridTooLargeError, match=r"can't hold this job.*give --memory-limit \d+MB or more") as err:
-        detect_changes_tiled(ref, cur, voxel_size=0.1, memory_limit="1MB", workers=2, workdir=work)
+        detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.1),
+                             execution=sdp.Execution(memory_limit="1MB", workers=2, workdir=work))
     assert list(work.iterdir()) == []  # no bucket, no folder left behind
     smallest = int(re.search(r"--memory-limit (\d+)MB", str(err.value)).group(1))
     assert 700 < smallest < 1100  # the command and two worker processes, before any data
     with pytest.raises(sdp.GridTooLargeError, match=f"give --memory-limit {smallest}MB"):
-        detect_changes_tiled(ref, cur, voxel_size=0.1, memory_limit=f"{smallest - 1}MB", workers=2, workdir=work)
+        detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.1),
+                             execution=sdp.Execution(memory_limit=f"{smallest - 1}MB", workers=2, workdir=work))
     # in this process (one task at a time): the command alone, and the smallest tiles fit
-    one = detect_changes_tiled(ref, cur, voxel_size=0.1, memory_limit="600MB", scheduler="synchronous", workdir=work)
+    one = detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.1),
+                               execution=sdp.Execution(memory_limit="600MB", scheduler="synchronous", workdir=work))
     assert one.n_tiles > 4 and one.tile_size < 15 and one.appeared_rows.size > 4000  # tiles sized from the share
     assert list(work.iterdir()) == []
 

@@ -10,8 +10,9 @@ from conftest import slow_after
 
 import sdp
 from sdp import DensityField
-from sdp.fields._lattice import memory_limit, parse_bytes
-from sdp._core._validate import check_lattice, format_bytes, integer_at_least, positive_finite
+from sdp._core._memory import format_bytes, memory_limit, parse_bytes
+from sdp.fields._lattice import check_lattice
+from sdp._core._validate import integer_at_least, positive_finite
 
 
 def run(*args, cwd=None, **kw):
@@ -46,7 +47,8 @@ def test_field_and_detect_changes_refuse_bad_options(cloud, kw, error, match):
         DensityField.from_points(cloud, **kw)
     assert "\n" not in str(err.value) and "0.00 GiB" not in str(err.value)
     with pytest.raises(error, match=match):
-        sdp.detect_changes(cloud, cloud, **kw)
+        limit = kw.pop("memory_limit", None)
+        sdp.detect_changes(cloud, cloud, lattice=sdp.Lattice(**kw), memory_limit=limit)
 
 
 def test_far_coordinates_are_refused_not_silently_wrong(cloud):
@@ -54,7 +56,7 @@ def test_far_coordinates_are_refused_not_silently_wrong(cloud):
     with pytest.raises(sdp.InvalidPointsError, match=r"2\*\*40"):
         DensityField.from_points(cloud + 1e12, voxel_size=0.01)
     with pytest.raises(sdp.InvalidPointsError, match=r"2\*\*40"):
-        sdp.detect_changes(cloud + 1e15, cloud + 1e15, voxel_size=0.1)
+        sdp.detect_changes(cloud + 1e15, cloud + 1e15, lattice=sdp.Lattice(voxel_size=0.1))
     DensityField.from_points(cloud + 1e9, voxel_size=0.01)  # UTM-like offsets stay fine
     check_lattice([0, 0, 0], [2.0**39, 0, 0], 1.0)
 
@@ -75,11 +77,15 @@ def test_far_coordinates_are_refused_not_silently_wrong(cloud):
 def test_tiled_refuses_bad_options_before_any_work(tmp_path, cloud, kw, match, monkeypatch):
     monkeypatch.setattr("sdp.scale._tiles._connect", lambda *a: pytest.fail("reached Dask"))
     kw.setdefault("workdir", tmp_path)
+    lattice = {k: kw.pop(k) for k in ("voxel_size", "sigma_voxels", "h") if k in kw}
+    regions = {k: kw.pop(k) for k in ("min_region_points",) if k in kw}
     with pytest.raises(sdp.SDPError, match=match):
-        sdp.detect_changes_tiled(cloud, cloud, scheduler="synchronous", **kw)
-    if "min_region_points" not in kw:
+        sdp.detect_changes_tiled(cloud, cloud, lattice=sdp.Lattice(**lattice), **regions,
+                                 execution=sdp.Execution(scheduler="synchronous", **kw))
+    if not regions:
         with pytest.raises(sdp.SDPError, match=match):
-            sdp.build_field_tiled(cloud, tmp_path / "f.zarr", scheduler="synchronous", **kw)
+            sdp.build_field_tiled(cloud, tmp_path / "f.zarr", lattice=sdp.Lattice(**lattice),
+                                  execution=sdp.Execution(scheduler="synchronous", **kw))
     assert list(tmp_path.iterdir()) == []  # no work folder, no store left
 
 
@@ -97,7 +103,8 @@ def test_helpers():
 @pytest.mark.slow
 def test_unreachable_scheduler_is_one_line_error(cloud, tmp_path):
     with pytest.raises(sdp.SDPError, match="can't reach the Dask scheduler at tcp://127.0.0.1:1") as err:
-        sdp.detect_changes_tiled(cloud, cloud, voxel_size=0.1, scheduler="tcp://127.0.0.1:1", workdir=tmp_path)
+        sdp.detect_changes_tiled(cloud, cloud, lattice=sdp.Lattice(voxel_size=0.1),
+                                 execution=sdp.Execution(scheduler="tcp://127.0.0.1:1", workdir=tmp_path))
     assert "\n" not in str(err.value)
     assert list(tmp_path.iterdir()) == []
 
@@ -134,5 +141,5 @@ def test_a_tile_refusal_names_the_workers_share_of_the_limit(tmp_path, cloud, mo
     monkeypatch.setattr("sdp.scale._tiles._connect", lambda *a: pytest.fail("reached Dask"))
     with pytest.raises(sdp.GridTooLargeError, match=r"a task's share of the memory limit of 4 GB \(less 485 MB for the "
                        r"command, over 2 worker\(s\), less 256 MB for the worker itself\) of 1.51 GB"):
-        sdp.detect_changes_tiled(cloud, cloud, voxel_size=0.05, sigma_voxels=1000, workers=2, memory_limit="4GB",
-                                 workdir=tmp_path)
+        sdp.detect_changes_tiled(cloud, cloud, lattice=sdp.Lattice(voxel_size=0.05, sigma_voxels=1000),
+                                 execution=sdp.Execution(workers=2, memory_limit="4GB", workdir=tmp_path))

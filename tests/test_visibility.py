@@ -41,8 +41,9 @@ def test_disoccluded_table_is_not_appeared_with_sensor_origin():
     reference, hit_ref = scan(FURNITURE + (BOX,), camera=CAMERA, rng=rng)
     current, _ = scan(FURNITURE, camera=CAMERA, rng=rng)
     box = hit_ref == len(FURNITURE)
-    plain = sdp.detect_changes(reference, current, voxel_size="auto", min_region_points=20)
-    seen = sdp.detect_changes(reference, current, voxel_size="auto", min_region_points=20, sensor_origin=CAMERA)
+    plain = sdp.detect_changes(reference, current, min_region_points=20, lattice=sdp.Lattice(voxel_size="auto"))
+    seen = sdp.detect_changes(reference, current, min_region_points=20, lattice=sdp.Lattice(voxel_size="auto"),
+                              coverage=sdp.Coverage(sensor_origin=CAMERA))
     assert plain.appeared.sum() > 500  # the uncovered table patch looks new to the density test
     assert seen.appeared.sum() == 0 and seen.appeared_regions == []
     # the box itself did disappear: the current's rays pass through its place
@@ -54,8 +55,9 @@ def test_disoccluded_table_is_not_appeared_with_sensor_origin():
 
 def test_new_objects_are_still_found():
     s = office_scene(seed=0)
-    plain = sdp.detect_changes(s.reference, s.current, min_region_points=20, coverage=False)  # density alone
-    seen = sdp.detect_changes(s.reference, s.current, min_region_points=20, sensor_origin=CAMERA)
+    plain = sdp.detect_changes(s.reference, s.current, min_region_points=20, coverage=sdp.Coverage(enabled=False))  # density alone
+    seen = sdp.detect_changes(s.reference, s.current, min_region_points=20,
+                              coverage=sdp.Coverage(sensor_origin=CAMERA))
     assert sdp.kappa(s.appeared_truth, seen.appeared) > 0.85
     # what the reference's camera could not see (its far corner, beyond range) is not comparable, not new
     assert 0 < seen.current_not_comparable.sum() < 0.01 * len(s.current)
@@ -76,24 +78,26 @@ def test_two_sensor_origins_swap_with_the_clouds():
     reference, _ = scan(FURNITURE + INSERTED[:3], camera=a, rng=rng)
     current, hit = scan(FURNITURE + INSERTED[:3] + INSERTED[4:5], camera=b, rng=rng)
     new = hit == len(FURNITURE) + 3
-    kw = dict(voxel_size=sdp.auto_voxel_size(reference, current), min_region_points=20)  # one voxel both ways
+    kw = dict(lattice=sdp.Lattice(voxel_size=sdp.auto_voxel_size(reference, current)), min_region_points=20)  # one voxel both ways
     plain = sdp.detect_changes(reference, current, **kw)
-    seen = sdp.detect_changes(reference, current, sensor_origin=[a, b], **kw)
+    seen = sdp.detect_changes(reference, current, **kw, coverage=sdp.Coverage(sensor_origin=[a, b]))
     # surfaces only the moved camera sees are mostly explained; the new crate stays
     assert (seen.appeared & ~new).sum() < 0.5 * (plain.appeared & ~new).sum()
     assert seen.appeared[new].mean() > 0.6
     # appeared is judged from the reference's view, disappeared from the current's
-    swapped = sdp.detect_changes(current, reference, sensor_origin=[b, a], **kw)
+    swapped = sdp.detect_changes(current, reference, **kw, coverage=sdp.Coverage(sensor_origin=[b, a]))
     np.testing.assert_array_equal(swapped.appeared, seen.disappeared)
     np.testing.assert_array_equal(swapped.disappeared, seen.appeared)
-    np.testing.assert_array_equal(sdp.detect_changes(reference, current, sensor_origin=a, **kw).appeared,
+    alone = sdp.detect_changes(reference, current, **kw, coverage=sdp.Coverage(sensor_origin=a))
+    np.testing.assert_array_equal(alone.appeared,
                                   seen.appeared)
 
 
 def test_without_sensor_origin_nothing_changes(rng):
     s = office_scene(seed=3, width=160, height=120)
-    r = sdp.detect_changes(s.reference, s.current, voxel_size=0.02)
-    explicit = sdp.detect_changes(s.reference, s.current, voxel_size=0.02, sensor_origin=None, range_noise=0.5)
+    r = sdp.detect_changes(s.reference, s.current, lattice=sdp.Lattice(voxel_size=0.02))
+    explicit = sdp.detect_changes(s.reference, s.current, lattice=sdp.Lattice(voxel_size=0.02),
+                                  coverage=sdp.Coverage(sensor_origin=None, range_noise=0.5))
     np.testing.assert_array_equal(r.appeared, explicit.appeared)
     np.testing.assert_array_equal(r.disappeared, explicit.disappeared)
 
@@ -102,22 +106,25 @@ def test_nan_rows_keep_their_place(rng):
     s = office_scene(seed=4, width=160, height=120)
     cur = s.current.copy()
     cur[::50] = np.nan
-    r = sdp.detect_changes(s.reference, cur, voxel_size=0.02, sensor_origin=CAMERA)
+    r = sdp.detect_changes(s.reference, cur, lattice=sdp.Lattice(voxel_size=0.02),
+                           coverage=sdp.Coverage(sensor_origin=CAMERA))
     assert r.appeared.shape == (len(cur),) and not r.appeared[::50].any()
 
 
-@pytest.mark.parametrize("origin, match", [
-    ((0.0, 1.0), r"or one row per scan .* got shape \(2,\)"),
-    (np.zeros((3, 3)), r"got shape \(3, 3\)"),
-    ((0.0, np.nan, 1.0), "must be finite"),
-    ("camera", "sensor_origin"),
+@pytest.mark.parametrize("origin, error, match", [
+    ((0.0, 1.0), sdp.InvalidPointsError, r"or one row per scan .* got shape \(2,\)"),
+    (np.zeros((3, 3)), sdp.InvalidPointsError, r"got shape \(3, 3\)"),
+    ((0.0, np.nan, 1.0), sdp.InvalidPointsError, "must be finite"),
+    ("camera", sdp.InvalidOptionError, "sensor_origin"),
 ])
-def test_bad_sensor_origin_is_a_clear_error(origin, match):
+def test_bad_sensor_origin_is_a_clear_error(origin, error, match):
     pts = np.random.default_rng(0).random((500, 3))
-    with pytest.raises(sdp.InvalidPointsError, match=match):
-        sdp.detect_changes(pts, pts + 0.001, voxel_size=0.05, sensor_origin=origin)
+    with pytest.raises(error, match=match):
+        sdp.detect_changes(pts, pts + 0.001, lattice=sdp.Lattice(voxel_size=0.05),
+                           coverage=sdp.Coverage(sensor_origin=origin))
     with pytest.raises(ValueError, match="range_noise"):
-        sdp.detect_changes(pts, pts, voxel_size=0.05, sensor_origin=(0, 0, -1), range_noise=-1)
+        sdp.detect_changes(pts, pts, lattice=sdp.Lattice(voxel_size=0.05),
+                           coverage=sdp.Coverage(sensor_origin=(0, 0, -1), range_noise=-1))
 
 
 def test_sensor_origin_on_every_point_is_a_clear_error():
@@ -151,9 +158,9 @@ def test_real_kinect_pair_with_sensor_origin(shared_data):
     np.testing.assert_array_equal(ref.sensor_origin, [0, 0, 0])
     table = (cur.fields["label"] >= 1) & (cur.fields["label"] < 10)
     objects = cur.fields["label"] // 10 >= 2
-    plain = sdp.detect_changes(ref.xyz, cur.xyz, voxel_size="auto", min_region_points=50)
-    seen = sdp.detect_changes(ref.xyz, cur.xyz, voxel_size="auto", min_region_points=50,
-                              sensor_origin=[ref.sensor_origin, cur.sensor_origin])
+    plain = sdp.detect_changes(ref.xyz, cur.xyz, min_region_points=50, lattice=sdp.Lattice(voxel_size="auto"))
+    seen = sdp.detect_changes(ref.xyz, cur.xyz, min_region_points=50, lattice=sdp.Lattice(voxel_size="auto"),
+                              coverage=sdp.Coverage(sensor_origin=[ref.sensor_origin, cur.sensor_origin]))
     assert plain.appeared[table].sum() > 2000  # uncovered table, flagged by the density test alone
     assert seen.appeared[table].sum() < 0.05 * plain.appeared[table].sum()
     assert seen.appeared[objects].sum() > 0.9 * plain.appeared[objects].sum()

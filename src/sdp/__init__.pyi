@@ -38,6 +38,7 @@ from .fields import (
     threshold,
     union,
 )
+from .options import Coverage, Cylinder, Execution, Lattice, Outputs, Registration
 from .io import (
     Cloud,
     CloudFileError,

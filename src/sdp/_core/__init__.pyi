@@ -1,1 +1,1 @@
-from ._validate import format_bytes
+from ._memory import format_bytes, memory_limit

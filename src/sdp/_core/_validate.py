@@ -40,29 +40,9 @@ import numpy as np
 from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 
 __all__ = ["positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
-           "auto_or_nonnegative",
-           "memory_size", "existing_folder", "check_threshold", "check_grid_options", "check_tile_options",
-           "check_lattice", "check_kernel", "kernel_reach", "check_workdir", "format_bytes", "cli_type",
-           "sensor_origin_option", "class_numbers", "check_alignment_options", "check_tiled_options",
-           "MAX_GRID_UNITS"]
-
-#: Largest |coordinate| / voxel size accepted: beyond 2**40 voxels from the origin, float64 keeps
-#: less than 2**-12 of a voxel, and the grid's integer node and block coordinates near their limits.
-MAX_GRID_UNITS = 2.0**40
-_MAX_REACH = 2**16  # kernel reach in voxels (truncate·σ): far beyond any memory limit already
-
-
-def format_bytes(nbytes: float) -> str:
-    """A byte count for people: ``"512 B"``, ``"12.3 MB"``, ``"4.0 GB"`` (binary units, 1 MB = 2**20
-    bytes, as :func:`sdp.fields._lattice.parse_bytes` reads them)."""
-    n = float(nbytes)
-    if not math.isfinite(n):
-        return "an unbounded amount"
-    for unit in ("B", "KB", "MB", "GB", "TB", "PB", "EB"):
-        if abs(n) < 1024 or unit == "EB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
-        n /= 1024
-    raise AssertionError("unreachable")
+           "auto_or_nonnegative", "memory_size", "existing_folder", "check_threshold", "check_grid_options",
+           "check_tile_options", "check_workdir", "cli_type", "sensor_origin_option", "class_numbers",
+           "check_alignment_options", "check_tiled_options", "as_sensor_origins"]
 
 
 def _number(name: str, value) -> float:
@@ -148,14 +128,14 @@ def check_grid_options(*, voxel_size=None, sigma_voxels: float | str = "auto", k
     k, h : float or None
         See :func:`check_threshold`.
     memory_limit : int, float, str or None
-        See :func:`sdp.fields._lattice.memory_limit`.
+        See :func:`sdp._core._memory.memory_limit`.
 
     Returns
     -------
     float or None
         The voxel size as a float, or None when it is ``"auto"`` or not given.
     """
-    from ..fields._lattice import memory_limit as _limit
+    from ._memory import memory_limit as _limit
 
     auto_or_positive("sigma_voxels", sigma_voxels)
     positive_finite("truncate", truncate)
@@ -167,68 +147,6 @@ def check_grid_options(*, voxel_size=None, sigma_voxels: float | str = "auto", k
         return positive_finite("voxel_size", voxel_size)
     except InvalidOptionError:
         raise InvalidOptionError(f"voxel_size must be 'auto' or a positive finite length, got {voxel_size!r}") from None
-
-
-def kernel_reach(sigma_voxels: float, truncate: float = 3.0) -> int:
-    """⌈truncate·σ⌉, the kernel's reach in nodes, refusing one beyond 2**16 voxels (an
-    :class:`InvalidOptionError`: such a σ is a mistake long before memory runs out)."""
-    rmax = positive_finite("truncate", truncate) * positive_finite("sigma_voxels", sigma_voxels)
-    if not rmax <= _MAX_REACH:
-        raise InvalidOptionError(f"a kernel of sigma {sigma_voxels:g} voxels cut off at {truncate:g} sigma reaches "
-                                 f"{rmax:.3g} voxels, more than {_MAX_REACH:,}: use a smaller sigma in voxels (and "
-                                 "a larger voxel size)")
-    return int(math.ceil(rmax))
-
-
-def check_kernel(sigma_voxels: float, truncate: float, memory_limit=None, *, budget: str = "the memory limit") -> int:
-    """The kernel's reach in nodes, ⌈truncate·σ⌉, once one point's kernel fits the memory limit.
-
-    Raises
-    ------
-    GridTooLargeError
-        The blocks under a single point's kernel cube alone exceed the limit (e.g. σ of 1000 voxels).
-    """
-    from ..fields._lattice import BLOCK, check_memory
-
-    rmax = float(truncate) * float(sigma_voxels)
-    kernel_reach(sigma_voxels, truncate)
-    blocks = math.ceil((2 * rmax + 1) / BLOCK) ** 3
-    check_memory(blocks * BLOCK**3 * 4, f"the kernel of one point (σ = {sigma_voxels:g} voxels, reaching "
-                 f"{rmax:.4g} voxels each way)", memory_limit, advice="use a smaller sigma in voxels", budget=budget)
-    return int(math.ceil(rmax))
-
-
-def check_lattice(lo, hi, voxel_size: float, reach: int = 0) -> None:
-    """Refuse a voxel size whose grid over the box [lo, hi] can't be placed in float64 and int64.
-
-    Points are converted to grid units as ``(p − origin) / l``; more than :data:`MAX_GRID_UNITS`
-    (2**40) voxels from the world origin, float64 keeps less than 1/4096 of a voxel and change
-    masks would change silently; a voxel so large that the grid's corners overflow float64
-    (e.g. 1e308) can't be placed at all.
-
-    Raises
-    ------
-    InvalidPointsError
-        The coordinates are too far from the origin for this voxel size.
-    InvalidOptionError
-        The voxel size is too large to place the grid's nodes.
-    """
-    from ..fields._lattice import BLOCK
-
-    l = float(voxel_size)
-    span = float(np.max(np.abs(np.r_[np.asarray(lo, float), np.asarray(hi, float)])))
-    if not math.isfinite(span):
-        raise InvalidPointsError("the cloud's bounds are not finite")
-    units = span / l
-    if not units <= MAX_GRID_UNITS:
-        raise InvalidPointsError(
-            f"coordinates up to {span:.6g} are {units:.3g} voxels of {l:g} from the origin, beyond 2**40 "
-            f"(≈{MAX_GRID_UNITS:.3g}): float64 can't place points within a voxel there; subtract an offset "
-            "(e.g. the cloud's minimum) or use a larger voxel size")
-    corner = (units + reach + 2 * BLOCK) * l * BLOCK  # the farthest node and block corner, in world units
-    if not (math.isfinite(corner) and math.isfinite((reach * l) ** 2 + corner**2)):
-        raise InvalidOptionError(f"voxel size {l:g} is too large: the grid's nodes would lie beyond the range of "
-                                 "floating-point numbers; use a voxel size near the cloud's point spacing")
 
 
 def check_workdir(name: str, workdir) -> None:
@@ -288,8 +206,8 @@ def auto_or_positive(name: str, value) -> float | str:
 
 
 def memory_size(name: str, value) -> str:
-    """``value`` unchanged once :func:`sdp.fields._lattice.memory_limit` accepts it (e.g. ``"2GB"``)."""
-    from ..fields._lattice import memory_limit
+    """``value`` unchanged once :func:`sdp._core._memory.memory_limit` accepts it (e.g. ``"2GB"``)."""
+    from ._memory import memory_limit
 
     memory_limit(value)  # its messages say what a memory limit is
     return value
@@ -310,6 +228,29 @@ def sensor_origin_option(name: str, value) -> str | np.ndarray:
     if len(xyz) != 3 or not np.isfinite(xyz).all():
         raise InvalidOptionError(f"{name} must be auto, none, viewpoint or X,Y,Z (finite numbers), got {value!r}")
     return np.array(xyz, dtype=np.float64)
+
+
+def as_sensor_origins(sensor_origin) -> tuple[np.ndarray, np.ndarray]:
+    """(reference's, current's) sensor origin from one position (3,) or two (2, 3).
+
+    Raises
+    ------
+    InvalidPointsError
+        Not numbers, wrong shape, or not finite.
+    """
+    try:
+        o = np.asarray(sensor_origin, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidPointsError(f"sensor_origin: expected x, y, z of the sensor, or two such rows "
+                                 f"(reference's, current's) ({exc})") from None
+    if o.shape == (3,):
+        o = np.stack([o, o])
+    if o.shape != (2, 3):
+        raise InvalidPointsError(f"sensor_origin: expected x, y, z of the sensor (shape (3,)) or one row per "
+                                 f"scan (shape (2, 3): reference's, current's), got shape {o.shape}")
+    if not np.isfinite(o).all():
+        raise InvalidPointsError(f"sensor_origin must be finite, got {o.tolist()}")
+    return o[0].copy(), o[1].copy()
 
 
 def class_numbers(name: str, value) -> list[int]:

@@ -67,6 +67,7 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
+from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._io import atomic_path
 
@@ -488,7 +489,8 @@ class ActionStream:
     action: MSR Action3D's sequences hold 13–100 frames, 40 on average.
     """
 
-    def __init__(self, model: ActionModel, *, window: int = 40, every: int = 5, min_frames: int = 10):
+    def __init__(self, model: ActionModel, *, window: int = DEFAULTS.action_window,
+                 every: int = DEFAULTS.action_every, min_frames: int = 10):
         if not (window >= 2 and every >= 1 and 2 <= min_frames <= window):
             raise SDPError(f"an action stream needs window >= min_frames >= 2 and every >= 1, got window {window}, "
                            f"min_frames {min_frames}, every {every}")

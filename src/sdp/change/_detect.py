@@ -58,7 +58,9 @@ from ..errors import InvalidOptionError
 from ..fields._density import DensityField, build_fields
 from ..fields._spacing import resolve_lattice
 from ._regions import Region, Volume, describe_regions, label_volume
-from .._core._validate import check_grid_options, finite, integer_at_least, nonnegative_finite
+from .._core._memory import memory_limit as memory_limit_bytes
+from .._core._validate import finite, integer_at_least
+from ..options import Coverage, Lattice
 from ._visibility import resolve_sensor_origins, visibility_states
 
 __all__ = ["ChangeResult", "detect_changes", "judge_coverage", "inside_difference", "region_rules"]
@@ -155,15 +157,10 @@ class ChangeResult:
                 "disappeared_regions": [r.to_dict() for r in self.disappeared_regions]}
 
 
-def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAULTS.voxel_size,
-                   grid_size: int | None = None, sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k,
-                   h: float | None = None, truncate: float = DEFAULTS.truncate, method: str = "auto",
+def detect_changes(reference, current, *, lattice: Lattice | None = None, coverage: Coverage | None = None,
                    decision: str = DEFAULTS.decision, cluster_fraction: float = DEFAULTS.cluster_fraction,
                    min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
-                   memory_limit: int | str | None = None,
-                   sensor_origin: npt.ArrayLike | str | None = DEFAULTS.sensor_origin,
-                   range_noise: float = DEFAULTS.range_noise,
-                   coverage: bool = True) -> ChangeResult:
+                   memory_limit: int | str | None = None) -> ChangeResult:
     """Points that appeared in ``current`` and disappeared from ``reference``.
 
     Builds F_ref and F_cur on one lattice (same voxel size), forms the difference volumes
@@ -179,13 +176,26 @@ def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAU
         World coordinates, both in the same frame (register them first), or clouds as
         :func:`sdp.read_points` returns them (they bring their sensor position and the count
         of rows their reader dropped).
-    grid_size : int, optional
-        The paper's parameterization: the longest side of the box holding *both* clouds
-        divided into ``grid_size`` segments (80 in the paper). Wins over ``voxel_size="auto"``.
-    voxel_size : float or "auto"
-        Voxel length in world units, or ``"auto"`` (default): :func:`sdp.auto_voxel_size` of
-        both clouds, σ from their point spacing, because a fixed grid is too coarse on real scans.
-    sigma_voxels, k, h, truncate, method, memory_limit
+    lattice : Lattice, optional
+        Where the fields live (:class:`sdp.Lattice`): by default the voxel from both clouds' point
+        spacing (:func:`sdp.auto_voxel_size`), because a fixed grid is too coarse on real scans;
+        ``Lattice(grid_size=80)`` is the paper's (the longest side of the box holding *both*
+        clouds in 80 segments).
+    coverage : Coverage, optional
+        Where the other scan could see (:class:`sdp.Coverage`). A flagged point the other epoch
+        could not see is not comparable. With the other scan's sensor origin known (by default
+        what each cloud's file records, :attr:`sdp.Cloud.sensor_origin`: an organized PCD's
+        VIEWPOINT), each changed point is followed along that scan's rays
+        (:func:`sdp.change._visibility.visibility_states`): a point whose place the other scan
+        saw through stays a change; one whose ray the other scan saw end at the same range
+        (within ``range_noise``·r²) is not a change; one the other scan could not see (hidden
+        behind something nearer, or no return) is unchanged if it continues the unchanged surface
+        around it (the table a moved object uncovers), else not comparable. Without a sensor, a
+        changed point is not comparable when the other epoch did not sample its column (x, y at
+        any height) densely enough for the threshold (:func:`sdp.footprint_covered`). It runs
+        before the ``min_region_points`` filter. After :func:`sdp.align`, give the current's
+        origin moved with the same matrix (two positions).
+    memory_limit : int, str, optional
         As in :meth:`DensityField.from_points`.
     decision : {"point", "cluster"}
         ``"point"``: Algorithm 1, each point on its own. ``"cluster"``: the paper's clustering
@@ -201,27 +211,6 @@ def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAU
         are reported unchanged. Default 50; 1 keeps everything. Needs ``regions=True``.
     regions : bool
         Group changed points into connected regions (skip to save time).
-    sensor_origin : "auto", None, array_like (3,) or (2, 3)
-        Where the sensor stood, in the clouds' frame. ``"auto"`` (default): what each cloud's
-        file says (:attr:`sdp.io._io.Cloud.sensor_origin`: an organized PCD's VIEWPOINT), nothing
-        for arrays; one position for both scans, or the reference's and the current's (after
-        :func:`sdp.align`, move the current's origin with the same matrix); None: no sensor.
-        With the other scan's origin known, each changed point is followed along that scan's
-        rays (:func:`sdp.change._visibility.visibility_states`): a point whose place the other scan saw
-        through stays a change; one whose ray the other scan saw end at the same range is not a
-        change; one the other scan could not see (hidden behind something nearer, or no return)
-        is unchanged if it continues the unchanged surface around it (the table a moved object
-        uncovers), else not comparable. It runs before the ``min_region_points`` filter.
-    range_noise : float
-        With a sensor: "the same range" is within ``range_noise``·r² world units at range r,
-        and at least σ (for metres: 0.015 m⁻¹, 1.5 cm at 1 m, covers a Kinect's depth noise and
-        steps and its drift between frames).
-    coverage : bool
-        Tell what the other epoch could not see (default True). Without the other scan's
-        sensor, a changed point is not comparable when the other epoch did not sample its column
-        (x, y at any height) densely enough for the threshold
-        (:func:`sdp.change._coverage.footprint_covered`). False: every point comparable (with a sensor,
-        points it could not see are then changes), as the paper's Algorithm 1.
 
     Returns
     -------
@@ -236,7 +225,7 @@ def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAU
     >>> rng = np.random.default_rng(0)
     >>> floor = np.c_[rng.random((4000, 2)), np.zeros(4000)]  # 1 m x 1 m
     >>> box = rng.uniform([0.4, 0.4, 0.0], [0.6, 0.6, 0.2], (500, 3))
-    >>> result = sdp.detect_changes(floor, np.concatenate([floor, box]), voxel_size=0.02)
+    >>> result = sdp.detect_changes(floor, np.concatenate([floor, box]), lattice=sdp.Lattice(voxel_size=0.02))
     >>> int(result.appeared[:4000].sum()), int(result.disappeared.sum())  # the floor did not change
     (0, 0)
     >>> len(result.appeared_regions), [round(float(c), 1) for c in result.appeared_regions[0].centroid[:2]]
@@ -244,23 +233,23 @@ def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAU
     """
     if decision not in ("point", "cluster"):
         raise InvalidOptionError(f"decision must be 'point' or 'cluster', got {decision!r}")
-    check_grid_options(voxel_size=None if grid_size is not None else voxel_size, sigma_voxels=sigma_voxels, k=k, h=h,
-                       truncate=truncate, memory_limit=memory_limit)
-    nonnegative_finite("range_noise", range_noise)
+    lattice = Lattice() if lattice is None else lattice
+    coverage = Coverage() if coverage is None else coverage
+    memory_limit_bytes(memory_limit)
     integer_at_least("min_region_points", min_region_points, 0)
     if not 0 <= finite("cluster_fraction", cluster_fraction) < 1:
         raise InvalidOptionError(f"cluster_fraction must be in [0, 1), got {cluster_fraction!r}")
-    o_ref, o_cur = resolve_sensor_origins(sensor_origin, reference, current)
+    o_ref, o_cur = resolve_sensor_origins(coverage.sensor_origin, reference, current)
     ref = as_points(reference, name="reference")
     cur = as_points(current, name="current")
     timings = {}
-    automatic, t = grid_size is None and voxel_size in (None, "auto"), time.perf_counter()
-    voxel_size, sigma_voxels = resolve_lattice([ref, cur], voxel_size=voxel_size, grid_size=grid_size, k=k,
-                                               sigma_voxels=sigma_voxels)
-    if automatic:
+    t = time.perf_counter()
+    voxel_size, sigma_voxels = resolve_lattice([ref, cur], voxel_size=lattice.voxel_size, grid_size=lattice.grid_size,
+                                               k=lattice.k, sigma_voxels=lattice.sigma_voxels)
+    if lattice.automatic:
         timings["voxel_size"] = time.perf_counter() - t
-    opts = dict(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
-                method=method, memory_limit=memory_limit)
+    opts = dict(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=lattice.k, h=lattice.h,
+                truncate=lattice.truncate, method=lattice.method, memory_limit=memory_limit)
     (f_ref, f_cur), (timings["build_reference"], timings["build_current"]) = build_fields([ref, cur], **opts)
     t = time.perf_counter()
     app, d_app = inside_difference(f_cur, f_ref, cur.xyz)
@@ -272,8 +261,8 @@ def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAU
         of rows), times."""
         fld, pts, mask, d, other, other_field, other_origin = job
         t = time.perf_counter()
-        states = judge_coverage(pts.xyz, mask, other.xyz, other_field, other_origin, coverage=coverage,
-                                range_noise=range_noise, present=fld.inside)
+        states = judge_coverage(pts.xyz, mask, other.xyz, other_field, other_origin, coverage=coverage.enabled,
+                                range_noise=coverage.range_noise, present=fld.inside)
         steps = {"coverage": time.perf_counter() - t}
         t = time.perf_counter()
         unseen = states == NOT_COMPARABLE
@@ -288,7 +277,7 @@ def detect_changes(reference, current, *, voxel_size: float | str | None = DEFAU
         finish, [(f_cur, cur, app, d_app, ref, f_ref, o_ref), (f_ref, ref, dis, d_dis, cur, f_cur, o_cur)],
         parallel_kernels=True)
     timings.update({step: steps_a[step] + steps_d[step] for step in steps_a})
-    how = {"appeared": _coverage_kind(o_ref, coverage), "disappeared": _coverage_kind(o_cur, coverage)}
+    how = {"appeared": _coverage_kind(o_ref, coverage.enabled), "disappeared": _coverage_kind(o_cur, coverage.enabled)}
     return ChangeResult(appeared=appeared[0], disappeared=disappeared[0], current_not_comparable=appeared[1],
                         reference_not_comparable=disappeared[1], appeared_regions=appeared[2],
                         disappeared_regions=disappeared[2], appeared_region=appeared[3],

@@ -54,6 +54,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .._core._kdtree import k_nearest
+from .._core._validate import as_sensor_origins
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ..errors import InvalidPointsError
 
@@ -500,43 +501,26 @@ def _angular_spacing(az, el, lo, extent, n) -> float:
 
 # ---------------------------------------------------------------- the test used by detect_changes
 
-def as_sensor_origins(sensor_origin: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    """(reference's, current's) sensor origin from one position (3,) or two (2, 3).
-
-    Raises
-    ------
-    InvalidPointsError
-        Not numbers, wrong shape, or not finite.
-    """
-    try:
-        o = np.asarray(sensor_origin, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InvalidPointsError(f"sensor_origin: expected x, y, z of the sensor, or two such rows "
-                                 f"(reference's, current's) ({exc})") from None
-    if o.shape == (3,):
-        o = np.stack([o, o])
-    if o.shape != (2, 3):
-        raise InvalidPointsError(f"sensor_origin: expected x, y, z of the sensor (shape (3,)) or one row per "
-                                 f"scan (shape (2, 3): reference's, current's), got shape {o.shape}")
-    if not np.isfinite(o).all():
-        raise InvalidPointsError(f"sensor_origin must be finite, got {o.tolist()}")
-    return o[0].copy(), o[1].copy()
-
-
 def resolve_sensor_origins(sensor_origin, reference, current) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(reference's, current's) sensor origin, each None when unknown.
 
-    ``"auto"``: what each cloud knows (:attr:`sdp.io._io.Cloud.sensor_origin`, e.g. an organized
-    PCD's VIEWPOINT; arrays know nothing); ``None`` or ``"none"``: no sensor; else a position
+    ``"auto"``: what each cloud knows (:attr:`sdp.Cloud.sensor_origin`, e.g. an organized
+    PCD's VIEWPOINT; arrays know nothing), ``"viewpoint"`` the same refusing a cloud that knows
+    none; ``None`` or ``"none"``: no sensor; else a position
     (3,) for both or one per scan (2, 3), as :func:`as_sensor_origins`, or a pair whose unknown
     entry is None.
     """
     if sensor_origin is None or (isinstance(sensor_origin, str) and sensor_origin == "none"):
         return None, None
     if isinstance(sensor_origin, str):
-        if sensor_origin != "auto":
-            raise InvalidPointsError(f"sensor_origin must be 'auto', 'none', None or a position, got {sensor_origin!r}")
-        sensor_origin = [getattr(c, "sensor_origin", None) for c in (reference, current)]
+        if sensor_origin not in ("auto", "viewpoint"):
+            raise InvalidPointsError(f"sensor_origin must be 'auto', 'viewpoint', 'none', None or a position, "
+                                     f"got {sensor_origin!r}")
+        known = [getattr(c, "sensor_origin", None) for c in (reference, current)]
+        if sensor_origin == "viewpoint" and any(o is None for o in known):
+            raise InvalidPointsError("sensor_origin='viewpoint': a cloud records no sensor position (organized PCD "
+                                     "files do); give a position or 'auto'")
+        sensor_origin = known
     if isinstance(sensor_origin, (list, tuple)) and len(sensor_origin) == 2 and any(o is None for o in sensor_origin):
         return tuple(None if o is None else as_sensor_origins(o)[0] for o in sensor_origin)
     return as_sensor_origins(sensor_origin)

@@ -23,15 +23,17 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from . import _text as report
 from .._core import _validate as V
+from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
+from ..options import Coverage, Cylinder, Execution, Lattice, Outputs, Registration
 from ..errors import SDPError
 from ..io._io import all_or_none, check_outputs, read_points
 
@@ -116,17 +118,16 @@ class FileComparison:
         return report.change_text(self.summary, self.reference, self.current)
 
 
-def plan_change(reference, current, *, output=None, format: str | None = None, tiled: bool = False,
-                both: bool = False, png=None, html=None, report=None, voxel_size: float | str = DEFAULTS.voxel_size,
-                grid_size: int | None = None, sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k,
-                memory_limit: int | str | None = None, align: str | None = None,
-                decision: str = DEFAULTS.decision, sensor_origin=DEFAULTS.sensor_origin) -> ChangePlan:
+def plan_change(reference, current, *, output=None, format: str | None = None, outputs: Outputs | None = None,
+                lattice: Lattice | None = None, coverage: Coverage | None = None,
+                align: Registration | str | None = None, decision: str = DEFAULTS.decision,
+                execution: Execution | None = None) -> ChangePlan:
     """Decide, before any work, whether :func:`compare_files` works in memory or in tiles.
 
-    Tiles are taken when ``tiled`` is True, when ``reference`` is a ``.zarr`` field store, or
+    Tiles are taken when ``execution.tiled`` is True, when ``reference`` is a ``.zarr`` field store, or
     when two dense float32 grids over the clouds' box (:func:`sdp.scale._tiles.dense_grid_bytes`), or
     the points themselves (:func:`sdp.scale._tiles.untiled_point_bytes`), would exceed the memory
-    limit (:func:`sdp.fields._lattice.memory_limit`). Only LAS/LAZ, NPY and binary PLY files can be read
+    limit (:func:`sdp._core._memory.memory_limit`). Only LAS/LAZ, NPY and binary PLY files can be read
     in slices, and only the point decision with footprint coverage runs in tiles: other
     files, ``grid_size``, ``align``, ``decision="cluster"`` or a given sensor position keep
     the comparison in memory (and are refused with ``tiled=True``). With ``voxel_size="auto"``
@@ -134,13 +135,11 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
 
     Parameters
     ----------
-    reference, current, format, tiled, both, png, html, report, align, decision, sensor_origin
+    reference, current, format, outputs, lattice, coverage, align, decision, execution
         As in :func:`compare_files` (pictures and reports are made in memory only: refused when
         tiles are taken).
     output : path-like, optional
         Checked here only to be LAS/LAZ when tiles are taken (they stream their output).
-    voxel_size, grid_size, sigma_voxels, k, memory_limit
-        As in :func:`sdp.detect_changes`.
 
     Returns
     -------
@@ -152,10 +151,15 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
         An option the tiles do not have with ``tiled=True``, files that can't be read in
         slices, ``both`` with a field store, or an output that is not LAS/LAZ for tiles.
     """
-    from ..fields._lattice import memory_limit as limit
+    from .._core._memory import memory_limit as limit
     from ..io._io import FORMATS, PointSource
     from ..scale._tiles import dense_grid_bytes, sampled_lattice, untiled_point_bytes
 
+    outputs = Outputs() if outputs is None else outputs
+    lattice = Lattice() if lattice is None else lattice
+    coverage = Coverage() if coverage is None else coverage
+    execution = Execution() if execution is None else execution
+    both, tiled, align = outputs.both, execution.tiled, Registration.of(align)
     if _is_store(reference):  # a stored reference field: its lattice, σ, h and tiles
         from ..scale._store import FieldStore
 
@@ -166,12 +170,13 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
                           sigma_voxels=sources[0].sigma / sources[0].voxel_size, sources=sources)
     streamed = all((format or FORMATS.get(Path(f).suffix.lower())) in ("las", "npy", "ply")
                    for f in (reference, current))
-    given_sensor = not (isinstance(sensor_origin, str) and sensor_origin in ("auto", "none"))  # tiles follow no rays
-    if not tiled and (not streamed or grid_size is not None or align or decision != "point" or given_sensor):
+    # tiles follow no rays: a given sensor keeps the comparison in memory
+    given_sensor = not (isinstance(coverage.sensor_origin, str) and coverage.sensor_origin in ("auto", "none"))
+    if not tiled and (not streamed or lattice.grid_size is not None or align or decision != "point" or given_sensor):
         return ChangePlan(tiled=False)
     if tiled:
-        V.check_tiled_options(grid_size=grid_size, align=align, sensor_origin=sensor_origin, decision=decision,
-                              pictures=bool(png or html or report))
+        V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
+                              decision=decision, pictures=outputs.pictures)
         if not streamed:
             raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; convert the clouds first")
     try:
@@ -180,37 +185,33 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
         if tiled:
             raise
         return ChangePlan(tiled=False)  # ASCII PLY and the like: the in-memory path reads them (or reports the error)
-    voxel, sigma_voxels = sampled_lattice(sources, voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+    voxel, sigma_voxels = sampled_lattice(sources, voxel_size=lattice.voxel_size, k=lattice.k,
+                                          sigma_voxels=lattice.sigma_voxels)
     lo = np.minimum(sources[0].lo, sources[1].lo)
     hi = np.maximum(sources[0].hi, sources[1].hi)
     grids = 2 * dense_grid_bytes(lo, hi, voxel, sigma_voxels=sigma_voxels)
     points = untiled_point_bytes(sum(s.n_rows for s in sources))
-    cap = limit(memory_limit)
+    cap = limit(execution.memory_limit)
     if not (tiled or max(grids, points) > cap):
         return ChangePlan(tiled=False)
     if output is not None and Path(output).suffix.lower() not in (".las", ".laz"):  # the tiles stream LAS/LAZ
         raise SDPError(f"{output}: the clouds are compared in tiles (two dense grids would need "
-                       f"{V.format_bytes(grids)}, above the memory limit of {V.format_bytes(cap)}), whose "
+                       f"{format_bytes(grids)}, above the memory limit of {format_bytes(cap)}), whose "
                        "output streams to LAS/LAZ: give -o OUT.laz, or a larger --memory-limit")
-    reason = None if tiled else (f"comparing in tiles on Dask: dense grids of {V.format_bytes(grids)} or the points "
-                                 f"in memory ({V.format_bytes(points)} with the process) exceed the memory limit of "
-                                 f"{V.format_bytes(cap)}")
-    if reason and (png or html or report):  # the pictures need every point in memory
-        raise SDPError(f"--png/--html/--report are made in memory, but dense grids of {V.format_bytes(grids)} "
-                       f"exceed the memory limit of {V.format_bytes(cap)}: give a larger --memory-limit or no pictures")
+    reason = None if tiled else (f"comparing in tiles on Dask: dense grids of {format_bytes(grids)} or the points "
+                                 f"in memory ({format_bytes(points)} with the process) exceed the memory limit of "
+                                 f"{format_bytes(cap)}")
+    if reason and outputs.pictures:  # the pictures need every point in memory
+        raise SDPError(f"--png/--html/--report are made in memory, but dense grids of {format_bytes(grids)} "
+                       f"exceed the memory limit of {format_bytes(cap)}: give a larger --memory-limit or no pictures")
     return ChangePlan(tiled=True, reason=reason, voxel_size=float(voxel), sigma_voxels=sigma_voxels, sources=sources)
 
 
-def compare_files(reference, current, *, output, both: bool = False, png=None, html=None, report=None,
-                  format: str | None = None,
-                  voxel_size: float | str = DEFAULTS.voxel_size, grid_size: int | None = None,
-                  sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
-                  memory_limit: int | str | None = None, decision: str = DEFAULTS.decision,
-                  min_region_points: int = DEFAULTS.min_region_points, sensor_origin=DEFAULTS.sensor_origin,
-                  range_noise: float = DEFAULTS.range_noise, align: str | None = None, aligned_output: bool = False,
-                  fix_horizontal: bool = False, align_class=None, tiled: bool = False,
-                  tile_size: float | None = None, scheduler: str | None = None, workers: int | None = None,
-                  workdir=None, notify: Callable[[str], object] | None = None) -> FileComparison:
+def compare_files(reference, current, *, output, outputs: Outputs | None = None, format: str | None = None,
+                  lattice: Lattice | None = None, coverage: Coverage | None = None,
+                  align: Registration | str | None = None, execution: Execution | None = None,
+                  decision: str = DEFAULTS.decision,
+                  min_region_points: int = DEFAULTS.min_region_points) -> FileComparison:
     """Compare two point-cloud files and write the labelled clouds: ``sdp change`` as a function.
 
     The clouds are compared in memory (:func:`sdp.detect_changes`) or, when they need more
@@ -229,35 +230,27 @@ def compare_files(reference, current, *, output, both: bool = False, png=None, h
         compared in tiles, what appeared only.
     output : path-like
         The labelled current cloud (.ply, .las, .laz, .npz; tiles write LAS/LAZ).
-    both : bool
-        Also write the reference's points labelled as disappeared, to :func:`disappeared_path`.
-    png, html : path-like, optional
-        Pictures of the appeared points (:func:`sdp.render_changes`, :func:`sdp.render_changes_html`).
-    report : path-like, optional
-        One self-contained HTML page (:func:`sdp.change_report`): summary, parameters and why,
-        maps of both directions, region sizes, the region table with thumbnails, a 3-D view.
-        In memory only (refused with tiles).
-    voxel_size, grid_size, sigma_voxels, k, h, memory_limit, decision, min_region_points, range_noise
+    outputs : Outputs, optional
+        What else to write (:class:`sdp.Outputs`): ``both``, the reference's points labelled
+        as disappeared, to :func:`disappeared_path`; ``png`` and ``html``, pictures of the
+        appeared points (:func:`sdp.render_changes`, :func:`sdp.render_changes_html`);
+        ``report``, one self-contained HTML page (:func:`sdp.change_report`: summary,
+        parameters and why, maps of both directions, region sizes, the region table with
+        thumbnails, a 3-D view; in memory only, refused with tiles); ``aligned``, the current's
+        points where the alignment moved them (default: its own coordinates).
+    lattice, decision, min_region_points
         As in :func:`sdp.detect_changes`.
-    sensor_origin : "auto", "none", "viewpoint", "X,Y,Z" or array_like (3,)
-        As in :func:`sdp.detect_changes`; ``"viewpoint"`` is ``"auto"`` refusing files that
-        record no sensor position. A position is the reference's; with ``align`` the
-        current's is moved with its scan.
-    align : {"density", "gicp"}, optional
-        Register ``current`` onto ``reference`` first (:func:`sdp.align`); the output keeps
-        the current's own coordinates unless ``aligned_output``.
-    fix_horizontal : bool
-        Density alignment of the vertical shift and the tilts only.
-    align_class : str, int or sequence of int, optional
-        Estimate the transform on the points of these LAS classes (``"2"``: ground) of both
-        scans, then move the whole current scan.
-    tiled : bool
-        Compare in tiles even if the clouds fit in memory.
-    tile_size, scheduler, workers, workdir
-        Of the tiles, as in :func:`sdp.detect_changes_tiled`.
-    notify : callable, optional
-        Called with one line when the comparison switches to tiles by itself (``sdp change``
-        prints it on stderr).
+    coverage : Coverage, optional
+        As in :func:`sdp.detect_changes`; ``sensor_origin="viewpoint"`` is ``"auto"`` refusing
+        files that record no sensor position. A given position is the reference's; with
+        ``align`` the current's is moved with its scan.
+    align : Registration, "density" or "gicp", optional
+        Register ``current`` onto ``reference`` first (:class:`sdp.Registration`,
+        :func:`sdp.align`).
+    execution : Execution, optional
+        The memory limit and the tiles (:class:`sdp.Execution`): ``tiled`` compares in tiles
+        even if the clouds fit in memory; ``notify`` is called with one line when the
+        comparison switches to tiles by itself (``sdp change`` prints it on stderr).
 
     Returns
     -------
@@ -279,70 +272,53 @@ def compare_files(reference, current, *, output, both: bool = False, png=None, h
 
     Examples
     --------
-    >>> r = sdp.compare_files("ref.laz", "cur.laz", output="changes.laz", both=True)  # doctest: +SKIP
+    >>> r = sdp.compare_files("ref.laz", "cur.laz", output="changes.laz",
+    ...                       outputs=sdp.Outputs(both=True))  # doctest: +SKIP
     >>> print(r.summary_text()); r.tiled, r.summary["current"]["appeared"]  # doctest: +SKIP
     """
+    outputs = Outputs() if outputs is None else outputs
+    lattice = Lattice() if lattice is None else lattice
+    coverage = Coverage() if coverage is None else coverage
+    execution = Execution() if execution is None else execution
+    align = Registration.of(align)
     out = Path(output)
-    check_outputs([out, disappeared_path(out) if both else None, png, html, report], [reference, current])
-    _check_picture_extras(png=png, html=html, report=report)
-    grid = _grid_options(voxel_size, grid_size, sigma_voxels, k, h, memory_limit)
+    check_outputs([out, disappeared_path(out) if outputs.both else None, outputs.png, outputs.html, outputs.report],
+                  [reference, current])
+    _check_picture_extras(png=outputs.png, html=outputs.html, report=outputs.report)
     V.integer_at_least("min_region_points", min_region_points, 0)
-    V.check_tile_options(tile_size=tile_size, workers=workers, workdir=workdir, scheduler=scheduler)
-    if tiled and not _is_store(reference):
-        V.check_tiled_options(grid_size=grid_size, align=align, sensor_origin=sensor_origin, decision=decision,
-                              pictures=bool(png or html or report))
-    classes = V.check_alignment_options(align, fix_horizontal=fix_horizontal, align_class=align_class)
-    sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)
-    plan = plan_change(reference, current, output=out, format=format, tiled=tiled, both=both, png=png, html=html,
-                       report=report,
-                       voxel_size=voxel_size, grid_size=grid_size, sigma_voxels=sigma_voxels, k=k,
-                       memory_limit=memory_limit, align=align, decision=decision, sensor_origin=sensor)
-    if plan.reason and notify is not None:
-        notify(plan.reason)
+    if execution.tiled and not _is_store(reference):
+        V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
+                              decision=decision, pictures=outputs.pictures)
+    plan = plan_change(reference, current, output=out, format=format, outputs=outputs, lattice=lattice,
+                       coverage=coverage, align=align, decision=decision, execution=execution)
+    if plan.reason and execution.notify is not None:
+        execution.notify(plan.reason)
     with all_or_none():
         if plan.tiled:
-            return _compare_tiled(plan, reference, current, out, both=both, min_region_points=min_region_points,
-                                  tiles=dict(k=k, h=h, tile_size=tile_size,
-                                             memory_limit=memory_limit, scheduler=scheduler, workers=workers,
-                                             workdir=workdir))
-        options = dict(voxel_size=voxel_size, grid_size=grid_size, sigma_voxels=sigma_voxels, k=k, h=h,
-                       decision=decision, min_region_points=min_region_points, sensor_origin=sensor_origin,
-                       range_noise=range_noise)
-        return _compare_in_memory(reference, current, out, both=both, png=png, html=html, report=report,
-                                  options=options, format=format,
-                                  align=align, aligned_output=aligned_output, fix_horizontal=fix_horizontal,
-                                  classes=classes, align_class=align_class, sensor=sensor, grid=grid,
-                                  detect=dict(decision=decision, min_region_points=min_region_points,
-                                              range_noise=range_noise))
+            return _compare_tiled(plan, reference, current, out, both=outputs.both,
+                                  min_region_points=min_region_points, lattice=lattice, execution=execution)
+        return _compare_in_memory(reference, current, out, outputs=outputs, format=format, lattice=lattice,
+                                  coverage=coverage, align=align, memory_limit=execution.memory_limit,
+                                  detect=dict(decision=decision, min_region_points=min_region_points))
 
 
-def _grid_options(voxel_size, grid_size, sigma_voxels, k, h, memory_limit) -> dict:
-    """The grid keywords of :func:`sdp.detect_changes` / :meth:`DensityField.from_points`, checked."""
-    if grid_size is not None:
-        V.integer_at_least("grid_size", grid_size, 1)
-    V.check_grid_options(voxel_size=None if grid_size is not None else voxel_size, sigma_voxels=sigma_voxels, k=k,
-                         h=h, memory_limit=memory_limit)
-    size = {"grid_size": grid_size} if grid_size is not None else {"voxel_size": voxel_size}
-    return dict(size, k=k, h=h, sigma_voxels=sigma_voxels, memory_limit=memory_limit)
-
-
-def _compare_in_memory(reference, current, out: Path, *, both, png, html, report, options, format, align,
-                       aligned_output,
-                       fix_horizontal, classes, align_class, sensor, grid, detect) -> FileComparison:
+def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, format, lattice: Lattice,
+                       coverage: Coverage, align: Registration | None, memory_limit, detect: dict) -> FileComparison:
     from ..change._detect import detect_changes
 
     t0 = time.perf_counter()
     ref, cur = read_points(reference, format=format), read_points(current, format=format)
     t_read = time.perf_counter() - t0
-    _check_in_memory(len(ref.xyz) + len(cur.xyz), grid["memory_limit"])
+    _check_in_memory(len(ref.xyz) + len(cur.xyz), memory_limit)
     alignment, moved = None, cur
     if align:
-        alignment = _align_clouds(ref, cur, (reference, current), method=align, fix_horizontal=fix_horizontal,
-                                  classes=classes, align_class=align_class)
+        alignment = _align_clouds(ref, cur, (reference, current), align)
         moved = cur.transformed(alignment.matrix)  # the current scan's sensor moves with it
-    origin = _sensor_origins(sensor, (reference, ref), (current, moved), alignment)
-    r = detect_changes(ref, moved, sensor_origin=origin, **detect, **grid)
-    out_xyz = moved.xyz if aligned_output else cur.xyz
+    origin = _sensor_origins(coverage.sensor_origin, (reference, ref), (current, moved), alignment)
+    r = detect_changes(ref, moved, lattice=lattice, coverage=replace(coverage, sensor_origin=origin),
+                       memory_limit=memory_limit, **detect)
+    out_xyz = moved.xyz if outputs.aligned else cur.xyz
+    both, png, html, report = outputs.both, outputs.png, outputs.html, outputs.report
     jobs = [(out, cur, out_xyz, r.current_state, r.appeared_region, r.current_field, moved.xyz)]
     if both:
         jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_region,
@@ -362,6 +338,11 @@ def _compare_in_memory(reference, current, out: Path, *, both, png, html, report
         from ..viz._report import change_report
 
         t = time.perf_counter()
+        given = coverage.sensor_origin
+        options = dict(voxel_size=lattice.voxel_size, grid_size=lattice.grid_size, sigma_voxels=lattice.sigma_voxels,
+                       k=lattice.k, h=lattice.h, decision=detect["decision"],
+                       min_region_points=detect["min_region_points"], range_noise=coverage.range_noise,
+                       sensor_origin=given if isinstance(given, str) else given.tolist())
         change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options,
                       names=(Path(reference).name, Path(current).name))
         summary["timings"]["report"] = time.perf_counter() - t
@@ -372,14 +353,14 @@ def _check_in_memory(n_points: int, memory_limit) -> None:
     """Refuse, before any field is built, a comparison in memory that would exceed the memory
     limit as a whole (:func:`sdp.scale._tiles.untiled_point_bytes`), with the smallest limit that holds it."""
     from ..errors import GridTooLargeError
-    from ..fields._lattice import memory_limit as limit
+    from .._core._memory import memory_limit as limit
     from ..scale._tiles import untiled_point_bytes
 
     need, cap = untiled_point_bytes(n_points), limit(memory_limit)
     if need > cap:
         raise GridTooLargeError(
-            f"comparing {n_points:,} points in memory needs about {V.format_bytes(need)}, above the memory limit "
-            f"of {V.format_bytes(cap)}: give --memory-limit {math.ceil(need / 2**20)}MB or more (LAS/LAZ, NPY or "
+            f"comparing {n_points:,} points in memory needs about {format_bytes(need)}, above the memory limit "
+            f"of {format_bytes(cap)}: give --memory-limit {math.ceil(need / 2**20)}MB or more (LAS/LAZ, NPY or "
             "binary PLY files with the point decision are compared in tiles instead)")
 
 
@@ -398,13 +379,13 @@ def _write_labelled(jobs, inputs) -> list[str]:
 
 
 def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min_region_points,
-                   tiles: dict) -> FileComparison:
+                   lattice: Lattice, execution: Execution) -> FileComparison:
     from ..change._coverage import CHANGED, NOT_COMPARABLE
     from ..io._io import write_points_streamed
     from ..scale._tiles import detect_changes_tiled
 
-    r = detect_changes_tiled(*plan.sources, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels,
-                             min_region_points=min_region_points, **tiles)
+    lattice = replace(lattice, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels)  # as sampled
+    r = detect_changes_tiled(*plan.sources, lattice=lattice, min_region_points=min_region_points, execution=execution)
     jobs = [(out, plan.sources[1], r.appeared_rows, r.appeared_region, r.current_not_comparable_rows)]
     if both:
         jobs.append((disappeared_path(out), plan.sources[0], r.disappeared_rows, r.disappeared_region,
@@ -444,14 +425,15 @@ def _sensor_origins(choice, ref_scan, cur_scan, alignment=None):
     return np.array([choice, cur_xyz], dtype=np.float64)
 
 
-def _align_clouds(ref, cur, names, *, method: str, fix_horizontal: bool = False, classes=None, align_class=None):
+def _align_clouds(ref, cur, names, registration: Registration):
     """:func:`sdp.align` of the current Cloud onto the reference (a Cloud, or a DensityField),
-    estimated on the points of LAS ``classes`` of both when given."""
+    estimated on the points of the registration's LAS classes of both when given."""
     from ..registration._align import align
     from ..fields._density import DensityField
 
     ref_xyz = ref if isinstance(ref, DensityField) else ref.xyz
     cur_xyz = cur.xyz
+    classes, align_class = registration.classes, registration.align_class
     if classes is not None:
         if isinstance(ref, DensityField):
             raise SDPError("--align-class needs the reference's points, not a field")
@@ -465,7 +447,7 @@ def _align_clouds(ref, cur, names, *, method: str, fix_horizontal: bool = False,
                 raise SDPError(f"{name}: {int(keep.sum())} points of class {shown}: too few to align on")
             picked.append(cloud.xyz[keep])
         ref_xyz, cur_xyz = picked
-    return align(ref_xyz, cur_xyz, method=method, fix_horizontal=fix_horizontal)
+    return align(ref_xyz, cur_xyz, method=registration.method, fix_horizontal=registration.fix_horizontal)
 
 
 def _check_picture_extras(*, png=None, html=None, report=None) -> None:
@@ -515,14 +497,11 @@ class FileDistances:
         return report.distance_text(self.summary, self.reference, self.current)
 
 
-def distance_files(reference, current, *, output, core_points=None, png=None, report=None, format: str | None = None,
-                   projection_scale: float | str = DEFAULTS.projection_scale,
-                   normal_scale: float | str = DEFAULTS.normal_scale,
-                   max_distance: float | str = DEFAULTS.max_distance, registration_error: float | str = "auto",
-                   orientation=None, sensor_origin=DEFAULTS.sensor_origin, align: str | None = None,
-                   fix_horizontal: bool = False, align_class=None, memory_limit=None, tiled: bool = False,
-                   tile_size: float | None = None, scheduler: str | None = None, workers: int | None = None,
-                   workdir=None, notify: Callable[[str], object] | None = None) -> FileDistances:
+def distance_files(reference, current, *, output, core_points=None, outputs: Outputs | None = None,
+                   format: str | None = None, cylinder: Cylinder | None = None,
+                   registration_error: float | str = "auto", orientation=None,
+                   sensor_origin=DEFAULTS.sensor_origin, align: Registration | str | None = None,
+                   execution: Execution | None = None) -> FileDistances:
     """Signed distances from the reference to the current along the normal, with M3C2's level of
     detection, written per core point: ``sdp distance`` as a function.
 
@@ -540,24 +519,24 @@ def distance_files(reference, current, *, output, core_points=None, png=None, re
         The core points with their distances (.ply, .las, .laz, .npz).
     core_points : path-like, optional
         A cloud file of core points (any format sdp reads).
-    png : path-like, optional
-        A map (or view) of the significant distances and their histogram
-        (:func:`sdp.render_distances`).
-    report : path-like, optional
-        One self-contained HTML page (:func:`sdp.distance_report`): summary, parameters and
-        why, the map and histogram, a 3-D view. In memory only (refused with tiles).
-    projection_scale, normal_scale, max_distance, orientation, sensor_origin, memory_limit
+    outputs : Outputs, optional
+        ``png``: a map (or view) of the significant distances and their histogram
+        (:func:`sdp.render_distances`); ``report``: one self-contained HTML page
+        (:func:`sdp.distance_report`: summary, parameters and why, the map and histogram, a
+        3-D view). In memory only (refused with tiles).
+    cylinder, orientation, sensor_origin
         As in :func:`sdp.distances` (``sensor_origin`` also takes ``"viewpoint"`` and ``"X,Y,Z"``,
         as :func:`compare_files`).
     registration_error : float or "auto"
         M3C2's registration error; ``"auto"``: the alignment's RMS residual with ``align``, else 0.
-    align, fix_horizontal, align_class
+    align : Registration, "density" or "gicp", optional
         Register the current onto the reference first, as :func:`compare_files`; the distances are
         between the aligned epochs.
-    tiled, tile_size, scheduler, workers, workdir, notify
-        Measure in tiles on Dask (:func:`sdp.distances_tiled`: every reference row, normals along
-        ``orientation``, LAS/LAZ output streamed from the reference), also by itself when the
-        in-memory work would exceed the memory limit (``notify`` gets one line saying so).
+    execution : Execution, optional
+        The memory limit and the tiles: ``tiled`` measures in tiles on Dask
+        (:func:`sdp.distances_tiled`: every reference row, normals along ``orientation``, LAS/LAZ
+        output streamed from the reference), as it does by itself when the in-memory work would
+        exceed the memory limit (``notify`` gets one line saying so).
 
     Returns
     -------
@@ -576,30 +555,24 @@ def distance_files(reference, current, *, output, core_points=None, png=None, re
     from ..distance._distances import distances
     from ..io._io import write_points
 
+    outputs = Outputs() if outputs is None else outputs
+    cylinder = Cylinder() if cylinder is None else cylinder
+    execution = Execution() if execution is None else execution
+    align = Registration.of(align)
+    png, report, memory_limit = outputs.png, outputs.report, execution.memory_limit
     out = Path(output)
     check_outputs([out, png, report], [reference, current, core_points])
     _check_picture_extras(png=png, report=report)
-    for name, value in (("--projection-scale", projection_scale), ("--normal-scale", normal_scale),
-                        ("--max-distance", max_distance)):
-        V.auto_or_positive(name, value)
     V.auto_or_nonnegative("--registration-error", registration_error)
-    from ..fields._lattice import memory_limit as limit
-
-    limit(memory_limit)  # readable and positive, before any file is read
-    classes = V.check_alignment_options(align, fix_horizontal=fix_horizontal, align_class=align_class)
     sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)
     if orientation is not None:
         orientation = V.sensor_origin_option("--orientation", orientation)
         if isinstance(orientation, str):
             raise SDPError(f"--orientation must be X,Y,Z, got {orientation!r}")
-    V.check_tile_options(tile_size=tile_size, workers=workers, workdir=workdir, scheduler=scheduler)
-    if _distances_in_tiles(reference, current, output, format=format, tiled=tiled, memory_limit=memory_limit,
-                           notify=notify, core_points=core_points, align=align, png=png, report=report):
+    if _distances_in_tiles(reference, current, output, format=format, execution=execution, core_points=core_points,
+                           align=align, png=png, report=report):
         return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,
-                               orientation=orientation, memory_limit=memory_limit,
-                               kw=dict(projection_scale=projection_scale, normal_scale=normal_scale,
-                                       max_distance=max_distance, tile_size=tile_size, scheduler=scheduler,
-                                       workers=workers, workdir=workdir))
+                               orientation=orientation, cylinder=cylinder, execution=execution)
     with all_or_none():
         t0 = time.perf_counter()
         ref, cur = read_points(reference, format=format), read_points(current, format=format)
@@ -607,16 +580,14 @@ def distance_files(reference, current, *, output, core_points=None, png=None, re
         t_read = time.perf_counter() - t0
         alignment, moved = None, cur
         if align:
-            alignment = _align_clouds(ref, cur, (reference, current), method=align, fix_horizontal=fix_horizontal,
-                                      classes=classes, align_class=align_class)
+            alignment = _align_clouds(ref, cur, (reference, current), align)
             moved = cur.transformed(alignment.matrix)
         reg = V.auto_or_nonnegative("--registration-error", registration_error)
         if reg == "auto":
             reg = float(alignment.rmse) if alignment is not None and np.isfinite(alignment.rmse) else 0.0
         origin = _sensor_origins(sensor, (reference, ref), (current, moved), alignment)
-        d = distances(ref, moved, core_points=core, projection_scale=projection_scale, normal_scale=normal_scale,
-                      max_distance=max_distance, registration_error=reg, orientation=orientation,
-                      sensor_origin=origin, memory_limit=memory_limit)
+        d = distances(ref, moved, core_points=core, cylinder=cylinder, registration_error=reg,
+                      orientation=orientation, sensor_origin=origin, memory_limit=memory_limit)
         like = core if core is not None else ref
         like = like if like.n_dropped == 0 else None  # rows were dropped: the input's dimensions no longer line up
         write_points(out, d.core_points, d.fields(), like=like, inputs=(reference, current, core_points))
@@ -638,21 +609,23 @@ def distance_files(reference, current, *, output, core_points=None, png=None, re
             summary["outputs"] = outputs
             t = time.perf_counter()
             distance_report(report, d, summary=summary, names=(Path(reference).name, Path(current).name),
-                            options=dict(projection_scale=projection_scale, normal_scale=normal_scale,
-                                         max_distance=max_distance, registration_error=registration_error,
-                                         orientation=orientation, sensor_origin=sensor_origin))
+                            options=dict(projection_scale=cylinder.projection_scale,
+                                         normal_scale=cylinder.normal_scale, max_distance=cylinder.max_distance,
+                                         registration_error=registration_error, orientation=orientation,
+                                         sensor_origin=sensor_origin))
             summary["timings"]["report"] = round(time.perf_counter() - t, 4)
     summary["outputs"] = outputs
     return FileDistances(str(reference), str(current), d, summary, alignment, outputs)
 
 
-def _distances_in_tiles(reference, current, output, *, format, tiled, memory_limit, notify, core_points, align,
-                        png, report=None) -> bool:
+def _distances_in_tiles(reference, current, output, *, format, execution: Execution, core_points, align, png,
+                        report=None) -> bool:
     """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (about
     450 bytes per reference point and 200 per current point) would exceed the memory limit."""
-    from ..fields._lattice import memory_limit as limit
+    from .._core._memory import memory_limit as limit
     from ..io._io import PointSource
 
+    tiled, notify = execution.tiled, execution.notify
     try:
         n_ref, n_cur = (PointSource.open(f, format=format).n_rows for f in (reference, current))
     except SDPError:
@@ -660,30 +633,30 @@ def _distances_in_tiles(reference, current, output, *, format, tiled, memory_lim
             raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; "
                            "convert the clouds first") from None
         return False
-    need, cap = 450.0 * n_ref + 200.0 * n_cur, limit(memory_limit)
+    need, cap = 450.0 * n_ref + 200.0 * n_cur, limit(execution.memory_limit)
     if not (tiled or need > cap):
         return False
     for option, given in (("--core-points", core_points), ("--align", align), ("--png", png), ("--report", report)):
         if given:
             raise SDPError(f"{option} is not available in tiles (the in-memory work would need "
-                           f"{V.format_bytes(need)}; the memory limit is {V.format_bytes(cap)})")
+                           f"{format_bytes(need)}; the memory limit is {format_bytes(cap)})")
     if Path(output).suffix.lower() not in (".las", ".laz"):
         raise SDPError(f"{output}: distances in tiles stream to LAS/LAZ: give -o OUT.laz")
     if not tiled and notify is not None:
-        notify(f"measuring in tiles on Dask: the in-memory work would need {V.format_bytes(need)}, above the "
-               f"memory limit of {V.format_bytes(cap)}")
+        notify(f"measuring in tiles on Dask: the in-memory work would need {format_bytes(need)}, above the "
+               f"memory limit of {format_bytes(cap)}")
     return True
 
 
-def _distance_tiled(reference, current, out: Path, *, format, registration_error, orientation, memory_limit,
-                    kw) -> FileDistances:
+def _distance_tiled(reference, current, out: Path, *, format, registration_error, orientation, cylinder: Cylinder,
+                    execution: Execution) -> FileDistances:
     from ..io._io import PointSource, write_points_streamed
     from ..scale._tiles import distances_tiled
 
     reg = V.auto_or_nonnegative("--registration-error", registration_error)
     with all_or_none():
-        d = distances_tiled(reference, current, registration_error=0.0 if reg == "auto" else reg,
-                            orientation=orientation, memory_limit=memory_limit, **kw)
+        d = distances_tiled(reference, current, cylinder=cylinder, registration_error=0.0 if reg == "auto" else reg,
+                            orientation=orientation, execution=execution)
         fields = d.fields()
         write_points_streamed(out, PointSource.open(reference, format=format),
                               lambda a, b: {k: v[a:b] for k, v in fields.items()}, inputs=(reference, current))
@@ -694,20 +667,20 @@ def _distance_tiled(reference, current, out: Path, *, format, registration_error
 
 # --- fields: sdp build, mesh, bool, info ---------------------------------------------------------
 
-def _lattice(clouds, grid: dict, like=None) -> dict:
-    """``DensityField.from_points`` options: ``grid`` (``auto``: from all ``clouds``' point
+def _lattice(clouds, lattice: Lattice, memory_limit, like=None) -> dict:
+    """``DensityField.from_points`` options: ``lattice`` (``auto``: from all ``clouds``' point
     spacing), or the lattice, σ and h of the field ``like`` so results can be combined."""
     from .._core._points import as_points
     from ..fields._spacing import resolve_lattice
 
     if like is not None:
         return dict(voxel_size=like.voxel_size, sigma_voxels=like.sigma / like.voxel_size, h=like.h,
-                    truncate=like.truncate, memory_limit=grid["memory_limit"])
-    kw = dict(grid)
+                    truncate=like.truncate, memory_limit=memory_limit)
+    kw = lattice.keywords()
     kw["voxel_size"], kw["sigma_voxels"] = resolve_lattice(
         [as_points(c) for c in clouds], voxel_size=kw.pop("voxel_size", "auto"), grid_size=kw.pop("grid_size", None),
-        k=kw["k"], sigma_voxels=kw["sigma_voxels"])
-    return kw
+        k=lattice.k, sigma_voxels=lattice.sigma_voxels)
+    return dict(kw, memory_limit=memory_limit)
 
 
 def _field_or_points(path, format):
@@ -717,38 +690,38 @@ def _field_or_points(path, format):
     return DensityField.load(path) if _is_field(path) else read_points(path, format=format).xyz
 
 
-def _field(path, format, grid: dict):
-    """A field file loaded, or a cloud file's field built with the grid options."""
+def _field(path, format, lattice: Lattice, memory_limit):
+    """A field file loaded, or a cloud file's field built on ``lattice``."""
     from ..fields._density import DensityField
 
     x = _field_or_points(path, format)
-    return x if isinstance(x, DensityField) else DensityField.from_points(x, **_lattice([x], grid))
+    return x if isinstance(x, DensityField) else DensityField.from_points(x, **_lattice([x], lattice, memory_limit))
 
 
-def build_field_file(cloud, *, output, format: str | None = None, voxel_size: float | str = DEFAULTS.voxel_size,
-                     grid_size: int | None = None, sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k,
-                     h: float | None = None, memory_limit=None, tile_size: float | None = None,
-                     scheduler: str | None = None, workers: int | None = None, workdir=None):
+def build_field_file(cloud, *, output, format: str | None = None, lattice: Lattice | None = None,
+                     execution: Execution | None = None):
     """Build the density field of a cloud file and save it (``sdp build``).
 
-    ``output`` ``.sdpf``: :meth:`DensityField.from_points` in memory, :meth:`DensityField.save`;
-    ``.zarr``: a :class:`~sdp.FieldStore` built in tiles (:func:`sdp.build_field_tiled`, the
-    file read in slices, ``voxel_size="auto"`` from its first slice). Returns the field or store.
+    ``output`` ``.sdpf``: :meth:`DensityField.from_points` in memory on ``lattice``,
+    :meth:`DensityField.save`; ``.zarr``: a :class:`~sdp.FieldStore` built in tiles
+    (:func:`sdp.build_field_tiled` with ``execution``, the file read in slices,
+    ``voxel_size="auto"`` from its first slice). Returns the field or store.
     """
+    lattice = Lattice() if lattice is None else lattice
+    execution = Execution() if execution is None else execution
     check_outputs([output], [cloud])
-    grid = _grid_options(voxel_size, grid_size, sigma_voxels, k, h, memory_limit)
     if not _is_store(output):
-        fld = _field(cloud, format, grid)
+        fld = _field(cloud, format, lattice, execution.memory_limit)
         _save_field(fld, output, inputs=(cloud,))
         return fld
     from ..io._io import PointSource
     from ..scale._tiles import build_field_tiled, sampled_lattice
 
     source = PointSource.open(cloud, format=format)
-    voxel, sigma_voxels = sampled_lattice([source], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
-    return build_field_tiled(source, output, voxel_size=voxel, sigma_voxels=sigma_voxels, k=k, h=h,
-                             tile_size=tile_size, memory_limit=memory_limit, scheduler=scheduler, workers=workers,
-                             workdir=workdir)
+    voxel, sigma_voxels = sampled_lattice([source], voxel_size=lattice.voxel_size, k=lattice.k,
+                                          sigma_voxels=lattice.sigma_voxels)
+    return build_field_tiled(source, output, lattice=replace(lattice, voxel_size=voxel, sigma_voxels=sigma_voxels),
+                             execution=execution)
 
 
 def _save_field(fld, path, inputs):
@@ -758,44 +731,44 @@ def _save_field(fld, path, inputs):
     fld.save(path)
 
 
-def mesh_file(path, *, output, level: float = 0.0, format: str | None = None,
-              voxel_size: float | str = DEFAULTS.voxel_size, grid_size: int | None = None,
-              sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
+def mesh_file(path, *, output, level: float = 0.0, format: str | None = None, lattice: Lattice | None = None,
               memory_limit=None):
     """Write the iso-surface F = ``level`` of a field (``.sdpf``), field store (``.zarr``) or
-    cloud file (built with the grid options) as PLY/OBJ/STL (``sdp mesh``); returns the Mesh."""
+    cloud file (built on ``lattice``) as PLY/OBJ/STL (``sdp mesh``); returns the Mesh."""
+    from .._core._memory import memory_limit as limit
     from ..io._io import write_mesh
 
+    lattice = Lattice() if lattice is None else lattice
     check_outputs([output], [path])
-    grid = _grid_options(voxel_size, grid_size, sigma_voxels, k, h, memory_limit)
+    limit(memory_limit)
     if _is_store(path):
         from ..scale._store import FieldStore
 
         mesh = FieldStore.open(path).mesh(level=level)
     else:
-        mesh = _field(path, format, grid).mesh(level=level)
+        mesh = _field(path, format, lattice, memory_limit).mesh(level=level)
     write_mesh(output, mesh, inputs=(path,))
     return mesh
 
 
-def combine_files(operation: str, a, b, *, output, format: str | None = None,
-                  voxel_size: float | str = DEFAULTS.voxel_size, grid_size: int | None = None,
-                  sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
+def combine_files(operation: str, a, b, *, output, format: str | None = None, lattice: Lattice | None = None,
                   memory_limit=None):
     """Union, intersection or difference of two fields or clouds, saved (``sdp bool``).
 
     A cloud is built on the lattice of the other operand when that is a field, else both
-    clouds on one voxel from both. ``output`` ``.sdpf``: the field; ``.ply``/``.obj``/``.stl``:
+    clouds on ``lattice`` (``auto``: one voxel from both). ``output`` ``.sdpf``: the field; ``.ply``/``.obj``/``.stl``:
     its surface (returns the Mesh); ``.zarr``: two field stores combined tile by tile.
     """
+    from .._core._memory import memory_limit as limit
     from ..fields import _boolean as boolean
     from ..fields._density import DensityField
     from ..io._io import write_mesh
 
     if operation not in ("union", "intersection", "difference"):
         raise SDPError(f"operation must be union, intersection or difference, got {operation!r}")
+    lattice = Lattice() if lattice is None else lattice
     check_outputs([output], [a, b])
-    grid = _grid_options(voxel_size, grid_size, sigma_voxels, k, h, memory_limit)
+    limit(memory_limit)
     if _is_store(output):
         from ..scale._store import FieldStore
 
@@ -804,7 +777,7 @@ def combine_files(operation: str, a, b, *, output, format: str | None = None,
         return FieldStore.open(a).combine(FieldStore.open(b), operation, output)
     items = [_field_or_points(p, format) for p in (a, b)]
     like = next((x for x in items if isinstance(x, DensityField)), None)
-    kw = _lattice(items, grid, like)  # clouds are built on a given field's lattice, else on one from both
+    kw = _lattice(items, lattice, memory_limit, like)  # clouds are built on a given field's lattice, else on one from both
     fa, fb = (x if isinstance(x, DensityField) else DensityField.from_points(x, **kw) for x in items)
     result = getattr(boolean, operation)(fa, fb)
     if _is_field(output):
@@ -837,7 +810,7 @@ def describe_file(path, *, format: str | None = None) -> dict:
 
 # --- sdp align, watch --------------------------------------------------------------------------
 
-def align_files(current, reference, *, output, method: str = "density", fix_horizontal: bool = False,
+def align_files(current, reference, *, output, method: str = DEFAULTS.align_method, fix_horizontal: bool = False,
                 align_class=None, format: str | None = None):
     """Estimate the rigid transform of ``current`` onto ``reference`` (a cloud, or a field
     ``.sdpf`` for ``method="density"``) and write it as a 4x4 text matrix for
@@ -848,23 +821,22 @@ def align_files(current, reference, *, output, method: str = "density", fix_hori
 
     check_outputs([output], [current, reference])
     refuse_overwrite(output, (current, reference))
-    classes = V.check_alignment_options(method, fix_horizontal=fix_horizontal, align_class=align_class)
+    registration = Registration(method=method, fix_horizontal=fix_horizontal, align_class=align_class)
     ref = DensityField.load(reference) if _is_field(reference) else read_points(reference, format=format)
-    al = _align_clouds(ref, read_points(current, format=format), (reference, current), method=method,
-                       fix_horizontal=fix_horizontal, classes=classes, align_class=align_class)
+    al = _align_clouds(ref, read_points(current, format=format), (reference, current), registration)
     with atomic_path(output) as tmp:
         np.savetxt(tmp, al.matrix, fmt="%.12g", header=f"sdp align {current} onto {reference} ({method})")
     return al
 
 
-def watch_folder(reference, frames, *, format: str | None = None, voxel_size: float | str = DEFAULTS.voxel_size,
+def watch_folder(reference, frames, *, format: str | None = None, lattice: Lattice | None = None,
                  update: str = DEFAULTS.update, window: int = DEFAULTS.window, decay: float = DEFAULTS.decay,
-                 min_region_points: int = DEFAULTS.min_region_points, align: str | None = None,
-                 sensor_origin=DEFAULTS.sensor_origin, range_noise: float = DEFAULTS.range_noise) -> Iterator:
+                 min_region_points: int = DEFAULTS.min_region_points, align: Registration | str | None = None,
+                 coverage: Coverage | None = None) -> Iterator:
     """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order (``sdp watch``).
 
-    ``reference`` is a cloud file or a field (``.sdpf``); ``sensor_origin`` as in
-    :func:`compare_files` (the reference's). The folder and the reference are checked and read
+    ``reference`` is a cloud file or a field (``.sdpf``); ``coverage`` as in
+    :func:`compare_files` (its ``sensor_origin`` is the reference's). The folder and the reference are checked and read
     now; the frames are read one by one as the returned iterator of :class:`~sdp.FrameChange`
     (named after their files) advances.
     """
@@ -880,20 +852,21 @@ def watch_folder(reference, frames, *, format: str | None = None, voxel_size: fl
                    key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
     if not paths:
         raise SDPError(f"{folder}: no point-cloud files ({', '.join(sorted(FORMATS))})")
+    coverage = Coverage() if coverage is None else coverage
+    choice = coverage.sensor_origin
     if _is_field(reference):
         from ..fields._density import DensityField
 
-        if not (sensor_origin is None or isinstance(sensor_origin, str) and sensor_origin in ("auto", "none")):
+        if not (isinstance(choice, str) and choice in ("auto", "none")):
             raise SDPError("--sensor-origin follows the reference's rays: give the reference cloud, not a field")
         ref, origin = DensityField.load(reference), None
     else:
-        choice = V.sensor_origin_option("--sensor-origin", sensor_origin)
         ref = read_points(reference, format=format)
         origin = _sensor_origins(choice, (reference, ref), (reference, ref))
         origin = origin[0] if isinstance(origin, np.ndarray) else origin
     stream = ((p.name, read_points(p, format=format)) for p in paths)
-    return watch(ref, stream, voxel_size=voxel_size, update=update, window=window, decay=decay,
-                 min_region_points=min_region_points, align=align, sensor_origin=origin, range_noise=range_noise)
+    return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
+                 min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin))
 
 
 # --- sdp eval, render --------------------------------------------------------------------------
@@ -1010,7 +983,7 @@ def predict_actions(model, sequences) -> list[tuple[str, int]]:
     return [(str(p), int(m.predict(actions.sequence_descriptor(actions.read_sequence(p)))[0])) for p in sequences]
 
 
-def stream_actions(model, source, *, window: int = 40, every: int = 5):
+def stream_actions(model, source, *, window: int = DEFAULTS.action_window, every: int = DEFAULTS.action_every):
     """(frame number from 1, action label) at each report of an :class:`sdp.actions._actions.ActionStream`
     over the frames of ``source`` (``sdp action predict MODEL --stream SOURCE``)."""
     from ..actions import _actions as actions

@@ -26,6 +26,7 @@ from .._core import _validate as V
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._io import all_or_none
+from ..options import Coverage, Cylinder, Execution, Lattice, Outputs, Registration
 from ._text import action_eval_text, alignment_text, frame_text, train_text, written_text
 from ._warmup import first_run
 
@@ -59,13 +60,25 @@ def _tile_options(p, title, *, tiled: bool = True):
                    help="folder for the tiles' buckets (shared by all workers on a cluster)")
 
 
-def _grid(a) -> dict:
-    return dict(voxel_size=a.voxel_size, grid_size=a.grid_size, k=a.k, h=a.h, sigma_voxels=a.sigma_voxels,
-                memory_limit=a.memory_limit)
+# The flags → the option objects of sdp.options (validated once, as in Python).
+
+def _lattice(a) -> Lattice:
+    return Lattice(voxel_size=a.voxel_size, grid_size=a.grid_size, sigma_voxels=a.sigma_voxels, k=a.k, h=a.h)
 
 
-def _tiles(a) -> dict:
-    return dict(tile_size=a.tile_size, scheduler=a.scheduler, workers=a.workers, workdir=a.workdir)
+def _execution(a, notify=None) -> Execution:
+    return Execution(memory_limit=a.memory_limit, tiled=getattr(a, "tiled", False), tile_size=a.tile_size,
+                     scheduler=a.scheduler, workers=a.workers, workdir=a.workdir, notify=notify)
+
+
+def _coverage(a) -> Coverage:
+    return Coverage(sensor_origin=V.sensor_origin_option("--sensor-origin", a.sensor_origin), range_noise=a.range_noise)
+
+
+def _registration(a) -> Registration | None:
+    V.check_alignment_options(a.align, fix_horizontal=a.fix_horizontal, align_class=a.align_class)
+    return None if a.align is None else Registration(method=a.align, fix_horizontal=a.fix_horizontal,
+                                                     align_class=a.align_class)
 
 
 def _say(message: str) -> None:
@@ -78,27 +91,30 @@ def _show(text: str, summary=None, as_json: bool = False) -> int:
     return 0
 
 
-# Each command: the parsed options → one call of sdp.pipeline → print (the text of sdp.report, or JSON).
+# Each command: the parsed options → one call of sdp.cli's functions → print (its text, or JSON).
 
 def cmd_change(a):
-    r = P.compare_files(a.reference, a.current, output=a.output, both=a.both, png=a.png, html=a.html, report=a.report,
-                        format=a.format, decision=a.decision, min_region_points=a.min_region_points,
-                        sensor_origin=a.sensor_origin, range_noise=a.range_noise, align=a.align,
-                        aligned_output=a.aligned_output, fix_horizontal=a.fix_horizontal, align_class=a.align_class,
-                        tiled=a.tiled, notify=None if a.json else _say, **_grid(a), **_tiles(a))
+    r = P.compare_files(a.reference, a.current, output=a.output, format=a.format,
+                        outputs=Outputs(both=a.both, png=a.png, html=a.html, report=a.report, aligned=a.aligned_output),
+                        lattice=_lattice(a), coverage=_coverage(a),
+                        align=_registration(a), execution=_execution(a, None if a.json else _say),
+                        decision=a.decision, min_region_points=a.min_region_points)
     return _show(r.summary_text(), r.summary, a.json)
 
 
 def cmd_distance(a):
-    names = ("core_points png report format projection_scale normal_scale max_distance registration_error orientation "
-             "sensor_origin align fix_horizontal align_class memory_limit tiled").split()
-    r = P.distance_files(a.reference, a.current, output=a.output, notify=None if a.json else _say,
-                         **{n: getattr(a, n) for n in names}, **_tiles(a))
+    r = P.distance_files(a.reference, a.current, output=a.output, core_points=a.core_points,
+                         outputs=Outputs(png=a.png, report=a.report), format=a.format,
+                         cylinder=Cylinder(projection_scale=a.projection_scale, normal_scale=a.normal_scale,
+                                           max_distance=a.max_distance),
+                         registration_error=a.registration_error, orientation=a.orientation,
+                         sensor_origin=a.sensor_origin, align=_registration(a),
+                         execution=_execution(a, None if a.json else _say))
     return _show(r.summary_text(), r.summary, a.json)
 
 
 def cmd_build(a):
-    built = P.build_field_file(a.cloud, output=a.output, format=a.format, **_grid(a), **_tiles(a))
+    built = P.build_field_file(a.cloud, output=a.output, format=a.format, lattice=_lattice(a), execution=_execution(a))
     return _show(written_text(built, a.output))
 
 
@@ -107,12 +123,14 @@ def cmd_info(a):
 
 
 def cmd_mesh(a):
-    mesh = P.mesh_file(a.input, output=a.output, level=a.level, format=a.format, **_grid(a))
+    mesh = P.mesh_file(a.input, output=a.output, level=a.level, format=a.format, lattice=_lattice(a),
+                       memory_limit=a.memory_limit)
     return _show(written_text(mesh, a.output))
 
 
 def cmd_bool(a):
-    result = P.combine_files(a.operation, a.a, a.b, output=a.output, format=a.format, **_grid(a))
+    result = P.combine_files(a.operation, a.a, a.b, output=a.output, format=a.format, lattice=_lattice(a),
+                             memory_limit=a.memory_limit)
     return _show(written_text(result, a.output))
 
 
@@ -123,9 +141,9 @@ def cmd_align(a):
 
 
 def cmd_watch(a):
-    frames = P.watch_folder(a.reference, a.frames, format=a.format, voxel_size=a.voxel_size, update=a.update,
-                            window=a.window, decay=a.decay, min_region_points=a.min_region_points, align=a.align,
-                            sensor_origin=a.sensor_origin, range_noise=a.range_noise)
+    frames = P.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
+                            update=a.update, window=a.window, decay=a.decay, min_region_points=a.min_region_points,
+                            align=a.align, coverage=_coverage(a))
     if a.json:
         return _show("", [r.summary() for r in frames], as_json=True)
     for r in frames:  # a line per frame, as it comes
@@ -275,7 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
     al.add_argument("current")
     al.add_argument("reference", help="cloud, or field (.sdpf) for --method density")
     al.add_argument("-o", "--output", required=True, help="text file with the 4x4 matrix")
-    al.add_argument("--method", choices=("density", "gicp"), default="density",
+    al.add_argument("--method", choices=("density", "gicp"), default=DEFAULTS.align_method,
                     help="density: maximise the reference's density, coarse to fine; gicp: small_gicp")
     _align_options(al)
     al.add_argument("--json", action="store_true", help="print the result as JSON")
@@ -312,8 +330,10 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("model")
     pr.add_argument("sequences", nargs="*", help=".mat or .bin depth sequences")
     pr.add_argument("--stream", metavar="FRAMES", help="a folder of .npy depth frames (or a sequence file, replayed)")
-    pr.add_argument("--window", type=V.cli_type(V.integer_at_least, 2), default=40, help="frames used (default 40)")
-    pr.add_argument("--every", type=V.cli_type(V.integer_at_least, 1), default=5, help="say it each N frames (5)")
+    pr.add_argument("--window", type=V.cli_type(V.integer_at_least, 2), default=DEFAULTS.action_window,
+                    help=f"frames used (default {DEFAULTS.action_window})")
+    pr.add_argument("--every", type=V.cli_type(V.integer_at_least, 1), default=DEFAULTS.action_every,
+                    help=f"say it each N frames ({DEFAULTS.action_every})")
     ev = asub.add_parser("eval", help="the cross-subject protocol: accuracy on AS1, AS2, AS3 and all")
     ev.add_argument("data_dir")
     ev.add_argument("--json", action="store_true", help="print the accuracies (fractions) and timings as JSON")

@@ -157,6 +157,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     """
     import numpy as np
 
+    from ..options import Coverage, Execution, Outputs
     from . import _commands as P
     from ..change._detect import detect_changes
     from ..distance._distances import distances
@@ -187,12 +188,13 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
             say(f"{command}: {times[command]:.1f} s")
 
         def change():
-            P.compare_files(files["ref", "ply"], files["cur", "ply"], output=d / "c.ply", sensor_origin=s.camera)
-            P.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "c.laz", both=True)
-            detect_changes(s.reference, s.current, decision="cluster", sensor_origin=None)
+            P.compare_files(files["ref", "ply"], files["cur", "ply"], output=d / "c.ply",
+                            coverage=Coverage(sensor_origin=s.camera))
+            P.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "c.laz", outputs=Outputs(both=True))
+            detect_changes(s.reference, s.current, decision="cluster", coverage=Coverage(sensor_origin=None))
             if importlib.util.find_spec("dask") and importlib.util.find_spec("zarr"):
-                P.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "t.laz", tiled=True,
-                                scheduler="synchronous", workdir=d)
+                P.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "t.laz",
+                                execution=Execution(tiled=True, scheduler="synchronous", workdir=d))
 
         def distance():
             P.distance_files(files["ref", "laz"], files["cur", "laz"], output=d / "d.laz")

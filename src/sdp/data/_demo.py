@@ -22,6 +22,7 @@ def run_demo(output: str | os.PathLike = "demo-output", *, seed: int = 0, echo: 
     ``reference.ply``, ``current_labelled.ply`` (fields ``change``, ``truth``, ``region``, ``F``),
     ``current_cluster_volume.ply`` and ``changes.png``. Returns the :class:`~sdp.ChangeResult`."""
     from ..change._detect import detect_changes
+    from ..options import Coverage, Lattice
     from ..io._io import write_mesh, write_points
     from ..change._metrics import scores
     from ..viz._render import render_changes
@@ -34,12 +35,12 @@ def run_demo(output: str | os.PathLike = "demo-output", *, seed: int = 0, echo: 
     echo(f"  reference scan {len(s.reference):,} points; current scan {len(s.current):,} points with "
          f"{len(INSERTED)} inserted objects ({s.appeared_truth.sum():,} points on them)")
     # a first call loads the kernels from Numba's cache: the timings printed are the warm ones
-    detect_changes(s.reference[::10], s.current[::10], sensor_origin=s.camera)
-    r = detect_changes(s.reference, s.current, sensor_origin=s.camera)  # the defaults; the camera is known
+    detect_changes(s.reference[::10], s.current[::10], coverage=Coverage(sensor_origin=s.camera))
+    r = detect_changes(s.reference, s.current, coverage=Coverage(sensor_origin=s.camera))  # the defaults; the camera is known
     sc = scores(s.appeared_truth, r.appeared, comparable=~r.current_not_comparable)
     every = scores(s.appeared_truth, r.appeared)["kappa"]
-    paper = detect_changes(s.reference, s.current, grid_size=80, sensor_origin=None, coverage=False,
-                           min_region_points=1)
+    paper = detect_changes(s.reference, s.current, min_region_points=1, lattice=Lattice(grid_size=80),
+                           coverage=Coverage(sensor_origin=None, enabled=False))
     kp = scores(s.appeared_truth, paper.appeared)["kappa"]
     echo(f"\nchange detection (the defaults: voxel {r.voxel_size * 1000:.1f} mm from the point spacing, "
          f"the camera's rays):")

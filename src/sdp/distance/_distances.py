@@ -76,10 +76,11 @@ import numpy.typing as npt
 from .._core._points import as_points
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
-from ..fields._lattice import check_memory
-from ..fields._lattice import memory_limit as grid_memory_limit
+from .._core._memory import check_memory
+from .._core._memory import memory_limit as grid_memory_limit
 from ..fields._spacing import resolve_lattice
 from .._core._validate import auto_or_positive, nonnegative_finite
+from ..options import Cylinder
 from ..change._visibility import resolve_sensor_origins
 
 __all__ = ["Distances", "distances", "search_reach", "tile_halo", "DISTANCE_FIELDS"]
@@ -194,8 +195,7 @@ class Distances:
         }
 
 
-def distances(reference, current, *, core_points=None, projection_scale: float | str = DEFAULTS.projection_scale,
-              normal_scale: float | str = DEFAULTS.normal_scale, max_distance: float | str = DEFAULTS.max_distance,
+def distances(reference, current, *, core_points=None, cylinder: Cylinder | None = None,
               registration_error: float = DEFAULTS.registration_error,
               orientation: npt.ArrayLike | None = None, sensor_origin=DEFAULTS.sensor_origin,
               memory_limit=None, corner: npt.ArrayLike | None = None) -> Distances:
@@ -208,14 +208,12 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
         The two epochs, in one frame (align them first: :func:`sdp.align`).
     core_points : array_like (m, 3), Cloud, ``"reference"`` or ``"current"``, optional
         Where to measure; default every reference point (M3C2's epoch 1).
-    projection_scale : float or "auto"
-        M3C2's projection scale ``d`` (the cylinder's diameter, world units); the cylinder's
-        Gaussian has σ_p = d/4. ``"auto"``: the density kernel's σ from the point spacing.
-    normal_scale : float or "auto"
-        M3C2's normal scale ``D`` (diameter); σ_n = D/4. ``"auto"``: 2d, enlarged to 20× the
-        roughness at that scale, at most 4d.
-    max_distance : float or "auto"
-        How far along the normal an epoch is looked for (world units). ``"auto"``: 48σ_p = 12d.
+    cylinder : Cylinder, optional
+        M3C2's scales (:class:`sdp.Cylinder`, world units): the projection scale ``d`` (the
+        cylinder's diameter; its Gaussian has σ_p = d/4; ``"auto"``: the density kernel's σ from
+        the point spacing), the normal scale ``D`` (diameter, σ_n = D/4; ``"auto"``: 2d,
+        enlarged to 20× the roughness at that scale, at most 4d) and how far along the normal
+        an epoch is looked for (``"auto"``: 48σ_p = 12d).
     registration_error : float
         Added to the level of detection before the 1.96 factor (M3C2's ``reg``), world units,
         e.g. the alignment's residual.
@@ -253,7 +251,7 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
     >>> rng = np.random.default_rng(0)
     >>> ground = np.c_[rng.uniform(0, 10, (20000, 2)), 0.01 * rng.standard_normal(20000)]
     >>> raised = ground + [0, 0, 0.05]
-    >>> d = sdp.distances(ground, raised, projection_scale=0.5)
+    >>> d = sdp.distances(ground, raised, cylinder=sdp.Cylinder(projection_scale=0.5))
     >>> print(round(float(np.median(d.distance)), 3), bool(d.significant.mean() > 0.99))
     0.05 True
     """
@@ -263,9 +261,10 @@ def distances(reference, current, *, core_points=None, projection_scale: float |
         if len(pts.xyz) < 3:
             raise InvalidPointsError(f"the {name} has {len(pts.xyz)} point(s): a surface normal and a spread need "
                                      "at least 3")
-    d_opt = auto_or_positive("projection_scale", projection_scale)
-    D_opt = auto_or_positive("normal_scale", normal_scale)
-    L_opt = auto_or_positive("max_distance", max_distance)
+    cylinder = Cylinder() if cylinder is None else cylinder
+    d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
+    D_opt = auto_or_positive("normal_scale", cylinder.normal_scale)
+    L_opt = auto_or_positive("max_distance", cylinder.max_distance)
     reg = nonnegative_finite("registration_error", registration_error)
     grid_memory_limit(memory_limit)  # readable and positive, before any work
     if orientation is None:

@@ -54,9 +54,10 @@ from ._blocks import Blocks
 from ..defaults import DEFAULTS
 from ..errors import IncompatibleFieldsError, InvalidOptionError, InvalidPointsError
 from ._file import FORMAT_VERSION
-from ._lattice import BLOCK, Grid, check_memory
+from .._core._memory import check_memory
+from ._lattice import BLOCK, Grid, check_kernel
 from ._spacing import resolve_lattice
-from .._core._validate import check_grid_options, check_kernel
+from .._core._validate import check_grid_options
 
 __all__ = ["DensityField", "threshold", "FORMAT_VERSION", "BOOLEAN_METHODS"]  # FORMAT_VERSION: of sdp.fields._file
 

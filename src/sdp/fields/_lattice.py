@@ -29,88 +29,88 @@ References
 from __future__ import annotations
 
 import math
-import os
-import re
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import GridTooLargeError, InvalidOptionError, InvalidPointsError
-from .._core._validate import check_lattice, format_bytes, integer_at_least, positive_finite
+from .._core._memory import check_memory, format_bytes, memory_limit
+from .._core._validate import integer_at_least, positive_finite
 
-__all__ = ["BLOCK", "Grid", "voxel_size_for_grid_size", "memory_limit", "parse_bytes", "check_memory",
-           "MIN_MEMORY_LIMIT"]
+__all__ = ["BLOCK", "Grid", "voxel_size_for_grid_size", "check_lattice", "check_kernel", "kernel_reach",
+           "MAX_GRID_UNITS"]
 
 #: Edge length of a block, in nodes (blocks hold ``BLOCK**3`` float32 values, 2 KiB).
 BLOCK = 8
 
-_DEFAULT_MEMORY_LIMIT = 4 * 2**30
-_UNITS = {"": 1, "b": 1, "k": 2**10, "kb": 2**10, "kib": 2**10, "m": 2**20, "mb": 2**20,
-          "mib": 2**20, "g": 2**30, "gb": 2**30, "gib": 2**30, "t": 2**40, "tb": 2**40, "tib": 2**40}
+
+#: Largest |coordinate| / voxel size accepted: beyond 2**40 voxels from the origin, float64 keeps
+#: less than 2**-12 of a voxel, and the grid's integer node and block coordinates near their limits.
+MAX_GRID_UNITS = 2.0**40
 
 
-#: Smallest memory limit accepted: a smaller one is almost surely a size given without its unit.
-MIN_MEMORY_LIMIT = 2**20
+_MAX_REACH = 2**16  # kernel reach in voxels (truncate·σ): far beyond any memory limit already
 
 
-def parse_bytes(value: int | float | str) -> int:
-    """Parse a memory size such as ``2GB``, ``512MiB`` or ``1e9`` into bytes (binary units).
-
-    Raises
-    ------
-    InvalidOptionError
-        Not a positive finite size in a known unit.
-    """
-    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
-        if not (value > 0 and math.isfinite(value)):
-            raise InvalidOptionError(f"a memory limit must be a positive size such as 2GB, got {value!r}")
-        return int(value)
-    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?|[0-9]+\.)\s*([a-zA-Z]*)\s*", str(value))
-    if not match or match.group(2).lower() not in _UNITS:
-        raise InvalidOptionError(f"can't read memory size {value!r}: use e.g. 2GB, 512MB or a number of bytes")
-    return parse_bytes(float(match.group(1)) * _UNITS[match.group(2).lower()])
+def kernel_reach(sigma_voxels: float, truncate: float = 3.0) -> int:
+    """⌈truncate·σ⌉, the kernel's reach in nodes, refusing one beyond 2**16 voxels (an
+    :class:`InvalidOptionError`: such a σ is a mistake long before memory runs out)."""
+    rmax = positive_finite("truncate", truncate) * positive_finite("sigma_voxels", sigma_voxels)
+    if not rmax <= _MAX_REACH:
+        raise InvalidOptionError(f"a kernel of sigma {sigma_voxels:g} voxels cut off at {truncate:g} sigma reaches "
+                                 f"{rmax:.3g} voxels, more than {_MAX_REACH:,}: use a smaller sigma in voxels (and "
+                                 "a larger voxel size)")
+    return int(math.ceil(rmax))
 
 
-def memory_limit(limit: int | float | str | None = None) -> int:
-    """The memory limit in bytes: ``limit`` if given, else ``$SDP_MEMORY_LIMIT``, else 4 GiB.
+def check_kernel(sigma_voxels: float, truncate: float, memory_limit=None, *, budget: str = "the memory limit") -> int:
+    """The kernel's reach in nodes, ⌈truncate·σ⌉, once one point's kernel fits the memory limit.
 
     Raises
     ------
+    GridTooLargeError
+        The blocks under a single point's kernel cube alone exceed the limit (e.g. σ of 1000 voxels).
+    """
+
+    rmax = float(truncate) * float(sigma_voxels)
+    kernel_reach(sigma_voxels, truncate)
+    blocks = math.ceil((2 * rmax + 1) / BLOCK) ** 3
+    check_memory(blocks * BLOCK**3 * 4, f"the kernel of one point (σ = {sigma_voxels:g} voxels, reaching "
+                 f"{rmax:.4g} voxels each way)", memory_limit, advice="use a smaller sigma in voxels", budget=budget)
+    return int(math.ceil(rmax))
+
+
+def check_lattice(lo, hi, voxel_size: float, reach: int = 0) -> None:
+    """Refuse a voxel size whose grid over the box [lo, hi] can't be placed in float64 and int64.
+
+    Points are converted to grid units as ``(p − origin) / l``; more than :data:`MAX_GRID_UNITS`
+    (2**40) voxels from the world origin, float64 keeps less than 1/4096 of a voxel and change
+    masks would change silently; a voxel so large that the grid's corners overflow float64
+    (e.g. 1e308) can't be placed at all.
+
+    Raises
+    ------
+    InvalidPointsError
+        The coordinates are too far from the origin for this voxel size.
     InvalidOptionError
-        Unreadable, not positive, or, given as text (the command line, ``$SDP_MEMORY_LIMIT``),
-        below 1 MB (:data:`MIN_MEMORY_LIMIT`: most likely a size without its unit).
+        The voxel size is too large to place the grid's nodes.
     """
-    source = "the memory limit"
-    if limit is None:
-        env = os.environ.get("SDP_MEMORY_LIMIT")
-        limit, source = (_DEFAULT_MEMORY_LIMIT, source) if env is None else (env, "$SDP_MEMORY_LIMIT")
-    try:
-        cap = parse_bytes(limit)
-    except InvalidOptionError as exc:
-        if source == "the memory limit":
-            raise
-        raise InvalidOptionError(f"{source}: {exc}") from None
-    if cap < MIN_MEMORY_LIMIT and isinstance(limit, str):  # numbers (Python) are bytes, taken as given
-        raise InvalidOptionError(f"{source} {limit!r} is {format_bytes(cap)}, below the minimum of "
-                                 f"{format_bytes(MIN_MEMORY_LIMIT)}: give a size with its unit, e.g. 2GB")
-    return cap
 
+    l = float(voxel_size)
+    span = float(np.max(np.abs(np.r_[np.asarray(lo, float), np.asarray(hi, float)])))
+    if not math.isfinite(span):
+        raise InvalidPointsError("the cloud's bounds are not finite")
+    units = span / l
+    if not units <= MAX_GRID_UNITS:
+        raise InvalidPointsError(
+            f"coordinates up to {span:.6g} are {units:.3g} voxels of {l:g} from the origin, beyond 2**40 "
+            f"(≈{MAX_GRID_UNITS:.3g}): float64 can't place points within a voxel there; subtract an offset "
+            "(e.g. the cloud's minimum) or use a larger voxel size")
+    corner = (units + reach + 2 * BLOCK) * l * BLOCK  # the farthest node and block corner, in world units
+    if not (math.isfinite(corner) and math.isfinite((reach * l) ** 2 + corner**2)):
+        raise InvalidOptionError(f"voxel size {l:g} is too large: the grid's nodes would lie beyond the range of "
+                                 "floating-point numbers; use a voxel size near the cloud's point spacing")
 
-def check_memory(nbytes: float, what: str, limit: int | float | str | None, *,
-                 advice: str = "use a larger voxel size (or a smaller grid size)",
-                 budget: str = "the memory limit") -> None:
-    """Raise :class:`GridTooLargeError` if ``nbytes`` exceeds the memory limit.
-
-    The message gives both sizes in human units and says what to change: ``advice``, or
-    raising the memory limit (``--memory-limit`` on the command line, ``memory_limit=`` in
-    Python, ``$SDP_MEMORY_LIMIT`` for both). ``budget`` names what ``limit`` is (a worker's
-    share of the memory limit, for the tiles).
-    """
-    cap = memory_limit(limit)
-    if not nbytes <= cap:
-        raise GridTooLargeError(
-            f"{what} would need {format_bytes(nbytes)}, above {budget} of {format_bytes(cap)}: "
-            f"{advice}, or raise the memory limit ($SDP_MEMORY_LIMIT)")
 
 
 def voxel_size_for_grid_size(lo: np.ndarray, hi: np.ndarray, grid_size: int) -> float:

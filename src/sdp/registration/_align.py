@@ -47,6 +47,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._core._points import as_points
+from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError, require
 from ..fields._density import DensityField
 from ..fields._spacing import auto_voxel_size
@@ -127,7 +128,8 @@ def transform_points(matrix, points) -> np.ndarray:
     return np.asarray(points, np.float64) @ m[:3, :3].T + m[:3, 3]
 
 
-def align(reference, current, *, method: str = "density", voxel_size: float | str = "auto", levels: int = 4,
+def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size: float | str = DEFAULTS.voxel_size,
+          levels: int = 4,
           max_points: int = 100_000, init=None, seed: int = 0, min_constraint: float = 0.01,
           fix_horizontal: bool = False) -> Alignment:
     """Estimate the rigid transform that maps ``current`` onto ``reference``.

@@ -77,22 +77,19 @@ from . import _kernels as K
 from .._core._progress import bar
 from ..change._coverage import footprint_covered
 from ..defaults import DEFAULTS
-from ..errors import GridTooLargeError, InvalidPointsError, SDPError, WorkerLostError, require
+from ..errors import GridTooLargeError, InvalidOptionError, InvalidPointsError, SDPError, WorkerLostError, require
 from ..fields._density import DensityField, threshold
-from ..fields._lattice import BLOCK, check_memory
-from ..fields._lattice import memory_limit as _memory_limit
+from .._core._memory import check_memory, format_bytes
+from .._core._memory import memory_limit as _memory_limit
+from ..fields._lattice import BLOCK, check_kernel, check_lattice, kernel_reach
 from ..io._io import PointSource
 from ..change._regions import Region, Volume, describe_regions, join_parts, label_part
+from ..options import Cylinder, Execution, Lattice
 from ._store import FieldStore, require_zarr
 from .._core._validate import (
-    auto_or_positive,
     check_grid_options,
-    check_kernel,
-    check_lattice,
     check_tile_options,
-    format_bytes,
     integer_at_least,
-    kernel_reach,
     nonnegative_finite,
     positive_finite,
 )
@@ -338,14 +335,9 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
     return rows, region_of, regs
 
 
-def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAULTS.voxel_size,
-                         sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
-                         truncate: float = DEFAULTS.truncate, method: str = "auto",
+def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None,
                          min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
-                         tile_size: float | None = None,
-                         tile_points: int | None = None, memory_limit: int | str | None = None,
-                         scheduler: str | None = None, workers: int | None = None,
-                         workdir: str | os.PathLike | None = None) -> TiledChanges:
+                         execution: Execution | None = None) -> TiledChanges:
     """:func:`sdp.detect_changes` (point decision, footprint coverage) in tiles, for clouds of any size.
 
     Every default is :data:`sdp.DEFAULTS`, as for :func:`sdp.detect_changes`. Points outside the
@@ -362,51 +354,45 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
         σ, threshold and tiles.
     current : path-like, PointSource or array_like (n, 3)
         As ``reference``.
-    voxel_size : float or "auto"
-        Voxel length in world units, or ``"auto"`` (default): :func:`sdp.auto_voxel_size` of
-        the first slice of each cloud (the tiles need it before reading the points); taken
-        from the store when ``reference`` is one.
-    sigma_voxels, k, h, truncate, method
-        As in :meth:`DensityField.from_points`.
+    lattice : Lattice, optional
+        As in :func:`sdp.detect_changes` (no ``grid_size``: the tiles need the voxel before
+        reading the points). ``voxel_size="auto"`` is measured on the first slice of each
+        cloud; the lattice is the store's when ``reference`` is one.
     min_region_points, regions
         As in :func:`sdp.detect_changes`; regions span tiles.
-    tile_size : float, optional
-        Tile edge in world units (rounded up to whole blocks of 8 voxels). Default: about
-        ``tile_points`` points of the larger cloud per tile, from its mean density in x, y.
-    tile_points : int, optional
-        Target points per tile and epoch, its halo included, when ``tile_size`` is not given;
-        default: what one task's share of ``memory_limit`` holds (≈ 1.2 KB per point and epoch:
-        230 k points with 2 GiB and 2 workers).
-    memory_limit : int or str, optional
-        Memory of the whole job (default ``$SDP_MEMORY_LIMIT`` or 4 GiB), shared as
-        :class:`JobBudget` says: this process's share, then each worker's (of a local cluster, or
-        each thread of the scheduler's workers: a task at once each), which less the worker process
-        itself sets the tile size and the rows decoded at a time. Tiles that need more are refused
-        before any work, with the smallest limit that would hold them.
-    scheduler : str, optional
-        ``None``: a Dask local cluster of ``workers`` processes; ``"tcp://host:8786"``: that
-        ``dask.distributed`` scheduler; ``"synchronous"`` or ``"threads"``: Dask's local
-        schedulers in this process (debugging, tests).
-    workers : int, optional
-        Worker processes of the local cluster (default: the number of cores).
-    workdir : path-like, optional
-        Where the buckets go (default: the system's temporary directory); removed afterwards.
-        On a cluster it must be shared by all workers.
+    execution : Execution, optional
+        The tiles (:class:`sdp.Execution`): ``tile_size`` in world units (rounded up to whole
+        blocks of 8 voxels; default about ``tile_points`` points of the larger cloud per tile,
+        from its mean density in x, y; default ``tile_points``: what one task's share of the
+        memory limit holds, ≈ 1.2 KB per point and epoch, 230 k points with 2 GiB and 2
+        workers). ``memory_limit`` is the whole job's, shared as :class:`JobBudget` says: this
+        process's share, then each worker's (of a local cluster, or each thread of the
+        scheduler's workers: a task at once each), which less the worker process itself sets the
+        tile size and the rows decoded at a time; tiles that need more are refused before any
+        work, with the smallest limit that would hold them. ``scheduler``: None, a Dask local
+        cluster of ``workers`` processes (default: the cores); ``"tcp://host:8786"``, that
+        ``dask.distributed`` scheduler; ``"synchronous"`` or ``"threads"``, Dask's local
+        schedulers in this process (debugging, tests). ``workdir``: where the buckets go
+        (default: the system's temporary folder), removed afterwards; on a cluster it must be
+        shared by all workers.
 
     Returns
     -------
     TiledChanges
     """
+    lattice, execution = _tiled_options(lattice, execution)
     integer_at_least("min_region_points", min_region_points, 0)
+    k, h = lattice.k, lattice.h
+    voxel_size, sigma_voxels, truncate = lattice.voxel_size, lattice.sigma_voxels, lattice.truncate
+    tiles = execution.tile_keywords()
     store = reference if isinstance(reference, FieldStore) else None
     if store is not None:
         voxel_size, truncate, h = store.voxel_size, store.truncate, store.h
         sigma_voxels = store.sigma / store.voxel_size
-        tile_size = store.tile_blocks * BLOCK * store.voxel_size
+        tiles["tile_size"] = store.tile_blocks * BLOCK * store.voxel_size
     clouds = {"current": current} if store is not None else {"reference": reference, "current": current}
-    with _Session(clouds, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=method,
-                  tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit, scheduler=scheduler,
-                  workers=workers, workdir=workdir) as run:
+    with _Session(clouds, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=lattice.method,
+                  **tiles) as run:
         jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path), regions) for key in run.tiles]
         results = run.tasks("compare", _compare_tile, jobs,
                             ("read", "build_reference", "build_current", "detect", "label"))
@@ -428,13 +414,9 @@ def detect_changes_tiled(reference, current, *, voxel_size: float | str = DEFAUL
                         timings=run.timings)
 
 
-def distances_tiled(reference, current, *, projection_scale: float | str = DEFAULTS.projection_scale,
-                    normal_scale: float | str = DEFAULTS.normal_scale,
-                    max_distance: float | str = DEFAULTS.max_distance,
+def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
                     registration_error: float = DEFAULTS.registration_error, orientation=None,
-                    tile_size: float | None = None, tile_points: int | None = None,
-                    memory_limit: int | str | None = None, scheduler: str | None = None, workers: int | None = None,
-                    workdir: str | os.PathLike | None = None):
+                    execution: Execution | None = None):
     """:func:`sdp.distances` in tiles, for clouds of any size: every reference row a core point.
 
     Each tile measures its own reference points from its buckets, which hold every point within
@@ -451,27 +433,25 @@ def distances_tiled(reference, current, *, projection_scale: float | str = DEFAU
     """
     from ..distance._distances import Distances, distances, search_reach, tile_halo
 
-    for name, value in (("projection_scale", projection_scale), ("normal_scale", normal_scale),
-                        ("max_distance", max_distance)):
-        auto_or_positive(name, value)
+    cylinder = Cylinder() if cylinder is None else cylinder
+    execution = Execution() if execution is None else execution
     reg = nonnegative_finite("registration_error", registration_error)
     t0 = time.perf_counter()
-    d, D = projection_scale, normal_scale
+    d, D = cylinder.projection_scale, cylinder.normal_scale
     if d == "auto" or D == "auto":  # from the first slice of each cloud, as the tiled change detection
         firsts = first_slices([reference, current])
         sample = firsts[0].xyz[:: max(1, len(firsts[0].xyz) // 20_000)]
-        probe = distances(*firsts, core_points=sample, projection_scale=d, normal_scale=D, max_distance=max_distance,
-                          sensor_origin=None, orientation=orientation, memory_limit=memory_limit)
+        probe = distances(*firsts, core_points=sample, cylinder=cylinder, sensor_origin=None, orientation=orientation,
+                          memory_limit=execution.memory_limit)
         d, D = probe.projection_scale, probe.normal_scale
     sigma_p = d / 4.0
-    reach = search_reach(max_distance, d)
+    reach = search_reach(cylinder.max_distance, d)
     halo, margin = tile_halo(d, D, reach)
     with _Session({"reference": reference, "current": current}, sigma_p / 2.0, sigma_voxels=2.0, k=DEFAULTS.k,
-                  h=None, truncate=DEFAULTS.truncate, method="auto", tile_size=tile_size, tile_points=tile_points,
-                  memory_limit=memory_limit, scheduler=scheduler, workers=workers, workdir=workdir,
-                  halo=halo) as run:
-        opts = dict(projection_scale=d, normal_scale=D, max_distance=reach, registration_error=reg,
-                    orientation=orientation, corner=run.lo - 1e-9, margin=margin,
+                  h=None, truncate=DEFAULTS.truncate, method=DEFAULTS.method, halo=halo,
+                  **execution.tile_keywords()) as run:
+        opts = dict(cylinder=Cylinder(projection_scale=d, normal_scale=D, max_distance=reach),
+                    registration_error=reg, orientation=orientation, corner=run.lo - 1e-9, margin=margin,
                     memory_limit=run.opts["memory_limit"])
         results = run.tasks("distances", _distance_tile, [(key, run.root, run.tiling, opts) for key in run.tiles],
                             ())
@@ -512,22 +492,19 @@ def _distance_tile(key, root: str, tiling: _Tiling, opts: dict):
     return ref[own, 3].astype(np.int64), np.ascontiguousarray(ref[own, :3]), values
 
 
-def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float | str = DEFAULTS.voxel_size,
-                      sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
-                      truncate: float = DEFAULTS.truncate, method: str = "auto",
-                      tile_size: float | None = None, tile_points: int | None = None,
-                      memory_limit: int | str | None = None, scheduler: str | None = None,
-                      workers: int | None = None, workdir: str | os.PathLike | None = None) -> FieldStore:
+def build_field_tiled(cloud, path: str | os.PathLike, *, lattice: Lattice | None = None,
+                      execution: Execution | None = None) -> FieldStore:
     """The density field of a cloud of any size, built tile by tile into a :class:`FieldStore`.
 
     Same parameters as :func:`detect_changes_tiled` (one cloud); ``path`` is the store to
     write (a folder, conventionally ``*.zarr``). Each tile's blocks equal those of
     :meth:`DensityField.from_points` on the whole cloud.
     """
+    lattice, execution = _tiled_options(lattice, execution)
     require_zarr()  # before any work
-    with _Session({"cloud": cloud}, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
-                  method=method, tile_size=tile_size, tile_points=tile_points, memory_limit=memory_limit,
-                  scheduler=scheduler, workers=workers, workdir=workdir) as run:
+    k, h, truncate = lattice.k, lattice.h, lattice.truncate
+    with _Session({"cloud": cloud}, lattice.voxel_size, sigma_voxels=lattice.sigma_voxels, k=k, h=h,
+                  truncate=truncate, method=lattice.method, **execution.tile_keywords()) as run:
         store = FieldStore.create(path, voxel_size=run.voxel_size, sigma=run.sigma_voxels * run.voxel_size,
                                   truncate=truncate, h=threshold(k) if h is None else float(h),
                                   tile_blocks=run.tiling.blocks,
@@ -540,6 +517,15 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, voxel_size: float | str
             shutil.rmtree(store.path, ignore_errors=True)
             raise
     return store
+
+
+def _tiled_options(lattice: Lattice | None, execution: Execution | None) -> tuple[Lattice, Execution]:
+    """The options of a tiled function, with their defaults; a ``grid_size`` refused (the tiles need
+    the voxel before they read the points)."""
+    lattice = Lattice() if lattice is None else lattice
+    if lattice.grid_size is not None:
+        raise InvalidOptionError("grid_size is not available in tiles: give a voxel size or 'auto'")
+    return lattice, Execution() if execution is None else execution
 
 
 def _build_tile(key, root: str, tiling: _Tiling, opts: dict, store: str) -> int:

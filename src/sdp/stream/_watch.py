@@ -41,7 +41,6 @@ from dataclasses import dataclass
 from dataclasses import field as dc_field
 
 import numpy as np
-import numpy.typing as npt
 
 from .._core._points import as_points, to_rows
 from ..registration._align import GicpTarget, transform_points
@@ -52,7 +51,9 @@ from ..defaults import DEFAULTS
 from ..fields._density import DensityField
 from ..fields._spacing import resolve_lattice
 from ..change._regions import Region
-from .._core._validate import check_grid_options, integer_at_least, nonnegative_finite
+from .._core._validate import integer_at_least
+from ..errors import InvalidOptionError
+from ..options import Coverage, Lattice, Registration
 from ..change._visibility import RangeImage, resolve_sensor_origins
 
 __all__ = ["FrameChange", "watch"]
@@ -112,12 +113,10 @@ class FrameChange:
                             for r in self.regions]}
 
 
-def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.voxel_size,
-          sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, update: str = DEFAULTS.update,
+def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update: str = DEFAULTS.update,
           window: int = DEFAULTS.window, decay: float = DEFAULTS.decay,
-          min_region_points: int = DEFAULTS.min_region_points, regions: bool = True, align: str | None = None,
-          sensor_origin: npt.ArrayLike | str | None = DEFAULTS.sensor_origin,
-          range_noise: float = DEFAULTS.range_noise, coverage: bool = True) -> Iterator[FrameChange]:
+          min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
+          align: Registration | str | None = None, coverage: Coverage | None = None) -> Iterator[FrameChange]:
     """Compare each frame of a stream with a model of the scene, in order; yield as they come.
 
     Every default is :data:`sdp.DEFAULTS`, as for :func:`sdp.detect_changes` and ``sdp watch``.
@@ -129,10 +128,9 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.vox
         position), or a field (its lattice, σ and h are used).
     frames : iterable
         Arrays (m, 3) or clouds, or ``(name, array)`` pairs; consumed lazily.
-    voxel_size : float or "auto"
-        Lattice of the reference points (``"auto"``, default: :func:`sdp.auto_voxel_size`).
-    sigma_voxels, k
-        As in :meth:`DensityField.from_points`.
+    lattice : Lattice, optional
+        Lattice of the reference points (:class:`sdp.Lattice`; default: the voxel from their
+        point spacing, :func:`sdp.auto_voxel_size`); a reference field brings its own.
     update : {"window", "none", "decay"}
         How the model learns (see the module docstring); default ``"window"``.
     window : int
@@ -143,52 +141,52 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.vox
         Appeared regions with fewer points are dropped (noise); default 50.
     regions : bool
         Group appeared points into regions (skip for the lowest latency).
-    align : {None, "gicp", "density"}
+    align : Registration, "density" or "gicp", optional
         Register each frame onto the reference first (see the module docstring), starting
-        from the previous frame's transform: ``"gicp"`` needs reference points (not a field)
-        and the ``align`` extra, downsamples both at σ and pairs points up to 4σ apart;
-        ``"density"`` is :func:`sdp.align` on the reference field. None: the frames are
-        already in the reference's frame (a fixed camera, or poses applied by the caller).
-    sensor_origin : "auto", None or array_like (3,)
-        The reference scan's sensor position (reference points only); ``"auto"`` (default):
-        what a reference read from a file says (an organized PCD's VIEWPOINT). Adds the
-        visibility test of :func:`sdp.detect_changes` against the reference's rays
-        (:func:`sdp.change._visibility.visibility_states`): an appeared point the reference saw at the
-        same range is not a change, one it could not see is not comparable.
-    range_noise : float
-        With a sensor: as in :func:`sdp.detect_changes`.
-    coverage : bool
-        Tell what the model could not see (default True): without a sensor, a frame point whose
-        column the model did not sample densely enough is not comparable (its footprint, as in
-        :func:`sdp.detect_changes`); with one, the reference's rays decide.
+        from the previous frame's transform (the method only: no ``fix_horizontal`` or
+        ``align_class`` in a stream): ``"gicp"`` needs reference points (not a field) and the
+        ``align`` extra, downsamples both at σ and pairs points up to 4σ apart; ``"density"``
+        is :func:`sdp.align` on the reference field. None: the frames are already in the
+        reference's frame (a fixed camera, or poses applied by the caller).
+    coverage : Coverage, optional
+        Tell what the model could not see (:class:`sdp.Coverage`): with the reference scan's
+        sensor position (reference points only; by default what a reference read from a file
+        says, an organized PCD's VIEWPOINT), the visibility test of :func:`sdp.detect_changes`
+        against the reference's rays: an appeared point the reference saw at the same range is
+        not a change, one it could not see is not comparable; without one, a frame point whose
+        column the model did not sample densely enough is not comparable (its footprint).
 
     Yields
     ------
     FrameChange
     """
+    lattice = Lattice() if lattice is None else lattice
+    coverage = Coverage() if coverage is None else coverage
+    registration = Registration.of(align)
     if update not in ("none", "window", "decay"):
-        raise ValueError(f"update must be 'none', 'window' or 'decay', got {update!r}")
+        raise InvalidOptionError(f"update must be 'none', 'window' or 'decay', got {update!r}")
     if update == "window" and window < 1:
-        raise ValueError("window must be at least 1 frame")
+        raise InvalidOptionError("window must be at least 1 frame")
     if update == "decay" and not 0 < decay < 1:
-        raise ValueError("decay must be in (0, 1)")
-    if align not in (None, "gicp", "density"):
-        raise ValueError(f"align must be None, 'gicp' or 'density', got {align!r}")
-    nonnegative_finite("range_noise", range_noise)
+        raise InvalidOptionError("decay must be in (0, 1)")
+    if registration is not None and (registration.fix_horizontal or registration.classes is not None):
+        raise InvalidOptionError("a stream aligns its frames by the method alone: no fix_horizontal or align_class")
+    align = None if registration is None else registration.method
     integer_at_least("min_region_points", min_region_points, 0)
-    check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k)
     is_field = isinstance(reference, DensityField)
     origin = None
     if is_field:
-        if align == "gicp" or not (sensor_origin is None or isinstance(sensor_origin, str)):
-            raise ValueError("align='gicp' and sensor_origin= need the reference points, not a field")
+        if align == "gicp" or coverage.given:
+            raise InvalidOptionError("align='gicp' and a sensor position need the reference points, not a field")
         base, ref = reference, None
     else:
-        origin = resolve_sensor_origins(sensor_origin, reference, None)[0]
+        origin = resolve_sensor_origins(coverage.sensor_origin, reference, None)[0]
         pts = as_points(reference, name="reference")
         ref = pts.xyz
-        l, sv = resolve_lattice([pts], voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
-        base = DensityField.from_points(pts, voxel_size=l, sigma_voxels=sv, k=k)
+        l, sv = resolve_lattice([pts], voxel_size=lattice.voxel_size, grid_size=lattice.grid_size, k=lattice.k,
+                                sigma_voxels=lattice.sigma_voxels)
+        base = DensityField.from_points(pts, voxel_size=l, sigma_voxels=sv, k=lattice.k, h=lattice.h,
+                                        truncate=lattice.truncate, method=lattice.method)
     h, opts = base.h, dict(voxel_size=base.voxel_size, sigma_voxels=base.sigma / base.voxel_size,
                            truncate=base.truncate, h=base.h)
     model = base if update == "none" else base.copy()
@@ -212,8 +210,8 @@ def watch(reference, frames: Iterable, *, voxel_size: float | str = DEFAULTS.vox
         seen = model.with_threshold(h=h * weight)
         mask, d = inside_difference(frame, seen, cur.xyz)
         # the model's footprint, or the reference's rays (imaged once)
-        states = judge_coverage(cur.xyz, mask, ref, seen, origin, coverage=coverage, range_noise=range_noise,
-                                image=image, present=frame.inside)
+        states = judge_coverage(cur.xyz, mask, ref, seen, origin, coverage=coverage.enabled,
+                                range_noise=coverage.range_noise, image=image, present=frame.inside)
         mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
         if regions:  # point-wise decision: only the appeared points need a region

@@ -1,0 +1,299 @@
+"""The options that several commands and functions share, as small frozen objects.
+
+Each object groups one concern and is checked once, when it is made, with the same one-line
+:class:`sdp.InvalidOptionError` wherever it is used, before any file is read:
+
+- :class:`Lattice`: where a density field lives (voxel or grid size, σ, threshold, build method);
+- :class:`Coverage`: where the other scan could see (its sensor, the range noise);
+- :class:`Registration`: how the current scan is moved onto the reference first;
+- :class:`Cylinder`: the neighbourhoods of the distances (M3C2's projection and normal scales);
+- :class:`Execution`: how and where the work runs (memory limit, tiles on Dask, work folder);
+- :class:`Outputs`: what a command writes besides its main output (pictures, report, the
+  reference's points).
+
+Every default is :data:`sdp.DEFAULTS`; each function documents only what it adds. The command
+line maps its flags onto these objects (``sdp change --voxel-size 0.02`` is
+``Lattice(voxel_size=0.02)``).
+
+Examples
+--------
+>>> import sdp
+>>> sdp.Lattice(voxel_size=0.02)
+Lattice(voxel_size=0.02, grid_size=None, sigma_voxels='auto', k=3.0, h=None, truncate=3.0, method='auto')
+>>> sdp.Lattice(voxel_size=-1)
+Traceback (most recent call last):
+...
+sdp.errors.InvalidOptionError: voxel_size must be 'auto' or a positive finite length, got -1
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._core import _validate as V
+from .defaults import DEFAULTS
+from .errors import InvalidOptionError
+
+__all__ = ["Lattice", "Coverage", "Registration", "Cylinder", "Execution", "Outputs"]
+
+Path = str | os.PathLike
+
+
+@dataclass(frozen=True, kw_only=True)
+class Lattice:
+    """Where a density field lives: the lattice, the kernel and the threshold.
+
+    Attributes
+    ----------
+    voxel_size : float or "auto"
+        Node spacing in world units (metres for sensor data), or ``"auto"``: σ from the clouds'
+        point spacing (:func:`sdp.auto_voxel_size`).
+    grid_size : int, optional
+        The paper's parameterization instead: the longest side of the box holding every cloud
+        divided into ``grid_size`` segments (80 in the paper); wins over ``voxel_size``.
+    sigma_voxels : float or "auto"
+        The Gaussian's σ in voxels; ``"auto"``: 1.5 on the automatic lattice, the paper's 2
+        with a given voxel or grid size.
+    k : float
+        Threshold h = 1 + k·e^(−1/2) (a point needs about k neighbours at σ).
+    h : float, optional
+        The threshold itself (wins over ``k``).
+    truncate : float
+        Kernels cut at ``truncate``·σ.
+    method : {"auto", "fast", "exact"}
+        How G is built (:meth:`sdp.DensityField.from_points`).
+
+    References
+    ----------
+    .. [1] A. W. Vieira et al., "Spatial Density Patterns as Representation for Point Cloud
+       Comparison and Applications" (σ = 2 voxels, h = 1 + 3·e^(−1/2), 80³ grids).
+    """
+
+    voxel_size: float | str = DEFAULTS.voxel_size
+    grid_size: int | None = None
+    sigma_voxels: float | str = DEFAULTS.sigma_voxels
+    k: float = DEFAULTS.k
+    h: float | None = None
+    truncate: float = DEFAULTS.truncate
+    method: str = DEFAULTS.method
+
+    def __post_init__(self):
+        if self.grid_size is not None:
+            V.integer_at_least("grid_size", self.grid_size, 1)
+        V.check_grid_options(voxel_size=None if self.grid_size is not None else self.voxel_size,
+                             sigma_voxels=self.sigma_voxels, k=self.k, h=self.h, truncate=self.truncate)
+        if self.method not in ("auto", "exact", "fast"):
+            raise InvalidOptionError(f"method must be 'auto', 'exact' or 'fast', got {self.method!r}")
+
+    @property
+    def automatic(self) -> bool:
+        """Whether the voxel size comes from the point spacing."""
+        return self.grid_size is None and self.voxel_size in (None, "auto")
+
+    def keywords(self) -> dict:
+        """The keywords of :meth:`sdp.DensityField.from_points` (``grid_size`` or ``voxel_size``)."""
+        size = {"grid_size": self.grid_size} if self.grid_size is not None else {"voxel_size": self.voxel_size}
+        return dict(size, sigma_voxels=self.sigma_voxels, k=self.k, h=self.h, truncate=self.truncate,
+                    method=self.method)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Coverage:
+    """Where the other scan could see: "not seen" is not "changed".
+
+    Attributes
+    ----------
+    sensor_origin : "auto", "none", "viewpoint", "X,Y,Z" or array_like (3,) or (2, 3)
+        Where the sensor stood, in the clouds' frame. ``"auto"``: what each file records (an
+        organized PCD's VIEWPOINT), nothing for arrays; ``"viewpoint"``: the same, refusing
+        files that record none; ``"none"`` (or None): no sensor, the other scan's footprint
+        decides; one position for both scans, or the reference's and the current's. Changed
+        points are followed along the other scan's rays (:func:`sdp.detect_changes`).
+    range_noise : float
+        "The same range" is within ``range_noise``·r² world units at range r (per metre for
+        metres), and at least σ.
+    enabled : bool
+        False: every point is comparable, as the paper's Algorithm 1.
+
+    References
+    ----------
+    .. [1] J. P. Underwood et al., "Explicit 3D change detection using ray-tracing in spherical
+       coordinates", ICRA 2013.
+    """
+
+    sensor_origin: str | np.ndarray | None = DEFAULTS.sensor_origin
+    range_noise: float = DEFAULTS.range_noise
+    enabled: bool = True
+
+    def __post_init__(self):
+        origin = self.sensor_origin
+        if origin is None or isinstance(origin, str):
+            origin = V.sensor_origin_option("sensor_origin", origin)
+        if not isinstance(origin, str):
+            V.as_sensor_origins(origin)  # one position or two, finite
+            origin = np.array(origin, dtype=np.float64)
+            origin.flags.writeable = False
+        object.__setattr__(self, "sensor_origin", origin)
+        V.nonnegative_finite("range_noise", self.range_noise)
+
+    @property
+    def given(self) -> bool:
+        """Whether a sensor position is given (not read from the files, not none)."""
+        return not isinstance(self.sensor_origin, str)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Registration:
+    """How the current scan is moved onto the reference before a comparison (:func:`sdp.align`).
+
+    Attributes
+    ----------
+    method : {"density", "gicp"}
+        ``"density"``: point-to-plane Gauss–Newton on the ridges of the reference's density;
+        ``"gicp"``: small_gicp's GICP (extra ``align``).
+    fix_horizontal : bool
+        Density method only: estimate the vertical shift and the tilts, keep x, y and the
+        heading (airborne epochs whose ground is flat).
+    align_class : str, int or sequence of int, optional
+        Estimate the transform on the points of these LAS classes (``"2"``: ground) of both
+        scans, then move the whole current scan.
+    """
+
+    method: str = DEFAULTS.align_method
+    fix_horizontal: bool = False
+    align_class: str | int | Sequence[int] | None = None
+
+    def __post_init__(self):
+        if self.method not in ("density", "gicp"):
+            raise InvalidOptionError(f"method must be 'density' or 'gicp', got {self.method!r}")
+        V.check_alignment_options(self.method, fix_horizontal=self.fix_horizontal, align_class=self.align_class)
+
+    @property
+    def classes(self) -> list[int] | None:
+        """The LAS class numbers of ``align_class`` (None: every point)."""
+        return V.check_alignment_options(self.method, fix_horizontal=self.fix_horizontal,
+                                         align_class=self.align_class)
+
+    @classmethod
+    def of(cls, value: Registration | str | None) -> Registration | None:
+        """``value`` as a Registration: None stays None (no alignment), a method name is that
+        method with the other defaults."""
+        if value is None or isinstance(value, Registration):
+            return value
+        if isinstance(value, str):
+            return cls(method=value)
+        raise InvalidOptionError(f"align must be 'density', 'gicp', a Registration or None, got {value!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Cylinder:
+    """The neighbourhoods of the signed distances (M3C2's parameters, in world units).
+
+    Attributes
+    ----------
+    projection_scale : float or "auto"
+        Diameter d of the cylinder whose points give each epoch's position along the normal;
+        ``"auto"``: 4σ of the density kernel, so distances and change masks look at the same
+        neighbourhood.
+    normal_scale : float or "auto"
+        Diameter D of the neighbourhood of the normal; ``"auto"``: 2d, raised to 20× the
+        roughness at that scale, at most 4d.
+    max_distance : float or "auto"
+        How far along the normal each epoch is looked for; ``"auto"``: 12d.
+
+    References
+    ----------
+    .. [1] D. Lague, N. Brodu, J. Leroux, "Accurate 3D comparison of complex topography with
+       terrestrial laser scanner", ISPRS J. Photogramm. 82 (2013).
+    """
+
+    projection_scale: float | str = DEFAULTS.projection_scale
+    normal_scale: float | str = DEFAULTS.normal_scale
+    max_distance: float | str = DEFAULTS.max_distance
+
+    def __post_init__(self):
+        for name in ("projection_scale", "normal_scale", "max_distance"):
+            V.auto_or_positive(name, getattr(self, name))
+
+
+@dataclass(frozen=True, kw_only=True)
+class Execution:
+    """How and where the work runs.
+
+    Attributes
+    ----------
+    memory_limit : int, float, str, optional
+        The whole job's memory (bytes, or ``"2GB"``); default ``$SDP_MEMORY_LIMIT``, else 4 GiB.
+        Work that would exceed it is refused before anything is allocated, or taken to tiles.
+    tiled : bool
+        Work in tiles on Dask even when the clouds fit in memory (extra ``tiles``).
+    tile_size : float, optional
+        Tile edge in world units (default: from the memory limit and the point density).
+    tile_points : int, optional
+        Points per tile aimed at, instead of ``tile_size``.
+    scheduler : str, optional
+        A Dask scheduler's address (``tcp://host:8786``); default: a local cluster.
+    workers : int, optional
+        Workers of the local cluster (default: the cores).
+    workdir : path-like, optional
+        Folder for the tiles' intermediate files (default: the system's temporary folder).
+    notify : callable, optional
+        Called with one line when a run switches to tiles by itself.
+    """
+
+    memory_limit: int | float | str | None = None
+    tiled: bool = False
+    tile_size: float | None = None
+    tile_points: int | None = None
+    scheduler: str | None = None
+    workers: int | None = None
+    workdir: Path | None = None
+    notify: Callable[[str], object] | None = field(default=None, compare=False)
+
+    def __post_init__(self):
+        from ._core._memory import memory_limit
+
+        memory_limit(self.memory_limit)
+        V.check_tile_options(tile_size=self.tile_size, tile_points=self.tile_points, workers=self.workers,
+                             workdir=self.workdir, scheduler=self.scheduler)
+
+    def tile_keywords(self) -> dict:
+        """The keywords of the tiled functions (:func:`sdp.detect_changes_tiled`, …)."""
+        return dict(tile_size=self.tile_size, tile_points=self.tile_points, memory_limit=self.memory_limit,
+                    scheduler=self.scheduler, workers=self.workers, workdir=self.workdir)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Outputs:
+    """What a command writes besides its main output (checked with it, written all or none).
+
+    Attributes
+    ----------
+    both : bool
+        ``sdp change``: also the reference's points labelled as disappeared, beside the output
+        (``OUT_disappeared.EXT``).
+    png : path-like, optional
+        A picture: a top-down map for scenes much wider than tall, else three 3-D views.
+    html : path-like, optional
+        An interactive 3-D view (plotly).
+    report : path-like, optional
+        One self-contained HTML page: summary, parameters and why, maps, region table, 3-D view.
+    aligned : bool
+        With a registration, write the current's points where the alignment moved them (default:
+        its own coordinates).
+    """
+
+    both: bool = False
+    png: Path | None = None
+    html: Path | None = None
+    report: Path | None = None
+    aligned: bool = False
+
+    @property
+    def pictures(self) -> bool:
+        """Whether a picture or a report is asked for (made in memory)."""
+        return bool(self.png or self.html or self.report)

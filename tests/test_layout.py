@@ -1,0 +1,127 @@
+"""The house: subpackages along the data path, one list of public names, no import cycle, small signatures."""
+
+import ast
+import inspect
+from pathlib import Path
+
+import pytest
+
+import sdp
+
+SRC = Path(sdp.__file__).parent
+#: Records that sdp makes and returns, not calls a user writes: their fields are what they report.
+RECORDS = {"ChangeResult", "Distances", "TiledChanges", "Defaults", "FileComparison", "FileDistances", "ChangePlan",
+           "FrameChange", "Region", "Alignment", "Mesh", "Cloud", "Grid"}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in SRC.rglob("*.py"):
+        parts = path.relative_to(SRC.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        out[name] = path
+    return out
+
+
+def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
+    """The sdp modules ``name`` imports, at any depth of its code (functions included); a package's
+    ``__init__`` is left out (it imports nothing: lazy_loader reads its stub)."""
+    package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            for alias in node.names:
+                candidate = f"{target}.{alias.name}"
+                found.add(candidate if candidate in modules else target)
+        elif isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+    return {m for m in found if m in modules and m != name and modules[m].name != "__init__.py"}
+
+
+def test_no_import_cycle_inside_sdp():
+    modules = _modules()
+    graph = {name: _imports(name, path, modules) for name, path in modules.items()}
+    state, stack, cycles = {}, [], []
+
+    def visit(u):
+        state[u] = "open"
+        stack.append(u)
+        for v in sorted(graph[u]):
+            if state.get(v) == "open":
+                cycles.append(" -> ".join(stack[stack.index(v):] + [v]))
+            elif v not in state:
+                visit(v)
+        stack.pop()
+        state[u] = "done"
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name)
+    assert cycles == []
+    assert graph["sdp.fields._lattice"] and graph["sdp.cli._commands"]  # the walk sees imports at all
+
+
+def test_the_top_level_reads_as_the_data_path():
+    modules = sorted(p.name for p in SRC.glob("*.py"))
+    packages = sorted(p.name for p in SRC.iterdir() if (p / "__init__.py").exists())
+    assert len(modules) <= 8, modules
+    assert {"io", "fields", "change", "distance", "registration", "stream", "scale", "viz", "cli"} <= set(packages)
+    for package in packages:  # each subpackage declares its public surface in one stub
+        assert (SRC / package / "__init__.pyi").exists(), package
+
+
+def test_every_public_name_resolves_from_the_one_list():
+    stub = ast.parse((SRC / "__init__.pyi").read_text())
+    listed = {a.asname or a.name for n in stub.body if isinstance(n, ast.ImportFrom) for a in n.names}
+    assert set(sdp.__all__) == listed
+    for name in sdp.__all__:
+        assert getattr(sdp, name) is not None, name
+    assert sdp.align is sdp.registration.align  # a function, not hidden by a submodule
+    assert type(sdp) is type(inspect)  # the package's class is not replaced
+
+
+def _callables():
+    for name in sdp.__all__:
+        obj = getattr(sdp, name)
+        if inspect.ismodule(obj) or not callable(obj) or inspect.isclass(obj) and issubclass(obj, BaseException):
+            continue
+        if inspect.isclass(obj):
+            if name not in RECORDS:
+                yield name, obj
+            for attr, member in vars(obj).items():
+                if not attr.startswith("_") and isinstance(member, (classmethod, staticmethod)) or (
+                        not attr.startswith("_") and inspect.isfunction(member)):
+                    yield f"{name}.{attr}", getattr(obj, attr)
+        else:
+            yield name, obj
+
+
+@pytest.mark.parametrize("name, func", list(_callables()), ids=lambda v: v if isinstance(v, str) else "")
+def test_no_public_callable_takes_more_than_12_parameters(name, func):
+    params = [p for p in inspect.signature(func).parameters.values() if p.name not in ("self", "cls")]
+    assert len(params) <= 12, f"{name}: {len(params)} parameters"
+
+
+def test_options_are_shared_and_checked_once():
+    lattice = sdp.Lattice(voxel_size=0.05)
+    with pytest.raises(sdp.InvalidOptionError, match="voxel_size"):
+        sdp.Lattice(voxel_size=0)
+    with pytest.raises(sdp.InvalidOptionError, match="range_noise"):
+        sdp.Coverage(range_noise=-1)
+    with pytest.raises(sdp.InvalidOptionError, match="workers"):
+        sdp.Execution(workers=0)
+    with pytest.raises(sdp.InvalidOptionError, match="density alignment only"):
+        sdp.Registration(method="gicp", fix_horizontal=True)
+    with pytest.raises(sdp.InvalidOptionError, match="projection_scale"):
+        sdp.Cylinder(projection_scale=-1)
+    with pytest.raises(AttributeError):  # frozen
+        lattice.voxel_size = 1
+    for func in (sdp.detect_changes, sdp.detect_changes_tiled, sdp.watch, sdp.compare_files, sdp.plan_change,
+                 sdp.build_field_tiled):
+        assert inspect.signature(func).parameters["lattice"].annotation in ("Lattice | None",)
+    assert sdp.Registration().method == sdp.DEFAULTS.align_method
