@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import sdp
-from sdp.io._io import read_points
+from sdp.io import read_points
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import sdp
-from sdp.io._io import read_points
+from sdp.io import read_points
 
 ROOT = Path(__file__).resolve().parents[1]
 LEARN = ROOT.parent / "shared" / "data" / "mosd" / "learn"

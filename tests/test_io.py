@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 import sdp
-from sdp.io._io import CloudFileError, read_points, write_mesh, write_points
+from sdp.io import CloudFileError, read_points, write_mesh, write_points
 
 
 @pytest.mark.shared_data
@@ -65,9 +65,9 @@ def test_las_output_keeps_input_dimensions(tmp_path, rng, monkeypatch):
     write_points(tmp_path / "out.las", cloud.xyz, {"change": np.ones(200, np.uint8)}, like=cloud)
     back = read_points(tmp_path / "out.las")
     np.testing.assert_array_equal(back.fields["classification"], las.classification)
-    import sdp.io._io
+    import sdp.io._las
 
-    monkeypatch.setattr(sdp.io._io, "_LAS_CHUNK", 64)  # 4 chunks, as a large file is read (with a progress bar)
+    monkeypatch.setattr(sdp.io._las, "LAS_CHUNK", 64)  # 4 chunks, as a large file is read (with a progress bar)
     chunked = read_points(tmp_path / "out.las")
     np.testing.assert_array_equal(chunked.xyz, back.xyz)
     np.testing.assert_array_equal(chunked.fields["change"], back.fields["change"])

@@ -33,7 +33,8 @@ from . import _text as report
 from .._core import _validate as V
 from ..defaults import DEFAULTS
 from ..errors import SDPError
-from ..io._io import all_or_none, check_outputs, read_points
+from ..io._output import all_or_none, check_outputs
+from ..io._read import read_points
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files", "FileDistances", "distance_files",
            "build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder",
@@ -153,7 +154,8 @@ def plan_change(reference, current, *, output=None, format: str | None = None, t
         slices, ``both`` with a field store, or an output that is not LAS/LAZ for tiles.
     """
     from ..fields._lattice import memory_limit as limit
-    from ..io._io import FORMATS, PointSource
+    from ..io._cloud import FORMATS
+    from ..io._source import PointSource
     from ..scale._tiles import dense_grid_bytes, sampled_lattice, untiled_point_bytes
 
     if _is_store(reference):  # a stored reference field: its lattice, σ, h and tiles
@@ -386,7 +388,7 @@ def _check_in_memory(n_points: int, memory_limit) -> None:
 def _write_labelled(jobs, inputs) -> list[str]:
     """Write each (path, cloud, xyz, state, region, field, xyz the field saw) as a labelled cloud:
     ``change`` (0 unchanged, 1 changed, 2 not comparable), ``region``, ``G`` and ``F``."""
-    from ..io._io import write_points
+    from ..io._output import write_points
 
     written = []
     for path, cloud, xyz, state, region, fld, seen in jobs:
@@ -400,7 +402,7 @@ def _write_labelled(jobs, inputs) -> list[str]:
 def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min_region_points,
                    tiles: dict) -> FileComparison:
     from ..change._coverage import CHANGED, NOT_COMPARABLE
-    from ..io._io import write_points_streamed
+    from ..io._source import write_points_streamed
     from ..scale._tiles import detect_changes_tiled
 
     r = detect_changes_tiled(*plan.sources, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels,
@@ -574,7 +576,7 @@ def distance_files(reference, current, *, output, core_points=None, png=None, re
        terrestrial laser scanner", ISPRS J. Photogramm. 82 (2013) (M3C2).
     """
     from ..distance._distances import distances
-    from ..io._io import write_points
+    from ..io._output import write_points
 
     out = Path(output)
     check_outputs([out, png, report], [reference, current, core_points])
@@ -651,7 +653,7 @@ def _distances_in_tiles(reference, current, output, *, format, tiled, memory_lim
     """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (about
     450 bytes per reference point and 200 per current point) would exceed the memory limit."""
     from ..fields._lattice import memory_limit as limit
-    from ..io._io import PointSource
+    from ..io._source import PointSource
 
     try:
         n_ref, n_cur = (PointSource.open(f, format=format).n_rows for f in (reference, current))
@@ -677,7 +679,7 @@ def _distances_in_tiles(reference, current, output, *, format, tiled, memory_lim
 
 def _distance_tiled(reference, current, out: Path, *, format, registration_error, orientation, memory_limit,
                     kw) -> FileDistances:
-    from ..io._io import PointSource, write_points_streamed
+    from ..io._source import PointSource, write_points_streamed
     from ..scale._tiles import distances_tiled
 
     reg = V.auto_or_nonnegative("--registration-error", registration_error)
@@ -741,7 +743,7 @@ def build_field_file(cloud, *, output, format: str | None = None, voxel_size: fl
         fld = _field(cloud, format, grid)
         _save_field(fld, output, inputs=(cloud,))
         return fld
-    from ..io._io import PointSource
+    from ..io._source import PointSource
     from ..scale._tiles import build_field_tiled, sampled_lattice
 
     source = PointSource.open(cloud, format=format)
@@ -752,7 +754,7 @@ def build_field_file(cloud, *, output, format: str | None = None, voxel_size: fl
 
 
 def _save_field(fld, path, inputs):
-    from ..io._io import refuse_overwrite
+    from ..io._output import refuse_overwrite
 
     refuse_overwrite(path, inputs)
     fld.save(path)
@@ -764,7 +766,7 @@ def mesh_file(path, *, output, level: float = 0.0, format: str | None = None,
               memory_limit=None):
     """Write the iso-surface F = ``level`` of a field (``.sdpf``), field store (``.zarr``) or
     cloud file (built with the grid options) as PLY/OBJ/STL (``sdp mesh``); returns the Mesh."""
-    from ..io._io import write_mesh
+    from ..io._output import write_mesh
 
     check_outputs([output], [path])
     grid = _grid_options(voxel_size, grid_size, sigma_voxels, k, h, memory_limit)
@@ -790,7 +792,7 @@ def combine_files(operation: str, a, b, *, output, format: str | None = None,
     """
     from ..fields import _boolean as boolean
     from ..fields._density import DensityField
-    from ..io._io import write_mesh
+    from ..io._output import write_mesh
 
     if operation not in ("union", "intersection", "difference"):
         raise SDPError(f"operation must be union, intersection or difference, got {operation!r}")
@@ -844,7 +846,7 @@ def align_files(current, reference, *, output, method: str = "density", fix_hori
     ``numpy.loadtxt`` (``sdp align``); ``fix_horizontal`` and ``align_class`` as in
     :func:`compare_files`. Returns the :class:`~sdp.Alignment`."""
     from ..fields._density import DensityField
-    from ..io._io import atomic_path, refuse_overwrite
+    from ..io._output import atomic_path, refuse_overwrite
 
     check_outputs([output], [current, reference])
     refuse_overwrite(output, (current, reference))
@@ -870,7 +872,7 @@ def watch_folder(reference, frames, *, format: str | None = None, voxel_size: fl
     """
     import re
 
-    from ..io._io import FORMATS
+    from ..io._cloud import FORMATS
     from ..stream._watch import watch
 
     folder = Path(frames)

@@ -53,7 +53,7 @@ import numpy as np
 from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ..defaults import DEFAULTS, Defaults
 from ..errors import require
-from ..io._io import atomic_path
+from ..io._output import atomic_path
 
 __all__ = ["change_report", "distance_report", "require_extras", "decimation", "POINT_BUDGET", "THUMBNAILS"]
 
