@@ -121,3 +121,31 @@ def test_missing_xyz_and_truncated_files(tmp_path, rng):
     (tmp_path / "cut.laz").write_bytes(data[: len(data) // 2])  # a download that stopped halfway
     with pytest.raises(CloudFileError, match="cut.laz"):
         read_points(tmp_path / "cut.laz")
+
+
+def test_io_modules_import_one_way():
+    """sdp.io's private modules import no sibling's underscore names, and never in a cycle."""
+    import ast
+    from pathlib import Path
+
+    import sdp.io
+
+    graph = {}
+    for path in Path(sdp.io.__file__).parent.glob("*.py"):
+        graph[path.stem] = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:
+                assert not [a.name for a in node.names if a.name.startswith("_")], (path.name, node.module)
+                graph[path.stem].add(node.module)
+    done: set[str] = set()
+
+    def visit(name, stack):
+        assert name not in stack, f"import cycle {' -> '.join(stack + [name])}"
+        if name not in done:
+            for dep in graph.get(name, ()):
+                visit(dep, stack + [name])
+            done.add(name)
+
+    for name in graph:
+        visit(name, [])
+    assert {"_cloud", "_read", "_output", "_source", "_las", "_ply"} <= done
