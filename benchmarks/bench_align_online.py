@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 import flat
 import sdp
-from sdp.io._io import read_points
+from sdp.io import read_points
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"

@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 import flat
 import sdp
-from sdp.io._io import read_points
+from sdp.io import read_points
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"

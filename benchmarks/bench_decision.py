@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 
 import flat
 import sdp
-from sdp.io._io import read_points
+from sdp.io import read_points
 
 ROOT = Path(__file__).resolve().parents[1]
 LEARN = ROOT.parent / "shared" / "data" / "mosd" / "learn"

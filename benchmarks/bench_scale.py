@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from city import write_city  # noqa: E402
 
 import sdp  # noqa: E402
-from sdp.io._io import PointSource  # noqa: E402
+from sdp.io import PointSource  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"

@@ -11,7 +11,8 @@ import pytest
 from conftest import slow_after
 
 import sdp
-from sdp.io._io import CloudFileError, PointSource, atomic_path, check_outputs, las_scale_offset, read_points
+from sdp.io import CloudFileError, PointSource, atomic_path, check_outputs, read_points
+from sdp.io._las import las_scale_offset
 
 
 def run(*args, cwd=None, env=None, timeout=120):
@@ -254,7 +255,7 @@ def test_corrupt_las_counts_are_refused_before_laspy_loops_or_lazrs_aborts(cloud
 
 
 def test_a_command_writes_all_its_outputs_or_none(tmp_path):
-    from sdp.io._io import all_or_none
+    from sdp.io import all_or_none
 
     xyz = np.random.default_rng(6).random((100, 3))
     with pytest.raises(RuntimeError), all_or_none():

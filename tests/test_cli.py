@@ -5,7 +5,7 @@ import sys
 import numpy as np
 import pytest
 
-from sdp.io._io import read_points, write_points
+from sdp.io import read_points, write_points
 
 
 def run(*args, cwd=None):

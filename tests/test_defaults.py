@@ -84,7 +84,7 @@ def test_detect_changes_uses_the_sensor_a_cloud_brings(tmp_path):
     from sdp.data._scene import CAMERA, office_scene
 
     s = office_scene(seed=1, width=160, height=120)
-    ref, cur = sdp.io._io.Cloud(s.reference), sdp.io._io.Cloud(s.current)
+    ref, cur = sdp.io.Cloud(s.reference), sdp.io.Cloud(s.current)
     ref.viewpoint = cur.viewpoint = np.r_[CAMERA, 1, 0, 0, 0]
     ref.organized = cur.organized = True
     auto = sdp.detect_changes(ref, cur)

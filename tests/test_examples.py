@@ -7,9 +7,10 @@ import pytest
 import sdp.fields._boolean
 import sdp.change._detect
 import sdp.fields._density
-import sdp.io._io
+import sdp.io._output
+import sdp.io._read
 
-MODULES = [sdp.change._detect, sdp.fields._density, sdp.io._io, sdp.fields._boolean]
+MODULES = [sdp.change._detect, sdp.fields._density, sdp.io._read, sdp.io._output, sdp.fields._boolean]
 ENTRY_POINTS = [sdp.detect_changes, sdp.DensityField.from_points, sdp.read_points, sdp.write_points, sdp.difference]
 
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 import sdp
-from sdp.io._io import CloudFileError, read_points, write_mesh, write_points
+from sdp.io import CloudFileError, read_points, write_mesh, write_points
 
 
 @pytest.mark.shared_data
@@ -65,9 +65,9 @@ def test_las_output_keeps_input_dimensions(tmp_path, rng, monkeypatch):
     write_points(tmp_path / "out.las", cloud.xyz, {"change": np.ones(200, np.uint8)}, like=cloud)
     back = read_points(tmp_path / "out.las")
     np.testing.assert_array_equal(back.fields["classification"], las.classification)
-    import sdp.io._io
+    import sdp.io._las
 
-    monkeypatch.setattr(sdp.io._io, "_LAS_CHUNK", 64)  # 4 chunks, as a large file is read (with a progress bar)
+    monkeypatch.setattr(sdp.io._las, "LAS_CHUNK", 64)  # 4 chunks, as a large file is read (with a progress bar)
     chunked = read_points(tmp_path / "out.las")
     np.testing.assert_array_equal(chunked.xyz, back.xyz)
     np.testing.assert_array_equal(chunked.fields["change"], back.fields["change"])
@@ -121,3 +121,31 @@ def test_missing_xyz_and_truncated_files(tmp_path, rng):
     (tmp_path / "cut.laz").write_bytes(data[: len(data) // 2])  # a download that stopped halfway
     with pytest.raises(CloudFileError, match="cut.laz"):
         read_points(tmp_path / "cut.laz")
+
+
+def test_io_modules_import_one_way():
+    """sdp.io's private modules import no sibling's underscore names, and never in a cycle."""
+    import ast
+    from pathlib import Path
+
+    import sdp.io
+
+    graph = {}
+    for path in Path(sdp.io.__file__).parent.glob("*.py"):
+        graph[path.stem] = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:
+                assert not [a.name for a in node.names if a.name.startswith("_")], (path.name, node.module)
+                graph[path.stem].add(node.module)
+    done: set[str] = set()
+
+    def visit(name, stack):
+        assert name not in stack, f"import cycle {' -> '.join(stack + [name])}"
+        if name not in done:
+            for dep in graph.get(name, ()):
+                visit(dep, stack + [name])
+            done.add(name)
+
+    for name in graph:
+        visit(name, [])
+    assert {"_cloud", "_read", "_output", "_source", "_las", "_ply"} <= done

@@ -9,7 +9,7 @@ import test_cli
 
 import sdp
 from sdp.cli import _commands as pipeline
-from sdp.io._io import read_points, write_points
+from sdp.io import read_points, write_points
 
 pair, run = test_cli.pair, test_cli.run  # the fixture of two clouds as PLY files; sdp on the command line
 

@@ -10,7 +10,7 @@ import pytest
 from conftest import box_surface, write_las
 
 import sdp
-from sdp.io._io import CloudFileError, PointSource, write_points, write_points_streamed
+from sdp.io import CloudFileError, PointSource, write_points, write_points_streamed
 from sdp.scale._tiles import detect_changes_tiled
 
 UTM = np.array([630_000.0, 4_830_000.0, 100.0])

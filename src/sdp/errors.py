@@ -10,7 +10,7 @@ catches those keeps working.
 - :class:`InvalidOptionError` (``ValueError``): an option out of range (:mod:`sdp._core._validate`);
 - :class:`GridTooLargeError` (``MemoryError``): a grid or a tile beyond the memory limit;
 - :class:`IncompatibleFieldsError`, :class:`SurfaceError` (``ValueError``);
-- :class:`FieldFileError` (``OSError``), and :class:`sdp.io._io.CloudFileError` (``OSError``), which
+- :class:`FieldFileError` (``OSError``), and :class:`sdp.io.CloudFileError` (``OSError``), which
   turns every reader library's error into one line naming the file;
 - :class:`MissingDependencyError` (``ImportError``): an optional extra not installed, raised by
   :func:`require` with the ``pip install 'sdp[EXTRA]'`` to run;

@@ -34,7 +34,7 @@ class Points(NamedTuple):
 
 
 def as_points(points, *, name: str = "points") -> Points:
-    """Validate an (n, 3) array-like of world coordinates, or a :class:`sdp.io._io.Cloud`.
+    """Validate an (n, 3) array-like of world coordinates, or a :class:`sdp.io.Cloud`.
 
     Rows with a NaN or infinite coordinate are dropped (sensors mark missing returns that
     way); :attr:`Points.finite` then holds the mask of the rows kept, so callers can report

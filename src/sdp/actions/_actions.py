@@ -69,7 +69,7 @@ import numpy as np
 
 from ..defaults import DEFAULTS
 from ..errors import SDPError
-from ..io._io import atomic_path
+from ..io._output import atomic_path
 
 __all__ = ["read_sequence", "depth_to_points", "frame_densities", "sequence_descriptor", "list_sequences",
            "describe_sequences", "ActionModel", "ActionStream", "read_frames", "train", "evaluate_protocol", "SUBSETS",

@@ -8,8 +8,8 @@ memory (:func:`sdp.detect_changes`) or in tiles on Dask (:func:`sdp.detect_chang
 exactly as the command does (:func:`plan_change`), and writes the labelled clouds.
 
 Every function checks its options (:mod:`sdp._core._validate`) and its outputs
-(:func:`sdp.io._io.check_outputs`) before it reads anything, and writes all its outputs or none
-(:func:`sdp.io._io.all_or_none`). Error messages name options as the command line spells them
+(:func:`sdp.io.check_outputs`) before it reads anything, and writes all its outputs or none
+(:func:`sdp.io.all_or_none`). Error messages name options as the command line spells them
 (``--align-class`` for ``align_class=``).
 
 References
@@ -35,7 +35,8 @@ from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
 from ..options import Coverage, Cylinder, Execution, Lattice, Outputs, Registration
 from ..errors import SDPError
-from ..io._io import all_or_none, check_outputs, read_points
+from ..io._output import all_or_none, check_outputs
+from ..io._read import read_points
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files", "FileDistances", "distance_files",
            "build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder",
@@ -73,7 +74,7 @@ class ChangePlan:
     voxel_size, sigma_voxels : float or None
         The tiled run's voxel and σ in voxels (in memory, :func:`sdp.detect_changes` decides them).
     sources : list or None
-        What the tiled run reads: (reference, current) as :class:`~sdp.io._io.PointSource`, the
+        What the tiled run reads: (reference, current) as :class:`~sdp.io.PointSource`, the
         reference possibly a :class:`~sdp.FieldStore`.
     """
 
@@ -152,7 +153,8 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
         slices, ``both`` with a field store, or an output that is not LAS/LAZ for tiles.
     """
     from .._core._memory import memory_limit as limit
-    from ..io._io import FORMATS, PointSource
+    from ..io._cloud import FORMATS
+    from ..io._source import PointSource
     from ..scale._tiles import dense_grid_bytes, sampled_lattice, untiled_point_bytes
 
     outputs = Outputs() if outputs is None else outputs
@@ -367,7 +369,7 @@ def _check_in_memory(n_points: int, memory_limit) -> None:
 def _write_labelled(jobs, inputs) -> list[str]:
     """Write each (path, cloud, xyz, state, region, field, xyz the field saw) as a labelled cloud:
     ``change`` (0 unchanged, 1 changed, 2 not comparable), ``region``, ``G`` and ``F``."""
-    from ..io._io import write_points
+    from ..io._output import write_points
 
     written = []
     for path, cloud, xyz, state, region, fld, seen in jobs:
@@ -381,7 +383,7 @@ def _write_labelled(jobs, inputs) -> list[str]:
 def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min_region_points,
                    lattice: Lattice, execution: Execution) -> FileComparison:
     from ..change._coverage import CHANGED, NOT_COMPARABLE
-    from ..io._io import write_points_streamed
+    from ..io._source import write_points_streamed
     from ..scale._tiles import detect_changes_tiled
 
     lattice = replace(lattice, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels)  # as sampled
@@ -553,7 +555,7 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
        terrestrial laser scanner", ISPRS J. Photogramm. 82 (2013) (M3C2).
     """
     from ..distance._distances import distances
-    from ..io._io import write_points
+    from ..io._output import write_points
 
     outputs = Outputs() if outputs is None else outputs
     cylinder = Cylinder() if cylinder is None else cylinder
@@ -623,7 +625,7 @@ def _distances_in_tiles(reference, current, output, *, format, execution: Execut
     """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (about
     450 bytes per reference point and 200 per current point) would exceed the memory limit."""
     from .._core._memory import memory_limit as limit
-    from ..io._io import PointSource
+    from ..io._source import PointSource
 
     tiled, notify = execution.tiled, execution.notify
     try:
@@ -650,7 +652,7 @@ def _distances_in_tiles(reference, current, output, *, format, execution: Execut
 
 def _distance_tiled(reference, current, out: Path, *, format, registration_error, orientation, cylinder: Cylinder,
                     execution: Execution) -> FileDistances:
-    from ..io._io import PointSource, write_points_streamed
+    from ..io._source import PointSource, write_points_streamed
     from ..scale._tiles import distances_tiled
 
     reg = V.auto_or_nonnegative("--registration-error", registration_error)
@@ -714,7 +716,7 @@ def build_field_file(cloud, *, output, format: str | None = None, lattice: Latti
         fld = _field(cloud, format, lattice, execution.memory_limit)
         _save_field(fld, output, inputs=(cloud,))
         return fld
-    from ..io._io import PointSource
+    from ..io._source import PointSource
     from ..scale._tiles import build_field_tiled, sampled_lattice
 
     source = PointSource.open(cloud, format=format)
@@ -725,7 +727,7 @@ def build_field_file(cloud, *, output, format: str | None = None, lattice: Latti
 
 
 def _save_field(fld, path, inputs):
-    from ..io._io import refuse_overwrite
+    from ..io._output import refuse_overwrite
 
     refuse_overwrite(path, inputs)
     fld.save(path)
@@ -736,7 +738,7 @@ def mesh_file(path, *, output, level: float = 0.0, format: str | None = None, la
     """Write the iso-surface F = ``level`` of a field (``.sdpf``), field store (``.zarr``) or
     cloud file (built on ``lattice``) as PLY/OBJ/STL (``sdp mesh``); returns the Mesh."""
     from .._core._memory import memory_limit as limit
-    from ..io._io import write_mesh
+    from ..io._output import write_mesh
 
     lattice = Lattice() if lattice is None else lattice
     check_outputs([output], [path])
@@ -762,7 +764,7 @@ def combine_files(operation: str, a, b, *, output, format: str | None = None, la
     from .._core._memory import memory_limit as limit
     from ..fields import _boolean as boolean
     from ..fields._density import DensityField
-    from ..io._io import write_mesh
+    from ..io._output import write_mesh
 
     if operation not in ("union", "intersection", "difference"):
         raise SDPError(f"operation must be union, intersection or difference, got {operation!r}")
@@ -817,7 +819,7 @@ def align_files(current, reference, *, output, method: str = DEFAULTS.align_meth
     ``numpy.loadtxt`` (``sdp align``); ``fix_horizontal`` and ``align_class`` as in
     :func:`compare_files`. Returns the :class:`~sdp.Alignment`."""
     from ..fields._density import DensityField
-    from ..io._io import atomic_path, refuse_overwrite
+    from ..io._output import atomic_path, refuse_overwrite
 
     check_outputs([output], [current, reference])
     refuse_overwrite(output, (current, reference))
@@ -842,7 +844,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     """
     import re
 
-    from ..io._io import FORMATS
+    from ..io._cloud import FORMATS
     from ..stream._watch import watch
 
     folder = Path(frames)

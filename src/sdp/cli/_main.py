@@ -25,7 +25,7 @@ from . import _commands as P
 from .._core import _validate as V
 from ..defaults import DEFAULTS
 from ..errors import SDPError
-from ..io._io import all_or_none
+from ..io._output import all_or_none
 from ..options import Coverage, Cylinder, Execution, Lattice, Outputs, Registration
 from ._text import action_eval_text, alignment_text, frame_text, train_text, written_text
 from ._warmup import first_run

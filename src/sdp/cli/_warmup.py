@@ -161,7 +161,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     from . import _commands as P
     from ..change._detect import detect_changes
     from ..distance._distances import distances
-    from ..io._io import all_or_none, write_points
+    from ..io._output import all_or_none, write_points
     from ..data._scene import office_scene
 
     say = echo or (lambda line: None)

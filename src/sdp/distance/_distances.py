@@ -204,7 +204,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
 
     Parameters
     ----------
-    reference, current : array_like (n, 3) or :class:`sdp.io._io.Cloud`
+    reference, current : array_like (n, 3) or :class:`sdp.io.Cloud`
         The two epochs, in one frame (align them first: :func:`sdp.align`).
     core_points : array_like (m, 3), Cloud, ``"reference"`` or ``"current"``, optional
         Where to measure; default every reference point (M3C2's epoch 1).

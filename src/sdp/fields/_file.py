@@ -35,7 +35,7 @@ def write(field, path: str | os.PathLike) -> Path:
     The file is written under a temporary name and renamed, so a crash never leaves a
     half-written file and an existing file is replaced only once the new one is complete.
     """
-    from ..io._io import atomic_path
+    from ..io._output import atomic_path
 
     path = Path(path)
     meta = {"format": "sdp-field", "format_version": FORMAT_VERSION, "voxel_size": field.voxel_size,

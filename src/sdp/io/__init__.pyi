@@ -1,14 +1,4 @@
-from ._io import (
-    FORMATS,
-    Cloud,
-    CloudFileError,
-    PointSource,
-    all_or_none,
-    atomic_path,
-    check_outputs,
-    read_points,
-    refuse_overwrite,
-    write_mesh,
-    write_points,
-    write_points_streamed,
-)
+from ._cloud import FORMATS, Cloud, CloudFileError
+from ._output import all_or_none, atomic_path, check_outputs, refuse_overwrite, write_mesh, write_points
+from ._read import read_points
+from ._source import PointSource, write_points_streamed

@@ -1,4 +1,4 @@
-"""Numba kernel of :mod:`sdp.io._io`: LAS integer coordinates to world coordinates.
+"""Numba kernel of :class:`sdp.io.PointSource`: LAS integer coordinates to world coordinates.
 
 Compiled once and cached on disk (``cache=True``).
 """

@@ -71,7 +71,7 @@ class FieldStore:
         """An empty store at ``path`` (replaced if it is a store; ``inputs`` are never overwritten)."""
         zarr = require_zarr()
 
-        from ..io._io import refuse_overwrite
+        from ..io._output import refuse_overwrite
 
         path = Path(path)
         refuse_overwrite(path, inputs)

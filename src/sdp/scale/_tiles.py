@@ -3,7 +3,7 @@
 The data path of :func:`sdp.detect_changes`, cut into square columns of the global lattice:
 
 1. **bucket** (one Dask task per slice of each file): read the rows (LAS/LAZ chunks, NPY and
-   PLY slices; :class:`sdp.io._io.PointSource`), and append each point, with its row number, to the
+   PLY slices; :class:`sdp.io.PointSource`), and append each point, with its row number, to the
    bucket of its tile and of every tile whose *halo* it lies in (on disk, in ``workdir``);
 2. **compare** (one task per tile): build the two fields from the tile's buckets, form the
    difference volumes and flag the tile's own points, as :func:`sdp.detect_changes` does, and
@@ -17,7 +17,7 @@ every point whose kernel reaches the nodes a tile point is interpolated from, so
 decisions equal the untiled run's (tested on a scene whose objects straddle tile corners, and on
 objects over 100+ tiles).
 
-- **Bucket**: one task per 8 M rows of each file. :class:`~sdp.io._io.PointSource` reads row slices
+- **Bucket**: one task per 8 M rows of each file. :class:`~sdp.io.PointSource` reads row slices
   (LAS/LAZ by seeking the LAZ chunk table, NPY and binary PLY through memory maps); each finite
   point goes, with its row number, to the bucket file of its tile and of every tile whose halo
   holds it. A task's first write to each bucket truncates it, so a task run again after its
@@ -40,7 +40,7 @@ and each worker's share less its own process (256 MiB, measured 210 MiB) is one 
 holds what that share holds at ≈ 1.2 KB per point and epoch, its halo included, at the clouds'
 mean density. Tiles that share cannot hold (a limit below the processes themselves, or a given
 ``--tile-size``) are refused before any cluster starts, with the smallest limit that works.
-:func:`sdp.io._io.write_points_streamed` writes the output chunk by chunk (LAS/LAZ keeps every input
+:func:`sdp.io.write_points_streamed` writes the output chunk by chunk (LAS/LAZ keeps every input
 dimension). ``sdp change`` takes this path by itself (:func:`sdp.cli._commands.plan_change`) when two
 dense grids over the box (:func:`dense_grid_bytes`), or the points in memory (the process and
 ≈ 200 bytes per point: :func:`untiled_point_bytes`), would exceed the memory limit.
@@ -82,7 +82,7 @@ from ..fields._density import DensityField, threshold
 from .._core._memory import check_memory, format_bytes
 from .._core._memory import memory_limit as _memory_limit
 from ..fields._lattice import BLOCK, check_kernel, check_lattice, kernel_reach
-from ..io._io import PointSource
+from ..io._source import PointSource
 from ..change._regions import Region, Volume, describe_regions, join_parts, label_part
 from ..options import Cylinder, Execution, Lattice
 from ._store import FieldStore, require_zarr
@@ -709,7 +709,7 @@ class _Session:
 def sampled_lattice(clouds: list, *, voxel_size: float | str = DEFAULTS.voxel_size, k: float = DEFAULTS.k,
                     sigma_voxels: float | str = DEFAULTS.sigma_voxels) -> tuple[float, float]:
     """(voxel, σ in voxels) as :func:`sdp.fields._spacing.resolve_lattice`, ``"auto"`` measured on the
-    first slice of each cloud (a path, :class:`~sdp.io._io.PointSource` or array): clouds too large
+    first slice of each cloud (a path, :class:`~sdp.io.PointSource` or array): clouds too large
     to read whole."""
     from ..fields._spacing import resolve_lattice
 
@@ -719,7 +719,7 @@ def sampled_lattice(clouds: list, *, voxel_size: float | str = DEFAULTS.voxel_si
 
 
 def first_slices(clouds: list) -> list:
-    """The first slice of each cloud (a path, :class:`~sdp.io._io.PointSource` or array), validated:
+    """The first slice of each cloud (a path, :class:`~sdp.io.PointSource` or array), validated:
     what the tiles measure spacing and scales on before they read the points."""
     from .._core._points import as_points
 

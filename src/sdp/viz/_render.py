@@ -28,7 +28,7 @@ import numpy as np
 
 from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ..errors import require
-from ..io._io import atomic_path
+from ..io._output import atomic_path
 
 __all__ = ["render_changes", "render_changes_html", "render_distances", "render_field", "changes_figure",
            "distances_figure", "png_bytes", "is_map", "map_origin", "map_axes", "axis_label", "pyplot"]

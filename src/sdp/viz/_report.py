@@ -21,8 +21,8 @@ pictures, plotly for the 3-D view); :func:`require_extras` checks them before an
 The 3-D view draws at most :data:`POINT_BUDGET` points: the changed points get up to half, the
 rest a random 1 in f, and the page states f. Its WebGL markers are squares, two triangles each:
 a circle costs many, which made 200k points take 2.4× as long in software rendering. The page
-is built in memory and written through :func:`sdp.io._io.atomic_path` with the command's other
-outputs (:func:`sdp.io._io.all_or_none`); the tiled path refuses ``--report`` before any work (the
+is built in memory and written through :func:`sdp.io.atomic_path` with the command's other
+outputs (:func:`sdp.io.all_or_none`); the tiled path refuses ``--report`` before any work (the
 page needs every point in memory). ``tests/test_htmlreport.py`` opens reports in headless
 Chromium (``tests/browser.py``: Selenium and Debian's chromedriver, SwiftShader for WebGL) and
 checks that there is no console error, that the 3-D view drew and that the screenshot is not
@@ -53,7 +53,7 @@ import numpy as np
 from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ..defaults import DEFAULTS, Defaults
 from ..errors import require
-from ..io._io import atomic_path
+from ..io._output import atomic_path
 
 __all__ = ["change_report", "distance_report", "require_extras", "decimation", "POINT_BUDGET", "THUMBNAILS"]
 

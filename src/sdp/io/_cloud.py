@@ -1,0 +1,151 @@
+"""A point cloud read from a file (:class:`Cloud`), the error of a file that can't be read
+(:class:`CloudFileError`), and what every reader shares: the formats by extension
+(:data:`FORMATS`, :func:`input_format`) and the one-line error of a library's failure
+(:func:`library_error`, :func:`unreadable`; pydantic's PCD header reports summarized).
+
+Kept apart from the readers (one module per format) and from :func:`sdp.io.read_points`, which
+dispatches to them, so that every one of them imports it without an import cycle.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SDPError
+
+__all__ = ["Cloud", "CloudFileError", "FORMATS", "input_format", "library_error", "unreadable"]
+
+#: Extension → format name understood by :func:`sdp.io.read_points`.
+FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
+           ".csv": "text", ".pts": "text", ".npy": "npy", ".npz": "npz"}
+
+_DEFAULT_VIEWPOINT = np.array([0.0, 0, 0, 1, 0, 0, 0])  # PCL's VIEWPOINT when the sensor pose is unset
+
+
+class CloudFileError(SDPError, OSError):
+    """A point-cloud file can't be read: unknown format, corrupt, empty, or without x/y/z."""
+
+
+def _one_line(exc: BaseException, limit: int = 200) -> str:
+    """A library exception in one line: pydantic's validation errors summarized (pypcd4's PCD
+    headers), other messages cut at their first line and at ``limit`` characters."""
+    errors = getattr(exc, "errors", None)
+    if callable(errors):
+        try:
+            items = errors()
+            parts = [f"{' '.join(str(x) for x in e.get('loc', ())).upper() or 'header'}: {e.get('msg', '')}"
+                     for e in items[:3]]
+            text = "; ".join(parts) + (f" (and {len(items) - 3} more)" if len(items) > 3 else "")
+            return f"header {text}" if text else type(exc).__name__
+        except Exception:  # not pydantic after all
+            pass
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    text = lines[0] if lines else type(exc).__name__
+    return text if len(text) <= limit else text[:limit - 1] + "…"
+
+
+def library_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a reader library's failure on bad content: any ``Exception``, or a Rust
+    panic surfaced by pyo3 (``PanicException`` derives from ``BaseException``), but never
+    Ctrl-C, ``SystemExit`` or a closed generator."""
+    return isinstance(exc, Exception) or type(exc).__name__ == "PanicException"
+
+
+def unreadable(path, fmt: str, exc: BaseException) -> "CloudFileError":
+    """The CloudFileError of a library exception raised while reading ``path``."""
+    return CloudFileError(f"{path}: can't read as {fmt} ({type(exc).__name__}: {_one_line(exc)})")
+
+
+@dataclass
+class Cloud:
+    """Points read from a file.
+
+    Attributes
+    ----------
+    xyz : ndarray (n, 3) float64
+        World coordinates of the rows kept.
+    fields : dict of str to ndarray
+        Other per-point fields, aligned with ``xyz``.
+    path : Path or None
+        The file read.
+    n_dropped : int
+        Rows left out because x, y or z was NaN or infinite.
+    las : object
+        The ``laspy.LasData`` of LAS/LAZ input (kept so outputs can keep every dimension),
+        else None.
+    viewpoint : ndarray (7,) float64 or None
+        The sensor's pose from a PCD file's ``VIEWPOINT`` header: translation ``tx ty tz``
+        then unit quaternion ``qw qx qy qz`` (PCL writes the grabber's ``sensor_origin_`` and
+        ``sensor_orientation_`` there; ``0 0 0 1 0 0 0`` when unset). None for other formats.
+    organized : bool
+        The file is an organized PCD (HEIGHT > 1: one point per pixel or ray).
+    """
+
+    xyz: np.ndarray
+    fields: dict[str, np.ndarray] = field(default_factory=dict)
+    path: Path | None = None
+    n_dropped: int = 0
+    las: object = None
+    viewpoint: np.ndarray | None = None
+
+    organized: bool = False
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    @property
+    def sensor_origin(self) -> np.ndarray | None:
+        """Position (3,) of the sensor in the cloud's frame, or None when the file does not say.
+
+        An organized PCD (an image of the sensor's rays) always says: ``viewpoint[:3]``. An
+        unorganized PCD says only if its VIEWPOINT is not PCL's default ``0 0 0 1 0 0 0``
+        (the header every merged or filtered map carries). Other formats say nothing.
+        :func:`sdp.detect_changes` uses it by default (``sensor_origin="auto"``).
+        """
+        if self.viewpoint is None or not (self.organized or np.any(self.viewpoint != _DEFAULT_VIEWPOINT)):
+            return None
+        return self.viewpoint[:3].copy()
+
+    def transformed(self, matrix: np.ndarray) -> "Cloud":
+        """The cloud moved by a rigid 4×4 ``matrix`` (e.g. :attr:`sdp.Alignment.matrix`), its
+        sensor pose with it; fields, path and counts unchanged."""
+        from scipy.spatial.transform import Rotation
+
+        m = np.asarray(matrix, dtype=np.float64)
+        xyz = self.xyz @ m[:3, :3].T + m[:3, 3]
+        viewpoint = None
+        if self.viewpoint is not None:
+            q = self.viewpoint[3:]  # qw qx qy qz
+            turned = Rotation.from_matrix(m[:3, :3]) * Rotation.from_quat([q[1], q[2], q[3], q[0]])
+            x, y, z, w = turned.as_quat()
+            viewpoint = np.r_[m[:3, :3] @ self.viewpoint[:3] + m[:3, 3], w, x, y, z]
+        return replace(self, xyz=np.ascontiguousarray(xyz), viewpoint=viewpoint)
+
+
+def input_format(path: Path, format: str | None) -> str:
+    """The reader's format name for ``path`` (``format`` overrides the extension), once ``path``
+    is known to be an existing file; else :class:`CloudFileError` saying what is wrong."""
+    names = sorted(set(FORMATS.values()))
+    if format is not None:
+        if format not in names:
+            raise CloudFileError(f"unknown format {format!r}; use one of {', '.join(names)}")
+        fmt = format
+    else:
+        fmt = FORMATS.get(path.suffix.lower())
+        if fmt is None:
+            raise CloudFileError(f"{path}: unknown point-cloud format {path.suffix or '(no extension)'!r}; use one "
+                                 f"of the extensions {', '.join(sorted(FORMATS))} or give the format "
+                                 f"({', '.join(names)})")
+    if path.is_dir():
+        raise CloudFileError(f"{path}: is a directory, not a point-cloud file")
+    if not path.exists():
+        raise CloudFileError(f"{path}: no such file")
+    if not path.is_file():
+        raise CloudFileError(f"{path}: not a regular file")
+    if not os.access(path, os.R_OK):
+        raise CloudFileError(f"{path}: permission denied")
+    return fmt

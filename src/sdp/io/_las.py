@@ -1,0 +1,139 @@
+"""LAS/LAZ files (ASPRS LAS 1.0–1.4), with laspy and the lazrs backend: read (scaled integers to
+exact float64), written (a 1 mm grid unless the input's own is kept), and checked before laspy
+reads a header.
+
+A LAS/LAZ header is checked first for counts that cannot fit the file: a corrupt VLR count makes
+laspy loop for hours, a corrupt chunk-table count makes lazrs abort the process.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .._core._progress import bar
+from ._cloud import Cloud, CloudFileError
+
+__all__ = ["LAS_CHUNK", "read_las", "check_las_counts", "check_las_points", "las_scale_offset", "write_las"]
+
+LAS_CHUNK = 2_000_000  # points per chunk read (a progress step)
+
+
+def read_las(path):
+    """``(xyz, fields, las)`` of a LAS/LAZ file: world coordinates, every other dimension as a
+    field, and the ``laspy.LasData`` (so outputs can keep every dimension)."""
+    import laspy
+
+    check_las_counts(path)
+    with laspy.open(str(path)) as reader, bar(reader.header.point_count, f"reading {Path(path).name}") as pb:
+        check_las_points(path, reader.header)
+        chunks = []
+        for chunk in reader.chunk_iterator(LAS_CHUNK):
+            chunks.append(chunk.array)
+            pb.update(len(chunk))
+        h = reader.header
+        records = np.concatenate(chunks) if chunks else np.zeros(0, h.point_format.dtype())
+        las = laspy.LasData(h, points=laspy.ScaleAwarePointRecord(records, h.point_format, h.scales, h.offsets))
+    xyz = np.c_[las.x, las.y, las.z]  # scaled and offset, float64: large coordinates stay exact
+    fields = {d: np.asarray(las[d]) for d in las.point_format.dimension_names if d not in ("X", "Y", "Z")}
+    return xyz, fields, las
+
+
+def check_las_counts(path) -> None:
+    """Refuse a LAS/LAZ whose header counts more (extended) VLRs than the file can hold, before laspy
+    reads it: laspy loops over the count, and a corrupt 32-bit count makes that loop run for hours.
+    Reads the public header block's fixed fields only (ASPRS LAS 1.0–1.4)."""
+    import struct
+
+    size = Path(path).stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(247)
+    if head[:4] != b"LASF":
+        raise CloudFileError(f"{path}: can't read as las (no LASF signature: not a LAS/LAZ file)")
+    if len(head) < 227:
+        raise CloudFileError(f"{path}: can't read as las (truncated: the header holds {len(head)} of 227 bytes)")
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    if offset > size:
+        raise CloudFileError(f"{path}: truncated: the LAS header puts the points at byte {offset:,}, the file holds "
+                             f"{size:,} bytes")
+    if header_size + 54 * n_vlrs > offset:
+        raise CloudFileError(f"{path}: corrupt LAS header: {n_vlrs:,} records do not fit before the point data")
+    if offset + 8 <= size and bool(head[104] & 0x80 or head[104] & 0x40):  # LAZ: its chunk table
+        # lazrs allocates the table's entries before reading them: a corrupt count aborts the process
+        with open(path, "rb") as f:
+            f.seek(offset)
+            (table,) = struct.unpack("<q", f.read(8))
+            if 0 < table and table + 8 <= size:
+                f.seek(table)
+                _, n_chunks = struct.unpack("<II", f.read(8))
+                if n_chunks > size:
+                    raise CloudFileError(f"{path}: corrupt LAZ chunk table ({n_chunks:,} chunks in a file of "
+                                         f"{size:,} bytes)")
+    if head[24:26] == b"\x01\x04" and len(head) >= 247:  # LAS 1.4: extended VLRs at the end
+        start, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and (start > size or 60 * n_evlrs > size):
+            raise CloudFileError(f"{path}: corrupt LAS header: {n_evlrs:,} extended records do not fit in a file "
+                                 f"of {size:,} bytes")
+
+
+def check_las_points(path, header) -> None:
+    """Refuse a LAS/LAZ file without points, or an uncompressed LAS shorter than its header says."""
+    n = int(header.point_count)
+    if n == 0:
+        raise CloudFileError(f"{path}: holds no point (its LAS header counts 0)")
+    if not header.are_points_compressed:
+        need = int(header.offset_to_point_data) + n * int(header.point_format.size)
+        have = Path(path).stat().st_size
+        if have < need:
+            raise CloudFileError(f"{path}: truncated: the LAS header announces {n:,} points ({need:,} bytes) but the "
+                                 f"file holds {have:,} bytes")
+
+
+def las_scale_offset(lo, hi, path=None) -> tuple[np.ndarray, np.ndarray]:
+    """Scale and offset of LAS integer coordinates for points in the box [lo, hi].
+
+    The offset is a whole number near the box's centre; the scale (per axis) the finest of
+    0.001, 0.01, 0.1, 1, … whose 32-bit integers reach both ends of the box (so 1 mm unless
+    the cloud spans more than ±2,147 km).
+
+    Raises
+    ------
+    CloudFileError
+        The box is not finite (``path`` names the file in the message).
+    """
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise CloudFileError(f"{path or 'LAS output'}: can't write non-finite coordinates as LAS")
+    offset = np.floor((lo + hi) / 2)
+    half = np.maximum(hi - offset, offset - lo)
+    limit = 2**31 - 2  # one unit of margin for rounding
+    scales = np.empty(3)
+    for axis in range(3):
+        scale = 0.001
+        while half[axis] / scale > limit:
+            scale *= 10
+        scales[axis] = scale
+    return scales, offset
+
+
+def write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
+    """Write points to ``tmp`` as LAS (LAZ if ``compressed``), ``fields`` as extra dimensions;
+    the points of ``like`` (LAS/LAZ input of as many rows, none dropped) keep its every
+    dimension, scale and offset, other points get :func:`las_scale_offset`."""
+    import laspy
+
+    if like is not None and like.las is not None and len(like.las.points) == len(xyz) and like.n_dropped == 0:
+        las = like.las
+    else:
+        header = laspy.LasHeader(point_format=3, version="1.4")
+        header.scales, header.offsets = las_scale_offset(xyz.min(axis=0), xyz.max(axis=0), tmp)
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    for name, v in fields.items():
+        v = np.asarray(v)
+        dtype = np.uint8 if v.dtype == bool else (v.dtype if v.dtype.kind in "uif" else np.float64)
+        if name not in las.point_format.dimension_names:
+            las.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dtype))
+        las[name] = v.astype(dtype)
+    las.write(str(tmp), laz_backend=laspy.LazBackend.Lazrs if compressed else None)

@@ -1,0 +1,219 @@
+"""Writing outputs: all of a command's or none, never over an input.
+
+:func:`check_outputs` runs first in every writing command (the folder exists and takes files;
+an output is not a directory nor an input, by resolved path or hard link; no two outputs
+coincide). Every writer writes through :func:`atomic_path` (a temporary name, renamed), and
+:func:`all_or_none` renames all the outputs of a command at its end, or removes them all: a
+command writes all its outputs or none, and inputs are never overwritten. :func:`write_points`
+and :func:`write_mesh` pick the format's writer by file extension.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from contextlib import contextmanager
+from contextvars import ContextVar
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SDPError
+from ._cloud import Cloud, CloudFileError
+from ._las import write_las
+from ._numpy import write_npz
+from ._ply import write_ply, write_ply_mesh
+
+__all__ = ["check_outputs", "refuse_overwrite", "all_or_none", "atomic_path", "write_points", "write_mesh"]
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether two paths name one file (the same resolved path, or a hard link / bind mount)."""
+    try:
+        if a.resolve() == b.resolve():
+            return True
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_outputs(outputs, inputs=()) -> None:
+    """Refuse, before any work, outputs that can't be written or would overwrite an input.
+
+    Each output's folder must exist and take new files (tried with a temporary file, so
+    read-only mounts and ``/sys`` are caught), the output must not be an existing directory
+    (except a ``.zarr`` field store, which is one), must not be one of ``inputs`` (resolved
+    paths, hard links too), and no two outputs may be the same file.
+
+    Parameters
+    ----------
+    outputs : iterable of path-like or None
+        Files the command will write (None entries, options not given, are skipped).
+    inputs : iterable of path-like
+        Files the command reads.
+
+    Raises
+    ------
+    SDPError
+        With a one-line message naming the output and what is wrong.
+    """
+    seen: list[Path] = []
+    ins = [Path(p) for p in inputs if p is not None]
+    for out in outputs:
+        if out is None:
+            continue
+        path = Path(out)
+        if str(out) == "" or path.name in ("", ".", ".."):
+            raise SDPError(f"{str(out)!r}: not a file name for an output")
+        parent = path.parent
+        if not parent.exists():
+            raise SDPError(f"{path}: folder {str(parent)!r} does not exist; create it first")
+        if not parent.is_dir():
+            raise SDPError(f"{path}: {str(parent)!r} is not a folder")
+        if path.is_dir() and not (path.suffix.lower() == ".zarr" and (path / "zarr.json").is_file()):
+            raise SDPError(f"{path}: is an existing directory; choose a file name for the output")
+        for src in ins:
+            if _same_file(path, src):
+                raise SDPError(f"{path}: refusing to overwrite an input file; choose another output name")
+        for other in seen:
+            if _same_file(path, other):
+                raise SDPError(f"{path}: given for two outputs; choose a different name for each")
+        try:
+            fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".probe", dir=parent)
+        except OSError as exc:
+            raise SDPError(f"{path}: can't create files in {str(parent)!r} ({exc.strerror or exc})") from None
+        os.close(fd)
+        os.unlink(probe)
+        if path.exists() and not path.is_dir() and not os.access(path, os.W_OK):
+            raise SDPError(f"{path}: exists and is not writable")
+        seen.append(path)
+
+
+def refuse_overwrite(path: str | os.PathLike, inputs=()) -> None:
+    """Raise :class:`SDPError` if ``path`` is one of the files ``inputs``."""
+    path = Path(path)
+    for src in inputs:
+        if src is not None and path.exists() and _same_file(path, Path(src)):
+            raise SDPError(f"{path}: refusing to overwrite an input file; choose another output name")
+
+
+_PENDING: ContextVar[list | None] = ContextVar("sdp_pending_outputs", default=None)
+
+
+@contextmanager
+def all_or_none():
+    """Within the block, every :func:`atomic_path` (every writer of sdp) keeps its finished file
+    under its temporary name; they are all renamed when the block succeeds, all removed when it
+    fails: a command writes all its outputs or none (``sdp`` runs each command inside one)."""
+    pending: list[tuple[str, Path]] = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+        for tmp, path in pending:
+            os.replace(tmp, path)
+    finally:
+        _PENDING.reset(token)
+        for tmp, _ in pending:
+            Path(tmp).unlink(missing_ok=True)
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, *, inputs=()):
+    """Yield a temporary path beside ``path``; rename it to ``path`` when the block succeeds
+    (inside :func:`all_or_none`: when that block does).
+
+    Refuses to overwrite any of ``inputs``; nothing is left behind on failure.
+    """
+    path = Path(path)
+    refuse_overwrite(path, inputs)
+    if path.is_dir():
+        raise SDPError(f"{path}: is an existing directory; choose a file name for the output")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    except OSError as exc:
+        raise SDPError(f"{path}: can't create files in {str(path.parent)!r} ({exc.strerror or exc})") from None
+    pending, deferred = _PENDING.get(), False
+    try:
+        os.close(fd)
+        yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp made it private; give it a new file's mode
+        if pending is not None:
+            pending.append((tmp, path))
+            deferred = True
+        else:
+            os.replace(tmp, path)
+    finally:
+        if not deferred:
+            Path(tmp).unlink(missing_ok=True)
+
+
+def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.ndarray] | None = None, *,
+                 like: Cloud | None = None, inputs=()) -> Path:
+    """Write points with per-point scalar fields as PLY, LAS/LAZ or NPZ (by extension).
+
+    LAS/LAZ output made from LAS/LAZ input (``like``) keeps every input dimension, scale and
+    offset, and adds ``fields`` as extra dimensions; other LAS output gets a 1 mm scale (coarser
+    only for clouds wider than ±2,147 km: :func:`~sdp.io._las.las_scale_offset`) and an offset at
+    the cloud's centre, so large coordinates stay exact. The file is written
+    under a temporary name and renamed; ``inputs`` are never overwritten.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> import sdp
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> xyz = np.random.default_rng(0).random((1000, 3)) * 100 + [500_000, 4_000_000, 0]  # UTM-like
+    >>> path = sdp.write_points(Path(folder.name) / "labelled.laz", xyz, {"change": np.ones(1000, np.uint8)})
+    >>> cloud = sdp.read_points(path)  # LAS keeps 1 mm: coordinates within half of it
+    >>> bool(np.abs(cloud.xyz - xyz).max() <= 0.0005), int(cloud.fields["change"].sum())
+    (True, 1000)
+    >>> folder.cleanup()
+    """
+    path = Path(path)
+    fields = dict(fields or {})
+    ext = path.suffix.lower()
+    if ext not in (".ply", ".las", ".laz", ".npz"):
+        raise CloudFileError(f"{path}: can't write {ext or 'files without extension'}; use .ply, .las, .laz or .npz")
+    with atomic_path(path, inputs=inputs) as tmp:
+        if ext == ".ply":
+            write_ply(tmp, xyz, fields)
+        elif ext == ".npz":
+            write_npz(tmp, xyz, fields)
+        else:
+            write_las(tmp, xyz, fields, like, compressed=ext == ".laz")
+    return path
+
+
+def write_mesh(path: str | os.PathLike, mesh, *, inputs=()) -> Path:
+    """Write a :class:`sdp.Mesh` as PLY, OBJ or STL (by extension), atomically."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+    if ext not in (".ply", ".obj", ".stl"):
+        raise CloudFileError(f"{path}: can't write a mesh as {ext or 'no extension'}; use .ply, .obj or .stl")
+    with atomic_path(path, inputs=inputs) as tmp:
+        if ext == ".ply":
+            write_ply_mesh(tmp, v, f)
+        elif ext == ".obj":
+            with open(tmp, "w") as fh:
+                np.savetxt(fh, v, fmt="v %.9g %.9g %.9g")
+                np.savetxt(fh, f + 1, fmt="f %d %d %d")
+        else:  # binary STL: an 80-byte header, the triangle count, then normal, corners, attribute
+            tri = v[f]
+            normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+            rec = np.zeros(len(f), dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+            rec["n"], rec["v"] = normals, tri
+            with open(tmp, "wb") as fh:
+                fh.write(b"sdp mesh".ljust(80, b" "))
+                fh.write(np.uint32(len(f)).tobytes())
+                fh.write(rec.tobytes())
+    return path

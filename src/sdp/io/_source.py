@@ -1,0 +1,237 @@
+"""Clouds larger than memory: :class:`PointSource` reads a file in row slices (for
+:mod:`sdp.scale._tiles`), and :func:`write_points_streamed` writes every row of one with new
+per-point fields, chunk by chunk, as LAS/LAZ."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ._cloud import CloudFileError, input_format, library_error, unreadable
+from ._las import LAS_CHUNK, check_las_counts, check_las_points, las_scale_offset
+from ._output import atomic_path
+from ._ply import ply_is_binary, ply_vertices
+from ._read import read_points
+
+__all__ = ["PointSource", "write_points_streamed"]
+
+
+@dataclass(frozen=True)
+class PointSource:
+    """Rows of a point-cloud file, read slice by slice: a cloud larger than memory.
+
+    LAS/LAZ are sliced by seeking through the LAZ chunk table, NPY through a memory map and
+    binary PLY through plyfile's memory map. Picklable (it holds the path, not an open file),
+    so Dask tasks on other processes or machines can each read their own slice of a file they
+    can reach. Open one with
+    :meth:`open`; a format that can't be sliced (PCD, text, NPZ, ASCII PLY) is read once
+    and spilled to a ``.npy`` file in ``spill_dir``.
+
+    Attributes
+    ----------
+    path : Path
+        The file read (a ``.npy`` spill for formats that can't be sliced).
+    format : str
+        ``"las"``, ``"npy"`` or ``"ply"``.
+    n_rows : int
+        Rows in the file (NaN/Inf rows included: they are dropped where the rows are used).
+    lo, hi : tuple of float
+        Bounds of the points (from the LAS header, else computed in one streaming pass).
+    """
+
+    path: Path
+    format: str
+    n_rows: int
+    lo: tuple
+    hi: tuple
+
+    @classmethod
+    def open(cls, path: str | os.PathLike, *, format: str | None = None, spill_dir: str | os.PathLike | None = None,
+             chunk_size: int = LAS_CHUNK) -> "PointSource":
+        """Inspect ``path`` (header, or one pass for the bounds) without keeping its points."""
+        path = Path(path)
+        fmt = input_format(path, format)
+        try:
+            if fmt == "las":
+                import laspy
+
+                check_las_counts(path)
+                with laspy.open(str(path)) as r:
+                    h = r.header
+                    check_las_points(path, h)
+                    lo, hi = np.asarray(h.mins, float), np.asarray(h.maxs, float)
+                    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (lo <= hi).all()):
+                        raise CloudFileError(f"{path}: the LAS header's bounds {lo.tolist()} … {hi.tolist()} are "
+                                             "not a box")
+                    if h.are_points_compressed:  # decode the first points: a cut-off LAZ fails here
+                        r.read_points(1)
+                    return cls(path, fmt, int(h.point_count), tuple(map(float, lo)), tuple(map(float, hi)))
+            if fmt == "ply" and ply_is_binary(path):
+                v = ply_vertices(path)
+                if not {"x", "y", "z"} <= set(v.dtype.names):
+                    raise CloudFileError(f"{path}: PLY vertices have no x, y, z (properties: {v.dtype.names})")
+                n = len(v)
+            elif fmt == "npy":
+                a = np.load(path, mmap_mode="r", allow_pickle=False)
+                if a.ndim != 2 or a.shape[1] != 3:
+                    raise CloudFileError(f"{path}: expected an (n, 3) array, got shape {a.shape}")
+                n = len(a)
+            else:  # can't slice: read it once, spill the finite points to .npy
+                if spill_dir is None:
+                    raise CloudFileError(f"{path}: {fmt} files can't be read in slices; convert to LAS/LAZ, NPY or "
+                                         "binary PLY (or, in Python, give spill_dir=)")
+                fd, tmp = tempfile.mkstemp(suffix=".npy", dir=spill_dir)
+                os.close(fd)
+                np.save(tmp, read_points(path, format=fmt).xyz)
+                return cls.open(tmp, format="npy", chunk_size=chunk_size)
+        except CloudFileError:
+            raise
+        except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+            if not library_error(exc):
+                raise
+            raise unreadable(path, fmt, exc) from None
+        if n == 0:
+            raise CloudFileError(f"{path}: holds no point")
+        src = cls(path, fmt, n, (np.inf,) * 3, (-np.inf,) * 3)
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for _, xyz in src.chunks(chunk_size):
+            ok = np.isfinite(xyz).all(axis=1)
+            if ok.any():
+                lo, hi = np.minimum(lo, xyz[ok].min(axis=0)), np.maximum(hi, xyz[ok].max(axis=0))
+        if not np.isfinite(lo).all():
+            raise CloudFileError(f"{path}: holds no point with finite x, y, z")
+        return cls(path, fmt, n, tuple(map(float, lo)), tuple(map(float, hi)))
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Rows ``start`` … ``stop − 1`` as float64 (m, 3) world coordinates (NaN rows kept).
+
+        Raises
+        ------
+        CloudFileError
+            The file can't be decoded there (cut short, corrupt, changed since it was opened).
+        """
+        with _decoding(self):
+            return self._read(start, stop)
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
+        start, stop = max(0, start), min(stop, self.n_rows)
+        if stop <= start:
+            return np.zeros((0, 3))
+        if self.format == "las":  # one decoding path: a single chunk
+            return next(self.chunks(stop - start, start, stop))[1]
+        if self.format == "npy":
+            return np.array(np.load(self.path, mmap_mode="r", allow_pickle=False)[start:stop], dtype=np.float64)
+        v = ply_vertices(self.path)[start:stop]
+        return np.c_[v["x"], v["y"], v["z"]].astype(np.float64)
+
+    def chunks(self, size: int = LAS_CHUNK, start: int = 0, stop: int | None = None):
+        """Yield ``(first_row, xyz)`` slices of at most ``size`` rows, in order.
+
+        Raises
+        ------
+        CloudFileError
+            The file can't be decoded (cut short, corrupt), naming it.
+        """
+        yield from _decoded(self, self._chunks(size, start, stop))
+
+    def _chunks(self, size: int, start: int, stop: int | None):
+        stop = self.n_rows if stop is None else min(stop, self.n_rows)
+        if self.format == "las":  # one open file, sequential decoding
+            import laspy
+
+            from ._kernels import scaled_xyz
+
+            with laspy.open(str(self.path)) as r:
+                scale, offset = np.asarray(r.header.scales, float), np.asarray(r.header.offsets, float)
+                r.seek(start)
+                for s in range(start, stop, size):
+                    pts = r.read_points(min(size, stop - s))
+                    yield s, scaled_xyz(pts.X, pts.Y, pts.Z, scale, offset)
+            return
+        for s in range(start, stop, size):
+            yield s, self.read(s, min(s + size, stop))
+
+
+_END = object()
+
+
+@contextmanager
+def _decoding(source: PointSource):
+    """Turn the reader libraries' exceptions in the block into :class:`CloudFileError` naming the file."""
+    try:
+        yield
+    except CloudFileError:
+        raise
+    except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
+        if not library_error(exc):
+            raise
+        raise unreadable(source.path, source.format, exc) from None
+
+
+def _decoded(source: PointSource, iterator):
+    """``iterator``'s items, read under :func:`_decoding`."""
+    while True:
+        with _decoding(source):
+            item = next(iterator, _END)
+        if item is _END:
+            return
+        yield item
+
+
+def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_of, *, inputs=(),
+                          chunk_size: int = LAS_CHUNK) -> Path:
+    """Write every row of ``source`` with extra per-point fields, chunk by chunk, as LAS/LAZ.
+
+    ``fields_of(start, stop)`` returns the fields of rows ``start`` … ``stop − 1`` (a dict of
+    arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset; other input gets the
+    scale and offset of :func:`~sdp.io._las.las_scale_offset` (1 mm, offset at the centre).
+    Memory is bounded by ``chunk_size``; the file is written under a temporary name and renamed,
+    and ``inputs`` are never overwritten. LAZ is decoded and encoded on all cores (lazrs'
+    parallel backend).
+    """
+    import copy
+
+    import laspy
+
+    path = Path(path)
+    if path.suffix.lower() not in (".las", ".laz"):
+        raise CloudFileError(f"{path}: a cloud written chunk by chunk must be .las or .laz")
+    with ExitStack() as stack:
+        if source.format == "las":
+            reader = stack.enter_context(laspy.open(str(source.path), laz_backend=laspy.LazBackend.LazrsParallel))
+            header = copy.deepcopy(reader.header)
+            chunks = ((len(c), c) for c in _decoded(source, reader.chunk_iterator(chunk_size)))
+        else:
+            header = laspy.LasHeader(point_format=3, version="1.4")
+            header.scales, header.offsets = las_scale_offset(source.lo, source.hi, path)
+            chunks = ((len(xyz), xyz) for _, xyz in source.chunks(chunk_size))
+        tmp = stack.enter_context(atomic_path(path, inputs=inputs))
+        writer, start = None, 0
+        for n, chunk in chunks:
+            fields = fields_of(start, start + n)
+            if writer is None:
+                for name, v in fields.items():
+                    if name not in header.point_format.dimension_names:
+                        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=np.asarray(v).dtype))
+                writer = stack.enter_context(laspy.open(str(tmp), mode="w", header=header,
+                                                        do_compress=path.suffix.lower() == ".laz",
+                                                        laz_backend=laspy.LazBackend.LazrsParallel))
+            out = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+            if source.format == "las":
+                for name in chunk.array.dtype.names:
+                    out.array[name] = chunk.array[name]
+            else:  # LAS can't hold NaN rows: they are left out
+                ok = np.isfinite(chunk).all(axis=1)
+                out = out[ok] if not ok.all() else out
+                out.x, out.y, out.z = chunk[ok, 0], chunk[ok, 1], chunk[ok, 2]
+                fields = {name: np.asarray(v)[ok] for name, v in fields.items()}
+            for name, v in fields.items():
+                out[name] = v
+            writer.write_points(out)
+            start += n
+    return path
