@@ -126,9 +126,9 @@ class DensityField:
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_points(cls, points, *, voxel_size: float | str | None = DEFAULTS.voxel_size,
-                    grid_size: int | None = None, sigma_voxels: float = DEFAULTS.sigma_voxels,
+                    grid_size: int | None = None, sigma_voxels: float | str = DEFAULTS.sigma_voxels,
                     k: float = DEFAULTS.k, h: float | None = None, truncate: float = DEFAULTS.truncate,
-                    method: str = "auto", memory_limit: int | str | None = None) -> "DensityField":
+                    method: str = DEFAULTS.method, memory_limit: int | str | None = None) -> "DensityField":
         """Build the density field of a cloud in O(n).
 
         Parameters
@@ -471,8 +471,8 @@ class DensityField:
 
 
 def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size, grid_size: int | None = None,
-                 sigma_voxels: float = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
-                 truncate: float = DEFAULTS.truncate, method: str = "auto",
+                 sigma_voxels: float | str = DEFAULTS.sigma_voxels, k: float = DEFAULTS.k, h: float | None = None,
+                 truncate: float = DEFAULTS.truncate, method: str = DEFAULTS.method,
                  memory_limit: int | str | None = None) -> tuple[list[DensityField], list[float]]:
     """:meth:`DensityField.from_points` of each cloud, on one lattice (the voxel resolved from all
     of them, :func:`sdp.fields._spacing.resolve_lattice`): their single-threaded parts (block marking,
