@@ -90,8 +90,9 @@ class FileComparison:
     ----------
     reference, current : str
         The two files, as given.
-    result : ChangeResult or TiledChanges
-        The library's result (:func:`sdp.detect_changes` or :func:`sdp.detect_changes_tiled`).
+    result : ChangeResult
+        The library's result (:func:`sdp.detect_changes`, or :func:`sdp.detect_changes_tiled`:
+        ``result.tiled``).
     summary : dict
         JSON-serializable: ``result.summary()`` with the reading (or writing) time, the
         alignment, and ``outputs``; what ``sdp change --json`` prints.
@@ -343,9 +344,9 @@ def _compare_in_memory(reference, current, out: Path, *, both, png, html, report
     origin = _sensor_origins(sensor, (reference, ref), (current, moved), alignment)
     r = detect_changes(ref, moved, sensor_origin=origin, **detect, **grid)
     out_xyz = moved.xyz if aligned_output else cur.xyz
-    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_region, r.current_field, moved.xyz)]
+    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_labels, r.current_field, moved.xyz)]
     if both:
-        jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_region,
+        jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_labels,
                      r.reference_field, ref.xyz))
     outputs = _write_labelled(jobs, inputs=(reference, current))
     outputs += _pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}",
@@ -399,26 +400,20 @@ def _write_labelled(jobs, inputs) -> list[str]:
 
 def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min_region_points,
                    tiles: dict) -> FileComparison:
-    from ..change._coverage import CHANGED, NOT_COMPARABLE
     from ..io._io import write_points_streamed
     from ..scale._tiles import detect_changes_tiled
 
     r = detect_changes_tiled(*plan.sources, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels,
                              min_region_points=min_region_points, **tiles)
-    jobs = [(out, plan.sources[1], r.appeared_rows, r.appeared_region, r.current_not_comparable_rows)]
+    jobs = [(out, plan.sources[1], "current")]
     if both:
-        jobs.append((disappeared_path(out), plan.sources[0], r.disappeared_rows, r.disappeared_region,
-                     r.reference_not_comparable_rows))
+        jobs.append((disappeared_path(out), plan.sources[0], "reference"))
     t = time.perf_counter()
     outputs = []
-    for path, src, rows, region, unseen in jobs:
-        def fields_of(start, stop, rows=rows, region=region, unseen=unseen):
-            i, j = np.searchsorted(rows, (start, stop))
-            change, label = np.zeros(stop - start, np.uint8), np.full(stop - start, -1, np.int32)
-            change[rows[i:j] - start], label[rows[i:j] - start] = CHANGED, region[i:j]
-            i, j = np.searchsorted(unseen, (start, stop))
-            change[unseen[i:j] - start] = NOT_COMPARABLE
-            return {"change": change, "region": label}
+    for path, src, cloud in jobs:
+        def fields_of(start, stop, cloud=cloud):  # from the result's rows: no per-point array of the whole cloud
+            change, region = r.rows(cloud, start, stop)
+            return {"change": change, "region": region}
 
         outputs.append(str(write_points_streamed(path, src, fields_of, inputs=(reference, current))))
     summary = r.summary()

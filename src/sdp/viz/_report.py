@@ -91,7 +91,7 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
         The page to write (atomically: under a temporary name, renamed at the end).
     result : ChangeResult
         Of :func:`sdp.detect_changes` (or any object with its ``current_state``,
-        ``reference_state``, ``appeared_region``, ``disappeared_region``, ``appeared_regions``,
+        ``reference_state``, ``appeared_labels``, ``disappeared_labels``, ``appeared_regions``,
         ``disappeared_regions`` and ``summary()``).
     reference, current : ndarray (n, 3)
         The points the masks describe, in one frame (with an alignment: the moved current).
@@ -134,9 +134,9 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
     lo = np.min([c.min(axis=0) for c in clouds], axis=0)
     hi = np.max([c.max(axis=0) for c in clouds], axis=0)
     flat = is_map(lo, hi)
-    directions = (("appeared", names[1], current, result.current_state, result.appeared_region,
+    directions = (("appeared", names[1], current, result.current_state, result.appeared_labels,
                    s["appeared_regions"], _VERMILLION),
-                  ("disappeared", names[0], reference, result.reference_state, result.disappeared_region,
+                  ("disappeared", names[0], reference, result.reference_state, result.disappeared_labels,
                    s["disappeared_regions"], _PURPLE))
     maps, tables = [], []
     for kind, name, xyz, state, labels, regions, _ in directions:
