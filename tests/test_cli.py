@@ -155,7 +155,7 @@ def test_align_writes_a_loadable_matrix_and_change_uses_it(tmp_path, rng):
     truth[:3, 3] = [0.04, -0.03, 0.02]
     write_points(tmp_path / "ref.ply", room_scene(rng, n=200_000))
     write_points(tmp_path / "cur.ply", transform_points(np.linalg.inv(truth), room_scene(rng, n=200_000)))
-    p = run("align", tmp_path / "cur.ply", tmp_path / "ref.ply", "-o", tmp_path / "T.txt")
+    p = run("align", tmp_path / "ref.ply", tmp_path / "cur.ply", "-o", tmp_path / "T.txt")
     assert p.returncode == 0, p.stderr
     np.testing.assert_allclose(np.loadtxt(tmp_path / "T.txt")[:3, 3], truth[:3, 3], atol=0.003)
     plain = json.loads(run("change", tmp_path / "ref.ply", tmp_path / "cur.ply", "-o", tmp_path / "a.ply",
@@ -197,7 +197,7 @@ def test_align_on_a_class_with_fixed_horizontal(tmp_path, rng):
     cur[:, 2] -= 0.3
     write_points(tmp_path / "ref.las", ref, {"classification": ref_class})
     write_points(tmp_path / "cur.las", cur, {"classification": cur_class})
-    p = run("align", tmp_path / "cur.las", tmp_path / "ref.las", "-o", tmp_path / "T.txt", "--align-class", "2",
+    p = run("align", tmp_path / "ref.las", tmp_path / "cur.las", "-o", tmp_path / "T.txt", "--align-class", "2",
             "--fix-horizontal")
     assert p.returncode == 0, p.stderr
     t = np.loadtxt(tmp_path / "T.txt")
@@ -210,10 +210,10 @@ def test_align_on_a_class_with_fixed_horizontal(tmp_path, rng):
     assert abs(json.loads(change.stdout)["alignment"]["translation"][2] - 0.3) < 0.05
     for args, message in ((("--align-class", "ground"), "class numbers"), (("--align-class", "7"), "too few"),
                           (("--method", "gicp", "--fix-horizontal"), "density alignment only")):
-        bad = run("align", tmp_path / "cur.las", tmp_path / "ref.las", "-o", tmp_path / "U.txt", *args)
+        bad = run("align", tmp_path / "ref.las", tmp_path / "cur.las", "-o", tmp_path / "U.txt", *args)
         assert bad.returncode == 2 and message in bad.stderr and not (tmp_path / "U.txt").exists()
     write_points(tmp_path / "cur.ply", cur)
-    bad = run("align", tmp_path / "cur.ply", tmp_path / "ref.las", "-o", tmp_path / "U.txt", "--align-class", "2")
+    bad = run("align", tmp_path / "ref.las", tmp_path / "cur.ply", "-o", tmp_path / "U.txt", "--align-class", "2")
     assert bad.returncode == 2 and "classification" in bad.stderr
     bad = run("change", tmp_path / "ref.las", tmp_path / "cur.las", "-o", tmp_path / "d.las", "--align-class", "2")
     assert bad.returncode == 2 and "--align density" in bad.stderr and not (tmp_path / "d.las").exists()

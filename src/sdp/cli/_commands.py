@@ -832,17 +832,18 @@ def describe_file(path, *, format: str | None = None) -> dict:
 
 # --- sdp align, watch --------------------------------------------------------------------------
 
-def align_files(current, reference, *, output, method: str = "density", fix_horizontal: bool = False,
+def align_files(reference, current, *, output, method: str = "density", fix_horizontal: bool = False,
                 align_class=None, format: str | None = None):
-    """Estimate the rigid transform of ``current`` onto ``reference`` (a cloud, or a field
-    ``.sdpf`` for ``method="density"``) and write it as a 4x4 text matrix for
-    ``numpy.loadtxt`` (``sdp align``); ``fix_horizontal`` and ``align_class`` as in
-    :func:`compare_files`. Returns the :class:`~sdp.Alignment`."""
+    """Estimate the rigid transform that moves ``current`` onto ``reference`` (a cloud, or a
+    field ``.sdpf`` for ``method="density"``) and write it as a 4x4 text matrix for
+    ``numpy.loadtxt`` (``sdp align REFERENCE CURRENT``: the reference first, as in every
+    command); ``fix_horizontal`` and ``align_class`` as in :func:`compare_files`. Returns the
+    :class:`~sdp.Alignment`."""
     from ..fields._density import DensityField
     from ..io._io import atomic_path, refuse_overwrite
 
-    check_outputs([output], [current, reference])
-    refuse_overwrite(output, (current, reference))
+    check_outputs([output], [reference, current])
+    refuse_overwrite(output, (reference, current))
     classes = V.check_alignment_options(method, fix_horizontal=fix_horizontal, align_class=align_class)
     ref = DensityField.load(reference) if _is_field(reference) else read_points(reference, format=format)
     al = _align_clouds(ref, read_points(current, format=format), (reference, current), method=method,

@@ -117,7 +117,7 @@ def cmd_bool(a):
 
 
 def cmd_align(a):
-    al = P.align_files(a.current, a.reference, output=a.output, method=a.method, fix_horizontal=a.fix_horizontal,
+    al = P.align_files(a.reference, a.current, output=a.output, method=a.method, fix_horizontal=a.fix_horizontal,
                        align_class=a.align_class, format=a.format)
     return _show(f"{alignment_text(al.summary())}\nwrote {a.output}", al.summary(), a.json)
 
@@ -272,8 +272,8 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("-o", "--output", required=True, help=".sdpf (the field) or .ply/.obj/.stl (its surface)")
 
     al = _command(sub, "align", cmd_align, "rigid transform mapping CURRENT onto REFERENCE (4x4 text)", X.ALIGN)
-    al.add_argument("current")
     al.add_argument("reference", help="cloud, or field (.sdpf) for --method density")
+    al.add_argument("current", help="the cloud to move onto REFERENCE")
     al.add_argument("-o", "--output", required=True, help="text file with the 4x4 matrix")
     al.add_argument("--method", choices=("density", "gicp"), default="density",
                     help="density: maximise the reference's density, coarse to fine; gicp: small_gicp")
