@@ -437,8 +437,9 @@ def _parameters(s: dict, options: dict | None, kind: str) -> str:
                  else why("sensor_origin"))]
     if "alignment" in s:
         al = s["alignment"]
-        rows.append(("alignment", f"{al['method']}: rotation {al['rotation_degrees']:.3f}°, translation "
-                     + ", ".join(f"{v:.3f}" for v in al["translation"]) + f", residual {al['rmse']:.4g}",
+        from ..cli._text import motion_text
+
+        rows.append(("alignment", f"{al['method']}: {motion_text(al)}; residual {al['rmse']:.4g} m (RMS)",
                      "given (--align)"))
     return "<h3>Parameters</h3>" + _table(("parameter", "value", "why"), rows)
 
