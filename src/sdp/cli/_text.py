@@ -61,10 +61,13 @@ def alignment_text(al: dict) -> str:
 def motion_text(al: dict) -> str:
     """The motion of :meth:`sdp.Alignment.summary` as a person reads it: "shift (dx, dy, dz) m at
     the current scan's centroid, rotation A° (roll R°, pitch P°, yaw Y°, about x, y, z)"."""
+    def num(v, digits):  # no "-0.000" for what rounds to zero
+        return f"{round(v, digits) + 0.0:.{digits}f}"
+
     r = al["rotation"]
-    shift = ", ".join(f"{v:.3f}" for v in al["shift"])
-    return (f"shift ({shift}) m of the current scan's centroid, rotation {r['angle']:.4f}° about it "
-            f"(roll {r['roll']:.4f}°, pitch {r['pitch']:.4f}°, yaw {r['yaw']:.4f}°: about x, y, z)")
+    shift = ", ".join(num(v, 3) for v in al["shift"])
+    return (f"shift ({shift}) m of the current scan's centroid, rotation {num(r['angle'], 4)}° about it "
+            f"(roll {num(r['roll'], 4)}°, pitch {num(r['pitch'], 4)}°, yaw {num(r['yaw'], 4)}°: about x, y, z)")
 
 
 def frame_text(frame) -> str:
