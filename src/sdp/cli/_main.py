@@ -16,6 +16,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 
 from .. import __version__
 
@@ -68,13 +69,29 @@ def _tiles(a) -> dict:
     return dict(tile_size=a.tile_size, scheduler=a.scheduler, workers=a.workers, workdir=a.workdir)
 
 
+#: ``--quiet``: print nothing but errors and the JSON that was asked for (set by :func:`main`).
+_quiet = False
+
+
 def _say(message: str) -> None:
-    print(f"sdp: {message}", file=sys.stderr)
+    """A notice on stderr (the switch to tiles), unless ``--quiet``."""
+    if not _quiet:
+        print(f"sdp: {message}", file=sys.stderr)
+
+
+def _line(text: str) -> None:
+    """A line of a command's text on stdout (flushed: commands that stream print as they go), unless ``--quiet``."""
+    if not _quiet:
+        print(text, flush=True)
 
 
 def _show(text: str, summary=None, as_json: bool = False) -> int:
-    """Print ``text``, or ``summary`` as JSON (``--json``); exit status 0."""
-    print(json.dumps(summary, indent=2) if as_json else text)
+    """Print ``text`` (not with ``--quiet``), or ``summary`` as JSON (``--json``, and ``sdp info``,
+    whose answer is JSON: also with ``--quiet``); exit status 0."""
+    if as_json:
+        print(json.dumps(summary, indent=2))
+    elif text:
+        _line(text)
     return 0
 
 
@@ -128,8 +145,8 @@ def cmd_watch(a):
                             sensor_origin=a.sensor_origin, range_noise=a.range_noise)
     if a.json:
         return _show("", [r.summary() for r in frames], as_json=True)
-    for r in frames:  # a line per frame, as it comes
-        print(frame_text(r))
+    for r in frames:  # a line per frame, as it comes (the frames are compared as they are iterated)
+        _line(frame_text(r))
     return 0
 
 
@@ -139,7 +156,7 @@ def cmd_action(a):
         return _show(train_text(model, cv, n, a.output))
     if a.action_command == "predict" and a.stream is not None:
         for frame, label in P.stream_actions(a.model, a.stream, window=a.window, every=a.every):
-            print(f"frame {frame}: a{label:02d}", flush=True)  # as it comes
+            _line(f"frame {frame}: a{label:02d}")  # as it comes
         return 0
     if a.action_command == "predict":
         return _show("\n".join(f"{path}: a{label:02d}" for path, label in P.predict_actions(a.model, a.sequences)))
@@ -161,14 +178,14 @@ def cmd_render(a):
 def cmd_demo(a):
     from ..data._demo import run_demo
 
-    run_demo(a.output, seed=a.seed)
+    run_demo(a.output, seed=a.seed, echo=_line)
     return 0
 
 
 def cmd_warmup(a):
     from ._warmup import warmup
 
-    return _show(f"kernels compiled and cached ({sum(warmup(echo=None if a.quiet else print).values()):.0f} s)")
+    return _show(f"kernels compiled and cached ({sum(warmup(echo=None if a.quiet else _line).values()):.0f} s)")
 
 
 def _align_options(p):
@@ -346,8 +363,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
     wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does)", "  sdp warmup")
-    for q in (c, ds, b, i, m, o, al, w, e, r, d, wu):
-        q.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    for q in (c, ds, b, i, m, o, al, w, t, pr, ev, e, r, d, wu):
+        q.add_argument("-q", "--quiet", action="store_true",
+                       help="print nothing but errors (and the JSON that --json asks for): no summary, progress "
+                            "bar or notice")
     return p
 
 
@@ -367,13 +386,19 @@ def _one_line(exc: BaseException) -> str:
 
 
 def main(argv=None) -> int:
+    global _quiet
     args = build_parser().parse_args(argv)
-    _progress.enable(not (getattr(args, "quiet", False) or getattr(args, "json", False)))
+    quiet = getattr(args, "quiet", False)
+    _progress.enable(not (quiet or getattr(args, "json", False)))
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
+    _quiet = quiet
     try:
-        with all_or_none():  # a command writes all its outputs or none
-            with first_run(args.command, quiet=getattr(args, "quiet", False)):
+        # a command writes all its outputs or none; with --quiet, warnings (not errors) are not shown
+        with all_or_none(), warnings.catch_warnings():
+            if quiet:
+                warnings.simplefilter("ignore")
+            with first_run(args.command, quiet=quiet):
                 return args.func(args)
     except (SDPError, ValueError) as exc:
         print(f"sdp: error: {_one_line(exc)}", file=sys.stderr)
@@ -395,6 +420,7 @@ def main(argv=None) -> int:
         print("sdp: terminated", file=sys.stderr)
         return 128 + signal.SIGTERM
     finally:
+        _quiet = False
         if in_main:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
