@@ -6,8 +6,8 @@ Each function returns the lines (joined, without a final newline) that a command
 
 from __future__ import annotations
 
-__all__ = ["change_text", "coverage_text", "alignment_text", "motion_text", "frame_text", "evaluation_text", "written_text",
-           "train_text", "action_eval_text"]
+__all__ = ["change_text", "coverage_text", "alignment_text", "motion_text", "frame_text", "evaluation_text",
+           "written_text", "train_text", "action_eval_text"]
 
 
 def change_text(s: dict, reference, current) -> str:

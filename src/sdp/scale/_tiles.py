@@ -87,7 +87,7 @@ from ..fields._density import DensityField, threshold
 from ..fields._lattice import BLOCK, check_memory
 from ..fields._lattice import memory_limit as _memory_limit
 from ..io._io import PointSource
-from ..change._regions import Region, Volume, describe_regions, join_parts, label_part
+from ..change._regions import Volume, describe_regions, join_parts, label_part
 from ._store import FieldStore, require_zarr
 from .._core._validate import (
     auto_or_positive,
