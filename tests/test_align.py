@@ -141,9 +141,41 @@ def test_flat_ground_keeps_the_horizontal_and_finds_the_vertical(rng):
     assert np.abs(a.matrix[:2, 3]).max() < 0.05 and a.rotation_degrees < 0.01, a.summary()
     fixed = align(ref, cur, fix_horizontal=True)
     assert abs(fixed.translation[2] - 0.4) < 0.01 and fixed.frozen >= 3
+    np.testing.assert_allclose(fixed.centre, cur.mean(axis=0))
+    assert abs(fixed.shift[2] - 0.4) < 0.01 and np.abs(fixed.shift[:2]).max() < 1e-6
     np.testing.assert_allclose(fixed.apply(cur)[:, :2], cur[:, :2], atol=1e-6)  # no shift, no turn about z
     free = align(ref, cur, min_constraint=0.0)  # every direction moves: the horizontal wanders
     assert free.frozen == 0
+
+
+def test_an_alignment_reads_as_the_shift_of_the_centroid_and_angles_about_x_y_z():
+    # a scene at UTM coordinates lifted 0.41 m and tilted by thousandths of a degree about its
+    # centroid: the matrix's translation is mostly the lever arm of the far world origin
+    import json
+
+    from sdp.cli._text import alignment_text
+
+    centre = np.array([634_000.0, 4_831_600.0, 75.0])
+    turn = Rotation.from_euler("xyz", [0.002, -0.001, 0.0005], degrees=True).as_matrix()
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = turn, centre + [0.0, 0.0, 0.41] - turn @ centre
+    al = sdp.Alignment(matrix=m, method="density", inside_before=0.9, inside_after=0.95, rmse=0.05, seconds=1.0,
+                       centre=centre)
+    assert np.abs(al.translation).max() > 100  # what the summary used to show
+    np.testing.assert_allclose(al.shift, [0.0, 0.0, 0.41], atol=1e-7)
+    np.testing.assert_allclose(al.roll_pitch_yaw, [0.002, -0.001, 0.0005], atol=1e-9)
+    assert al.rotation_degrees == pytest.approx(np.sqrt(0.002**2 + 0.001**2 + 0.0005**2), rel=1e-3)
+    p = centre + np.array([[300.0, -200.0, 5.0], [-250.0, 310.0, -2.0]])
+    np.testing.assert_allclose(al.apply(p), (p - centre) @ turn.T + centre + al.shift, atol=1e-6)  # as it reads
+    s = json.loads(json.dumps(al.summary()))
+    assert s["matrix"] == m.tolist() and "translation" not in s and s["shift"] == al.shift.tolist()
+    assert s["rotation"]["roll"] == pytest.approx(0.002) and s["rotation"]["unit"] == "degrees"
+    assert "Rz(yaw) Ry(pitch) Rx(roll)" in s["rotation"]["convention"]
+    text = alignment_text(s)
+    assert "shift (0.000, 0.000, 0.410) m of the current scan's centroid" in text
+    assert "roll 0.0020°, pitch -0.0010°, yaw 0.0005°" in text, text
+    assert sdp.Alignment(matrix=m, method="gicp", inside_before=0, inside_after=0, rmse=0, seconds=0).shift \
+        == pytest.approx(m[:3, 3])  # no centre known: the world origin's motion
 
 
 def test_options_are_checked(rng):

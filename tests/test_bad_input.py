@@ -151,7 +151,7 @@ def test_atomic_path_leaves_nothing_on_any_exception(tmp_path):
     ["bool", "union", "f.sdpf", "g.npy", "-o", "f.sdpf"],
     ["align", "g.npy", "g.npy", "-o", "g.npy"],
     ["align", "g.npy", "g.npy", "-o", "nodir/T.txt"],
-    ["align", "few.npy", "g.npy", "-o", "T.txt"],
+    ["align", "g.npy", "few.npy", "-o", "T.txt"],
     ["change", "g.npy", "g2.npy", "-o", "o.ply", "--png", "g2.npy"],
     ["change", "g.npy", "g2.npy", "-o", "x.png", "--png", "x.png"],
     ["change", "o_disappeared.ply", "g2.npy", "-o", "o.ply", "--both"],  # OUT_disappeared is the reference

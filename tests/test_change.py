@@ -37,8 +37,9 @@ def test_inserted_box_is_found_as_one_region(scene_pair):
     assert np.all(big.bbox_min > [1.9, 1.1, 0.7]) and np.all(big.bbox_max < [2.5, 1.7, 1.4])
     assert 0 < big.volume < 2 * 0.4 * 0.4 * 0.6  # cells of the box's thickened surface
     assert sum(x.n_points for x in r.appeared_regions) == r.appeared.sum()
-    assert (r.appeared_region >= 0).sum() == r.appeared.sum()
-    np.testing.assert_array_equal(r.appeared_region == 0, r.appeared & (r.appeared_region == big.label))
+    assert r.appeared_labels.dtype == np.int32 and r.current_state.dtype == np.uint8 and not r.tiled
+    assert (r.appeared_labels >= 0).sum() == r.appeared.sum()
+    np.testing.assert_array_equal(r.appeared_labels == 0, r.appeared & (r.appeared_labels == big.label))
     assert set(r.timings) == {"build_reference", "build_current", "detect", "coverage", "regions"}
     # dropping stray regions leaves exactly the box
     s = sdp.detect_changes(reference, current, min_region_points=20, lattice=sdp.Lattice(voxel_size=0.015))
@@ -130,7 +131,7 @@ def test_two_directions_on_threads_equal_one_thread(monkeypatch):
     monkeypatch.setattr(sdp.change._detect, "map_concurrently", lambda fn, items, **_: [fn(x) for x in items])
     serial = sdp.detect_changes(s.reference, s.current, **kw)
     for a, b in ((threaded.appeared, serial.appeared), (threaded.disappeared, serial.disappeared),
-                 (threaded.appeared_region, serial.appeared_region)):
+                 (threaded.appeared_labels, serial.appeared_labels)):
         np.testing.assert_array_equal(a, b)
     assert threaded.appeared.any() and threaded.disappeared.any()
 

@@ -4,6 +4,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import slow_after
 
 from sdp.io import read_points, write_points
 
@@ -155,7 +156,7 @@ def test_align_writes_a_loadable_matrix_and_change_uses_it(tmp_path, rng):
     truth[:3, 3] = [0.04, -0.03, 0.02]
     write_points(tmp_path / "ref.ply", room_scene(rng, n=200_000))
     write_points(tmp_path / "cur.ply", transform_points(np.linalg.inv(truth), room_scene(rng, n=200_000)))
-    p = run("align", tmp_path / "cur.ply", tmp_path / "ref.ply", "-o", tmp_path / "T.txt")
+    p = run("align", tmp_path / "ref.ply", tmp_path / "cur.ply", "-o", tmp_path / "T.txt")
     assert p.returncode == 0, p.stderr
     np.testing.assert_allclose(np.loadtxt(tmp_path / "T.txt")[:3, 3], truth[:3, 3], atol=0.003)
     plain = json.loads(run("change", tmp_path / "ref.ply", tmp_path / "cur.ply", "-o", tmp_path / "a.ply",
@@ -197,7 +198,7 @@ def test_align_on_a_class_with_fixed_horizontal(tmp_path, rng):
     cur[:, 2] -= 0.3
     write_points(tmp_path / "ref.las", ref, {"classification": ref_class})
     write_points(tmp_path / "cur.las", cur, {"classification": cur_class})
-    p = run("align", tmp_path / "cur.las", tmp_path / "ref.las", "-o", tmp_path / "T.txt", "--align-class", "2",
+    p = run("align", tmp_path / "ref.las", tmp_path / "cur.las", "-o", tmp_path / "T.txt", "--align-class", "2",
             "--fix-horizontal")
     assert p.returncode == 0, p.stderr
     t = np.loadtxt(tmp_path / "T.txt")
@@ -207,13 +208,16 @@ def test_align_on_a_class_with_fixed_horizontal(tmp_path, rng):
     change = run("change", tmp_path / "ref.las", tmp_path / "cur.las", "-o", tmp_path / "c.las", "--json",
                  "--align", "density", "--align-class", "2", "--fix-horizontal")
     assert change.returncode == 0, change.stderr
-    assert abs(json.loads(change.stdout)["alignment"]["translation"][2] - 0.3) < 0.05
+    al = json.loads(change.stdout)["alignment"]  # the lift of the ground's centroid, as a person reads it
+    assert abs(al["shift"][2] - 0.3) < 0.05 and np.abs(al["shift"][:2]).max() < 1e-3
+    np.testing.assert_allclose(al["centre"], cur[cur_class == 2].mean(axis=0), atol=1e-3)
+    assert "matrix" in al and "translation" not in al
     for args, message in ((("--align-class", "ground"), "class numbers"), (("--align-class", "7"), "too few"),
                           (("--method", "gicp", "--fix-horizontal"), "density alignment only")):
-        bad = run("align", tmp_path / "cur.las", tmp_path / "ref.las", "-o", tmp_path / "U.txt", *args)
+        bad = run("align", tmp_path / "ref.las", tmp_path / "cur.las", "-o", tmp_path / "U.txt", *args)
         assert bad.returncode == 2 and message in bad.stderr and not (tmp_path / "U.txt").exists()
     write_points(tmp_path / "cur.ply", cur)
-    bad = run("align", tmp_path / "cur.ply", tmp_path / "ref.las", "-o", tmp_path / "U.txt", "--align-class", "2")
+    bad = run("align", tmp_path / "ref.las", tmp_path / "cur.ply", "-o", tmp_path / "U.txt", "--align-class", "2")
     assert bad.returncode == 2 and "classification" in bad.stderr
     bad = run("change", tmp_path / "ref.las", tmp_path / "cur.las", "-o", tmp_path / "d.las", "--align-class", "2")
     assert bad.returncode == 2 and "--align density" in bad.stderr and not (tmp_path / "d.las").exists()
@@ -240,3 +244,116 @@ def test_the_program_exits_with_the_status_of_main_and_freezes_what_is_left(tmp_
     assert exit_.value.code == 2  # an empty cloud: main's one-line error
     assert frozen > 0 and tuned == (*threshold[:2], 100)
     assert not (tmp_path / "o.ply").exists()
+
+
+@pytest.fixture
+def quiet_inputs(tmp_path, rng):
+    """Small inputs for every command that prints: two epochs, a field, frames, a labelled cloud,
+    an action model and depth frames."""
+    from conftest import box_surface, room_scene
+
+    import sdp
+
+    d = tmp_path / "in"
+    d.mkdir()
+    ref = room_scene(rng, n=12_000)
+    cur = np.concatenate([room_scene(rng, n=12_000), box_surface(rng, [2.0, 1.2, 0.75], [2.4, 1.6, 1.35], 2000)])
+    np.save(d / "ref.npy", ref)
+    np.save(d / "cur.npy", cur)
+    sdp.DensityField.from_points(ref, voxel_size=0.05).save(d / "ref.sdpf")
+    (d / "frames").mkdir()
+    np.save(d / "frames" / "0.npy", cur)
+    write_points(d / "lab.ply", cur, {"change": (cur[:, 2] > 1.0).astype(np.uint8)})
+    return d
+
+
+def quiet_cases(d, out):
+    """(args, takes --json) of each command that prints, writing into ``out``."""
+    return [(["change", d / "ref.npy", d / "cur.npy", "-o", out / "c.ply", "--voxel-size", "0.05"], True),
+            (["build", d / "ref.npy", "-o", out / "f.sdpf", "--voxel-size", "0.05"], False),
+            (["mesh", d / "ref.sdpf", "-o", out / "m.ply"], False),
+            (["bool", "union", d / "ref.sdpf", d / "cur.npy", "-o", out / "u.sdpf"], False),
+            (["eval", d / "lab.ply", d / "lab.ply"], True),
+            (["render", d / "lab.ply", "--png", out / "r.png"], False),
+            (["watch", d / "ref.npy", d / "frames"], True),
+            (["align", d / "ref.npy", d / "cur.npy", "-o", out / "T.txt"], True),
+            (["distance", d / "ref.npy", d / "cur.npy", "-o", out / "d.ply"], True)]
+
+
+@pytest.mark.parametrize("case", slow_after(6, list(range(9))))
+def test_quiet_prints_nothing_but_errors_and_the_json_asked_for(tmp_path, quiet_inputs, capfd, case):
+    from sdp.cli._main import main
+
+    def outputs(tag):
+        out = tmp_path / tag
+        out.mkdir()
+        return quiet_cases(quiet_inputs, out)[case]
+
+    args, takes_json = outputs("loud")
+    assert main(list(map(str, args))) == 0
+    loud = capfd.readouterr()
+    assert loud.out.strip(), f"{args[0]} prints something without --quiet"
+    args, _ = outputs("quiet")
+    assert main([*map(str, args), "-q"]) == 0
+    assert capfd.readouterr() == ("", ""), args[0]
+    if takes_json:
+        args, _ = outputs("json")
+        assert main([*map(str, args), "-q", "--json"]) == 0
+        got = capfd.readouterr()
+        assert json.loads(got.out) and got.err == "", args[0]
+
+
+def test_quiet_keeps_errors_and_info_s_json_but_no_notice_nor_warning(tmp_path, quiet_inputs, capfd, monkeypatch):
+    import warnings
+
+    from sdp.cli import _commands as P
+    from sdp.cli._main import main
+
+    d = quiet_inputs
+    assert main(["info", str(d / "ref.npy"), "-q"]) == 0  # info's answer is JSON
+    got = capfd.readouterr()
+    assert json.loads(got.out)["points"] == 12_000 and got.err == ""
+    assert main(["change", str(d / "missing.npy"), str(d / "cur.npy"), "-o", str(tmp_path / "x.ply"), "-q"]) == 2
+    got = capfd.readouterr()
+    assert got.out == "" and got.err.startswith("sdp: error: ") and got.err.count("\n") == 1
+    compare = P.compare_files  # a notice, as the switch to tiles gives one
+
+    def noisy(*args, notify=None, **kw):
+        notify("comparing in tiles on Dask: ...")
+        warnings.warn("something to ignore", UserWarning, stacklevel=1)
+        return compare(*args, **kw)
+
+    monkeypatch.setattr(P, "compare_files", noisy)
+    args = ["change", str(d / "ref.npy"), str(d / "cur.npy"), "--voxel-size", "0.05"]
+    for output, quiet in (("a.ply", []), ("b.ply", ["-q"])):
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            assert main([*args, "-o", str(tmp_path / output), *quiet]) == 0
+        got = capfd.readouterr()
+        if quiet:
+            assert got == ("", "") and not seen
+        else:
+            assert "sdp: comparing in tiles" in got.err and len(seen) == 1
+
+
+@pytest.mark.slow
+def test_quiet_tiles_demo_and_actions(tmp_path, quiet_inputs, capfd, rng):
+    from test_actions import sequence, sequence_descriptor, train
+
+    from sdp.cli._main import main
+
+    d = quiet_inputs
+    x = np.stack([sequence_descriptor(sequence(k, rng)) for k in (1, 2) for _ in range(3)])
+    model, _ = train(x, np.repeat([1, 2], 3), np.tile([1, 2, 3], 2))
+    model.save(d / "m.npz")
+    (d / "depth").mkdir()
+    for i, f in enumerate(sequence(1, rng)):
+        np.save(d / "depth" / f"{i:04d}.npy", f)
+    for args in (["change", d / "ref.npy", d / "cur.npy", "-o", tmp_path / "t.laz", "--tiled", "--workers", "1",
+                  "--voxel-size", "0.05"],
+                 ["action", "predict", d / "m.npz", "--stream", d / "depth", "--window", "20", "--every", "10"],
+                 ["demo", "-o", tmp_path / "demo"]):
+        assert main([*map(str, args), "-q"]) == 0
+        assert capfd.readouterr() == ("", ""), args[:2]
+    assert main(["action", "predict", str(d / "m.npz"), "--stream", str(d / "depth"), "--window", "20"]) == 0
+    assert "frame 20: a01" in capfd.readouterr().out

@@ -55,10 +55,35 @@ def test_change_report_is_one_self_contained_page(tmp_path, rng):
     assert len(IMAGES.findall(page)) == 3 + n_regions
     assert page.count('class="thumb"') == n_regions
     assert re.search(r"relative to \(63\d,\d\d0, 4,83\d,\d\d0\)", page)  # the stated round origin
+    assert "634,000 (m)" in page and "z (m)" in page  # the 3-D view's axes name their unit
     for text in ("ref.npy", "cur.npy", "default: ", "Timings", f"{r.summary['current']['appeared']:,} appeared"):
         assert text in page, text
     drawn, total, factor = drawn_note(page)
     assert drawn == total == len(cur) + r.summary["reference"]["disappeared"] and factor == 1  # within the budget
+
+
+def test_every_scale_bar_and_axis_names_its_unit(rng):
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    from sdp.viz._render import changes_figure, distances_figure
+
+    def texts(fig):
+        bars = [a.txt_label.get_text() for ax in fig.axes for a in ax.artists if isinstance(a, AnchoredSizeBar)]
+        labels = [t for ax in fig.axes for t in (ax.get_xlabel(), ax.get_ylabel()) if t]
+        return bars, labels
+
+    ref, cur = landscape(rng)
+    state = (cur[:, 2] - ref[:, 2] > 4).astype(np.uint8)
+    bars, labels = texts(changes_figure(cur, state))  # a map
+    assert bars == ["20 m"] and labels == ["x − 634,000 (m)", "y − 4,831,000 (m)"], (bars, labels)
+    bars, labels = texts(changes_figure(cur, state, unit="mm"))
+    assert bars == ["20 mm"] and labels[0].endswith("(mm)")
+    room = rng.random((3000, 3)) * [4, 3, 2.5]
+    bars, labels = texts(changes_figure(room, room[:, 0] > 3.5))  # three 3-D views: their axes
+    assert not bars and labels and all(t.endswith("(m)") for t in labels), labels
+    d = cur[:, 2] - ref[:, 2]
+    bars, labels = texts(distances_figure(cur, d, np.abs(d) > 1, np.full(len(d), 0.1)))
+    assert bars == ["20 m"] and "signed distance (m)" in labels and "points" in labels
 
 
 def test_the_3d_view_is_decimated_above_the_budget_by_the_stated_factor(tmp_path, rng):

@@ -10,7 +10,7 @@ import sdp
 
 SRC = Path(sdp.__file__).parent
 #: Records that sdp makes and returns, not calls a user writes: their fields are what they report.
-RECORDS = {"ChangeResult", "Distances", "TiledChanges", "Defaults", "FileComparison", "FileDistances", "ChangePlan",
+RECORDS = {"ChangeResult", "Distances", "Defaults", "FileComparison", "FileDistances", "ChangePlan",
            "FrameChange", "Region", "Alignment", "Mesh", "Cloud", "Grid"}
 
 

@@ -66,6 +66,10 @@ def test_watch_reports_an_object_when_it_appears(rng, update):
     first = reports[3]
     assert first.n_appeared > 0.5 * len(box)  # not the parts within σ of the table and len(first.regions) == 1
     assert np.allclose(first.regions[0].centroid, [2.2, 1.4, 0.95], atol=0.1)
+    labels = first.appeared_labels  # each appeared row's region, as in detect_changes' result
+    assert labels.dtype == np.int32 and len(labels) == len(frames[3])
+    np.testing.assert_array_equal(labels >= 0, first.appeared)
+    assert [int((labels == g.label).sum()) for g in first.regions] == [g.n_points for g in first.regions]
     if update == "none":  # the fixed reference keeps reporting it
         assert all(r.n_appeared > 0.5 * len(box) for r in reports[4:])
     else:  # the model has learnt it

@@ -57,6 +57,8 @@ def test_the_automatic_switch_to_tiles_from_python(tmp_path, rng):
                               execution=sdp.Execution(memory_limit="1GB", tile_size=6, scheduler="synchronous", notify=said.append),
                               outputs=sdp.Outputs(both=True))
     assert tiled.tiled and said == [plan.reason] and tiled.summary["tiles"] > 1
+    # the labelled files were streamed from the changed rows: no per-point array of either cloud was made
+    assert tiled.result.tiled and tiled.result._current._state is None and tiled.result._reference._state is None
     assert "tiles of 6.4" in tiled.summary_text()
     whole = sdp.compare_files(a, b, output=tmp_path / "m.laz", lattice=sdp.Lattice(voxel_size=0.1),
                               outputs=sdp.Outputs(both=True))

@@ -45,13 +45,27 @@ def test_tiled_equals_untiled(epochs, min_region_points):
     # 4 m tiles: objects straddle tile borders (one sits across a corner of four tiles)
     b = detect_changes_tiled(ref, cur, min_region_points=min_region_points, lattice=sdp.Lattice(voxel_size=0.1),
                              execution=sdp.Execution(tile_size=4.0, scheduler="synchronous"))
-    assert b.n_tiles >= 35
+    assert isinstance(b, sdp.ChangeResult) and b.tiled and not a.tiled and b.n_tiles >= 35
+    assert b.reference_field is None and b.current_field is None
+    # a streamed writer's slices of rows, made from the changed rows before any per-point array
+    for cloud, state, labels in (("current", a.current_state, a.appeared_labels),
+                                 ("reference", a.reference_state, a.disappeared_labels)):
+        for start, stop in ((0, 10), (69_990, 70_010), (len(state) - 5, len(state) + 5)):
+            got = b.rows(cloud, start, stop)
+            np.testing.assert_array_equal(got[0], state[start:stop])
+            np.testing.assert_array_equal(got[1], labels[start:stop])
+    assert b._current._state is None and b._reference._state is None  # rows alone, until asked
+    for role in ("reference", "current"):
+        assert b.summary()[role] == a.summary()[role]
+    assert b.current_state.dtype == np.uint8 and b.appeared_labels.dtype == np.int32
     assert a.appeared.sum() > 4000 and a.disappeared.sum() > 2000
     np.testing.assert_array_equal(b.appeared, a.appeared)
     np.testing.assert_array_equal(b.disappeared, a.disappeared)
     assert regions_of(b.appeared_regions) == regions_of(a.appeared_regions)
     assert regions_of(b.disappeared_regions) == regions_of(a.disappeared_regions)
-    np.testing.assert_array_equal(b.appeared_region, a.appeared_region[b.appeared_rows])
+    np.testing.assert_array_equal(b.appeared_labels, a.appeared_labels)
+    np.testing.assert_array_equal(b.disappeared_labels, a.disappeared_labels)
+    np.testing.assert_array_equal(b.current_state, a.current_state)
     assert b.n_dropped_current == 2 and b.summary()["current"]["appeared"] == a.appeared.sum()
 
 
@@ -72,7 +86,7 @@ def test_tiled_regions_join_across_many_tiles(rng):
     big = [r for r in a.appeared_regions if r.n_points > 2000]
     assert len(big) == 3 and all(r.size[0] > 5 for r in big)  # the wall, the stairs, the ring: over tiles
     assert regions_of(b.appeared_regions) == regions_of(a.appeared_regions)
-    np.testing.assert_array_equal(b.appeared_region, a.appeared_region[b.appeared_rows])
+    np.testing.assert_array_equal(b.appeared_labels, a.appeared_labels)
 
 
 @pytest.mark.slow
@@ -88,8 +102,8 @@ def test_tiled_on_dask_clusters(epochs):
         c = detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.1),
                                  execution=sdp.Execution(tile_size=8.0, scheduler=cluster.scheduler_address))
     for r in (b, c):
-        np.testing.assert_array_equal(a.appeared_rows, r.appeared_rows)
-        np.testing.assert_array_equal(a.disappeared_rows, r.disappeared_rows)
+        np.testing.assert_array_equal(a.current_state, r.current_state)
+        np.testing.assert_array_equal(a.reference_state, r.reference_state)
     assert {"bucket", "compare", "regions", "read", "build_reference", "detect"} <= set(b.timings)
 
 
@@ -184,7 +198,8 @@ def test_a_memory_limit_the_job_cannot_meet_is_refused_at_once_with_the_smallest
     # in this process (one task at a time): the command alone, and the smallest tiles fit
     one = detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.1),
                                execution=sdp.Execution(memory_limit="600MB", scheduler="synchronous", workdir=work))
-    assert one.n_tiles > 4 and one.tile_size < 15 and one.appeared_rows.size > 4000  # tiles sized from the share
+    assert one.n_tiles > 4 and one.tile_size < 15  # tiles sized from the share
+    assert one.summary()["current"]["appeared"] > 4000
     assert list(work.iterdir()) == []
 
 

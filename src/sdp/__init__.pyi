@@ -50,7 +50,7 @@ from .io import (
     write_points_streamed,
 )
 from .registration import Alignment, align, transform_points
-from .scale import FieldStore, TiledChanges, build_field_tiled, detect_changes_tiled, distances_tiled
+from .scale import FieldStore, build_field_tiled, detect_changes_tiled, distances_tiled
 from .stream import FrameChange, watch
 from .viz import change_report, distance_report, render_changes, render_changes_html, render_distances, render_field
 

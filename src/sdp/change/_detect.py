@@ -52,7 +52,7 @@ import numpy.typing as npt
 
 from .._core._parallel import map_concurrently
 from .._core._points import as_points, to_rows
-from ._coverage import CHANGED, NOT_COMPARABLE, footprint_covered, states_of
+from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError
 from ..fields._density import DensityField, build_fields
@@ -63,95 +63,210 @@ from .._core._validate import finite, integer_at_least
 from ..options import Coverage, Lattice
 from ._visibility import resolve_sensor_origins, visibility_states
 
-__all__ = ["ChangeResult", "detect_changes", "judge_coverage", "inside_difference", "region_rules"]
+__all__ = ["ChangeResult", "PointChanges", "detect_changes", "judge_coverage", "inside_difference", "region_rules"]
 
 
-@dataclass
+class PointChanges:
+    """The state and region label of each point of one cloud, held as per-point arrays (in
+    memory), or as the sorted rows that changed, with their labels, and the sorted rows that are
+    not comparable (in tiles, whose clouds need not fit in memory). From rows, the per-point
+    arrays are made on first use and kept; :meth:`rows` makes those of a slice of rows alone."""
+
+    __slots__ = ("n", "_state", "_labels", "_changed", "_changed_labels", "_unseen")
+
+    def __init__(self, n: int, *, state=None, labels=None, changed=None, changed_labels=None, unseen=None):
+        self.n = int(n)
+        self._state, self._labels = state, labels
+        self._changed, self._changed_labels, self._unseen = changed, changed_labels, unseen
+
+    @classmethod
+    def of_rows(cls, n: int, changed: np.ndarray, changed_labels: np.ndarray, unseen: np.ndarray) -> PointChanges:
+        return cls(n, changed=np.asarray(changed, np.int64), changed_labels=np.asarray(changed_labels, np.int32),
+                   unseen=np.asarray(unseen, np.int64))
+
+    @property
+    def state(self) -> np.ndarray:
+        if self._state is None:
+            self._state, self._labels = self.rows(0, self.n)
+        return self._state
+
+    @property
+    def labels(self) -> np.ndarray:
+        if self._labels is None:
+            self._state, self._labels = self.rows(0, self.n)
+        return self._labels
+
+    def count(self, value: int) -> int:
+        """How many points are in state ``value``."""
+        if self._state is not None:
+            return int(np.count_nonzero(self._state == value))
+        changed, unseen = int(self._changed.size), int(self._unseen.size)
+        return {CHANGED: changed, NOT_COMPARABLE: unseen}.get(value, self.n - changed - unseen)
+
+    def rows(self, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+        """(state uint8, label int32) of rows ``start`` … ``stop``−1."""
+        if self._state is not None:
+            return self._state[start:stop], self._labels[start:stop]
+        state, labels = np.full(stop - start, UNCHANGED, np.uint8), np.full(stop - start, -1, np.int32)
+        i, j = np.searchsorted(self._changed, (start, stop))
+        state[self._changed[i:j] - start], labels[self._changed[i:j] - start] = CHANGED, self._changed_labels[i:j]
+        i, j = np.searchsorted(self._unseen, (start, stop))
+        state[self._unseen[i:j] - start] = NOT_COMPARABLE
+        return state, labels
+
+
+@dataclass(eq=False)
 class ChangeResult:
-    """What changed between a reference and a current cloud.
+    """What changed between a reference and a current cloud: the result of
+    :func:`detect_changes` (in memory) and of :func:`sdp.detect_changes_tiled` (in tiles).
 
-    Every point is in one of three states (:mod:`sdp.change._coverage`): changed (in ``appeared`` /
-    ``disappeared``), not comparable (in ``*_not_comparable``: the other epoch never saw its
-    place), or unchanged (neither).
+    Every point is in one of three states (:mod:`sdp.change._coverage`): changed (appeared in the
+    current, disappeared from the reference), not comparable (the other epoch never saw its
+    place), or unchanged. Per-point arrays have one entry per input row (rows that held NaN/Inf
+    are unchanged, in no region).
+
+    A result of the tiles (``tiled``) holds the rows that changed, not per-point arrays: the
+    command streams its output from those rows (:meth:`rows`), so that its memory does not grow
+    with the clouds. Its per-point arrays are made on first use and kept (5 bytes per point of
+    that cloud, outside the tiled job's memory limit): for clouds that fit in memory.
 
     Attributes
     ----------
-    appeared : ndarray of bool (n_current,)
-        Current points inside the difference volume current − reference, where the reference
-        could see (one per input row; rows that held NaN/Inf are False).
-    disappeared : ndarray of bool (n_reference,)
-        Reference points inside reference − current, where the current could see.
-    current_not_comparable, reference_not_comparable : ndarray of bool
-        Points the other epoch has no density at and never saw (outside its footprint, field of
-        view, or hidden from its sensor): neither changed nor unchanged.
+    current_state, reference_state : ndarray of uint8 (n_current,), (n_reference,)
+        The ``change`` field of each point: :data:`~sdp.UNCHANGED` (0), :data:`~sdp.CHANGED` (1:
+        appeared in the current, disappeared from the reference), :data:`~sdp.NOT_COMPARABLE`
+        (2: the other epoch has no density there and never saw the place: outside its footprint,
+        field of view, or hidden from its sensor).
+    appeared_labels, disappeared_labels : ndarray of int32 (n_current,), (n_reference,)
+        The label of each point's change region in ``appeared_regions`` / ``disappeared_regions``
+        (-1: none: unchanged, not comparable, or a stray dropped by ``min_region_points``).
+    appeared, disappeared, current_not_comparable, reference_not_comparable : ndarray of bool
+        Masks of those states (made from the states at each use).
     appeared_regions, disappeared_regions : list of Region
         Connected change regions, largest first.
-    appeared_region, disappeared_region : ndarray of int64
-        Region label of each point (-1: unchanged or not comparable).
-    reference_field, current_field : DensityField
-        The two fields, on one lattice (same voxel size).
-    timings : dict of str to float
-        Seconds per step: ``build_reference``, ``build_current``, ``detect`` (as the paper's
-        Table I), then ``coverage`` (the visibility test with a sensor, else the footprint)
-        and ``regions``; with ``voxel_size="auto"``, also ``voxel_size``. The two builds bin
-        their clouds at once, and ``coverage`` and ``regions`` add up both directions, which
-        run at once: on two threads when there are two cores, so these steps may add up to
-        more than the wall time they took.
-    voxel_size, h : float
+    reference_field, current_field : DensityField or None
+        The two fields, on one lattice (same voxel size); None in tiles (the fields are built
+        tile by tile and not kept).
+    tiled : bool
+        Whether the clouds were compared in tiles (:func:`sdp.detect_changes_tiled`).
+    n_reference, n_current : int
+        Rows of each input (a stored reference: the points its field was built from), of which
+        ``n_dropped_reference`` / ``n_dropped_current`` held NaN or Inf.
+    voxel_size, sigma, h : float
         Parameters used.
     decision : str
-        ``"point"`` or ``"cluster"`` (see :func:`detect_changes`).
+        ``"point"`` or ``"cluster"`` (see :func:`detect_changes`; tiles: ``"point"``).
     sensor_origins : tuple of (ndarray (3,) or None)
         The reference's and the current's sensor position used (None: not known).
     coverage : dict of str to str
         How each direction decided what the other epoch saw: ``"sensor rays"``,
         ``"footprint"`` or ``"off"``, for ``"appeared"`` and ``"disappeared"``.
+    n_tiles, tile_size : int, float or None
+        In tiles: the tiles compared and their edge (world units); else 0 and None.
+    timings : dict of str to float
+        Seconds per step. In memory: ``build_reference``, ``build_current``, ``detect`` (as the
+        paper's Table I), then ``coverage`` (the visibility test with a sensor, else the
+        footprint) and ``regions``; with ``voxel_size="auto"``, also ``voxel_size``. The two
+        builds bin their clouds at once, and ``coverage`` and ``regions`` add up both
+        directions, which run at once: on two threads when there are two cores, so these steps
+        may add up to more than the wall time they took. In tiles: wall seconds of ``bucket``
+        (reading included), ``compare`` and ``regions``, and summed task seconds ``read``,
+        ``build_reference``, ``build_current``, ``detect``, ``label``.
     """
 
-    appeared: np.ndarray
-    disappeared: np.ndarray
-    current_not_comparable: np.ndarray
-    reference_not_comparable: np.ndarray
+    _reference: PointChanges = dc_field(repr=False)
+    _current: PointChanges = dc_field(repr=False)
     appeared_regions: list[Region]
     disappeared_regions: list[Region]
-    appeared_region: np.ndarray
-    disappeared_region: np.ndarray
-    reference_field: DensityField
-    current_field: DensityField
     voxel_size: float
+    sigma: float
     h: float
-    decision: str
+    decision: str = "point"
+    reference_field: DensityField | None = dc_field(default=None, repr=False)
+    current_field: DensityField | None = dc_field(default=None, repr=False)
+    tiled: bool = False
+    n_dropped_reference: int = 0
+    n_dropped_current: int = 0
     sensor_origins: tuple = (None, None)
     coverage: dict[str, str] = dc_field(default_factory=dict)
+    n_tiles: int = 0
+    tile_size: float | None = None
     timings: dict[str, float] = dc_field(default_factory=dict)
 
     @property
     def current_state(self) -> np.ndarray:
-        """The ``change`` field of the current points (uint8, :mod:`sdp.change._coverage`): 0 unchanged,
-        1 appeared, 2 not comparable."""
-        return states_of(self.appeared, self.current_not_comparable)
+        """The ``change`` field of the current points (uint8): 0 unchanged, 1 appeared, 2 not comparable."""
+        return self._current.state
 
     @property
     def reference_state(self) -> np.ndarray:
         """The ``change`` field of the reference points: 0 unchanged, 1 disappeared, 2 not comparable."""
-        return states_of(self.disappeared, self.reference_not_comparable)
+        return self._reference.state
+
+    @property
+    def appeared_labels(self) -> np.ndarray:
+        """Region label of each current point (int32; -1: none)."""
+        return self._current.labels
+
+    @property
+    def disappeared_labels(self) -> np.ndarray:
+        """Region label of each reference point (int32; -1: none)."""
+        return self._reference.labels
+
+    @property
+    def appeared(self) -> np.ndarray:
+        """Mask of the current points that appeared."""
+        return self.current_state == CHANGED
+
+    @property
+    def disappeared(self) -> np.ndarray:
+        """Mask of the reference points that disappeared."""
+        return self.reference_state == CHANGED
+
+    @property
+    def current_not_comparable(self) -> np.ndarray:
+        """Mask of the current points the reference never saw."""
+        return self.current_state == NOT_COMPARABLE
+
+    @property
+    def reference_not_comparable(self) -> np.ndarray:
+        """Mask of the reference points the current never saw."""
+        return self.reference_state == NOT_COMPARABLE
+
+    @property
+    def n_reference(self) -> int:
+        return self._reference.n
+
+    @property
+    def n_current(self) -> int:
+        return self._current.n
+
+    def rows(self, cloud: str, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+        """(state uint8, region label int32) of rows ``start`` … ``stop``−1 of the ``"reference"``
+        or ``"current"`` cloud; in tiles made from the changed rows alone, without the whole
+        cloud's arrays (what a streamed writer needs: :func:`sdp.write_points_streamed`)."""
+        if cloud not in ("reference", "current"):
+            raise InvalidOptionError(f"cloud must be 'reference' or 'current', got {cloud!r}")
+        points = self._reference if cloud == "reference" else self._current
+        return points.rows(max(0, int(start)), min(points.n, int(stop)))
 
     def summary(self) -> dict:
-        """A JSON-serializable summary: counts, parameters, sensors, timings and regions."""
+        """A JSON-serializable summary: counts, parameters (and tiles), sensors, coverage, timings
+        and regions."""
         def origin(o):
             return None if o is None else [float(v) for v in o]
 
-        return {"voxel_size": self.voxel_size, "sigma": self.current_field.sigma, "h": self.h,
-                "decision": self.decision,
+        def counts(points, dropped, kind):
+            return {"points": points.n, "dropped": int(dropped), kind: points.count(CHANGED),
+                    "not_comparable": points.count(NOT_COMPARABLE)}
+
+        tiles = {"tiles": self.n_tiles, "tile_size": self.tile_size} if self.tiled else {}
+        return {"voxel_size": self.voxel_size, "sigma": self.sigma, "h": self.h, "decision": self.decision, **tiles,
                 "sensor_origin": {"reference": origin(self.sensor_origins[0]),
                                   "current": origin(self.sensor_origins[1])},
                 "coverage": dict(self.coverage),
-                "reference": {"points": int(self.disappeared.size), "dropped": self.reference_field.n_dropped,
-                              "disappeared": int(self.disappeared.sum()),
-                              "not_comparable": int(self.reference_not_comparable.sum())},
-                "current": {"points": int(self.appeared.size), "dropped": self.current_field.n_dropped,
-                            "appeared": int(self.appeared.sum()),
-                            "not_comparable": int(self.current_not_comparable.sum())},
+                "reference": counts(self._reference, self.n_dropped_reference, "disappeared"),
+                "current": counts(self._current, self.n_dropped_current, "appeared"),
                 "timings": dict(self.timings),
                 "appeared_regions": [r.to_dict() for r in self.appeared_regions],
                 "disappeared_regions": [r.to_dict() for r in self.disappeared_regions]}
@@ -257,8 +372,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     timings["detect"] = time.perf_counter() - t
 
     def finish(job):
-        """Coverage and region rules of one direction: (rows, not comparable rows, regions, region
-        of rows), times."""
+        """Coverage and region rules of one direction: (the points' states and labels, regions), times."""
         fld, pts, mask, d, other, other_field, other_origin = job
         t = time.perf_counter()
         states = judge_coverage(pts.xyz, mask, other.xyz, other_field, other_origin, coverage=coverage.enabled,
@@ -270,7 +384,9 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
                                              decision=decision, min_region_points=min_region_points,
                                              cluster_fraction=cluster_fraction, blocked=unseen)
         steps["regions"] = time.perf_counter() - t
-        return (to_rows(mask, pts, False), to_rows(unseen, pts, False), regs, to_rows(region_of, pts, -1)), steps
+        state = to_rows(states_of(mask, unseen), pts, UNCHANGED)
+        labels = to_rows(region_of.astype(np.int32), pts, -1)
+        return (PointChanges(len(state), state=state, labels=labels), regs), steps
 
     # the two directions are independent: on two threads when there are two cores
     (appeared, steps_a), (disappeared, steps_d) = map_concurrently(
@@ -278,11 +394,10 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         parallel_kernels=True)
     timings.update({step: steps_a[step] + steps_d[step] for step in steps_a})
     how = {"appeared": _coverage_kind(o_ref, coverage.enabled), "disappeared": _coverage_kind(o_cur, coverage.enabled)}
-    return ChangeResult(appeared=appeared[0], disappeared=disappeared[0], current_not_comparable=appeared[1],
-                        reference_not_comparable=disappeared[1], appeared_regions=appeared[2],
-                        disappeared_regions=disappeared[2], appeared_region=appeared[3],
-                        disappeared_region=disappeared[3], reference_field=f_ref, current_field=f_cur,
-                        voxel_size=float(f_cur.voxel_size), h=f_cur.h, decision=decision,
+    return ChangeResult(_reference=disappeared[0], _current=appeared[0], appeared_regions=appeared[1],
+                        disappeared_regions=disappeared[1], voxel_size=float(f_cur.voxel_size), sigma=f_cur.sigma,
+                        h=f_cur.h, decision=decision, reference_field=f_ref, current_field=f_cur,
+                        n_dropped_reference=f_ref.n_dropped, n_dropped_current=f_cur.n_dropped,
                         sensor_origins=(o_ref, o_cur), coverage=how, timings=timings)
 
 

@@ -93,8 +93,9 @@ class FileComparison:
     ----------
     reference, current : str
         The two files, as given.
-    result : ChangeResult or TiledChanges
-        The library's result (:func:`sdp.detect_changes` or :func:`sdp.detect_changes_tiled`).
+    result : ChangeResult
+        The library's result (:func:`sdp.detect_changes`, or :func:`sdp.detect_changes_tiled`:
+        ``result.tiled``).
     summary : dict
         JSON-serializable: ``result.summary()`` with the reading (or writing) time, the
         alignment, and ``outputs``; what ``sdp change --json`` prints.
@@ -321,9 +322,9 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                        memory_limit=memory_limit, **detect)
     out_xyz = moved.xyz if outputs.aligned else cur.xyz
     both, png, html, report = outputs.both, outputs.png, outputs.html, outputs.report
-    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_region, r.current_field, moved.xyz)]
+    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_labels, r.current_field, moved.xyz)]
     if both:
-        jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_region,
+        jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_labels,
                      r.reference_field, ref.xyz))
     outputs = _write_labelled(jobs, inputs=(reference, current))
     outputs += _pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}",
@@ -382,26 +383,20 @@ def _write_labelled(jobs, inputs) -> list[str]:
 
 def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min_region_points,
                    lattice: Lattice, execution: Execution) -> FileComparison:
-    from ..change._coverage import CHANGED, NOT_COMPARABLE
     from ..io._source import write_points_streamed
     from ..scale._tiles import detect_changes_tiled
 
     lattice = replace(lattice, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels)  # as sampled
     r = detect_changes_tiled(*plan.sources, lattice=lattice, min_region_points=min_region_points, execution=execution)
-    jobs = [(out, plan.sources[1], r.appeared_rows, r.appeared_region, r.current_not_comparable_rows)]
+    jobs = [(out, plan.sources[1], "current")]
     if both:
-        jobs.append((disappeared_path(out), plan.sources[0], r.disappeared_rows, r.disappeared_region,
-                     r.reference_not_comparable_rows))
+        jobs.append((disappeared_path(out), plan.sources[0], "reference"))
     t = time.perf_counter()
     outputs = []
-    for path, src, rows, region, unseen in jobs:
-        def fields_of(start, stop, rows=rows, region=region, unseen=unseen):
-            i, j = np.searchsorted(rows, (start, stop))
-            change, label = np.zeros(stop - start, np.uint8), np.full(stop - start, -1, np.int32)
-            change[rows[i:j] - start], label[rows[i:j] - start] = CHANGED, region[i:j]
-            i, j = np.searchsorted(unseen, (start, stop))
-            change[unseen[i:j] - start] = NOT_COMPARABLE
-            return {"change": change, "region": label}
+    for path, src, cloud in jobs:
+        def fields_of(start, stop, cloud=cloud):  # from the result's rows: no per-point array of the whole cloud
+            change, region = r.rows(cloud, start, stop)
+            return {"change": change, "region": region}
 
         outputs.append(str(write_points_streamed(path, src, fields_of, inputs=(reference, current))))
     summary = r.summary()
@@ -812,17 +807,18 @@ def describe_file(path, *, format: str | None = None) -> dict:
 
 # --- sdp align, watch --------------------------------------------------------------------------
 
-def align_files(current, reference, *, output, method: str = DEFAULTS.align_method, fix_horizontal: bool = False,
+def align_files(reference, current, *, output, method: str = DEFAULTS.align_method, fix_horizontal: bool = False,
                 align_class=None, format: str | None = None):
-    """Estimate the rigid transform of ``current`` onto ``reference`` (a cloud, or a field
-    ``.sdpf`` for ``method="density"``) and write it as a 4x4 text matrix for
-    ``numpy.loadtxt`` (``sdp align``); ``fix_horizontal`` and ``align_class`` as in
-    :func:`compare_files`. Returns the :class:`~sdp.Alignment`."""
+    """Estimate the rigid transform that moves ``current`` onto ``reference`` (a cloud, or a
+    field ``.sdpf`` for ``method="density"``) and write it as a 4x4 text matrix for
+    ``numpy.loadtxt`` (``sdp align REFERENCE CURRENT``: the reference first, as in every
+    command); ``fix_horizontal`` and ``align_class`` as in :func:`compare_files`. Returns the
+    :class:`~sdp.Alignment`."""
     from ..fields._density import DensityField
     from ..io._output import atomic_path, refuse_overwrite
 
-    check_outputs([output], [current, reference])
-    refuse_overwrite(output, (current, reference))
+    check_outputs([output], [reference, current])
+    refuse_overwrite(output, (reference, current))
     registration = Registration(method=method, fix_horizontal=fix_horizontal, align_class=align_class)
     ref = DensityField.load(reference) if _is_field(reference) else read_points(reference, format=format)
     al = _align_clouds(ref, read_points(current, format=format), (reference, current), registration)

@@ -34,8 +34,8 @@ BOOL = """  sdp bool difference cur.sdpf ref.sdpf -o new.sdpf          what cur 
   sdp bool union a.pcd b.pcd -o both.ply                      surface of the union (auto voxel from both)
   sdp bool intersection a.sdpf b.ply -o common.stl            b is built on a's lattice
 """
-ALIGN = """  sdp align rescan.pcd reference.pcd -o T.txt               density-based, coarse to fine
-  sdp align rescan.pcd reference.pcd -o T.txt --method gicp  small_gicp (extra: align)
+ALIGN = """  sdp align reference.pcd rescan.pcd -o T.txt               density-based, coarse to fine
+  sdp align reference.pcd rescan.pcd -o T.txt --method gicp  small_gicp (extra: align)
   sdp change reference.pcd rescan.pcd -o out.ply --align density   align, then compare
 """
 WATCH = """  sdp watch empty_room.pcd frames/                         each frame against a sliding window

@@ -16,6 +16,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 
 from .. import __version__
 
@@ -81,13 +82,29 @@ def _registration(a) -> Registration | None:
                                                      align_class=a.align_class)
 
 
+#: ``--quiet``: print nothing but errors and the JSON that was asked for (set by :func:`main`).
+_quiet = False
+
+
 def _say(message: str) -> None:
-    print(f"sdp: {message}", file=sys.stderr)
+    """A notice on stderr (the switch to tiles), unless ``--quiet``."""
+    if not _quiet:
+        print(f"sdp: {message}", file=sys.stderr)
+
+
+def _line(text: str) -> None:
+    """A line of a command's text on stdout (flushed: commands that stream print as they go), unless ``--quiet``."""
+    if not _quiet:
+        print(text, flush=True)
 
 
 def _show(text: str, summary=None, as_json: bool = False) -> int:
-    """Print ``text``, or ``summary`` as JSON (``--json``); exit status 0."""
-    print(json.dumps(summary, indent=2) if as_json else text)
+    """Print ``text`` (not with ``--quiet``), or ``summary`` as JSON (``--json``, and ``sdp info``,
+    whose answer is JSON: also with ``--quiet``); exit status 0."""
+    if as_json:
+        print(json.dumps(summary, indent=2))
+    elif text:
+        _line(text)
     return 0
 
 
@@ -135,7 +152,7 @@ def cmd_bool(a):
 
 
 def cmd_align(a):
-    al = P.align_files(a.current, a.reference, output=a.output, method=a.method, fix_horizontal=a.fix_horizontal,
+    al = P.align_files(a.reference, a.current, output=a.output, method=a.method, fix_horizontal=a.fix_horizontal,
                        align_class=a.align_class, format=a.format)
     return _show(f"{alignment_text(al.summary())}\nwrote {a.output}", al.summary(), a.json)
 
@@ -146,8 +163,8 @@ def cmd_watch(a):
                             align=a.align, coverage=_coverage(a))
     if a.json:
         return _show("", [r.summary() for r in frames], as_json=True)
-    for r in frames:  # a line per frame, as it comes
-        print(frame_text(r))
+    for r in frames:  # a line per frame, as it comes (the frames are compared as they are iterated)
+        _line(frame_text(r))
     return 0
 
 
@@ -157,7 +174,7 @@ def cmd_action(a):
         return _show(train_text(model, cv, n, a.output))
     if a.action_command == "predict" and a.stream is not None:
         for frame, label in P.stream_actions(a.model, a.stream, window=a.window, every=a.every):
-            print(f"frame {frame}: a{label:02d}", flush=True)  # as it comes
+            _line(f"frame {frame}: a{label:02d}")  # as it comes
         return 0
     if a.action_command == "predict":
         return _show("\n".join(f"{path}: a{label:02d}" for path, label in P.predict_actions(a.model, a.sequences)))
@@ -179,14 +196,14 @@ def cmd_render(a):
 def cmd_demo(a):
     from ..data._demo import run_demo
 
-    run_demo(a.output, seed=a.seed)
+    run_demo(a.output, seed=a.seed, echo=_line)
     return 0
 
 
 def cmd_warmup(a):
     from ._warmup import warmup
 
-    return _show(f"kernels compiled and cached ({sum(warmup(echo=None if a.quiet else print).values()):.0f} s)")
+    return _show(f"kernels compiled and cached ({sum(warmup(echo=None if a.quiet else _line).values()):.0f} s)")
 
 
 def _align_options(p):
@@ -290,8 +307,8 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("-o", "--output", required=True, help=".sdpf (the field) or .ply/.obj/.stl (its surface)")
 
     al = _command(sub, "align", cmd_align, "rigid transform mapping CURRENT onto REFERENCE (4x4 text)", X.ALIGN)
-    al.add_argument("current")
     al.add_argument("reference", help="cloud, or field (.sdpf) for --method density")
+    al.add_argument("current", help="the cloud to move onto REFERENCE")
     al.add_argument("-o", "--output", required=True, help="text file with the 4x4 matrix")
     al.add_argument("--method", choices=("density", "gicp"), default=DEFAULTS.align_method,
                     help="density: maximise the reference's density, coarse to fine; gicp: small_gicp")
@@ -366,8 +383,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
     wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does)", "  sdp warmup")
-    for q in (c, ds, b, i, m, o, al, w, e, r, d, wu):
-        q.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    for q in (c, ds, b, i, m, o, al, w, t, pr, ev, e, r, d, wu):
+        q.add_argument("-q", "--quiet", action="store_true",
+                       help="print nothing but errors (and the JSON that --json asks for): no summary, progress "
+                            "bar or notice")
     return p
 
 
@@ -387,13 +406,19 @@ def _one_line(exc: BaseException) -> str:
 
 
 def main(argv=None) -> int:
+    global _quiet
     args = build_parser().parse_args(argv)
-    _progress.enable(not (getattr(args, "quiet", False) or getattr(args, "json", False)))
+    quiet = getattr(args, "quiet", False)
+    _progress.enable(not (quiet or getattr(args, "json", False)))
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
+    _quiet = quiet
     try:
-        with all_or_none():  # a command writes all its outputs or none
-            with first_run(args.command, quiet=getattr(args, "quiet", False)):
+        # a command writes all its outputs or none; with --quiet, warnings (not errors) are not shown
+        with all_or_none(), warnings.catch_warnings():
+            if quiet:
+                warnings.simplefilter("ignore")
+            with first_run(args.command, quiet=quiet):
                 return args.func(args)
     except (SDPError, ValueError) as exc:
         print(f"sdp: error: {_one_line(exc)}", file=sys.stderr)
@@ -415,6 +440,7 @@ def main(argv=None) -> int:
         print("sdp: terminated", file=sys.stderr)
         return 128 + signal.SIGTERM
     finally:
+        _quiet = False
         if in_main:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 

@@ -6,8 +6,8 @@ Each function returns the lines (joined, without a final newline) that a command
 
 from __future__ import annotations
 
-__all__ = ["change_text", "coverage_text", "alignment_text", "frame_text", "evaluation_text", "written_text",
-           "train_text", "action_eval_text"]
+__all__ = ["change_text", "coverage_text", "alignment_text", "motion_text", "frame_text", "evaluation_text",
+           "written_text", "train_text", "action_eval_text"]
 
 
 def change_text(s: dict, reference, current) -> str:
@@ -50,11 +50,24 @@ def coverage_text(s: dict) -> str:
 
 
 def alignment_text(al: dict) -> str:
-    """One line from :meth:`sdp.Alignment.summary`: rotation, translation, overlap, residual, time."""
-    t = " ".join(f"{v:.4f}" for v in al["translation"])
-    return (f"aligned current onto reference ({al['method']}): rotation {al['rotation_degrees']:.3f}°, "
-            f"translation [{t}], inside the reference's volume {al['inside_before']:.1%} → {al['inside_after']:.1%}, "
-            f"residual {al['rmse']:.4g} (RMS), {al['seconds']:.2f} s")
+    """Two lines from :meth:`sdp.Alignment.summary`: the shift of the current scan's centroid and
+    the rotation about it (roll, pitch, yaw about x, y, z, and the total angle); the overlap,
+    residual and time. Lengths in metres, as :mod:`sdp.viz._render` labels them."""
+    return (f"aligned current onto reference ({al['method']}): {motion_text(al)}\n"
+            f"  inside the reference's volume {al['inside_before']:.1%} → {al['inside_after']:.1%}, "
+            f"residual {al['rmse']:.4g} m (RMS), {al['seconds']:.2f} s")
+
+
+def motion_text(al: dict) -> str:
+    """The motion of :meth:`sdp.Alignment.summary` as a person reads it: "shift (dx, dy, dz) m at
+    the current scan's centroid, rotation A° (roll R°, pitch P°, yaw Y°, about x, y, z)"."""
+    def num(v, digits):  # no "-0.000" for what rounds to zero
+        return f"{round(v, digits) + 0.0:.{digits}f}"
+
+    r = al["rotation"]
+    shift = ", ".join(num(v, 3) for v in al["shift"])
+    return (f"shift ({shift}) m of the current scan's centroid, rotation {num(r['angle'], 4)}° about it "
+            f"(roll {num(r['roll'], 4)}°, pitch {num(r['pitch'], 4)}°, yaw {num(r['yaw'], 4)}°: about x, y, z)")
 
 
 def frame_text(frame) -> str:

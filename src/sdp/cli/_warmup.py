@@ -202,7 +202,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
 
 
         def align():
-            P.align_files(files["cur", "ply"], files["ref", "ply"], output=d / "T.txt", method="density")
+            P.align_files(files["ref", "ply"], files["cur", "ply"], output=d / "T.txt", method="density")
 
         def watch():
             frames = d / "frames"

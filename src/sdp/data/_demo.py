@@ -52,7 +52,7 @@ def run_demo(output: str | os.PathLike = "demo-output", *, seed: int = 0, echo: 
     echo("  time (ms): " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in r.timings.items()))
     echo(f"  {len(r.appeared_regions)} change regions:")
     for g in r.appeared_regions:
-        objs = s.object_of_current[r.appeared_region == g.label]
+        objs = s.object_of_current[r.appeared_labels == g.label]
         best = np.bincount(objs[objs >= 0], minlength=len(INSERTED)).argmax() if (objs >= 0).any() else -1
         name = INSERTED[best].name if best >= 0 else "(no inserted object)"
         echo(f"    {g.n_points:6,} points at ({', '.join(f'{v:.2f}' for v in g.centroid)}) "
@@ -61,7 +61,7 @@ def run_demo(output: str | os.PathLike = "demo-output", *, seed: int = 0, echo: 
     write_points(out / "reference.ply", s.reference)
     write_points(out / "current_labelled.ply", s.current,
                  {"change": r.current_state, "truth": s.appeared_truth.astype(np.uint8),
-                  "region": r.appeared_region.astype(np.int32),
+                  "region": r.appeared_labels,
                   "F": r.current_field.field(s.current).astype(np.float32)})
     write_mesh(out / "current_cluster_volume.ply", r.current_field.mesh())
     render_changes(out / "changes.png", s.current, r.current_state,

@@ -1,2 +1,2 @@
 from ._store import FieldStore
-from ._tiles import TiledChanges, build_field_tiled, detect_changes_tiled, distances_tiled
+from ._tiles import build_field_tiled, detect_changes_tiled, distances_tiled

@@ -33,10 +33,15 @@ objects over 100+ tiles).
   a hang. Local workers ignore SIGINT: the client ends the run, and removes the work folder.
 
 **Memory** (:class:`JobBudget`): the memory limit is the whole job's. The command takes a fixed
-share (its process, counted as 256 MiB, measured 220 MiB; the streamed output's chunk; not the
-changed rows nor the face nodes, ≈ 48 bytes per changed point); the rest is split over the
-workers (a local cluster's, or a remote scheduler's worker threads, counted when connecting),
-and each worker's share less its own process (256 MiB, measured 210 MiB) is one task's. A tile
+share: its process, counted as 256 MiB (measured 220 MiB), and the streamed output's chunk. Not
+counted: the changed rows and the face nodes while the regions are joined (≈ 48 bytes per changed
+point), and the result, which holds rows, not per-point arrays (:class:`sdp.ChangeResult`: 12
+bytes per changed point, 8 per not comparable one), from which the output is streamed
+(:meth:`sdp.ChangeResult.rows`); its per-point arrays (5 bytes per point of a cloud) are made
+only when a caller asks for them, outside the limit, which the command never does. The rest is
+split over the workers (a local cluster's, or a remote scheduler's worker threads, counted when
+connecting), and each worker's share less its own process (256 MiB, measured 210 MiB) is one
+task's. A tile
 holds what that share holds at ≈ 1.2 KB per point and epoch, its halo included, at the clouds'
 mean density. Tiles that share cannot hold (a limit below the processes themselves, or a given
 ``--tile-size``) are refused before any cluster starts, with the smallest limit that works.
@@ -68,7 +73,6 @@ import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
-from dataclasses import field as dc_field
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +80,7 @@ import numpy as np
 from . import _kernels as K
 from .._core._progress import bar
 from ..change._coverage import footprint_covered
+from ..change._detect import ChangeResult, PointChanges
 from ..defaults import DEFAULTS
 from ..errors import GridTooLargeError, InvalidOptionError, InvalidPointsError, SDPError, WorkerLostError, require
 from ..fields._density import DensityField, threshold
@@ -83,7 +88,7 @@ from .._core._memory import check_memory, format_bytes
 from .._core._memory import memory_limit as _memory_limit
 from ..fields._lattice import BLOCK, check_kernel, check_lattice, kernel_reach
 from ..io._source import PointSource
-from ..change._regions import Region, Volume, describe_regions, join_parts, label_part
+from ..change._regions import Volume, describe_regions, join_parts, label_part
 from ..options import Cylinder, Execution, Lattice
 from ._store import FieldStore, require_zarr
 from .._core._validate import (
@@ -94,7 +99,7 @@ from .._core._validate import (
     positive_finite,
 )
 
-__all__ = ["TiledChanges", "detect_changes_tiled", "build_field_tiled", "distances_tiled", "first_slices",
+__all__ = ["detect_changes_tiled", "build_field_tiled", "distances_tiled", "first_slices",
            "dense_grid_bytes", "untiled_point_bytes", "sampled_lattice"]
 
 _PART_ROWS = 8_000_000  # rows read by one bucketing task
@@ -102,85 +107,6 @@ _BYTES_PER_ROW_READ = 600  # a decoded row in a bucketing task: record, x y z, t
 _BYTES_PER_TILE_POINT = 1200  # a point of one epoch in a compare task: bucket record, its share of two fields
 # (blocks, blur buffer, difference), masks: the 100 M-point benchmark peaked at 3.4 GiB (client and 2 workers)
 # with 1.2 M points per tile and epoch
-
-
-@dataclass
-class TiledChanges:
-    """What changed, from :func:`detect_changes_tiled`: changed rows, not per-row masks.
-
-    Attributes
-    ----------
-    appeared_rows, disappeared_rows : ndarray of int64
-        Sorted row numbers (in the current / reference file) of the changed points.
-    appeared_region, disappeared_region : ndarray of int64
-        Region label of each of those rows.
-    appeared_regions, disappeared_regions : list of Region
-        Connected change regions, largest first.
-    current_not_comparable_rows, reference_not_comparable_rows : ndarray of int64
-        Sorted rows the other epoch has no point near in x, y (its footprint,
-        :func:`sdp.change._coverage.footprint_covered`): not comparable, neither changed nor unchanged.
-    n_current, n_reference : int
-        Rows of each input (for a stored reference: the points it was built from);
-        ``n_dropped_*`` of them held NaN or Inf.
-    voxel_size, sigma, h : float
-        Parameters used.
-    n_tiles, tile_size : int, float
-        Tiles compared and their edge (world units).
-    timings : dict of str to float
-        Wall seconds of ``bucket`` (reading included), ``compare`` and ``regions``, and summed
-        task seconds ``read``, ``build_reference``, ``build_current``, ``detect``.
-    """
-
-    appeared_rows: np.ndarray
-    disappeared_rows: np.ndarray
-    appeared_region: np.ndarray
-    disappeared_region: np.ndarray
-    appeared_regions: list[Region]
-    disappeared_regions: list[Region]
-    current_not_comparable_rows: np.ndarray
-    reference_not_comparable_rows: np.ndarray
-    n_current: int
-    n_reference: int
-    n_dropped_current: int
-    n_dropped_reference: int
-    voxel_size: float
-    sigma: float
-    h: float
-    n_tiles: int
-    tile_size: float
-    timings: dict[str, float] = dc_field(default_factory=dict)
-
-    @property
-    def appeared(self) -> np.ndarray:
-        """Per-row mask of the current cloud (n_current bytes: for clouds that fit in memory)."""
-        return _mask(self.appeared_rows, self.n_current)
-
-    @property
-    def disappeared(self) -> np.ndarray:
-        """Per-row mask of the reference cloud."""
-        return _mask(self.disappeared_rows, self.n_reference)
-
-    def summary(self) -> dict:
-        """A JSON-serializable summary in the shape of :meth:`sdp.ChangeResult.summary`, plus tiles."""
-        return {"voxel_size": self.voxel_size, "sigma": self.sigma, "h": self.h, "decision": "point",
-                "tiles": self.n_tiles, "tile_size": self.tile_size,
-                "sensor_origin": {"reference": None, "current": None},
-                "coverage": {"appeared": "footprint", "disappeared": "footprint"},
-                "reference": {"points": self.n_reference, "dropped": self.n_dropped_reference,
-                              "disappeared": int(self.disappeared_rows.size),
-                              "not_comparable": int(self.reference_not_comparable_rows.size)},
-                "current": {"points": self.n_current, "dropped": self.n_dropped_current,
-                            "appeared": int(self.appeared_rows.size),
-                            "not_comparable": int(self.current_not_comparable_rows.size)},
-                "timings": dict(self.timings),
-                "appeared_regions": [r.to_dict() for r in self.appeared_regions],
-                "disappeared_regions": [r.to_dict() for r in self.disappeared_regions]}
-
-
-def _mask(rows: np.ndarray, n: int) -> np.ndarray:
-    out = np.zeros(n, bool)
-    out[rows] = True
-    return out
 
 
 def dense_grid_bytes(lo, hi, voxel_size: float, *, sigma_voxels: float = 2.0, truncate: float = 3.0) -> int:
@@ -337,7 +263,7 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
 
 def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None,
                          min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
-                         execution: Execution | None = None) -> TiledChanges:
+                         execution: Execution | None = None) -> ChangeResult:
     """:func:`sdp.detect_changes` (point decision, footprint coverage) in tiles, for clouds of any size.
 
     Every default is :data:`sdp.DEFAULTS`, as for :func:`sdp.detect_changes`. Points outside the
@@ -378,7 +304,10 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None,
 
     Returns
     -------
-    TiledChanges
+    ChangeResult
+        With ``tiled`` True: the rows that changed, from which the per-point arrays are made on
+        first use (``reference_field`` and ``current_field`` are None). With a stored
+        reference, only what appeared: every reference point is unchanged.
     """
     lattice, execution = _tiled_options(lattice, execution)
     integer_at_least("min_region_points", min_region_points, 0)
@@ -402,16 +331,15 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None,
         unseen = {kind: np.sort(np.concatenate([r[kind][3] for r in results])) for kind in ("appeared", "disappeared")}
         run.timings["regions"] = time.perf_counter() - t
     n_ref = run.sources["reference"].n_rows if store is None else store.n_points
-    return TiledChanges(appeared_rows=out["appeared"][0], disappeared_rows=out["disappeared"][0],
-                        appeared_region=out["appeared"][1], disappeared_region=out["disappeared"][1],
+    points = {kind: PointChanges.of_rows(n, *out[kind][:2], unseen[kind])
+              for kind, n in (("appeared", run.sources["current"].n_rows), ("disappeared", n_ref))}
+    return ChangeResult(_reference=points["disappeared"], _current=points["appeared"],
                         appeared_regions=out["appeared"][2], disappeared_regions=out["disappeared"][2],
-                        current_not_comparable_rows=unseen["appeared"],
-                        reference_not_comparable_rows=unseen["disappeared"],
-                        n_current=run.sources["current"].n_rows, n_reference=n_ref,
-                        n_dropped_current=run.dropped["current"], n_dropped_reference=run.dropped.get("reference", 0),
                         voxel_size=run.voxel_size, sigma=run.sigma_voxels * run.voxel_size,
-                        h=threshold(k) if h is None else float(h), n_tiles=len(run.tiles), tile_size=run.tiling.edge,
-                        timings=run.timings)
+                        h=threshold(k) if h is None else float(h), decision="point", tiled=True,
+                        n_dropped_reference=run.dropped.get("reference", 0), n_dropped_current=run.dropped["current"],
+                        coverage={"appeared": "footprint", "disappeared": "footprint"}, n_tiles=len(run.tiles),
+                        tile_size=run.tiling.edge, timings=run.timings)
 
 
 def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
@@ -552,8 +480,9 @@ def _mb(nbytes: float) -> str:
 @dataclass(frozen=True)
 class JobBudget:
     """How one memory limit is shared by the processes of a tiled run: the command (``client``:
-    its process and the streamed output; the changed rows and the face nodes of the regions, ≈ 48
-    bytes per changed point, are not counted) and each of ``workers`` (its process and one task's
+    its process and the streamed output; not counted: the changed rows and the face nodes of the
+    regions, ≈ 48 bytes per changed point, and the result's rows, which the command never turns
+    into per-point arrays) and each of ``workers`` (its process and one task's
     data); with ``separate=False`` the tasks run in the command's own process (Dask's local
     schedulers), ``workers`` of them at once."""
 

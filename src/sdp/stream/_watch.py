@@ -76,6 +76,9 @@ class FrameChange:
         hidden from its sensor): neither appeared nor unchanged (:mod:`sdp.change._coverage`).
     regions : list of Region
         Connected appeared regions, largest first.
+    appeared_labels : ndarray of int32
+        The label of each row's region in ``regions`` (-1: none), as
+        :attr:`sdp.ChangeResult.appeared_labels`.
     latency : float
         Seconds from receiving the frame to the answer, model update included.
     timings : dict of str to float
@@ -91,6 +94,7 @@ class FrameChange:
     appeared: np.ndarray
     not_comparable: np.ndarray
     regions: list[Region]
+    appeared_labels: np.ndarray
     latency: float
     timings: dict[str, float] = dc_field(default_factory=dict)
     transform: np.ndarray | None = None
@@ -214,10 +218,12 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
                                 range_noise=coverage.range_noise, image=image, present=frame.inside)
         mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
+        labels = np.full(len(mask), -1, np.int32)
         if regions:  # point-wise decision: only the appeared points need a region
             idx = np.flatnonzero(mask)
-            kept, regs, _ = region_rules(frame, d, cur.xyz[idx], np.ones(len(idx), bool), regions=True,
-                                     decision="point", min_region_points=min_region_points, cluster_fraction=0.5)
+            kept, regs, labels[idx] = region_rules(frame, d, cur.xyz[idx], np.ones(len(idx), bool), regions=True,
+                                                   decision="point", min_region_points=min_region_points,
+                                                   cluster_fraction=0.5)
             mask[idx] = kept
         else:
             regs = []
@@ -235,4 +241,5 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         timings.update(build=t1 - t0 - timings.get("align", 0.0), detect=t2 - t1, regions=t3 - t2, update=t4 - t3)
         yield FrameChange(index=index, name=name, appeared=to_rows(mask, cur, False),
                           not_comparable=to_rows(unseen, cur, False), regions=regs,
-                          latency=t4 - t0, timings=timings, transform=matrix)
+                          appeared_labels=to_rows(labels, cur, -1), latency=t4 - t0, timings=timings,
+                          transform=matrix)

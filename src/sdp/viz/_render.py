@@ -12,6 +12,11 @@ not comparable a neutral grey; distances on a diverging purple–orange scale. E
 figure function (:func:`changes_figure`, :func:`distances_figure`) that the file writers and
 :mod:`sdp.viz._report` share.
 
+Lengths are labelled in :data:`UNIT`, metres: sdp's coordinates are world units, metres in its
+docs and in every sample scan (``voxel_size``, distances and the alignment's shift are read the
+same way); each picture takes ``unit=`` for clouds in other units. Every scale bar and every
+axis of coordinates or distances names it.
+
 References
 ----------
 .. [1] M. Okabe, K. Ito, "Color Universal Design (CUD): how to make figures and presentations that
@@ -31,7 +36,11 @@ from ..errors import require
 from ..io._output import atomic_path
 
 __all__ = ["render_changes", "render_changes_html", "render_distances", "render_field", "changes_figure",
-           "distances_figure", "png_bytes", "is_map", "map_origin", "map_axes", "axis_label", "pyplot"]
+           "distances_figure", "png_bytes", "is_map", "map_origin", "map_axes", "axis_label", "scale_bar", "pyplot",
+           "UNIT"]
+
+#: The unit lengths are labelled in (see the module docstring).
+UNIT = "m"
 
 _VERMILLION, _BLUE, _GREY = "#D55E00", "#0072B2", "#B4B4B4"  # Okabe–Ito, and a neutral grey
 
@@ -44,7 +53,7 @@ _MAP_REGIONS = 12  # regions outlined on a map, largest first
 
 
 def render_changes(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray, *, title: str = "",
-                   max_points: int = 80_000, seed: int = 0, view: str = "auto", regions=()) -> Path:
+                   max_points: int = 80_000, seed: int = 0, view: str = "auto", regions=(), unit: str = UNIT) -> Path:
     """Write a PNG of ``xyz``: changed points vermillion, unchanged blue, not comparable grey,
     with counts.
 
@@ -54,14 +63,15 @@ def render_changes(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray
     (top-down, relative coordinates, scale bar, north arrow), ``"3d"`` (three views) or
     ``"auto"`` (a map when the scene's height is below a tenth of its horizontal extent).
     ``regions`` (:class:`sdp.Region`, or their ``to_dict()``): on a map, each is outlined and
-    numbered by its label.
+    numbered by its label. ``unit``: of the coordinates, on the scale bar and the axes.
     """
     return _save_png(changes_figure(xyz, changed, title=title, max_points=max_points, seed=seed, view=view,
-                                    regions=regions), path)
+                                    regions=regions, unit=unit), path)
 
 
 def changes_figure(xyz: np.ndarray, changed: np.ndarray, *, title: str = "", max_points: int = 80_000,
-                   seed: int = 0, view: str = "auto", regions=(), size: float = 1.0, bounds=None):
+                   seed: int = 0, view: str = "auto", regions=(), size: float = 1.0, bounds=None,
+                   unit: str = UNIT):
     """The matplotlib figure :func:`render_changes` saves (``size`` scales it), for other pages
     (:mod:`sdp.viz._report`); ``bounds`` (lo, hi) choose the view and a map's origin (default:
     the points'), so that two maps of one scene share them."""
@@ -70,7 +80,7 @@ def changes_figure(xyz: np.ndarray, changed: np.ndarray, *, title: str = "", max
     layers = _drawn(changed, max_points, seed)
     lo, hi = (xyz.min(axis=0), xyz.max(axis=0)) if bounds is None else (np.asarray(b) for b in bounds)
     if is_map(lo, hi, view):
-        fig = _map(plt, xyz, layers, lo, hi, regions, size)
+        fig = _map(plt, xyz, layers, lo, hi, regions, size, unit)
     else:
         fig = plt.figure(figsize=(15 * size, 5.4 * size), dpi=110, layout="constrained")
         for i, (elev, azim, name) in enumerate(_VIEWS):
@@ -81,11 +91,12 @@ def changes_figure(xyz: np.ndarray, changed: np.ndarray, *, title: str = "", max
             ax.view_init(elev=elev, azim=azim)
             ax.set_box_aspect(np.maximum(hi - lo, 1e-9))
             ax.set_title(name)
-            ax.set_xlabel("x")
-            ax.set_ylabel("y")
-            ax.set_zlabel("z")
+            ax.set_xlabel(axis_label("x", 0, unit))
+            ax.set_ylabel(axis_label("y", 0, unit))
+            ax.set_zlabel(axis_label("z", 0, unit))
             if name != "oblique":  # the axis seen end-on carries no information
                 (ax.set_zticks if name == "top" else ax.set_yticks)([])
+                (ax.set_zlabel if name == "top" else ax.set_ylabel)("")
             if i == 0:
                 ax.legend(loc="upper left", markerscale=8, fontsize=9)
     if title:
@@ -101,7 +112,7 @@ def is_map(lo, hi, view: str = "auto") -> bool:
     return view == "map" or (view == "auto" and hi[2] - lo[2] < _FLAT * max(hi[0] - lo[0], hi[1] - lo[1]))
 
 
-def _map(plt, xyz, layers, lo, hi, regions=(), size=1.0):
+def _map(plt, xyz, layers, lo, hi, regions=(), size=1.0, unit=UNIT):
     """A top-down map: x, y relative to a round origin named on the axes, a scale bar, a north
     arrow; changed points drawn large enough to be found at a glance, regions outlined."""
     w, h = float(hi[0] - lo[0]), float(hi[1] - lo[1])
@@ -117,7 +128,7 @@ def _map(plt, xyz, layers, lo, hi, regions=(), size=1.0):
         ax.add_patch(plt.Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="k", lw=0.8))
         ax.annotate(str(g["label"]), (x1, y1), fontsize=8, ha="left", va="bottom")
     ax.legend(loc="best", markerscale=6, fontsize=9, framealpha=0.9)
-    map_axes(ax, origin, lo, hi)
+    map_axes(ax, origin, lo, hi, unit)
     return fig
 
 
@@ -133,45 +144,57 @@ def map_origin(lo, hi) -> np.ndarray:
     return np.floor((np.asarray(lo[:2], np.float64) + 0.01 * span) / step) * step
 
 
-def axis_label(name: str, offset: float) -> str:
-    """``"x − 634,000"``, or ``"x"`` without an offset."""
-    return f"{name} − {offset:,.0f}" if offset else name
+def axis_label(name: str, offset: float, unit: str | None = UNIT) -> str:
+    """``"x − 634,000 (m)"``, or ``"x (m)"`` without an offset (no unit: ``unit=None``)."""
+    text = f"{name} − {offset:,.0f}" if offset else name
+    return f"{text} ({unit})" if unit else text
 
 
-def map_axes(ax, origin, lo, hi):
-    """Relative-coordinate labels, a scale bar and a north arrow on a top-down map."""
-    from matplotlib.ticker import MaxNLocator
+def scale_bar(ax, span: float, unit: str = UNIT, *, loc: str = "lower right", fontsize=None):
+    """A scale bar of a round length (1, 2 or 5 × 10^k, at most a quarter of ``span``), labelled
+    with its unit, on axes of equal aspect in data units."""
+    from matplotlib.font_manager import FontProperties
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    bar = 10.0 ** math.floor(math.log10(span / 4))
+    bar *= 5 if 5 * bar <= span / 4 else (2 if 2 * bar <= span / 4 else 1)
+    font = FontProperties(size=fontsize) if fontsize else None
+    ax.add_artist(AnchoredSizeBar(ax.transData, bar, f"{bar:g} {unit}", loc, pad=0.4 if fontsize else 0.6,
+                                  frameon=True, size_vertical=span / 300, fontproperties=font))
+    return bar
+
+
+def map_axes(ax, origin, lo, hi, unit: str = UNIT):
+    """Relative-coordinate labels and a scale bar with their unit, and a north arrow, on a top-down map."""
+    from matplotlib.ticker import MaxNLocator
 
     span = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]), 1e-9)
     ax.set_aspect("equal")
-    ax.set_xlabel(axis_label("x", origin[0]))
-    ax.set_ylabel(axis_label("y", origin[1]))
+    ax.set_xlabel(axis_label("x", origin[0], unit))
+    ax.set_ylabel(axis_label("y", origin[1], unit))
     for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_locator(MaxNLocator(6))
-    bar = 10.0 ** math.floor(math.log10(span / 4))
-    bar *= 5 if 5 * bar <= span / 4 else (2 if 2 * bar <= span / 4 else 1)
-    ax.add_artist(AnchoredSizeBar(ax.transData, bar, f"{bar:g}", "lower right", pad=0.6, frameon=True,
-                                  size_vertical=span / 300))
+    scale_bar(ax, span, unit)
     ax.annotate("N", xy=(0.04, 0.95), xytext=(0.04, 0.84), xycoords="axes fraction", ha="center", va="center",
                 fontsize=12, fontweight="bold", arrowprops={"arrowstyle": "-|>", "color": "k", "lw": 1.5})
 
 
 def render_distances(path: str | os.PathLike, xyz: np.ndarray, distance: np.ndarray, significant: np.ndarray,
                      lod: np.ndarray, *, title: str = "", max_points: int = 200_000, seed: int = 0,
-                     view: str = "auto") -> Path:
+                     view: str = "auto", unit: str = UNIT) -> Path:
     """Write a PNG of signed distances (:func:`sdp.distances`): a map (or, for rooms and objects,
     an oblique 3-D view) of the significant distances on a diverging purple–orange scale
     (readable by colour-blind readers), points within the level of detection pale, points
     without a distance grey; beside it, the histogram of the distances with the median level of
     detection marked. Above ``max_points`` points, a random subsample is drawn (the counts are
-    of all points)."""
+    of all points). ``unit``: of the coordinates and distances, on the axes and the scale bar."""
     return _save_png(distances_figure(xyz, distance, significant, lod, title=title, max_points=max_points, seed=seed,
-                                      view=view), path)
+                                      view=view, unit=unit), path)
 
 
 def distances_figure(xyz: np.ndarray, distance: np.ndarray, significant: np.ndarray, lod: np.ndarray, *,
-                     title: str = "", max_points: int = 200_000, seed: int = 0, view: str = "auto"):
+                     title: str = "", max_points: int = 200_000, seed: int = 0, view: str = "auto",
+                     unit: str = UNIT):
     """The matplotlib figure :func:`render_distances` saves, for other pages (:mod:`sdp.viz._report`)."""
     from matplotlib.colors import TwoSlopeNorm
 
@@ -200,16 +223,16 @@ def distances_figure(xyz: np.ndarray, distance: np.ndarray, significant: np.ndar
     coords = (p[:, 0] - origin[0], p[:, 1] - origin[1]) if flat else p.T
     sc = ax.scatter(*coords, s=2.0, c=distance[idx[sig[idx]]], cmap="PuOr_r", norm=norm, linewidths=0,
                     label=f"significant ({int(sig.sum()):,})")
-    fig.colorbar(sc, ax=ax, shrink=0.8, label="signed distance (+: the current lies on the normal's side)")
+    fig.colorbar(sc, ax=ax, shrink=0.8, label=f"signed distance ({unit}; +: the current lies on the normal's side)")
     ax.legend(loc="upper right", markerscale=6, fontsize=9, framealpha=0.9)  # the north arrow is upper left
     if flat:
-        map_axes(ax, origin, lo, hi)
+        map_axes(ax, origin, lo, hi, unit)
     else:
         ax.view_init(elev=25, azim=-60)
         ax.set_box_aspect(np.maximum(hi - lo, 1e-9))
-        ax.set_xlabel("x")
-        ax.set_ylabel("y")
-        ax.set_zlabel("z")
+        ax.set_xlabel(axis_label("x", 0, unit))
+        ax.set_ylabel(axis_label("y", 0, unit))
+        ax.set_zlabel(axis_label("z", 0, unit))
     hx = fig.add_subplot(1, 2, 2)
     if ok.any():
         span = max(limit, float(np.quantile(np.abs(distance[ok]), 0.98)), 1e-12)
@@ -219,9 +242,9 @@ def distances_figure(xyz: np.ndarray, distance: np.ndarray, significant: np.ndar
         m = float(np.median(np.asarray(lod)[ok]))
         for x in (-m, m):
             hx.axvline(x, color="k", ls="--", lw=1)
-        hx.plot([], [], "k--", lw=1, label=f"median level of detection ±{m:.3g}")
+        hx.plot([], [], "k--", lw=1, label=f"median level of detection ±{m:.3g} {unit}")
         hx.set_yscale("log")  # the significant tails stay visible beside the peak within the level of detection
-    hx.set_xlabel("signed distance")
+    hx.set_xlabel(f"signed distance ({unit})")
     hx.set_ylabel("points")
     hx.legend(fontsize=9)
     if title:
@@ -230,12 +253,12 @@ def distances_figure(xyz: np.ndarray, distance: np.ndarray, significant: np.ndar
 
 
 def render_changes_html(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray, *, title: str = "",
-                        max_points: int = 200_000, seed: int = 0) -> Path:
+                        max_points: int = 200_000, seed: int = 0, unit: str = UNIT) -> Path:
     """Write an interactive 3D view (plotly) that opens in a browser without a server.
 
     ``changed`` as in :func:`render_changes`. The page embeds plotly.js, so it works offline.
     Unchanged and not comparable points are subsampled to ``max_points`` each; changed points
-    are all drawn.
+    are all drawn. ``unit``: of the coordinates, on the axes.
 
     Raises
     ------
@@ -247,7 +270,8 @@ def render_changes_html(path: str | os.PathLike, xyz: np.ndarray, changed: np.nd
     fig = go.Figure([go.Scatter3d(x=xyz[i, 0], y=xyz[i, 1], z=xyz[i, 2], mode="markers", name=f"{name} ({n:,})",
                                   marker={"size": size, "color": color})
                      for i, name, n, color, _, size in _drawn(changed, max_points, seed)])
-    fig.update_layout(title=title, scene={"aspectmode": "data"}, legend={"itemsizing": "constant"})
+    axes = {f"{a}axis": {"title": {"text": axis_label(a, 0, unit)}} for a in "xyz"}
+    fig.update_layout(title=title, scene={"aspectmode": "data", **axes}, legend={"itemsizing": "constant"})
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.write_html(tmp, include_plotlyjs=True)
@@ -255,13 +279,13 @@ def render_changes_html(path: str | os.PathLike, xyz: np.ndarray, changed: np.nd
 
 
 def render_field(path: str | os.PathLike, field, *, center: np.ndarray | None = None,
-                 max_pixels: int = 500) -> Path:
+                 max_pixels: int = 500, unit: str = UNIT) -> Path:
     """Write a PNG of three axis-aligned slices of F = h − G through ``center``.
 
     Each slice is sampled at the node spacing (coarser if a side would exceed ``max_pixels``)
     by the field's own trilinear query; blue is inside the cluster volume (F < 0), red outside,
     and the black line is the boundary F = 0. ``center`` defaults to the middle of the
-    allocated blocks.
+    allocated blocks. ``unit``: of the coordinates, on the axes.
     """
     plt = pyplot()
     from matplotlib.colors import TwoSlopeNorm
@@ -285,12 +309,12 @@ def render_field(path: str | os.PathLike, field, *, center: np.ndarray | None = 
                        extent=(axes[u][0], axes[u][-1], axes[v][0], axes[v][-1]))
         if (f < 0).any() and (f > 0).any():
             ax.contour(uu, vv, f, levels=[0.0], colors="k", linewidths=0.7)
-        ax.set_title(f"{names[normal]} = {center[normal]:.4g}")
-        ax.set_xlabel(names[u])
-        ax.set_ylabel(names[v])
+        ax.set_title(f"{names[normal]} = {center[normal]:.4g} {unit}")
+        ax.set_xlabel(axis_label(names[u], 0, unit))
+        ax.set_ylabel(axis_label(names[v], 0, unit))
         ax.set_aspect("equal")
     fig.colorbar(im, ax=panels, shrink=0.8, label="F = h − G  (< 0: inside the cluster volume)")
-    fig.suptitle(f"density field: voxel {l:.4g}, σ {field.sigma:.4g}, h {field.h:.3f}")
+    fig.suptitle(f"density field: voxel {l:.4g} {unit}, σ {field.sigma:.4g} {unit}, h {field.h:.3f}")
     return _save_png(fig, path)
 
 

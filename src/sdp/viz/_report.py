@@ -54,6 +54,7 @@ from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ..defaults import DEFAULTS, Defaults
 from ..errors import require
 from ..io._output import atomic_path
+from ._render import UNIT
 
 __all__ = ["change_report", "distance_report", "require_extras", "decimation", "POINT_BUDGET", "THUMBNAILS"]
 
@@ -91,7 +92,7 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
         The page to write (atomically: under a temporary name, renamed at the end).
     result : ChangeResult
         Of :func:`sdp.detect_changes` (or any object with its ``current_state``,
-        ``reference_state``, ``appeared_region``, ``disappeared_region``, ``appeared_regions``,
+        ``reference_state``, ``appeared_labels``, ``disappeared_labels``, ``appeared_regions``,
         ``disappeared_regions`` and ``summary()``).
     reference, current : ndarray (n, 3)
         The points the masks describe, in one frame (with an alignment: the moved current).
@@ -134,9 +135,9 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
     lo = np.min([c.min(axis=0) for c in clouds], axis=0)
     hi = np.max([c.max(axis=0) for c in clouds], axis=0)
     flat = is_map(lo, hi)
-    directions = (("appeared", names[1], current, result.current_state, result.appeared_region,
+    directions = (("appeared", names[1], current, result.current_state, result.appeared_labels,
                    s["appeared_regions"], _VERMILLION),
-                  ("disappeared", names[0], reference, result.reference_state, result.disappeared_region,
+                  ("disappeared", names[0], reference, result.reference_state, result.disappeared_labels,
                    s["disappeared_regions"], _PURPLE))
     maps, tables = [], []
     for kind, name, xyz, state, labels, regions, _ in directions:
@@ -159,8 +160,9 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
                      + _details("The summary as printed", f"<pre>{_e(report.change_text(s, *names))}</pre>")
                      + _details("The summary as JSON (sdp change --json)", f"<pre>{_e(_json(s))}</pre>")),
             _section("Where it changed" if flat else "Views", "".join(maps)
-                     + ("<p>A top-down map: x, y relative to the round origin named on the axes, scale bar in "
-                        "world units, north up (+y); the largest regions outlined and numbered.</p>" if flat else
+                     + ("<p>A top-down map: x, y relative to the round origin named on the axes, in metres "
+                        "(the scale bar's unit), north up (+y); the largest regions outlined and numbered.</p>"
+                        if flat else
                         "<p>Three views of each cloud (oblique, top, front).</p>")),
             _section("Region sizes", hist),
             _section("Regions", "".join(tables) or "<p>No change region.</p>"),
@@ -187,13 +189,14 @@ def _region_table(kind: str, name: str, regions: list, thumbs: list[str]) -> str
     head = f"<h3>{_e(kind)} in {_e(name)}: {len(regions):,} regions{more}</h3>"
     if not regions:
         return head + "<p>None.</p>"
-    return head + _table(("#", "points", "centroid (x, y, z)", "size (x × y × z)", "volume", "thumbnail"), rows,
-                         raw_last=True)
+    return head + _table(("#", "points", f"centroid (x, y, z; {UNIT})", f"size (x × y × z; {UNIT})",
+                          f"volume ({UNIT}³)", "thumbnail"), rows, raw_last=True)
 
 
 def _thumbnail(xyz, state, labels, g: dict, flat: bool, png_bytes) -> str:
-    """A small picture around one region: its points vermillion, the rest by state."""
-    from ._render import pyplot
+    """A small picture around one region: its points vermillion, the rest by state; seen from
+    above (a map), with a scale bar."""
+    from ._render import pyplot, scale_bar
 
     plt = pyplot()
     lo, hi = np.asarray(g["bbox_min"], float), np.asarray(g["bbox_max"], float)
@@ -225,6 +228,7 @@ def _thumbnail(xyz, state, labels, g: dict, flat: bool, png_bytes) -> str:
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
+        scale_bar(ax, float(b[0] - a[0]), UNIT, fontsize=7)
     else:
         ax.view_init(elev=25, azim=-60)
         ax.set_box_aspect(np.maximum(b - a, 1e-9))
@@ -437,8 +441,9 @@ def _parameters(s: dict, options: dict | None, kind: str) -> str:
                  else why("sensor_origin"))]
     if "alignment" in s:
         al = s["alignment"]
-        rows.append(("alignment", f"{al['method']}: rotation {al['rotation_degrees']:.3f}°, translation "
-                     + ", ".join(f"{v:.3f}" for v in al["translation"]) + f", residual {al['rmse']:.4g}",
+        from ..cli._text import motion_text
+
+        rows.append(("alignment", f"{al['method']}: {motion_text(al)}; residual {al['rmse']:.4g} m (RMS)",
                      "given (--align)"))
     return "<h3>Parameters</h3>" + _table(("parameter", "value", "why"), rows)
 
@@ -475,7 +480,7 @@ def _plotly(traces, origin, *, limit: float | None = None) -> str:
             marker["color"] = colour
         else:
             marker.update(color=np.asarray(colour, np.float32), colorscale="PuOr", reversescale=True, cmid=0.0,
-                          cmin=-limit, cmax=limit, colorbar={"title": {"text": "distance"}})
+                          cmin=-limit, cmax=limit, colorbar={"title": {"text": f"distance ({UNIT})"}})
         data.append(go.Scatter3d(x=rel[:, 0], y=rel[:, 1], z=rel[:, 2], mode="markers", name=name, marker=marker,
                                  hoverinfo="x+y+z+name"))
     fig = go.Figure(data)
