@@ -318,8 +318,8 @@ def test_quiet_keeps_errors_and_info_s_json_but_no_notice_nor_warning(tmp_path, 
     assert got.out == "" and got.err.startswith("sdp: error: ") and got.err.count("\n") == 1
     compare = P.compare_files  # a notice, as the switch to tiles gives one
 
-    def noisy(*args, notify=None, **kw):
-        notify("comparing in tiles on Dask: ...")
+    def noisy(*args, **kw):
+        kw["execution"].notify("comparing in tiles on Dask: ...")
         warnings.warn("something to ignore", UserWarning, stacklevel=1)
         return compare(*args, **kw)
 
