@@ -306,7 +306,7 @@ def test_quiet_prints_nothing_but_errors_and_the_json_asked_for(tmp_path, quiet_
 def test_quiet_keeps_errors_and_info_s_json_but_no_notice_nor_warning(tmp_path, quiet_inputs, capfd, monkeypatch):
     import warnings
 
-    from sdp.cli import _commands as P
+    from sdp.cli import _change as P
     from sdp.cli._main import main
 
     d = quiet_inputs

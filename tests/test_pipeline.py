@@ -8,7 +8,7 @@ import pytest
 import test_cli
 
 import sdp
-from sdp.cli import _commands as pipeline
+from sdp import cli as pipeline
 from sdp.io import read_points, write_points
 
 pair, run = test_cli.pair, test_cli.run  # the fixture of two clouds as PLY files; sdp on the command line

@@ -214,7 +214,7 @@ def memory_size(name: str, value) -> str:
 
 
 def sensor_origin_option(name: str, value) -> str | np.ndarray:
-    """The ``--sensor-origin`` of ``sdp change`` / ``sdp watch`` (:func:`sdp.cli._commands.compare_files`):
+    """The ``--sensor-origin`` of ``sdp change`` / ``sdp watch`` (:func:`sdp.compare_files`):
     ``"auto"``, ``"none"`` (also None), ``"viewpoint"``, or a position ``"X,Y,Z"`` (or three
     numbers) returned as an ndarray (3,) of finite floats."""
     if value is None:

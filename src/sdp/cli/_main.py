@@ -1,7 +1,7 @@
 """The ``sdp`` command: a thin layer over the Python API.
 
 Each command is a ``cmd_NAME(a)`` that passes the parsed options ``a`` to one library function
-(:mod:`sdp.cli._commands`: the commands as Python functions) and prints what it returns (the text of
+(:mod:`sdp.cli`'s functions: the commands in Python) and prints what it returns (the text of
 :mod:`sdp.cli._text`, or JSON), plus its parser in :func:`build_parser`. Options are checked by
 :mod:`sdp._core._validate`; :func:`main` turns errors and signals into one line and an exit status, and
 :func:`run` is the program (the console script and ``python -m sdp.cli``).
@@ -22,7 +22,7 @@ from .. import __version__
 
 from .._core import _progress
 from . import _examples as X
-from . import _commands as P
+from . import _actions as A, _change as C, _distance as D, _files as F
 from .._core import _validate as V
 from ..defaults import DEFAULTS
 from ..errors import SDPError
@@ -111,7 +111,7 @@ def _show(text: str, summary=None, as_json: bool = False) -> int:
 # Each command: the parsed options → one call of sdp.cli's functions → print (its text, or JSON).
 
 def cmd_change(a):
-    r = P.compare_files(a.reference, a.current, output=a.output, format=a.format,
+    r = C.compare_files(a.reference, a.current, output=a.output, format=a.format,
                         outputs=Outputs(both=a.both, png=a.png, html=a.html, report=a.report, aligned=a.aligned_output),
                         lattice=_lattice(a), coverage=_coverage(a),
                         align=_registration(a), execution=_execution(a, None if a.json else _say),
@@ -120,7 +120,7 @@ def cmd_change(a):
 
 
 def cmd_distance(a):
-    r = P.distance_files(a.reference, a.current, output=a.output, core_points=a.core_points,
+    r = D.distance_files(a.reference, a.current, output=a.output, core_points=a.core_points,
                          outputs=Outputs(png=a.png, report=a.report), format=a.format,
                          cylinder=Cylinder(projection_scale=a.projection_scale, normal_scale=a.normal_scale,
                                            max_distance=a.max_distance),
@@ -131,34 +131,34 @@ def cmd_distance(a):
 
 
 def cmd_build(a):
-    built = P.build_field_file(a.cloud, output=a.output, format=a.format, lattice=_lattice(a), execution=_execution(a))
+    built = F.build_field_file(a.cloud, output=a.output, format=a.format, lattice=_lattice(a), execution=_execution(a))
     return _show(written_text(built, a.output))
 
 
 def cmd_info(a):
-    return _show("", P.describe_file(a.file, format=a.format), as_json=True)
+    return _show("", F.describe_file(a.file, format=a.format), as_json=True)
 
 
 def cmd_mesh(a):
-    mesh = P.mesh_file(a.input, output=a.output, level=a.level, format=a.format, lattice=_lattice(a),
+    mesh = F.mesh_file(a.input, output=a.output, level=a.level, format=a.format, lattice=_lattice(a),
                        memory_limit=a.memory_limit)
     return _show(written_text(mesh, a.output))
 
 
 def cmd_bool(a):
-    result = P.combine_files(a.operation, a.a, a.b, output=a.output, format=a.format, lattice=_lattice(a),
+    result = F.combine_files(a.operation, a.a, a.b, output=a.output, format=a.format, lattice=_lattice(a),
                              memory_limit=a.memory_limit)
     return _show(written_text(result, a.output))
 
 
 def cmd_align(a):
-    al = P.align_files(a.reference, a.current, output=a.output, method=a.method, fix_horizontal=a.fix_horizontal,
+    al = F.align_files(a.reference, a.current, output=a.output, method=a.method, fix_horizontal=a.fix_horizontal,
                        align_class=a.align_class, format=a.format)
     return _show(f"{alignment_text(al.summary())}\nwrote {a.output}", al.summary(), a.json)
 
 
 def cmd_watch(a):
-    frames = P.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
+    frames = F.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
                             update=a.update, window=a.window, decay=a.decay, min_region_points=a.min_region_points,
                             align=a.align, coverage=_coverage(a))
     if a.json:
@@ -170,26 +170,26 @@ def cmd_watch(a):
 
 def cmd_action(a):
     if a.action_command == "train":
-        model, cv, n = P.train_actions(a.data_dir, output=a.output, subjects=a.subjects, workers=a.workers)
+        model, cv, n = A.train_actions(a.data_dir, output=a.output, subjects=a.subjects, workers=a.workers)
         return _show(train_text(model, cv, n, a.output))
     if a.action_command == "predict" and a.stream is not None:
-        for frame, label in P.stream_actions(a.model, a.stream, window=a.window, every=a.every):
+        for frame, label in A.stream_actions(a.model, a.stream, window=a.window, every=a.every):
             _line(f"frame {frame}: a{label:02d}")  # as it comes
         return 0
     if a.action_command == "predict":
-        return _show("\n".join(f"{path}: a{label:02d}" for path, label in P.predict_actions(a.model, a.sequences)))
-    s = P.evaluate_actions(a.data_dir, workers=a.workers)
+        return _show("\n".join(f"{path}: a{label:02d}" for path, label in A.predict_actions(a.model, a.sequences)))
+    s = A.evaluate_actions(a.data_dir, workers=a.workers)
     return _show(action_eval_text(s), s, a.json)
 
 
 def cmd_eval(a):
-    e = P.evaluate_files(a.predicted, a.truth, predicted_field=a.predicted_field, truth_field=a.truth_field,
+    e = F.evaluate_files(a.predicted, a.truth, predicted_field=a.predicted_field, truth_field=a.truth_field,
                          format=a.format)
     return _show(e.summary_text(), e.scores, a.json)
 
 
 def cmd_render(a):
-    written = P.render_file(a.file, png=a.png, html=a.html, field=a.field, format=a.format)
+    written = F.render_file(a.file, png=a.png, html=a.html, field=a.field, format=a.format)
     return _show("\n".join(f"wrote {w}" for w in written))
 
 

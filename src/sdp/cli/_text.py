@@ -11,7 +11,7 @@ __all__ = ["change_text", "coverage_text", "alignment_text", "motion_text", "fra
 
 
 def change_text(s: dict, reference, current) -> str:
-    """The table of ``sdp change``, from :attr:`sdp.cli._commands.FileComparison.summary`."""
+    """The table of ``sdp change``, from :attr:`sdp.FileComparison.summary`."""
     lines = []
     for role, name, kind in (("reference", reference, "disappeared"), ("current", current, "appeared")):
         c = s[role]
@@ -80,7 +80,7 @@ def frame_text(frame) -> str:
 
 
 def evaluation_text(e) -> str:
-    """The lines of ``sdp eval`` from a :class:`sdp.cli._commands.Evaluation`."""
+    """The lines of ``sdp eval`` from a :class:`sdp.cli.Evaluation`."""
     sc = e.scores
     return "\n".join((f"{e.points:,} points ({sc['not_comparable']:,} not comparable, left out); changed: "
                       f"predicted {e.predicted:,}, true {e.true:,} of the comparable",
@@ -106,7 +106,7 @@ def train_text(model, cv: float, n_sequences: int, path) -> str:
 
 
 def action_eval_text(summary: dict) -> str:
-    """The lines of ``sdp action eval`` from :func:`sdp.cli._commands.evaluate_actions`."""
+    """The lines of ``sdp action eval`` from :func:`sdp.cli.evaluate_actions`."""
     lines = []
     for name, acc in summary.items():
         if name in ("cv", "alpha", "timings", "sequences"):

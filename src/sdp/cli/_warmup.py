@@ -158,7 +158,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     import numpy as np
 
     from ..options import Coverage, Execution, Outputs
-    from . import _commands as P
+    from . import _change as C, _distance as D, _files as F
     from ..change._detect import detect_changes
     from ..distance._distances import distances
     from ..io._output import all_or_none, write_points
@@ -188,21 +188,21 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
             say(f"{command}: {times[command]:.1f} s")
 
         def change():
-            P.compare_files(files["ref", "ply"], files["cur", "ply"], output=d / "c.ply",
+            C.compare_files(files["ref", "ply"], files["cur", "ply"], output=d / "c.ply",
                             coverage=Coverage(sensor_origin=s.camera))
-            P.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "c.laz", outputs=Outputs(both=True))
+            C.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "c.laz", outputs=Outputs(both=True))
             detect_changes(s.reference, s.current, decision="cluster", coverage=Coverage(sensor_origin=None))
             if importlib.util.find_spec("dask") and importlib.util.find_spec("zarr"):
-                P.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "t.laz",
+                C.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "t.laz",
                                 execution=Execution(tiled=True, scheduler="synchronous", workdir=d))
 
         def distance():
-            P.distance_files(files["ref", "laz"], files["cur", "laz"], output=d / "d.laz")
+            D.distance_files(files["ref", "laz"], files["cur", "laz"], output=d / "d.laz")
             distances(s.reference, s.current, core_points=s.reference[::7], sensor_origin=np.asarray(s.camera))
 
 
         def align():
-            P.align_files(files["ref", "ply"], files["cur", "ply"], output=d / "T.txt", method="density")
+            F.align_files(files["ref", "ply"], files["cur", "ply"], output=d / "T.txt", method="density")
 
         def watch():
             frames = d / "frames"
@@ -210,7 +210,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
             with all_or_none():
                 for i in range(2):
                     write_points(frames / f"f{i}.ply", s.current)
-            for _ in P.watch_folder(files["ref", "ply"], frames):
+            for _ in F.watch_folder(files["ref", "ply"], frames):
                 pass
 
         def action():
@@ -223,9 +223,9 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
 
         step("change", change)
         step("distance", distance)
-        step("build", lambda: P.build_field_file(files["ref", "ply"], output=d / "r.sdpf"))
-        step("bool", lambda: P.combine_files("difference", files["cur", "ply"], d / "r.sdpf", output=d / "new.sdpf"))
-        step("mesh", lambda: P.mesh_file(d / "new.sdpf", output=d / "new.ply"))
+        step("build", lambda: F.build_field_file(files["ref", "ply"], output=d / "r.sdpf"))
+        step("bool", lambda: F.combine_files("difference", files["cur", "ply"], d / "r.sdpf", output=d / "new.sdpf"))
+        step("mesh", lambda: F.mesh_file(d / "new.sdpf", output=d / "new.ply"))
         step("align", align)
         step("watch", watch)
         step("action", action)

@@ -46,7 +46,7 @@ holds what that share holds at ≈ 1.2 KB per point and epoch, its halo included
 mean density. Tiles that share cannot hold (a limit below the processes themselves, or a given
 ``--tile-size``) are refused before any cluster starts, with the smallest limit that works.
 :func:`sdp.io.write_points_streamed` writes the output chunk by chunk (LAS/LAZ keeps every input
-dimension). ``sdp change`` takes this path by itself (:func:`sdp.cli._commands.plan_change`) when two
+dimension). ``sdp change`` takes this path by itself (:func:`sdp.plan_change`) when two
 dense grids over the box (:func:`dense_grid_bytes`), or the points in memory (the process and
 ≈ 200 bytes per point: :func:`untiled_point_bytes`), would exceed the memory limit.
 

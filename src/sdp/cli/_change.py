@@ -1,0 +1,382 @@
+"""``sdp change`` as a function: :func:`compare_files` and the plan it makes before any work.
+
+:func:`compare_files` decides by itself, before any work, whether two clouds are compared in
+memory (:func:`sdp.detect_changes`) or in tiles on Dask (:func:`sdp.detect_changes_tiled`),
+exactly as the command does (:func:`plan_change`), and writes the labelled clouds. It checks its
+options and its outputs (:func:`sdp.io.check_outputs`) before it reads anything and writes all
+its outputs or none (:func:`sdp.io.all_or_none`). Error messages name options as the command line
+spells them (``--align-class`` for ``align_class=``).
+
+References
+----------
+.. [1] A. W. Vieira et al., "Spatial Density Patterns as Representation for Point Cloud
+   Comparison and Applications", Algorithm 1.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from . import _text as report
+from ._common import align_clouds, check_picture_extras, disappeared_path, is_store, pictures, sensor_origins
+from .._core import _validate as V
+from .._core._memory import format_bytes
+from ..defaults import DEFAULTS
+from ..options import Coverage, Execution, Lattice, Outputs, Registration
+from ..errors import SDPError
+from ..io._output import all_or_none, check_outputs
+from ..io._read import read_points
+
+
+__all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
+
+
+@dataclass
+class ChangePlan:
+    """How :func:`compare_files` compares two files: in memory or in tiles (:func:`plan_change`).
+
+    Attributes
+    ----------
+    tiled : bool
+        True: :func:`sdp.detect_changes_tiled` on Dask; False: :func:`sdp.detect_changes`.
+    reason : str or None
+        Why tiles were taken without being asked for (the grids or points exceed the memory
+        limit); None when they were asked for, or when the comparison runs in memory.
+    voxel_size, sigma_voxels : float or None
+        The tiled run's voxel and σ in voxels (in memory, :func:`sdp.detect_changes` decides them).
+    sources : list or None
+        What the tiled run reads: (reference, current) as :class:`~sdp.io.PointSource`, the
+        reference possibly a :class:`~sdp.FieldStore`.
+    """
+
+    tiled: bool
+    reason: str | None = None
+    voxel_size: float | None = None
+    sigma_voxels: float | None = None
+    sources: list | None = None
+
+
+@dataclass
+class FileComparison:
+    """What :func:`compare_files` found and wrote.
+
+    Attributes
+    ----------
+    reference, current : str
+        The two files, as given.
+    result : ChangeResult
+        The library's result (:func:`sdp.detect_changes`, or :func:`sdp.detect_changes_tiled`:
+        ``result.tiled``).
+    summary : dict
+        JSON-serializable: ``result.summary()`` with the reading (or writing) time, the
+        alignment, and ``outputs``; what ``sdp change --json`` prints.
+    tiled : bool
+        Whether the clouds were compared in tiles.
+    alignment : Alignment or None
+        With ``align=``: the transform that moved the current scan onto the reference.
+    outputs : list of str
+        The files written.
+    """
+
+    reference: str
+    current: str
+    result: object
+    summary: dict
+    tiled: bool = False
+    alignment: object = None
+    outputs: list[str] = field(default_factory=list)
+
+    def summary_text(self) -> str:
+        """The table ``sdp change`` prints: counts, alignment, parameters, coverage, regions, times, files."""
+        return report.change_text(self.summary, self.reference, self.current)
+
+
+def plan_change(reference, current, *, output=None, format: str | None = None, outputs: Outputs | None = None,
+                lattice: Lattice | None = None, coverage: Coverage | None = None,
+                align: Registration | str | None = None, decision: str = DEFAULTS.decision,
+                execution: Execution | None = None) -> ChangePlan:
+    """Decide, before any work, whether :func:`compare_files` works in memory or in tiles.
+
+    Tiles are taken when ``execution.tiled`` is True, when ``reference`` is a ``.zarr`` field store, or
+    when two dense float32 grids over the clouds' box (:func:`sdp.scale._tiles.dense_grid_bytes`), or
+    the points themselves (:func:`sdp.scale._tiles.untiled_point_bytes`), would exceed the memory
+    limit (:func:`sdp._core._memory.memory_limit`). Only LAS/LAZ, NPY and binary PLY files can be read
+    in slices, and only the point decision with footprint coverage runs in tiles: other
+    files, ``grid_size``, ``align``, ``decision="cluster"`` or a given sensor position keep
+    the comparison in memory (and are refused with ``tiled=True``). With ``voxel_size="auto"``
+    the voxel is measured on the first slice of each file.
+
+    Parameters
+    ----------
+    reference, current, format, outputs, lattice, coverage, align, decision, execution
+        As in :func:`compare_files` (pictures and reports are made in memory only: refused when
+        tiles are taken).
+    output : path-like, optional
+        Checked here only to be LAS/LAZ when tiles are taken (they stream their output).
+
+    Returns
+    -------
+    ChangePlan
+
+    Raises
+    ------
+    SDPError
+        An option the tiles do not have with ``tiled=True``, files that can't be read in
+        slices, ``both`` with a field store, or an output that is not LAS/LAZ for tiles.
+    """
+    from .._core._memory import memory_limit as limit
+    from ..io._cloud import FORMATS
+    from ..io._source import PointSource
+    from ..scale._tiles import dense_grid_bytes, sampled_lattice, untiled_point_bytes
+
+    outputs = Outputs() if outputs is None else outputs
+    lattice = Lattice() if lattice is None else lattice
+    coverage = Coverage() if coverage is None else coverage
+    execution = Execution() if execution is None else execution
+    both, tiled, align = outputs.both, execution.tiled, Registration.of(align)
+    if is_store(reference):  # a stored reference field: its lattice, σ, h and tiles
+        from ..scale._store import FieldStore
+
+        sources = [FieldStore.open(reference), PointSource.open(current, format=format)]
+        if both:
+            raise SDPError("--both needs the reference points; a .zarr field store only tells what appeared")
+        return ChangePlan(tiled=True, voxel_size=sources[0].voxel_size,
+                          sigma_voxels=sources[0].sigma / sources[0].voxel_size, sources=sources)
+    streamed = all((format or FORMATS.get(Path(f).suffix.lower())) in ("las", "npy", "ply")
+                   for f in (reference, current))
+    # tiles follow no rays: a given sensor keeps the comparison in memory
+    given_sensor = not (isinstance(coverage.sensor_origin, str) and coverage.sensor_origin in ("auto", "none"))
+    if not tiled and (not streamed or lattice.grid_size is not None or align or decision != "point" or given_sensor):
+        return ChangePlan(tiled=False)
+    if tiled:
+        V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
+                              decision=decision, pictures=outputs.pictures)
+        if not streamed:
+            raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; convert the clouds first")
+    try:
+        sources = [PointSource.open(f, format=format) for f in (reference, current)]
+    except SDPError:
+        if tiled:
+            raise
+        return ChangePlan(tiled=False)  # ASCII PLY and the like: the in-memory path reads them (or reports the error)
+    voxel, sigma_voxels = sampled_lattice(sources, voxel_size=lattice.voxel_size, k=lattice.k,
+                                          sigma_voxels=lattice.sigma_voxels)
+    lo = np.minimum(sources[0].lo, sources[1].lo)
+    hi = np.maximum(sources[0].hi, sources[1].hi)
+    grids = 2 * dense_grid_bytes(lo, hi, voxel, sigma_voxels=sigma_voxels)
+    points = untiled_point_bytes(sum(s.n_rows for s in sources))
+    cap = limit(execution.memory_limit)
+    if not (tiled or max(grids, points) > cap):
+        return ChangePlan(tiled=False)
+    if output is not None and Path(output).suffix.lower() not in (".las", ".laz"):  # the tiles stream LAS/LAZ
+        raise SDPError(f"{output}: the clouds are compared in tiles (two dense grids would need "
+                       f"{format_bytes(grids)}, above the memory limit of {format_bytes(cap)}), whose "
+                       "output streams to LAS/LAZ: give -o OUT.laz, or a larger --memory-limit")
+    reason = None if tiled else (f"comparing in tiles on Dask: dense grids of {format_bytes(grids)} or the points "
+                                 f"in memory ({format_bytes(points)} with the process) exceed the memory limit of "
+                                 f"{format_bytes(cap)}")
+    if reason and outputs.pictures:  # the pictures need every point in memory
+        raise SDPError(f"--png/--html/--report are made in memory, but dense grids of {format_bytes(grids)} "
+                       f"exceed the memory limit of {format_bytes(cap)}: give a larger --memory-limit or no pictures")
+    return ChangePlan(tiled=True, reason=reason, voxel_size=float(voxel), sigma_voxels=sigma_voxels, sources=sources)
+
+
+def compare_files(reference, current, *, output, outputs: Outputs | None = None, format: str | None = None,
+                  lattice: Lattice | None = None, coverage: Coverage | None = None,
+                  align: Registration | str | None = None, execution: Execution | None = None,
+                  decision: str = DEFAULTS.decision,
+                  min_region_points: int = DEFAULTS.min_region_points) -> FileComparison:
+    """Compare two point-cloud files and write the labelled clouds: ``sdp change`` as a function.
+
+    The clouds are compared in memory (:func:`sdp.detect_changes`) or, when they need more
+    than the memory limit, in tiles on Dask (:func:`sdp.detect_changes_tiled`): the choice of
+    :func:`plan_change`, made before any work, exactly as the command makes it. The output
+    holds every point of ``current`` with the fields ``change`` (0 unchanged, 1 appeared,
+    2 not comparable, :mod:`sdp.change._coverage`) and ``region`` (-1: none), in memory also ``G``
+    and ``F`` (the density and F = h − G at the point); LAS/LAZ output of LAS/LAZ input keeps
+    every input dimension. Every default is :data:`sdp.DEFAULTS`.
+
+    Parameters
+    ----------
+    reference, current : path-like
+        Point-cloud files (PCD, PLY, LAS/LAZ, XYZ/TXT/CSV, NPY/NPZ; ``format`` overrides the
+        extension). ``reference`` may be a ``.zarr`` field store (:func:`build_field_file`):
+        compared in tiles, what appeared only.
+    output : path-like
+        The labelled current cloud (.ply, .las, .laz, .npz; tiles write LAS/LAZ).
+    outputs : Outputs, optional
+        What else to write (:class:`sdp.Outputs`): ``both``, the reference's points labelled
+        as disappeared, to :func:`disappeared_path`; ``png`` and ``html``, pictures of the
+        appeared points (:func:`sdp.render_changes`, :func:`sdp.render_changes_html`);
+        ``report``, one self-contained HTML page (:func:`sdp.change_report`: summary,
+        parameters and why, maps of both directions, region sizes, the region table with
+        thumbnails, a 3-D view; in memory only, refused with tiles); ``aligned``, the current's
+        points where the alignment moved them (default: its own coordinates).
+    lattice, decision, min_region_points
+        As in :func:`sdp.detect_changes`.
+    coverage : Coverage, optional
+        As in :func:`sdp.detect_changes`; ``sensor_origin="viewpoint"`` is ``"auto"`` refusing
+        files that record no sensor position. A given position is the reference's; with
+        ``align`` the current's is moved with its scan.
+    align : Registration, "density" or "gicp", optional
+        Register ``current`` onto ``reference`` first (:class:`sdp.Registration`,
+        :func:`sdp.align`).
+    execution : Execution, optional
+        The memory limit and the tiles (:class:`sdp.Execution`): ``tiled`` compares in tiles
+        even if the clouds fit in memory; ``notify`` is called with one line when the
+        comparison switches to tiles by itself (``sdp change`` prints it on stderr).
+
+    Returns
+    -------
+    FileComparison
+        ``summary`` (what ``--json`` prints), ``summary_text()`` (the table), the files written.
+
+    Raises
+    ------
+    SDPError
+        Bad options, outputs that can't be written or would overwrite an input, unreadable
+        files (one-line messages; nothing is written).
+
+    References
+    ----------
+    .. [1] A. W. Vieira et al., "Spatial Density Patterns as Representation for Point Cloud
+       Comparison and Applications", Algorithm 1.
+    .. [2] J. P. Underwood et al., "Explicit 3D change detection using ray-tracing in spherical
+       coordinates", ICRA 2013 (``sensor_origin``).
+
+    Examples
+    --------
+    >>> r = sdp.compare_files("ref.laz", "cur.laz", output="changes.laz",
+    ...                       outputs=sdp.Outputs(both=True))  # doctest: +SKIP
+    >>> print(r.summary_text()); r.tiled, r.summary["current"]["appeared"]  # doctest: +SKIP
+    """
+    outputs = Outputs() if outputs is None else outputs
+    lattice = Lattice() if lattice is None else lattice
+    coverage = Coverage() if coverage is None else coverage
+    execution = Execution() if execution is None else execution
+    align = Registration.of(align)
+    out = Path(output)
+    check_outputs([out, disappeared_path(out) if outputs.both else None, outputs.png, outputs.html, outputs.report],
+                  [reference, current])
+    check_picture_extras(png=outputs.png, html=outputs.html, report=outputs.report)
+    V.integer_at_least("min_region_points", min_region_points, 0)
+    if execution.tiled and not is_store(reference):
+        V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
+                              decision=decision, pictures=outputs.pictures)
+    plan = plan_change(reference, current, output=out, format=format, outputs=outputs, lattice=lattice,
+                       coverage=coverage, align=align, decision=decision, execution=execution)
+    if plan.reason and execution.notify is not None:
+        execution.notify(plan.reason)
+    with all_or_none():
+        if plan.tiled:
+            return _compare_tiled(plan, reference, current, out, both=outputs.both,
+                                  min_region_points=min_region_points, lattice=lattice, execution=execution)
+        return _compare_in_memory(reference, current, out, outputs=outputs, format=format, lattice=lattice,
+                                  coverage=coverage, align=align, memory_limit=execution.memory_limit,
+                                  detect=dict(decision=decision, min_region_points=min_region_points))
+
+
+def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, format, lattice: Lattice,
+                       coverage: Coverage, align: Registration | None, memory_limit, detect: dict) -> FileComparison:
+    from ..change._detect import detect_changes
+
+    t0 = time.perf_counter()
+    ref, cur = read_points(reference, format=format), read_points(current, format=format)
+    t_read = time.perf_counter() - t0
+    _check_in_memory(len(ref.xyz) + len(cur.xyz), memory_limit)
+    alignment, moved = None, cur
+    if align:
+        alignment = align_clouds(ref, cur, (reference, current), align)
+        moved = cur.transformed(alignment.matrix)  # the current scan's sensor moves with it
+    origin = sensor_origins(coverage.sensor_origin, (reference, ref), (current, moved), alignment)
+    r = detect_changes(ref, moved, lattice=lattice, coverage=replace(coverage, sensor_origin=origin),
+                       memory_limit=memory_limit, **detect)
+    out_xyz = moved.xyz if outputs.aligned else cur.xyz
+    both, png, html, report = outputs.both, outputs.png, outputs.html, outputs.report
+    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_labels, r.current_field, moved.xyz)]
+    if both:
+        jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_labels,
+                     r.reference_field, ref.xyz))
+    outputs = _write_labelled(jobs, inputs=(reference, current))
+    outputs += pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}",
+                         regions=r.appeared_regions if out_xyz is moved.xyz else ())  # boxes in the moved frame
+    summary = r.summary()
+    summary["timings"]["read"] = t_read
+    if alignment is not None:
+        summary["alignment"] = alignment.summary()
+        summary["timings"]["align"] = alignment.seconds
+    if report:
+        outputs.append(str(report))
+    summary["outputs"] = outputs
+    if report:
+        from ..viz._report import change_report
+
+        t = time.perf_counter()
+        given = coverage.sensor_origin
+        options = dict(voxel_size=lattice.voxel_size, grid_size=lattice.grid_size, sigma_voxels=lattice.sigma_voxels,
+                       k=lattice.k, h=lattice.h, decision=detect["decision"],
+                       min_region_points=detect["min_region_points"], range_noise=coverage.range_noise,
+                       sensor_origin=given if isinstance(given, str) else given.tolist())
+        change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options,
+                      names=(Path(reference).name, Path(current).name))
+        summary["timings"]["report"] = time.perf_counter() - t
+    return FileComparison(str(reference), str(current), r, summary, tiled=False, alignment=alignment, outputs=outputs)
+
+
+def _check_in_memory(n_points: int, memory_limit) -> None:
+    """Refuse, before any field is built, a comparison in memory that would exceed the memory
+    limit as a whole (:func:`sdp.scale._tiles.untiled_point_bytes`), with the smallest limit that holds it."""
+    from ..errors import GridTooLargeError
+    from .._core._memory import memory_limit as limit
+    from ..scale._tiles import untiled_point_bytes
+
+    need, cap = untiled_point_bytes(n_points), limit(memory_limit)
+    if need > cap:
+        raise GridTooLargeError(
+            f"comparing {n_points:,} points in memory needs about {format_bytes(need)}, above the memory limit "
+            f"of {format_bytes(cap)}: give --memory-limit {math.ceil(need / 2**20)}MB or more (LAS/LAZ, NPY or "
+            "binary PLY files with the point decision are compared in tiles instead)")
+
+
+def _write_labelled(jobs, inputs) -> list[str]:
+    """Write each (path, cloud, xyz, state, region, field, xyz the field saw) as a labelled cloud:
+    ``change`` (0 unchanged, 1 changed, 2 not comparable), ``region``, ``G`` and ``F``."""
+    from ..io._output import write_points
+
+    written = []
+    for path, cloud, xyz, state, region, fld, seen in jobs:
+        fields = {"change": state, "region": region.astype(np.int32),
+                  "G": fld.density(seen).astype(np.float32), "F": fld.field(seen).astype(np.float32)}
+        write_points(path, xyz, fields, like=cloud, inputs=inputs)
+        written.append(str(path))
+    return written
+
+
+def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min_region_points,
+                   lattice: Lattice, execution: Execution) -> FileComparison:
+    from ..io._source import write_points_streamed
+    from ..scale._tiles import detect_changes_tiled
+
+    lattice = replace(lattice, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels)  # as sampled
+    r = detect_changes_tiled(*plan.sources, lattice=lattice, min_region_points=min_region_points, execution=execution)
+    jobs = [(out, plan.sources[1], "current")]
+    if both:
+        jobs.append((disappeared_path(out), plan.sources[0], "reference"))
+    t = time.perf_counter()
+    outputs = []
+    for path, src, cloud in jobs:
+        def fields_of(start, stop, cloud=cloud):  # from the result's rows: no per-point array of the whole cloud
+            change, region = r.rows(cloud, start, stop)
+            return {"change": change, "region": region}
+
+        outputs.append(str(write_points_streamed(path, src, fields_of, inputs=(reference, current))))
+    summary = r.summary()
+    summary["timings"]["write"] = time.perf_counter() - t
+    summary["outputs"] = outputs
+    return FileComparison(str(reference), str(current), r, summary, tiled=True, outputs=outputs)
+

@@ -1,0 +1,212 @@
+"""``sdp distance`` as a function: signed distances with their level of detection, files to files.
+
+References
+----------
+.. [1] D. Lague, N. Brodu, J. Leroux, "Accurate 3D comparison of complex topography with
+   terrestrial laser scanner", ISPRS J. Photogramm. 82 (2013) (M3C2).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import _text as report
+from ._common import align_clouds, check_picture_extras, sensor_origins
+from .._core import _validate as V
+from .._core._memory import format_bytes
+from ..defaults import DEFAULTS
+from ..options import Cylinder, Execution, Outputs, Registration
+from ..errors import SDPError
+from ..io._output import all_or_none, check_outputs
+from ..io._read import read_points
+
+
+__all__ = ["FileDistances", "distance_files"]
+
+
+@dataclass
+class FileDistances:
+    """What :func:`distance_files` measured and wrote."""
+
+    reference: str
+    current: str
+    result: object  # sdp.Distances
+    summary: dict
+    alignment: object = None
+    outputs: list = field(default_factory=list)
+
+    def summary_text(self) -> str:
+        return report.distance_text(self.summary, self.reference, self.current)
+
+
+def distance_files(reference, current, *, output, core_points=None, outputs: Outputs | None = None,
+                   format: str | None = None, cylinder: Cylinder | None = None,
+                   registration_error: float | str = "auto", orientation=None,
+                   sensor_origin=DEFAULTS.sensor_origin, align: Registration | str | None = None,
+                   execution: Execution | None = None) -> FileDistances:
+    """Signed distances from the reference to the current along the normal, with M3C2's level of
+    detection, written per core point: ``sdp distance`` as a function.
+
+    The output holds the core points (default: every reference point, M3C2's epoch 1) with the
+    fields of :data:`sdp.distance._distances.DISTANCE_FIELDS` (``distance``, ``lod``, ``significant``,
+    ``n1``, ``n2``, ``spread1``, ``spread2``, ``normal_x/y/z``; NaN distance where an epoch has
+    no points near: not comparable). LAS/LAZ output of LAS/LAZ core points keeps every input
+    dimension.
+
+    Parameters
+    ----------
+    reference, current : path-like
+        Point-cloud files (``format`` overrides the extension).
+    output : path-like
+        The core points with their distances (.ply, .las, .laz, .npz).
+    core_points : path-like, optional
+        A cloud file of core points (any format sdp reads).
+    outputs : Outputs, optional
+        ``png``: a map (or view) of the significant distances and their histogram
+        (:func:`sdp.render_distances`); ``report``: one self-contained HTML page
+        (:func:`sdp.distance_report`: summary, parameters and why, the map and histogram, a
+        3-D view). In memory only (refused with tiles).
+    cylinder, orientation, sensor_origin
+        As in :func:`sdp.distances` (``sensor_origin`` also takes ``"viewpoint"`` and ``"X,Y,Z"``,
+        as :func:`compare_files`).
+    registration_error : float or "auto"
+        M3C2's registration error; ``"auto"``: the alignment's RMS residual with ``align``, else 0.
+    align : Registration, "density" or "gicp", optional
+        Register the current onto the reference first, as :func:`compare_files`; the distances are
+        between the aligned epochs.
+    execution : Execution, optional
+        The memory limit and the tiles: ``tiled`` measures in tiles on Dask
+        (:func:`sdp.distances_tiled`: every reference row, normals along ``orientation``, LAS/LAZ
+        output streamed from the reference), as it does by itself when the in-memory work would
+        exceed the memory limit (``notify`` gets one line saying so).
+
+    Returns
+    -------
+    FileDistances
+
+    Raises
+    ------
+    SDPError
+        Bad options, outputs that can't be written or would overwrite an input, unreadable files.
+
+    References
+    ----------
+    .. [1] D. Lague, N. Brodu, J. Leroux, "Accurate 3D comparison of complex topography with
+       terrestrial laser scanner", ISPRS J. Photogramm. 82 (2013) (M3C2).
+    """
+    from ..distance._distances import distances
+    from ..io._output import write_points
+
+    outputs = Outputs() if outputs is None else outputs
+    cylinder = Cylinder() if cylinder is None else cylinder
+    execution = Execution() if execution is None else execution
+    align = Registration.of(align)
+    png, report, memory_limit = outputs.png, outputs.report, execution.memory_limit
+    out = Path(output)
+    check_outputs([out, png, report], [reference, current, core_points])
+    check_picture_extras(png=png, report=report)
+    V.auto_or_nonnegative("--registration-error", registration_error)
+    sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)
+    if orientation is not None:
+        orientation = V.sensor_origin_option("--orientation", orientation)
+        if isinstance(orientation, str):
+            raise SDPError(f"--orientation must be X,Y,Z, got {orientation!r}")
+    if _distances_in_tiles(reference, current, output, format=format, execution=execution, core_points=core_points,
+                           align=align, png=png, report=report):
+        return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,
+                               orientation=orientation, cylinder=cylinder, execution=execution)
+    with all_or_none():
+        t0 = time.perf_counter()
+        ref, cur = read_points(reference, format=format), read_points(current, format=format)
+        core = None if core_points is None else read_points(core_points, format=format)
+        t_read = time.perf_counter() - t0
+        alignment, moved = None, cur
+        if align:
+            alignment = align_clouds(ref, cur, (reference, current), align)
+            moved = cur.transformed(alignment.matrix)
+        reg = V.auto_or_nonnegative("--registration-error", registration_error)
+        if reg == "auto":
+            reg = float(alignment.rmse) if alignment is not None and np.isfinite(alignment.rmse) else 0.0
+        origin = sensor_origins(sensor, (reference, ref), (current, moved), alignment)
+        d = distances(ref, moved, core_points=core, cylinder=cylinder, registration_error=reg,
+                      orientation=orientation, sensor_origin=origin, memory_limit=memory_limit)
+        like = core if core is not None else ref
+        like = like if like.n_dropped == 0 else None  # rows were dropped: the input's dimensions no longer line up
+        write_points(out, d.core_points, d.fields(), like=like, inputs=(reference, current, core_points))
+        outputs = [str(out)]
+        if png:
+            from ..viz._render import render_distances
+
+            render_distances(png, d.core_points, d.distance, d.significant, d.lod,
+                             title=f"{Path(reference).name} → {Path(current).name}: signed distance")
+            outputs.append(str(png))
+        summary = d.summary()
+        summary["timings"]["read"] = round(t_read, 4)
+        if alignment is not None:
+            summary["alignment"] = alignment.summary()
+        if report:
+            from ..viz._report import distance_report
+
+            outputs.append(str(report))
+            summary["outputs"] = outputs
+            t = time.perf_counter()
+            distance_report(report, d, summary=summary, names=(Path(reference).name, Path(current).name),
+                            options=dict(projection_scale=cylinder.projection_scale,
+                                         normal_scale=cylinder.normal_scale, max_distance=cylinder.max_distance,
+                                         registration_error=registration_error, orientation=orientation,
+                                         sensor_origin=sensor_origin))
+            summary["timings"]["report"] = round(time.perf_counter() - t, 4)
+    summary["outputs"] = outputs
+    return FileDistances(str(reference), str(current), d, summary, alignment, outputs)
+
+
+def _distances_in_tiles(reference, current, output, *, format, execution: Execution, core_points, align, png,
+                        report=None) -> bool:
+    """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (about
+    450 bytes per reference point and 200 per current point) would exceed the memory limit."""
+    from .._core._memory import memory_limit as limit
+    from ..io._source import PointSource
+
+    tiled, notify = execution.tiled, execution.notify
+    try:
+        n_ref, n_cur = (PointSource.open(f, format=format).n_rows for f in (reference, current))
+    except SDPError:
+        if tiled:
+            raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; "
+                           "convert the clouds first") from None
+        return False
+    need, cap = 450.0 * n_ref + 200.0 * n_cur, limit(execution.memory_limit)
+    if not (tiled or need > cap):
+        return False
+    for option, given in (("--core-points", core_points), ("--align", align), ("--png", png), ("--report", report)):
+        if given:
+            raise SDPError(f"{option} is not available in tiles (the in-memory work would need "
+                           f"{format_bytes(need)}; the memory limit is {format_bytes(cap)})")
+    if Path(output).suffix.lower() not in (".las", ".laz"):
+        raise SDPError(f"{output}: distances in tiles stream to LAS/LAZ: give -o OUT.laz")
+    if not tiled and notify is not None:
+        notify(f"measuring in tiles on Dask: the in-memory work would need {format_bytes(need)}, above the "
+               f"memory limit of {format_bytes(cap)}")
+    return True
+
+
+def _distance_tiled(reference, current, out: Path, *, format, registration_error, orientation, cylinder: Cylinder,
+                    execution: Execution) -> FileDistances:
+    from ..io._source import PointSource, write_points_streamed
+    from ..scale._tiles import distances_tiled
+
+    reg = V.auto_or_nonnegative("--registration-error", registration_error)
+    with all_or_none():
+        d = distances_tiled(reference, current, cylinder=cylinder, registration_error=0.0 if reg == "auto" else reg,
+                            orientation=orientation, execution=execution)
+        fields = d.fields()
+        write_points_streamed(out, PointSource.open(reference, format=format),
+                              lambda a, b: {k: v[a:b] for k, v in fields.items()}, inputs=(reference, current))
+    summary = d.summary()
+    summary["outputs"] = [str(out)]
+    return FileDistances(str(reference), str(current), d, summary, None, [str(out)])
+

@@ -1,0 +1,303 @@
+"""The other commands as functions, files in, files out: ``sdp build``, ``mesh``, ``bool``,
+``info``, ``align``, ``watch``, ``eval`` and ``render``."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from . import _text as report
+from ._common import align_clouds, is_field, is_store, pictures, sensor_origins
+from ..defaults import DEFAULTS
+from ..options import Coverage, Execution, Lattice, Registration
+from ..errors import SDPError
+from ..io._output import all_or_none, check_outputs
+from ..io._read import read_points
+
+
+__all__ = ["build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder", "Evaluation", "evaluate_files", "render_file"]
+
+
+def _lattice(clouds, lattice: Lattice, memory_limit, like=None) -> dict:
+    """``DensityField.from_points`` options: ``lattice`` (``auto``: from all ``clouds``' point
+    spacing), or the lattice, σ and h of the field ``like`` so results can be combined."""
+    from .._core._points import as_points
+    from ..fields._spacing import resolve_lattice
+
+    if like is not None:
+        return dict(voxel_size=like.voxel_size, sigma_voxels=like.sigma / like.voxel_size, h=like.h,
+                    truncate=like.truncate, memory_limit=memory_limit)
+    kw = lattice.keywords()
+    kw["voxel_size"], kw["sigma_voxels"] = resolve_lattice(
+        [as_points(c) for c in clouds], voxel_size=kw.pop("voxel_size", "auto"), grid_size=kw.pop("grid_size", None),
+        k=lattice.k, sigma_voxels=lattice.sigma_voxels)
+    return dict(kw, memory_limit=memory_limit)
+
+
+def _field_or_points(path, format):
+    """A field file loaded, or a cloud file's points (n, 3)."""
+    from ..fields._density import DensityField
+
+    return DensityField.load(path) if is_field(path) else read_points(path, format=format).xyz
+
+
+def _field(path, format, lattice: Lattice, memory_limit):
+    """A field file loaded, or a cloud file's field built on ``lattice``."""
+    from ..fields._density import DensityField
+
+    x = _field_or_points(path, format)
+    return x if isinstance(x, DensityField) else DensityField.from_points(x, **_lattice([x], lattice, memory_limit))
+
+
+def build_field_file(cloud, *, output, format: str | None = None, lattice: Lattice | None = None,
+                     execution: Execution | None = None):
+    """Build the density field of a cloud file and save it (``sdp build``).
+
+    ``output`` ``.sdpf``: :meth:`DensityField.from_points` in memory on ``lattice``,
+    :meth:`DensityField.save`; ``.zarr``: a :class:`~sdp.FieldStore` built in tiles
+    (:func:`sdp.build_field_tiled` with ``execution``, the file read in slices,
+    ``voxel_size="auto"`` from its first slice). Returns the field or store.
+    """
+    lattice = Lattice() if lattice is None else lattice
+    execution = Execution() if execution is None else execution
+    check_outputs([output], [cloud])
+    if not is_store(output):
+        fld = _field(cloud, format, lattice, execution.memory_limit)
+        _save_field(fld, output, inputs=(cloud,))
+        return fld
+    from ..io._source import PointSource
+    from ..scale._tiles import build_field_tiled, sampled_lattice
+
+    source = PointSource.open(cloud, format=format)
+    voxel, sigma_voxels = sampled_lattice([source], voxel_size=lattice.voxel_size, k=lattice.k,
+                                          sigma_voxels=lattice.sigma_voxels)
+    return build_field_tiled(source, output, lattice=replace(lattice, voxel_size=voxel, sigma_voxels=sigma_voxels),
+                             execution=execution)
+
+
+def _save_field(fld, path, inputs):
+    from ..io._output import refuse_overwrite
+
+    refuse_overwrite(path, inputs)
+    fld.save(path)
+
+
+def mesh_file(path, *, output, level: float = 0.0, format: str | None = None, lattice: Lattice | None = None,
+              memory_limit=None):
+    """Write the iso-surface F = ``level`` of a field (``.sdpf``), field store (``.zarr``) or
+    cloud file (built on ``lattice``) as PLY/OBJ/STL (``sdp mesh``); returns the Mesh."""
+    from .._core._memory import memory_limit as limit
+    from ..io._output import write_mesh
+
+    lattice = Lattice() if lattice is None else lattice
+    check_outputs([output], [path])
+    limit(memory_limit)
+    if is_store(path):
+        from ..scale._store import FieldStore
+
+        mesh = FieldStore.open(path).mesh(level=level)
+    else:
+        mesh = _field(path, format, lattice, memory_limit).mesh(level=level)
+    write_mesh(output, mesh, inputs=(path,))
+    return mesh
+
+
+def combine_files(operation: str, a, b, *, output, format: str | None = None, lattice: Lattice | None = None,
+                  memory_limit=None):
+    """Union, intersection or difference of two fields or clouds, saved (``sdp bool``).
+
+    A cloud is built on the lattice of the other operand when that is a field, else both
+    clouds on ``lattice`` (``auto``: one voxel from both). ``output`` ``.sdpf``: the field; ``.ply``/``.obj``/``.stl``:
+    its surface (returns the Mesh); ``.zarr``: two field stores combined tile by tile.
+    """
+    from .._core._memory import memory_limit as limit
+    from ..fields import _boolean as boolean
+    from ..fields._density import DensityField
+    from ..io._output import write_mesh
+
+    if operation not in ("union", "intersection", "difference"):
+        raise SDPError(f"operation must be union, intersection or difference, got {operation!r}")
+    lattice = Lattice() if lattice is None else lattice
+    check_outputs([output], [a, b])
+    limit(memory_limit)
+    if is_store(output):
+        from ..scale._store import FieldStore
+
+        if not (is_store(a) and is_store(b)):
+            raise SDPError("a .zarr output combines two .zarr field stores (build them with sdp build -o X.zarr)")
+        return FieldStore.open(a).combine(FieldStore.open(b), operation, output)
+    items = [_field_or_points(p, format) for p in (a, b)]
+    like = next((x for x in items if isinstance(x, DensityField)), None)
+    kw = _lattice(items, lattice, memory_limit, like)  # clouds are built on a given field's lattice, else on one from both
+    fa, fb = (x if isinstance(x, DensityField) else DensityField.from_points(x, **kw) for x in items)
+    result = getattr(boolean, operation)(fa, fb)
+    if is_field(output):
+        _save_field(result, output, inputs=(a, b))
+        return result
+    mesh = result.mesh()
+    write_mesh(output, mesh, inputs=(a, b))
+    return mesh
+
+
+def describe_file(path, *, format: str | None = None) -> dict:
+    """What ``sdp info`` prints: kind, size and parameters of a cloud, field (``.sdpf``) or field store."""
+    from ..fields._density import DensityField
+
+    if is_store(path):
+        from ..scale._store import FieldStore
+
+        st = FieldStore.open(path)
+        return {"kind": "field store", "voxel_size": st.voxel_size, "sigma": st.sigma, "h": st.h,
+                "tiles": len(st.tiles), "tile_blocks": st.tile_blocks, "blocks": st.n_blocks, "n_points": st.n_points}
+    if is_field(path):
+        f = DensityField.load(path)
+        return {"kind": "field", "voxel_size": f.voxel_size, "sigma": f.sigma, "h": f.h, "blocks": f.n_blocks,
+                "box_nodes": list(f.grid.shape), "origin": f.grid.origin.tolist(), "n_points": f.n_points,
+                "method": f.method, "megabytes": f.nbytes / 2**20}
+    c = read_points(path, format=format)
+    return {"kind": "cloud", "points": len(c), "dropped_non_finite": c.n_dropped,
+            "min": c.xyz.min(0).tolist(), "max": c.xyz.max(0).tolist(), "fields": sorted(c.fields)}
+
+
+def align_files(reference, current, *, output, method: str = DEFAULTS.align_method, fix_horizontal: bool = False,
+                align_class=None, format: str | None = None):
+    """Estimate the rigid transform that moves ``current`` onto ``reference`` (a cloud, or a
+    field ``.sdpf`` for ``method="density"``) and write it as a 4x4 text matrix for
+    ``numpy.loadtxt`` (``sdp align REFERENCE CURRENT``: the reference first, as in every
+    command); ``fix_horizontal`` and ``align_class`` as in :func:`compare_files`. Returns the
+    :class:`~sdp.Alignment`."""
+    from ..fields._density import DensityField
+    from ..io._output import atomic_path, refuse_overwrite
+
+    check_outputs([output], [reference, current])
+    refuse_overwrite(output, (reference, current))
+    registration = Registration(method=method, fix_horizontal=fix_horizontal, align_class=align_class)
+    ref = DensityField.load(reference) if is_field(reference) else read_points(reference, format=format)
+    al = align_clouds(ref, read_points(current, format=format), (reference, current), registration)
+    with atomic_path(output) as tmp:
+        np.savetxt(tmp, al.matrix, fmt="%.12g", header=f"sdp align {current} onto {reference} ({method})")
+    return al
+
+
+def watch_folder(reference, frames, *, format: str | None = None, lattice: Lattice | None = None,
+                 update: str = DEFAULTS.update, window: int = DEFAULTS.window, decay: float = DEFAULTS.decay,
+                 min_region_points: int = DEFAULTS.min_region_points, align: Registration | str | None = None,
+                 coverage: Coverage | None = None) -> Iterator:
+    """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order (``sdp watch``).
+
+    ``reference`` is a cloud file or a field (``.sdpf``); ``coverage`` as in
+    :func:`compare_files` (its ``sensor_origin`` is the reference's). The folder and the reference are checked and read
+    now; the frames are read one by one as the returned iterator of :class:`~sdp.FrameChange`
+    (named after their files) advances.
+    """
+    import re
+
+    from ..io._cloud import FORMATS
+    from ..stream._watch import watch
+
+    folder = Path(frames)
+    if not folder.is_dir():
+        raise SDPError(f"{folder}: not a folder of frames")
+    paths = sorted((p for p in folder.iterdir() if p.suffix.lower() in FORMATS and p.is_file()),
+                   key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+    if not paths:
+        raise SDPError(f"{folder}: no point-cloud files ({', '.join(sorted(FORMATS))})")
+    coverage = Coverage() if coverage is None else coverage
+    choice = coverage.sensor_origin
+    if is_field(reference):
+        from ..fields._density import DensityField
+
+        if not (isinstance(choice, str) and choice in ("auto", "none")):
+            raise SDPError("--sensor-origin follows the reference's rays: give the reference cloud, not a field")
+        ref, origin = DensityField.load(reference), None
+    else:
+        ref = read_points(reference, format=format)
+        origin = sensor_origins(choice, (reference, ref), (reference, ref))
+        origin = origin[0] if isinstance(origin, np.ndarray) else origin
+    stream = ((p.name, read_points(p, format=format)) for p in paths)
+    return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
+                 min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin))
+
+
+@dataclass
+class Evaluation:
+    """Scores of predicted change labels against truth (:func:`evaluate_files`).
+
+    Attributes
+    ----------
+    scores : dict
+        :func:`sdp.scores` (what ``sdp eval --json`` prints).
+    points, predicted, true : int
+        Points compared, points predicted changed, truly changed points among the comparable.
+    """
+
+    scores: dict
+    points: int
+    predicted: int
+    true: int
+
+    def summary_text(self) -> str:
+        """The three lines ``sdp eval`` prints."""
+        return report.evaluation_text(self)
+
+
+def evaluate_files(predicted, truth, *, predicted_field: str = "change", truth_field: str = "change",
+                   format: str | None = None) -> Evaluation:
+    """Kappa, precision, recall, IoU … of the labels of one file against another's (``sdp eval``).
+
+    ``predicted_field="change"`` (sdp's field): 1 is changed and 2 not comparable (left out);
+    any other field, and ``truth_field``: nonzero is changed. Both files hold the same points
+    in the same order.
+    """
+    from ..change._coverage import CHANGED, NOT_COMPARABLE
+    from ..change._metrics import scores
+
+    values = []
+    for path, name in ((predicted, predicted_field), (truth, truth_field)):
+        c = read_points(path, format=format)
+        if name not in c.fields:
+            raise SDPError(f"{path}: no per-point field {name!r} (fields: {', '.join(sorted(c.fields)) or 'none'})")
+        values.append(np.asarray(c.fields[name]))
+    if len(values[0]) != len(values[1]):
+        raise SDPError(f"{predicted} has {len(values[0]):,} points and {truth} {len(values[1]):,}: "
+                       "they must be the same points in the same order")
+    if predicted_field == "change":  # sdp's field: 1 changed, 2 not comparable (scored apart)
+        changed, comparable = values[0] == CHANGED, values[0] != NOT_COMPARABLE
+    else:  # any other field: nonzero is changed
+        changed, comparable = values[0] != 0, None
+    true = values[1] != 0
+    sc = scores(true, changed, comparable=comparable)
+    comparable = np.ones(len(true), bool) if comparable is None else comparable
+    return Evaluation(sc, len(true), int(changed.sum()), int(true[comparable].sum()))
+
+
+def render_file(path, *, png=None, html=None, field: str = "change", format: str | None = None) -> list[str]:
+    """Pictures of a labelled cloud (points whose ``field`` is nonzero in vermillion; sdp's
+    ``change``: not comparable grey) or PNG slices of a field ``.sdpf`` (``sdp render``);
+    returns the files written."""
+    if not (png or html):
+        raise SDPError("nothing to write: give --png OUT.png and/or --html OUT.html")
+    check_outputs([png, html], [path])
+    if is_field(path):
+        from ..fields._density import DensityField
+        from ..viz._render import render_field
+
+        if html:
+            raise SDPError("--html draws clouds; for a field use --png (slices), or `sdp mesh` for its surface")
+        render_field(png, DensityField.load(path))
+        return [str(png)]
+    c = read_points(path, format=format)
+    if field not in c.fields:
+        raise SDPError(f"{path}: no per-point field {field!r} to colour by "
+                       f"(fields: {', '.join(sorted(c.fields)) or 'none'}); choose one with --field")
+    values = np.asarray(c.fields[field])
+    if field == "change":  # sdp's field: 0 unchanged, 1 changed, 2 not comparable
+        state, what = values.astype(np.uint8), "changed vermillion, not comparable grey"
+    else:
+        state, what = values != 0, f"{field} ≠ 0 in vermillion"
+    with all_or_none():
+        return pictures(png, html, c.xyz, state, f"{Path(path).name}: {what}")
+
