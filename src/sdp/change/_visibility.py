@@ -53,6 +53,7 @@ import numba as nb
 import numpy as np
 import numpy.typing as npt
 
+from .._core._cells import MAX_INDEX, cell_key, probe, table_bits
 from .._core._kdtree import k_nearest
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ..errors import InvalidPointsError
@@ -646,40 +647,55 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
 
 def _cube_means(query: np.ndarray, bin_size: float) -> tuple[np.ndarray, np.ndarray]:
     """(cube of each point, mean point of each cube) of the cubes of side ``bin_size`` holding
-    ``query``; cubes numbered in the order their first point comes."""
-    return _group_means(query, np.floor(query / bin_size).astype(np.int64))
+    ``query``; cubes numbered in the order their first point comes, means summed in row order
+    (as ``np.bincount``)."""
+    cells = np.floor(query / bin_size).astype(np.int64)
+    inverse, centres = _group_means(query, cells)
+    if len(inverse) < len(query):  # cubes too many to pack into a key: not expected of a scan at its own σ
+        _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
+        number = np.empty(len(first), np.int64)
+        number[np.argsort(first)] = np.arange(len(first))
+        inverse = number[inverse.ravel()]
+        centres = np.stack([np.bincount(inverse, weights=query[:, d]) for d in range(3)], axis=1)
+        centres /= np.bincount(inverse)[:, None]
+    return inverse, centres
 
 
 @nb.njit(cache=True, nogil=True)
 def _group_means(query, cells):
     """(group of each row, mean row of each group) of the rows sharing a cell (x, y, z) of
-    ``cells`` (an open-addressing hash table; groups numbered by their first row; sums in row
-    order, as ``np.bincount``)."""
+    ``cells``: groups numbered by their first row, sums in row order. The cells are counted from
+    their lowest on each axis and hashed (:mod:`sdp._core._cells`); where they span more than
+    ``MAX_INDEX`` on an axis, nothing (empty arrays)."""
     n = cells.shape[0]
-    bits = 6
-    while (1 << bits) < 2 * n:
-        bits += 1
+    lo = np.zeros(3, np.int64)
+    if n:
+        lo[:] = cells[0]
+        hi = lo.copy()
+        for i in range(n):
+            for d in range(3):
+                lo[d] = min(lo[d], cells[i, d])
+                hi[d] = max(hi[d], cells[i, d])
+        for d in range(3):
+            if hi[d] - lo[d] >= MAX_INDEX:
+                return np.empty(0, np.int64), np.empty((0, 3))
+    bits = table_bits(2 * n)
     cap = 1 << bits
-    table = np.full(cap, -1, np.int64)  # group of the slot
+    shift, mask = 64 - bits, cap - 1
+    keys = np.full(cap, -1, np.int64)
+    slot_group = np.empty(cap, np.int64)
     inverse = np.empty(n, np.int64)
-    first = np.empty(n, np.int64)  # a row of each group (its cell)
     sums = np.zeros((n, 3))
     counts = np.zeros(n, np.int64)
     groups = 0
     for i in range(n):
-        cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
-        key = (cx * 73856093) ^ (cy * 19349663) ^ (cz * 83492791)
-        s = ((key * -7046029254386353131) >> (64 - bits)) & (cap - 1)  # Fibonacci hashing (the product wraps)
-        while table[s] >= 0:
-            f = first[table[s]]
-            if cells[f, 0] == cx and cells[f, 1] == cy and cells[f, 2] == cz:
-                break
-            s = (s + 1) & (cap - 1)
-        if table[s] < 0:
-            table[s] = groups
-            first[groups] = i
+        key = cell_key(cells[i, 0] - lo[0], cells[i, 1] - lo[1], cells[i, 2] - lo[2])
+        s = probe(keys, key, shift, mask)
+        if keys[s] < 0:
+            keys[s] = key
+            slot_group[s] = groups
             groups += 1
-        g = table[s]
+        g = slot_group[s]
         inverse[i] = g
         counts[g] += 1
         sums[g, 0] += query[i, 0]
