@@ -6,9 +6,9 @@ A cell ``(ix, iy, iz)``, each index in ``[0, 2**21)``, packs into one int64 key 
 21 bits per axis, 63 in all, so a key is never negative and ``-1`` marks a free slot). A table
 is an int64 array of ``2**bits`` keys, open addressing with linear probing, kept at most half
 full (:func:`table_bits`); a key's first slot is its Fibonacci hash (:func:`slot`): the key times
-``⌊2⁶⁴/φ⌋`` (wrapping), top ``bits`` bits. The multiplication spreads the packed axes over the
-top bits, so cells next to each other along any axis land far apart, and a lookup costs one
-multiply and a shift [1]_. What a slot points to is the caller's: the last point of a cell's
+``⌊2⁶⁴/φ⌋`` (wrapping), top ``bits`` bits. The multiplication mixes all three packed axes
+into the top bits, so that neighbouring cells along any axis spread over the table, and a
+lookup costs one multiply and a shift [1]_. What a slot points to is the caller's: the last point of a cell's
 linked list (:func:`linked_cells`), a cell's row in a CSR layout (:func:`sorted_cells`), a
 group's number (the cube grouping of :mod:`sdp.change._visibility`).
 
