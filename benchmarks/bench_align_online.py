@@ -21,7 +21,6 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import sdp
-from sdp.fields._lattice import BLOCK as B
 from sdp.io._io import read_points
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,16 +35,13 @@ def disagreement(a, b, pts):
     return float(np.sqrt((d**2).sum(axis=1).mean())), float(np.degrees(angle))
 
 
-B2 = B * B
-
-
 @nb.njit(parallel=True, cache=True)
 def _trilinear_gradient(points, origin, voxel, directory, blocks, val, grad):
     """val[p], grad[p] = the trilinear interpolant of a field's blocks and its gradient (per world
     unit) at world position points[p]; 0 outside the grid or where blocks are missing (the earlier
     density alignment's kernel, kept here with the only code that still runs it)."""
     d0, d1, d2 = directory.shape
-    n0, n1, n2 = d0 * B, d1 * B, d2 * B
+    n0, n1, n2 = d0 * 8, d1 * 8, d2 * 8  # blocks of 8³ nodes (sdp.fields._lattice.BLOCK)
     for p in nb.prange(points.shape[0]):
         x = (points[p, 0] - origin[0]) / voxel
         y = (points[p, 1] - origin[1]) / voxel
@@ -64,7 +60,7 @@ def _trilinear_gradient(points, origin, voxel, directory, blocks, val, grad):
                     blk = directory[nx >> 3, ny >> 3, nz >> 3]
                     if blk < 0:
                         continue
-                    v = blocks[blk, (nx & 7) * B2 + (ny & 7) * B + (nz & 7)]
+                    v = blocks[blk, (nx & 7) * 64 + (ny & 7) * 8 + (nz & 7)]
                     wz, dz = (fz, 1.0) if c else (1.0 - fz, -1.0)
                     val[p] += wx * wy * wz * v
                     grad[p, 0] += dx * wy * wz * v / voxel
