@@ -16,6 +16,7 @@ import os
 import time
 from pathlib import Path
 
+import numba as nb
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -35,13 +36,44 @@ def disagreement(a, b, pts):
     return float(np.sqrt((d**2).sum(axis=1).mean())), float(np.degrees(angle))
 
 
+@nb.njit(parallel=True, cache=True)
+def _trilinear_gradient(points, origin, voxel, directory, blocks, val, grad):
+    """val[p], grad[p] = the trilinear interpolant of a field's blocks and its gradient (per world
+    unit) at world position points[p]; 0 outside the grid or where blocks are missing (the earlier
+    density alignment's kernel, kept here with the only code that still runs it)."""
+    d0, d1, d2 = directory.shape
+    n0, n1, n2 = d0 * 8, d1 * 8, d2 * 8  # blocks of 8³ nodes (sdp.fields._lattice.BLOCK)
+    for p in nb.prange(points.shape[0]):
+        x = (points[p, 0] - origin[0]) / voxel
+        y = (points[p, 1] - origin[1]) / voxel
+        z = (points[p, 2] - origin[2]) / voxel
+        val[p], grad[p, 0], grad[p, 1], grad[p, 2] = 0.0, 0.0, 0.0, 0.0
+        if not (x > 0.0 and y > 0.0 and z > 0.0 and x < n0 - 1 and y < n1 - 1 and z < n2 - 1):
+            continue  # also NaN
+        ix, iy, iz = int(x), int(y), int(z)
+        fx, fy, fz = x - ix, y - iy, z - iz
+        for a in range(2):
+            wx, dx = (fx, 1.0) if a else (1.0 - fx, -1.0)
+            for b in range(2):
+                wy, dy = (fy, 1.0) if b else (1.0 - fy, -1.0)
+                for c in range(2):
+                    nx, ny, nz = ix + a, iy + b, iz + c
+                    blk = directory[nx >> 3, ny >> 3, nz >> 3]
+                    if blk < 0:
+                        continue
+                    v = blocks[blk, (nx & 7) * 64 + (ny & 7) * 8 + (nz & 7)]
+                    wz, dz = (fz, 1.0) if c else (1.0 - fz, -1.0)
+                    val[p] += wx * wy * wz * v
+                    grad[p, 0] += dx * wy * wz * v / voxel
+                    grad[p, 1] += wx * dy * wz * v / voxel
+                    grad[p, 2] += wx * wy * dz * v / voxel
+
+
 def legacy_density(ref, cur, levels=4, max_points=100_000, seed=0):
     """The density alignment as it was before this benchmark's rework (kept here so before and
     after are measured in the same run): maximise the mean G_ref(R·p + t) with L-BFGS, gradient
     from the trilinear-gradient kernel, coarse to fine over ``coarsen()``. Returns (matrix, s)."""
     from scipy.optimize import minimize
-
-    from sdp.fields import _kernels as K
 
     start = time.perf_counter()
     field = sdp.DensityField.from_points(ref, voxel_size=sdp.auto_voxel_size(ref) / 2, sigma_voxels=4)
@@ -69,8 +101,8 @@ def legacy_density(ref, cur, levels=4, max_points=100_000, seed=0):
         def cost(y, f=f, scale=scale):
             w, t = y[:3] * scale[:3], y[3:] * scale[3:]
             rp = Rotation.from_rotvec(w).apply(local)
-            K.trilinear_gradient(rp + (c + t), f.grid.origin, f.voxel_size, f.blocks.directory, f.blocks.values,
-                                 val, grad)
+            _trilinear_gradient(rp + (c + t), f.grid.origin, f.voxel_size, f.blocks.directory, f.blocks.values,
+                                val, grad)
             g_w = left_jacobian(w).T @ np.cross(rp, grad).sum(axis=0)
             return -val.sum() / len(p), -np.r_[g_w, grad.sum(axis=0)] * scale / len(p)
 

@@ -4,7 +4,6 @@ from conftest import box_surface, room_scene
 from scipy.spatial.transform import Rotation
 
 import sdp
-from sdp.fields import _kernels as K
 from sdp.registration._align import align, transform_points
 
 
@@ -20,21 +19,6 @@ def disagreement(a, b, pts):
     d = transform_points(a, pts) - transform_points(b, pts)
     angle = np.degrees(Rotation.from_matrix(a[:3, :3] @ b[:3, :3].T).magnitude())
     return float(np.sqrt((d**2).sum(axis=1).mean())), float(angle)
-
-
-@pytest.mark.slow
-def test_gradient_matches_finite_differences(rng):
-    f = sdp.DensityField.from_points(room_scene(rng, n=8000), voxel_size=0.05)
-    q = rng.uniform([0.2, 0.2, 0.05], [3.8, 2.8, 1.0], (500, 3))
-    val, grad = np.empty(len(q)), np.empty((len(q), 3))
-    K.trilinear_gradient(q, f.grid.origin, f.voxel_size, f.blocks.directory, f.blocks.values, val, grad)
-    np.testing.assert_allclose(val, f.density(q), rtol=1e-6, atol=1e-9)
-    eps = 1e-6
-    for axis in range(3):
-        step = np.zeros(3)
-        step[axis] = eps
-        numeric = (f.density(q + step) - f.density(q - step)) / (2 * eps)
-        np.testing.assert_allclose(grad[:, axis], numeric, rtol=1e-3, atol=1e-3)
 
 
 @pytest.mark.slow

@@ -206,3 +206,24 @@ def test_plane_test_helpers_match_numpy(rng):
     for stride in (1, 3, 8):
         np.testing.assert_array_equal(_every_nth_unchanged(query, changed, stride),
                                       query[np.flatnonzero(~changed)[::stride]])
+
+
+@pytest.mark.parametrize("far", [0.0, -3e5, 1e6])
+def test_cube_means_number_cubes_by_first_point_in_any_box(rng, far):
+    """Cubes are numbered in the order their first point comes and their means summed in row order,
+    around the origin and in a box wider than a cell key packs (2**21 cubes per axis: 1e6 / 0.4)."""
+    from sdp.change._visibility import _cube_means
+
+    query = rng.normal(size=(3_000, 3)) * [1.0, 2.0, 0.5]
+    query[::500] += far  # a few points far away (none when far is 0)
+    inverse, centres = _cube_means(query, 0.4)
+    cells = np.floor(query / 0.4).astype(np.int64)
+    _, first, ref_inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
+    ref_inverse = ref_inverse.ravel()
+    number = np.empty(len(first), np.int64)
+    number[np.argsort(first)] = np.arange(len(first))
+    np.testing.assert_array_equal(inverse, number[ref_inverse])
+    ref = np.stack([np.bincount(inverse, weights=query[:, d]) for d in range(3)], axis=1)
+    np.testing.assert_array_equal(centres, ref / np.bincount(inverse)[:, None])
+    inverse, centres = _cube_means(query[:0], 0.4)
+    assert inverse.shape == (0,) and centres.shape == (0, 3)

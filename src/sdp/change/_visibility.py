@@ -53,6 +53,7 @@ import numba as nb
 import numpy as np
 import numpy.typing as npt
 
+from .._core._cells import MAX_INDEX, cell_key, probe, table_bits
 from .._core._kdtree import k_nearest
 from .._core._validate import as_sensor_origins
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
@@ -630,40 +631,62 @@ def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distan
 
 def _cube_means(query: np.ndarray, bin_size: float) -> tuple[np.ndarray, np.ndarray]:
     """(cube of each point, mean point of each cube) of the cubes of side ``bin_size`` holding
-    ``query``; cubes numbered in the order their first point comes."""
-    return _group_means(query, np.floor(query / bin_size).astype(np.int64))
+    ``query`` (cube ``⌊p / bin_size⌋``); cubes numbered in the order their first point comes,
+    means summed in row order (as ``np.bincount``)."""
+    inverse, centres = _group_means(query, bin_size)
+    if len(inverse) < len(query):  # cubes too many to pack into a key: not expected of a scan at its own σ
+        _, first, inverse = np.unique(np.floor(query / bin_size).astype(np.int64), axis=0, return_index=True,
+                                      return_inverse=True)
+        number = np.empty(len(first), np.int64)
+        number[np.argsort(first)] = np.arange(len(first))
+        inverse = number[inverse.ravel()]
+        centres = np.stack([np.bincount(inverse, weights=query[:, d]) for d in range(3)], axis=1)
+        centres /= np.bincount(inverse)[:, None]
+    return inverse, centres
 
 
 @nb.njit(cache=True, nogil=True)
-def _group_means(query, cells):
-    """(group of each row, mean row of each group) of the rows sharing a cell (x, y, z) of
-    ``cells`` (an open-addressing hash table; groups numbered by their first row; sums in row
-    order, as ``np.bincount``)."""
-    n = cells.shape[0]
-    bits = 6
-    while (1 << bits) < 2 * n:
-        bits += 1
+def _group_means(query, bin_size):
+    """(group of each row, mean row of each group) of the rows of ``query`` sharing a cube
+    ``⌊p / bin_size⌋``: groups numbered by their first row, sums in row order. The cubes are
+    counted from the lowest on each axis and hashed (:mod:`sdp._core._cells`); where they span
+    ``MAX_INDEX`` or more on an axis, nothing (empty arrays)."""
+    n = query.shape[0]
+    cells = np.empty((n, 3), np.int64)
+    lo = np.zeros(3, np.int64)
+    hi = np.zeros(3, np.int64)
+    for i in range(n):
+        for d in range(3):
+            c = int(math.floor(query[i, d] / bin_size))
+            cells[i, d] = c
+            if i == 0 or c < lo[d]:
+                lo[d] = c
+            if i == 0 or c > hi[d]:
+                hi[d] = c
+    for d in range(3):
+        if hi[d] - lo[d] >= MAX_INDEX:
+            return np.empty(0, np.int64), np.empty((0, 3))
+    bits = table_bits(2 * n)
     cap = 1 << bits
-    table = np.full(cap, -1, np.int64)  # group of the slot
+    shift, mask = 64 - bits, cap - 1
+    keys = np.full(cap, -1, np.int64)
+    slot_group = np.empty(cap, np.int64)
     inverse = np.empty(n, np.int64)
-    first = np.empty(n, np.int64)  # a row of each group (its cell)
     sums = np.zeros((n, 3))
     counts = np.zeros(n, np.int64)
     groups = 0
+    last_key = -1
+    g = -1
     for i in range(n):
-        cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
-        key = (cx * 73856093) ^ (cy * 19349663) ^ (cz * 83492791)
-        s = ((key * -7046029254386353131) >> (64 - bits)) & (cap - 1)  # Fibonacci hashing (the product wraps)
-        while table[s] >= 0:
-            f = first[table[s]]
-            if cells[f, 0] == cx and cells[f, 1] == cy and cells[f, 2] == cz:
-                break
-            s = (s + 1) & (cap - 1)
-        if table[s] < 0:
-            table[s] = groups
-            first[groups] = i
-            groups += 1
-        g = table[s]
+        key = cell_key(cells[i, 0] - lo[0], cells[i, 1] - lo[1], cells[i, 2] - lo[2])
+        if key != last_key:  # scans are ordered: consecutive points often share a cube
+            s = probe(keys, key, shift, mask)
+            if keys[s] < 0:
+                keys[s] = key
+                slot_group[s] = groups
+                groups += 1
+            g = slot_group[s]
+            last_key = key
         inverse[i] = g
         counts[g] += 1
         sums[g, 0] += query[i, 0]

@@ -23,8 +23,9 @@ and their weighted moments are what M3C2 needs.
   1.5σ_p (count, centroid, scatter); a cylinder reads at most 5³ cells and gives each cell's
   points the weight of its centroid (their offsets and spread along the normal stay exact), so
   a query costs the same however dense the cloud is. A counting sort over the box of cells
-  orders them (a hash table beyond 2²⁵ cells); the search along a normal's line goes in steps of
-  half a cell until the line passes an occupied cell or one of its 26 neighbours.
+  orders them (beyond 2²⁵ cells, a sort by cell key and the spatial hash of
+  :mod:`sdp._core._cells`); the search along a normal's line goes in steps of half a cell until
+  the line passes an occupied cell or one of its 26 neighbours.
 - **Uncertainty**: ``spread`` = the weighted standard deviation along the normal, ``n`` = the
   effective number of points ``(Σw)²/Σw²`` (the count of an equivalent uniform cylinder), and
   M3C2's level of detection ``lod = 1.96·(√(spread₁²/n₁ + spread₂²/n₂) + registration_error)``;
@@ -73,6 +74,7 @@ import numba as nb
 import numpy as np
 import numpy.typing as npt
 
+from .._core._cells import BITS, MAX_INDEX, cell_keys, sorted_cells, table_row
 from .._core._points import as_points
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
@@ -93,7 +95,6 @@ _MIN_POINTS = 2.0  # effective points an epoch needs in the cylinder: a spread n
 _NORMAL_REACH = 2.0  # normal kernels cut at 2σ_n: the covariance's direction is settled by then
 _ROUGHNESS_RATIO = 20.0  # Lague et al.: normal scale ≥ 20–25 × the roughness
 _MAX_NORMAL_FACTOR = 4.0  # the roughness rule may enlarge D up to this many projection scales
-_BITS = 21  # per axis in a cell key
 _DENSE_CELLS = 2**25  # boxes of up to this many cells are sorted by counting (4 bytes per cell)
 _RADIUS = 3.0  # cylinder cut, in σ_p: the density kernel's truncation
 _CELL = 1.5  # cells of the cylinders' moments, in σ_p
@@ -385,10 +386,6 @@ class _CellLists:
         self.extent = np.asarray(hi, np.float64) - self.lo
         self._cache: dict = {}
 
-    def _keys(self, xyz, cell):
-        ijk = np.floor((xyz - self.lo) / cell).astype(np.int64)
-        return (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
-
     def order(self, xyz, cell):
         """(permutation that sorts ``xyz`` by cell, start of each cell's run in that order)."""
         entry = self.get(xyz, cell)
@@ -399,19 +396,15 @@ class _CellLists:
         cells or zeros for a hash table, cell size, the sorting permutation)."""
         key = (id(xyz), cell)
         if key not in self._cache:
-            if np.max(self.extent) / cell >= 2**_BITS - 4:
-                raise InvalidOptionError(f"the clouds span {np.max(self.extent):g} units, more than 2**{_BITS} cells "
+            if np.max(self.extent) / cell >= MAX_INDEX - 4:
+                raise InvalidOptionError(f"the clouds span {np.max(self.extent):g} units, more than 2**{BITS} cells "
                                          f"of {cell:g}: give a larger projection_scale, or compare in tiles")
             dims = (self.extent // cell).astype(np.int64) + 1
             if np.prod(dims.astype(float)) <= _DENSE_CELLS:  # a counting sort over the box of cells
                 order, starts, table = _counting_sort(xyz, self.lo, cell, dims)
             else:
-                keys = self._keys(xyz, cell)
-                order = np.argsort(keys, kind="stable")
-                keys = keys[order]
-                first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-                starts = np.r_[first, len(keys)].astype(np.int64)
-                table, dims = _hash_table(keys[first]), np.zeros(3, np.int64)
+                order, starts, table = sorted_cells(cell_keys(np.floor((xyz - self.lo) / cell).astype(np.int64)))
+                dims = np.zeros(3, np.int64)
             self._cache[key] = (_gather(xyz, order), starts, table, dims, cell, order)
         return self._cache[key]
 
@@ -467,11 +460,6 @@ class _CellLists:
                    np.ascontiguousarray(normals), sigma, _RADIUS * sigma, half, out)
         out[out[:, 2] < _MIN_POINTS, :2] = np.nan
         return out
-
-
-@nb.njit(cache=True, inline="always")
-def _slot(key, shift, mask):
-    return ((key * -7046029254386353131) >> shift) & mask  # Fibonacci hashing (the product wraps)
 
 
 @nb.njit(cache=True)
@@ -542,45 +530,15 @@ def _gather(values, index):
     return out
 
 
-@nb.njit(cache=True)
-def _hash_table(keys):
-    """Open-addressing table of the sorted unique cell ``keys``: slot → key, slot → cell row
-    (the two halves of the returned array)."""
-    bits = max(6, int(math.ceil(math.log2(2 * len(keys) + 1))))
-    cap = 1 << bits
-    table = np.full(cap, -1, np.int64)
-    rows = np.empty(cap, np.int64)
-    shift, mask = 64 - bits, cap - 1
-    for r in range(len(keys)):
-        s = _slot(keys[r], shift, mask)
-        while table[s] >= 0:
-            s = (s + 1) & mask
-        table[s] = keys[r]
-        rows[s] = r
-    return np.concatenate((table, rows))
-
-
 @nb.njit(cache=True, inline="always")
 def _row(table, dims, shift, ix, iy, iz):
     """Row of cell (ix, iy, iz) in a dense table (``dims`` the box of cells) or a hash table
-    (``dims`` zeros), -1 if empty."""
+    (``dims`` zeros: :func:`sdp._core._cells.key_table`), -1 if empty."""
     if dims[0] > 0:
         if ix < 0 or iy < 0 or iz < 0 or ix >= dims[0] or iy >= dims[1] or iz >= dims[2]:
             return -1
         return table[(ix * dims[1] + iy) * dims[2] + iz]
-    if ix < 0 or iy < 0 or iz < 0 or ix >= 1 << _BITS or iy >= 1 << _BITS or iz >= 1 << _BITS:
-        return -1
-    key = (ix << (2 * _BITS)) | (iy << _BITS) | iz
-    cap = table.shape[0] // 2
-    mask = cap - 1
-    s = _slot(key, shift, mask)
-    while True:
-        stored = table[s]
-        if stored == key:
-            return table[cap + s]
-        if stored < 0:
-            return -1
-        s = (s + 1) & mask
+    return table_row(table, ix, iy, iz, shift)
 
 
 @nb.njit(cache=True, inline="always")

@@ -306,38 +306,6 @@ def trilinear(points, origin, voxel, directory, blocks, out):
         out[p] = acc
 
 
-@nb.njit(parallel=True, cache=True)
-def trilinear_gradient(points, origin, voxel, directory, blocks, val, grad):
-    """val[p], grad[p] = the trilinear interpolant and its gradient (per world unit) at
-    world position points[p]; 0 outside the grid or where blocks are missing."""
-    d0, d1, d2 = directory.shape
-    n0, n1, n2 = d0 * B, d1 * B, d2 * B
-    for p in nb.prange(points.shape[0]):
-        x = (points[p, 0] - origin[0]) / voxel
-        y = (points[p, 1] - origin[1]) / voxel
-        z = (points[p, 2] - origin[2]) / voxel
-        val[p], grad[p, 0], grad[p, 1], grad[p, 2] = 0.0, 0.0, 0.0, 0.0
-        if not (x > 0.0 and y > 0.0 and z > 0.0 and x < n0 - 1 and y < n1 - 1 and z < n2 - 1):
-            continue  # also NaN
-        ix, iy, iz = int(x), int(y), int(z)
-        fx, fy, fz = x - ix, y - iy, z - iz
-        for a in range(2):
-            wx, dx = (fx, 1.0) if a else (1.0 - fx, -1.0)
-            for b in range(2):
-                wy, dy = (fy, 1.0) if b else (1.0 - fy, -1.0)
-                for c in range(2):
-                    nx, ny, nz = ix + a, iy + b, iz + c
-                    blk = directory[nx >> 3, ny >> 3, nz >> 3]
-                    if blk < 0:
-                        continue
-                    v = blocks[blk, (nx & 7) * B2 + (ny & 7) * B + (nz & 7)]
-                    wz, dz = (fz, 1.0) if c else (1.0 - fz, -1.0)
-                    val[p] += wx * wy * wz * v
-                    grad[p, 0] += dx * wy * wz * v / voxel
-                    grad[p, 1] += wx * dy * wz * v / voxel
-                    grad[p, 2] += wx * wy * dz * v / voxel
-
-
 @nb.njit(cache=True, nogil=True)
 def node_values(nodes, directory, blocks):
     """Values at integer node coordinates (k, 3); 0 where no block is allocated."""

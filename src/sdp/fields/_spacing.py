@@ -10,8 +10,8 @@ The spacing comes from exact k-th nearest-neighbour distances of a few thousand 
 (:func:`kth_neighbour_distance`): one pass puts the cloud into a hashed grid of cells, then each
 sampled point scans a few cells around its own. On a 200k-point Kinect frame that takes about a
 fifth of the time of building a k-d tree of the cloud for the same queries, with the same
-distances to the last bit. (Its Numba kernels live here, beside the only estimate they
-serve.)
+distances to the last bit. (The cells are the shared spatial hash of :mod:`sdp._core._cells`;
+the query kernels live here, beside the only estimate they serve.)
 """
 
 from __future__ import annotations
@@ -22,12 +22,12 @@ from collections.abc import Sequence
 import numba as nb
 import numpy as np
 
+from .._core._cells import MAX_INDEX, find_cell, linked_cells, table_bits
 from .._core._parallel import map_concurrently
 from .._core._points import Points, as_points, finite_bounds
 
 __all__ = ["auto_voxel_size", "kth_neighbour_distance", "resolve_lattice", "resolve_sigma_voxels"]
 
-_MAX_CELL_INDEX = 2**21  # cells per axis: three 21-bit cell coordinates packed in one int64 key
 _MAX_RING = 2  # rings of cells scanned around a query before a 4x coarser grid takes it over
 _GUESS = 3.0  # first cell size, in point spacings estimated from the box as if on surfaces
 _PER_CELL = 6.0  # points per cell expected at the first guess (sizes the hash table)
@@ -194,7 +194,7 @@ def kth_neighbour_distance(points: np.ndarray, queries: np.ndarray, k: int, *, c
     if not todo.size:
         return out
     size = float((hi - lo).max())
-    floor = max(size / (_MAX_CELL_INDEX - 2), 1e-300)  # keeps the cell coordinates within 21 bits
+    floor = max(size / (MAX_INDEX - 2), 1e-300)  # keeps the cell coordinates within 21 bits
     if cell is not None:
         c = max(float(cell), floor)
         grid, cells = _build(points, lo, c, n / _PER_CELL)
@@ -237,64 +237,13 @@ def _resolve(points, queries, todo, out, grid, cells, c, k, lo, size):
 
 
 def _build(points, lo, c, expected_cells):
-    """(cell list of ``points`` with cell ``c``, its number of cells); the hash table is sized
-    for ``expected_cells`` and rebuilt larger if they were too few."""
+    """(cell list of ``points`` with cell ``c`` (:func:`sdp._core._cells.linked_cells`), its number
+    of cells); the hash table is sized for ``expected_cells`` and rebuilt larger if they were too few."""
     while True:
-        bits = int(math.ceil(math.log2(max(_SLOTS_PER_CELL * expected_cells, 64.0))))
-        keys, heads, nxt, cells, done = _cell_list(points, lo, c, bits)
+        keys, heads, nxt, cells, done = linked_cells(points, lo, c, table_bits(_SLOTS_PER_CELL * expected_cells))
         if len(nxt):
             return (keys, heads, nxt), cells
         expected_cells = 2.0 * cells * len(points) / max(done, 1)  # the table filled up at point `done`
-
-
-@nb.njit(cache=True, inline="always")
-def _key(ix, iy, iz):
-    return (ix << 42) | (iy << 21) | iz
-
-
-@nb.njit(cache=True, inline="always")
-def _slot(key, shift, mask):
-    return ((key * -7046029254386353131) >> shift) & mask  # Fibonacci hashing (the product wraps)
-
-
-@nb.njit(cache=True, nogil=True)
-def _cell_list(points, lo, c, bits):
-    """Hashed cell list, one pass: ``keys`` (2**bits,) int64 cell keys of an open-addressing table
-    (-1: free slot), ``heads`` the last point of each used slot's cell, ``nxt`` (n,) int32 the
-    previous point of the same cell (-1: none), and the number of cells. When the table gets
-    half full, returns an empty ``nxt`` and the number of points placed so far instead of n."""
-    n = points.shape[0]
-    cap = 1 << bits
-    mask = cap - 1
-    shift = 64 - bits
-    keys = np.full(cap, -1, np.int64)
-    heads = np.empty(cap, np.int32)
-    nxt = np.empty(n, np.int32)
-    cells = 0
-    inv = 1.0 / c
-    last_key = -1
-    s = -1
-    for i in range(n):
-        key = _key(int(math.floor((points[i, 0] - lo[0]) * inv)), int(math.floor((points[i, 1] - lo[1]) * inv)),
-                   int(math.floor((points[i, 2] - lo[2]) * inv)))
-        if key != last_key:  # scans are ordered: consecutive points often share a cell
-            s = _slot(key, shift, mask)
-            while True:
-                stored = keys[s]
-                if stored == key:
-                    break
-                if stored < 0:
-                    if 2 * cells >= cap:
-                        return keys, heads, nxt[:0], cells, i
-                    keys[s] = key
-                    heads[s] = -1
-                    cells += 1
-                    break
-                s = (s + 1) & mask
-            last_key = key
-        nxt[i] = heads[s]
-        heads[s] = i
-    return keys, heads, nxt, cells, n
 
 
 @nb.njit(cache=True, inline="always")
@@ -313,7 +262,6 @@ def _query(keys, heads, nxt, points, queries, todo, out, lo, c, k, max_ring):
     shift = 64 - int(round(math.log2(keys.shape[0])))
     inv = 1.0 / c
     c2 = c * c
-    top = _MAX_CELL_INDEX - 1
     best = np.empty(k)  # squared distances, ascending
     for q in todo:
         x, y, z = queries[q, 0], queries[q, 1], queries[q, 2]
@@ -330,22 +278,16 @@ def _query(keys, heads, nxt, points, queries, todo, out, lo, c, k, max_ring):
                     edge = ix == cx - r or ix == cx + r or iy == cy - r or iy == cy + r
                     iz = cz - r
                     while iz <= cz + r:  # the shell of the cube: its inside was scanned at smaller r
-                        # skip cells off the grid and cells farther than the k-th distance so far
-                        if ((gxy + _gap2(iz - cz, fz0, fz1)) * c2 <= best[k - 1] and 0 <= ix <= top
-                                and 0 <= iy <= top and 0 <= iz <= top):
-                            key = _key(ix, iy, iz)
-                            s = _slot(key, shift, mask)
-                            while keys[s] >= 0:
-                                if keys[s] == key:
-                                    p = heads[s]
-                                    while p >= 0:
-                                        dx = points[p, 0] - x
-                                        dy = points[p, 1] - y
-                                        dz = points[p, 2] - z
-                                        _insert(best, dx * dx + dy * dy + dz * dz)
-                                        p = nxt[p]
-                                    break
-                                s = (s + 1) & mask
+                        # skip cells farther than the k-th distance so far (find_cell: and off the grid)
+                        if (gxy + _gap2(iz - cz, fz0, fz1)) * c2 <= best[k - 1]:
+                            s = find_cell(keys, ix, iy, iz, shift, mask)
+                            p = heads[s] if s >= 0 else -1
+                            while p >= 0:
+                                dx = points[p, 0] - x
+                                dy = points[p, 1] - y
+                                dz = points[p, 2] - z
+                                _insert(best, dx * dx + dy * dy + dz * dz)
+                                p = nxt[p]
                         iz += 1 if (edge or iz == cz + r) else 2 * r
             reach = (r + face - _SLACK) * c  # every point outside the cube is at least this far
             if reach > 0 and best[k - 1] <= reach * reach:
