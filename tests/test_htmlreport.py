@@ -144,11 +144,10 @@ def chromium():
     return browser
 
 
-def assert_drawn(visit, *, seconds=60.0):
+def assert_drawn(visit):
     assert visit.errors == [], visit.errors
     assert visit.rendered, "the 3-D view never drew"
     assert browser.blankness(visit.screenshot) > 0.05  # not one flat colour
-    assert visit.seconds < seconds
 
 
 @pytest.mark.slow
