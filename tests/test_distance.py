@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from conftest import drawn_pixels, picture
 
 import sdp
 import sdp.distance._distances
@@ -168,7 +169,9 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path):
     sdp.write_points(tmp_path / "core.npz", core)
     r = sdp.distance_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "d.npz",
                            core_points=tmp_path / "core.npz", png=tmp_path / "d.png")
-    assert (tmp_path / "d.png").stat().st_size > 10_000 and len(r.result.distance) == 30
+    assert len(r.result.distance) == 30 and r.result.significant.any()
+    # the significant distances are drawn: the histogram's bars of them in orange (as sdp.viz draws them)
+    assert drawn_pixels(picture(tmp_path / "d.png"), "#E69F00") > 0
     assert "significant" in r.summary_text() and r.summary["registration_error"] == 0.0
     for bad in (dict(output=tmp_path / "a.ply"), dict(output=tmp_path / "x.ply", projection_scale=-1),
                 dict(output=tmp_path / "x.ply", registration_error="big"),
