@@ -244,7 +244,7 @@ def test_the_program_exits_with_the_status_of_main_and_freezes_what_is_left(tmp_
         gc.set_threshold(*threshold)
     assert exit_.value.code == 2  # an empty cloud: main's one-line error
     # the first two generations as run() found them; full collections rarer than a fresh interpreter's
-    default = json.loads(subprocess.run([sys.executable, "-c", "import gc, json; print(json.dumps(gc.get_threshold()))"],
-                                        capture_output=True, text=True, check=True).stdout)
+    fresh = [sys.executable, "-c", "import gc, json; print(json.dumps(gc.get_threshold()))"]
+    default = json.loads(subprocess.run(fresh, capture_output=True, text=True, check=True).stdout)
     assert frozen > 0 and tuned[:2] == threshold[:2] and tuned[2] > default[2]
     assert not (tmp_path / "o.ply").exists()

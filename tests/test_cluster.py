@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from conftest import box_surface, write_las
 
-pytestmark = pytest.mark.slow
+# one xdist worker runs them all (--dist loadgroup): the pair is made once, one cluster at a time
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("cluster")]
 
 BIN = Path(sys.executable).parent
 PRELOAD = Path(__file__).with_name("cluster_stall.py")

@@ -185,8 +185,9 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path):
 
 
 def test_hash_cells_equal_dense_cells(rng, monkeypatch):
-    a, b = plane(rng, 5_000, 0.002), plane(rng, 5_000, 0.002, z=0.3)  # the far search too
+    a, b = plane(rng, 2_000, 0.002, size=2.0), plane(rng, 2_000, 0.002, z=0.3, size=2.0)
     dense = sdp.distances(a, b, projection_scale=0.05)
+    assert (dense.level == 1).sum() > 50  # the far search along the normals too
     monkeypatch.setattr(sdp.distance._distances, "_DENSE_CELLS", 0)  # boxes beyond the dense limit: hashed cells
     hashed = sdp.distances(a, b, projection_scale=0.05)
     for name in sdp.distance._distances.DISTANCE_FIELDS:

@@ -56,7 +56,8 @@ def test_change_report_is_one_self_contained_page(tmp_path, rng):
     # two maps, the histogram and a thumbnail per region
     assert len(IMAGES.findall(page)) == 3 + n_regions
     assert page.count('class="thumb"') == n_regions
-    appeared = re.search(r'<img class="figure" alt="appeared points of [^"]*" src="data:image/png;base64,([^"]+)"', page)
+    appeared = re.search(r'<img class="figure" alt="appeared points of [^"]*" src="data:image/png;base64,([^"]+)"',
+                         page)
     assert_changes_drawn(base64.b64decode(appeared[1]))
     assert re.search(r"relative to \(63\d,\d\d0, 4,83\d,\d\d0\)", page)  # the stated round origin
     for text in ("ref.npy", "cur.npy", "default: ", "Timings", f"{r.summary['current']['appeared']:,} appeared"):
