@@ -186,8 +186,7 @@ def test_cli_output_paths_are_checked_first(tmp_path, args):
 # first compare tile after saying so: the test signals a run that is certainly alive, its cluster up
 # and its buckets written, at a moment it knows instead of one guessed with a timer.
 STALLED_COMMAND = [sys.executable, "-c", (
-    "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-    f"sys.path.insert(0, {str(Path(__file__).parent)!r}); import cluster_stall; "
+    "import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); import cluster_stall; "
     "runpy.run_module('sdp.cli', run_name='__main__', alter_sys=True)")]
 
 
@@ -198,8 +197,8 @@ def start_stalled(tmp_path, *args):
     stalls, scratch = tmp_path / "stalls", tmp_path / "tmp"
     stalls.mkdir()
     scratch.mkdir()
-    env = dict(os.environ, TMPDIR=str(scratch), SDP_TEST_STALL=str(stalls),
-               PYTHONPATH=os.pathsep.join([str(Path(__file__).parent), *filter(None, [os.environ.get("PYTHONPATH")])]))
+    path = [str(Path(__file__).parent), *filter(None, [os.environ.get("PYTHONPATH")])]  # the hook, for the workers too
+    env = dict(os.environ, TMPDIR=str(scratch), SDP_TEST_STALL=str(stalls), PYTHONPATH=os.pathsep.join(path))
     p = subprocess.Popen([*STALLED_COMMAND, *args], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
     try:
