@@ -37,8 +37,9 @@ def missing() -> str | None:
     return None
 
 
-def visit(path, *, width: int = 1280, height: int = 1800, timeout: float = 60.0) -> Visit:
-    """Open ``path`` (a local file) in headless Chromium, wait until it has drawn, and return what it did."""
+def visit(path, *, width: int = 1280, height: int = 1800, timeout: float = 300.0) -> Visit:
+    """Open ``path`` (a local file) in headless Chromium, wait until it has drawn, and return what it did
+    (``timeout``: a guard against a page that never draws, not a measure of its speed)."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 

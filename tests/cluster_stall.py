@@ -1,9 +1,13 @@
-"""A Dask worker preload for tests/test_cluster.py (``dask worker --preload cluster_stall.py``).
+"""A hook that holds a tiled run in its compare stage, for tests that must act at that moment (kill a
+worker, signal the command) instead of at one guessed with a timer.
 
-On a worker started with ``$SDP_TEST_STALL`` (a folder), the first compare task writes
-``stalled-<pid>`` into that folder and then waits, so that the test can kill the worker while it
-holds a tile of the compare stage, at a moment it knows, instead of guessing one with a timer.
-Other workers, and every other task, run the library's own function.
+Loaded as a Dask worker preload by tests/test_cluster.py (``dask worker --preload cluster_stall.py``),
+and imported before the command by the signal tests of tests/test_bad_input.py, whose local workers
+then receive this module's function as the compare task (Dask names a task's function by module and
+name) and import it. On a worker started with ``$SDP_TEST_STALL`` (a folder), the first compare
+task writes ``stalled-<pid>`` into that folder and then waits (60 s at most), so that the test
+knows the run is alive, its cluster up and its buckets written. Other workers, and every other
+task, run the library's own function.
 """
 
 import os

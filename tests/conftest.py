@@ -67,3 +67,52 @@ def write_las(path, xyz):
     las.intensity = np.arange(len(xyz)) % 60_000
     las.write(str(path))
     return path
+
+
+def picture(path):
+    """A PNG written by :mod:`sdp.viz` (a path, or its bytes) as an (H, W, 3) array of RGB in [0, 1],
+    refused when it is blank (one flat colour, or next to nothing drawn on the white)."""
+    import io
+
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(io.BytesIO(path) if isinstance(path, bytes) else path, format="png")[..., :3]
+    assert (img.min(axis=-1) < 0.9).mean() > 0.005 and img[::4, ::4].std() > 0.02, "a blank picture"
+    return img
+
+
+def drawn_pixels(img, colour, *, min_alpha=0.3, tolerance=0.08):
+    """Pixels of ``img`` painted in ``colour`` (a hex string: the constants of :mod:`sdp.viz._render`)
+    at an opacity of ``min_alpha`` or more over white (points are drawn half transparent, and
+    anti-aliased), not counting the legend's marker of that colour, the largest patch of it (a
+    legend's marker is drawn six to eight times a point's size)."""
+    from matplotlib.colors import to_rgb
+    from scipy.ndimage import label
+
+    ink = 1.0 - np.array(to_rgb(colour))
+    # only pixels dark enough in some channel can be the colour at min_alpha (the white and the 3-D
+    # views' pale panes are most of a picture)
+    rows, cols = np.nonzero(img.min(axis=-1) < 1.0 - min_alpha * ink.max() + tolerance)
+    px = img[rows, cols]
+    alpha = (1.0 - px) @ ink / (ink @ ink)  # px = 1 - alpha * ink, least squares
+    ok = (alpha >= min_alpha) & (np.abs(px - (1.0 - alpha[:, None] * ink)).max(axis=1) < tolerance)
+    mask = np.zeros(img.shape[:2], bool)
+    mask[rows[ok], cols[ok]] = True
+    patches, n = label(mask)
+    if n == 0:
+        return 0
+    sizes = np.bincount(patches.ravel())[1:]
+    return int(sizes.sum() - sizes.max())
+
+
+def assert_changes_drawn(png, *, changed=True):
+    """A picture of changes (:func:`sdp.render_changes`, ``--png``; a path or its bytes) is not blank,
+    shows unchanged points in blue, and changed points in vermillion when ``changed`` (and not one
+    when not)."""
+    from sdp.viz._render import _BLUE, _VERMILLION
+
+    img = picture(png)
+    assert drawn_pixels(img, _BLUE) > 0, "no unchanged point drawn"
+    n = drawn_pixels(img, _VERMILLION)
+    assert (n > 0) == changed, f"{n} pixels of changed points, expected {'some' if changed else 'none'}"
+    return img

@@ -5,6 +5,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -180,59 +181,72 @@ def test_cli_output_paths_are_checked_first(tmp_path, args):
     assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == before
 
 
-# the signalled tiled runs: 1-1.5 s of work are left when their first buckets appear
-SIGNALLED_POINTS, SIGNALLED_VOXEL = 300_000, "0.05"
+# The signalled command: `python -m sdp.cli` with Ctrl-C's default handler whatever the test run's (a
+# test run started in the background of a shell inherits SIGINT ignored, and Python would keep it so
+# in the command), and tests/cluster_stall.py loaded, so that each of its Dask workers stops at its
+# first compare tile after saying so: the test signals a run that is certainly alive, its cluster up
+# and its buckets written, at a moment it knows instead of one guessed with a timer.
+STALLED_COMMAND = [sys.executable, "-c", (
+    "import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); import cluster_stall; "
+    "runpy.run_module('sdp.cli', run_name='__main__', alter_sys=True)")]
 
 
-# `python -m sdp.cli` with Ctrl-C's default handler, whatever the test run's: a test run started in
-# the background of a shell inherits SIGINT ignored, and Python would keep it so in the command
-INTERRUPTIBLE = [sys.executable, "-c", ("import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
-                                        "runpy.run_module('sdp.cli', run_name='__main__', alter_sys=True)")]
+def start_stalled(tmp_path, *args):
+    """The tiled ``sdp`` command of ``args`` in ``tmp_path``, its temporary files in ``tmp_path/tmp``,
+    its workers stalling at their first compare tile (they write into ``tmp_path/stalls``);
+    returns once one of them stalled."""
+    stalls, scratch = tmp_path / "stalls", tmp_path / "tmp"
+    stalls.mkdir()
+    scratch.mkdir()
+    path = [str(Path(__file__).parent), *filter(None, [os.environ.get("PYTHONPATH")])]  # the hook, for the workers too
+    env = dict(os.environ, TMPDIR=str(scratch), SDP_TEST_STALL=str(stalls), PYTHONPATH=os.pathsep.join(path))
+    p = subprocess.Popen([*STALLED_COMMAND, *args], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        while not any(stalls.iterdir()):  # the event, or the run's end (a failure)
+            if p.poll() is not None:
+                raise AssertionError(f"the run ended (status {p.returncode}) before it held a compare tile: "
+                                     f"{p.communicate()[1]}")
+            time.sleep(0.02)
+    except BaseException:
+        p.kill()
+        p.communicate()
+        raise
+    return p
 
 
-def wait_for_buckets(folder, process, timeout=120):
-    """Wait until the tiled run under ``folder`` has written bucket files (its cluster is up)."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end and process.poll() is None:
-        if any(f.is_file() for d in folder.glob("sdp-tiles-*") for f in d.rglob("*")):
-            return
-        time.sleep(0.1)
-    raise AssertionError("the tiled run wrote no bucket")
+def assert_nothing_left(tmp_path, inputs):
+    """Only the inputs and the test's own folders in the command's folder (no output, no hidden
+    temporary one), and no work folder of the tiles left in its temporary folder."""
+    assert sorted(f.name for f in tmp_path.iterdir()) == sorted([*inputs, "stalls", "tmp"])
+    assert not [f.name for f in (tmp_path / "tmp").iterdir() if f.name.startswith("sdp-tiles-")]
+
+
+def signalled_clouds(tmp_path, *names):
+    rng = np.random.default_rng(4)
+    for name in names:
+        np.save(tmp_path / name, rng.random((20_000, 3)) * [20, 20, 2])
 
 
 @pytest.mark.slow
 def test_sigterm_on_the_tiled_path_cleans_up(tmp_path):
-    rng = np.random.default_rng(4)
-    for name in ("a.npy", "b.npy"):
-        np.save(tmp_path / name, rng.random((SIGNALLED_POINTS, 3)) * [20, 20, 2])
-    scratch = tmp_path / "tmp"
-    scratch.mkdir()
-    env = dict(os.environ, TMPDIR=str(scratch))
-    p = subprocess.Popen([sys.executable, "-m", "sdp.cli", "change", "a.npy", "b.npy", "-o", "o.laz", "--tiled",
-                          "--voxel-size", SIGNALLED_VOXEL, "-q"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    wait_for_buckets(scratch, p)
-    assert p.poll() is None, "the run ended before the signal: nothing was interrupted"
+    signalled_clouds(tmp_path, "a.npy", "b.npy")
+    p = start_stalled(tmp_path, "change", "a.npy", "b.npy", "-o", "o.laz", "--tiled", "--voxel-size", "0.1", "-q")
     p.send_signal(signal.SIGTERM)
-    _, err = p.communicate(timeout=120)
-    assert p.returncode != 0 and "Traceback" not in err, err
-    assert not [f for f in scratch.iterdir() if f.name.startswith("sdp-tiles-")]
-    assert sorted(f.name for f in tmp_path.iterdir()) == ["a.npy", "b.npy", "tmp"]  # no (hidden) output
+    out, err = p.communicate(timeout=300)  # a guard against a hang, not a measure of speed
+    assert p.returncode == 128 + signal.SIGTERM and err == "sdp: terminated\n" and out == "", err
+    assert_nothing_left(tmp_path, ["a.npy", "b.npy"])
 
 
 @pytest.mark.slow
 def test_interrupt_is_one_line(tmp_path):
-    np.save(tmp_path / "a.npy", np.random.default_rng(5).random((SIGNALLED_POINTS, 3)) * [20, 20, 2])
-    p = subprocess.Popen([*INTERRUPTIBLE, "change", "a.npy", "a.npy", "-o", "o.laz", "--tiled",
-                          "--voxel-size", SIGNALLED_VOXEL, "-q", "--workers", "1"], cwd=tmp_path,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         env=dict(os.environ, TMPDIR=str(tmp_path)))
-    wait_for_buckets(tmp_path, p)
-    assert p.poll() is None, "the run ended before the signal: nothing was interrupted"
+    signalled_clouds(tmp_path, "a.npy")
+    p = start_stalled(tmp_path, "change", "a.npy", "a.npy", "-o", "o.laz", "--tiled", "--voxel-size", "0.1", "-q",
+                      "--workers", "1")
     p.send_signal(signal.SIGINT)
-    _, err = p.communicate(timeout=120)
-    assert p.returncode == 130 and err.strip().splitlines()[-1] == "sdp: interrupted" and "Traceback" not in err, err
-    assert not [f for f in tmp_path.iterdir() if f.name.startswith(("sdp-tiles-", ".o.laz", "o.laz"))]
+    out, err = p.communicate(timeout=300)  # a guard against a hang, not a measure of speed
+    assert p.returncode == 130 and err == "sdp: interrupted\n" and out == "", err
+    assert_nothing_left(tmp_path, ["a.npy"])
 
 
 def test_corrupt_las_counts_are_refused_before_laspy_loops_or_lazrs_aborts(clouds):

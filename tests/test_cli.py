@@ -4,7 +4,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import slow_after
+from conftest import assert_changes_drawn, picture, slow_after
 
 from sdp.io import read_points, write_points
 
@@ -34,7 +34,8 @@ def test_change_end_to_end(tmp_path, pair):
     assert (out.fields["change"] == 1).sum() == s["current"]["appeared"]
     assert (out.fields["change"] == 2).sum() == s["current"]["not_comparable"]
     assert {"G", "F", "region"} <= set(out.fields)
-    assert (tmp_path / "out_disappeared.ply").exists() and (tmp_path / "out.png").stat().st_size > 10_000
+    assert (tmp_path / "out_disappeared.ply").exists()
+    assert_changes_drawn(tmp_path / "out.png")
     text = run("change", ref, cur, "-o", tmp_path / "out2.las", "--grid-size", "80")
     assert text.returncode == 0 and "appeared" in text.stdout and "time (ms)" in text.stdout
 
@@ -80,8 +81,9 @@ def test_demo(tmp_path):
     assert "kappa" in p.stdout
     kappa = float(p.stdout.split("comparable points: kappa ")[1].split(",")[0])
     assert kappa > 0.8
-    for name in ("reference.ply", "current_labelled.ply", "current_cluster_volume.ply", "changes.png"):
+    for name in ("reference.ply", "current_labelled.ply", "current_cluster_volume.ply"):
         assert (tmp_path / "demo" / name).stat().st_size > 1000
+    assert_changes_drawn(tmp_path / "demo" / "changes.png")
 
 
 @pytest.mark.slow
@@ -126,12 +128,14 @@ def test_render_cloud_and_field(tmp_path, pair):
     assert run("change", ref, cur, "-o", tmp_path / "c.ply", "--voxel-size", "0.03", "-q").returncode == 0
     p = run("render", tmp_path / "c.ply", "--png", tmp_path / "c.png", "--html", tmp_path / "c.html")
     assert p.returncode == 0, p.stderr
-    assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
+    assert_changes_drawn(tmp_path / "c.png")
     page = (tmp_path / "c.html").read_text()
     assert "<html" in page and "plotly" in page and "changed (" in page  # self-contained, legend counts
     assert run("build", ref, "-o", tmp_path / "ref.sdpf", "--voxel-size", "0.03").returncode == 0
     s = run("render", tmp_path / "ref.sdpf", "--png", tmp_path / "slices.png")
-    assert s.returncode == 0 and (tmp_path / "slices.png").stat().st_size > 10_000
+    assert s.returncode == 0, s.stderr
+    img = picture(tmp_path / "slices.png")  # F = h - G on a diverging blue-red scale: inside blue, outside red
+    assert ((img[..., 2] - img[..., 0]) > 0.3).sum() > 1000 and ((img[..., 0] - img[..., 2]) > 0.3).sum() > 1000
     assert run("render", tmp_path / "ref.sdpf").returncode == 2  # nothing asked for
 
 
@@ -242,7 +246,10 @@ def test_the_program_exits_with_the_status_of_main_and_freezes_what_is_left(tmp_
         gc.unfreeze()
         gc.set_threshold(*threshold)
     assert exit_.value.code == 2  # an empty cloud: main's one-line error
-    assert frozen > 0 and tuned == (*threshold[:2], 100)
+    # the first two generations as run() found them; full collections rarer than a fresh interpreter's
+    fresh = [sys.executable, "-c", "import gc, json; print(json.dumps(gc.get_threshold()))"]
+    default = json.loads(subprocess.run(fresh, capture_output=True, text=True, check=True).stdout)
+    assert frozen > 0 and tuned[:2] == threshold[:2] and tuned[2] > default[2]
     assert not (tmp_path / "o.ply").exists()
 
 

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from conftest import box_surface, write_las
 
-pytestmark = pytest.mark.slow
+# one xdist worker runs them all (--dist loadgroup): the pair is made once, one cluster at a time
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("cluster")]
 
 BIN = Path(sys.executable).parent
 PRELOAD = Path(__file__).with_name("cluster_stall.py")
@@ -45,7 +46,7 @@ def sdp_change(a, b, out, *options, wait=True):
     cmd = [str(BIN / "sdp"), "change", str(a), str(b), "-o", str(out), "--voxel-size", "0.1", "--both",
            "--quiet", *map(str, options)]
     if wait:
-        return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)  # a guard against a hang
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
@@ -79,7 +80,7 @@ class Cluster:
         self.start(name, "worker", self.address, "--name", name, "--nthreads", "1", "--memory-limit", "0",
                    "--no-dashboard", "--preload", str(PRELOAD), **env)
 
-    def wait_for_workers(self, n, timeout=60):
+    def wait_for_workers(self, n, timeout=180):  # a guard against a hang
         from dask.distributed import Client
 
         with Client(self.address, timeout=timeout) as client:
@@ -126,14 +127,12 @@ def run_on(cluster, pair, folder, *, kill_a=False):
     proc = sdp_change(*pair[:2], out / "c.laz", "--tiled", "--tile-size", "4", "--scheduler", cluster.address,
                       "--workdir", work, wait=False)
     try:
-        if kill_a:
-            deadline = time.monotonic() + 60
+        if kill_a:  # the event: worker a holds a compare tile (or the run ended without it: a failure)
             while not any((folder / "stalls").iterdir()):
-                assert proc.poll() is None, proc.communicate()
-                assert time.monotonic() < deadline, "worker a never took a compare tile"
+                assert proc.poll() is None, ("worker a never took a compare tile", proc.communicate())
                 time.sleep(0.05)
             cluster.kill("a")
-        stdout, stderr = proc.communicate(timeout=120)
+        stdout, stderr = proc.communicate(timeout=300)  # a guard against a hang, not a measure of speed
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

@@ -5,6 +5,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import assert_changes_drawn
 
 import sdp
 
@@ -134,8 +135,9 @@ def test_pictures_with_the_plots_extra(tmp_path):
     """The quick tier's check of sdp.render (the slow CLI tests draw real scenes, and the HTML view)."""
     xyz = np.random.default_rng(0).random((300, 3))
     state = (xyz[:, 0] > 0.7).astype(np.uint8) + (xyz[:, 1] > 0.9)  # 0, 1 and 2
-    png = sdp.render_changes(tmp_path / "c.png", xyz, state)
-    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert_changes_drawn(sdp.render_changes(tmp_path / "c.png", xyz, state))  # a room: three 3-D views
+    flat = xyz * [10, 10, 0.1]  # a map, without a changed point
+    assert_changes_drawn(sdp.render_changes(tmp_path / "n.png", flat, state * (state == 2)), changed=False)
 
 
 def test_import_sdp_is_lazy_and_every_public_name_resolves():

@@ -91,7 +91,7 @@ def test_read_points_raises_only_sdp_errors(seeds, tmp_path, case):
 
 @pytest.mark.slow
 @settings(max_examples=4, deadline=None, derandomize=True, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(case=mutated())
 def test_cli_change_exits_0_or_2(seeds, tmp_path_factory, case):
     name, kind, seed, noise = case
@@ -99,7 +99,7 @@ def test_cli_change_exits_0_or_2(seeds, tmp_path_factory, case):
     (d / "ref.npy").write_bytes(seeds["a.npy"])
     (d / name).write_bytes(mutate(seeds[name], kind, seed, noise))
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "change", "ref.npy", name, "-o", "out.ply", "-q",
-                        "--voxel-size", "0.1"], cwd=d, capture_output=True, text=True, timeout=60)
+                        "--voxel-size", "0.1"], cwd=d, capture_output=True, text=True, timeout=300)  # a hang fails
     assert p.returncode in (0, 2), p.stderr
     if p.returncode == 2:
         assert len(p.stderr.strip().splitlines()) == 1 and p.stderr.startswith("sdp: error: "), p.stderr

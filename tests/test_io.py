@@ -30,7 +30,7 @@ def test_real_kinect_pair_change_detection(shared_data):
     r = sdp.detect_changes(ref.xyz, cur.xyz, min_region_points=20, lattice=sdp.Lattice(voxel_size="auto"))
     table = (cur.fields["label"] >= 1) & (cur.fields["label"] < 10)
     assert r.appeared[table].mean() < r.appeared[~table].mean()  # changes concentrate off the table
-    assert r.appeared_regions and r.timings["detect"] > 0
+    assert r.appeared_regions and r.timings["detect"] >= 0
 
 
 def test_round_trips(tmp_path, rng):

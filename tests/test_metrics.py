@@ -1,13 +1,16 @@
 import numpy as np
 import pytest
-from sklearn.metrics import cohen_kappa_score, f1_score, jaccard_score
-from sklearn.metrics import confusion_matrix as sk_confusion
 
 import sdp
 
 
+# scikit-learn imported by the test, not at collection (2 s in every xdist worker), and by one worker
+@pytest.mark.xdist_group("scikit-learn")
 @pytest.mark.parametrize("seed", range(5))
 def test_kappa_and_scores_match_scikit_learn(seed):
+    from sklearn.metrics import cohen_kappa_score, f1_score, jaccard_score
+    from sklearn.metrics import confusion_matrix as sk_confusion
+
     rng = np.random.default_rng(seed)
     truth = rng.random(1000) < 0.2
     pred = np.where(rng.random(1000) < 0.8, truth, rng.random(1000) < 0.5)

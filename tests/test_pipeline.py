@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 import test_cli
+from conftest import assert_changes_drawn
 
 import sdp
 from sdp import cli as pipeline
@@ -125,6 +126,7 @@ def test_the_other_commands_as_functions(tmp_path, pair):
     e = pipeline.evaluate_files(tmp_path / "c.ply", tmp_path / "c.ply")
     assert e.scores["kappa"] == pytest.approx(1.0) and e.predicted == r.summary["current"]["appeared"]
     assert pipeline.render_file(tmp_path / "c.ply", png=tmp_path / "c.png") == [str(tmp_path / "c.png")]
+    assert_changes_drawn(tmp_path / "c.png")
     frames = tmp_path / "frames"
     frames.mkdir()
     write_points(frames / "f1.ply", read_points(cur).xyz)

@@ -204,17 +204,28 @@ def test_a_memory_limit_the_job_cannot_meet_is_refused_at_once_with_the_smallest
 
 
 @pytest.mark.slow
-def test_cli_refuses_tiles_under_a_tiny_memory_limit_in_a_second(tmp_path, epochs):
-    import time
+def test_cli_refuses_tiles_under_a_tiny_memory_limit_before_any_worker(tmp_path, epochs, monkeypatch, capsys):
+    import sdp.scale._tiles
+    from sdp.cli._main import main
 
     cur = epochs[1][np.isfinite(epochs[1]).all(axis=1)]
     a, b = write_las(tmp_path / "a.laz", epochs[0]), write_las(tmp_path / "b.laz", cur)
     work = tmp_path / "work"
     work.mkdir()
-    t = time.perf_counter()
-    r = run("change", a, b, "-o", tmp_path / "c.laz", "--tiled", "--memory-limit", "1MB", "--workdir", work)
-    assert time.perf_counter() - t < 20  # it used to run minutes of worker errors
+    args = ["change", a, b, "-o", tmp_path / "c.laz", "--tiled", "--memory-limit", "1MB", "--workdir", work]
+    r = run(*args)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "give --memory-limit" in r.stderr, r.stderr
+    assert list(work.iterdir()) == [] and not (tmp_path / "c.laz").exists()
+
+    # refused before a Dask cluster starts (it used to start one and run minutes of worker errors)
+    def no_cluster(*_, **__):
+        raise AssertionError("a Dask cluster was started for a job its memory limit refuses")
+
+    monkeypatch.setattr(sdp.scale._tiles, "_connect", no_cluster)
+    capsys.readouterr()
+    assert main([str(x) for x in args]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "give --memory-limit" in err, err
     assert list(work.iterdir()) == [] and not (tmp_path / "c.laz").exists()
 
 
