@@ -162,6 +162,7 @@ def test_model_refuses_other_parameters(tmp_path, rng):
         ActionModel.load(tmp_path / "old.npz")
 
 
+@pytest.mark.slow  # a CLI process or a Dask run: the full suite's
 def test_action_stream_reports_each_action_soon_after_it_ends(tmp_path, rng, capsys):
     """Raise-arm then lower-arm, 20 frames each, in one stream: reported every 5 frames from the
     window of the last 20; the first action by frame 20, the second by frame 40."""

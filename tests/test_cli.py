@@ -287,7 +287,7 @@ def quiet_cases(d, out):
             (["distance", d / "ref.npy", d / "cur.npy", "-o", out / "d.ply"], True)]
 
 
-@pytest.mark.parametrize("case", slow_after(6, list(range(9))))
+@pytest.mark.parametrize("case", slow_after(2, list(range(9))))
 def test_quiet_prints_nothing_but_errors_and_the_json_asked_for(tmp_path, quiet_inputs, capfd, case):
     from sdp.cli._main import main
 

@@ -201,6 +201,7 @@ def test_hash_cells_equal_dense_cells(rng, monkeypatch):
         assert np.array_equal(dense.fields()[name], hashed.fields()[name], equal_nan=True), name
 
 
+@pytest.mark.slow  # a second or two; the quick tier keeps a lighter test of the same module
 def test_tiles_give_the_same_distances(rng):
     n = 60_000
     a = np.c_[rng.uniform(0, [12, 3], (n, 2)), 0.003 * rng.standard_normal(n)]

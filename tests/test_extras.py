@@ -13,6 +13,7 @@ EXTRAS = {"tiles": ["dask", "distributed", "zarr"], "plots": ["matplotlib", "plo
           "align": ["small_gicp"]}
 
 
+@pytest.mark.slow  # a second or two; the quick tier keeps a lighter test of the same module
 def test_import_sdp_loads_no_extra():
     code = ("import sys, sdp, sdp.cli._main, sdp.scale._tiles, sdp.scale._store, sdp.actions._actions, sdp.viz._render, sdp.stream._watch\n"
             f"print(sorted(m for m in {sum(EXTRAS.values(), [])!r} if m in sys.modules))")

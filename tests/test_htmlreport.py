@@ -106,6 +106,7 @@ def test_the_3d_view_is_decimated_above_the_budget_by_the_stated_factor(tmp_path
     assert page.count('class="thumb"') == 2  # one per direction
 
 
+@pytest.mark.slow  # a second or two; the quick tier keeps a lighter test of the same module
 def test_distance_report(tmp_path, rng):
     ref, cur = landscape(rng)
     d = sdp.distances(ref, cur)

@@ -19,6 +19,7 @@ def without_times(summary):
     return {k: v for k, v in summary.items() if k not in ("timings", "outputs")}
 
 
+@pytest.mark.slow  # a CLI process or a Dask run: the full suite's
 def test_compare_files_equals_sdp_change(tmp_path, pair):
     ref, cur = pair
     opts = ["--both", "--voxel-size", "0.03", "--min-region-points", "20", "--sensor-origin", "2,1.5,2"]
@@ -42,6 +43,7 @@ def test_compare_files_equals_sdp_change(tmp_path, pair):
     assert table(r.summary_text()) == table(text.stdout)
 
 
+@pytest.mark.slow  # a CLI process or a Dask run: the full suite's
 def test_the_automatic_switch_to_tiles_from_python(tmp_path, rng):
     from test_tiles import street, write_las
 

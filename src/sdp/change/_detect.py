@@ -48,7 +48,6 @@ from dataclasses import dataclass
 from dataclasses import field as dc_field
 
 import numpy as np
-import numpy.typing as npt
 
 from .._core._parallel import map_concurrently
 from .._core._points import as_points, to_rows

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import GridTooLargeError, InvalidOptionError, InvalidPointsError
-from .._core._memory import check_memory, format_bytes, memory_limit
+from ..errors import InvalidOptionError, InvalidPointsError
+from .._core._memory import check_memory
 from .._core._validate import integer_at_least, positive_finite
 
 __all__ = ["BLOCK", "Grid", "voxel_size_for_grid_size", "check_lattice", "check_kernel", "kernel_reach",
