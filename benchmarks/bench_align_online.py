@@ -16,11 +16,11 @@ import os
 import time
 from pathlib import Path
 
+import flat
 import numba as nb
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-import flat
 import sdp
 from sdp.io import read_points
 

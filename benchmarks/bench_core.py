@@ -19,10 +19,10 @@ import sys
 import time
 from pathlib import Path
 
+import flat
 import numpy as np
 from scipy.spatial import cKDTree
 
-import flat
 import sdp
 from sdp.io import read_points
 

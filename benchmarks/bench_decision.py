@@ -11,10 +11,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import flat
 import numpy as np
 from scipy.spatial import cKDTree
 
-import flat
 import sdp
 from sdp.io import read_points
 

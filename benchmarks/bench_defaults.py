@@ -26,11 +26,11 @@ import sys
 import tempfile
 from pathlib import Path
 
+import flat
 import numpy as np
 from bench_decision import LEARN, labelled_pairs
 from scipy.spatial import cKDTree
 
-import flat
 import sdp
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -29,9 +29,9 @@ import sys
 import time
 from pathlib import Path
 
+import flat
 import numpy as np
 
-import flat
 import sdp
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -30,11 +30,11 @@ from pathlib import Path
 from time import perf_counter
 
 import baselines as B
+import flat
 import matplotlib
 import numpy as np
 from bench_decision import labelled_pairs
 
-import flat
 import sdp
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -33,10 +33,10 @@ from functools import partial
 from pathlib import Path
 
 import baselines as B
+import flat
 import numpy as np
 from bench_decision import LEARN, labelled_pairs
 
-import flat
 import sdp
 
 ROOT = Path(__file__).resolve().parents[1]

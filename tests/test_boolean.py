@@ -66,8 +66,8 @@ def test_mismatched_voxel_sizes_are_refused(rng):
 def test_difference_volume_equals_the_stored_difference(two_fields, rng):
     """Change detection evaluates max(F_a, -F_b) node by node (regions.Volume); the tiled path and
     the Boolean API store it. Both must give the same values, signs and regions, bit for bit."""
-    from sdp.fields._boolean import difference_on_own_blocks
     from sdp.change._regions import Volume, label_points, label_volume
+    from sdp.fields._boolean import difference_on_own_blocks
 
     a, b, _ = two_fields
     stored = difference_on_own_blocks(a, b)

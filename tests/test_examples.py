@@ -4,8 +4,8 @@ import doctest
 
 import pytest
 
-import sdp.fields._boolean
 import sdp.change._detect
+import sdp.fields._boolean
 import sdp.fields._density
 import sdp.io._output
 import sdp.io._read

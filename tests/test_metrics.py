@@ -8,8 +8,9 @@ import sdp
 @pytest.mark.xdist_group("scikit-learn")
 @pytest.mark.parametrize("seed", range(5))
 def test_kappa_and_scores_match_scikit_learn(seed):
-    from sklearn.metrics import cohen_kappa_score, f1_score, jaccard_score
+    from sklearn.metrics import cohen_kappa_score
     from sklearn.metrics import confusion_matrix as sk_confusion
+    from sklearn.metrics import f1_score, jaccard_score
 
     rng = np.random.default_rng(seed)
     truth = rng.random(1000) < 0.2

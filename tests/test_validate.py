@@ -11,8 +11,8 @@ from conftest import slow_after
 import sdp
 from sdp import DensityField
 from sdp._core._memory import format_bytes, memory_limit, parse_bytes
-from sdp.fields._lattice import check_lattice
 from sdp._core._validate import integer_at_least, positive_finite
+from sdp.fields._lattice import check_lattice
 
 
 def run(*args, cwd=None, **kw):

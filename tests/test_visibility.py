@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 import sdp
-from sdp.data._scene import FURNITURE, INSERTED, office_scene, scan
 from sdp.change._visibility import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage, visibility_states
+from sdp.data._scene import FURNITURE, INSERTED, office_scene, scan
 
 CAMERA = (0.3, 0.2, 2.2)  # sdp.data._scene's default camera
 BOX = INSERTED[0]  # a 30 cm box on the table

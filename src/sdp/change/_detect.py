@@ -49,17 +49,17 @@ from dataclasses import field as dc_field
 
 import numpy as np
 
+from .._core._memory import memory_limit as memory_limit_bytes
 from .._core._parallel import map_concurrently
 from .._core._points import as_points, to_rows
-from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
+from .._core._validate import finite, integer_at_least
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError
 from ..fields._density import DensityField, build_fields
 from ..fields._spacing import resolve_lattice
-from ._regions import Region, Volume, describe_regions, label_volume
-from .._core._memory import memory_limit as memory_limit_bytes
-from .._core._validate import finite, integer_at_least
 from ..options import Coverage, Lattice
+from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
+from ._regions import Region, Volume, describe_regions, label_volume
 from ._visibility import resolve_sensor_origins, visibility_states
 
 __all__ = ["ChangeResult", "PointChanges", "detect_changes", "judge_coverage", "inside_difference", "region_rules"]

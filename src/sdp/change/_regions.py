@@ -30,6 +30,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..fields._boolean import check_compatible
+from ..fields._density import DensityField
+from ..fields._lattice import BLOCK
 from ..fields._volume_kernels import (
     corner_labels,
     group_stats,
@@ -38,9 +41,6 @@ from ..fields._volume_kernels import (
     volume_at,
     volume_masks,
 )
-from ..fields._boolean import check_compatible
-from ..fields._density import DensityField
-from ..fields._lattice import BLOCK
 
 __all__ = ["Region", "label_points", "describe_regions", "PartLabels", "label_part", "join_parts"]
 

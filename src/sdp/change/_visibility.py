@@ -56,8 +56,8 @@ import numpy.typing as npt
 from .._core._cells import MAX_INDEX, cell_key, probe, table_bits
 from .._core._kdtree import k_nearest
 from .._core._validate import as_sensor_origins
-from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ..errors import InvalidPointsError
+from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 
 __all__ = ["RangeImage", "as_sensor_origins", "resolve_sensor_origins", "visibility_states", "SEEN_FREE",
            "SAME_SURFACE", "HIDDEN", "UNOBSERVED"]

@@ -12,7 +12,6 @@ from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import check_outputs
 
-
 __all__ = ["train_actions", "predict_actions", "stream_actions", "evaluate_actions"]
 
 

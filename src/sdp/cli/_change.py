@@ -22,16 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _text as report
-from ._common import align_clouds, check_picture_extras, disappeared_path, is_store, pictures, sensor_origins
 from .._core import _validate as V
 from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
-from ..options import Coverage, Execution, Lattice, Outputs, Registration
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
 from ..io._read import read_points
-
+from ..options import Coverage, Execution, Lattice, Outputs, Registration
+from . import _text as report
+from ._common import align_clouds, check_picture_extras, disappeared_path, is_store, pictures, sensor_origins
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
 
@@ -331,8 +330,8 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
 def _check_in_memory(n_points: int, memory_limit) -> None:
     """Refuse, before any field is built, a comparison in memory that would exceed the memory
     limit as a whole (:func:`sdp.scale._tiles.untiled_point_bytes`), with the smallest limit that holds it."""
-    from ..errors import GridTooLargeError
     from .._core._memory import memory_limit as limit
+    from ..errors import GridTooLargeError
     from ..scale._tiles import untiled_point_bytes
 
     need, cap = untiled_point_bytes(n_points), limit(memory_limit)

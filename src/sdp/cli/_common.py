@@ -7,9 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..options import Registration
 from ..errors import SDPError
-
+from ..options import Registration
 
 __all__ = ["is_store", "is_field", "disappeared_path", "sensor_origins", "align_clouds", "check_picture_extras", "pictures"]
 
@@ -48,8 +47,8 @@ def sensor_origins(choice, ref_scan, cur_scan, alignment=None):
 def align_clouds(ref, cur, names, registration: Registration):
     """:func:`sdp.align` of the current Cloud onto the reference (a Cloud, or a DensityField),
     estimated on the points of the registration's LAS classes of both when given."""
-    from ..registration._align import align
     from ..fields._density import DensityField
+    from ..registration._align import align
 
     ref_xyz = ref if isinstance(ref, DensityField) else ref.xyz
     cur_xyz = cur.xyz

@@ -14,16 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _text as report
-from ._common import align_clouds, check_picture_extras, sensor_origins
 from .._core import _validate as V
 from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
-from ..options import Cylinder, Execution, Outputs, Registration
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
 from ..io._read import read_points
-
+from ..options import Cylinder, Execution, Outputs, Registration
+from . import _text as report
+from ._common import align_clouds, check_picture_extras, sensor_origins
 
 __all__ = ["FileDistances", "distance_files"]
 

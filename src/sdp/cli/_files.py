@@ -9,14 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _text as report
-from ._common import align_clouds, is_field, is_store, pictures, sensor_origins
 from ..defaults import DEFAULTS
-from ..options import Coverage, Execution, Lattice, Registration
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
 from ..io._read import read_points
-
+from ..options import Coverage, Execution, Lattice, Registration
+from . import _text as report
+from ._common import align_clouds, is_field, is_store, pictures, sensor_origins
 
 __all__ = ["build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder", "Evaluation", "evaluate_files", "render_file"]
 

@@ -19,15 +19,17 @@ import threading
 import warnings
 
 from .. import __version__
-
 from .._core import _progress
-from . import _examples as X
-from . import _actions as A, _change as C, _distance as D, _files as F
 from .._core import _validate as V
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none
 from ..options import Coverage, Cylinder, Execution, Lattice, Outputs, Registration
+from . import _actions as A
+from . import _change as C
+from . import _distance as D
+from . import _examples as X
+from . import _files as F
 from ._text import action_eval_text, alignment_text, frame_text, train_text, written_text
 from ._warmup import first_run
 

@@ -158,12 +158,14 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     """
     import numpy as np
 
-    from ..options import Coverage, Execution, Outputs
-    from . import _change as C, _distance as D, _files as F
     from ..change._detect import detect_changes
+    from ..data._scene import office_scene
     from ..distance._distances import distances
     from ..io._output import all_or_none, write_points
-    from ..data._scene import office_scene
+    from ..options import Coverage, Execution, Outputs
+    from . import _change as C
+    from . import _distance as D
+    from . import _files as F
 
     say = echo or (lambda line: None)
     times: dict[str, float] = {}

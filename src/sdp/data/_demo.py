@@ -22,9 +22,9 @@ def run_demo(output: str | os.PathLike = "demo-output", *, seed: int = 0, echo: 
     ``reference.ply``, ``current_labelled.ply`` (fields ``change``, ``truth``, ``region``, ``F``),
     ``current_cluster_volume.ply`` and ``changes.png``. Returns the :class:`~sdp.ChangeResult`."""
     from ..change._detect import detect_changes
-    from ..options import Coverage, Lattice
-    from ..io._output import write_mesh, write_points
     from ..change._metrics import scores
+    from ..io._output import write_mesh, write_points
+    from ..options import Coverage, Lattice
     from ..viz._render import render_changes
     from ._scene import INSERTED, office_scene
 

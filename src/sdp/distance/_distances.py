@@ -75,15 +75,15 @@ import numpy as np
 import numpy.typing as npt
 
 from .._core._cells import BITS, MAX_INDEX, cell_keys, sorted_cells, table_row
-from .._core._points import as_points
-from ..defaults import DEFAULTS
-from ..errors import InvalidOptionError, InvalidPointsError
 from .._core._memory import check_memory
 from .._core._memory import memory_limit as grid_memory_limit
-from ..fields._spacing import resolve_lattice
+from .._core._points import as_points
 from .._core._validate import auto_or_positive, nonnegative_finite
-from ..options import Cylinder
 from ..change._visibility import resolve_sensor_origins
+from ..defaults import DEFAULTS
+from ..errors import InvalidOptionError, InvalidPointsError
+from ..fields._spacing import resolve_lattice
+from ..options import Cylinder
 
 __all__ = ["Distances", "distances", "search_reach", "tile_halo", "DISTANCE_FIELDS"]
 

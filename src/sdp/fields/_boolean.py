@@ -19,10 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._volume_kernels import difference_blocks
 from ..errors import IncompatibleFieldsError
 from ._density import DensityField
 from ._lattice import Grid
+from ._volume_kernels import difference_blocks
 
 __all__ = ["union", "intersection", "difference"]
 

@@ -45,19 +45,19 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _file as fieldfile
-from ._kernels import bin_trilinear, mark_blocks, splat_exact, trilinear
+from .._core._memory import check_memory
 from .._core._parallel import map_concurrently
 from .._core._points import Points, as_points
 from .._core._progress import bar
-from ._blocks import Blocks
+from .._core._validate import check_grid_options
 from ..defaults import DEFAULTS
 from ..errors import IncompatibleFieldsError, InvalidOptionError, InvalidPointsError
+from . import _file as fieldfile
+from ._blocks import Blocks
 from ._file import FORMAT_VERSION
-from .._core._memory import check_memory
+from ._kernels import bin_trilinear, mark_blocks, splat_exact, trilinear
 from ._lattice import BLOCK, Grid, check_kernel
 from ._spacing import resolve_lattice
-from .._core._validate import check_grid_options
 
 __all__ = ["DensityField", "threshold", "FORMAT_VERSION", "BOOLEAN_METHODS"]  # FORMAT_VERSION: of sdp.fields._file
 

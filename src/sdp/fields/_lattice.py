@@ -33,9 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InvalidOptionError, InvalidPointsError
 from .._core._memory import check_memory
 from .._core._validate import integer_at_least, positive_finite
+from ..errors import InvalidOptionError, InvalidPointsError
 
 __all__ = ["BLOCK", "Grid", "voxel_size_for_grid_size", "check_lattice", "check_kernel", "kernel_reach",
            "MAX_GRID_UNITS"]

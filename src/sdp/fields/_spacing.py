@@ -80,8 +80,8 @@ def resolve_sigma_voxels(sigma_voxels: float | str, *, automatic: bool) -> float
     """σ in voxels: ``"auto"`` is :data:`~sdp.defaults.AUTO_SIGMA_VOXELS` on the automatic
     lattice (``automatic``), :data:`~sdp.defaults.PAPER_SIGMA_VOXELS` on a given one; a number
     is checked (positive, finite) and used."""
-    from ..defaults import AUTO_SIGMA_VOXELS, PAPER_SIGMA_VOXELS
     from .._core._validate import auto_or_positive
+    from ..defaults import AUTO_SIGMA_VOXELS, PAPER_SIGMA_VOXELS
 
     sigma_voxels = auto_or_positive("sigma_voxels", sigma_voxels)
     if sigma_voxels == "auto":
@@ -104,9 +104,9 @@ def resolve_lattice(clouds: Sequence[Points], *, voxel_size: float | str | None 
     InvalidOptionError
         ``grid_size`` with a length, a length that is not positive and finite, or an unknown word.
     """
+    from .._core._validate import positive_finite
     from ..errors import InvalidOptionError
     from ._lattice import voxel_size_for_grid_size
-    from .._core._validate import positive_finite
 
     automatic = grid_size is None and (voxel_size is None or isinstance(voxel_size, str))
     sv = resolve_sigma_voxels(sigma_voxels, automatic=automatic)

@@ -47,11 +47,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._core._points import as_points
+from .._core._validate import positive_finite
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError, require
 from ..fields._density import DensityField
 from ..fields._spacing import auto_voxel_size
-from .._core._validate import positive_finite
 
 __all__ = ["Alignment", "align", "transform_points", "GicpTarget", "ROTATION_CONVENTION"]
 

@@ -77,20 +77,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _kernels as K
-from .._core._progress import bar
-from ..change._coverage import footprint_covered
-from ..change._detect import ChangeResult, PointChanges
-from ..defaults import DEFAULTS
-from ..errors import GridTooLargeError, InvalidOptionError, InvalidPointsError, SDPError, WorkerLostError, require
-from ..fields._density import DensityField, threshold
 from .._core._memory import check_memory, format_bytes
 from .._core._memory import memory_limit as _memory_limit
-from ..fields._lattice import BLOCK, check_kernel, check_lattice, kernel_reach
-from ..io._source import PointSource
-from ..change._regions import Volume, describe_regions, join_parts, label_part
-from ..options import Cylinder, Execution, Lattice
-from ._store import FieldStore, require_zarr
+from .._core._progress import bar
 from .._core._validate import (
     check_grid_options,
     check_tile_options,
@@ -98,6 +87,17 @@ from .._core._validate import (
     nonnegative_finite,
     positive_finite,
 )
+from ..change._coverage import footprint_covered
+from ..change._detect import ChangeResult, PointChanges
+from ..change._regions import Volume, describe_regions, join_parts, label_part
+from ..defaults import DEFAULTS
+from ..errors import GridTooLargeError, InvalidOptionError, InvalidPointsError, SDPError, WorkerLostError, require
+from ..fields._density import DensityField, threshold
+from ..fields._lattice import BLOCK, check_kernel, check_lattice, kernel_reach
+from ..io._source import PointSource
+from ..options import Cylinder, Execution, Lattice
+from . import _kernels as K
+from ._store import FieldStore, require_zarr
 
 __all__ = ["detect_changes_tiled", "build_field_tiled", "distances_tiled", "first_slices",
            "dense_grid_bytes", "untiled_point_bytes", "sampled_lattice"]

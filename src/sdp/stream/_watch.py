@@ -43,18 +43,19 @@ from dataclasses import field as dc_field
 import numpy as np
 
 from .._core._points import as_points, to_rows
-from ..registration._align import GicpTarget, transform_points
-from ..registration._align import align as align_density
-from ..change._detect import inside_difference, judge_coverage, region_rules
+from .._core._validate import integer_at_least
 from ..change._coverage import CHANGED, NOT_COMPARABLE, states_of
+from ..change._detect import inside_difference, judge_coverage, region_rules
+from ..change._regions import Region
+from ..change._visibility import RangeImage, resolve_sensor_origins
 from ..defaults import DEFAULTS
+from ..errors import InvalidOptionError
 from ..fields._density import DensityField
 from ..fields._spacing import resolve_lattice
-from ..change._regions import Region
-from .._core._validate import integer_at_least
-from ..errors import InvalidOptionError
 from ..options import Coverage, Lattice, Registration
-from ..change._visibility import RangeImage, resolve_sensor_origins
+from ..registration._align import GicpTarget
+from ..registration._align import align as align_density
+from ..registration._align import transform_points
 
 __all__ = ["FrameChange", "watch"]
 
