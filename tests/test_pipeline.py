@@ -81,7 +81,7 @@ def test_in_memory_the_limit_counts_the_whole_command(tmp_path, rng):
     refused after reading, before any field, with the smallest limit, which then works."""
     import re
 
-    from sdp.scale._tiles import untiled_point_bytes
+    from sdp.scale._budget import untiled_point_bytes
 
     xyz = rng.uniform(0, 10, (30_000, 3))
     a, b = tmp_path / "a.xyz", tmp_path / "b.xyz"

@@ -10,6 +10,7 @@ import pytest
 from conftest import box_surface, write_las
 
 import sdp
+import sdp.scale._session
 from sdp.io import CloudFileError, PointSource, write_points, write_points_streamed
 from sdp.scale._tiles import detect_changes_tiled
 
@@ -221,7 +222,7 @@ def test_cli_refuses_tiles_under_a_tiny_memory_limit_before_any_worker(tmp_path,
     def no_cluster(*_, **__):
         raise AssertionError("a Dask cluster was started for a job its memory limit refuses")
 
-    monkeypatch.setattr(sdp.scale._tiles, "_connect", no_cluster)
+    monkeypatch.setattr(sdp.scale._session, "_connect", no_cluster)
     capsys.readouterr()
     assert main([str(x) for x in args]) == 2
     err = capsys.readouterr().err
@@ -231,7 +232,7 @@ def test_cli_refuses_tiles_under_a_tiny_memory_limit_before_any_worker(tmp_path,
 
 @pytest.mark.parametrize("workers, separate", [(1, True), (2, True), (7, True), (2, False)])
 def test_the_shares_of_a_job_add_up_to_its_limit(workers, separate):
-    from sdp.scale._tiles import WORKER_BYTES, JobBudget
+    from sdp.scale._budget import WORKER_BYTES, JobBudget
 
     for limit in (2**30, 2 * 2**30, 64 * 2**30):
         plan = JobBudget(limit, workers, separate=separate)

@@ -75,7 +75,7 @@ def test_far_coordinates_are_refused_not_silently_wrong(cloud):
     (dict(voxel_size=0.05, workdir="/nonexistent/sdp"), "no such folder"),
 ])
 def test_tiled_refuses_bad_options_before_any_work(tmp_path, cloud, kw, match, monkeypatch):
-    monkeypatch.setattr("sdp.scale._tiles._connect", lambda *a: pytest.fail("reached Dask"))
+    monkeypatch.setattr("sdp.scale._session._connect", lambda *a: pytest.fail("reached Dask"))
     kw.setdefault("workdir", tmp_path)
     lattice = {k: kw.pop(k) for k in ("voxel_size", "sigma_voxels", "h") if k in kw}
     regions = {k: kw.pop(k) for k in ("min_region_points",) if k in kw}
@@ -138,7 +138,7 @@ def test_cli_refuses_bad_options_in_one_line(tmp_path, cloud, args):
 
 
 def test_a_tile_refusal_names_the_workers_share_of_the_limit(tmp_path, cloud, monkeypatch):
-    monkeypatch.setattr("sdp.scale._tiles._connect", lambda *a: pytest.fail("reached Dask"))
+    monkeypatch.setattr("sdp.scale._session._connect", lambda *a: pytest.fail("reached Dask"))
     with pytest.raises(sdp.GridTooLargeError, match=r"a task's share of the memory limit of 4 GB \(less 485 MB for the "
                        r"command, over 2 worker\(s\), less 256 MB for the worker itself\) of 1.51 GB"):
         sdp.detect_changes_tiled(cloud, cloud, lattice=sdp.Lattice(voxel_size=0.05, sigma_voxels=1000),

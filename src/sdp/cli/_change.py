@@ -102,8 +102,8 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
     """Decide, before any work, whether :func:`compare_files` works in memory or in tiles.
 
     Tiles are taken when ``execution.tiled`` is True, when ``reference`` is a ``.zarr`` field store, or
-    when two dense float32 grids over the clouds' box (:func:`sdp.scale._tiles.dense_grid_bytes`), or
-    the points themselves (:func:`sdp.scale._tiles.untiled_point_bytes`), would exceed the memory
+    when two dense float32 grids over the clouds' box (:func:`sdp.scale._budget.dense_grid_bytes`), or
+    the points themselves (:func:`sdp.scale._budget.untiled_point_bytes`), would exceed the memory
     limit (:func:`sdp._core._memory.memory_limit`). Only LAS/LAZ, NPY and binary PLY files can be read
     in slices, and only the point decision with footprint coverage runs in tiles: other
     files, ``grid_size``, ``align``, ``decision="cluster"`` or a given sensor position keep
@@ -131,7 +131,8 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
     from .._core._memory import memory_limit as limit
     from ..io._cloud import FORMATS
     from ..io._source import PointSource
-    from ..scale._tiles import dense_grid_bytes, sampled_lattice, untiled_point_bytes
+    from ..scale._budget import dense_grid_bytes, untiled_point_bytes
+    from ..scale._session import sampled_lattice
 
     outputs = Outputs() if outputs is None else outputs
     lattice = Lattice() if lattice is None else lattice
@@ -329,10 +330,10 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
 
 def _check_in_memory(n_points: int, memory_limit) -> None:
     """Refuse, before any field is built, a comparison in memory that would exceed the memory
-    limit as a whole (:func:`sdp.scale._tiles.untiled_point_bytes`), with the smallest limit that holds it."""
+    limit as a whole (:func:`sdp.scale._budget.untiled_point_bytes`), with the smallest limit that holds it."""
     from .._core._memory import memory_limit as limit
     from ..errors import GridTooLargeError
-    from ..scale._tiles import untiled_point_bytes
+    from ..scale._budget import untiled_point_bytes
 
     need, cap = untiled_point_bytes(n_points), limit(memory_limit)
     if need > cap:

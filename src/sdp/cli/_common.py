@@ -10,7 +10,8 @@ import numpy as np
 from ..errors import SDPError
 from ..options import Registration
 
-__all__ = ["is_store", "is_field", "disappeared_path", "sensor_origins", "align_clouds", "check_picture_extras", "pictures"]
+__all__ = ["is_store", "is_field", "disappeared_path", "sensor_origins", "align_clouds", "check_picture_extras",
+           "pictures"]
 
 
 def is_store(path) -> bool:

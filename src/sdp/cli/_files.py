@@ -17,7 +17,8 @@ from ..options import Coverage, Execution, Lattice, Registration
 from . import _text as report
 from ._common import align_clouds, is_field, is_store, pictures, sensor_origins
 
-__all__ = ["build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder", "Evaluation", "evaluate_files", "render_file"]
+__all__ = ["build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder",
+           "Evaluation", "evaluate_files", "render_file"]
 
 
 def _lattice(clouds, lattice: Lattice, memory_limit, like=None) -> dict:
@@ -68,7 +69,8 @@ def build_field_file(cloud, *, output, format: str | None = None, lattice: Latti
         _save_field(fld, output, inputs=(cloud,))
         return fld
     from ..io._source import PointSource
-    from ..scale._tiles import build_field_tiled, sampled_lattice
+    from ..scale._session import sampled_lattice
+    from ..scale._tiles import build_field_tiled
 
     source = PointSource.open(cloud, format=format)
     voxel, sigma_voxels = sampled_lattice([source], voxel_size=lattice.voxel_size, k=lattice.k,

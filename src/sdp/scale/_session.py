@@ -1,0 +1,371 @@
+"""A tiled run's session: the lattice and the tiling from the first slices, the buckets on disk,
+the Dask cluster (local, or a scheduler's address) and the tasks run on it, stopped at the first
+failure, with Ctrl-C and SIGTERM ending the run and removing the work folder.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+import signal
+import tempfile
+import threading
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .._core._memory import check_memory, format_bytes
+from .._core._memory import memory_limit as _memory_limit
+from .._core._progress import bar
+from .._core._validate import check_grid_options, check_tile_options
+from ..defaults import DEFAULTS
+from ..errors import GridTooLargeError, InvalidPointsError, SDPError, WorkerLostError, require
+from ..fields._lattice import BLOCK, check_kernel, check_lattice
+from ..io._source import PointSource
+from . import _kernels as K
+from ._budget import BYTES_PER_ROW_READ, BYTES_PER_TILE_POINT, JobBudget, megabytes
+
+__all__ = ["Tiling", "load_bucket", "Session", "sampled_lattice", "first_slices", "CONNECT_TIMEOUT", "TASK_RETRIES"]
+
+
+_PART_ROWS = 8_000_000  # rows read by one bucketing task
+
+
+@dataclass(frozen=True)
+class Tiling:
+    """Square columns of ``blocks`` × ``blocks`` lattice blocks, with a halo (world units)."""
+
+    voxel_size: float
+    blocks: int
+    halo: float
+
+    @property
+    def edge(self) -> float:
+        return self.blocks * BLOCK * self.voxel_size
+
+    def owns(self, key, xyz: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Mask of the points whose cell, floor(p / l), lies in tile ``key``'s blocks (x, y), or
+        within ``margin`` (world units) of them."""
+        n = self.blocks * BLOCK
+        m = margin / self.voxel_size
+        u = xyz[:, 0] / self.voxel_size
+        v = xyz[:, 1] / self.voxel_size
+        return ((u >= key[0] * n - m) & (u < (key[0] + 1) * n + m) & (v >= key[1] * n - m)
+                & (v < (key[1] + 1) * n + m))
+
+
+def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: int, tiling: Tiling,
+                 root: str, chunk_rows: int) -> tuple[dict, int, float]:
+    """Bucket rows start … stop−1 of ``source``, ``chunk_rows`` at a time; returns ({tile: count},
+    rows dropped, seconds reading)."""
+    counts: dict[tuple[int, int], int] = {}
+    dropped, t_read = 0, 0.0
+    chunks = source.chunks(chunk_rows, start, stop)
+    while True:
+        t = time.perf_counter()
+        item = next(chunks, None)
+        t_read += time.perf_counter() - t
+        if item is None:
+            break
+        first, xyz = item
+        i0, j0, nj, sizes, records, n_bad = K.tile_buckets(xyz, first, tiling.voxel_size, tiling.blocks * BLOCK,
+                                                            tiling.halo)
+        dropped += n_bad
+        ends = np.cumsum(sizes)
+        for b in np.flatnonzero(sizes):
+            key = (int(i0 + b // nj), int(j0 + b % nj))
+            path = Path(root, epoch, f"{key[0]}_{key[1]}")
+            path.mkdir(exist_ok=True)  # not its parents: a run that ended removed them, and stays removed
+            # the task's first write to a bucket truncates it: a task run again (its worker died) writes
+            # its rows once
+            with open(path / f"{part:06d}.bin", "ab" if key in counts else "wb") as f:
+                records[ends[b] - sizes[b]:ends[b]].tofile(f)
+            counts[key] = counts.get(key, 0) + int(sizes[b])
+    return counts, dropped, t_read
+
+
+def load_bucket(root: str, epoch: str, key) -> np.ndarray:
+    """Bucket of tile ``key``: (m, 4) float64 rows x, y, z, row number, in row order."""
+    folder = Path(root, epoch, f"{key[0]}_{key[1]}")
+    if not folder.is_dir():
+        return np.zeros((0, 4))
+    return np.concatenate([np.fromfile(p, np.float64).reshape(-1, 4) for p in sorted(folder.iterdir())])
+
+
+def _check_tile_points(tiling: Tiling, sources: dict, plan: JobBudget, *, given: bool) -> None:
+    """Refuse, before any task runs, tiles whose points (with their halo, at the clouds' mean
+    density) would need more than a task's share of the memory limit."""
+    need = 2 * _tile_points(tiling, sources) * BYTES_PER_TILE_POINT
+    if need <= plan.task:
+        return
+    points = f"about {_tile_points(tiling, sources):,} points per epoch with their halo"
+    if given and plan.task > 0:
+        raise GridTooLargeError(f"tiles of {tiling.edge:.4g} ({points}) would need {format_bytes(need)}, above "
+                                f"{plan.task_budget} of {format_bytes(plan.task)}: give a smaller --tile-size, or "
+                                f"--memory-limit {megabytes(plan.smallest(need))} or more")
+    raise GridTooLargeError(f"the memory limit of {format_bytes(plan.limit)} can't hold this job: {plan.parts()}, and "
+                            f"{'these' if given else 'the smallest'} tiles (edge {tiling.edge:.4g}, {points}) need "
+                            f"{format_bytes(need)}; give --memory-limit {megabytes(plan.smallest(need))} or more")
+
+
+def _tile_points(tiling: Tiling, sources: dict) -> int:
+    """Points of the denser cloud in one tile and its halo, at its mean density in x, y (at most all of them)."""
+    return min(max(s.n_rows for s in sources.values()),
+               int(math.ceil(_density(sources) * (tiling.edge + 2 * tiling.halo) ** 2)))
+
+
+def _density(sources: dict) -> float:
+    lo = np.min([s.lo for s in sources.values()], axis=0)
+    hi = np.max([s.hi for s in sources.values()], axis=0)
+    area = max(float(np.prod(hi[:2] - lo[:2])), 1e-12)
+    return max(s.n_rows for s in sources.values()) / area
+
+
+class Session:
+    """Workdir, Dask cluster and bucketed clouds of one tiled run; ``with`` closes them."""
+
+    def __init__(self, clouds: dict, voxel_size, *, sigma_voxels, k, h, truncate, method, tile_size, tile_points,
+                 memory_limit, scheduler, workers, workdir, halo: float | None = None):
+        check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
+                           memory_limit=memory_limit)
+        check_tile_options(tile_size=tile_size, tile_points=tile_points, workers=workers, workdir=workdir,
+                           scheduler=scheduler)
+        _dask("dask" if scheduler in ("synchronous", "threads") else "dask.distributed")  # before any work
+        # "auto": the tiles need the lattice before the points
+        voxel_size, sigma_voxels = sampled_lattice(list(clouds.values()), voxel_size=voxel_size or "auto", k=k,
+                                                   sigma_voxels=sigma_voxels)
+        self.voxel_size, self.sigma_voxels = float(voxel_size), float(sigma_voxels)
+        workers = workers or os.cpu_count() or 1
+        in_process = scheduler in ("synchronous", "threads")
+        self.root = tempfile.mkdtemp(prefix="sdp-tiles-", dir=workdir)
+        self.timings: dict[str, float] = {}
+        self.executor = self.cluster = None
+        try:
+            if not (scheduler is None or in_process):  # a cluster of its own: its workers share the limit,
+                self.executor, self.cluster = _connect(scheduler, workers)  # one task per thread at once
+                workers = max(1, sum(self.executor.nthreads().values()))
+            plan = JobBudget(_memory_limit(memory_limit), 1 if scheduler == "synchronous" else workers,
+                             separate=not in_process)
+            share, budget = plan.task, plan.task_budget
+            if tile_points is None:  # what a task's share holds (none: the smallest tiles, refused below)
+                tile_points = max(0, share // (2 * BYTES_PER_TILE_POINT))
+            self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
+            lo = np.min([src.lo for src in self.sources.values()], axis=0)
+            hi = np.max([src.hi for src in self.sources.values()], axis=0)
+            # with no share left, the reach alone is checked here and the tiles are refused below
+            reach = check_kernel(sigma_voxels, truncate, share if share > 0 else 2**62, budget=budget)
+            check_lattice(lo, hi, self.voxel_size, reach)
+            self.lo = lo
+            self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo)
+            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None)
+            self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
+                             method=method, memory_limit=share)
+            chunk_rows = int(min(2_000_000, max(10_000, share // (4 * BYTES_PER_ROW_READ))))
+            _check_tile_directory(self.tiling, lo, hi, reach, share, budget)
+            for e in self.sources:
+                Path(self.root, e).mkdir()
+            if self.executor is None:
+                self.executor, self.cluster = _connect(scheduler, workers)
+            jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
+                    for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
+            done = self.tasks("bucket", _bucket_part, jobs, (), unit="slice")
+        except BaseException:
+            self.__exit__()
+            raise
+        self.budget = plan
+        self.timings["read"] = sum(d[2] for d in done)
+        self.dropped = {e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in self.sources}
+        self.tiles = sorted({key for d in done for key in d[0]})
+
+    def tasks(self, step: str, func, jobs: list, summed: tuple, unit: str = "tile") -> list:
+        """Run the jobs; time the step (wall) and sum the tasks' own timings named ``summed``;
+        the progress bar counts ``unit`` (a tile, a slice of a file)."""
+        t = time.perf_counter()
+        results = _run(self.executor, func, jobs, {"bucket": "reading and tiling"}.get(step, f"{step} tiles"), unit)
+        self.timings[step] = time.perf_counter() - t
+        for name in summed:
+            self.timings[name] = self.timings.get(name, 0.0) + sum(r[name] for r in results)
+        return results
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        """Close the client and the local cluster, and remove the work folder whatever happens
+        (an error, Ctrl-C, SIGTERM turned into an exception by ``sdp``'s ``main``)."""
+        try:
+            if getattr(self, "executor", None) is not None and not isinstance(self.executor, str):
+                self.executor.close()
+        finally:
+            try:
+                if getattr(self, "cluster", None) is not None:
+                    self.cluster.close()  # stops the workers: nothing writes into the buckets any more
+            finally:
+                shutil.rmtree(self.root, ignore_errors=True)
+
+
+def sampled_lattice(clouds: list, *, voxel_size: float | str = DEFAULTS.voxel_size, k: float = DEFAULTS.k,
+                    sigma_voxels: float | str = DEFAULTS.sigma_voxels) -> tuple[float, float]:
+    """(voxel, σ in voxels) as :func:`sdp.fields._spacing.resolve_lattice`, ``"auto"`` measured on the
+    first slice of each cloud (a path, :class:`~sdp.io.PointSource` or array): clouds too large
+    to read whole."""
+    from ..fields._spacing import resolve_lattice
+
+    if not isinstance(voxel_size, str):
+        return resolve_lattice([], voxel_size=voxel_size, sigma_voxels=sigma_voxels)
+    return resolve_lattice(first_slices(clouds), voxel_size=voxel_size, k=k, sigma_voxels=sigma_voxels)
+
+
+def first_slices(clouds: list) -> list:
+    """The first slice of each cloud (a path, :class:`~sdp.io.PointSource` or array), validated:
+    what the tiles measure spacing and scales on before they read the points."""
+    from .._core._points import as_points
+
+    firsts = []
+    for c in clouds:
+        if isinstance(c, (str, os.PathLike)):
+            c = PointSource.open(c)
+        firsts.append(as_points(next(c.chunks())[1] if isinstance(c, PointSource) else c))
+    return firsts
+
+
+def _source(s, root: str, epoch: str) -> PointSource:
+    if isinstance(s, PointSource):
+        return s
+    if isinstance(s, (str, os.PathLike)):
+        return PointSource.open(s, spill_dir=root)
+    xyz = np.asarray(s, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise InvalidPointsError(f"{epoch} points must be an (n, 3) array, got shape {xyz.shape}")
+    path = Path(root, f"{epoch}.npy")
+    np.save(path, xyz)
+    return PointSource.open(path)
+
+
+def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_points: int, sigma_voxels: float,
+            truncate: float, halo: float | None = None) -> Tiling:
+    if halo is None:
+        halo = (math.ceil(truncate * sigma_voxels) + 3) * voxel_size  # kernel reach + binning + interpolation + margin
+    cell = BLOCK * voxel_size
+    if tile_size is None:  # tile_points in the tile and its halo at the mean density: whole blocks, rounded down
+        blocks = math.floor((math.sqrt(tile_points / max(_density(sources), 1e-12)) - 2 * halo) / cell)
+    else:
+        blocks = math.ceil(tile_size / cell)
+    blocks = max(1, blocks, math.ceil(2 * halo / cell))
+    return Tiling(voxel_size, blocks, halo)
+
+
+def _check_tile_directory(tiling: Tiling, lo, hi, reach: int, share: int, budget: str) -> None:
+    """Refuse, before any task runs, tiles whose block directory alone exceeds a task's share of
+    the memory limit (a voxel far below the point spacing: 1e-9 for metres)."""
+    span = (tiling.edge + 2 * tiling.halo) / tiling.voxel_size + 2 * reach + 2 * BLOCK
+    z = (float(hi[2]) - float(lo[2])) / tiling.voxel_size + 2 * reach + 2 * BLOCK
+    check_memory((span / BLOCK) ** 2 * (z / BLOCK) * 5, f"the block directory of one tile (voxel "
+                 f"{tiling.voxel_size:g}, tile edge {tiling.edge:.4g})", share, budget=budget)
+
+
+#: Seconds to wait for a ``dask.distributed`` scheduler to answer.
+CONNECT_TIMEOUT = 10
+
+
+#: Run in each local worker process as it starts (a Dask preload): Ctrl-C in a terminal reaches the
+#: whole process group, and the client, not each worker, ends the run (a worker would print a
+#: KeyboardInterrupt traceback); the client closes the cluster on its way out.
+_WORKER_PRELOAD = """
+import signal, threading
+if threading.current_thread() is threading.main_thread():
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+"""
+
+
+def _dask(module: str):
+    """``dask`` or ``dask.distributed`` (the ``tiles`` extra), or a one-line :class:`~sdp.MissingDependencyError`."""
+    return require(module, "tiles", "the tiled path (Dask)")
+
+
+def _connect(scheduler: str | None, workers: int):
+    """(executor, cluster): a distributed ``Client`` (and the local cluster it drives), or the
+    name of a Dask local scheduler."""
+    if scheduler in ("synchronous", "threads"):
+        return scheduler, None
+    distributed = _dask("dask.distributed")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
+
+    if scheduler is None:  # the tasks bound their own memory (``share``): no pausing by distributed
+        with _sigint_deferred() as interrupted:  # a cluster half started can't be closed
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=0,
+                                   dashboard_address=":0", env={"NUMBA_NUM_THREADS": "1"},  # a core per worker
+                                   silence_logs=logging.ERROR,  # no warnings about tasks cancelled on Ctrl-C
+                                   preload=[_WORKER_PRELOAD])
+            try:
+                client = Client(cluster)
+            except BaseException:
+                cluster.close()
+                raise
+        if interrupted():
+            client.close()
+            cluster.close()
+            raise KeyboardInterrupt
+        return client, cluster
+    try:
+        return Client(scheduler, timeout=CONNECT_TIMEOUT), None
+    except (OSError, TimeoutError, ValueError) as exc:  # refused, unreachable, or not an address
+        reason = str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise SDPError(f"can't reach the Dask scheduler at {scheduler} within {CONNECT_TIMEOUT} s ({reason}); "
+                       "start it (dask scheduler) or check the address") from None
+
+
+@contextmanager
+def _sigint_deferred():
+    """Hold Ctrl-C back in the block (main thread only), and tell afterwards whether it came."""
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: False
+        return
+    hits = []
+    previous = signal.signal(signal.SIGINT, lambda *_: hits.append(True))
+    try:
+        yield lambda: bool(hits)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+#: Retries of a task that raised (a shared file system's passing error); a task whose worker died
+#: is rescheduled by Dask itself, up to its scheduler's ``allowed-failures``.
+TASK_RETRIES = 1
+
+
+def _run(executor, func, jobs: list, what: str, unit: str = "tile") -> list:
+    """func(*job) for every job, in order, on a distributed ``Client`` or a local Dask scheduler (its name).
+
+    The first task that fails for good stops the run: the others are cancelled and its error
+    is raised (a worker lost more often than the scheduler allows: :class:`WorkerLostError`).
+    """
+    if not jobs:
+        return []
+    if isinstance(executor, str):
+        dask = _dask("dask")
+
+        return list(dask.compute(*[dask.delayed(func, pure=False)(*job) for job in jobs], scheduler=executor))
+    distributed = _dask("dask.distributed")
+
+    futures = executor.map(func, *zip(*jobs, strict=True), pure=False, retries=TASK_RETRIES)
+    try:
+        with bar(len(futures), what, unit=unit) as pb:
+            for future in distributed.as_completed(futures):
+                if future.status == "error":
+                    future.result()  # raises the task's error: no waiting for the other tasks
+                pb.update(1)
+        return executor.gather(futures)
+    except distributed.KilledWorker as exc:
+        worker = getattr(exc.args[1], "address", "?") if len(exc.args) > 1 else "?"
+        tries = exc.args[2] + 1 if len(exc.args) > 2 else 1
+        raise WorkerLostError(f"{what}: the Dask workers running one task died {tries} time(s) (the last: {worker}); "
+                              "the run was stopped: check the workers' memory and logs") from None
+    finally:
+        executor.cancel([f for f in futures if not f.done()])
+
