@@ -9,8 +9,9 @@ import sdp.fields._boolean
 import sdp.fields._density
 import sdp.io._output
 import sdp.io._read
+import sdp.options
 
-MODULES = [sdp.change._detect, sdp.fields._density, sdp.io._read, sdp.io._output, sdp.fields._boolean]
+MODULES = [sdp.change._detect, sdp.fields._density, sdp.io._read, sdp.io._output, sdp.fields._boolean, sdp.options]
 ENTRY_POINTS = [sdp.detect_changes, sdp.DensityField.from_points, sdp.read_points, sdp.write_points, sdp.difference]
 
 

@@ -40,7 +40,7 @@ from .errors import InvalidOptionError
 
 __all__ = ["Lattice", "Coverage", "Registration", "Cylinder", "Execution", "Outputs"]
 
-Path = str | os.PathLike
+PathLike = str | os.PathLike
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -251,7 +251,7 @@ class Execution:
     tile_points: int | None = None
     scheduler: str | None = None
     workers: int | None = None
-    workdir: Path | None = None
+    workdir: PathLike | None = None
     notify: Callable[[str], object] | None = field(default=None, compare=False)
 
     def __post_init__(self):
@@ -288,9 +288,9 @@ class Outputs:
     """
 
     both: bool = False
-    png: Path | None = None
-    html: Path | None = None
-    report: Path | None = None
+    png: PathLike | None = None
+    html: PathLike | None = None
+    report: PathLike | None = None
     aligned: bool = False
 
     @property
