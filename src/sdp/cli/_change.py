@@ -131,6 +131,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
     from .._core._memory import memory_limit as limit
     from ..io._cloud import FORMATS
     from ..io._source import PointSource
+    from ..fields._lattice import check_lattice
     from ..scale._budget import dense_grid_bytes, untiled_point_bytes
     from ..scale._session import sampled_lattice
 
@@ -168,12 +169,15 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
                                           sigma_voxels=lattice.sigma_voxels)
     lo = np.minimum(sources[0].lo, sources[1].lo)
     hi = np.maximum(sources[0].hi, sources[1].hi)
+    check_lattice(lo, hi, voxel)  # before the grids' size: a lattice that can't be placed says so
     grids = 2 * dense_grid_bytes(lo, hi, voxel, sigma_voxels=sigma_voxels)
     points = untiled_point_bytes(sum(s.n_rows for s in sources))
     cap = limit(execution.memory_limit)
     if not (tiled or max(grids, points) > cap):
         return ChangePlan(tiled=False)
     if output is not None and Path(output).suffix.lower() not in (".las", ".laz"):  # the tiles stream LAS/LAZ
+        if tiled:
+            raise SDPError(f"{output}: --tiled streams its output to LAS/LAZ: give -o OUT.laz")
         raise SDPError(f"{output}: the clouds are compared in tiles (two dense grids would need "
                        f"{format_bytes(grids)}, above the memory limit of {format_bytes(cap)}), whose "
                        "output streams to LAS/LAZ: give -o OUT.laz, or a larger --memory-limit")

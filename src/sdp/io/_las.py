@@ -88,6 +88,40 @@ def check_las_points(path, header) -> None:
         if have < need:
             raise CloudFileError(f"{path}: truncated: the LAS header announces {n:,} points ({need:,} bytes) but the "
                                  f"file holds {have:,} bytes")
+        evlrs = int(getattr(header, "start_of_first_evlr", 0) or 0)
+        end = evlrs if evlrs >= need else have  # LAS 1.4 puts extended records after the points
+        if end - need >= int(header.point_format.size):
+            raise CloudFileError(f"{path}: the LAS header announces {n:,} points, the file holds "
+                                 f"{(end - int(header.offset_to_point_data)) // int(header.point_format.size):,}")
+    else:
+        _check_laz_chunks(path, header, n)
+
+
+def _check_laz_chunks(path, header, n: int) -> None:
+    """Refuse a LAZ whose header count disagrees with its chunk table: the table lists each chunk's
+    points (variable chunks) or holds chunks of a fixed size, only the last one shorter."""
+    import lazrs
+
+    vlr = next((v for v in header.vlrs if getattr(v, "record_id", None) == 22204), None)
+    if vlr is None:
+        return  # laspy reports a LAZ without its laszip record
+    with open(path, "rb") as f:
+        f.seek(int(header.offset_to_point_data))
+        try:
+            laz = lazrs.LazVlr(vlr.record_data)
+            table = lazrs.read_chunk_table(f, laz)
+        except Exception:  # a table that can't be read: laspy says so when it reads the points
+            return
+    if not table:
+        return
+    size = int(laz.chunk_size())
+    if size == 0xFFFFFFFF:  # variable chunks: the table counts every point
+        stored = sum(int(c) for c, _ in table)
+        if stored != n:
+            raise CloudFileError(f"{path}: the LAS header announces {n:,} points, the LAZ chunk table {stored:,}")
+    elif not (len(table) - 1) * size < n <= len(table) * size:
+        raise CloudFileError(f"{path}: the LAS header announces {n:,} points, the LAZ chunk table holds "
+                             f"{len(table):,} chunks of {size:,}")
 
 
 def las_scale_offset(lo, hi, path=None) -> tuple[np.ndarray, np.ndarray]:

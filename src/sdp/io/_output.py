@@ -135,7 +135,9 @@ def atomic_path(path: str | os.PathLike, *, inputs=()):
     if path.is_dir():
         raise SDPError(f"{path}: is an existing directory; choose a file name for the output")
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+        # the suffix in lower case, as the writers match it (a library choosing by extension, or
+        # completing one, sees the format's usual name)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix.lower(), dir=path.parent)
     except OSError as exc:
         raise SDPError(f"{path}: can't create files in {str(path.parent)!r} ({exc.strerror or exc})") from None
     pending, deferred = _PENDING.get(), False

@@ -68,6 +68,10 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
     fmt = input_format(path, format)
     try:
         xyz, fields, las, *pose = _READERS[fmt](path)  # PCD adds its VIEWPOINT and whether organized
+        xyz = np.asarray(xyz)
+        if xyz.dtype.kind not in "iuf":  # complex, text, structured: no coordinates to cast
+            raise CloudFileError(f"{path}: coordinates of type {xyz.dtype} (expected real numbers)")
+        xyz = xyz.astype(np.float64, copy=False)
     except CloudFileError:
         raise
     except MemoryError:
@@ -76,7 +80,6 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
         if not library_error(exc):
             raise
         raise unreadable(path, fmt, exc) from None
-    xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise CloudFileError(f"{path}: expected x, y, z columns, got an array of shape {xyz.shape}")
     finite = np.isfinite(xyz).all(axis=1)

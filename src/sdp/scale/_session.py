@@ -254,8 +254,11 @@ def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_poin
     cell = BLOCK * voxel_size
     if tile_size is None:  # tile_points in the tile and its halo at the mean density: whole blocks, rounded down
         blocks = math.floor((math.sqrt(tile_points / max(_density(sources), 1e-12)) - 2 * halo) / cell)
-    else:
-        blocks = math.ceil(tile_size / cell)
+    else:  # a tile wider than the clouds is one tile: its size in blocks stays a small number
+        lo = np.min([s.lo for s in sources.values()], axis=0)
+        hi = np.max([s.hi for s in sources.values()], axis=0)
+        span = float(np.max(hi[:2] - lo[:2])) + cell
+        blocks = math.ceil(min(tile_size, span) / cell) if math.isfinite(span) else math.ceil(tile_size / cell)
     blocks = max(1, blocks, math.ceil(2 * halo / cell))
     return Tiling(voxel_size, blocks, halo)
 
