@@ -130,8 +130,8 @@ def read_sequence(path: str | os.PathLike) -> np.ndarray:
             return np.ascontiguousarray(np.transpose(d, (2, 0, 1)))
     except FileNotFoundError:
         raise SDPError(f"{path}: no such file") from None
-    except (SDPError, ValueError, OSError) as exc:
-        raise SDPError(f"{path}: can't read a depth sequence ({exc})") from None
+    except Exception as exc:  # SciPy's MatReadError, a zlib error, a short read: all name the file
+        raise SDPError(f"{path}: can't read a depth sequence ({exc or type(exc).__name__})") from None
     raise SDPError(f"{path}: unknown depth-sequence format; use .mat (MSR Action3D) or .bin")
 
 

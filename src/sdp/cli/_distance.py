@@ -111,9 +111,7 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
     V.auto_or_nonnegative("--registration-error", registration_error)
     sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)
     if orientation is not None:
-        orientation = V.sensor_origin_option("--orientation", orientation)
-        if isinstance(orientation, str):
-            raise SDPError(f"--orientation must be X,Y,Z, got {orientation!r}")
+        orientation = V.direction("--orientation", orientation)
     if _distances_in_tiles(reference, current, output, format=format, execution=execution, core_points=core_points,
                            align=align, png=png, report=report):
         return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,

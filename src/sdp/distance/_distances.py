@@ -78,7 +78,7 @@ from .._core._cells import BITS, MAX_INDEX, cell_keys, sorted_cells, table_row
 from .._core._memory import check_memory
 from .._core._memory import memory_limit as grid_memory_limit
 from .._core._points import as_points
-from .._core._validate import auto_or_positive, nonnegative_finite
+from .._core._validate import auto_or_positive, direction, nonnegative_finite
 from ..change._visibility import resolve_sensor_origins
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
@@ -268,13 +268,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     L_opt = auto_or_positive("max_distance", cylinder.max_distance)
     reg = nonnegative_finite("registration_error", registration_error)
     grid_memory_limit(memory_limit)  # readable and positive, before any work
-    if orientation is None:
-        towards = np.array([0.0, 0.0, 1.0])
-    else:
-        towards = np.asarray(orientation, np.float64).reshape(-1)
-        if towards.shape != (3,) or not np.isfinite(towards).all() or not np.any(towards):
-            raise InvalidOptionError(f"orientation must be a nonzero finite vector (x, y, z), got {orientation!r}")
-        towards = towards / np.linalg.norm(towards)
+    towards = np.array([0.0, 0.0, 1.0]) if orientation is None else direction("orientation", orientation)
     origins = resolve_sensor_origins(sensor_origin, reference, current)
     if core_points is None or (isinstance(core_points, str) and core_points == "reference"):
         core, sensor = ref.xyz, origins[0]

@@ -11,6 +11,7 @@ and :func:`write_mesh` pick the format's writer by file extension.
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SDPError
+from ..errors import InvalidPointsError, SDPError
 from ._cloud import Cloud, CloudFileError
 from ._las import write_las
 from ._numpy import write_npz
@@ -180,10 +181,10 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
     >>> folder.cleanup()
     """
     path = Path(path)
-    fields = dict(fields or {})
     ext = path.suffix.lower()
     if ext not in (".ply", ".las", ".laz", ".npz"):
         raise CloudFileError(f"{path}: can't write {ext or 'files without extension'}; use .ply, .las, .laz or .npz")
+    xyz, fields = _checked_points(path, xyz, fields)
     with atomic_path(path, inputs=inputs) as tmp:
         if ext == ".ply":
             write_ply(tmp, xyz, fields)
@@ -192,6 +193,37 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
         else:
             write_las(tmp, xyz, fields, like, compressed=ext == ".laz")
     return path
+
+
+_PLY_NAME = re.compile(r"\S+\Z")
+_LAS_NAME_BYTES = 32  # an extra-bytes record's name field (ASPRS LAS 1.4, table 24)
+
+
+def _checked_points(path: Path, xyz, fields) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """``xyz`` as (n, 3) float64 and ``fields`` as 1-D arrays of n real values (or booleans), with
+    names every format takes; else an :class:`~sdp.InvalidPointsError` naming the output."""
+    try:
+        xyz = np.asarray(xyz)
+    except Exception as exc:
+        raise InvalidPointsError(f"{path}: points are not an array ({exc})") from None
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or xyz.dtype.kind not in "iuf":
+        raise InvalidPointsError(f"{path}: points must be an (n, 3) array of real numbers, got shape {xyz.shape} "
+                                 f"of {xyz.dtype}")
+    checked = {}
+    for name, values in dict(fields or {}).items():
+        v = np.asarray(values)
+        if not isinstance(name, str) or not name.isprintable() or not name.strip() or name.lower() in ("x", "y", "z"):
+            raise InvalidPointsError(f"{path}: field name {name!r}: a printable name other than x, y, z")
+        if path.suffix.lower() == ".ply" and not _PLY_NAME.match(name):  # the header splits at spaces
+            raise InvalidPointsError(f"{path}: field name {name!r}: PLY names have no space")
+        if path.suffix.lower() in (".las", ".laz") and (not name.isascii() or len(name) > _LAS_NAME_BYTES):
+            raise InvalidPointsError(f"{path}: field name {name!r}: LAS names are ASCII, at most {_LAS_NAME_BYTES} "
+                                     "characters")
+        if v.ndim != 1 or len(v) != len(xyz) or v.dtype.kind not in "biuf":
+            raise InvalidPointsError(f"{path}: field {name!r} must hold one real number per point ({len(xyz):,}), "
+                                     f"got shape {v.shape} of {v.dtype}")
+        checked[name] = v
+    return np.asarray(xyz, np.float64), checked
 
 
 def write_mesh(path: str | os.PathLike, mesh, *, inputs=()) -> Path:
