@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import os
 import signal
 import sys
@@ -21,6 +20,7 @@ import warnings
 from .. import __version__
 from .._core import _progress
 from .._core import _validate as V
+from .._core._json import dumps
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none
@@ -94,17 +94,29 @@ def _say(message: str) -> None:
         print(f"sdp: {message}", file=sys.stderr)
 
 
+def _print(text: str) -> None:
+    """``text`` on stdout, flushed: before the outputs are committed, so a full stdout fails the
+    command (nothing written); a reader that has gone (``| head``) is not a failure, and the
+    rest is dropped."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush too
+    except OSError as exc:
+        raise SDPError(f"standard output: {exc.strerror or exc}") from None
+
+
 def _line(text: str) -> None:
     """A line of a command's text on stdout (flushed: commands that stream print as they go), unless ``--quiet``."""
     if not _quiet:
-        print(text, flush=True)
+        _print(text)
 
 
 def _show(text: str, summary=None, as_json: bool = False) -> int:
     """Print ``text`` (not with ``--quiet``), or ``summary`` as JSON (``--json``, and ``sdp info``,
     whose answer is JSON: also with ``--quiet``); exit status 0."""
     if as_json:
-        print(json.dumps(summary, indent=2))
+        _print(dumps(summary))
     elif text:
         _line(text)
     return 0
@@ -397,9 +409,17 @@ class _Terminated(BaseException):
     (temporary outputs, the tiles' work folder, the Dask cluster) before the process ends."""
 
 
-def _on_sigterm(signum, frame):
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not cut the clean-up short
-    raise _Terminated()
+#: The signal that ended the command (SIGINT or SIGTERM), if one did. A library calling back into
+#: Python (lazrs writing LAZ) turns the exception a handler raises into its own error: the
+#: signal, not the exception, says the command was interrupted.
+_signalled: int | None = None
+
+
+def _on_signal(signum, frame):
+    global _signalled
+    _signalled = signum
+    signal.signal(signum, signal.SIG_IGN)  # a second one must not cut the clean-up short
+    raise KeyboardInterrupt() if signum == signal.SIGINT else _Terminated()
 
 
 def _one_line(exc: BaseException) -> str:
@@ -407,14 +427,36 @@ def _one_line(exc: BaseException) -> str:
     return lines[0] if lines else type(exc).__name__
 
 
+def _error(exc: BaseException) -> int | None:
+    """The one line on stderr and the exit status of a command that raised ``exc`` (None: a bug,
+    whose traceback is shown)."""
+    if _signalled is not None or isinstance(exc, (KeyboardInterrupt, _Terminated)):
+        term = _signalled == signal.SIGTERM or isinstance(exc, _Terminated)
+        print(f"sdp: {'terminated' if term else 'interrupted'}", file=sys.stderr)
+        return 128 + (signal.SIGTERM if term else signal.SIGINT)
+    if isinstance(exc, BrokenPipeError):  # output piped into head & co.
+        sys.stderr.close()
+        return 0
+    if isinstance(exc, (SDPError, ValueError)):
+        message = _one_line(exc)
+    elif isinstance(exc, MemoryError):
+        message = "out of memory: use a larger --voxel-size or a lower --memory-limit"
+    elif isinstance(exc, OSError):  # a disk full, a file vanishing: said in one line
+        message = f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or _one_line(exc)}"
+    else:
+        return None
+    print(f"sdp: error: {message}", file=sys.stderr)
+    return 2
+
+
 def main(argv=None) -> int:
-    global _quiet
+    global _quiet, _signalled
     args = build_parser().parse_args(argv)
     quiet = getattr(args, "quiet", False)
     _progress.enable(not (quiet or getattr(args, "json", False)))
     in_main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
-    _quiet = quiet
+    previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)} if in_main else {}
+    _quiet, _signalled = quiet, None
     try:
         # a command writes all its outputs or none; with --quiet, warnings (not errors) are not shown
         with all_or_none(), warnings.catch_warnings():
@@ -422,29 +464,15 @@ def main(argv=None) -> int:
                 warnings.simplefilter("ignore")
             with first_run(args.command, quiet=quiet):
                 return args.func(args)
-    except (SDPError, ValueError) as exc:
-        print(f"sdp: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
-    except MemoryError:
-        print("sdp: error: out of memory: use a larger --voxel-size or a lower --memory-limit", file=sys.stderr)
-        return 2
-    except BrokenPipeError:  # output piped into head & co.
-        sys.stderr.close()
-        return 0
-    except OSError as exc:  # a disk full, a file vanishing: said in one line
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"sdp: error: {where}{exc.strerror or _one_line(exc)}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("sdp: interrupted", file=sys.stderr)
-        return 130
-    except _Terminated:
-        print("sdp: terminated", file=sys.stderr)
-        return 128 + signal.SIGTERM
+    except BaseException as exc:
+        status = _error(exc)
+        if status is None:
+            raise
+        return status
     finally:
         _quiet = False
-        if in_main:
-            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        for s, handler in previous.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
 
 
 def run() -> None:

@@ -111,7 +111,15 @@ _PENDING: ContextVar[list | None] = ContextVar("sdp_pending_outputs", default=No
 def all_or_none():
     """Within the block, every :func:`atomic_path` (every writer of sdp) keeps its finished file
     under its temporary name; they are all renamed when the block succeeds, all removed when it
-    fails: a command writes all its outputs or none (``sdp`` runs each command inside one)."""
+    fails: a command writes all its outputs or none (``sdp`` runs each command inside one).
+
+    Nested in another, the block hands its files to the outer one: a function that writes its
+    outputs as one (:func:`sdp.compare_files`) commits nothing before the command around it has
+    also printed its summary (stdout on a full disk fails the command, and nothing is written)."""
+    outer = _PENDING.get()
+    if outer is not None:
+        yield
+        return
     pending: list[tuple[str, Path]] = []
     token = _PENDING.set(pending)
     try:
