@@ -32,6 +32,7 @@ import argparse
 import math
 import numbers
 import os
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -166,8 +167,10 @@ def check_workdir(name: str, workdir) -> None:
         raise InvalidOptionError(f"{name} {str(path)!r}: no such folder")
     if not path.is_dir():
         raise InvalidOptionError(f"{name} {str(path)!r}: not a folder")
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise InvalidOptionError(f"{name} {str(path)!r}: folder is not writable")
+    try:  # a folder created and removed: the test that holds on /proc, read-only mounts and full disks
+        os.rmdir(tempfile.mkdtemp(prefix=".sdp-probe-", dir=path))
+    except OSError as exc:
+        raise InvalidOptionError(f"{name} {str(path)!r}: can't create folders there ({exc.strerror or exc})") from None
 
 
 def existing_folder(name: str, value) -> str:

@@ -522,9 +522,13 @@ def read_frames(source: str | os.PathLike):
             raise SDPError(f"{source}: no .npy depth frame in the folder")
         for path in files:
             try:
-                yield np.load(path, allow_pickle=False)
+                frame = np.load(path, allow_pickle=False)
             except (OSError, ValueError) as exc:
                 raise SDPError(f"{path}: can't read a depth frame ({exc})") from None
+            if not isinstance(frame, np.ndarray) or frame.ndim != 2 or frame.dtype.kind not in "iuf":
+                shape = getattr(frame, "shape", "an archive")
+                raise SDPError(f"{path}: a depth frame is an (H, W) array of depths, got {shape}")
+            yield frame
     else:
         yield from read_sequence(source)
 

@@ -264,6 +264,8 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     coverage = Coverage() if coverage is None else coverage
     execution = Execution() if execution is None else execution
     align = Registration.of(align)
+    if outputs.aligned and align is None:  # nothing moved: the option would be ignored
+        raise SDPError("--aligned-output (outputs.aligned) writes the aligned coordinates: give --align too")
     out = Path(output)
     check_outputs([out, disappeared_path(out) if outputs.both else None, outputs.png, outputs.html, outputs.report],
                   [reference, current])

@@ -28,6 +28,9 @@ def _lattice(clouds, lattice: Lattice, memory_limit, like=None) -> dict:
     from ..fields._spacing import resolve_lattice
 
     if like is not None:
+        if lattice != Lattice():  # the field's own lattice wins: a lattice given would be ignored
+            raise SDPError("a field operand sets the lattice (voxel, σ, h): give no --voxel-size, --sigma-voxels, -k, --h or "
+                           "--grid-size with it")
         return dict(voxel_size=like.voxel_size, sigma_voxels=like.sigma / like.voxel_size, h=like.h,
                     truncate=like.truncate, memory_limit=memory_limit)
     kw = lattice.keywords()
@@ -184,7 +187,7 @@ def align_files(reference, current, *, output, method: str = DEFAULTS.align_meth
 
 
 def watch_folder(reference, frames, *, format: str | None = None, lattice: Lattice | None = None,
-                 update: str = DEFAULTS.update, window: int = DEFAULTS.window, decay: float = DEFAULTS.decay,
+                 update: str = DEFAULTS.update, window: int | None = None, decay: float | None = None,
                  min_region_points: int = DEFAULTS.min_region_points, align: Registration | str | None = None,
                  coverage: Coverage | None = None) -> Iterator:
     """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order (``sdp watch``).
@@ -256,15 +259,24 @@ def evaluate_files(predicted, truth, *, predicted_field: str = "change", truth_f
     from ..change._coverage import CHANGED, NOT_COMPARABLE
     from ..change._metrics import scores
 
-    values = []
+    values, clouds = [], []
     for path, name in ((predicted, predicted_field), (truth, truth_field)):
         c = read_points(path, format=format)
         if name not in c.fields:
             raise SDPError(f"{path}: no per-point field {name!r} (fields: {', '.join(sorted(c.fields)) or 'none'})")
-        values.append(np.asarray(c.fields[name]))
+        v = np.asarray(c.fields[name])
+        if v.ndim != 1:
+            raise SDPError(f"{path}: field {name!r} holds {v.shape[1:]} values per point; give a field of one label "
+                           "per point")
+        if v.dtype.kind == "f" and not np.isfinite(v).all():
+            raise SDPError(f"{path}: field {name!r} has {int((~np.isfinite(v)).sum()):,} labels that are not numbers "
+                           "(NaN or infinite)")
+        values.append(v)
+        clouds.append(c)
     if len(values[0]) != len(values[1]):
         raise SDPError(f"{predicted} has {len(values[0]):,} points and {truth} {len(values[1]):,}: "
                        "they must be the same points in the same order")
+    _check_same_points(clouds[0], clouds[1])
     if predicted_field == "change":  # sdp's field: 1 changed, 2 not comparable (scored apart)
         changed, comparable = values[0] == CHANGED, values[0] != NOT_COMPARABLE
     else:  # any other field: nonzero is changed
@@ -273,6 +285,19 @@ def evaluate_files(predicted, truth, *, predicted_field: str = "change", truth_f
     sc = scores(true, changed, comparable=comparable)
     comparable = np.ones(len(true), bool) if comparable is None else comparable
     return Evaluation(sc, len(true), int(changed.sum()), int(true[comparable].sum()))
+
+
+def _check_same_points(a, b) -> None:
+    """Refuse two files whose points differ by more than their files' rounding: LAS keeps 1 mm
+    (or its own scale), PLY and PCD float32 (a relative 6e-8), so a point may move by that much
+    between a file and its labelled copy."""
+    scale = max(float(np.abs(a.xyz).max()), float(np.abs(b.xyz).max()))
+    tolerance = 1e-3 + 1e-6 * scale
+    gap = np.abs(a.xyz - b.xyz).max(axis=1)
+    worst = int(np.argmax(gap))
+    if gap[worst] > tolerance:
+        raise SDPError(f"{a.path} and {b.path} are not the same points in the same order (point {worst:,} is "
+                       f"{gap[worst]:.4g} apart; {int((gap > tolerance).sum()):,} points differ)")
 
 
 def render_file(path, *, png=None, html=None, field: str = "change", format: str | None = None) -> list[str]:

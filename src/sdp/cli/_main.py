@@ -334,9 +334,10 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("frames", help="folder of frames, processed in natural name order")
     w.add_argument("--update", choices=("none", "window", "decay"), default=DEFAULTS.update,
                    help="how the model learns the frames (default window: learns the last frames, forgets the rest)")
-    w.add_argument("--window", type=V.cli_type(V.integer_at_least, 1), default=DEFAULTS.window,
-                   help="frames in the model, reference included (default 10)")
-    w.add_argument("--decay", type=float, default=DEFAULTS.decay, help="per-frame forgetting factor for --update decay")
+    w.add_argument("--window", type=V.cli_type(V.integer_at_least, 1),
+                   help=f"frames in the model for --update window, reference included (default {DEFAULTS.window})")
+    w.add_argument("--decay", type=V.cli_type(V.finite),
+                   help=f"per-frame forgetting factor for --update decay (default {DEFAULTS.decay})")
     w.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=DEFAULTS.min_region_points,
                    help="drop appeared regions with fewer points (default 50)")
     w.add_argument("--voxel-size", default=DEFAULTS.voxel_size, type=V.cli_type(V.auto_or_positive),
@@ -413,10 +414,19 @@ class _Terminated(BaseException):
 #: Python (lazrs writing LAZ) turns the exception a handler raises into its own error: the
 #: signal, not the exception, says the command was interrupted.
 _signalled: int | None = None
+#: The command has committed its outputs or ended: a signal now comes too late to stop anything.
+_finished = False
+
+
+def _finish() -> None:
+    global _finished
+    _finished = True
 
 
 def _on_signal(signum, frame):
     global _signalled
+    if _finished:
+        return
     _signalled = signum
     signal.signal(signum, signal.SIG_IGN)  # a second one must not cut the clean-up short
     raise KeyboardInterrupt() if signum == signal.SIGINT else _Terminated()
@@ -449,17 +459,47 @@ def _error(exc: BaseException) -> int | None:
     return 2
 
 
-def main(argv=None) -> int:
-    global _quiet, _signalled
-    args = build_parser().parse_args(argv)
+def _dash_values(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
+    """``argv`` with an option's value that starts with a dash attached to it (``--memory-limit
+    -5GB`` → ``--memory-limit=-5GB``, ``--orientation -1,0,0``): argparse takes such a value for
+    another option and says the option "expected one argument"; attached, the value is checked
+    and refused or used as any other."""
+    takes_value, options = set(), set()
+    stack = [parser]
+    while stack:
+        p = stack.pop()
+        for action in p._actions:
+            options.update(action.option_strings)
+            if action.option_strings and action.nargs not in (0, "?", "*"):
+                takes_value.update(action.option_strings)
+            if isinstance(action, argparse._SubParsersAction):
+                stack.extend(action.choices.values())
+    out = []
+    for token in argv:
+        if out and out[-1] in takes_value and token.startswith("-") and token not in options and token != "--":
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
+
+
+def main(argv=None, *, restore_signals: bool = True) -> int:
+    """Run the ``sdp`` command line ``argv`` (default ``sys.argv[1:]``); returns the exit status.
+
+    Ctrl-C and SIGTERM end a command with 130 or 143 and nothing written; once its outputs are
+    committed, they are ignored (with ``restore_signals=False``, as :func:`run` calls it, until
+    the process ends; else the previous handlers are put back)."""
+    global _quiet, _signalled, _finished
+    parser = build_parser()
+    args = parser.parse_args(_dash_values(parser, list(sys.argv[1:] if argv is None else argv)))
     quiet = getattr(args, "quiet", False)
     _progress.enable(not (quiet or getattr(args, "json", False)))
     in_main = threading.current_thread() is threading.main_thread()
+    _quiet, _signalled, _finished = quiet, None, False
     previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)} if in_main else {}
-    _quiet, _signalled = quiet, None
     try:
         # a command writes all its outputs or none; with --quiet, warnings (not errors) are not shown
-        with all_or_none(), warnings.catch_warnings():
+        with all_or_none(on_commit=_finish), warnings.catch_warnings():
             if quiet:
                 warnings.simplefilter("ignore")
             with first_run(args.command, quiet=quiet):
@@ -470,8 +510,8 @@ def main(argv=None) -> int:
             raise
         return status
     finally:
-        _quiet = False
-        for s, handler in previous.items():
+        _quiet, _finished = False, True
+        for s, handler in previous.items() if restore_signals else ():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
 
 
@@ -493,7 +533,7 @@ def run() -> None:
     young, middle, _ = gc.get_threshold()
     gc.set_threshold(young, middle, 100)
     try:
-        status = main()
+        status = main(restore_signals=False)
     finally:
         gc.freeze()
     sys.exit(status)

@@ -303,6 +303,9 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
                  memory_limit, advice="measure at fewer core points (core_points=), or compare in tiles")
     timings["scales"] = time.perf_counter() - t
 
+    if D_opt != "auto" and np.max(hi - lo) / (D_opt / 4.0) >= MAX_INDEX - 4:  # its cells are a quarter of it
+        raise InvalidOptionError(f"the clouds span {np.max(hi - lo):g} units, more than 2**{BITS} cells of "
+                                 f"normal_scale / 4 = {D_opt / 4:g}: give a larger normal_scale, or compare in tiles")
     lists = _CellLists(lo, hi)
     t = time.perf_counter()
     # queries in cell order: neighbouring queries then read the same cells while they are cached,

@@ -130,10 +130,10 @@ def input_format(path: Path, format: str | None) -> str:
     """The reader's format name for ``path`` (``format`` overrides the extension), once ``path``
     is known to be an existing file; else :class:`CloudFileError` saying what is wrong."""
     names = sorted(set(FORMATS.values()))
-    if format is not None:
-        if format not in names:
+    if format is not None:  # a format name or an extension, in any case: "PLY", "laz", ".xyz"
+        fmt = FORMATS.get("." + format.lower().lstrip("."), format.lower())
+        if fmt not in names:
             raise CloudFileError(f"unknown format {format!r}; use one of {', '.join(names)}")
-        fmt = format
     else:
         fmt = FORMATS.get(path.suffix.lower())
         if fmt is None:

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 import tempfile
+import threading
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
@@ -26,6 +28,10 @@ from ._numpy import write_npz
 from ._ply import write_ply, write_ply_mesh
 
 __all__ = ["check_outputs", "refuse_overwrite", "all_or_none", "atomic_path", "write_points", "write_mesh"]
+
+
+def _main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
 
 
 def _umask() -> int:
@@ -107,15 +113,22 @@ def refuse_overwrite(path: str | os.PathLike, inputs=()) -> None:
 _PENDING: ContextVar[list | None] = ContextVar("sdp_pending_outputs", default=None)
 
 
+_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 @contextmanager
-def all_or_none():
+def all_or_none(*, on_commit=None):
     """Within the block, every :func:`atomic_path` (every writer of sdp) keeps its finished file
     under its temporary name; they are all renamed when the block succeeds, all removed when it
     fails: a command writes all its outputs or none (``sdp`` runs each command inside one).
 
     Nested in another, the block hands its files to the outer one: a function that writes its
     outputs as one (:func:`sdp.compare_files`) commits nothing before the command around it has
-    also printed its summary (stdout on a full disk fails the command, and nothing is written)."""
+    also printed its summary (stdout on a full disk fails the command, and nothing is written).
+
+    The renames run with Ctrl-C and SIGTERM held back (in the main thread), then ``on_commit()``:
+    a signal arriving meanwhile is delivered after both, when the command is complete, and the
+    program can tell it came too late to stop anything."""
     outer = _PENDING.get()
     if outer is not None:
         yield
@@ -124,8 +137,15 @@ def all_or_none():
     token = _PENDING.set(pending)
     try:
         yield
-        for tmp, path in pending:
-            os.replace(tmp, path)
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS) if _main_thread() else None
+        try:
+            for tmp, path in pending:
+                os.replace(tmp, path)
+            if on_commit is not None:
+                on_commit()
+        finally:
+            if held is not None:
+                signal.pthread_sigmask(signal.SIG_SETMASK, held)
     finally:
         _PENDING.reset(token)
         for tmp, _ in pending:
@@ -152,7 +172,12 @@ def atomic_path(path: str | os.PathLike, *, inputs=()):
     pending, deferred = _PENDING.get(), False
     try:
         os.close(fd)
-        yield Path(tmp)
+        try:
+            yield Path(tmp)
+        except SDPError as exc:  # a writer's message may name the temporary file: name the output
+            raise type(exc)(str(exc).replace(str(tmp), str(path))) from None
+        except OSError as exc:  # a full disk, a quota: said of the output, not of its temporary name
+            raise SDPError(f"{path}: can't write ({exc.strerror or exc})") from None
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp made it private; give it a new file's mode
         if pending is not None:
             pending.append((tmp, path))

@@ -119,7 +119,7 @@ class FrameChange:
 
 
 def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update: str = DEFAULTS.update,
-          window: int = DEFAULTS.window, decay: float = DEFAULTS.decay,
+          window: int | None = None, decay: float | None = None,
           min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
           align: Registration | str | None = None, coverage: Coverage | None = None) -> Iterator[FrameChange]:
     """Compare each frame of a stream with a model of the scene, in order; yield as they come.
@@ -138,10 +138,11 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         point spacing, :func:`sdp.auto_voxel_size`); a reference field brings its own.
     update : {"window", "none", "decay"}
         How the model learns (see the module docstring); default ``"window"``.
-    window : int
-        Frames in the model (the reference counts as one) for ``update="window"``.
-    decay : float
-        λ in (0, 1) for ``update="decay"``.
+    window : int, optional
+        Frames in the model (the reference counts as one) for ``update="window"`` (default
+        ``DEFAULTS.window``); refused with another update, where it would be ignored.
+    decay : float, optional
+        λ in (0, 1) for ``update="decay"`` (default ``DEFAULTS.decay``); refused with another update.
     min_region_points : int
         Appeared regions with fewer points are dropped (noise); default 50.
     regions : bool
@@ -170,6 +171,11 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     registration = Registration.of(align)
     if update not in ("none", "window", "decay"):
         raise InvalidOptionError(f"update must be 'none', 'window' or 'decay', got {update!r}")
+    for name, value, mode in (("window", window, "window"), ("decay", decay, "decay")):
+        if value is not None and update != mode:  # it would be ignored
+            raise InvalidOptionError(f"{name} applies to update={mode!r} only (update is {update!r})")
+    window = DEFAULTS.window if window is None else window
+    decay = DEFAULTS.decay if decay is None else decay
     if update == "window" and window < 1:
         raise InvalidOptionError("window must be at least 1 frame")
     if update == "decay" and not 0 < decay < 1:
