@@ -359,11 +359,14 @@ def test_header_counts_must_match_the_data_in_both_directions(tmp_path):
         struct.pack_into("<I", data, 107, 10)  # the legacy count and LAS 1.4's 64-bit one: 10 of 120,000
         struct.pack_into("<Q", data, 247, 10)
         (tmp_path / f"under.{ext}").write_bytes(bytes(data))
+    struct.pack_into("<Q", data, 247, 120_000)  # the two counts of LAS 1.4 disagree
+    (tmp_path / "counts.laz").write_bytes(bytes(data))
     for name, message in (("short.pcd", "announces 1,000 points, the file holds 10"),
                           ("long.pcd", "announces 4 points, the file holds 10"),
                           ("columns.pcd", "FIELDS 3, SIZE 2"),
                           ("under.las", "announces 10 points, the file holds 120,000"),
-                          ("under.laz", "announces 10 points, the LAZ chunk table holds 3 chunks")):
+                          ("under.laz", "announces 10 points, the LAZ chunk table holds 3 chunks"),
+                          ("counts.laz", "it counts 10 points and 120,000")):
         with pytest.raises(CloudFileError, match=message):
             read_points(tmp_path / name)
         p = run("info", name, cwd=tmp_path)

@@ -48,7 +48,7 @@ def check_las_counts(path) -> None:
 
     size = Path(path).stat().st_size
     with open(path, "rb") as f:
-        head = f.read(247)
+        head = f.read(255)
     if head[:4] != b"LASF":
         raise CloudFileError(f"{path}: can't read as las (no LASF signature: not a LAS/LAZ file)")
     if len(head) < 227:
@@ -70,6 +70,10 @@ def check_las_counts(path) -> None:
                 if n_chunks > size:
                     raise CloudFileError(f"{path}: corrupt LAZ chunk table ({n_chunks:,} chunks in a file of "
                                          f"{size:,} bytes)")
+    if head[24:26] == b"\x01\x04" and len(head) >= 255:  # LAS 1.4: a 64-bit count beside the legacy one
+        (legacy,), (count,) = struct.unpack_from("<I", head, 107), struct.unpack_from("<Q", head, 247)
+        if legacy and legacy != count:  # legacy 0: more than 2**32 points, or a format it can't name
+            raise CloudFileError(f"{path}: corrupt LAS header: it counts {legacy:,} points and {count:,}")
     if head[24:26] == b"\x01\x04" and len(head) >= 247:  # LAS 1.4: extended VLRs at the end
         start, n_evlrs = struct.unpack_from("<QI", head, 235)
         if n_evlrs and (start > size or 60 * n_evlrs > size):
