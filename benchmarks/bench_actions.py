@@ -94,14 +94,14 @@ def confusion_png(path, truth, predicted):
     plt.close(fig)
 
 
-def load() -> str:
+def load_text() -> str:
     return "load average " + ", ".join(f"{v:.1f}" for v in os.getloadavg()) + f" (1, 5, 15 min) on {os.cpu_count()} cores"
 
 
 def run_all_splits() -> tuple[dict, dict]:
     """``sdp action eval DATA --splits all --json`` in a child process: its result and wall time,
     CPU time (user + system, the child and its workers) and peak memory (largest process)."""
-    before = load()
+    before = load_text()
     t0 = time.perf_counter()
     child = subprocess.Popen([sys.executable, "-m", "sdp.cli", "action", "eval", str(DATA), "--splits", "all",
                               "--json"], stdout=subprocess.PIPE, text=True)
@@ -112,7 +112,7 @@ def run_all_splits() -> tuple[dict, dict]:
     if child.returncode:
         raise SystemExit(f"sdp action eval --splits all failed ({child.returncode})")
     return json.loads(out), {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "peak_mib": usage.ru_maxrss / 1024,
-                             "load_before": before, "load_after": load()}
+                             "load_before": before, "load_after": load_text()}
 
 
 def splits_lines(r: dict, run: dict, standard: dict) -> list[str]:
@@ -190,7 +190,7 @@ def main():
                  f"{1000 * max(per_sequence):.0f} ms over {len(per_sequence)} sequences; reading its .mat file "
                  f"{1000 * np.median(reading):.0f} ms more (median). Load average "
                  f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores.\n")
-    lines.append(f"Standard split measured at {load()}.")
+    lines.append(f"Standard split measured at {load_text()}.")
     splits, run = run_all_splits()
     lines += splits_lines(splits, run, r["accuracy"])
     text = "\n".join(lines)
