@@ -196,7 +196,7 @@ def main():
     text = "\n".join(lines)
     print(text)
     (RESULTS / "actions.md").write_text(text)
-    (RESULTS / "actions_splits.json").write_text(json.dumps(dict(splits, run=run), indent=1))
+    (RESULTS / "actions_splits.json").write_text(json.dumps(dict(splits, run=run)) + "\n")
     confusion_png(RESULTS / "actions_confusion.png", np.array(r["confusion"]["all"]["truth"]),
                   np.array(r["confusion"]["all"]["predicted"]))
 
