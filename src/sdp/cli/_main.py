@@ -30,7 +30,7 @@ from . import _change as C
 from . import _distance as D
 from . import _examples as X
 from . import _files as F
-from ._text import action_eval_text, alignment_text, frame_text, train_text, written_text
+from ._text import action_eval_text, action_splits_text, alignment_text, frame_text, train_text, written_text
 from ._warmup import first_run
 
 
@@ -192,8 +192,8 @@ def cmd_action(a):
         return 0
     if a.action_command == "predict":
         return _show("\n".join(f"{path}: a{label:02d}" for path, label in A.predict_actions(a.model, a.sequences)))
-    s = A.evaluate_actions(a.data_dir, workers=a.workers)
-    return _show(action_eval_text(s), s, a.json)
+    s = A.evaluate_actions(a.data_dir, splits=a.splits, workers=a.workers)
+    return _show((action_splits_text if a.splits == "all" else action_eval_text)(s), s, a.json)
 
 
 def cmd_eval(a):
@@ -369,6 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev = asub.add_parser("eval", help="the cross-subject protocol: accuracy on AS1, AS2, AS3 and all")
     ev.add_argument("data_dir")
     ev.add_argument("--json", action="store_true", help="print the accuracies (fractions) and timings as JSON")
+    ev.add_argument("--splits", choices=("standard", "all"), default="standard",
+                    help="standard: train on subjects 1,3,5,7,9 (default); all: every five-subject training set "
+                         "(252), the mean, spread and the standard split's place")
     for q in (t, ev):
         q.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1), default=os.cpu_count() or 1,
                        help="processes reading sequences")
