@@ -119,15 +119,11 @@ def _worker_chunk(tasks):
 
 
 def _one_blas_thread():
-    """A context in which BLAS uses one thread (when threadpoolctl is there): the solves are a few
-    hundred unknowns, where BLAS threads spin more than they compute (10x the CPU time measured on
-    a loaded 2-core machine); the processes share the cores instead."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        from contextlib import nullcontext
+    """A context in which BLAS uses one thread: the solves are a few hundred unknowns, where BLAS
+    threads spin more than they compute (10x the CPU time on a loaded 2-core machine); the
+    processes share the cores instead."""
+    from threadpoolctl import threadpool_limits
 
-        return nullcontext()
     return threadpool_limits(1)
 
 

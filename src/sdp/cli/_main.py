@@ -374,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "(252), the mean, spread and the standard split's place")
     for q in (t, ev):
         q.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1), default=os.cpu_count() or 1,
-                       help="processes reading sequences")
+                       help="processes reading sequences (and, with --splits all, sharing the splits)")
 
     e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth", X.EVAL)
     e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
