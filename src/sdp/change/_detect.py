@@ -407,7 +407,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         if decision == "combined":
             mask, regs, region_of, dist, lod = combine_decision(
                 pts.xyz, other.xyz, states, sigma=fld.sigma, voxel_size=fld.voxel_size, own_origin=own_origin,
-                other_origin=other_origin, min_region_points=min_region_points, regions=regions)
+                other_origin=other_origin, min_region_points=min_region_points, regions=regions,
+                present=fld.inside(pts.xyz))
             extra = {"distance": to_rows(dist, pts, np.nan), "lod": to_rows(lod, pts, np.nan)}
         else:
             mask, regs, region_of = region_rules(fld, d, pts.xyz, states == CHANGED, regions=regions,
