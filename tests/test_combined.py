@@ -123,3 +123,11 @@ def test_the_command_writes_distance_and_lod(tmp_path, scene):
     assert {"change", "region", "distance", "lod"} <= set(cloud.fields)
     assert (cloud.fields["change"][box] == 1).mean() > 0.8
     assert res.summary["decision"] == "combined"
+
+
+def test_tiles_refuse_the_combined_decision_and_take_density():
+    from sdp._core._validate import check_tiled_options
+
+    check_tiled_options(decision="density")
+    with pytest.raises(InvalidOptionError, match="--decision combined is not available with --tiled"):
+        check_tiled_options(decision="combined")
