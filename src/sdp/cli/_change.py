@@ -152,7 +152,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
                    for f in (reference, current))
     # tiles follow no rays: a given sensor keeps the comparison in memory
     given_sensor = not (isinstance(coverage.sensor_origin, str) and coverage.sensor_origin in ("auto", "none"))
-    if not tiled and (not streamed or lattice.grid_size is not None or align or decision != "point" or given_sensor):
+    if not tiled and (not streamed or lattice.grid_size is not None or align or decision not in ("point", "density") or given_sensor):
         return ChangePlan(tiled=False)
     if tiled:
         V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
@@ -304,10 +304,11 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                        memory_limit=memory_limit, **detect)
     out_xyz = moved.xyz if outputs.aligned else cur.xyz
     both, png, html, report = outputs.both, outputs.png, outputs.html, outputs.report
-    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_labels, r.current_field, moved.xyz)]
+    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_labels, r.current_field, moved.xyz,
+             (r.current_distance, r.current_lod))]
     if both:
         jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_labels,
-                     r.reference_field, ref.xyz))
+                     r.reference_field, ref.xyz, (r.reference_distance, r.reference_lod)))
     outputs = _write_labelled(jobs, inputs=(reference, current))
     outputs += pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}",
                          regions=r.appeared_regions if out_xyz is moved.xyz else ())  # boxes in the moved frame
@@ -351,13 +352,16 @@ def _check_in_memory(n_points: int, memory_limit) -> None:
 
 def _write_labelled(jobs, inputs) -> list[str]:
     """Write each (path, cloud, xyz, state, region, field, xyz the field saw) as a labelled cloud:
-    ``change`` (0 unchanged, 1 changed, 2 not comparable), ``region``, ``G`` and ``F``."""
+    ``change`` (0 unchanged, 1 changed, 2 not comparable), ``region``, ``G`` and ``F``; with
+    the combined decision also ``distance`` and ``lod`` (NaN: nothing to measure against)."""
     from ..io._output import write_points
 
     written = []
-    for path, cloud, xyz, state, region, fld, seen in jobs:
+    for path, cloud, xyz, state, region, fld, seen, (dist, lod) in jobs:
         fields = {"change": state, "region": region.astype(np.int32),
                   "G": fld.density(seen).astype(np.float32), "F": fld.field(seen).astype(np.float32)}
+        if dist is not None:
+            fields.update(distance=dist.astype(np.float32), lod=lod.astype(np.float32))
         write_points(path, xyz, fields, like=cloud, inputs=inputs)
         written.append(str(path))
     return written

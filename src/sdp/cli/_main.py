@@ -255,8 +255,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("-o", "--output", required=True, help="labelled current cloud (.ply, .las, .laz, .npz)")
     c.add_argument("--both", action="store_true",
                    help="also write the disappeared reference points (OUTPUT_disappeared)")
-    c.add_argument("--decision", choices=("point", "cluster"), default=DEFAULTS.decision,
-                   help="point (default: Algorithm 1 per point) or cluster (the paper's clustering)")
+    c.add_argument("--decision", choices=("point", "density", "cluster", "combined"), default=DEFAULTS.decision,
+                   help="point or density (the same: Algorithm 1 per point, by density), cluster (the paper's "
+                        "clustering) or combined (density or the distance beyond its level of detection; "
+                        "writes the distance and lod fields)")
     c.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=DEFAULTS.min_region_points,
                    help="drop change regions with fewer points (default 50: smaller ones are noise and depth edges)")
     c.add_argument("--png", help="write a picture of the appeared points")

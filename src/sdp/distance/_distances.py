@@ -133,6 +133,10 @@ class Distances:
         Seconds per step.
     tiles : int
         Tiles the work was cut into (:func:`sdp.distances_tiled`); 0: in memory.
+    mean1 : ndarray (m,) float64 or None
+        Offset of the reference's weighted mean from the core point along ``normal`` (where
+        the reference surface lies): a point's own distance to it is ``(p − core)·normal −
+        mean1`` (:mod:`sdp.distance._noise`); None in tiles.
     """
 
     core_points: np.ndarray
@@ -152,6 +156,7 @@ class Distances:
     orientation: str
     timings: dict = field(default_factory=dict)
     tiles: int = 0
+    mean1: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def comparable(self) -> np.ndarray:
@@ -349,11 +354,13 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     out_normal, level = np.empty((m, 3)), np.empty(m, np.int8)
     _results(order, stats[0], stats[1], normal, reg, reach, dist, lod, n1, n2, s1, s2, out_normal, level)
     normal = out_normal
+    mean1 = np.full(m, np.nan)
+    mean1[order] = stats[0][0]
     timings["total"] = time.perf_counter() - t0
     return Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
                      n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
                      projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
-                     registration_error=reg, orientation=how, timings=timings)
+                     registration_error=reg, orientation=how, timings=timings, mean1=mean1)
 
 
 def search_reach(max_distance: float | str, projection_scale: float) -> float:
