@@ -36,8 +36,8 @@ def sensor_origins(choice, ref_scan, cur_scan, alignment=None):
     if isinstance(choice, str):
         if choice == "viewpoint":
             for name, c in (ref_scan, cur_scan):
-                if c.sensor_origin is None:
-                    raise SDPError(f"{name}: the file records no sensor position (organized PCD files do); "
+                if c.sensor_origins is None:
+                    raise SDPError(f"{name}: the file records no sensor position (organized PCD and E57 files do); "
                                    "give --sensor-origin X,Y,Z or auto")
             return "auto"
         return choice
