@@ -12,6 +12,7 @@ import numpy as np
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
+from ..io._cloud import input_format
 from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, Registration
 from . import _text as report
@@ -159,8 +160,17 @@ def describe_file(path, *, format: str | None = None) -> dict:
                 "box_nodes": list(f.grid.shape), "origin": f.grid.origin.tolist(), "n_points": f.n_points,
                 "method": f.method, "megabytes": f.nbytes / 2**20}
     c = read_points(path, format=format)
-    return {"kind": "cloud", "points": len(c), "dropped_non_finite": c.n_dropped,
+    info = {"kind": "cloud", "points": len(c), "dropped_non_finite": c.n_dropped,
             "min": c.xyz.min(0).tolist(), "max": c.xyz.max(0).tolist(), "fields": sorted(c.fields)}
+    if c.sensor_origins is not None:
+        info["sensors"] = c.sensor_origins.tolist()
+    if input_format(Path(path), format) == "e57":  # each scan's pose and grid, the points it kept
+        from ..io._e57 import e57_scans
+
+        scans = e57_scans(path)
+        kept = np.bincount(c.scan, minlength=len(scans))
+        info["scans"] = [{**s, "kept": int(kept[s["scan"]])} for s in scans]
+    return info
 
 
 def align_files(reference, current, *, output, method: str = DEFAULTS.align_method, fix_horizontal: bool = False,

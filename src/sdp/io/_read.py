@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import MissingDependencyError
 from ._cloud import Cloud, CloudFileError, input_format, library_error, unreadable
 from ._e57 import read_e57
 from ._las import read_las
@@ -72,7 +73,7 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
     fmt = input_format(path, format)
     try:
         xyz, fields, las, *pose = _READERS[fmt](path)  # PCD adds its VIEWPOINT and whether organized, E57 its scanners
-    except CloudFileError:
+    except (CloudFileError, MissingDependencyError):
         raise
     except MemoryError:
         raise CloudFileError(f"{path}: too large to read into memory as {fmt}") from None
