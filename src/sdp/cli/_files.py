@@ -196,8 +196,10 @@ def align_files(reference, current, *, output, method: str = DEFAULTS.align_meth
 def watch_folder(reference, frames, *, format: str | None = None, lattice: Lattice | None = None,
                  update: str = DEFAULTS.update, window: int = DEFAULTS.window, decay: float = DEFAULTS.decay,
                  min_region_points: int = DEFAULTS.min_region_points, align: Registration | str | None = None,
-                 coverage: Coverage | None = None) -> Iterator:
-    """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order (``sdp watch``).
+                 coverage: Coverage | None = None, topic: str | None = None) -> Iterator:
+    """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order, or over
+    the ``sensor_msgs/PointCloud2`` messages of a ROS bag's ``topic`` (:func:`sdp.io._bag.bag_frames`,
+    the ``scans`` extra), in the order recorded (``sdp watch``).
 
     ``reference`` is a cloud file or a field (``.sdpf``); ``coverage`` as in
     :func:`compare_files` (its ``sensor_origin`` is the reference's). The folder and the reference are checked and read
@@ -209,12 +211,21 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     from ..io._cloud import FORMATS
     from ..stream._watch import watch
 
+    from ..io._bag import bag_frames, bag_topics, is_bag
+
     folder = Path(frames)
-    if not folder.is_dir():
-        raise SDPError(f"{folder}: not a folder of frames")
-    paths = sorted((p for p in folder.iterdir() if p.suffix.lower() in FORMATS and p.is_file()),
-                   key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
-    if not paths:
+    bag = is_bag(folder)
+    if bag and topic is None:
+        topics = bag_topics(folder)
+        raise SDPError(f"{folder}: a ROS bag: give --topic, one of its PointCloud2 topics "
+                       f"({', '.join(f'{t} ({n} messages)' for t, n in sorted(topics.items())) or 'none'})")
+    if topic is not None and not bag:
+        raise SDPError(f"{folder}: --topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if not bag and not folder.is_dir():
+        raise SDPError(f"{folder}: not a folder of frames nor a ROS bag")
+    paths = [] if bag else sorted((p for p in folder.iterdir() if p.suffix.lower() in FORMATS and p.is_file()),
+                                  key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+    if not bag and not paths:
         raise SDPError(f"{folder}: no point-cloud files ({', '.join(sorted(FORMATS))})")
     coverage = Coverage() if coverage is None else coverage
     choice = coverage.sensor_origin
@@ -228,7 +239,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
         ref = read_points(reference, format=format)
         origin = sensor_origins(choice, (reference, ref), (reference, ref))
         origin = origin[0] if isinstance(origin, np.ndarray) else origin
-    stream = ((p.name, read_points(p, format=format)) for p in paths)
+    stream = bag_frames(folder, topic) if bag else ((p.name, read_points(p, format=format)) for p in paths)
     return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
                  min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin))
 

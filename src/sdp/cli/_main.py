@@ -162,7 +162,7 @@ def cmd_align(a):
 def cmd_watch(a):
     frames = F.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
                             update=a.update, window=a.window, decay=a.decay, min_region_points=a.min_region_points,
-                            align=a.align, coverage=_coverage(a))
+                            align=a.align, coverage=_coverage(a), topic=a.topic)
     if a.json:
         return _show("", [r.summary() for r in frames], as_json=True)
     for r in frames:  # a line per frame, as it comes (the frames are compared as they are iterated)
@@ -319,7 +319,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     w = _command(sub, "watch", cmd_watch, "compare each frame of a folder, in order, with a model that learns", X.WATCH)
     w.add_argument("reference", help="cloud or field (.sdpf) of the scene before the frames")
-    w.add_argument("frames", help="folder of frames, processed in natural name order")
+    w.add_argument("frames", help="folder of frames, processed in natural name order, or a ROS bag (with --topic)")
+    w.add_argument("--topic", help="the sensor_msgs/PointCloud2 topic of a ROS 1 or ROS 2 bag (the scans extra)")
     w.add_argument("--update", choices=("none", "window", "decay"), default=DEFAULTS.update,
                    help="how the model learns the frames (default window: learns the last frames, forgets the rest)")
     w.add_argument("--window", type=V.cli_type(V.integer_at_least, 1), default=DEFAULTS.window,
