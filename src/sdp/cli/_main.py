@@ -123,7 +123,7 @@ def cmd_change(a):
 
 def cmd_distance(a):
     r = D.distance_files(a.reference, a.current, output=a.output, core_points=a.core_points,
-                         outputs=Outputs(png=a.png, report=a.report), format=a.format,
+                         outputs=Outputs(png=a.png, report=a.report, field_names=a.field_names), format=a.format,
                          cylinder=Cylinder(projection_scale=a.projection_scale, normal_scale=a.normal_scale,
                                            max_distance=a.max_distance),
                          registration_error=a.registration_error, orientation=a.orientation,
@@ -280,6 +280,8 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--orientation", metavar="X,Y,Z", help="normals point this way without a sensor (default 0,0,1)")
     ds.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
                     help="normals point towards the sensor (auto: where a file records it)")
+    ds.add_argument("--field-names", choices=("sdp", "cloudcompare", "pdal"), default=DEFAULTS.field_names,
+                    help="name the output's fields as sdp (default), CloudCompare's M3C2 or PDAL's filters.m3c2 do")
     ds.add_argument("--png", help="map of the significant distances and their histogram")
     ds.add_argument("--report", help=X.REPORT_HELP)
     ds.add_argument("--json", action="store_true", help="print the summary as JSON")
