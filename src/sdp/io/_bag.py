@@ -97,14 +97,21 @@ def bag_frames(path, topic: str) -> Iterator[tuple[str, Cloud]]:
 
 
 def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
+    messages = reader.messages(connections=conns)
+    index = 0
     try:
-        for index, (conn, stamp, raw) in enumerate(reader.messages(connections=conns)):
-            where = f"{path} message {index} on {conn.topic}"
-            try:
-                msg = reader.deserialize(raw, conn.msgtype)
-                xyz, fields, organized = pointcloud2_arrays(msg)
+        while True:
+            where = f"{path} message {index}"
+            try:  # a corrupt bag fails in the reader's iteration or in the message's decoding
+                item = next(messages, None)
+                if item is None:
+                    return
+                conn, stamp, raw = item
+                xyz, fields, organized = pointcloud2_arrays(reader.deserialize(raw, conn.msgtype))
             except CloudFileError as exc:
                 raise CloudFileError(f"{where}: {exc}") from None
+            except MemoryError:
+                raise CloudFileError(f"{where}: too large to read into memory") from None
             except BaseException as exc:
                 if not library_error(exc):
                     raise
@@ -116,6 +123,7 @@ def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
                 fields = {k: v[finite] for k, v in fields.items()}
             yield f"{index:06d}@{stamp}", Cloud(np.ascontiguousarray(xyz), fields, Path(path), dropped, None, None,
                                                  organized, np.zeros((1, 3)))
+            index += 1
     finally:
         reader.close()
 
