@@ -147,3 +147,19 @@ def test_grabber_sequence_as_a_ros2_bag_gives_the_states_of_its_pcd_folder(share
     frames = json.loads(p.stdout)
     assert [f["appeared"] for f in frames] == [int(f.appeared.sum()) for f in from_files]
     assert [f["not_comparable"] for f in frames] == [int(f.not_comparable.sum()) for f in from_files]
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_sdp_change_reads_a_message_of_a_bag_as_its_pcd_file(shared_data, tmp_path):
+    from sdp.cli import compare_files
+
+    pcds = sorted((shared_data / GRABBER).glob("*.pcd"))
+    bag = write_ros2(tmp_path / "grabber", [pcd_message(p, 10**9 * (i + 1)) for i, p in enumerate(pcds)])
+    files = compare_files(pcds[0], pcds[2], output=tmp_path / "files.npz", outputs=sdp.Outputs(both=True))
+    last = compare_files(pcds[0], bag, output=tmp_path / "bag.npz", topic="/points:-1", outputs=sdp.Outputs(both=True))
+    assert files.summary["current"] == last.summary["current"] and files.summary["reference"] == last.summary["reference"]
+    a, b = np.load(tmp_path / "files.npz"), np.load(tmp_path / "bag.npz")
+    assert np.array_equal(a["change"], b["change"]) and a["change"].any()
+    with pytest.raises(sdp.SDPError, match="give --topic"):
+        compare_files(pcds[0], bag, output=tmp_path / "no.npz")

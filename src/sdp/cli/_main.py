@@ -117,7 +117,7 @@ def cmd_change(a):
                         outputs=Outputs(both=a.both, png=a.png, html=a.html, report=a.report, aligned=a.aligned_output),
                         lattice=_lattice(a), coverage=_coverage(a),
                         align=_registration(a), execution=_execution(a, None if a.json else _say),
-                        decision=a.decision, min_region_points=a.min_region_points)
+                        decision=a.decision, min_region_points=a.min_region_points, topic=a.topic)
     return _show(r.summary_text(), r.summary, a.json)
 
 
@@ -251,6 +251,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--html", help="write an interactive 3D view (needs the html extra: plotly)")
     c.add_argument("--report", help=X.REPORT_HELP)
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
+    c.add_argument("--topic", metavar="TOPIC[:N]", help="a ROS bag input: the PointCloud2 message of TOPIC to compare "
+                   "(its first, or its N-th from 0; -1 the last)")
     c.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
     _align_options(c)

@@ -19,6 +19,7 @@ References
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -27,7 +28,7 @@ import numpy as np
 from ..errors import require
 from ._cloud import Cloud, CloudFileError, library_error
 
-__all__ = ["bag_frames", "bag_topics", "is_bag", "pointcloud2_arrays"]
+__all__ = ["bag_frames", "bag_message", "bag_topics", "is_bag", "pointcloud2_arrays"]
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 # sensor_msgs/PointField datatypes: INT8 … FLOAT64
@@ -160,3 +161,23 @@ def pointcloud2_arrays(msg) -> tuple[np.ndarray, dict[str, np.ndarray], bool]:
         xyz[~xyz.any(axis=1)] = np.nan
     fields = {n: np.ascontiguousarray(points[n]) for n in names if n not in ("x", "y", "z") and n}
     return xyz, fields, organized
+
+
+def bag_message(path, topic: str) -> Cloud:
+    """One message of a bag as a cloud: ``topic`` is ``/points`` (its first message) or
+    ``/points:N`` (its N-th, from 0; negative from the end). ROS names hold no colon."""
+    name, number = topic.rsplit(":", 1) if ":" in topic else (topic, "0")
+    try:
+        index = int(number)
+    except ValueError:
+        raise CloudFileError(f"--topic {topic!r}: give TOPIC or TOPIC:N (the N-th message, from 0)") from None
+    count = 0
+    kept = deque(maxlen=-index if index < 0 else 1)  # the last -N messages, or the one asked for
+    for count, (_, cloud) in enumerate(bag_frames(path, name), start=1):
+        if index < 0 or count - 1 == index:
+            kept.append(cloud)
+        if index >= 0 and kept:
+            return cloud
+    if index < 0 and len(kept) == -index:
+        return kept[0]
+    raise CloudFileError(f"{path}: {name!r} holds {count} messages, no message {index}")
