@@ -50,6 +50,7 @@ def test_ply_names_hold_no_space_and_the_flag_is_checked(epochs, tmp_path):
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "distance", epochs / "a.npy", epochs / "b.npy", "-o",
                         tmp_path / "d.ply", "--field-names", "cloudcompare", "-q"], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
-    assert {"M3C2_distance", "distance_uncertainty", "significant_change"} <= set(sdp.read_points(tmp_path / "d.ply").fields)
+    names = set(sdp.read_points(tmp_path / "d.ply").fields)
+    assert {"M3C2_distance", "distance_uncertainty", "significant_change"} <= names
     with pytest.raises(sdp.InvalidOptionError, match="field_names must be one of sdp, cloudcompare, pdal"):
         sdp.Outputs(field_names="qgis")

@@ -153,7 +153,8 @@ def test_sdp_info_lists_the_scans_and_poses(two_epochs):
     info = json.loads(p.stdout)
     assert [s["translation"] for s in info["scans"]] == [A.tolist(), B.tolist()]
     assert np.allclose(info["scans"][1]["rotation"], [0, 0, 0, 1], atol=1e-12)
-    assert info["scans"][0]["grid"] == [600, len(np.arange(-85, 60, 0.6))] and sum(s["kept"] for s in info["scans"]) == info["points"]
+    assert info["scans"][0]["grid"] == [600, len(np.arange(-85, 60, 0.6))]
+    assert sum(s["kept"] for s in info["scans"]) == info["points"]
     assert info["sensors"] == [A.tolist(), B.tolist()]
 
 

@@ -391,7 +391,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
 
     # the two directions are independent: on two threads when there are two cores
     (appeared, steps_a), (disappeared, steps_d) = map_concurrently(
-        finish, [(f_cur, cur, app, d_app, ref, f_ref, o_ref, s_ref), (f_ref, ref, dis, d_dis, cur, f_cur, o_cur, s_cur)],
+        finish, [(f_cur, cur, app, d_app, ref, f_ref, o_ref, s_ref),
+                 (f_ref, ref, dis, d_dis, cur, f_cur, o_cur, s_cur)],
         parallel_kernels=True)
     timings.update({step: steps_a[step] + steps_d[step] for step in steps_a})
     how = {"appeared": _coverage_kind(o_ref, coverage.enabled), "disappeared": _coverage_kind(o_cur, coverage.enabled)}

@@ -39,7 +39,9 @@ def is_bag(path) -> bool:
     """A ROS 1 bag file (``.bag``), or a ROS 2 bag: a folder holding ``metadata.yaml``, or one of
     its ``.db3`` / ``.mcap`` files."""
     p = Path(path)
-    return (p.is_file() and p.suffix.lower() in (".bag", ".db3", ".mcap")) or (p.is_dir() and (p / "metadata.yaml").is_file())
+    if p.is_dir():
+        return (p / "metadata.yaml").is_file()
+    return p.is_file() and p.suffix.lower() in (".bag", ".db3", ".mcap")
 
 
 def _reader(path):
@@ -153,7 +155,10 @@ def pointcloud2_arrays(msg) -> tuple[np.ndarray, dict[str, np.ndarray], bool]:
     if h * w and (step <= 0 or row_step < w * step or len(data) < (h - 1) * row_step + w * step):
         raise CloudFileError(f"PointCloud2 of {h}×{w} points of {step} bytes (rows of {row_step}) needs more than its "
                              f"{len(data):,} bytes")
-    rows = [data[r * row_step:r * row_step + w * step] for r in range(h)] if row_step != w * step else [data[:h * w * step]]
+    if row_step != w * step:  # rows padded: drop each row's padding
+        rows = [data[r * row_step:r * row_step + w * step] for r in range(h)]
+    else:
+        rows = [data[:h * w * step]]
     points = np.concatenate(rows).view(dtype) if h * w else np.zeros(0, dtype)
     xyz = np.c_[points["x"], points["y"], points["z"]].astype(np.float64)
     organized = h > 1
