@@ -109,6 +109,13 @@ def test_a_bag_without_the_topic_lists_its_topics(tmp_path):
         watch_folder(np.zeros((10, 3)), path)
 
 
+def test_sdp_info_lists_a_bags_pointcloud2_topics(tmp_path):
+    path = write_ros2(tmp_path / "b2", [(1, message(small_frames()[0], 4, 5))] * 2, topic="/lidar")
+    from sdp.cli._files import describe_file
+
+    assert describe_file(path) == {"kind": "ROS bag", "pointcloud2_topics": {"/lidar": 2}}
+
+
 def test_corrupt_bag_is_one_line(tmp_path):
     good = write_ros1(tmp_path / "good.bag", [(1, message(small_frames()[0], 4, 5, ts=TS1))])
     (tmp_path / "cut.bag").write_bytes(good.read_bytes()[:300])

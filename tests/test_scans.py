@@ -132,6 +132,16 @@ def test_every_scanner_of_the_other_epoch_is_asked(two_epochs):
     assert (behind_alone == sdp.CHANGED).mean() < 0.05
 
 
+def test_a_stream_against_a_reference_of_two_scanners(two_epochs):
+    ref, cur = (sdp.read_points(p) for p in two_epochs)
+    frame = next(sdp.watch(ref, [cur], coverage=sdp.Coverage(range_noise=0.001)))
+    x = cur.xyz
+    behind = inside(x, [1.3, -0.3, 0.2], [1.9, 0.3, 0.6])  # hidden from scanner A, seen through by B
+    on_top = inside(x, [-0.3, -0.3, 3.2], [0.3, 0.3, 3.4])  # hidden from both
+    assert frame.appeared[behind].mean() > 0.95
+    assert not frame.appeared[on_top].any() and frame.not_comparable[on_top].mean() > 0.8
+
+
 def test_normals_face_each_points_own_scanner(two_epochs):
     ref, cur = (sdp.read_points(p) for p in two_epochs)
     d = sdp.distances(ref, cur)

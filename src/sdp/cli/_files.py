@@ -159,6 +159,10 @@ def describe_file(path, *, format: str | None = None) -> dict:
         return {"kind": "field", "voxel_size": f.voxel_size, "sigma": f.sigma, "h": f.h, "blocks": f.n_blocks,
                 "box_nodes": list(f.grid.shape), "origin": f.grid.origin.tolist(), "n_points": f.n_points,
                 "method": f.method, "megabytes": f.nbytes / 2**20}
+    from ..io._bag import bag_topics, is_bag
+
+    if is_bag(path):  # a ROS bag: its point-cloud topics
+        return {"kind": "ROS bag", "pointcloud2_topics": bag_topics(path)}
     c = read_points(path, format=format)
     info = {"kind": "cloud", "points": len(c), "dropped_non_finite": c.n_dropped,
             "min": c.xyz.min(0).tolist(), "max": c.xyz.max(0).tolist(), "fields": sorted(c.fields)}
