@@ -99,6 +99,9 @@ class Defaults:
         action.
     action_every : int
         5: a live action stream says its label every 5 frames (6 times a second at 30 Hz).
+    field_names : str
+        "sdp": outputs name their fields as sdp documents them; "cloudcompare" and "pdal" are
+        a flag away for files opened in those tools.
     """
 
     voxel_size: str = "auto"
@@ -121,6 +124,7 @@ class Defaults:
     align_method: str = "density"
     action_window: int = 40
     action_every: int = 5
+    field_names: str = "sdp"
 
     def as_dict(self) -> dict:
         return asdict(self)

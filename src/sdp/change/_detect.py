@@ -61,7 +61,7 @@ from ..options import Coverage, Lattice
 from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
-from ._visibility import resolve_sensor_origins, visibility_states
+from ._visibility import resolve_sensor_origins, scanner_of_points, visibility_states
 
 #: The decisions of :func:`detect_changes` (``"density"`` is ``"point"``: the paper's, density alone).
 DECISIONS = ("point", "density", "cluster", "combined")
@@ -265,7 +265,7 @@ class ChangeResult:
         """A JSON-serializable summary: counts, parameters (and tiles), sensors, coverage, timings
         and regions."""
         def origin(o):
-            return None if o is None else [float(v) for v in o]
+            return None if o is None else np.asarray(o, np.float64).tolist()  # (3,), or (k, 3) scanners
 
         def counts(points, dropped, kind, dist=None, lod=None):
             out = {"points": points.n, "dropped": int(dropped), kind: points.count(CHANGED),
@@ -380,6 +380,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     o_ref, o_cur = resolve_sensor_origins(coverage.sensor_origin, reference, current)
     ref = as_points(reference, name="reference")
     cur = as_points(current, name="current")
+    s_ref = scanner_of_points(reference, o_ref, len(ref.xyz))  # which scanner saw each point (several)
+    s_cur = scanner_of_points(current, o_cur, len(cur.xyz))
     timings = {}
     t = time.perf_counter()
     voxel_size, sigma_voxels = resolve_lattice([ref, cur], voxel_size=lattice.voxel_size, grid_size=lattice.grid_size,
@@ -396,18 +398,19 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
 
     def finish(job):
         """Coverage and region rules of one direction: (the points' states and labels, regions), times."""
-        fld, pts, mask, d, other, other_field, other_origin, own_origin = job
+        fld, pts, mask, d, other, other_field, other_origin, other_scan, own_origin = job
         t = time.perf_counter()
         states = judge_coverage(pts.xyz, mask, other.xyz, other_field, other_origin, coverage=coverage.enabled,
-                                range_noise=coverage.range_noise, present=fld.inside)
+                                range_noise=coverage.range_noise, present=fld.inside, other_scan=other_scan)
         steps = {"coverage": time.perf_counter() - t}
         t = time.perf_counter()
         unseen = states == NOT_COMPARABLE
         extra = {}
         if decision == "combined":
             mask, regs, region_of, dist, lod = combine_decision(
-                pts.xyz, other.xyz, states, sigma=fld.sigma, voxel_size=fld.voxel_size, own_origin=own_origin,
-                other_origin=other_origin, min_region_points=min_region_points, regions=regions,
+                # one sensor per cloud: the noise model's range law and normals (several: neither yet)
+                pts.xyz, other.xyz, states, sigma=fld.sigma, voxel_size=fld.voxel_size, own_origin=_single(own_origin),
+                other_origin=_single(other_origin), min_region_points=min_region_points, regions=regions,
                 present=fld.inside(pts.xyz))
             extra = {"distance": to_rows(dist, pts, np.nan), "lod": to_rows(lod, pts, np.nan)}
         else:
@@ -421,7 +424,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
 
     # the two directions are independent: on two threads when there are two cores
     (appeared, steps_a), (disappeared, steps_d) = map_concurrently(
-        finish, [(f_cur, cur, app, d_app, ref, f_ref, o_ref, o_cur), (f_ref, ref, dis, d_dis, cur, f_cur, o_cur, o_ref)],
+        finish, [(f_cur, cur, app, d_app, ref, f_ref, o_ref, s_ref, o_cur),
+                 (f_ref, ref, dis, d_dis, cur, f_cur, o_cur, s_cur, o_ref)],
         parallel_kernels=True)
     timings.update({step: steps_a[step] + steps_d[step] for step in steps_a})
     how = {"appeared": _coverage_kind(o_ref, coverage.enabled), "disappeared": _coverage_kind(o_cur, coverage.enabled)}
@@ -436,16 +440,18 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
 
 def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | None, other_field: DensityField,
                    other_origin: np.ndarray | None, *, coverage: bool = True,
-                   range_noise: float = DEFAULTS.range_noise, image=None, present=None) -> np.ndarray:
+                   range_noise: float = DEFAULTS.range_noise, image=None, present=None,
+                   other_scan: np.ndarray | None = None) -> np.ndarray:
     """The state (:mod:`sdp.change._coverage`) of each point of ``points`` flagged ``changed`` against
     the other epoch (its points ``other`` and field ``other_field``): by the other scan's rays
     when its origin is known (:func:`sdp.change._visibility.visibility_states`, ``present`` and
-    ``image`` as there), else by the other field's footprint
+    ``image`` as there; several origins (k, 3) with ``other_scan``, the scanner of each point of
+    ``other``: a point is comparable where any of them could see it), else by the other field's footprint
     (:func:`sdp.change._coverage.footprint_covered`); without ``coverage``, what the other scan could
     not see counts as changed."""
     if other_origin is not None:
         states = visibility_states(points, changed, other, other_origin, sigma=other_field.sigma,
-                                   range_noise=range_noise, image=image, present=present)
+                                   range_noise=range_noise, image=image, present=present, other_scan=other_scan)
         if not coverage:
             states[states == NOT_COMPARABLE] = CHANGED
         return states
@@ -502,3 +508,8 @@ def _cluster_decision(fld: DensityField, pts: np.ndarray, changed: np.ndarray, l
     # promoted clusters are labelled after the change regions
     labels = np.where(promoted, len(counts) + clusters, labels)
     return changed | promoted, labels, np.concatenate([counts, cluster_nodes])
+
+
+def _single(origin):
+    """``origin`` if it is one sensor's position (3,) or None; None for several scanners (k, 3)."""
+    return origin if origin is None or np.ndim(origin) == 1 else None

@@ -30,7 +30,9 @@ from ..io._output import all_or_none, check_outputs
 from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, Outputs, Registration
 from . import _text as report
-from ._common import align_clouds, check_picture_extras, disappeared_path, is_store, pictures, sensor_origins
+from ..io._bag import is_bag
+from ._common import (align_clouds, check_picture_extras, disappeared_path, is_store, pictures, read_input,
+                      sensor_origins)
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
 
@@ -194,7 +196,7 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
                   lattice: Lattice | None = None, coverage: Coverage | None = None,
                   align: Registration | str | None = None, execution: Execution | None = None,
                   decision: str = DEFAULTS.decision,
-                  min_region_points: int = DEFAULTS.min_region_points) -> FileComparison:
+                  min_region_points: int = DEFAULTS.min_region_points, topic: str | None = None) -> FileComparison:
     """Compare two point-cloud files and write the labelled clouds: ``sdp change`` as a function.
 
     The clouds are compared in memory (:func:`sdp.detect_changes`) or, when they need more
@@ -271,6 +273,11 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
                   [reference, current])
     check_picture_extras(png=outputs.png, html=outputs.html, report=outputs.report)
     V.integer_at_least("min_region_points", min_region_points, 0)
+    bags = [is_bag(f) for f in (reference, current)]
+    if topic is not None and not any(bags):
+        raise SDPError("--topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if any(bags) and execution.tiled:
+        raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices, not ROS bags")
     if execution.tiled and not is_store(reference):
         V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
                               decision=decision, pictures=outputs.pictures)
@@ -284,15 +291,16 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
                                   min_region_points=min_region_points, lattice=lattice, execution=execution)
         return _compare_in_memory(reference, current, out, outputs=outputs, format=format, lattice=lattice,
                                   coverage=coverage, align=align, memory_limit=execution.memory_limit,
-                                  detect=dict(decision=decision, min_region_points=min_region_points))
+                                  detect=dict(decision=decision, min_region_points=min_region_points), topic=topic)
 
 
 def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, format, lattice: Lattice,
-                       coverage: Coverage, align: Registration | None, memory_limit, detect: dict) -> FileComparison:
+                       coverage: Coverage, align: Registration | None, memory_limit, detect: dict,
+                       topic: str | None = None) -> FileComparison:
     from ..change._detect import detect_changes
 
     t0 = time.perf_counter()
-    ref, cur = read_points(reference, format=format), read_points(current, format=format)
+    ref, cur = (read_input(f, format=format, topic=topic) for f in (reference, current))
     t_read = time.perf_counter() - t0
     _check_in_memory(len(ref.xyz) + len(cur.xyz), memory_limit)
     alignment, moved = None, cur

@@ -12,6 +12,7 @@ import numpy as np
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
+from ..io._cloud import input_format
 from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, Registration
 from . import _text as report
@@ -161,9 +162,22 @@ def describe_file(path, *, format: str | None = None) -> dict:
         return {"kind": "field", "voxel_size": f.voxel_size, "sigma": f.sigma, "h": f.h, "blocks": f.n_blocks,
                 "box_nodes": list(f.grid.shape), "origin": f.grid.origin.tolist(), "n_points": f.n_points,
                 "method": f.method, "megabytes": f.nbytes / 2**20}
+    from ..io._bag import bag_topics, is_bag
+
+    if is_bag(path):  # a ROS bag: its point-cloud topics
+        return {"kind": "ROS bag", "pointcloud2_topics": bag_topics(path)}
     c = read_points(path, format=format)
-    return {"kind": "cloud", "points": len(c), "dropped_non_finite": c.n_dropped,
+    info = {"kind": "cloud", "points": len(c), "dropped_non_finite": c.n_dropped,
             "min": c.xyz.min(0).tolist(), "max": c.xyz.max(0).tolist(), "fields": sorted(c.fields)}
+    if c.sensor_origins is not None:
+        info["sensors"] = c.sensor_origins.tolist()
+    if input_format(Path(path), format) == "e57":  # each scan's pose and grid, the points it kept
+        from ..io._e57 import e57_scans
+
+        scans = e57_scans(path)
+        kept = np.bincount(c.scan, minlength=len(scans))
+        info["scans"] = [{**s, "kept": int(kept[s["scan"]])} for s in scans]
+    return info
 
 
 def align_files(reference, current, *, output, method: str = DEFAULTS.align_method, fix_horizontal: bool = False,
@@ -189,8 +203,10 @@ def align_files(reference, current, *, output, method: str = DEFAULTS.align_meth
 def watch_folder(reference, frames, *, format: str | None = None, lattice: Lattice | None = None,
                  update: str = DEFAULTS.update, window: int | None = None, decay: float | None = None,
                  min_region_points: int = DEFAULTS.min_region_points, align: Registration | str | None = None,
-                 coverage: Coverage | None = None) -> Iterator:
-    """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order (``sdp watch``).
+                 coverage: Coverage | None = None, topic: str | None = None) -> Iterator:
+    """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order, or over
+    the ``sensor_msgs/PointCloud2`` messages of a ROS bag's ``topic`` (:func:`sdp.io._bag.bag_frames`,
+    the ``scans`` extra), in the order recorded (``sdp watch``).
 
     ``reference`` is a cloud file or a field (``.sdpf``); ``coverage`` as in
     :func:`compare_files` (its ``sensor_origin`` is the reference's). The folder and the reference are checked and read
@@ -202,12 +218,21 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     from ..io._cloud import FORMATS
     from ..stream._watch import watch
 
+    from ..io._bag import bag_frames, bag_topics, is_bag
+
     folder = Path(frames)
-    if not folder.is_dir():
-        raise SDPError(f"{folder}: not a folder of frames")
-    paths = sorted((p for p in folder.iterdir() if p.suffix.lower() in FORMATS and p.is_file()),
-                   key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
-    if not paths:
+    bag = is_bag(folder)
+    if bag and topic is None:
+        topics = bag_topics(folder)
+        raise SDPError(f"{folder}: a ROS bag: give --topic, one of its PointCloud2 topics "
+                       f"({', '.join(f'{t} ({n} messages)' for t, n in sorted(topics.items())) or 'none'})")
+    if topic is not None and not bag:
+        raise SDPError(f"{folder}: --topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if not bag and not folder.is_dir():
+        raise SDPError(f"{folder}: not a folder of frames nor a ROS bag")
+    paths = [] if bag else sorted((p for p in folder.iterdir() if p.suffix.lower() in FORMATS and p.is_file()),
+                                  key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+    if not bag and not paths:
         raise SDPError(f"{folder}: no point-cloud files ({', '.join(sorted(FORMATS))})")
     coverage = Coverage() if coverage is None else coverage
     choice = coverage.sensor_origin
@@ -221,7 +246,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
         ref = read_points(reference, format=format)
         origin = sensor_origins(choice, (reference, ref), (reference, ref))
         origin = origin[0] if isinstance(origin, np.ndarray) else origin
-    stream = ((p.name, read_points(p, format=format)) for p in paths)
+    stream = bag_frames(folder, topic) if bag else ((p.name, read_points(p, format=format)) for p in paths)
     return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
                  min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin))
 

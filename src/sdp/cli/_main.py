@@ -129,13 +129,13 @@ def cmd_change(a):
                         outputs=Outputs(both=a.both, png=a.png, html=a.html, report=a.report, aligned=a.aligned_output),
                         lattice=_lattice(a), coverage=_coverage(a),
                         align=_registration(a), execution=_execution(a, None if a.json else _say),
-                        decision=a.decision, min_region_points=a.min_region_points)
+                        decision=a.decision, min_region_points=a.min_region_points, topic=a.topic)
     return _show(r.summary_text(), r.summary, a.json)
 
 
 def cmd_distance(a):
     r = D.distance_files(a.reference, a.current, output=a.output, core_points=a.core_points,
-                         outputs=Outputs(png=a.png, report=a.report), format=a.format,
+                         outputs=Outputs(png=a.png, report=a.report, field_names=a.field_names), format=a.format,
                          cylinder=Cylinder(projection_scale=a.projection_scale, normal_scale=a.normal_scale,
                                            max_distance=a.max_distance),
                          registration_error=a.registration_error, orientation=a.orientation,
@@ -174,7 +174,7 @@ def cmd_align(a):
 def cmd_watch(a):
     frames = F.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
                             update=a.update, window=a.window, decay=a.decay, min_region_points=a.min_region_points,
-                            align=a.align, coverage=_coverage(a))
+                            align=a.align, coverage=_coverage(a), topic=a.topic)
     if a.json:
         return _show("", [r.summary() for r in frames], as_json=True)
     for r in frames:  # a line per frame, as it comes (the frames are compared as they are iterated)
@@ -265,6 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--html", help="write an interactive 3D view (needs the html extra: plotly)")
     c.add_argument("--report", help=X.REPORT_HELP)
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
+    c.add_argument("--topic", metavar="TOPIC[:N]", help="a ROS bag input: the PointCloud2 message of TOPIC to compare "
+                   "(its first, or its N-th from 0; -1 the last)")
     c.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
     _align_options(c)
@@ -294,6 +296,8 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--orientation", metavar="X,Y,Z", help="normals point this way without a sensor (default 0,0,1)")
     ds.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
                     help="normals point towards the sensor (auto: where a file records it)")
+    ds.add_argument("--field-names", choices=("sdp", "cloudcompare", "pdal"), default=DEFAULTS.field_names,
+                    help="name the output's fields as sdp (default), CloudCompare's M3C2 or PDAL's filters.m3c2 do")
     ds.add_argument("--png", help="map of the significant distances and their histogram")
     ds.add_argument("--report", help=X.REPORT_HELP)
     ds.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -333,7 +337,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     w = _command(sub, "watch", cmd_watch, "compare each frame of a folder, in order, with a model that learns", X.WATCH)
     w.add_argument("reference", help="cloud or field (.sdpf) of the scene before the frames")
-    w.add_argument("frames", help="folder of frames, processed in natural name order")
+    w.add_argument("frames", help="folder of frames, processed in natural name order, or a ROS bag (with --topic)")
+    w.add_argument("--topic", help="the sensor_msgs/PointCloud2 topic of a ROS 1 or ROS 2 bag (the scans extra)")
     w.add_argument("--update", choices=("none", "window", "decay"), default=DEFAULTS.update,
                    help="how the model learns the frames (default window: learns the last frames, forgets the rest)")
     w.add_argument("--window", type=V.cli_type(V.integer_at_least, 1),

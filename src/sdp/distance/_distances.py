@@ -75,11 +75,12 @@ import numpy as np
 import numpy.typing as npt
 
 from .._core._cells import BITS, MAX_INDEX, cell_keys, sorted_cells, table_row
+from .._core._kdtree import k_nearest
 from .._core._memory import check_memory
 from .._core._memory import memory_limit as grid_memory_limit
 from .._core._points import as_points
 from .._core._validate import auto_or_positive, direction, nonnegative_finite
-from ..change._visibility import resolve_sensor_origins
+from ..change._visibility import resolve_sensor_origins, scanner_of_points
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
@@ -276,13 +277,14 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     towards = np.array([0.0, 0.0, 1.0]) if orientation is None else direction("orientation", orientation)
     origins = resolve_sensor_origins(sensor_origin, reference, current)
     if core_points is None or (isinstance(core_points, str) and core_points == "reference"):
-        core, sensor = ref.xyz, origins[0]
+        core, sensor = ref.xyz, _sensor_per_point(origins[0], reference, ref.xyz)
     elif isinstance(core_points, str):
         if core_points != "current":
             raise InvalidOptionError(f"core_points must be points, 'reference' or 'current', got {core_points!r}")
-        core, sensor = cur.xyz, origins[1]
+        core, sensor = cur.xyz, _sensor_per_point(origins[1], current, cur.xyz)
     else:
-        core, sensor = as_points(core_points, name="core points").xyz, origins[0]
+        core = as_points(core_points, name="core points").xyz
+        sensor = _sensor_per_point(origins[0], reference, ref.xyz, core)
     timings = {"validate": time.perf_counter() - t0}
 
     t = time.perf_counter()
@@ -334,10 +336,10 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     if missing.any():  # no reference point near: the current's surface gives the direction
         normal[missing] = lists.normals(cur.xyz, centroids[missing], sigma_n)[0]
     normal = np.repeat(normal, per_cell, axis=0)
-    if sensor is not None:
-        facing = np.asarray(sensor, np.float64)[None, :] - core_sorted
+    if sensor is not None:  # one position (3,), or each core point's own scanner (m, 3)
+        facing = (sensor[order] if sensor.ndim == 2 else sensor[None, :]) - core_sorted
         flip = np.einsum("ij,ij->i", normal, facing) < 0
-        how = "towards the sensor"
+        how = "towards the sensor" if sensor.ndim == 1 else "towards each point's scanner"
     else:
         flip = normal @ towards < 0
         how = f"towards ({towards[0]:g}, {towards[1]:g}, {towards[2]:g})"
@@ -737,3 +739,15 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
         out[i, 0] = m
         out[i, 1] = math.sqrt(var)
         out[i, 2] = n_eff
+
+
+def _sensor_per_point(origins, cloud, xyz: np.ndarray, core: np.ndarray | None = None) -> np.ndarray | None:
+    """The sensor the normals face: one position (3,), or with several scanners (k, 3) each
+    point's own (m, 3), the scanner of ``cloud``'s points (:attr:`sdp.Cloud.scan`), or for other
+    ``core`` points that of their nearest point of ``cloud``."""
+    if origins is None or np.ndim(origins) == 1:
+        return None if origins is None else np.asarray(origins, np.float64)
+    scan = scanner_of_points(cloud, origins, len(xyz))
+    if core is not None:
+        scan = scan[k_nearest(xyz, core, 1)[:, 0]]
+    return np.asarray(origins, np.float64)[scan]
