@@ -177,14 +177,14 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     with tempfile.TemporaryDirectory(prefix="sdp-warmup-") as tmp:
         d = Path(tmp)
         files = {}
-        with all_or_none():  # each step's files are renamed at its end (the command line defers them)
+        with all_or_none(own=True):  # each step's files are renamed at its end (the command line defers them)
             for ext in ("ply", "laz"):
                 for name, xyz in (("ref", s.reference), ("cur", s.current)):
                     files[name, ext] = write_points(d / f"{name}.{ext}", xyz)
 
         def step(command, fn):
             t = time.perf_counter()
-            with all_or_none():
+            with all_or_none(own=True):
                 fn()
             times[command] = time.perf_counter() - t
             record_warm([command])
@@ -210,7 +210,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
         def watch():
             frames = d / "frames"
             frames.mkdir()
-            with all_or_none():
+            with all_or_none(own=True):
                 for i in range(2):
                     write_points(frames / f"f{i}.ply", s.current)
             for _ in F.watch_folder(files["ref", "ply"], frames):

@@ -117,7 +117,7 @@ _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 @contextmanager
-def all_or_none(*, on_commit=None):
+def all_or_none(*, on_commit=None, own: bool = False):
     """Within the block, every :func:`atomic_path` (every writer of sdp) keeps its finished file
     under its temporary name; they are all renamed when the block succeeds, all removed when it
     fails: a command writes all its outputs or none (``sdp`` runs each command inside one).
@@ -125,12 +125,13 @@ def all_or_none(*, on_commit=None):
     Nested in another, the block hands its files to the outer one: a function that writes its
     outputs as one (:func:`sdp.compare_files`) commits nothing before the command around it has
     also printed its summary (stdout on a full disk fails the command, and nothing is written).
+    ``own=True`` commits the block's files at its own end all the same (steps whose files the
+    next step reads, as in ``sdp warmup``).
 
     The renames run with Ctrl-C and SIGTERM held back (in the main thread), then ``on_commit()``:
     a signal arriving meanwhile is delivered after both, when the command is complete, and the
     program can tell it came too late to stop anything."""
-    outer = _PENDING.get()
-    if outer is not None:
+    if _PENDING.get() is not None and not own:
         yield
         return
     pending: list[tuple[str, Path]] = []
