@@ -412,7 +412,9 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         def write(k, labels):
             obj[k] = labels
 
-        table = find_objects(read, E, xyz, times, min_points=attrs["parameters"]["min_object_points"], write=write)
+        step = np.where(w["onset_kind"][:] == 1, w["onset"][:], -1)
+        table = find_objects(read, E, xyz, times, min_points=attrs["parameters"]["min_object_points"], step=step,
+                             write=write)
         ids = np.arange(1, len(table["object_start"]) + 1, dtype=np.int32)
         w.write("object_id", ids, ("object_id",))
         for name in OBJECT_FIELDS:

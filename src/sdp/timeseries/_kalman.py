@@ -19,6 +19,10 @@ et al. [1]_ do; not-comparable epochs are skipped (prediction only).
   the position's variance is raised by the innovation's square before the update, so the filter
   takes the new level at once and the smoother does not carry the step back into the epochs
   before it (an intervention, as in structural time-series models [2]_). Its epoch is recorded.
+  A step too small for one epoch to show is found afterwards by all the epochs together
+  (:func:`step_scan`: a line plus a step against the line, the step's epoch chosen where it
+  explains most, kept beyond 16, 4σ); those points are smoothed again with the step there. A
+  step found on stable ground re-levels a series that stays near zero: no change, no onset.
 - Smoothed values and their standard deviations (the smoother's covariance) for ``d`` and ``v``.
 
 Everything is vectorised over a block of core points and loops over the epochs, so the memory is
@@ -40,11 +44,12 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["process_noise", "smooth", "BYTES_PER_VALUE"]
+__all__ = ["process_noise", "smooth", "kalman", "step_scan", "BYTES_PER_VALUE"]
 
 #: Working memory of :func:`smooth` per epoch and core point (ten float64 arrays and the inputs).
 BYTES_PER_VALUE = 120
 _STEP_K = 4.0
+_SCAN = 16.0  # the step scan's statistic (χ²(1) at one epoch): 4σ, 6e-5 per epoch tried
 
 
 def _second_differences(z, var, t):
@@ -86,7 +91,58 @@ def process_noise(z: np.ndarray, var: np.ndarray, t: np.ndarray, *, max_samples:
     return max(hi, floor)
 
 
-def smooth(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: float = _STEP_K):
+def step_scan(z: np.ndarray, var: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(best step epoch, its statistic) per column: the likelihood ratio of a line plus a step at
+    epoch s against the line alone (weighted least squares, weights 1/var), maximised over s with
+    at least two observations on each side; χ²(1) for one s. All s at once from cumulative sums:
+    with the line's residuals r, the statistic is (Σ_{k≥s} w r)² / (Σ_{k≥s} w − gᵀG⁻¹g)."""
+    E = len(t)
+    ok = np.isfinite(z) & np.isfinite(var) & (var > 0)
+    w = np.where(ok, 1.0 / np.where(ok, var, 1.0), 0.0)
+    zz = np.where(ok, z, 0.0)
+    tc = (t - t.mean())[:, None]
+    s0, s1, s2 = w.sum(0), (w * tc).sum(0), (w * tc * tc).sum(0)
+    z0, z1 = (w * zz).sum(0), (w * tc * zz).sum(0)
+    det = s0 * s2 - s1 * s1
+    good = det > 1e-300 * np.maximum(s0 * s2, 1e-300)
+    det = np.where(good, det, 1.0)
+    a, b = (s2 * z0 - s1 * z1) / det, (s0 * z1 - s1 * z0) / det
+    r = np.where(ok, zz - a - b * tc, 0.0)
+
+    def tail(x):  # Σ_{k≥s}
+        return np.cumsum(x[::-1], axis=0)[::-1]
+
+    num = tail(w * r)
+    g0, g1 = tail(w), tail(w * tc)
+    den = g0 - (s2 * g0 * g0 - 2 * s1 * g0 * g1 + s0 * g1 * g1) / det
+    count = tail(ok.astype(np.int64))
+    valid = (count >= 2) & (count <= ok.sum(0) - 2) & (den > 1e-12 * np.maximum(g0, 1e-300)) & good
+    stat = np.where(valid, num * num / np.where(valid, den, 1.0), 0.0)
+    stat[0] = 0.0
+    at = np.argmax(stat, axis=0)
+    return at, stat[at, np.arange(stat.shape[1])] if E else np.zeros(0)
+
+
+def smooth(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: float = _STEP_K,
+           scan: float = _SCAN):
+    """The smoother of :func:`kalman` with steps found twice: by the filter's innovations, then by
+    :func:`step_scan` where a step too small for one epoch to show is seen by all of them (its
+    statistic beyond ``scan``); those points are smoothed again with a step there. Same returns
+    as :func:`kalman`."""
+    sm, vel, ssd, vsd, step = kalman(z, var, t, q, step_k=step_k)
+    if len(t) < 5 or not scan:
+        return sm, vel, ssd, vsd, step
+    at, stat = step_scan(z, var, t)
+    todo = np.flatnonzero((stat > scan) & (step < 0))
+    if todo.size:
+        again = kalman(z[:, todo], var[:, todo], t, q, step_k=step_k, forced=at[todo])
+        for out, new in zip((sm, vel, ssd, vsd), again[:4]):
+            out[:, todo] = new
+        step[todo] = np.where((again[4] >= 0) & (again[4] < at[todo]), again[4], at[todo])
+    return sm, vel, ssd, vsd, step
+
+
+def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: float = _STEP_K, forced=None):
     """Kalman filter and RTS smoother of each column of ``z`` (epochs, points).
 
     Parameters
@@ -99,6 +155,8 @@ def smooth(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: f
         Process noise density (:func:`process_noise`).
     step_k : float
         Innovations beyond this many standard deviations, confirmed by the next epoch, are steps.
+    forced : ndarray (m,) int, optional
+        An epoch per point where a step is taken whatever its innovation (-1: none).
 
     Returns
     -------
@@ -127,6 +185,8 @@ def smooth(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: f
             x0 = x0 + h * x1
             p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3.0,
                              p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
+        if forced is not None and k:
+            p00 = p00 + np.where(forced == k, big_d, 0.0)
         nu = np.where(ok[k], z[k] - x0, 0.0)
         s = p00 + np.where(ok[k], var[k], np.inf)
         if 0 < k < E - 1:

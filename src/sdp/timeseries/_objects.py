@@ -3,11 +3,15 @@
 A core point at an epoch is *changed* when its smoothed change is significant: ``|smoothed| >
 1.96·smoothed_sigma`` (the smoother's own 95 % bound). Changed (epoch, point) pairs of the same
 sign are joined to their spatial neighbours at the same epoch (core points closer than
-``radius``, by default 1.5 × the median spacing of the core points) and to themselves at the
-next epoch: the connected sets in space and time are the 4D objects of change, like the
-objects-by-change of Anders et al. [1]_, here grown from every significant pair at once instead
-of from seeds. Sets of fewer than ``min_points`` distinct core points are noise and are left out
-(object 0).
+``radius``, by default 1.5 × the 90th percentile of the core points' spacing) and to themselves at the
+next epoch, where both changed in one way: gradually, or by steps at the same epoch (± 1; the
+steps of :mod:`sdp.timeseries._kalman`), since a step and a creep beside it, or two steps at
+different epochs, are different events. The connected sets in space and time are the 4D objects
+of change, like the objects-by-change of Anders et al. [1]_, here grown from every significant
+pair at once instead of from seeds. Sets of fewer than ``min_points`` distinct core points are noise and are left out
+(object 0). An object *starts* at the first epoch at which ``min_points`` of its core points are
+changed together (the first epoch with any, if it never has that many at once): a few core points
+at its rim, where a change smoothed over time leaks before it happens, do not date it.
 
 The work streams over the epochs: each epoch's spatial components (a sparse graph over the
 core points' neighbour pairs), then the components of consecutive epochs that share a point are
@@ -16,7 +20,8 @@ object table. Memory: the neighbour pairs, two epochs' rows and one id per compo
 
 The onset of a core point's change is the first epoch from which its smoothed change stays
 significant for two epochs running, or the epoch of its first step (:mod:`sdp.timeseries._kalman`)
-if that comes first; ``onset_kind`` says which (1: step, 2: gradual).
+if that comes first; ``onset_kind`` says which (1: step, 2: gradual). A step with no significant
+change after it is no onset.
 
 References
 ----------
@@ -40,22 +45,25 @@ OBJECT_FIELDS = ("object_start", "object_end", "object_start_time", "object_end_
 
 def neighbour_pairs(xyz: np.ndarray, radius: float | None = None) -> tuple[np.ndarray, np.ndarray, float, float]:
     """(i, j, radius, area per core point): the core points' neighbour pairs within ``radius``
-    (default 1.5 × the median nearest-neighbour spacing); the area is the spacing squared."""
+    (default 1.5 × the 90th percentile of the nearest-neighbour spacing: core points subsampled
+    on a grid lie up to a cell and a half apart and must still touch); the area is the median
+    spacing squared."""
     tree = cKDTree(xyz)
     if len(xyz) > 1:
         d, _ = tree.query(xyz[:: max(1, len(xyz) // 5000)], k=2)
-        spacing = float(np.median(d[:, 1]))
+        spacing, far = float(np.median(d[:, 1])), float(np.quantile(d[:, 1], 0.9))
     else:
-        spacing = 1.0
-    radius = 1.5 * spacing if radius is None else float(radius)
+        spacing = far = 1.0
+    radius = 1.5 * far if radius is None else float(radius)
     pairs = tree.query_pairs(radius, output_type="ndarray")
     return pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64), radius, spacing * spacing
 
 
-def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, int]:
-    """Per core point, its component among the changed points of one epoch (-1: unchanged)."""
+def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray, together: np.ndarray) -> tuple[np.ndarray, int]:
+    """Per core point, its component among the changed points of one epoch (-1: unchanged);
+    ``together``: the neighbour pairs whose changes are of one kind."""
     m = len(sign)
-    keep = (sign[i] != 0) & (sign[i] == sign[j])
+    keep = (sign[i] != 0) & (sign[i] == sign[j]) & together
     graph = coo_matrix((np.ones(int(keep.sum()), np.int8), (i[keep], j[keep])), shape=(m, m))
     _, labels = connected_components(graph, directed=False)
     changed = sign != 0
@@ -66,14 +74,18 @@ def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndar
 
 
 def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, *, min_points: int,
-                 radius: float | None = None, write=None) -> dict:
+                 step: np.ndarray | None = None, radius: float | None = None, write=None) -> dict:
     """The 4D objects of change (see the module docstring).
 
     ``read_epoch(k)`` returns (smoothed, smoothed_sigma, velocity) of epoch ``k``; ``write(k,
     labels)`` receives each epoch's object ids (int32, 0: none). Returns the object table
-    (:data:`OBJECT_FIELDS`, objects ordered by size, ids 1…) and the neighbourhood used."""
+    (:data:`OBJECT_FIELDS`, objects ordered by size, ids 1…) and the neighbourhood used.
+    ``step``: each core point's step epoch (-1: none); neighbours join only if both changed
+    gradually or both stepped within an epoch of each other."""
     i, j, radius, area = neighbour_pairs(xyz, radius)
     m = len(xyz)
+    step = np.full(m, -1) if step is None else np.asarray(step)
+    together = (step[i] < 0) & (step[j] < 0) | (step[i] >= 0) & (step[j] >= 0) & (np.abs(step[i] - step[j]) <= 1)
 
     def signs(k):
         d, s, v = read_epoch(k)
@@ -85,7 +97,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
     total = 0
     for k in range(n_epochs):
         sign, _, _ = signs(k)
-        comp, n = _components(sign, i, j)
+        comp, n = _components(sign, i, j, together)
         offsets.append(total)
         if prev is not None:
             both = (sign != 0) & (sign == prev_sign)
@@ -98,22 +110,25 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
     n_roots = int(root.max()) + 1 if total else 0
 
     # pass 2: per root, its epochs, distinct points, peak change and velocity sums
-    start = np.full(n_roots, n_epochs, np.int64)
+    start = np.full(n_roots, n_epochs, np.int64)  # the first epoch with min_points changed core points
+    first = np.full(n_roots, n_epochs, np.int64)  # the first epoch with any
     end = np.full(n_roots, -1, np.int64)
     peak = np.zeros(n_roots)
     vsum, vcount = np.zeros(n_roots), np.zeros(n_roots)
     pairs = []
     for k in range(n_epochs):
         sign, d, v = signs(k)
-        comp, _ = _components(sign, i, j)
+        comp, _ = _components(sign, i, j, together)
         at = np.flatnonzero(comp >= 0)
         r = root[comp[at] + offsets[k]]
-        np.minimum.at(start, r, k)
+        np.minimum.at(first, r, k)
         np.maximum.at(end, r, k)
+        born = (np.bincount(r, minlength=n_roots) >= min_points) & (start == n_epochs)
+        start[born] = k
         order = np.lexsort((-np.abs(d[at]), r))
-        first = np.ones(len(order), bool)
-        first[1:] = r[order[1:]] != r[order[:-1]]
-        cand = order[first]
+        head = np.ones(len(order), bool)
+        head[1:] = r[order[1:]] != r[order[:-1]]
+        cand = order[head]
         better = np.abs(d[at][cand]) > np.abs(peak[r[cand]])
         peak[r[cand][better]] = d[at][cand][better]
         fv = np.isfinite(v[at])
@@ -124,6 +139,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
             pairs = [np.unique(np.concatenate(pairs))]
     pairs = np.unique(np.concatenate(pairs)) if pairs else np.empty(0, np.int64)
     npts = np.bincount(pairs // m, minlength=n_roots) if n_roots else np.zeros(0, np.int64)
+    start = np.where(start == n_epochs, first, start)
     kept = np.flatnonzero(npts >= min_points)
     kept = kept[np.lexsort((start[kept], -npts[kept]))]  # largest first
     ids = np.zeros(n_roots, np.int32)
@@ -133,7 +149,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
     if write is not None:
         for k in range(n_epochs):
             sign, _, _ = signs(k)
-            comp, _ = _components(sign, i, j)
+            comp, _ = _components(sign, i, j, together)
             labels = np.zeros(m, np.int32)
             at = comp >= 0
             labels[at] = ids[root[comp[at] + offsets[k]]]
@@ -146,12 +162,13 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
 
 
 def onsets(smoothed: np.ndarray, sigma: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(onset epoch or -1, kind: 0 none, 1 step, 2 gradual) per core point of a block (epochs, points)."""
+    """(onset epoch or -1, kind: 0 none, 1 step, 2 gradual) per core point of a block (epochs, points):
+    the first epoch of two running with significant smoothed change, or the step before it."""
     sig = np.isfinite(smoothed) & (np.abs(smoothed) > 1.96 * sigma)
     run = sig[:-1] & sig[1:] if len(sig) > 1 else sig
     has = run.any(axis=0)
     first = np.where(has, np.argmax(run, axis=0), -1)
-    stepped = (step >= 0) & ((first < 0) | (step <= first))
+    stepped = (step >= 0) & (first >= 0) & (step <= first)
     onset = np.where(stepped, step, first).astype(np.int32)
     kind = np.where(stepped, 1, np.where(first >= 0, 2, 0)).astype(np.int8)
     return onset, kind
