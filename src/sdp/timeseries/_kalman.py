@@ -171,7 +171,8 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: f
     ok = np.isfinite(z) & np.isfinite(var) & (var > 0)
     scale = float(np.sqrt(np.median(var[ok]))) if ok.any() else 1.0
     dt0 = float(np.median(np.diff(t))) if E > 1 else 1.0
-    big_d, big_v = (1e4 * scale) ** 2, (1e4 * scale / dt0) ** 2
+    # a diffuse start, 1000 noise deviations wide: wider, and the smoother's 2×2 inverse loses its digits
+    big_d, big_v = (1e3 * scale) ** 2, (1e3 * scale / dt0) ** 2
     xp = np.empty((E, 2, m))  # predictions
     Pp = np.empty((E, 3, m))  # their covariances: 00, 01, 11
     xf = np.empty((E, 2, m))
