@@ -5,9 +5,10 @@ Layout (a Zarr v3 group, ``*.zarr``, readable with ``xarray.open_zarr``)::
     attrs          format "sdp-series", format_version, sdp_version, parameters (each option as
                    given and as used), epochs (file, time, time source, registration error,
                    alignment), time_units, runs (what each run added)
-    distance, lod, significant       (epoch, point)  float32, float32, bool: one chunk row per
-                                                     epoch and 16,384 points, one write per epoch
-    smoothed, velocity, smoothed_sigma, velocity_sigma, object   (epoch, point)
+    distance, lod, significant       (epoch, point)  float32, float32, bool: chunks of one epoch
+                                                     row and 16,384 points, written once
+    smoothed, velocity, smoothed_sigma, velocity_sigma, object   (epoch, point): rewritten by
+                                     every run, in chunks of up to 64 epochs × 16,384 points
     time, registration_error         (epoch,)
     x, y, z, onset, onset_kind       (point,)
     normal_x/y/z, ref_mean, ref_spread, ref_count, ref_level     (point,): the reference side
@@ -166,19 +167,25 @@ class Writer:
         self.folder = Path(folder)
         self.zarr = zarr
         self.group = zarr.open_group(str(folder), mode="w" if create else "r+")
+        self._arrays: dict = {}  # opened once: each lookup reads the array's metadata again
 
-    def array(self, name, shape, dtype, dims, *, fill=None, attrs=None, chunk_points=POINT_CHUNK):
-        """A new array (replacing one of that name); chunks: one epoch row × ``chunk_points`` points."""
+    def array(self, name, shape, dtype, dims, *, fill=None, attrs=None, epochs_per_chunk: int = 1):
+        """A new array (replacing one of that name); chunks: ``epochs_per_chunk`` epoch rows ×
+        :data:`POINT_CHUNK` points; chunk files ``c.i.j`` side by side (no folder per row: an
+        append links, and a swap removes, files rather than folders)."""
+        self._arrays.pop(name, None)
         if name in self.group:
             del self.group[name]
-        chunks = tuple(1 if d == "epoch" and len(dims) > 1 else
-                       max(1, min(chunk_points, s)) if d == "point" else max(1, s) for d, s in zip(dims, shape))
+        chunks = tuple(max(1, min(epochs_per_chunk, s)) if d == "epoch" and len(dims) > 1 else
+                       max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s) for d, s in zip(dims, shape))
         if fill is None:
             fill = np.nan if np.dtype(dtype).kind == "f" else 0
         arr = self.group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill,
-                                      dimension_names=list(dims))
+                                      dimension_names=list(dims),
+                                      chunk_key_encoding={"name": "default", "separator": "."})
         if attrs:
             arr.attrs.update(attrs)
+        self._arrays[name] = arr
         return arr
 
     def write(self, name, values, dims, *, attrs=None):
@@ -190,7 +197,9 @@ class Writer:
         return arr
 
     def __getitem__(self, name):
-        return self.group[name]
+        if name not in self._arrays:
+            self._arrays[name] = self.group[name]
+        return self._arrays[name]
 
     def finish(self, attrs: dict) -> None:
         """Group attributes (JSON), then consolidated metadata (one read opens the archive)."""

@@ -54,6 +54,7 @@ __all__ = ["series", "SERIES_FIELDS"]
 SERIES_FIELDS = ("distance", "lod", "significant", "smoothed", "velocity", "smoothed_sigma", "velocity_sigma",
                  "object")
 _EPOCH_DIMS = ("epoch", "point")
+_DERIVED_EPOCHS = 64  # epochs per chunk of the arrays every run rewrites (4 MiB of float32)
 _MIN_OBJECT_POINTS = 10  # objects of fewer core points are noise (a few neighbours flickering together)
 
 
@@ -369,6 +370,18 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
             ref_xyz = _xyz(ref_cloud[1]) if ref_cloud is not None else _xyz(_load(attrs["parameters"]["reference_file"],
                                                                                    fmt))
         t0 = time.perf_counter()
+        # rows are written a few epochs at a time (one call writes their chunks together)
+        flush = int(max(1, min(len(epochs), 64, (limit / 16.0) // max(9.0 * m, 1.0))))
+        buffered: list = []
+
+        def write_rows():
+            if buffered:
+                a = n_old + buffered[0][0]
+                w["distance"][a:a + len(buffered)] = np.stack([r[1] for r in buffered])
+                w["lod"][a:a + len(buffered)] = np.stack([r[2] for r in buffered])
+                w["significant"][a:a + len(buffered)] = np.stack([r[3] for r in buffered])
+                buffered.clear()
+
         for k, epoch in enumerate(epochs):
             row = n_old + k
             is_ref = ref_cloud is not None and k == ref_cloud[0]
@@ -385,13 +398,14 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
             if reg == "auto":
                 reg = 0.0
             d = prepared.measure(xyz, registration_error=reg, memory_limit=limit)
-            w["distance"][row] = d.distance.astype(np.float32)
-            w["lod"][row] = d.lod.astype(np.float32)
-            w["significant"][row] = d.significant
+            buffered.append((k, d.distance.astype(np.float32), d.lod.astype(np.float32), d.significant))
+            if len(buffered) >= flush:
+                write_rows()
             record.update(registration_error=float(reg), points=int(len(xyz)), comparable=int(d.comparable.sum()),
                           significant=int(d.significant.sum()))
             attrs["epochs"].append(record)
             del cloud, xyz, d
+        write_rows()
         timings["epochs"] = time.perf_counter() - t0
         E = len(attrs["epochs"])
         times = np.array([e["time"] for e in attrs["epochs"]])
@@ -399,22 +413,39 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         w.write("time", times, ("epoch",), attrs=time_attrs)
         w.write("registration_error", np.array([e["registration_error"] for e in attrs["epochs"]]), ("epoch",))
         t0 = time.perf_counter()
-        q, info = _smooth_all(w, E, m, times, limit)
+        q, info, held = _smooth_all(w, E, m, times, limit)
         timings["smoother"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         xyz = prepared.core_points
-        obj = w.array("object", (E, m), "i4", _EPOCH_DIMS)
+        obj = w.array("object", (E, m), "i4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS)
+        labels_all = np.zeros((E, m), np.int32) if held is not None else None
+        rows: dict = {}  # epochs read a chunk row at a time
 
         def read(k):
-            return (w["smoothed"][k].astype(np.float64), w["smoothed_sigma"][k].astype(np.float64),
-                    w["velocity"][k].astype(np.float64))
+            if held is not None:  # the whole series is in memory: no read
+                return tuple(a[k].astype(np.float64) for a in held)
+            a = k - k % _DERIVED_EPOCHS
+            if a not in rows:
+                rows.clear()
+                rows[a] = [w[n][a:a + _DERIVED_EPOCHS] for n in ("smoothed", "smoothed_sigma", "velocity")]
+            return tuple(r[k - a].astype(np.float64) for r in rows[a])
+
+        pending: list = []
 
         def write(k, labels):
-            obj[k] = labels
+            if labels_all is not None:
+                labels_all[k] = labels
+                return
+            pending.append(labels)
+            if len(pending) == _DERIVED_EPOCHS or k == E - 1:
+                obj[k + 1 - len(pending):k + 1] = np.stack(pending)
+                pending.clear()
 
         step = np.where(w["onset_kind"][:] == 1, w["onset"][:], -1)
         table = find_objects(read, E, xyz, times, min_points=attrs["parameters"]["min_object_points"], step=step,
                              write=write)
+        if labels_all is not None:
+            obj[...] = labels_all
         ids = np.arange(1, len(table["object_start"]) + 1, dtype=np.int32)
         w.write("object_id", ids, ("object_id",))
         for name in OBJECT_FIELDS:
@@ -441,31 +472,42 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
 
 
 def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
-    """The smoother over blocks of core points (their number from the memory limit); (q, info)."""
+    """The smoother over blocks of core points (their number from the memory limit); (q, info,
+    (smoothed, smoothed_sigma, velocity) if one block held the whole series, else None)."""
     names = ("smoothed", "velocity", "smoothed_sigma", "velocity_sigma")
-    outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS) for name in names}
+    outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS) for name in names}
     dist, lod = w["distance"], w["lod"]
-    # q from a sample of core points spread over the archive (the median needs no more)
-    sample = np.arange(0, m, max(1, m // max(1, 200_000 // max(E, 1))))
-    zs = dist.get_orthogonal_selection((slice(None), sample)).astype(np.float64)
-    vs = (lod.get_orthogonal_selection((slice(None), sample)).astype(np.float64) / 1.96) ** 2
-    q = process_noise(zs, vs, times)
     budget = max(limit / 4.0, 64e6)
     block = int(max(256, min(m, budget // (E * BYTES_PER_VALUE))))
-    if block >= A.POINT_CHUNK:
-        block -= block % A.POINT_CHUNK
+    whole = None
+    if block >= m:  # the whole series fits: read it once
+        whole = dist[...], lod[...]
+    elif block >= A.POINT_CHUNK:
+        block -= block % A.POINT_CHUNK  # whole chunks per block
+    # q from a sample of core points spread over the archive (the median needs no more)
+    sample = np.arange(0, m, max(1, m // max(1, 200_000 // max(E, 1))))
+    if whole is not None:
+        zs, ls = whole[0][:, sample], whole[1][:, sample]
+    else:
+        zs, ls = dist.get_orthogonal_selection((slice(None), sample)), lod.get_orthogonal_selection((slice(None), sample))
+    q = process_noise(zs.astype(np.float64), (ls.astype(np.float64) / 1.96) ** 2, times)
     onset = np.full(m, -1, np.int32)
     kind = np.zeros(m, np.int8)
     steps = 0
+    held = None
     for a in range(0, m, block):
         b = min(m, a + block)
-        z = dist[:, a:b].astype(np.float64)
-        var = (lod[:, a:b].astype(np.float64) / 1.96) ** 2
+        zb, lb = (whole[0], whole[1]) if whole is not None else (dist[:, a:b], lod[:, a:b])
+        z = zb.astype(np.float64)
+        var = (lb.astype(np.float64) / 1.96) ** 2
         sm, vel, ssd, vsd, step = smooth(z, var, times, q)
-        for name, values in zip(names, (sm, vel, ssd, vsd)):
-            outs[name][:, a:b] = values.astype(np.float32)
+        values = [v.astype(np.float32) for v in (sm, vel, ssd, vsd)]
+        for name, v in zip(names, values):
+            outs[name][:, a:b] = v
+        if block >= m:
+            held = (values[0], values[2], values[1])
         onset[a:b], kind[a:b] = onsets(sm, ssd, step)
         steps += int((step >= 0).sum())
     w.write("onset", onset, ("point",), attrs={"meaning": "epoch the change starts, -1: none"})
     w.write("onset_kind", kind, ("point",), attrs={"meaning": "0 none, 1 step, 2 gradual"})
-    return float(q), {"block_points": block, "core_points_with_step": steps}
+    return float(q), {"block_points": block, "core_points_with_step": steps}, held
