@@ -237,3 +237,27 @@ def test_command_bad_input_exits_2(slope, tmp_path, capsys, args, message):
     err = capsys.readouterr().err
     assert err.startswith("sdp: error:") and message in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.zarr").exists()
+
+
+def test_objects_in_memory_equal_the_streamed_ones(slope, tmp_path):
+    from sdp.timeseries._objects import find_objects, objects_in_memory
+
+    ds = sdp.series(slope.epochs, output=tmp_path / "s.zarr", cylinder=CYL, registration_error=2 * slope.registration)
+    sm, sd, vel = ds.smoothed.values, ds.smoothed_sigma.values, ds.velocity.values
+    xyz = np.c_[ds.x.values, ds.y.values, ds.z.values]
+    step = np.where(ds.onset_kind.values == 1, ds.onset.values, -1)
+    times = ds.time.values
+    table, labels = objects_in_memory(sm, sd, vel, xyz, times, min_points=10, step=step)
+    streamed = np.zeros_like(labels)
+
+    def write(k, row):
+        streamed[k] = row
+
+    other = find_objects(lambda k: (sm[k].astype(float), sd[k].astype(float), vel[k].astype(float)), len(times),
+                         xyz, times, min_points=10, step=step, write=write)
+    assert len(table["object_start"]) >= 2
+    np.testing.assert_array_equal(labels, streamed)
+    np.testing.assert_array_equal(labels, ds.object.values)
+    for name in table:
+        np.testing.assert_allclose(np.asarray(table[name], float), np.asarray(other[name], float), rtol=1e-12,
+                                   err_msg=name)

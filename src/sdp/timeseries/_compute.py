@@ -46,7 +46,7 @@ from ..io._read import read_points
 from ..options import Cylinder, Execution, Registration
 from . import _archive as A
 from ._kalman import BYTES_PER_VALUE, process_noise, smooth
-from ._objects import OBJECT_FIELDS, find_objects, onsets
+from ._objects import OBJECT_FIELDS, find_objects, objects_in_memory, onsets
 
 __all__ = ["series", "SERIES_FIELDS"]
 
@@ -442,8 +442,12 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                 pending.clear()
 
         step = np.where(w["onset_kind"][:] == 1, w["onset"][:], -1)
-        table = find_objects(read, E, xyz, times, min_points=attrs["parameters"]["min_object_points"], step=step,
-                             write=write)
+        min_points = attrs["parameters"]["min_object_points"]
+        if held is not None and E * m * 64 < limit / 4:  # the space-time graph fits: one call
+            table, labels_all = objects_in_memory(held[0], held[1], held[2], xyz, times, min_points=min_points,
+                                                  step=step)
+        else:
+            table = find_objects(read, E, xyz, times, min_points=min_points, step=step, write=write)
         if labels_all is not None:
             obj[...] = labels_all
         ids = np.arange(1, len(table["object_start"]) + 1, dtype=np.int32)

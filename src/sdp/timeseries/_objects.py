@@ -13,10 +13,12 @@ pair at once instead of from seeds. Sets of fewer than ``min_points`` distinct c
 changed together (the first epoch with any, if it never has that many at once): a few core points
 at its rim, where a change smoothed over time leaks before it happens, do not date it.
 
-The work streams over the epochs: each epoch's spatial components (a sparse graph over the
-core points' neighbour pairs), then the components of consecutive epochs that share a point are
-joined (a union over component ids); a second pass gives every pair its object and sums the
-object table. Memory: the neighbour pairs, two epochs' rows and one id per component.
+A series that fits in memory is one sparse graph over every (epoch, point), cut into components
+by one call (:func:`objects_in_memory`). Beyond memory the work streams over the epochs
+(:func:`find_objects`): each epoch's spatial components, then the components of consecutive
+epochs that share a point are joined (a union over component ids); a second pass gives every
+pair its object and sums the object table. Memory: the neighbour pairs, two epochs' rows and one
+id per component. Both give the same objects (tested).
 
 The onset of a core point's change is the first epoch from which its smoothed change stays
 significant for two epochs running, or the epoch of its first step (:mod:`sdp.timeseries._kalman`)
@@ -37,7 +39,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-__all__ = ["neighbour_pairs", "find_objects", "onsets", "OBJECT_FIELDS"]
+__all__ = ["neighbour_pairs", "find_objects", "objects_in_memory", "onsets", "OBJECT_FIELDS"]
 
 OBJECT_FIELDS = ("object_start", "object_end", "object_start_time", "object_end_time", "object_points",
                  "object_area", "object_peak_change", "object_mean_velocity")
@@ -71,6 +73,69 @@ def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray, together: np.nda
     out = np.full(m, -1, np.int64)
     out[changed] = local
     return out, len(uniq)
+
+
+def _table(start, first, end, npts, peak, vsum, vcount, anchor, min_points, times, radius, area):
+    """The object table of the roots with at least ``min_points`` core points, largest first; (table, root → id)."""
+    start = np.where(start >= len(times), first, start)
+    kept = np.flatnonzero(npts >= min_points)
+    kept = kept[np.lexsort((anchor[kept], start[kept], -npts[kept]))]  # largest, then earliest, first
+    ids = np.zeros(len(npts), np.int32)
+    ids[kept] = np.arange(1, len(kept) + 1, dtype=np.int32)
+    return {"object_start": start[kept].astype(np.int32), "object_end": end[kept].astype(np.int32),
+            "object_start_time": times[start[kept]], "object_end_time": times[end[kept]],
+            "object_points": npts[kept].astype(np.int64), "object_area": npts[kept] * area,
+            "object_peak_change": peak[kept], "object_mean_velocity": vsum[kept] / np.maximum(vcount[kept], 1),
+            "radius": radius, "area_per_point": area}, ids
+
+
+def objects_in_memory(smoothed, sigma, velocity, xyz, times, *, min_points: int, step=None, radius=None):
+    """:func:`find_objects` on a whole series in memory (epochs, points): one graph over every
+    (epoch, point), one call of the components; (table, object ids (epochs, points) int32)."""
+    i, j, radius, area = neighbour_pairs(xyz, radius)
+    E, m = smoothed.shape
+    step = np.full(m, -1) if step is None else np.asarray(step)
+    together = (step[i] < 0) & (step[j] < 0) | (step[i] >= 0) & (step[j] >= 0) & (np.abs(step[i] - step[j]) <= 1)
+    sig = np.isfinite(smoothed) & np.isfinite(sigma) & (np.abs(smoothed) > 1.96 * sigma)
+    sign = np.where(sig, np.sign(smoothed), 0).astype(np.int8)
+    i, j = i[together], j[together]
+    space = (sign[:, i] != 0) & (sign[:, i] == sign[:, j])
+    ek, pk = np.nonzero(space)
+    time_ = (sign[:-1] != 0) & (sign[:-1] == sign[1:])
+    tk, tp = np.nonzero(time_)
+    a = np.concatenate([ek * m + i[pk], tk * m + tp])
+    b = np.concatenate([ek * m + j[pk], (tk + 1) * m + tp])
+    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(E * m, E * m))
+    _, label = connected_components(graph, directed=False)
+    node = np.flatnonzero(sign.reshape(-1))
+    uniq, root = np.unique(label[node], return_inverse=True)
+    n_roots = len(uniq)
+    epoch, point = node // m, node % m
+    start = np.full(n_roots, E, np.int64)
+    first = np.full(n_roots, E, np.int64)
+    end = np.full(n_roots, -1, np.int64)
+    np.minimum.at(first, root, epoch)
+    np.maximum.at(end, root, epoch)
+    keys, counts = np.unique(root * E + epoch, return_counts=True)
+    full = counts >= min_points
+    np.minimum.at(start, keys[full] // E, keys[full] % E)
+    d = smoothed.reshape(-1)[node]
+    order = np.lexsort((-np.abs(d), root))
+    head = np.ones(len(order), bool)
+    head[1:] = root[order[1:]] != root[order[:-1]]
+    peak = np.zeros(n_roots)
+    peak[root[order[head]]] = d[order[head]]
+    v = velocity.reshape(-1)[node]
+    fv = np.isfinite(v)
+    vsum = np.bincount(root[fv], v[fv], minlength=n_roots)
+    vcount = np.bincount(root[fv], minlength=n_roots).astype(np.float64)
+    npts = np.bincount(np.unique(root * m + point) // m, minlength=n_roots)
+    anchor = np.full(n_roots, E * m, np.int64)
+    np.minimum.at(anchor, root, node)
+    table, ids = _table(start, first, end, npts, peak, vsum, vcount, anchor, min_points, times, radius, area)
+    labels = np.zeros(E * m, np.int32)
+    labels[node] = ids[root]
+    return table, labels.reshape(E, m)
 
 
 def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, *, min_points: int,
@@ -112,6 +177,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
     # pass 2: per root, its epochs, distinct points, peak change and velocity sums
     start = np.full(n_roots, n_epochs, np.int64)  # the first epoch with min_points changed core points
     first = np.full(n_roots, n_epochs, np.int64)  # the first epoch with any
+    anchor = np.full(n_roots, n_epochs * m, np.int64)  # the first (epoch, point): ties in the order
     end = np.full(n_roots, -1, np.int64)
     peak = np.zeros(n_roots)
     vsum, vcount = np.zeros(n_roots), np.zeros(n_roots)
@@ -122,6 +188,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
         at = np.flatnonzero(comp >= 0)
         r = root[comp[at] + offsets[k]]
         np.minimum.at(first, r, k)
+        np.minimum.at(anchor, r, k * m + at)
         np.maximum.at(end, r, k)
         born = (np.bincount(r, minlength=n_roots) >= min_points) & (start == n_epochs)
         start[born] = k
@@ -139,11 +206,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
             pairs = [np.unique(np.concatenate(pairs))]
     pairs = np.unique(np.concatenate(pairs)) if pairs else np.empty(0, np.int64)
     npts = np.bincount(pairs // m, minlength=n_roots) if n_roots else np.zeros(0, np.int64)
-    start = np.where(start == n_epochs, first, start)
-    kept = np.flatnonzero(npts >= min_points)
-    kept = kept[np.lexsort((start[kept], -npts[kept]))]  # largest first
-    ids = np.zeros(n_roots, np.int32)
-    ids[kept] = np.arange(1, len(kept) + 1, dtype=np.int32)
+    table, ids = _table(start, first, end, npts, peak, vsum, vcount, anchor, min_points, times, radius, area)
 
     # pass 3: each epoch's object ids
     if write is not None:
@@ -154,11 +217,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
             at = comp >= 0
             labels[at] = ids[root[comp[at] + offsets[k]]]
             write(k, labels)
-    return {"object_start": start[kept].astype(np.int32), "object_end": end[kept].astype(np.int32),
-            "object_start_time": times[start[kept]], "object_end_time": times[end[kept]],
-            "object_points": npts[kept].astype(np.int64), "object_area": npts[kept] * area,
-            "object_peak_change": peak[kept], "object_mean_velocity": vsum[kept] / np.maximum(vcount[kept], 1),
-            "radius": radius, "area_per_point": area}
+    return table
 
 
 def onsets(smoothed: np.ndarray, sigma: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
