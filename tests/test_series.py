@@ -206,9 +206,11 @@ def test_command_series_append_info_and_exports(slope, tmp_path, capsys):
     files = _write_epochs(slope, tmp_path, 5)
     out = tmp_path / "s.zarr"
     assert main(["series", *files[:4], "-o", str(out), "--projection-scale", "0.8", "--times", "0,1,2,3",
-                 "--registration-error", "0.002", "--json", "--quiet"]) == 0
+                 "--registration-error", "0.002", "--json", "--quiet", "--report", str(tmp_path / "r.html")]) == 0
     s = json.loads(capsys.readouterr().out)
-    assert s["epochs"] == 4 and s["kind"] == "series archive"
+    assert s["epochs"] == 4 and s["kind"] == "series archive" and str(tmp_path / "r.html") in s["outputs"]
+    page = (tmp_path / "r.html").read_text()
+    assert "Objects of change" in page and page.count("data:image/png") == 2 and "process noise q" in page
     assert main(["series", files[4], "--append", "-o", str(out), "--times", "4", "--epoch-output",
                  f"4:{tmp_path / 'e4.npz'}", "--points-output", str(tmp_path / "p.csv"), "--points", "0,5"]) == 0
     text = capsys.readouterr().out

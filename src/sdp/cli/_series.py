@@ -19,8 +19,9 @@ import numpy as np
 from ..errors import InvalidOptionError, SDPError
 from ..io._output import all_or_none, atomic_path, check_outputs
 from ..options import Execution, Outputs
+from ._text import series_text
 
-__all__ = ["SeriesRun", "series_files", "describe_series", "series_text"]
+__all__ = ["SeriesRun", "series_files", "describe_series", "point_table"]
 
 
 @dataclass
@@ -129,7 +130,8 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
         if report:
             from ..viz._report import series_report
 
-            series_report(report, ds, summary=summary)
+            chosen = _point_list(points[1]) if points is not None and points[1] is not None else default_points(ds)
+            series_report(report, ds, summary=summary, points=chosen[:5])
             written.append(str(report))
     summary["outputs"] = written
     summary["seconds"] = round(time.perf_counter() - t0, 4)
@@ -222,24 +224,3 @@ def describe_series(path, ds=None) -> dict:
             "max_abs_velocity_last": float(np.nanmax(np.abs(vel))) if np.isfinite(vel).any() else None,
             "objects": len(table), "largest_objects": table[:10], "parameters": attrs["parameters"],
             "runs": attrs["runs"]}
-
-
-def series_text(s: dict) -> str:
-    """The summary of ``sdp series`` / ``sdp info ARCHIVE.zarr`` as text."""
-    p = s["parameters"]["used"]
-    sm = s["parameters"].get("smoother", {})
-    last = s["runs"][-1] if s["runs"] else {}
-    lines = [f"{s['path']}: {s['epochs']} epochs ({', '.join(s['time_source'])} times, {s['first_time']} .. "
-             f"{s['last_time']}) at {s['core_points']:,} core points against {s['reference']}",
-             f"  scales: projection {p['projection_scale']:.4g}, normal {p['normal_scale']:.4g}, search "
-             f"{p['max_distance']:.4g}; registration error {p['registration_error']}",
-             f"  significant: {100 * s['significant_fraction']:.1f} % of (epoch, core point); smoother: process "
-             f"noise {sm.get('process_noise', float('nan')):.3g}, velocity {sm.get('velocity', '')}",
-             f"  objects of change: {s['objects']}"]
-    for o in s["largest_objects"][:5]:
-        lines.append(f"    #{o['id']}: epochs {o['start']}..{o['end']}, {o['core_points']} core points, "
-                     f"peak {o['peak_change']:+.4g}, mean velocity {o['mean_velocity']:+.4g}")
-    if last:
-        lines.append(f"  this run: {last['added']} epoch(s) {'appended' if last['append'] else 'measured'} in "
-                     f"{last['timings'].get('total', 0):.2f} s")
-    return "\n".join(lines)
