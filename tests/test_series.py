@@ -65,22 +65,22 @@ def test_series_measures_the_known_change(slope, tmp_path):
 def test_each_epoch_equals_sdp_distances_on_that_pair(tmp_path):
     rng = np.random.default_rng(4)
     ref = np.c_[rng.uniform(0, 6, (6000, 2)), 0.003 * rng.standard_normal(6000)]
-    ref[:4] = [[0, 0, -0.05], [6, 6, -0.05], [0, 6, -0.05], [6, 0, -0.05]]  # the reference holds the lowest corner
     cur = np.c_[rng.uniform(0.2, 5.8, (6000, 2)), 0.02 + 0.003 * rng.standard_normal(6000)]
-    low = np.c_[rng.uniform(0, 6, (6000, 2)), -0.2 + 0.003 * rng.standard_normal(6000)]  # reaches below it
+    low = np.c_[rng.uniform(-0.5, 6, (6000, 2)), -0.2 + 0.003 * rng.standard_normal(6000)]  # reaches below it
     core = ref[::7]
     pair = sdp.distances(ref, cur, core_points=core, cylinder=CYL)
     cyl = sdp.Cylinder(projection_scale=pair.projection_scale, normal_scale=pair.normal_scale,
                        max_distance=pair.max_distance)
     prep = PreparedReference.prepare(ref, core, cylinder=cyl)
     mine = prep.measure(cur)
+    low_pair = sdp.distances(ref, low, core_points=core, cylinder=cyl)
+    np.testing.assert_array_equal(prep.measure(low).distance, low_pair.distance)
     np.testing.assert_array_equal(mine.distance, pair.distance)
     np.testing.assert_array_equal(mine.lod, pair.lod)
     ds = sdp.series([ref, cur, low], output=tmp_path / "s.zarr", core_points=core, cylinder=cyl)
     np.testing.assert_allclose(ds.distance.values[1], pair.distance, rtol=1e-6, atol=1e-9)
-    other = sdp.distances(ref, low, core_points=core, cylinder=cyl)  # cells cut from another corner: close
-    ok = np.isfinite(other.distance)
-    assert np.nanmax(np.abs(ds.distance.values[2][ok] - other.distance[ok])) < 1e-3
+    np.testing.assert_allclose(ds.distance.values[2], low_pair.distance, rtol=1e-6, atol=1e-9)
+    np.testing.assert_array_equal(ds.significant.values[2], low_pair.significant)
     assert np.all(ds.distance.values[0][np.isfinite(ds.distance.values[0])] == 0)
 
 
@@ -263,3 +263,20 @@ def test_objects_in_memory_equal_the_streamed_ones(slope, tmp_path):
     for name in table:
         np.testing.assert_allclose(np.asarray(table[name], float), np.asarray(other[name], float), rtol=1e-12,
                                    err_msg=name)
+
+
+@pytest.mark.slow
+def test_real_epochs_equal_sdp_distance_on_each_pair(shared_data, tmp_path):
+    folder = shared_data / "pheno4d_tomato"
+    files = [folder / f for f in ("tomato_03-05.xyz", "tomato_03-06.xyz", "tomato_03-08.ply", "tomato_03-10.ply")]
+    ds = sdp.series(files, output=tmp_path / "t.zarr", times="2024-03-05,2024-03-06,2024-03-08,2024-03-10")
+    used = ds.attrs["parameters"]["used"]
+    cyl = sdp.Cylinder(projection_scale=used["projection_scale"], normal_scale=used["normal_scale"],
+                       max_distance=used["max_distance"])
+    core = np.c_[ds.x.values, ds.y.values, ds.z.values]
+    ref = sdp.read_points(files[0])
+    for k in (1, 3):  # the tomato grows: new leaves far from the first epoch's surface
+        pair = sdp.distances(ref, sdp.read_points(files[k]), core_points=core, cylinder=cyl)
+        np.testing.assert_allclose(ds.distance.values[k], pair.distance, rtol=1e-6, atol=1e-6)
+        np.testing.assert_array_equal(ds.significant.values[k], pair.significant)
+    assert ds.attrs["epochs"][3]["time_source"] == "given" and ds.sizes["object_id"] >= 1

@@ -9,9 +9,8 @@ per core point. The prepared state is a few arrays per core point (:meth:`~Prepa
 so a series archive stores it and an epoch appended later is measured exactly as in the full run.
 
 The cells start at the reference's corner and an epoch reaching below it moves the corner down by
-whole cells, so every epoch is cut into the same global cells; an epoch whose points all lie above
-the reference's lowest corner is measured with exactly the cells, normals and reference numbers of
-:func:`sdp.distances` on that pair with the same scales (tested).
+whole cells, so every epoch is cut into the same cells, as :func:`sdp.distances` does for a pair:
+each epoch's numbers are those of :func:`sdp.distances` on that pair with the same scales (tested).
 
 References
 ----------
@@ -40,6 +39,7 @@ from ._distances import (
     _ROUGHNESS_RATIO,
     Distances,
     _CellLists,
+    cells_below,
     _cell_moments,
     _results,
     search_reach,
@@ -178,9 +178,7 @@ class PreparedReference:
         sigma_p = self.projection_scale / 4.0
         cell = _CELL * sigma_p
         core = self.core_points
-        # whole cells below the reference's corner where the epoch reaches lower: the same cells
-        shift = np.ceil(np.maximum(self.corner - np.minimum(cur.lo, core.min(axis=0)) + 1e-9, 0.0) / cell)
-        lo = self.corner - shift * cell
+        lo = cells_below(self.corner, cur.lo, cell)  # whole cells lower where the epoch reaches lower
         hi = np.maximum(np.maximum(cur.hi, core.max(axis=0)), lo + cell)
         lists = _CellLists(lo, hi)
         order, _ = lists.order(core, cell)

@@ -46,7 +46,7 @@ from ..io._read import read_points
 from ..options import Cylinder, Execution, Registration
 from . import _archive as A
 from ._kalman import BYTES_PER_VALUE, process_noise, smooth
-from ._objects import OBJECT_FIELDS, find_objects, objects_in_memory, onsets
+from ._objects import OBJECT_FIELDS, find_objects, min_object_points, objects_in_memory, onsets
 
 __all__ = ["series", "SERIES_FIELDS"]
 
@@ -55,7 +55,6 @@ SERIES_FIELDS = ("distance", "lod", "significant", "smoothed", "velocity", "smoo
                  "object")
 _EPOCH_DIMS = ("epoch", "point")
 _DERIVED_EPOCHS = 64  # epochs per chunk of the arrays every run rewrites (4 MiB of float32)
-_MIN_OBJECT_POINTS = 10  # objects of fewer core points are noise (a few neighbours flickering together)
 
 
 def _version() -> str:
@@ -326,7 +325,8 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
              "time_kind": kind, "epochs": [], "runs": [],
              "parameters": {"given": given_rec, "used": used, "reference_state": scalars,
                             "reference_file": _name(epochs[reference], reference), "core_points": core_source,
-                            "min_object_points": _MIN_OBJECT_POINTS}}
+                            "min_object_points": min_object_points(prepared.core_points,
+                                                                   prepared.projection_scale)}}
     return _run(epochs, out, t, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
                 fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud))
 

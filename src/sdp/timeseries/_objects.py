@@ -9,7 +9,9 @@ steps of :mod:`sdp.timeseries._kalman`), since a step and a creep beside it, or 
 different epochs, are different events. The connected sets in space and time are the 4D objects
 of change, like the objects-by-change of Anders et al. [1]_, here grown from every significant
 pair at once instead of from seeds. Sets of fewer than ``min_points`` distinct core points are noise and are left out
-(object 0). An object *starts* at the first epoch at which ``min_points`` of its core points are
+(object 0): ten, or as many as cover three cylinders' footprints if the core points are denser
+than the cylinders (:func:`min_object_points`: neighbouring cylinders then share their points and
+their noise). An object *starts* at the first epoch at which ``min_points`` of its core points are
 changed together (the first epoch with any, if it never has that many at once): a few core points
 at its rim, where a change smoothed over time leaks before it happens, do not date it.
 
@@ -33,6 +35,8 @@ References
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -59,6 +63,16 @@ def neighbour_pairs(xyz: np.ndarray, radius: float | None = None) -> tuple[np.nd
     radius = 1.5 * far if radius is None else float(radius)
     pairs = tree.query_pairs(radius, output_type="ndarray")
     return pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64), radius, spacing * spacing
+
+
+def min_object_points(xyz: np.ndarray, projection_scale: float, *, footprints: float = 3.0,
+                      floor: int = 10) -> int:
+    """The fewest core points of an object: ``floor``, or as many as cover ``footprints``
+    cylinders (π d²/4 each) at the core points' median spacing, if more. Core points closer than
+    the cylinder share their points and their noise: a cluster of them flickers together."""
+    _, _, _, area = neighbour_pairs(xyz[:: max(1, len(xyz) // 200_000)], 0.0)
+    area *= max(1, len(xyz) // 200_000)  # a sample's spacing is wider by the square root of the step
+    return int(max(floor, math.ceil(footprints * math.pi * projection_scale**2 / 4.0 / area)))
 
 
 def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray, together: np.ndarray) -> tuple[np.ndarray, int]:
