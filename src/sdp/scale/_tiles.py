@@ -270,7 +270,7 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
                   h=None, truncate=DEFAULTS.truncate, method=DEFAULTS.method, halo=halo,
                   **execution.tile_keywords()) as run:
         opts = dict(cylinder=Cylinder(projection_scale=d, normal_scale=D, max_distance=reach),
-                    registration_error=reg, orientation=orientation, corner=run.sources["reference"].lo - 1e-9,
+                    registration_error=reg, orientation=orientation, corner=np.asarray(run.sources["reference"].lo) - 1e-9,
                     margin=margin,
                     memory_limit=run.opts["memory_limit"])
         results = run.tasks("distances", _distance_tile, [(key, run.root, run.tiling, opts) for key in run.tiles],
