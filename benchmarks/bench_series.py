@@ -21,8 +21,9 @@ Prints markdown (docs/benchmarks.md §12 quotes it; ``results/series.md`` keeps 
 3. Appending the 25th epoch to a 24-epoch archive (``sdp series --append``, a whole job too):
    its time against one epoch of the full run ((t₂₅ − t₅)/20), and whether every array of the
    archive equals the full run's.
-4. ``--scale``: 1,000 epochs × 100,000 core points (epochs of 120,000 points as .npy files),
-   once, niced: time and peak memory of the job.
+4. ``--scale`` (or ``--only-scale``): 1,000 epochs × 100,000 core points (epochs of 120,000
+   points as .npy files, a 40 m square with a subsiding disk), one job at ``--memory-limit 2GB``,
+   niced: time and peak memory of the job (``results/series-scale.md``).
 
 Usage: ``python benchmarks/bench_series.py [--quick] [--scale] [--workdir DIR]``. Needs py4dgeo
 (``pip install 'sdp[m3c2]'``) for 2.
@@ -135,10 +136,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="20,000 points per epoch, no py4dgeo")
     ap.add_argument("--scale", action="store_true", help="also 1,000 epochs × 100,000 core points")
+    ap.add_argument("--only-scale", action="store_true", help="only 1,000 epochs × 100,000 core points")
     ap.add_argument("--workdir", default=None, help="folder for the epochs and archives (default: a temporary one)")
     a = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bench_series_", dir=a.workdir))
     out = []
+    if a.only_scale:
+        try:
+            out = scale_run(work)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+        print("\n".join(out))
+        (ROOT / "benchmarks" / "results" / "series-scale.md").write_text("\n".join(out) + "\n")
+        return
     try:
         n = 20_000 if a.quick else 100_000
         s = slope_series(25, n, seed=7)
@@ -220,11 +230,13 @@ def scale_run(work: Path) -> list[str]:
             np.save(work / "bigcore.npy", e[rng.choice(n, 100_000, replace=False)])
     load = os.getloadavg()
     r = job([sys.executable, "-m", "sdp.cli", "series", *map(str, files), "-o", str(work / "big.zarr"),
-             "--core-points", str(work / "bigcore.npy"), "--projection-scale", "0.5", "--quiet"], nice=10)
+             "--core-points", str(work / "bigcore.npy"), "--projection-scale", "0.5", "--memory-limit", "2GB",
+             "--quiet"], nice=10)
     ds = sdp.open_series(work / "big.zarr")
     t = ds.attrs["runs"][-1]["timings"]
     return ["### 4. 1,000 epochs × 100,000 core points", "",
-            f"Epochs of {n:,} points (.npy), one job, nice 10, load before {load[0]:.1f}: {r['seconds']:.0f} s "
+            f"Epochs of {n:,} points (.npy), one job, `--memory-limit 2GB`, nice 10, load before {load[0]:.1f}: "
+            f"{r['seconds']:.0f} s "
             f"({r['seconds'] / E:.3f} s per epoch), peak memory {r['peak_mb']:.0f} MB (the job is one process). "
             f"Inside: epochs {t['epochs']:.0f} s, smoother {t['smoother']:.0f} s, objects {t['objects']:.0f} s. "
             f"Archive {size_mb(work / 'big.zarr'):.0f} MB, {ds.sizes['epoch']} epochs × {ds.sizes['point']:,} "
