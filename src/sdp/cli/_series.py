@@ -201,14 +201,14 @@ def describe_series(path, ds=None) -> dict:
     ds = open_series(path) if ds is None else ds
     attrs = ds.attrs
     epochs = attrs["epochs"]
-    sig = np.asarray(ds.significant.values)
+    sig_fraction = float(ds.significant.mean().values) if ds.sizes["epoch"] and ds.sizes["point"] else 0.0
     kind = attrs["time_kind"]
     times = [e["time"] for e in epochs]
     if kind == "date":
         times = [str(np.datetime64("1970-01-01T00:00:00", "s") + np.timedelta64(int(round(t * 86400)), "s"))
                  for t in times]
-    last = np.asarray(ds.smoothed.values[-1]) if ds.sizes["epoch"] else np.empty(0)
-    vel = np.asarray(ds.velocity.values[-1]) if ds.sizes["epoch"] else np.empty(0)
+    last = np.asarray(ds.smoothed.isel(epoch=-1).values) if ds.sizes["epoch"] else np.empty(0)  # one row read
+    vel = np.asarray(ds.velocity.isel(epoch=-1).values) if ds.sizes["epoch"] else np.empty(0)
     table = [{"id": int(i), "start": int(s), "end": int(e), "core_points": int(n), "area": float(a),
               "peak_change": float(p), "mean_velocity": float(v)}
              for i, s, e, n, a, p, v in zip(ds.object_id.values, ds.object_start.values, ds.object_end.values,
@@ -219,7 +219,7 @@ def describe_series(path, ds=None) -> dict:
             "time_kind": kind, "time_source": sorted({e["time_source"] for e in epochs}),
             "first_time": times[0] if times else None, "last_time": times[-1] if times else None,
             "reference": attrs["parameters"]["reference_file"],
-            "significant_fraction": float(sig.mean()) if sig.size else 0.0,
+            "significant_fraction": sig_fraction,
             "median_abs_smoothed_last": float(np.nanmedian(np.abs(last))) if np.isfinite(last).any() else None,
             "max_abs_velocity_last": float(np.nanmax(np.abs(vel))) if np.isfinite(vel).any() else None,
             "objects": len(table), "largest_objects": table[:10], "parameters": attrs["parameters"],
