@@ -280,3 +280,17 @@ def test_real_epochs_equal_sdp_distance_on_each_pair(shared_data, tmp_path):
         np.testing.assert_allclose(ds.distance.values[k], pair.distance, rtol=1e-6, atol=1e-6)
         np.testing.assert_array_equal(ds.significant.values[k], pair.significant)
     assert ds.attrs["epochs"][3]["time_source"] == "given" and ds.sizes["object_id"] >= 1
+
+
+def test_blocks_beyond_memory_give_the_in_memory_numbers(slope, tmp_path, monkeypatch):
+    from sdp.timeseries import _compute
+
+    whole = sdp.series(slope.epochs, output=tmp_path / "w.zarr", cylinder=CYL, registration_error=0.002)
+    assert whole.sizes["point"] > 256
+    monkeypatch.setattr(_compute, "BYTES_PER_VALUE", 10**12)  # smoother blocks of 256 core points, objects streamed
+    blocks = sdp.series(slope.epochs, output=tmp_path / "b.zarr", cylinder=CYL, registration_error=0.002)
+    assert blocks.attrs["parameters"]["smoother"]["block_points"] == 256
+    a, b = _arrays(whole), _arrays(blocks)
+    differ = [name for name in a if not np.array_equal(a[name], b[name], equal_nan=True)]
+    assert differ in ([], ["object_mean_velocity"]), differ  # a sum in another order
+    np.testing.assert_allclose(a["object_mean_velocity"], b["object_mean_velocity"], rtol=1e-9)

@@ -494,7 +494,10 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
         zs, ls = whole[0][:, sample], whole[1][:, sample]
     else:
         zs, ls = dist.get_orthogonal_selection((slice(None), sample)), lod.get_orthogonal_selection((slice(None), sample))
-    q = process_noise(zs.astype(np.float64), (ls.astype(np.float64) / 1.96) ** 2, times)
+    vs = (ls.astype(np.float64) / 1.96) ** 2
+    q = process_noise(zs.astype(np.float64), vs, times)
+    good = np.isfinite(vs) & (vs > 0)
+    scale = float(np.sqrt(np.median(vs[good]))) if good.any() else 1.0  # one diffuse start for every block
     onset = np.full(m, -1, np.int32)
     kind = np.zeros(m, np.int8)
     steps = 0
@@ -504,7 +507,7 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
         zb, lb = (whole[0], whole[1]) if whole is not None else (dist[:, a:b], lod[:, a:b])
         z = zb.astype(np.float64)
         var = (lb.astype(np.float64) / 1.96) ** 2
-        sm, vel, ssd, vsd, step = smooth(z, var, times, q)
+        sm, vel, ssd, vsd, step = smooth(z, var, times, q, scale=scale)
         values = [v.astype(np.float32) for v in (sm, vel, ssd, vsd)]
         for name, v in zip(names, values):
             outs[name][:, a:b] = v

@@ -124,25 +124,26 @@ def step_scan(z: np.ndarray, var: np.ndarray, t: np.ndarray) -> tuple[np.ndarray
 
 
 def smooth(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: float = _STEP_K,
-           scan: float = _SCAN):
+           scan: float = _SCAN, scale: float | None = None):
     """The smoother of :func:`kalman` with steps found twice: by the filter's innovations, then by
     :func:`step_scan` where a step too small for one epoch to show is seen by all of them (its
     statistic beyond ``scan``); those points are smoothed again with a step there. Same returns
     as :func:`kalman`."""
-    sm, vel, ssd, vsd, step = kalman(z, var, t, q, step_k=step_k)
+    sm, vel, ssd, vsd, step = kalman(z, var, t, q, step_k=step_k, scale=scale)
     if len(t) < 5 or not scan:
         return sm, vel, ssd, vsd, step
     at, stat = step_scan(z, var, t)
     todo = np.flatnonzero((stat > scan) & (step < 0))
     if todo.size:
-        again = kalman(z[:, todo], var[:, todo], t, q, step_k=step_k, forced=at[todo])
+        again = kalman(z[:, todo], var[:, todo], t, q, step_k=step_k, forced=at[todo], scale=scale)
         for out, new in zip((sm, vel, ssd, vsd), again[:4]):
             out[:, todo] = new
         step[todo] = np.where((again[4] >= 0) & (again[4] < at[todo]), again[4], at[todo])
     return sm, vel, ssd, vsd, step
 
 
-def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: float = _STEP_K, forced=None):
+def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: float = _STEP_K, forced=None,
+           scale: float | None = None):
     """Kalman filter and RTS smoother of each column of ``z`` (epochs, points).
 
     Parameters
@@ -157,6 +158,10 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: f
         Innovations beyond this many standard deviations, confirmed by the next epoch, are steps.
     forced : ndarray (m,) int, optional
         An epoch per point where a step is taken whatever its innovation (-1: none).
+    scale : float, optional
+        The noise's typical standard deviation, which sets the width of the diffuse start
+        (default: from these columns; give one value for every block of a series, so that blocks
+        give the numbers of the whole).
 
     Returns
     -------
@@ -169,7 +174,8 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: f
     t = np.asarray(t, np.float64)
     E, m = z.shape
     ok = np.isfinite(z) & np.isfinite(var) & (var > 0)
-    scale = float(np.sqrt(np.median(var[ok]))) if ok.any() else 1.0
+    if scale is None:
+        scale = float(np.sqrt(np.median(var[ok]))) if ok.any() else 1.0
     dt0 = float(np.median(np.diff(t))) if E > 1 else 1.0
     # a diffuse start, 1000 noise deviations wide: wider, and the smoother's 2×2 inverse loses its digits
     big_d, big_v = (1e3 * scale) ** 2, (1e3 * scale / dt0) ** 2
