@@ -157,7 +157,8 @@ def cmd_series(a):
     options = dict(core_points=a.core_points, reference=a.reference, registration_error=a.registration_error,
                    align=_registration(a), format=a.format,
                    orientation=None if a.orientation is None else V.sensor_origin_option("--orientation", a.orientation))
-    if not a.append or any(v != "auto" for v in (a.projection_scale, a.normal_scale, a.max_distance)):
+    given = (a.projection_scale, a.normal_scale, a.max_distance)
+    if not a.append or given != (DEFAULTS.projection_scale, DEFAULTS.normal_scale, DEFAULTS.max_distance):
         options["cylinder"] = Cylinder(projection_scale=a.projection_scale, normal_scale=a.normal_scale,
                                        max_distance=a.max_distance)
     if isinstance(options["orientation"], str):
@@ -328,10 +329,11 @@ def build_parser() -> argparse.ArgumentParser:
                     "projection scale)")
     se.add_argument("--reference", type=V.cli_type(V.integer_at_least, 0), help="index of the reference epoch "
                     "(default 0)")
-    for flag, what in (("--projection-scale", "M3C2's d, the cylinder's diameter (from the reference's spacing)"),
-                       ("--normal-scale", "M3C2's D, the normal's diameter (2d, up to 4d when rough)"),
-                       ("--max-distance", "how far along the normal an epoch is looked for (12d)")):
-        se.add_argument(flag, type=V.cli_type(V.auto_or_positive), default="auto", help=f"{what}; default auto")
+    for flag, default, what in (
+            ("--projection-scale", DEFAULTS.projection_scale, "M3C2's d, the cylinder's diameter (from the reference)"),
+            ("--normal-scale", DEFAULTS.normal_scale, "M3C2's D, the normal's diameter (2d, up to 4d when rough)"),
+            ("--max-distance", DEFAULTS.max_distance, "how far along the normal an epoch is looked for (12d)")):
+        se.add_argument(flag, type=V.cli_type(V.auto_or_positive), default=default, help=f"{what}; default auto")
     se.add_argument("--registration-error", type=V.cli_type(V.auto_or_nonnegative),
                     help="added to each epoch's level of detection (default 0; auto: each alignment's RMS)")
     se.add_argument("--orientation", metavar="X,Y,Z", help="normals point this way (default 0,0,1)")
