@@ -294,3 +294,12 @@ def test_blocks_beyond_memory_give_the_in_memory_numbers(slope, tmp_path, monkey
     differ = [name for name in a if not np.array_equal(a[name], b[name], equal_nan=True)]
     assert differ in ([], ["object_mean_velocity"]), differ  # a sum in another order
     np.testing.assert_allclose(a["object_mean_velocity"], b["object_mean_velocity"], rtol=1e-9)
+
+
+def test_without_the_series_extra_one_line_names_it(slope, tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "xarray", None)
+    with pytest.raises(sdp.MissingDependencyError, match=r"pip install 'sdp\[series\]'"):
+        sdp.series(slope.epochs[:2], output=tmp_path / "s.zarr")
+    assert not (tmp_path / "s.zarr").exists()
