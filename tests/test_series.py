@@ -159,6 +159,12 @@ def test_append_refuses_other_options_and_repeated_times(slope, tmp_path):
         sdp.series(slope.epochs[:2], output=tmp_path / "t.zarr", times=["2024-01-01", "3"])
     with pytest.raises(sdp.SDPError, match="no archive to append to"):
         sdp.series(slope.epochs[:2], output=tmp_path / "none.zarr", append=True)
+    other = tmp_path / "field.zarr"
+    other.mkdir()
+    (other / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group", "attributes": {}}')
+    with pytest.raises(sdp.SDPError, match="not a series archive"):
+        sdp.series(slope.epochs[:2], output=other)
+    assert sorted(p.name for p in other.iterdir()) == ["zarr.json"]
     assert not (tmp_path / "t.zarr").exists()
 
 

@@ -240,6 +240,8 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     files = [e for e in epochs if isinstance(e, (str, os.PathLike))]
     inputs = files + ([core_points] if isinstance(core_points, (str, os.PathLike)) else [])
     check_outputs([out], inputs)
+    if out.exists() and not A.is_series(out):
+        raise SDPError(f"{out}: exists and is not a series archive; choose another output name")
     registration = Registration.of(align)
     if registration_error is not None:
         auto_or_nonnegative("registration_error", registration_error)
