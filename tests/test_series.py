@@ -237,6 +237,7 @@ def test_command_series_append_info_and_exports(slope, tmp_path, capsys):
     (["{e0}", "--append"], "no archive to append to"),
     (["{e0}", "{e1}", "--reference", "5"], "reference 5"),
     (["{e0}", "{e1}", "--epoch-output", "nope"], "K:FILE"),
+    (["{e0}", "{e1}", "--points-output", "p.txt"], ".csv or .parquet"),
 ])
 def test_command_bad_input_exits_2(slope, tmp_path, capsys, args, message):
     files = _write_epochs(slope, tmp_path, 2)

@@ -110,6 +110,11 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
             raise InvalidOptionError(f"{f}: an epoch's distances are written as .las, .laz, .ply or .npz")
     if points is not None and Path(points[0]).suffix.lower() not in (".csv", ".parquet"):
         raise InvalidOptionError(f"{points[0]}: per-point series are written as .csv or .parquet")
+    if points is not None and Path(points[0]).suffix.lower() == ".parquet":
+        import importlib.util
+
+        if importlib.util.find_spec("pyarrow") is None:
+            raise SDPError(f"{points[0]}: Parquet needs pyarrow (pip install pyarrow); or write .csv")
     check_outputs([output, report, *(f for _, f in epoch_files), points[0] if points else None], inputs)
     if report:
         from ..viz._report import require_extras
