@@ -180,7 +180,8 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
         offsets.append(total)
         if prev is not None:
             both = (sign != 0) & (sign == prev_sign)
-            links.append(np.c_[prev[both] + offsets[k - 1], comp[both] + total])
+            # one row per pair of components, not per point: the memory stays with the components
+            links.append(np.unique(np.c_[prev[both] + offsets[k - 1], comp[both] + total], axis=0))
         prev, prev_sign = comp, sign
         total += n
     links = np.concatenate(links) if links else np.empty((0, 2), np.int64)
