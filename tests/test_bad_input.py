@@ -191,35 +191,44 @@ STALLED_COMMAND = [sys.executable, "-c", (
     "runpy.run_module('sdp.cli', run_name='__main__', alter_sys=True)")]
 
 
-def start_stalled(tmp_path, *args):
+def start_stalled(tmp_path, *args, stage="compare"):
     """The tiled ``sdp`` command of ``args`` in ``tmp_path``, its temporary files in ``tmp_path/tmp``,
-    its workers stalling at their first compare tile (they write into ``tmp_path/stalls``);
-    returns once one of them stalled."""
+    held at ``stage`` (tests/cluster_stall.py: a worker's first bucket or compare task, or the
+    command's streamed writer); returns (process, pid of the process held) once it is held."""
     stalls, scratch = tmp_path / "stalls", tmp_path / "tmp"
     stalls.mkdir()
     scratch.mkdir()
     path = [str(Path(__file__).parent), *filter(None, [os.environ.get("PYTHONPATH")])]  # the hook, for the workers too
-    env = dict(os.environ, TMPDIR=str(scratch), SDP_TEST_STALL=str(stalls), PYTHONPATH=os.pathsep.join(path))
+    env = dict(os.environ, TMPDIR=str(scratch), SDP_TEST_STALL=str(stalls), SDP_TEST_STALL_AT=stage,
+               PYTHONPATH=os.pathsep.join(path))
     p = subprocess.Popen([*STALLED_COMMAND, *args], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
     try:
         while not any(stalls.iterdir()):  # the event, or the run's end (a failure)
             if p.poll() is not None:
-                raise AssertionError(f"the run ended (status {p.returncode}) before it held a compare tile: "
+                raise AssertionError(f"the run ended (status {p.returncode}) before it was held at {stage}: "
                                      f"{p.communicate()[1]}")
             time.sleep(0.02)
     except BaseException:
         p.kill()
         p.communicate()
         raise
-    return p
+    return p, int(next(stalls.iterdir()).name.split("-")[1])
 
 
 def assert_nothing_left(tmp_path, inputs):
     """Only the inputs and the test's own folders in the command's folder (no output, no hidden
-    temporary one), and no work folder of the tiles left in its temporary folder."""
+    temporary one), and no work folder of the tiles, nor Dask's scratch space, in its temporary folder."""
     assert sorted(f.name for f in tmp_path.iterdir()) == sorted([*inputs, "stalls", "tmp"])
-    assert not [f.name for f in (tmp_path / "tmp").iterdir() if f.name.startswith("sdp-tiles-")]
+    assert not [f.name for f in (tmp_path / "tmp").iterdir() if f.name.startswith(("sdp-tiles-", "dask-"))]
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
 
 
 def signalled_clouds(tmp_path, *names):
@@ -229,20 +238,26 @@ def signalled_clouds(tmp_path, *names):
 
 
 @pytest.mark.slow
-def test_sigterm_on_the_tiled_path_cleans_up(tmp_path):
+@pytest.mark.parametrize("stage, sig", [("bucket", signal.SIGINT), ("compare", signal.SIGTERM),
+                                        ("write", signal.SIGINT)])
+def test_a_signal_stops_a_tiled_run_at_any_stage_and_leaves_nothing(tmp_path, stage, sig):
     signalled_clouds(tmp_path, "a.npy", "b.npy")
-    p = start_stalled(tmp_path, "change", "a.npy", "b.npy", "-o", "o.laz", "--tiled", "--voxel-size", "0.1", "-q")
-    p.send_signal(signal.SIGTERM)
+    p, held = start_stalled(tmp_path, "change", "a.npy", "b.npy", "-o", "o.laz", "--tiled", "--voxel-size", "0.1",
+                            "-q", stage=stage)
+    p.send_signal(sig)
     out, err = p.communicate(timeout=300)  # a guard against a hang, not a measure of speed
-    assert p.returncode == 128 + signal.SIGTERM and err == "sdp: terminated\n" and out == "", err
+    word = "interrupted" if sig == signal.SIGINT else "terminated"
+    assert p.returncode == 128 + sig and err == f"sdp: {word}\n" and out == "", err
     assert_nothing_left(tmp_path, ["a.npy", "b.npy"])
+    # the worker held in its task (60 s) was stopped, not waited for
+    assert not alive(held)
 
 
 @pytest.mark.slow
 def test_interrupt_is_one_line(tmp_path):
     signalled_clouds(tmp_path, "a.npy")
-    p = start_stalled(tmp_path, "change", "a.npy", "a.npy", "-o", "o.laz", "--tiled", "--voxel-size", "0.1", "-q",
-                      "--workers", "1")
+    p, _ = start_stalled(tmp_path, "change", "a.npy", "a.npy", "-o", "o.laz", "--tiled", "--voxel-size", "0.1", "-q",
+                         "--workers", "1")
     p.send_signal(signal.SIGINT)
     out, err = p.communicate(timeout=300)  # a guard against a hang, not a measure of speed
     assert p.returncode == 130 and err == "sdp: interrupted\n" and out == "", err
@@ -281,3 +296,219 @@ def test_a_command_writes_all_its_outputs_or_none(tmp_path):
         sdp.write_points(tmp_path / "first.ply", xyz)
         sdp.write_points(tmp_path / "second.npz", xyz)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["first.ply", "second.npz"]
+
+
+# --- Every promise holds, round 2 (issue 32) -------------------------------------------------------
+
+
+@pytest.fixture
+def pre(tmp_path):
+    """The issue's two clouds: 2,000 points, and the same with 300 more in a box."""
+    rng = np.random.default_rng(0)
+    a = rng.random((2000, 3))
+    np.save(tmp_path / "a.npy", a)
+    np.save(tmp_path / "b.npy", np.r_[a, rng.random((300, 3)) * 0.2 + 0.4])
+    return tmp_path
+
+
+@pytest.mark.parametrize("name", ["OUT.NPZ", "out.Npz"])
+def test_npz_in_any_case_holds_the_data_and_leaves_nothing_else(pre, name):
+    (pre / name).write_bytes(b"old")
+    p = run("change", "a.npy", "b.npy", "-o", name, "--both", "-q", cwd=pre)
+    assert p.returncode == 0, p.stderr
+    with np.load(pre / name) as z:
+        assert len(z["xyz"]) == 2300 and len(z["change"]) == 2300
+    assert sorted(f.name for f in pre.iterdir()) == sorted(["a.npy", "b.npy", name, disappeared_name(name)])
+    sdp.write_points(pre / "x.NPZ", np.ones((3, 3)))
+    assert np.load(pre / "x.NPZ")["xyz"].shape == (3, 3) and not list(pre.glob(".*"))
+
+
+def disappeared_name(name):
+    stem, ext = name.rsplit(".", 1)
+    return f"{stem}_disappeared.{ext}"
+
+
+def test_unusual_numpy_files_are_read_or_refused_in_one_line(tmp_path):
+    rng = np.random.default_rng(1)
+    s = np.zeros(50, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("intensity", "u2")])
+    s["x"], s["intensity"] = rng.random(50), 7
+    np.save(tmp_path / "structured.npy", s)
+    cloud = read_points(tmp_path / "structured.npy")
+    assert np.array_equal(cloud.xyz[:, 0], s["x"]) and (cloud.fields["intensity"] == 7).all()
+    np.save(tmp_path / "complex.npy", rng.random((10, 3)) + 1j)
+    with open(tmp_path / "archive.npy", "wb") as fh:
+        np.savez(fh, xyz=rng.random((10, 3)))
+    for name, message in (("complex.npy", "coordinates of type complex128"), ("archive.npy", "an NPZ archive")):
+        p = run("info", name, cwd=tmp_path)
+        assert one_line_error(p) and name in p.stderr and message in p.stderr, p.stderr
+
+
+def test_header_counts_must_match_the_data_in_both_directions(tmp_path):
+    import struct
+
+    head = "VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {0}\nHEIGHT 1\n" \
+           "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {0}\nDATA ascii\n"
+    rows = "".join(f"{i} {i} {i}\n" for i in range(10))
+    (tmp_path / "short.pcd").write_text(head.format(1000) + rows)
+    (tmp_path / "long.pcd").write_text(head.format(4) + rows)
+    (tmp_path / "columns.pcd").write_text(head.format(10).replace("SIZE 4 4 4", "SIZE 4 4") + rows)
+    xyz = np.random.default_rng(2).random((120_000, 3))
+    for ext in ("las", "laz"):
+        sdp.write_points(tmp_path / f"full.{ext}", xyz)
+        data = bytearray((tmp_path / f"full.{ext}").read_bytes())
+        struct.pack_into("<I", data, 107, 10)  # the legacy count and LAS 1.4's 64-bit one: 10 of 120,000
+        struct.pack_into("<Q", data, 247, 10)
+        (tmp_path / f"under.{ext}").write_bytes(bytes(data))
+    struct.pack_into("<Q", data, 247, 120_000)  # the two counts of LAS 1.4 disagree
+    (tmp_path / "counts.laz").write_bytes(bytes(data))
+    for name, message in (("short.pcd", "announces 1,000 points, the file holds 10"),
+                          ("long.pcd", "announces 4 points, the file holds 10"),
+                          ("columns.pcd", "FIELDS 3, SIZE 2"),
+                          ("under.las", "announces 10 points, the file holds 120,000"),
+                          ("under.laz", "announces 10 points, the LAZ chunk table holds 3 chunks"),
+                          ("counts.laz", "it counts 10 points and 120,000")):
+        with pytest.raises(CloudFileError, match=message):
+            read_points(tmp_path / name)
+        p = run("info", name, cwd=tmp_path)
+        assert one_line_error(p) and message in p.stderr, p.stderr
+    assert len(read_points(tmp_path / "full.laz")) == 120_000
+
+
+@pytest.mark.parametrize("args, message", [
+    (["change", "a.npy", "b.npy", "-o", "o.ply", "--voxel-size", "1e-300"], "1e+300 voxels of 1e-300"),
+    (["change", "a.npy", "far.npy", "-o", "o.ply", "--voxel-size", "1"], "voxels of 1 from the origin"),
+    (["change", "a.npy", "b.npy", "-o", "o.ply", "--h", "1e308"], "float32 range"),
+    (["distance", "a.npy", "b.npy", "-o", "o.ply", "--orientation", "nan,0,1"], "three finite numbers X,Y,Z"),
+    (["distance", "a.npy", "b.npy", "-o", "o.ply", "--orientation", "0,0,0"], "not all zero; got '0,0,0'"),
+    (["distance", "a.npy", "b.npy", "-o", "o.ply", "--normal-scale", "1e-9"], "give a larger normal_scale"),
+    (["change", "a.npy", "b.npy", "-o", "o.ply", "--memory-limit", "-5GB"], "can't read memory size '-5GB'"),
+    (["change", "a.npy", "b.npy", "-o", "o.laz", "--tiled", "--workdir", "/proc"], "/proc': can't create folders"),
+    (["change", "a.npy", "b.npy", "-o", "o.ply", "--tiled"], "--tiled streams its output to LAS/LAZ"),
+    (["change", "a.npy", "b.npy", "-o", "o.ply", "--aligned-output"], "give --align too"),
+    (["watch", "a.npy", "frames", "--decay", "0.5"], "decay applies to update='decay' only"),
+    (["watch", "a.npy", "frames", "--update", "none", "--window", "3"], "window applies to update='window' only"),
+    (["bool", "union", "a.sdpf", "b.npy", "-o", "u.sdpf", "--voxel-size", "0.5"], "a field operand sets the lattice"),
+    (["align", "a.npy", "far.npy", "-o", "al.ply"], "the clouds do not overlap"),
+    (["action", "predict", "model.npz", "empty.mat"], "empty.mat: can't read a depth sequence"),
+])
+def test_options_and_inputs_round_2_are_one_line_errors(pre, args, message):
+    a = np.load(pre / "a.npy")
+    np.save(pre / "far.npy", np.r_[a, [[1.7e308] * 3]] if "--voxel-size" in args else a + 100)
+    (pre / "frames").mkdir()
+    np.save(pre / "frames" / "f.npy", a)
+    (pre / "empty.mat").write_bytes(b"")
+    sdp.DensityField.from_points(a, voxel_size=0.1).save(pre / "a.sdpf")
+    sdp.actions.ActionModel(coef=np.zeros((2, 3), np.float32), intercept=np.zeros(2), classes=np.arange(1, 3),
+                            alpha=(1.0,)).save(pre / "model.npz")
+    before = sorted(f.name for f in pre.iterdir())
+    p = run(*args, cwd=pre)
+    assert one_line_error(p) and message in p.stderr, p.stderr
+    assert sorted(f.name for f in pre.iterdir()) == before
+
+
+def test_values_starting_with_a_dash_are_values(pre):
+    p = run("distance", "a.npy", "b.npy", "-o", "d.ply", "--orientation", "-1,0,0", "-q", cwd=pre)
+    assert p.returncode == 0, p.stderr
+
+
+@pytest.mark.parametrize("fields, message", [
+    ({"a": np.ones(3)}, "field 'a' must hold one real number per point"),
+    ({"a": np.ones((10, 2))}, "field 'a' must hold one real number per point"),
+    ({"x": np.ones(10)}, "other than x, y, z"),
+    ({"a b": np.ones(10)}, "PLY names have no space"),
+])
+def test_write_points_refuses_bad_fields_with_an_sdp_error(tmp_path, fields, message):
+    with pytest.raises(sdp.InvalidPointsError, match=message):
+        sdp.write_points(tmp_path / "o.ply", np.random.default_rng(3).random((10, 3)), fields)
+    with pytest.raises(sdp.InvalidPointsError, match="an \\(n, 3\\) array"):
+        sdp.write_points(tmp_path / "o.ply", np.ones((10, 2)))
+    with pytest.raises(sdp.InvalidPointsError, match="at most 32 characters"):
+        sdp.write_points(tmp_path / "o.las", np.ones((10, 3)), {"a" * 33: np.ones(10)})
+    with pytest.raises(sdp.CloudFileError, match=r"/o.las: can.t write non-finite"):
+        sdp.write_points(tmp_path / "o.las", np.full((10, 3), np.inf))
+    with pytest.raises(sdp.InvalidOptionError, match="three finite numbers"):
+        sdp.distances(np.ones((10, 3)), np.ones((10, 3)), orientation="up")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_full_stdout_writes_nothing_and_a_closed_one_writes_all(pre):
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([sys.executable, "-m", "sdp.cli", "change", "a.npy", "b.npy", "-o", "o.ply"], cwd=pre,
+                           stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
+    assert one_line_error(p) and "standard output: No space left on device" in p.stderr, p.stderr
+    assert not (pre / "o.ply").exists() and not list(pre.glob(".o.ply*"))
+    shell = subprocess.run(f"{sys.executable} -m sdp.cli change a.npy b.npy -o o.ply --json | head -c 1", shell=True,
+                           cwd=pre, capture_output=True, text=True, timeout=120)
+    assert shell.stdout == "{" and (pre / "o.ply").exists()
+
+
+def test_json_is_strict_and_eval_compares_the_same_points(pre):
+    import json
+
+    a = np.load(pre / "a.npy")
+    sdp.write_points(pre / "truth.ply", a, {"change": np.zeros(2000, np.uint8)})
+    sdp.write_points(pre / "reversed.ply", a[::-1], {"change": np.zeros(2000, np.uint8)})
+    nan = np.zeros(2000)
+    nan[5] = np.nan
+    sdp.write_points(pre / "nan.ply", a, {"change": nan})
+    sdp.write_points(pre / "wide.npz", a, {"change": np.zeros(2000)})
+    with np.load(pre / "wide.npz") as z:
+        np.savez(pre / "wide.npz", xyz=z["xyz"], change=np.zeros((2000, 2)))
+    p = run("eval", "truth.ply", "truth.ply", "--json", cwd=pre)
+    assert p.returncode == 0 and "NaN" not in p.stdout and json.loads(p.stdout)["kappa"] is None, p.stdout
+    for other, message in (("reversed.ply", "not the same points in the same order"),
+                           ("nan.ply", "1 labels that are not numbers"), ("wide.npz", "holds (2,) values per point")):
+        p = run("eval", "truth.ply", other, cwd=pre)
+        assert one_line_error(p) and message in p.stderr, p.stderr
+
+
+def test_a_full_work_folder_is_one_line(pre):
+    # a file-size limit stands for a full disk: the bucket writes fail short, as on a full work folder
+    limit = "import resource, signal; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); " \
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000)); "
+    big = np.random.default_rng(5).random((40_000, 3)) * [20, 20, 2]
+    np.save(pre / "big.npy", big)
+    p = subprocess.run([sys.executable, "-c", limit + "import runpy; runpy.run_module('sdp.cli', run_name='__main__', "
+                        "alter_sys=True)", "change", "big.npy", "big.npy", "-o", "o.laz", "--tiled",
+                        "--voxel-size", "0.1", "-q", "--workdir", str(pre)], cwd=pre, capture_output=True, text=True,
+                       timeout=300)
+    assert one_line_error(p) and "can't write a tile's points" in p.stderr and "disk full" in p.stderr, p.stderr
+    assert sorted(f.name for f in pre.iterdir()) == ["a.npy", "b.npy", "big.npy"]
+
+
+def test_a_signal_while_laz_is_written_exits_130_with_nothing_written(tmp_path):
+    # lazrs calls back into Python to write, and turns the KeyboardInterrupt raised there into its
+    # own error; here the writer gets a real SIGINT and does the same: the command must still say it
+    # was interrupted, in one line, and write nothing
+    code = ("import os, signal, sys, time, laspy, lazrs\n"
+            "def write(self, *args, **kwargs):\n"
+            "    try:\n"
+            "        os.kill(os.getpid(), signal.SIGINT)\n"
+            "        time.sleep(5)\n"
+            "    except KeyboardInterrupt:\n"
+            "        raise lazrs.LazrsError('Failed to call write') from None\n"
+            "laspy.LasData.write = write\n"
+            "from sdp.cli import main\n"
+            "sys.exit(main(sys.argv[1:]))\n")
+    np.save(tmp_path / "a.npy", np.random.default_rng(7).random((3000, 3)))
+    p = subprocess.run([sys.executable, "-c", code, "change", "a.npy", "a.npy", "-o", "o.laz", "-q"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 130 and p.stderr == "sdp: interrupted\n", p.stderr
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a.npy"]
+
+
+def test_a_successful_tiled_run_leaves_no_scratch_space(pre):
+    (pre / "tmp").mkdir()
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "change", "a.npy", "b.npy", "-o", "o.laz", "--tiled", "-q"],
+                       cwd=pre, capture_output=True, text=True, timeout=300, env=dict(os.environ, TMPDIR=str(pre / "tmp")))
+    assert p.returncode == 0, p.stderr
+    assert list((pre / "tmp").iterdir()) == []
+
+
+def test_gicp_messages_become_errors(rng):
+    pytest.importorskip("small_gicp")
+    from sdp.registration._align import GicpTarget
+
+    target = GicpTarget(rng.random((2000, 3)), resolution=0.05, max_distance=0.2)
+    with pytest.raises(sdp.InvalidPointsError, match="GICP: warning: source point cloud is too small"):
+        target.register(rng.random((3, 3)))

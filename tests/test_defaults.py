@@ -17,13 +17,13 @@ PYTHON = {  # function or option object → the DEFAULTS fields it takes as keyw
     sdp.Cylinder: ("projection_scale", "normal_scale", "max_distance"),
     sdp.detect_changes: ("min_region_points", "decision", "cluster_fraction"),
     sdp.DensityField.from_points: ("voxel_size", "sigma_voxels", "k", "truncate", "method"),
-    sdp.watch: ("min_region_points", "update", "window", "decay"),
+    sdp.watch: ("min_region_points", "update"),  # window, decay: None, DEFAULTS' value where they apply
     sdp.detect_changes_tiled: ("min_region_points",),
     sdp.distances: ("registration_error",),
     sdp.align: ("voxel_size",),
 }
 CLI = {"change": ("voxel_size", "sigma_voxels", "k", "min_region_points", "sensor_origin", "range_noise", "decision"),
-       "watch": ("voxel_size", "min_region_points", "sensor_origin", "range_noise", "update", "window", "decay"),
+       "watch": ("voxel_size", "min_region_points", "sensor_origin", "range_noise", "update"),
        "build": ("voxel_size", "sigma_voxels", "k"), "bool": ("voxel_size", "sigma_voxels", "k"),
        "series": ("projection_scale", "normal_scale", "max_distance")}
 

@@ -40,11 +40,43 @@ def seeds(tmp_path_factory):
     np.savetxt(d / "a.csv", xyz, delimiter=",", header="x,y,z", comments="")
     np.save(d / "a.npy", xyz)
     np.savez(d / "a.npz", xyz=xyz, label=np.arange(60))
+    _e57_seed(d / "a.e57", xyz)
+    _bag_seed(d / "a.bag", xyz)
     return {p.name: p.read_bytes() for p in sorted(d.iterdir())}
 
 
+def _e57_seed(path, xyz):
+    """Two scans, each with its pose and an intensity (pye57, the scans extra)."""
+    pye57 = pytest.importorskip("pye57")
+    e = pye57.E57(str(path), mode="w")
+    for k in range(2):
+        e.write_scan_raw({"cartesianX": xyz[:, 0].astype(float), "cartesianY": xyz[:, 1].astype(float),
+                          "cartesianZ": xyz[:, 2].astype(float), "intensity": xyz[:, 0].astype(float)},
+                         translation=np.array([k, 0, 0.0]))
+    e.close()
+
+
+def _bag_seed(path, xyz):
+    """A ROS 1 bag of two 6×10 organized PointCloud2 frames on /points (rosbags, the scans extra)."""
+    pytest.importorskip("rosbags")
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    pc2, pf = ts.types["sensor_msgs/msg/PointCloud2"], ts.types["sensor_msgs/msg/PointField"]
+    header, time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    fields = [pf(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate("xyz")]
+    with Writer(path) as w:
+        conn = w.add_connection("/points", pc2.__msgtype__, typestore=ts)
+        for k in range(2):
+            msg = pc2(header=header(seq=k, stamp=time(sec=k, nanosec=0), frame_id="s"), height=6, width=10,
+                      fields=fields, is_bigendian=False, point_step=12, row_step=120,
+                      data=np.frombuffer(np.ascontiguousarray(xyz, "<f4").tobytes(), np.uint8), is_dense=False)
+            w.write(conn, k + 1, ts.serialize_ros1(msg, pc2.__msgtype__))
+
+
 NAMES = ["ascii.pcd", "binary.pcd", "binary_compressed.pcd", "ascii.ply", "binary.ply", "a.las", "a.laz",
-         "a.xyz", "a.csv", "a.npy", "a.npz"]
+         "a.xyz", "a.csv", "a.npy", "a.npz", "a.e57"]
 
 
 @st.composite
@@ -87,6 +119,20 @@ def test_read_points_raises_only_sdp_errors(seeds, tmp_path, case):
                 pass
         except sdp.SDPError as exc:
             assert "\n" not in str(exc), str(exc)
+
+
+@FUZZ
+@given(case=st.tuples(st.sampled_from(["cut", "flip", "random"]), st.integers(0, 2**32 - 1), st.binary(max_size=600)))
+def test_bag_frames_raise_only_sdp_errors(seeds, tmp_path, case):
+    from sdp.io._bag import bag_frames
+
+    path = tmp_path / "a.bag"
+    path.write_bytes(mutate(seeds["a.bag"], *case))
+    try:
+        for _, cloud in bag_frames(path, "/points"):
+            assert cloud.xyz.ndim == 2 and np.isfinite(cloud.xyz).all()
+    except sdp.SDPError as exc:
+        assert "\n" not in str(exc), str(exc)
 
 
 @pytest.mark.slow

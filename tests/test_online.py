@@ -59,8 +59,9 @@ def stream(rng):
 @pytest.mark.parametrize("update", ["none", "window", "decay"])
 def test_watch_reports_an_object_when_it_appears(rng, update):
     frames, box = stream(rng)
-    reports = list(watch(room_scene(rng), frames, update=update, window=3, decay=0.5, min_region_points=50,
-                         lattice=sdp.Lattice(voxel_size=0.03)))
+    given = {"window": {"window": 3}, "decay": {"decay": 0.5}}.get(update, {})  # each applies to its update
+    reports = list(watch(room_scene(rng), frames, update=update, min_region_points=50,
+                         lattice=sdp.Lattice(voxel_size=0.03), **given))
     assert [r.index for r in reports] == list(range(6))
     assert all(r.n_appeared == 0 for r in reports[:3])  # static: nothing
     first = reports[3]

@@ -285,6 +285,9 @@ class Outputs:
     aligned : bool
         With a registration, write the current's points where the alignment moved them (default:
         its own coordinates).
+    field_names : {"sdp", "cloudcompare", "pdal"}
+        ``sdp distance``: the names of the distances' fields in the output: sdp's own, or those
+        of CloudCompare's M3C2 plugin or PDAL's ``filters.m3c2`` (:mod:`sdp.distance._names`).
     """
 
     both: bool = False
@@ -292,6 +295,11 @@ class Outputs:
     html: PathLike | None = None
     report: PathLike | None = None
     aligned: bool = False
+    field_names: str = DEFAULTS.field_names
+
+    def __post_init__(self):
+        if self.field_names not in ("sdp", "cloudcompare", "pdal"):
+            raise InvalidOptionError(f"field_names must be one of sdp, cloudcompare, pdal, got {self.field_names!r}")
 
     @property
     def pictures(self) -> bool:

@@ -32,6 +32,7 @@ import argparse
 import math
 import numbers
 import os
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -42,7 +43,7 @@ from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 __all__ = ["positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
            "auto_or_nonnegative", "memory_size", "existing_folder", "check_threshold", "check_grid_options",
            "check_tile_options", "check_workdir", "cli_type", "sensor_origin_option", "class_numbers",
-           "check_alignment_options", "check_tiled_options", "as_sensor_origins"]
+           "check_alignment_options", "check_tiled_options", "direction", "as_sensor_origins"]
 
 
 def _number(name: str, value) -> float:
@@ -101,16 +102,24 @@ def integer_at_least(name: str, value, minimum: int) -> int:
     return int(v)
 
 
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def check_threshold(k: float | None, h: float | None, *, names: tuple[str, str] = ("k", "h")) -> None:
     """Refuse a threshold that is not a positive finite density: ``h`` given directly, or
     h = 1 + k·e^(−1/2) from ``k``."""
     if h is not None:
-        positive_finite(names[1], h)
+        value, name = positive_finite(names[1], h), names[1]
     elif k is not None:
         kv = finite(names[0], k)
-        if not 1.0 + kv * math.exp(-0.5) > 0:
+        value, name = 1.0 + kv * math.exp(-0.5), f"h = 1 + {names[0]}·e^-1/2"
+        if not value > 0:
             raise InvalidOptionError(f"{names[0]} = {k!r} gives a threshold h = 1 + k·e^-1/2 ≤ 0: no density is "
                                      "below it; use k > -1.65")
+    else:
+        return
+    if value > _FLOAT32_MAX:  # fields hold densities as float32: F = h − G would overflow
+        raise InvalidOptionError(f"{name} = {value:.3g} is beyond the densities' float32 range (3.4e38)")
 
 
 def check_grid_options(*, voxel_size=None, sigma_voxels: float | str = "auto", k: float | None = 3,
@@ -158,8 +167,10 @@ def check_workdir(name: str, workdir) -> None:
         raise InvalidOptionError(f"{name} {str(path)!r}: no such folder")
     if not path.is_dir():
         raise InvalidOptionError(f"{name} {str(path)!r}: not a folder")
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise InvalidOptionError(f"{name} {str(path)!r}: folder is not writable")
+    try:  # a folder created and removed: the test that holds on /proc, read-only mounts and full disks
+        os.rmdir(tempfile.mkdtemp(prefix=".sdp-probe-", dir=path))
+    except OSError as exc:
+        raise InvalidOptionError(f"{name} {str(path)!r}: can't create folders there ({exc.strerror or exc})") from None
 
 
 def existing_folder(name: str, value) -> str:
@@ -230,6 +241,26 @@ def sensor_origin_option(name: str, value) -> str | np.ndarray:
     return np.array(xyz, dtype=np.float64)
 
 
+def direction(name: str, value) -> np.ndarray:
+    """A unit vector (3,) from three finite numbers, not all zero: ``"X,Y,Z"`` or array-like
+    (an ``orientation``); scaled before its norm so that 1e308 components do not overflow.
+
+    Raises
+    ------
+    InvalidOptionError
+        Not three finite numbers, or all zero.
+    """
+    try:
+        xyz = np.array([float(v) for v in (value.split(",") if isinstance(value, str) else np.ravel(value))])
+    except (TypeError, ValueError):
+        xyz = np.zeros(0)
+    if xyz.shape != (3,) or not np.isfinite(xyz).all() or not xyz.any():
+        shown = value if isinstance(value, str) else np.asarray(value).tolist() if np.ndim(value) else value
+        raise InvalidOptionError(f"{name} must be three finite numbers X,Y,Z, not all zero; got {shown!r}")
+    xyz = xyz / np.abs(xyz).max()
+    return xyz / np.linalg.norm(xyz)
+
+
 def as_sensor_origins(sensor_origin) -> tuple[np.ndarray, np.ndarray]:
     """(reference's, current's) sensor origin from one position (3,) or two (2, 3).
 
@@ -284,7 +315,8 @@ def check_tiled_options(*, grid_size=None, align=None, sensor_origin="auto", dec
     """Refuse the options of ``sdp change`` that a comparison in tiles does not have (``--tiled``)."""
     given_sensor = not (isinstance(sensor_origin, str) and sensor_origin in ("auto", "none"))
     for flag, bad in (("--grid-size", grid_size is not None), ("--align", align), ("--sensor-origin", given_sensor),
-                      ("--decision cluster", decision != "point"), ("--png/--html/--report", pictures)):
+                      (f"--decision {decision}", decision not in ("point", "density")),
+                      ("--png/--html/--report", pictures)):
         if bad:
             raise InvalidOptionError(f"{flag} is not available with --tiled")
 

@@ -7,3 +7,4 @@ from ._actions import (
     read_sequence,
     sequence_descriptor,
 )
+from ._splits import evaluate_splits, split_accuracies, training_sets

@@ -130,8 +130,8 @@ def read_sequence(path: str | os.PathLike) -> np.ndarray:
             return np.ascontiguousarray(np.transpose(d, (2, 0, 1)))
     except FileNotFoundError:
         raise SDPError(f"{path}: no such file") from None
-    except (SDPError, ValueError, OSError) as exc:
-        raise SDPError(f"{path}: can't read a depth sequence ({exc})") from None
+    except Exception as exc:  # SciPy's MatReadError, a zlib error, a short read: all name the file
+        raise SDPError(f"{path}: can't read a depth sequence ({exc or type(exc).__name__})") from None
     raise SDPError(f"{path}: unknown depth-sequence format; use .mat (MSR Action3D) or .bin")
 
 
@@ -522,22 +522,36 @@ def read_frames(source: str | os.PathLike):
             raise SDPError(f"{source}: no .npy depth frame in the folder")
         for path in files:
             try:
-                yield np.load(path, allow_pickle=False)
+                frame = np.load(path, allow_pickle=False)
             except (OSError, ValueError) as exc:
                 raise SDPError(f"{path}: can't read a depth frame ({exc})") from None
+            if not isinstance(frame, np.ndarray) or frame.ndim != 2 or frame.dtype.kind not in "iuf":
+                shape = getattr(frame, "shape", "an archive")
+                raise SDPError(f"{path}: a depth frame is an (H, W) array of depths, got {shape}")
+            yield frame
     else:
         yield from read_sequence(source)
 
 
-def _ridge_scores(gram, train, test, y, alpha):
-    """Classes and decision values (test, classes) of RidgeClassifier(alpha) (intercept, ±1 targets,
-    one column per class), solved from a Gram matrix."""
+def _centred(gram, train, test, y):
+    """What a ridge classifier trained on the rows ``train`` of a Gram matrix and tested on the rows
+    ``test`` reads of it: the classes and ±1 targets of the training rows, their centred Gram matrix
+    and the test rows' centred dot products with them. The one place the Gram matrix is read by
+    rows (the cross-subject evaluations' tests observe it)."""
     classes = np.unique(y[train])
     targets = np.where(y[train][:, None] == classes[None], 1.0, -1.0)
     k_tr, k_te = gram[np.ix_(train, train)], gram[np.ix_(test, train)]
     mean = k_tr.mean(axis=0)
     centred_te = k_te - k_te.mean(axis=1, keepdims=True) - mean[None] + mean.mean()
-    return classes, centred_te @ _dual(k_tr, targets, alpha) + targets.mean(axis=0)
+    return classes, targets, k_tr - mean[:, None] - mean[None] + mean.mean(), centred_te
+
+
+def _ridge_scores(gram, train, test, y, alpha):
+    """Classes and decision values (test, classes) of RidgeClassifier(alpha) (intercept, ±1 targets,
+    one column per class), solved from a Gram matrix: the dual coefficients (:func:`_dual`)."""
+    classes, targets, centred, centred_te = _centred(gram, train, test, y)
+    offset = targets.mean(axis=0)
+    return classes, centred_te @ np.linalg.solve(centred + alpha * np.eye(len(centred)), targets - offset) + offset
 
 
 def _dual(gram, targets, alpha):
@@ -574,6 +588,25 @@ def _loso_accuracy(grams, alphas, shares, y, folds) -> float:
     return float(np.mean(np.concatenate(hits)))
 
 
+def _choose_alphas(grams, y, folds, alphas) -> list[float]:
+    """Each part's ``alpha`` (one per Gram matrix of ``grams``): the best accuracy of its own ridge
+    classifier over the cross-validation ``folds`` (train, validation rows of the Gram matrices);
+    ties go to the stronger regularization."""
+    chosen = []
+    for gram in grams:
+        hits = {a: [] for a in alphas}
+        for tr, te in folds:  # the fold's centred Gram matrices once, for every alpha (as _ridge_scores)
+            classes, targets, centred, centred_te = _centred(gram, tr, te, y)
+            offset, eye = targets.mean(axis=0), np.eye(len(tr))
+            rhs = targets - offset
+            for a in alphas:
+                scores = centred_te @ np.linalg.solve(centred + a * eye, rhs) + offset
+                hits[a].append(classes[np.argmax(scores, axis=1)] == y[te])
+        cv = {a: float(np.mean(np.concatenate(hits[a]))) for a in alphas}
+        chosen.append(max(alphas, key=lambda a: (cv[a], a)))
+    return chosen
+
+
 def _fit(x: np.ndarray, rows: np.ndarray, grams: list[np.ndarray], y: np.ndarray, s: np.ndarray,
          alphas, parts=PARTS) -> tuple[ActionModel, float]:
     """Ridge classifiers on the rows ``rows`` of ``x``, one per part of ``parts`` (``grams``: their
@@ -589,10 +622,7 @@ def _fit(x: np.ndarray, rows: np.ndarray, grams: list[np.ndarray], y: np.ndarray
     """
     folds = [(np.flatnonzero(s != v), np.flatnonzero(s == v)) for v in np.unique(s)]
     shares = [share for _, _, share in parts]
-    chosen = []
-    for gram in grams:
-        cv = {a: _loso_accuracy([gram], [a], [1.0], y, folds) for a in alphas}
-        chosen.append(max(alphas, key=lambda a: (cv[a], a)))  # ties: the stronger regularization
+    chosen = _choose_alphas(grams, y, folds, alphas)
     classes = np.unique(y)
     targets = np.where(y[:, None] == classes[None], 1.0, -1.0)
     if len(classes) == 2:

@@ -58,11 +58,15 @@ from ..errors import InvalidOptionError
 from ..fields._density import DensityField, build_fields
 from ..fields._spacing import resolve_lattice
 from ..options import Coverage, Lattice
+from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
-from ._visibility import resolve_sensor_origins, visibility_states
+from ._visibility import resolve_sensor_origins, scanner_of_points, visibility_states
 
-__all__ = ["ChangeResult", "PointChanges", "detect_changes", "judge_coverage", "inside_difference", "region_rules"]
+#: The decisions of :func:`detect_changes` (``"density"`` is ``"point"``: the paper's, density alone).
+DECISIONS = ("point", "density", "cluster", "combined")
+
+__all__ = ["DECISIONS", "ChangeResult", "PointChanges", "detect_changes", "judge_coverage", "inside_difference", "region_rules"]
 
 
 class PointChanges:
@@ -154,7 +158,11 @@ class ChangeResult:
     voxel_size, sigma, h : float
         Parameters used.
     decision : str
-        ``"point"`` or ``"cluster"`` (see :func:`detect_changes`; tiles: ``"point"``).
+        ``"point"``, ``"cluster"`` or ``"combined"`` (see :func:`detect_changes`; tiles: ``"point"``).
+    current_distance, current_lod, reference_distance, reference_lod : ndarray of float64 or None
+        With ``decision="combined"``: each point's signed distance to the other epoch's surface
+        and its level of detection at 95 % (:func:`sdp.distance._noise.point_distances`; NaN:
+        nothing to measure against); else None.
     sensor_origins : tuple of (ndarray (3,) or None)
         The reference's and the current's sensor position used (None: not known).
     coverage : dict of str to str
@@ -191,6 +199,10 @@ class ChangeResult:
     n_tiles: int = 0
     tile_size: float | None = None
     timings: dict[str, float] = dc_field(default_factory=dict)
+    current_distance: np.ndarray | None = dc_field(default=None, repr=False)
+    current_lod: np.ndarray | None = dc_field(default=None, repr=False)
+    reference_distance: np.ndarray | None = dc_field(default=None, repr=False)
+    reference_lod: np.ndarray | None = dc_field(default=None, repr=False)
 
     @property
     def current_state(self) -> np.ndarray:
@@ -253,19 +265,26 @@ class ChangeResult:
         """A JSON-serializable summary: counts, parameters (and tiles), sensors, coverage, timings
         and regions."""
         def origin(o):
-            return None if o is None else [float(v) for v in o]
+            return None if o is None else np.asarray(o, np.float64).tolist()  # (3,), or (k, 3) scanners
 
-        def counts(points, dropped, kind):
-            return {"points": points.n, "dropped": int(dropped), kind: points.count(CHANGED),
-                    "not_comparable": points.count(NOT_COMPARABLE)}
+        def counts(points, dropped, kind, dist=None, lod=None):
+            out = {"points": points.n, "dropped": int(dropped), kind: points.count(CHANGED),
+                   "not_comparable": points.count(NOT_COMPARABLE)}
+            if dist is not None:
+                ok = np.isfinite(dist)
+                out["with_distance"] = int(ok.sum())
+                out["significant"] = int((np.abs(dist[ok]) > lod[ok]).sum())
+            return out
 
         tiles = {"tiles": self.n_tiles, "tile_size": self.tile_size} if self.tiled else {}
         return {"voxel_size": self.voxel_size, "sigma": self.sigma, "h": self.h, "decision": self.decision, **tiles,
                 "sensor_origin": {"reference": origin(self.sensor_origins[0]),
                                   "current": origin(self.sensor_origins[1])},
                 "coverage": dict(self.coverage),
-                "reference": counts(self._reference, self.n_dropped_reference, "disappeared"),
-                "current": counts(self._current, self.n_dropped_current, "appeared"),
+                "reference": counts(self._reference, self.n_dropped_reference, "disappeared",
+                                    self.reference_distance, self.reference_lod),
+                "current": counts(self._current, self.n_dropped_current, "appeared",
+                                  self.current_distance, self.current_lod),
                 "timings": dict(self.timings),
                 "appeared_regions": [r.to_dict() for r in self.appeared_regions],
                 "disappeared_regions": [r.to_dict() for r in self.disappeared_regions]}
@@ -311,8 +330,12 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         origin moved with the same matrix (two positions).
     memory_limit : int, str, optional
         As in :meth:`DensityField.from_points`.
-    decision : {"point", "cluster"}
-        ``"point"``: Algorithm 1, each point on its own. ``"cluster"``: the paper's clustering
+    decision : {"point", "density", "cluster", "combined"}
+        ``"point"`` (or ``"density"``, the same): Algorithm 1, each point on its own, by the
+        density alone. ``"combined"``: the density's answer, or the point's distance to the
+        other epoch's surface beyond a level of detection that holds on the sensor
+        (:mod:`sdp.change._combined`), regions on the combined decision; the result then holds
+        each point's ``distance`` and ``lod``. ``"cluster"``: the paper's clustering
         completes partly detected objects: a connected component of the cloud's own cluster
         volume (F < 0) in which more than ``cluster_fraction`` of the points changed is
         reported changed whole (its comparable points); the points of other components keep
@@ -345,8 +368,9 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     >>> len(result.appeared_regions), [round(float(c), 1) for c in result.appeared_regions[0].centroid[:2]]
     (1, [0.5, 0.5])
     """
-    if decision not in ("point", "cluster"):
-        raise InvalidOptionError(f"decision must be 'point' or 'cluster', got {decision!r}")
+    if decision not in DECISIONS:
+        raise InvalidOptionError(f"decision must be one of {', '.join(DECISIONS)}, got {decision!r}")
+    decision = "point" if decision == "density" else decision
     lattice = Lattice() if lattice is None else lattice
     coverage = Coverage() if coverage is None else coverage
     memory_limit_bytes(memory_limit)
@@ -356,6 +380,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     o_ref, o_cur = resolve_sensor_origins(coverage.sensor_origin, reference, current)
     ref = as_points(reference, name="reference")
     cur = as_points(current, name="current")
+    s_ref = scanner_of_points(reference, o_ref, len(ref.xyz))  # which scanner saw each point (several)
+    s_cur = scanner_of_points(current, o_cur, len(cur.xyz))
     timings = {}
     t = time.perf_counter()
     voxel_size, sigma_voxels = resolve_lattice([ref, cur], voxel_size=lattice.voxel_size, grid_size=lattice.grid_size,
@@ -372,24 +398,34 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
 
     def finish(job):
         """Coverage and region rules of one direction: (the points' states and labels, regions), times."""
-        fld, pts, mask, d, other, other_field, other_origin = job
+        fld, pts, mask, d, other, other_field, other_origin, other_scan, own_origin = job
         t = time.perf_counter()
         states = judge_coverage(pts.xyz, mask, other.xyz, other_field, other_origin, coverage=coverage.enabled,
-                                range_noise=coverage.range_noise, present=fld.inside)
+                                range_noise=coverage.range_noise, present=fld.inside, other_scan=other_scan)
         steps = {"coverage": time.perf_counter() - t}
         t = time.perf_counter()
         unseen = states == NOT_COMPARABLE
-        mask, regs, region_of = region_rules(fld, d, pts.xyz, states == CHANGED, regions=regions,
-                                             decision=decision, min_region_points=min_region_points,
-                                             cluster_fraction=cluster_fraction, blocked=unseen)
+        extra = {}
+        if decision == "combined":
+            mask, regs, region_of, dist, lod = combine_decision(
+                # one sensor per cloud: the noise model's range law and normals (several: neither yet)
+                pts.xyz, other.xyz, states, sigma=fld.sigma, voxel_size=fld.voxel_size, own_origin=_single(own_origin),
+                other_origin=_single(other_origin), min_region_points=min_region_points, regions=regions,
+                present=fld.inside(pts.xyz))
+            extra = {"distance": to_rows(dist, pts, np.nan), "lod": to_rows(lod, pts, np.nan)}
+        else:
+            mask, regs, region_of = region_rules(fld, d, pts.xyz, states == CHANGED, regions=regions,
+                                                 decision=decision, min_region_points=min_region_points,
+                                                 cluster_fraction=cluster_fraction, blocked=unseen)
         steps["regions"] = time.perf_counter() - t
         state = to_rows(states_of(mask, unseen), pts, UNCHANGED)
         labels = to_rows(region_of.astype(np.int32), pts, -1)
-        return (PointChanges(len(state), state=state, labels=labels), regs), steps
+        return (PointChanges(len(state), state=state, labels=labels), regs, extra), steps
 
     # the two directions are independent: on two threads when there are two cores
     (appeared, steps_a), (disappeared, steps_d) = map_concurrently(
-        finish, [(f_cur, cur, app, d_app, ref, f_ref, o_ref), (f_ref, ref, dis, d_dis, cur, f_cur, o_cur)],
+        finish, [(f_cur, cur, app, d_app, ref, f_ref, o_ref, s_ref, o_cur),
+                 (f_ref, ref, dis, d_dis, cur, f_cur, o_cur, s_cur, o_ref)],
         parallel_kernels=True)
     timings.update({step: steps_a[step] + steps_d[step] for step in steps_a})
     how = {"appeared": _coverage_kind(o_ref, coverage.enabled), "disappeared": _coverage_kind(o_cur, coverage.enabled)}
@@ -397,21 +433,25 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
                         disappeared_regions=disappeared[1], voxel_size=float(f_cur.voxel_size), sigma=f_cur.sigma,
                         h=f_cur.h, decision=decision, reference_field=f_ref, current_field=f_cur,
                         n_dropped_reference=f_ref.n_dropped, n_dropped_current=f_cur.n_dropped,
-                        sensor_origins=(o_ref, o_cur), coverage=how, timings=timings)
+                        sensor_origins=(o_ref, o_cur), coverage=how, timings=timings,
+                        current_distance=appeared[2].get("distance"), current_lod=appeared[2].get("lod"),
+                        reference_distance=disappeared[2].get("distance"), reference_lod=disappeared[2].get("lod"))
 
 
 def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | None, other_field: DensityField,
                    other_origin: np.ndarray | None, *, coverage: bool = True,
-                   range_noise: float = DEFAULTS.range_noise, image=None, present=None) -> np.ndarray:
+                   range_noise: float = DEFAULTS.range_noise, image=None, present=None,
+                   other_scan: np.ndarray | None = None) -> np.ndarray:
     """The state (:mod:`sdp.change._coverage`) of each point of ``points`` flagged ``changed`` against
     the other epoch (its points ``other`` and field ``other_field``): by the other scan's rays
     when its origin is known (:func:`sdp.change._visibility.visibility_states`, ``present`` and
-    ``image`` as there), else by the other field's footprint
+    ``image`` as there; several origins (k, 3) with ``other_scan``, the scanner of each point of
+    ``other``: a point is comparable where any of them could see it), else by the other field's footprint
     (:func:`sdp.change._coverage.footprint_covered`); without ``coverage``, what the other scan could
     not see counts as changed."""
     if other_origin is not None:
         states = visibility_states(points, changed, other, other_origin, sigma=other_field.sigma,
-                                   range_noise=range_noise, image=image, present=present)
+                                   range_noise=range_noise, image=image, present=present, other_scan=other_scan)
         if not coverage:
             states[states == NOT_COMPARABLE] = CHANGED
         return states
@@ -468,3 +508,8 @@ def _cluster_decision(fld: DensityField, pts: np.ndarray, changed: np.ndarray, l
     # promoted clusters are labelled after the change regions
     labels = np.where(promoted, len(counts) + clusters, labels)
     return changed | promoted, labels, np.concatenate([counts, cluster_nodes])
+
+
+def _single(origin):
+    """``origin`` if it is one sensor's position (3,) or None; None for several scanners (k, 3)."""
+    return origin if origin is None or np.ndim(origin) == 1 else None

@@ -59,7 +59,8 @@ from .._core._validate import as_sensor_origins
 from ..errors import InvalidPointsError
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 
-__all__ = ["RangeImage", "as_sensor_origins", "resolve_sensor_origins", "visibility_states", "SEEN_FREE",
+__all__ = ["RangeImage", "as_sensor_origins", "resolve_sensor_origins", "scanner_of_points", "visibility_states",
+           "SEEN_FREE",
            "SAME_SURFACE", "HIDDEN", "UNOBSERVED"]
 
 #: Classes of :meth:`RangeImage.classify`.
@@ -506,10 +507,11 @@ def resolve_sensor_origins(sensor_origin, reference, current) -> tuple[np.ndarra
     """(reference's, current's) sensor origin, each None when unknown.
 
     ``"auto"``: what each cloud knows (:attr:`sdp.Cloud.sensor_origin`, e.g. an organized
-    PCD's VIEWPOINT; arrays know nothing), ``"viewpoint"`` the same refusing a cloud that knows
-    none; ``None`` or ``"none"``: no sensor; else a position
-    (3,) for both or one per scan (2, 3), as :func:`as_sensor_origins`, or a pair whose unknown
-    entry is None.
+    PCD's VIEWPOINT; :attr:`sdp.Cloud.sensor_origins` of a multi-scan E57, then a (k, 3)
+    array whose rows the cloud's :attr:`~sdp.Cloud.scan` indexes; arrays know nothing),
+    ``"viewpoint"`` the same refusing a cloud that knows none; ``None`` or ``"none"``: no
+    sensor; else a position (3,) for both or one per scan (2, 3), as :func:`as_sensor_origins`,
+    or a pair whose unknown entry is None.
     """
     if sensor_origin is None or (isinstance(sensor_origin, str) and sensor_origin == "none"):
         return None, None
@@ -517,14 +519,41 @@ def resolve_sensor_origins(sensor_origin, reference, current) -> tuple[np.ndarra
         if sensor_origin not in ("auto", "viewpoint"):
             raise InvalidPointsError(f"sensor_origin must be 'auto', 'viewpoint', 'none', None or a position, "
                                      f"got {sensor_origin!r}")
-        known = [getattr(c, "sensor_origin", None) for c in (reference, current)]
+        known = [_known_origins(c) for c in (reference, current)]
         if sensor_origin == "viewpoint" and any(o is None for o in known):
             raise InvalidPointsError("sensor_origin='viewpoint': a cloud records no sensor position (organized PCD "
-                                     "files do); give a position or 'auto'")
+                                     "and E57 files do); give a position or 'auto'")
+        if any(o is not None and o.ndim == 2 for o in known):  # several scanners: the cloud's own
+            return tuple(None if o is None else o.copy() for o in known)
         sensor_origin = known
     if isinstance(sensor_origin, (list, tuple)) and len(sensor_origin) == 2 and any(o is None for o in sensor_origin):
         return tuple(None if o is None else as_sensor_origins(o)[0] for o in sensor_origin)
     return as_sensor_origins(sensor_origin)
+
+
+def _known_origins(cloud) -> np.ndarray | None:
+    """What a cloud says of its sensors: None, one position (3,), or (k, 3) for k > 1 scanners."""
+    many = getattr(cloud, "sensor_origins", None)
+    if many is None:
+        return getattr(cloud, "sensor_origin", None)
+    many = np.asarray(many, np.float64)
+    if not np.isfinite(many).all():
+        raise InvalidPointsError(f"the cloud's sensor positions are not finite: {many.tolist()}")
+    return many[0] if len(many) == 1 else many
+
+
+def scanner_of_points(cloud, origins, n: int) -> np.ndarray | None:
+    """Which of ``origins`` (k, 3) saw each of the ``n`` points of ``cloud`` (its
+    :attr:`~sdp.Cloud.scan`), or None for one origin (3,) or none."""
+    if origins is None or np.ndim(origins) == 1:
+        return None
+    scan = getattr(cloud, "scan", None)
+    if scan is None or len(scan) != n:
+        raise InvalidPointsError(f"{len(origins)} sensor positions but no scan index per point (Cloud.scan)")
+    scan = np.asarray(scan, np.int64)
+    if len(scan) and (scan.min() < 0 or scan.max() >= len(origins)):
+        raise InvalidPointsError(f"a point's scan index is outside the {len(origins)} sensor positions")
+    return scan
 
 
 def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray, other_origin: npt.ArrayLike,
@@ -533,7 +562,7 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
                             plane_stride: int = 8, plane_bin: float = 2.0, plane_distance: float = 2.0,
                             plane_flatness: float = 1.0,
                             spacing: float | None = None, image: RangeImage | None = None,
-                            present=None) -> np.ndarray:
+                            present=None, other_scan: np.ndarray | None = None) -> np.ndarray:
     """What the other scan's view says of each changed point: unchanged, changed or not comparable.
 
     Parameters
@@ -544,8 +573,9 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
         The density decision.
     other : ndarray (m, 3) float64
         The cloud they changed against (the reference for "appeared"), seen from ``other_origin``.
-    other_origin : array_like (3,)
-        The other scan's sensor position, in the same frame.
+    other_origin : array_like (3,) or (k, 3)
+        The other scan's sensor position, in the same frame; or the positions of its k scanners
+        (a multi-scan E57), with ``other_scan``.
     sigma : float
         The density kernel's σ (world units): the scale of the plane test and of the band's floor.
     range_noise : float
@@ -580,6 +610,12 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
         scan behind a surface that is gone from its own scan (an object taken away, another put
         in its place) is judged as a seen point: by the plane test, else changed. Without it,
         every hidden point is treated as unseen.
+    other_scan : ndarray of int (m,), optional
+        With k positions: which scanner saw each point of ``other``. Each scanner's points make
+        a range image seen from its position, and a point is judged by every one of them: the
+        same surface for one of them: unchanged; else seen through by one of them: changed;
+        else (hidden from or outside the view of every one) as a point one scan did not see.
+        A point is not comparable only where no scanner of the other epoch could see it.
 
     Returns
     -------
@@ -596,6 +632,12 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     cand = np.flatnonzero(changed)
     if len(cand) == 0:
         return states
+    plane = dict(plane_points=plane_points, plane_stride=plane_stride, plane_distance=plane_distance * sigma,
+                 plane_flatness=plane_flatness * sigma, plane_bin=plane_bin * sigma)
+    if np.ndim(other_origin) == 2:
+        return _many_scanners(points, changed, states, cand, other, np.asarray(other_origin, np.float64), other_scan,
+                              range_noise=range_noise, floor=band_floor * sigma, cell_factor=cell_factor, reach=reach,
+                              present=present, **plane)
     if image is None:
         image = RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)
     cls, hider = image.classify(points[cand], range_noise=range_noise, floor=band_floor * sigma, reach=reach,
@@ -608,14 +650,47 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
         states[cand[hidden]] = NOT_COMPARABLE
     if missing.any():  # no return: free in range inside the field of view, unseen outside it
         states[cand[missing]] = np.where(image.in_view(points[cand[missing]]), CHANGED, NOT_COMPARABLE)
-    unseen = cand[hidden | missing]
+    return _explain_by_planes(points, changed, states, cand[hidden | missing], **plane)
+
+
+def _explain_by_planes(points, changed, states, unseen, *, plane_points, plane_stride, plane_distance,
+                       plane_flatness, plane_bin) -> np.ndarray:
+    """``states`` with the ``unseen`` points that continue the unchanged surface made unchanged."""
     static = _every_nth_unchanged(points, changed, max(1, int(plane_stride)))
     if len(unseen) and len(static) >= 3:
         on_plane = _on_unchanged_plane(points[unseen], static, k=min(int(plane_points), len(static)),
-                                       distance=plane_distance * sigma, flatness=plane_flatness * sigma,
-                                       bin_size=plane_bin * sigma)
+                                       distance=plane_distance, flatness=plane_flatness, bin_size=plane_bin)
         states[unseen[on_plane]] = UNCHANGED
     return states
+
+
+def _many_scanners(points, changed, states, cand, other, origins, other_scan, *, range_noise, floor, cell_factor,
+                   reach, present, **plane) -> np.ndarray:
+    """:func:`visibility_states` against k scanners: each point takes the most informative answer
+    of any scanner (0 same surface, 1 seen through, 2 unseen but changed: a free ray in view or
+    a hider gone, 3 unseen), so the answer of one scanner is that of :func:`visibility_states`."""
+    if other_scan is None or len(other_scan) != len(other):
+        raise InvalidPointsError(f"{len(origins)} sensor positions need the scanner of each point (other_scan)")
+    query = points[cand]
+    rank = np.full(len(cand), 3, np.int8)
+    for j, origin in enumerate(origins):
+        mine = other[other_scan == j]
+        if len(mine) == 0 or not (rank > 0).any():
+            continue
+        image = RangeImage.from_points(mine, origin, cell_factor=cell_factor)
+        cls, hider = image.classify(query, range_noise=range_noise, floor=floor, reach=reach, hiders=True)
+        r = np.full(len(cand), 3, np.int8)
+        r[cls == SAME_SURFACE] = 0
+        r[cls == SEEN_FREE] = 1
+        hidden, missing = cls == HIDDEN, cls == UNOBSERVED
+        if present is not None and hidden.any():
+            r[hidden] = np.where(present(hider[hidden]), 3, 2)
+        if missing.any():
+            r[missing] = np.where(image.in_view(query[missing]), 2, 3)
+        np.minimum(rank, r, out=rank)
+    states[cand[rank == 0]] = UNCHANGED
+    states[cand[rank == 3]] = NOT_COMPARABLE
+    return _explain_by_planes(points, changed, states, cand[rank >= 2], **plane)
 
 
 def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distance: float, flatness: float,

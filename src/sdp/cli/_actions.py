@@ -58,9 +58,24 @@ def stream_actions(model, source, *, window: int = DEFAULTS.action_window, every
             yield stream.n_frames, label
 
 
-def evaluate_actions(data_dir, *, workers: int = os.cpu_count() or 1) -> dict:
-    """The cross-subject protocol (:func:`sdp.actions._actions.evaluate_protocol`) as ``sdp action eval
-    --json`` prints it: accuracy per subset (fractions), ``cv``, ``alpha``, ``timings``, ``sequences``."""
+def evaluate_actions(data_dir, *, splits: str = "standard", workers: int = os.cpu_count() or 1) -> dict:
+    """The cross-subject protocol as ``sdp action eval --json`` prints it.
+
+    ``splits="standard"``: train on subjects 1, 3, 5, 7, 9, test on the others
+    (:func:`sdp.actions._actions.evaluate_protocol`): accuracy per subset (fractions), ``cv``,
+    ``alpha``, ``timings``, ``sequences``. ``splits="all"``: every five-subject training set
+    (:func:`sdp.actions.evaluate_splits`): ``protocol``, ``splits``, ``summary`` (per subset: mean,
+    std, min, max, the standard split's accuracy, rank and percentile), ``per_split``,
+    ``confusion`` (summed over the splits), ``timings``, ``sequences``."""
+    if splits not in ("standard", "all"):
+        raise SDPError(f"--splits takes standard or all, got {splits!r}")
+    if splits == "all":
+        from ..actions import _splits
+
+        t0 = time.perf_counter()
+        r = _splits.evaluate_splits(data_dir, workers=workers)
+        r["timings"]["total"] = time.perf_counter() - t0
+        return dict(protocol=f"all {r['splits']} splits of {_splits.N_TRAIN} training subjects", **r)
     from ..actions import _actions as actions
 
     t0 = time.perf_counter()

@@ -30,7 +30,9 @@ from ..io._output import all_or_none, check_outputs
 from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, Outputs, Registration
 from . import _text as report
-from ._common import align_clouds, check_picture_extras, disappeared_path, is_store, pictures, sensor_origins
+from ..io._bag import is_bag
+from ._common import (align_clouds, check_picture_extras, disappeared_path, is_store, pictures, read_input,
+                      sensor_origins)
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
 
@@ -131,6 +133,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
     from .._core._memory import memory_limit as limit
     from ..io._cloud import FORMATS
     from ..io._source import PointSource
+    from ..fields._lattice import check_lattice
     from ..scale._budget import dense_grid_bytes, untiled_point_bytes
     from ..scale._session import sampled_lattice
 
@@ -151,7 +154,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
                    for f in (reference, current))
     # tiles follow no rays: a given sensor keeps the comparison in memory
     given_sensor = not (isinstance(coverage.sensor_origin, str) and coverage.sensor_origin in ("auto", "none"))
-    if not tiled and (not streamed or lattice.grid_size is not None or align or decision != "point" or given_sensor):
+    if not tiled and (not streamed or lattice.grid_size is not None or align or decision not in ("point", "density") or given_sensor):
         return ChangePlan(tiled=False)
     if tiled:
         V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
@@ -168,12 +171,15 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
                                           sigma_voxels=lattice.sigma_voxels)
     lo = np.minimum(sources[0].lo, sources[1].lo)
     hi = np.maximum(sources[0].hi, sources[1].hi)
+    check_lattice(lo, hi, voxel)  # before the grids' size: a lattice that can't be placed says so
     grids = 2 * dense_grid_bytes(lo, hi, voxel, sigma_voxels=sigma_voxels)
     points = untiled_point_bytes(sum(s.n_rows for s in sources))
     cap = limit(execution.memory_limit)
     if not (tiled or max(grids, points) > cap):
         return ChangePlan(tiled=False)
     if output is not None and Path(output).suffix.lower() not in (".las", ".laz"):  # the tiles stream LAS/LAZ
+        if tiled:
+            raise SDPError(f"{output}: --tiled streams its output to LAS/LAZ: give -o OUT.laz")
         raise SDPError(f"{output}: the clouds are compared in tiles (two dense grids would need "
                        f"{format_bytes(grids)}, above the memory limit of {format_bytes(cap)}), whose "
                        "output streams to LAS/LAZ: give -o OUT.laz, or a larger --memory-limit")
@@ -190,7 +196,7 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
                   lattice: Lattice | None = None, coverage: Coverage | None = None,
                   align: Registration | str | None = None, execution: Execution | None = None,
                   decision: str = DEFAULTS.decision,
-                  min_region_points: int = DEFAULTS.min_region_points) -> FileComparison:
+                  min_region_points: int = DEFAULTS.min_region_points, topic: str | None = None) -> FileComparison:
     """Compare two point-cloud files and write the labelled clouds: ``sdp change`` as a function.
 
     The clouds are compared in memory (:func:`sdp.detect_changes`) or, when they need more
@@ -260,11 +266,18 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     coverage = Coverage() if coverage is None else coverage
     execution = Execution() if execution is None else execution
     align = Registration.of(align)
+    if outputs.aligned and align is None:  # nothing moved: the option would be ignored
+        raise SDPError("--aligned-output (outputs.aligned) writes the aligned coordinates: give --align too")
     out = Path(output)
     check_outputs([out, disappeared_path(out) if outputs.both else None, outputs.png, outputs.html, outputs.report],
                   [reference, current])
     check_picture_extras(png=outputs.png, html=outputs.html, report=outputs.report)
     V.integer_at_least("min_region_points", min_region_points, 0)
+    bags = [is_bag(f) for f in (reference, current)]
+    if topic is not None and not any(bags):
+        raise SDPError("--topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if any(bags) and execution.tiled:
+        raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices, not ROS bags")
     if execution.tiled and not is_store(reference):
         V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
                               decision=decision, pictures=outputs.pictures)
@@ -278,15 +291,16 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
                                   min_region_points=min_region_points, lattice=lattice, execution=execution)
         return _compare_in_memory(reference, current, out, outputs=outputs, format=format, lattice=lattice,
                                   coverage=coverage, align=align, memory_limit=execution.memory_limit,
-                                  detect=dict(decision=decision, min_region_points=min_region_points))
+                                  detect=dict(decision=decision, min_region_points=min_region_points), topic=topic)
 
 
 def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, format, lattice: Lattice,
-                       coverage: Coverage, align: Registration | None, memory_limit, detect: dict) -> FileComparison:
+                       coverage: Coverage, align: Registration | None, memory_limit, detect: dict,
+                       topic: str | None = None) -> FileComparison:
     from ..change._detect import detect_changes
 
     t0 = time.perf_counter()
-    ref, cur = read_points(reference, format=format), read_points(current, format=format)
+    ref, cur = (read_input(f, format=format, topic=topic) for f in (reference, current))
     t_read = time.perf_counter() - t0
     _check_in_memory(len(ref.xyz) + len(cur.xyz), memory_limit)
     alignment, moved = None, cur
@@ -298,10 +312,11 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                        memory_limit=memory_limit, **detect)
     out_xyz = moved.xyz if outputs.aligned else cur.xyz
     both, png, html, report = outputs.both, outputs.png, outputs.html, outputs.report
-    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_labels, r.current_field, moved.xyz)]
+    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_labels, r.current_field, moved.xyz,
+             (r.current_distance, r.current_lod))]
     if both:
         jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_labels,
-                     r.reference_field, ref.xyz))
+                     r.reference_field, ref.xyz, (r.reference_distance, r.reference_lod)))
     outputs = _write_labelled(jobs, inputs=(reference, current))
     outputs += pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}",
                          regions=r.appeared_regions if out_xyz is moved.xyz else ())  # boxes in the moved frame
@@ -345,13 +360,16 @@ def _check_in_memory(n_points: int, memory_limit) -> None:
 
 def _write_labelled(jobs, inputs) -> list[str]:
     """Write each (path, cloud, xyz, state, region, field, xyz the field saw) as a labelled cloud:
-    ``change`` (0 unchanged, 1 changed, 2 not comparable), ``region``, ``G`` and ``F``."""
+    ``change`` (0 unchanged, 1 changed, 2 not comparable), ``region``, ``G`` and ``F``; with
+    the combined decision also ``distance`` and ``lod`` (NaN: nothing to measure against)."""
     from ..io._output import write_points
 
     written = []
-    for path, cloud, xyz, state, region, fld, seen in jobs:
+    for path, cloud, xyz, state, region, fld, seen, (dist, lod) in jobs:
         fields = {"change": state, "region": region.astype(np.int32),
                   "G": fld.density(seen).astype(np.float32), "F": fld.field(seen).astype(np.float32)}
+        if dist is not None:
+            fields.update(distance=dist.astype(np.float32), lod=lod.astype(np.float32))
         write_points(path, xyz, fields, like=cloud, inputs=inputs)
         written.append(str(path))
     return written

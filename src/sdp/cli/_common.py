@@ -36,8 +36,8 @@ def sensor_origins(choice, ref_scan, cur_scan, alignment=None):
     if isinstance(choice, str):
         if choice == "viewpoint":
             for name, c in (ref_scan, cur_scan):
-                if c.sensor_origin is None:
-                    raise SDPError(f"{name}: the file records no sensor position (organized PCD files do); "
+                if c.sensor_origins is None:
+                    raise SDPError(f"{name}: the file records no sensor position (organized PCD and E57 files do); "
                                    "give --sensor-origin X,Y,Z or auto")
             return "auto"
         return choice
@@ -99,3 +99,15 @@ def pictures(png, html, xyz, changed, title, regions=()) -> list[str]:
         written.append(str(html))
     return written
 
+
+def read_input(path, *, format: str | None = None, topic: str | None = None):
+    """The Cloud of an input: a point-cloud file, or with ``topic`` one message of a ROS bag
+    (:func:`sdp.io._bag.bag_message`: ``TOPIC`` its first, ``TOPIC:N`` its N-th)."""
+    from ..io._bag import bag_message, is_bag
+    from ..io._read import read_points
+
+    if is_bag(path):
+        if topic is None:
+            raise SDPError(f"{path}: a ROS bag: give --topic TOPIC (its first message) or TOPIC:N")
+        return bag_message(path, topic)
+    return read_points(path, format=format)

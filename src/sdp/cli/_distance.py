@@ -17,6 +17,7 @@ import numpy as np
 from .._core import _validate as V
 from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
+from ..distance._names import rename_fields
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
 from ..io._read import read_points
@@ -68,7 +69,8 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
         ``png``: a map (or view) of the significant distances and their histogram
         (:func:`sdp.render_distances`); ``report``: one self-contained HTML page
         (:func:`sdp.distance_report`: summary, parameters and why, the map and histogram, a
-        3-D view). In memory only (refused with tiles).
+        3-D view). In memory only (refused with tiles). ``field_names``: the output's names of the
+        fields (``"cloudcompare"``, ``"pdal"``: as those tools' M3C2 name them).
     cylinder, orientation, sensor_origin
         As in :func:`sdp.distances` (``sensor_origin`` also takes ``"viewpoint"`` and ``"X,Y,Z"``,
         as :func:`compare_files`).
@@ -111,13 +113,12 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
     V.auto_or_nonnegative("--registration-error", registration_error)
     sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)
     if orientation is not None:
-        orientation = V.sensor_origin_option("--orientation", orientation)
-        if isinstance(orientation, str):
-            raise SDPError(f"--orientation must be X,Y,Z, got {orientation!r}")
+        orientation = V.direction("--orientation", orientation)
     if _distances_in_tiles(reference, current, output, format=format, execution=execution, core_points=core_points,
                            align=align, png=png, report=report):
         return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,
-                               orientation=orientation, cylinder=cylinder, execution=execution)
+                               orientation=orientation, cylinder=cylinder, execution=execution,
+                               field_names=outputs.field_names)
     with all_or_none():
         t0 = time.perf_counter()
         ref, cur = read_points(reference, format=format), read_points(current, format=format)
@@ -135,7 +136,8 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
                       orientation=orientation, sensor_origin=origin, memory_limit=memory_limit)
         like = core if core is not None else ref
         like = like if like.n_dropped == 0 else None  # rows were dropped: the input's dimensions no longer line up
-        write_points(out, d.core_points, d.fields(), like=like, inputs=(reference, current, core_points))
+        write_points(out, d.core_points, rename_fields(d.fields(), outputs.field_names, path=out), like=like,
+                     inputs=(reference, current, core_points))
         outputs = [str(out)]
         if png:
             from ..viz._render import render_distances
@@ -194,7 +196,7 @@ def _distances_in_tiles(reference, current, output, *, format, execution: Execut
 
 
 def _distance_tiled(reference, current, out: Path, *, format, registration_error, orientation, cylinder: Cylinder,
-                    execution: Execution) -> FileDistances:
+                    execution: Execution, field_names: str = DEFAULTS.field_names) -> FileDistances:
     from ..io._source import PointSource, write_points_streamed
     from ..scale._tiles import distances_tiled
 
@@ -202,7 +204,7 @@ def _distance_tiled(reference, current, out: Path, *, format, registration_error
     with all_or_none():
         d = distances_tiled(reference, current, cylinder=cylinder, registration_error=0.0 if reg == "auto" else reg,
                             orientation=orientation, execution=execution)
-        fields = d.fields()
+        fields = rename_fields(d.fields(), field_names, path=out)
         write_points_streamed(out, PointSource.open(reference, format=format),
                               lambda a, b: {k: v[a:b] for k, v in fields.items()}, inputs=(reference, current))
     summary = d.summary()

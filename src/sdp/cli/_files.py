@@ -12,6 +12,7 @@ import numpy as np
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
+from ..io._cloud import input_format
 from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, Registration
 from . import _text as report
@@ -28,6 +29,9 @@ def _lattice(clouds, lattice: Lattice, memory_limit, like=None) -> dict:
     from ..fields._spacing import resolve_lattice
 
     if like is not None:
+        if lattice != Lattice():  # the field's own lattice wins: a lattice given would be ignored
+            raise SDPError("a field operand sets the lattice (voxel, σ, h): give no --voxel-size, --sigma-voxels, -k, --h or "
+                           "--grid-size with it")
         return dict(voxel_size=like.voxel_size, sigma_voxels=like.sigma / like.voxel_size, h=like.h,
                     truncate=like.truncate, memory_limit=memory_limit)
     kw = lattice.keywords()
@@ -158,9 +162,22 @@ def describe_file(path, *, format: str | None = None) -> dict:
         return {"kind": "field", "voxel_size": f.voxel_size, "sigma": f.sigma, "h": f.h, "blocks": f.n_blocks,
                 "box_nodes": list(f.grid.shape), "origin": f.grid.origin.tolist(), "n_points": f.n_points,
                 "method": f.method, "megabytes": f.nbytes / 2**20}
+    from ..io._bag import bag_topics, is_bag
+
+    if is_bag(path):  # a ROS bag: its point-cloud topics
+        return {"kind": "ROS bag", "pointcloud2_topics": bag_topics(path)}
     c = read_points(path, format=format)
-    return {"kind": "cloud", "points": len(c), "dropped_non_finite": c.n_dropped,
+    info = {"kind": "cloud", "points": len(c), "dropped_non_finite": c.n_dropped,
             "min": c.xyz.min(0).tolist(), "max": c.xyz.max(0).tolist(), "fields": sorted(c.fields)}
+    if c.sensor_origins is not None:
+        info["sensors"] = c.sensor_origins.tolist()
+    if input_format(Path(path), format) == "e57":  # each scan's pose and grid, the points it kept
+        from ..io._e57 import e57_scans
+
+        scans = e57_scans(path)
+        kept = np.bincount(c.scan, minlength=len(scans))
+        info["scans"] = [{**s, "kept": int(kept[s["scan"]])} for s in scans]
+    return info
 
 
 def align_files(reference, current, *, output, method: str = DEFAULTS.align_method, fix_horizontal: bool = False,
@@ -184,10 +201,12 @@ def align_files(reference, current, *, output, method: str = DEFAULTS.align_meth
 
 
 def watch_folder(reference, frames, *, format: str | None = None, lattice: Lattice | None = None,
-                 update: str = DEFAULTS.update, window: int = DEFAULTS.window, decay: float = DEFAULTS.decay,
+                 update: str = DEFAULTS.update, window: int | None = None, decay: float | None = None,
                  min_region_points: int = DEFAULTS.min_region_points, align: Registration | str | None = None,
-                 coverage: Coverage | None = None) -> Iterator:
-    """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order (``sdp watch``).
+                 coverage: Coverage | None = None, topic: str | None = None) -> Iterator:
+    """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order, or over
+    the ``sensor_msgs/PointCloud2`` messages of a ROS bag's ``topic`` (:func:`sdp.io._bag.bag_frames`,
+    the ``scans`` extra), in the order recorded (``sdp watch``).
 
     ``reference`` is a cloud file or a field (``.sdpf``); ``coverage`` as in
     :func:`compare_files` (its ``sensor_origin`` is the reference's). The folder and the reference are checked and read
@@ -199,12 +218,21 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     from ..io._cloud import FORMATS
     from ..stream._watch import watch
 
+    from ..io._bag import bag_frames, bag_topics, is_bag
+
     folder = Path(frames)
-    if not folder.is_dir():
-        raise SDPError(f"{folder}: not a folder of frames")
-    paths = sorted((p for p in folder.iterdir() if p.suffix.lower() in FORMATS and p.is_file()),
-                   key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
-    if not paths:
+    bag = is_bag(folder)
+    if bag and topic is None:
+        topics = bag_topics(folder)
+        raise SDPError(f"{folder}: a ROS bag: give --topic, one of its PointCloud2 topics "
+                       f"({', '.join(f'{t} ({n} messages)' for t, n in sorted(topics.items())) or 'none'})")
+    if topic is not None and not bag:
+        raise SDPError(f"{folder}: --topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if not bag and not folder.is_dir():
+        raise SDPError(f"{folder}: not a folder of frames nor a ROS bag")
+    paths = [] if bag else sorted((p for p in folder.iterdir() if p.suffix.lower() in FORMATS and p.is_file()),
+                                  key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+    if not bag and not paths:
         raise SDPError(f"{folder}: no point-cloud files ({', '.join(sorted(FORMATS))})")
     coverage = Coverage() if coverage is None else coverage
     choice = coverage.sensor_origin
@@ -218,7 +246,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
         ref = read_points(reference, format=format)
         origin = sensor_origins(choice, (reference, ref), (reference, ref))
         origin = origin[0] if isinstance(origin, np.ndarray) else origin
-    stream = ((p.name, read_points(p, format=format)) for p in paths)
+    stream = bag_frames(folder, topic) if bag else ((p.name, read_points(p, format=format)) for p in paths)
     return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
                  min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin))
 
@@ -256,15 +284,24 @@ def evaluate_files(predicted, truth, *, predicted_field: str = "change", truth_f
     from ..change._coverage import CHANGED, NOT_COMPARABLE
     from ..change._metrics import scores
 
-    values = []
+    values, clouds = [], []
     for path, name in ((predicted, predicted_field), (truth, truth_field)):
         c = read_points(path, format=format)
         if name not in c.fields:
             raise SDPError(f"{path}: no per-point field {name!r} (fields: {', '.join(sorted(c.fields)) or 'none'})")
-        values.append(np.asarray(c.fields[name]))
+        v = np.asarray(c.fields[name])
+        if v.ndim != 1:
+            raise SDPError(f"{path}: field {name!r} holds {v.shape[1:]} values per point; give a field of one label "
+                           "per point")
+        if v.dtype.kind == "f" and not np.isfinite(v).all():
+            raise SDPError(f"{path}: field {name!r} has {int((~np.isfinite(v)).sum()):,} labels that are not numbers "
+                           "(NaN or infinite)")
+        values.append(v)
+        clouds.append(c)
     if len(values[0]) != len(values[1]):
         raise SDPError(f"{predicted} has {len(values[0]):,} points and {truth} {len(values[1]):,}: "
                        "they must be the same points in the same order")
+    _check_same_points(clouds[0], clouds[1])
     if predicted_field == "change":  # sdp's field: 1 changed, 2 not comparable (scored apart)
         changed, comparable = values[0] == CHANGED, values[0] != NOT_COMPARABLE
     else:  # any other field: nonzero is changed
@@ -273,6 +310,19 @@ def evaluate_files(predicted, truth, *, predicted_field: str = "change", truth_f
     sc = scores(true, changed, comparable=comparable)
     comparable = np.ones(len(true), bool) if comparable is None else comparable
     return Evaluation(sc, len(true), int(changed.sum()), int(true[comparable].sum()))
+
+
+def _check_same_points(a, b) -> None:
+    """Refuse two files whose points differ by more than their files' rounding: LAS keeps 1 mm
+    (or its own scale), PLY and PCD float32 (a relative 6e-8), so a point may move by that much
+    between a file and its labelled copy."""
+    scale = max(float(np.abs(a.xyz).max()), float(np.abs(b.xyz).max()))
+    tolerance = 1e-3 + 1e-6 * scale
+    gap = np.abs(a.xyz - b.xyz).max(axis=1)
+    worst = int(np.argmax(gap))
+    if gap[worst] > tolerance:
+        raise SDPError(f"{a.path} and {b.path} are not the same points in the same order (point {worst:,} is "
+                       f"{gap[worst]:.4g} apart; {int((gap > tolerance).sum()):,} points differ)")
 
 
 def render_file(path, *, png=None, html=None, field: str = "change", format: str | None = None) -> list[str]:

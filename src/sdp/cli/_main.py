@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import os
 import signal
 import sys
@@ -21,6 +20,7 @@ import warnings
 from .. import __version__
 from .._core import _progress
 from .._core import _validate as V
+from .._core._json import dumps
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none
@@ -31,7 +31,7 @@ from . import _distance as D
 from . import _examples as X
 from . import _files as F
 from . import _series as S
-from ._text import action_eval_text, alignment_text, frame_text, train_text, written_text
+from ._text import action_eval_text, action_splits_text, alignment_text, frame_text, train_text, written_text
 from ._warmup import first_run
 
 
@@ -95,17 +95,29 @@ def _say(message: str) -> None:
         print(f"sdp: {message}", file=sys.stderr)
 
 
+def _print(text: str) -> None:
+    """``text`` on stdout, flushed: before the outputs are committed, so a full stdout fails the
+    command (nothing written); a reader that has gone (``| head``) is not a failure, and the
+    rest is dropped."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush too
+    except OSError as exc:
+        raise SDPError(f"standard output: {exc.strerror or exc}") from None
+
+
 def _line(text: str) -> None:
     """A line of a command's text on stdout (flushed: commands that stream print as they go), unless ``--quiet``."""
     if not _quiet:
-        print(text, flush=True)
+        _print(text)
 
 
 def _show(text: str, summary=None, as_json: bool = False) -> int:
     """Print ``text`` (not with ``--quiet``), or ``summary`` as JSON (``--json``, and ``sdp info``,
     whose answer is JSON: also with ``--quiet``); exit status 0."""
     if as_json:
-        print(json.dumps(summary, indent=2))
+        _print(dumps(summary))
     elif text:
         _line(text)
     return 0
@@ -118,13 +130,13 @@ def cmd_change(a):
                         outputs=Outputs(both=a.both, png=a.png, html=a.html, report=a.report, aligned=a.aligned_output),
                         lattice=_lattice(a), coverage=_coverage(a),
                         align=_registration(a), execution=_execution(a, None if a.json else _say),
-                        decision=a.decision, min_region_points=a.min_region_points)
+                        decision=a.decision, min_region_points=a.min_region_points, topic=a.topic)
     return _show(r.summary_text(), r.summary, a.json)
 
 
 def cmd_distance(a):
     r = D.distance_files(a.reference, a.current, output=a.output, core_points=a.core_points,
-                         outputs=Outputs(png=a.png, report=a.report), format=a.format,
+                         outputs=Outputs(png=a.png, report=a.report, field_names=a.field_names), format=a.format,
                          cylinder=Cylinder(projection_scale=a.projection_scale, normal_scale=a.normal_scale,
                                            max_distance=a.max_distance),
                          registration_error=a.registration_error, orientation=a.orientation,
@@ -191,7 +203,7 @@ def cmd_align(a):
 def cmd_watch(a):
     frames = F.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
                             update=a.update, window=a.window, decay=a.decay, min_region_points=a.min_region_points,
-                            align=a.align, coverage=_coverage(a))
+                            align=a.align, coverage=_coverage(a), topic=a.topic)
     if a.json:
         return _show("", [r.summary() for r in frames], as_json=True)
     for r in frames:  # a line per frame, as it comes (the frames are compared as they are iterated)
@@ -209,8 +221,8 @@ def cmd_action(a):
         return 0
     if a.action_command == "predict":
         return _show("\n".join(f"{path}: a{label:02d}" for path, label in A.predict_actions(a.model, a.sequences)))
-    s = A.evaluate_actions(a.data_dir, workers=a.workers)
-    return _show(action_eval_text(s), s, a.json)
+    s = A.evaluate_actions(a.data_dir, splits=a.splits, workers=a.workers)
+    return _show((action_splits_text if a.splits == "all" else action_eval_text)(s), s, a.json)
 
 
 def cmd_eval(a):
@@ -272,14 +284,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("-o", "--output", required=True, help="labelled current cloud (.ply, .las, .laz, .npz)")
     c.add_argument("--both", action="store_true",
                    help="also write the disappeared reference points (OUTPUT_disappeared)")
-    c.add_argument("--decision", choices=("point", "cluster"), default=DEFAULTS.decision,
-                   help="point (default: Algorithm 1 per point) or cluster (the paper's clustering)")
+    c.add_argument("--decision", choices=("point", "density", "cluster", "combined"), default=DEFAULTS.decision,
+                   help="point or density (the same: Algorithm 1 per point, by density), cluster (the paper's "
+                        "clustering) or combined (density or the distance beyond its level of detection; "
+                        "writes the distance and lod fields)")
     c.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=DEFAULTS.min_region_points,
                    help="drop change regions with fewer points (default 50: smaller ones are noise and depth edges)")
     c.add_argument("--png", help="write a picture of the appeared points")
     c.add_argument("--html", help="write an interactive 3D view (needs the html extra: plotly)")
     c.add_argument("--report", help=X.REPORT_HELP)
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
+    c.add_argument("--topic", metavar="TOPIC[:N]", help="a ROS bag input: the PointCloud2 message of TOPIC to compare "
+                   "(its first, or its N-th from 0; -1 the last)")
     c.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
     _align_options(c)
@@ -309,6 +325,8 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--orientation", metavar="X,Y,Z", help="normals point this way without a sensor (default 0,0,1)")
     ds.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
                     help="normals point towards the sensor (auto: where a file records it)")
+    ds.add_argument("--field-names", choices=("sdp", "cloudcompare", "pdal"), default=DEFAULTS.field_names,
+                    help="name the output's fields as sdp (default), CloudCompare's M3C2 or PDAL's filters.m3c2 do")
     ds.add_argument("--png", help="map of the significant distances and their histogram")
     ds.add_argument("--report", help=X.REPORT_HELP)
     ds.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -381,12 +399,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     w = _command(sub, "watch", cmd_watch, "compare each frame of a folder, in order, with a model that learns", X.WATCH)
     w.add_argument("reference", help="cloud or field (.sdpf) of the scene before the frames")
-    w.add_argument("frames", help="folder of frames, processed in natural name order")
+    w.add_argument("frames", help="folder of frames, processed in natural name order, or a ROS bag (with --topic)")
+    w.add_argument("--topic", help="the sensor_msgs/PointCloud2 topic of a ROS 1 or ROS 2 bag (the scans extra)")
     w.add_argument("--update", choices=("none", "window", "decay"), default=DEFAULTS.update,
                    help="how the model learns the frames (default window: learns the last frames, forgets the rest)")
-    w.add_argument("--window", type=V.cli_type(V.integer_at_least, 1), default=DEFAULTS.window,
-                   help="frames in the model, reference included (default 10)")
-    w.add_argument("--decay", type=float, default=DEFAULTS.decay, help="per-frame forgetting factor for --update decay")
+    w.add_argument("--window", type=V.cli_type(V.integer_at_least, 1),
+                   help=f"frames in the model for --update window, reference included (default {DEFAULTS.window})")
+    w.add_argument("--decay", type=V.cli_type(V.finite),
+                   help=f"per-frame forgetting factor for --update decay (default {DEFAULTS.decay})")
     w.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=DEFAULTS.min_region_points,
                    help="drop appeared regions with fewer points (default 50)")
     w.add_argument("--voxel-size", default=DEFAULTS.voxel_size, type=V.cli_type(V.auto_or_positive),
@@ -418,9 +438,12 @@ def build_parser() -> argparse.ArgumentParser:
     ev = asub.add_parser("eval", help="the cross-subject protocol: accuracy on AS1, AS2, AS3 and all")
     ev.add_argument("data_dir")
     ev.add_argument("--json", action="store_true", help="print the accuracies (fractions) and timings as JSON")
+    ev.add_argument("--splits", choices=("standard", "all"), default="standard",
+                    help="standard: train on subjects 1,3,5,7,9 (default); all: every five-subject training set "
+                         "(252), the mean, spread and the standard split's place")
     for q in (t, ev):
         q.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1), default=os.cpu_count() or 1,
-                       help="processes reading sequences")
+                       help="processes reading sequences (and, with --splits all, sharing the splits)")
 
     e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth", X.EVAL)
     e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
@@ -459,9 +482,26 @@ class _Terminated(BaseException):
     (temporary outputs, the tiles' work folder, the Dask cluster) before the process ends."""
 
 
-def _on_sigterm(signum, frame):
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not cut the clean-up short
-    raise _Terminated()
+#: The signal that ended the command (SIGINT or SIGTERM), if one did. A library calling back into
+#: Python (lazrs writing LAZ) turns the exception a handler raises into its own error: the
+#: signal, not the exception, says the command was interrupted.
+_signalled: int | None = None
+#: The command has committed its outputs or ended: a signal now comes too late to stop anything.
+_finished = False
+
+
+def _finish() -> None:
+    global _finished
+    _finished = True
+
+
+def _on_signal(signum, frame):
+    global _signalled
+    if _finished:
+        return
+    _signalled = signum
+    signal.signal(signum, signal.SIG_IGN)  # a second one must not cut the clean-up short
+    raise KeyboardInterrupt() if signum == signal.SIGINT else _Terminated()
 
 
 def _one_line(exc: BaseException) -> str:
@@ -469,44 +509,82 @@ def _one_line(exc: BaseException) -> str:
     return lines[0] if lines else type(exc).__name__
 
 
-def main(argv=None) -> int:
-    global _quiet
-    args = build_parser().parse_args(argv)
+def _error(exc: BaseException) -> int | None:
+    """The one line on stderr and the exit status of a command that raised ``exc`` (None: a bug,
+    whose traceback is shown)."""
+    if _signalled is not None or isinstance(exc, (KeyboardInterrupt, _Terminated)):
+        term = _signalled == signal.SIGTERM or isinstance(exc, _Terminated)
+        print(f"sdp: {'terminated' if term else 'interrupted'}", file=sys.stderr)
+        return 128 + (signal.SIGTERM if term else signal.SIGINT)
+    if isinstance(exc, BrokenPipeError):  # output piped into head & co.
+        sys.stderr.close()
+        return 0
+    if isinstance(exc, (SDPError, ValueError)):
+        message = _one_line(exc)
+    elif isinstance(exc, MemoryError):
+        message = "out of memory: use a larger --voxel-size or a lower --memory-limit"
+    elif isinstance(exc, OSError):  # a disk full, a file vanishing: said in one line
+        message = f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or _one_line(exc)}"
+    else:
+        return None
+    print(f"sdp: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _dash_values(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
+    """``argv`` with an option's value that starts with a dash attached to it (``--memory-limit
+    -5GB`` → ``--memory-limit=-5GB``, ``--orientation -1,0,0``): argparse takes such a value for
+    another option and says the option "expected one argument"; attached, the value is checked
+    and refused or used as any other."""
+    takes_value, options = set(), set()
+    stack = [parser]
+    while stack:
+        p = stack.pop()
+        for action in p._actions:
+            options.update(action.option_strings)
+            if action.option_strings and action.nargs not in (0, "?", "*"):
+                takes_value.update(action.option_strings)
+            if isinstance(action, argparse._SubParsersAction):
+                stack.extend(action.choices.values())
+    out = []
+    for token in argv:
+        if out and out[-1] in takes_value and token.startswith("-") and token not in options and token != "--":
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
+
+
+def main(argv=None, *, restore_signals: bool = True) -> int:
+    """Run the ``sdp`` command line ``argv`` (default ``sys.argv[1:]``); returns the exit status.
+
+    Ctrl-C and SIGTERM end a command with 130 or 143 and nothing written; once its outputs are
+    committed, they are ignored (with ``restore_signals=False``, as :func:`run` calls it, until
+    the process ends; else the previous handlers are put back)."""
+    global _quiet, _signalled, _finished
+    parser = build_parser()
+    args = parser.parse_args(_dash_values(parser, list(sys.argv[1:] if argv is None else argv)))
     quiet = getattr(args, "quiet", False)
     _progress.enable(not (quiet or getattr(args, "json", False)))
     in_main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
-    _quiet = quiet
+    _quiet, _signalled, _finished = quiet, None, False
+    previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)} if in_main else {}
     try:
         # a command writes all its outputs or none; with --quiet, warnings (not errors) are not shown
-        with all_or_none(), warnings.catch_warnings():
+        with all_or_none(on_commit=_finish), warnings.catch_warnings():
             if quiet:
                 warnings.simplefilter("ignore")
             with first_run(args.command, quiet=quiet):
                 return args.func(args)
-    except (SDPError, ValueError) as exc:
-        print(f"sdp: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
-    except MemoryError:
-        print("sdp: error: out of memory: use a larger --voxel-size or a lower --memory-limit", file=sys.stderr)
-        return 2
-    except BrokenPipeError:  # output piped into head & co.
-        sys.stderr.close()
-        return 0
-    except OSError as exc:  # a disk full, a file vanishing: said in one line
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"sdp: error: {where}{exc.strerror or _one_line(exc)}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("sdp: interrupted", file=sys.stderr)
-        return 130
-    except _Terminated:
-        print("sdp: terminated", file=sys.stderr)
-        return 128 + signal.SIGTERM
+    except BaseException as exc:
+        status = _error(exc)
+        if status is None:
+            raise
+        return status
     finally:
-        _quiet = False
-        if in_main:
-            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        _quiet, _finished = False, True
+        for s, handler in previous.items() if restore_signals else ():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
 
 
 def run() -> None:
@@ -527,7 +605,7 @@ def run() -> None:
     young, middle, _ = gc.get_threshold()
     gc.set_threshold(young, middle, 100)
     try:
-        status = main()
+        status = main(restore_signals=False)
     finally:
         gc.freeze()
     sys.exit(status)

@@ -117,6 +117,23 @@ def action_eval_text(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def action_splits_text(s: dict) -> str:
+    """The lines of ``sdp action eval --splits all`` from :func:`sdp.cli.evaluate_actions`."""
+    lines = [f"{s['sequences']} sequences, {s['protocol']}: test accuracy over the splits",
+             f"{'':8s} {'mean':>6s} {'std':>6s} {'min':>6s} {'max':>6s}   standard split (1,3,5,7,9)"]
+    for name, v in s["summary"].items():
+        place = (f"   {v['standard']:.3f}: rank {v['standard_rank']} of {s['splits']}, percentile "
+                 f"{v['standard_percentile']:.0f}" if "standard" in v else "")
+        lines.append(f"{name:8s} {v['mean']:6.3f} {v['std']:6.3f} {v['min']:6.3f} {v['max']:6.3f}{place}")
+    worst = sorted((acc, a) for a, acc in zip(s["confusion"]["all"]["actions"], s["confusion"]["all"]["accuracy"],
+                                              strict=True) if acc is not None)[:3] if "all" in s["confusion"] else []
+    if worst:
+        lines.append("hardest actions (all 20, summed over the splits): "
+                     + ", ".join(f"a{a:02d} {acc:.0%}" for acc, a in worst))
+    lines.append("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in s["timings"].items()))
+    return "\n".join(lines)
+
+
 def distance_text(s: dict, reference, current) -> str:
     """The table of ``sdp distance``."""
     n = max(s["core_points"], 1)

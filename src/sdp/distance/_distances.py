@@ -77,11 +77,12 @@ import numpy as np
 import numpy.typing as npt
 
 from .._core._cells import BITS, MAX_INDEX, cell_keys, sorted_cells, table_row
+from .._core._kdtree import k_nearest
 from .._core._memory import check_memory
 from .._core._memory import memory_limit as grid_memory_limit
 from .._core._points import as_points
-from .._core._validate import auto_or_positive, nonnegative_finite
-from ..change._visibility import resolve_sensor_origins
+from .._core._validate import auto_or_positive, direction, nonnegative_finite
+from ..change._visibility import resolve_sensor_origins, scanner_of_points
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
@@ -135,6 +136,10 @@ class Distances:
         Seconds per step.
     tiles : int
         Tiles the work was cut into (:func:`sdp.distances_tiled`); 0: in memory.
+    mean1 : ndarray (m,) float64 or None
+        Offset of the reference's weighted mean from the core point along ``normal`` (where
+        the reference surface lies): a point's own distance to it is ``(p − core)·normal −
+        mean1`` (:mod:`sdp.distance._noise`); None in tiles.
     """
 
     core_points: np.ndarray
@@ -154,6 +159,7 @@ class Distances:
     orientation: str
     timings: dict = field(default_factory=dict)
     tiles: int = 0
+    mean1: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def comparable(self) -> np.ndarray:
@@ -272,22 +278,17 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     L_opt = auto_or_positive("max_distance", cylinder.max_distance)
     reg = nonnegative_finite("registration_error", registration_error)
     grid_memory_limit(memory_limit)  # readable and positive, before any work
-    if orientation is None:
-        towards = np.array([0.0, 0.0, 1.0])
-    else:
-        towards = np.asarray(orientation, np.float64).reshape(-1)
-        if towards.shape != (3,) or not np.isfinite(towards).all() or not np.any(towards):
-            raise InvalidOptionError(f"orientation must be a nonzero finite vector (x, y, z), got {orientation!r}")
-        towards = towards / np.linalg.norm(towards)
+    towards = np.array([0.0, 0.0, 1.0]) if orientation is None else direction("orientation", orientation)
     origins = resolve_sensor_origins(sensor_origin, reference, current)
     if core_points is None or (isinstance(core_points, str) and core_points == "reference"):
-        core, sensor = ref.xyz, origins[0]
+        core, sensor = ref.xyz, _sensor_per_point(origins[0], reference, ref.xyz)
     elif isinstance(core_points, str):
         if core_points != "current":
             raise InvalidOptionError(f"core_points must be points, 'reference' or 'current', got {core_points!r}")
-        core, sensor = cur.xyz, origins[1]
+        core, sensor = cur.xyz, _sensor_per_point(origins[1], current, cur.xyz)
     else:
-        core, sensor = as_points(core_points, name="core points").xyz, origins[0]
+        core = as_points(core_points, name="core points").xyz
+        sensor = _sensor_per_point(origins[0], reference, ref.xyz, core)
     timings = {"validate": time.perf_counter() - t0}
 
     t = time.perf_counter()
@@ -317,6 +318,9 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
                  memory_limit, advice="measure at fewer core points (core_points=), or compare in tiles")
     timings["scales"] = time.perf_counter() - t
 
+    if D_opt != "auto" and np.max(hi - lo) / (D_opt / 4.0) >= MAX_INDEX - 4:  # its cells are a quarter of it
+        raise InvalidOptionError(f"the clouds span {np.max(hi - lo):g} units, more than 2**{BITS} cells of "
+                                 f"normal_scale / 4 = {D_opt / 4:g}: give a larger normal_scale, or compare in tiles")
     lists = _CellLists(lo, hi)
     cur_lists = lists if np.array_equal(cur_lo, lo) else _CellLists(cur_lo, hi)
     t = time.perf_counter()
@@ -341,10 +345,10 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     if missing.any():  # no reference point near: the current's surface gives the direction
         normal[missing] = cur_lists.normals(cur.xyz, centroids[missing], sigma_n)[0]
     normal = np.repeat(normal, per_cell, axis=0)
-    if sensor is not None:
-        facing = np.asarray(sensor, np.float64)[None, :] - core_sorted
+    if sensor is not None:  # one position (3,), or each core point's own scanner (m, 3)
+        facing = (sensor[order] if sensor.ndim == 2 else sensor[None, :]) - core_sorted
         flip = np.einsum("ij,ij->i", normal, facing) < 0
-        how = "towards the sensor"
+        how = "towards the sensor" if sensor.ndim == 1 else "towards each point's scanner"
     else:
         flip = normal @ towards < 0
         how = f"towards ({towards[0]:g}, {towards[1]:g}, {towards[2]:g})"
@@ -362,11 +366,13 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     out_normal, level = np.empty((m, 3)), np.empty(m, np.int8)
     _results(order, stats[0], stats[1], normal, reg, reach, dist, lod, n1, n2, s1, s2, out_normal, level)
     normal = out_normal
+    mean1 = np.full(m, np.nan)
+    mean1[order] = stats[0][0]
     timings["total"] = time.perf_counter() - t0
     return Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
                      n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
                      projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
-                     registration_error=reg, orientation=how, timings=timings)
+                     registration_error=reg, orientation=how, timings=timings, mean1=mean1)
 
 
 def cells_below(corner: np.ndarray, lowest: np.ndarray, cell: float) -> np.ndarray:
@@ -750,3 +756,15 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
         out[i, 0] = m
         out[i, 1] = math.sqrt(var)
         out[i, 2] = n_eff
+
+
+def _sensor_per_point(origins, cloud, xyz: np.ndarray, core: np.ndarray | None = None) -> np.ndarray | None:
+    """The sensor the normals face: one position (3,), or with several scanners (k, 3) each
+    point's own (m, 3), the scanner of ``cloud``'s points (:attr:`sdp.Cloud.scan`), or for other
+    ``core`` points that of their nearest point of ``cloud``."""
+    if origins is None or np.ndim(origins) == 1:
+        return None if origins is None else np.asarray(origins, np.float64)
+    scan = scanner_of_points(cloud, origins, len(xyz))
+    if core is not None:
+        scan = scan[k_nearest(xyz, core, 1)[:, 0]]
+    return np.asarray(origins, np.float64)[scan]

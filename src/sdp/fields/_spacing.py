@@ -119,7 +119,8 @@ def resolve_lattice(clouds: Sequence[Points], *, voxel_size: float | str | None 
     if automatic:
         if voxel_size not in (None, "auto"):
             raise InvalidOptionError(f"voxel_size must be a length or 'auto', got {voxel_size!r}")
-        return auto_voxel_size_of(clouds, k=int(round(k)), sigma_voxels=sv), sv
+        # the threshold's k as the neighbour rank; a k below 1 (h down to 1) still spaces by the nearest
+        return auto_voxel_size_of(clouds, k=max(1, int(round(k))), sigma_voxels=sv), sv
     return positive_finite("voxel_size", voxel_size), sv
 
 

@@ -21,7 +21,7 @@ __all__ = ["Cloud", "CloudFileError", "FORMATS", "input_format", "library_error"
 
 #: Extension → format name understood by :func:`sdp.io.read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
-           ".csv": "text", ".pts": "text", ".npy": "npy", ".npz": "npz"}
+           ".csv": "text", ".pts": "text", ".npy": "npy", ".npz": "npz", ".e57": "e57"}
 
 _DEFAULT_VIEWPOINT = np.array([0.0, 0, 0, 1, 0, 0, 0])  # PCL's VIEWPOINT when the sensor pose is unset
 
@@ -83,6 +83,10 @@ class Cloud:
         ``sensor_orientation_`` there; ``0 0 0 1 0 0 0`` when unset). None for other formats.
     organized : bool
         The file is an organized PCD (HEIGHT > 1: one point per pixel or ray).
+    sensors : ndarray (k, 3) float64 or None
+        Where each scanner stood (an E57 file's scan poses; one row per scan), in the cloud's
+        frame; the ``scan`` field (:attr:`scan`) says which of them saw each point. None when
+        the file records no scanner this way.
     """
 
     xyz: np.ndarray
@@ -93,6 +97,7 @@ class Cloud:
     viewpoint: np.ndarray | None = None
 
     organized: bool = False
+    sensors: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -104,11 +109,32 @@ class Cloud:
         An organized PCD (an image of the sensor's rays) always says: ``viewpoint[:3]``. An
         unorganized PCD says only if its VIEWPOINT is not PCL's default ``0 0 0 1 0 0 0``
         (the header every merged or filtered map carries). Other formats say nothing.
-        :func:`sdp.detect_changes` uses it by default (``sensor_origin="auto"``).
+        :func:`sdp.detect_changes` uses it by default (``sensor_origin="auto"``). A cloud of one
+        scanner (:attr:`sensors` of one row) says where it stood; one of several says None here
+        (see :attr:`sensor_origins`).
         """
+        if self.sensors is not None:
+            return self.sensors[0].copy() if len(self.sensors) == 1 else None
         if self.viewpoint is None or not (self.organized or np.any(self.viewpoint != _DEFAULT_VIEWPOINT)):
             return None
         return self.viewpoint[:3].copy()
+
+    @property
+    def scan(self) -> np.ndarray | None:
+        """Which scanner (row of :attr:`sensors`) saw each point (n,), or None without :attr:`sensors`."""
+        if self.sensors is None:
+            return None
+        scan = self.fields.get("scan")
+        return np.zeros(len(self.xyz), np.int64) if scan is None else np.asarray(scan, np.int64)
+
+    @property
+    def sensor_origins(self) -> np.ndarray | None:
+        """Every scanner's position (k, 3): :attr:`sensors`, else :attr:`sensor_origin` as one
+        row, else None."""
+        if self.sensors is not None:
+            return self.sensors.copy()
+        one = self.sensor_origin
+        return None if one is None else one[None, :]
 
     def transformed(self, matrix: np.ndarray) -> "Cloud":
         """The cloud moved by a rigid 4×4 ``matrix`` (e.g. :attr:`sdp.Alignment.matrix`), its
@@ -123,17 +149,18 @@ class Cloud:
             turned = Rotation.from_matrix(m[:3, :3]) * Rotation.from_quat([q[1], q[2], q[3], q[0]])
             x, y, z, w = turned.as_quat()
             viewpoint = np.r_[m[:3, :3] @ self.viewpoint[:3] + m[:3, 3], w, x, y, z]
-        return replace(self, xyz=np.ascontiguousarray(xyz), viewpoint=viewpoint)
+        sensors = None if self.sensors is None else self.sensors @ m[:3, :3].T + m[:3, 3]
+        return replace(self, xyz=np.ascontiguousarray(xyz), viewpoint=viewpoint, sensors=sensors)
 
 
 def input_format(path: Path, format: str | None) -> str:
     """The reader's format name for ``path`` (``format`` overrides the extension), once ``path``
     is known to be an existing file; else :class:`CloudFileError` saying what is wrong."""
     names = sorted(set(FORMATS.values()))
-    if format is not None:
-        if format not in names:
+    if format is not None:  # a format name or an extension, in any case: "PLY", "laz", ".xyz"
+        fmt = FORMATS.get("." + format.lower().lstrip("."), format.lower())
+        if fmt not in names:
             raise CloudFileError(f"unknown format {format!r}; use one of {', '.join(names)}")
-        fmt = format
     else:
         fmt = FORMATS.get(path.suffix.lower())
         if fmt is None:

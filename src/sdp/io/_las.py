@@ -48,7 +48,7 @@ def check_las_counts(path) -> None:
 
     size = Path(path).stat().st_size
     with open(path, "rb") as f:
-        head = f.read(247)
+        head = f.read(255)
     if head[:4] != b"LASF":
         raise CloudFileError(f"{path}: can't read as las (no LASF signature: not a LAS/LAZ file)")
     if len(head) < 227:
@@ -70,6 +70,10 @@ def check_las_counts(path) -> None:
                 if n_chunks > size:
                     raise CloudFileError(f"{path}: corrupt LAZ chunk table ({n_chunks:,} chunks in a file of "
                                          f"{size:,} bytes)")
+    if head[24:26] == b"\x01\x04" and len(head) >= 255:  # LAS 1.4: a 64-bit count beside the legacy one
+        (legacy,), (count,) = struct.unpack_from("<I", head, 107), struct.unpack_from("<Q", head, 247)
+        if legacy and legacy != count:  # legacy 0: more than 2**32 points, or a format it can't name
+            raise CloudFileError(f"{path}: corrupt LAS header: it counts {legacy:,} points and {count:,}")
     if head[24:26] == b"\x01\x04" and len(head) >= 247:  # LAS 1.4: extended VLRs at the end
         start, n_evlrs = struct.unpack_from("<QI", head, 235)
         if n_evlrs and (start > size or 60 * n_evlrs > size):
@@ -88,6 +92,40 @@ def check_las_points(path, header) -> None:
         if have < need:
             raise CloudFileError(f"{path}: truncated: the LAS header announces {n:,} points ({need:,} bytes) but the "
                                  f"file holds {have:,} bytes")
+        evlrs = int(getattr(header, "start_of_first_evlr", 0) or 0)
+        end = evlrs if evlrs >= need else have  # LAS 1.4 puts extended records after the points
+        if end - need >= int(header.point_format.size):
+            raise CloudFileError(f"{path}: the LAS header announces {n:,} points, the file holds "
+                                 f"{(end - int(header.offset_to_point_data)) // int(header.point_format.size):,}")
+    else:
+        _check_laz_chunks(path, header, n)
+
+
+def _check_laz_chunks(path, header, n: int) -> None:
+    """Refuse a LAZ whose header count disagrees with its chunk table: the table lists each chunk's
+    points (variable chunks) or holds chunks of a fixed size, only the last one shorter."""
+    import lazrs
+
+    vlr = next((v for v in header.vlrs if getattr(v, "record_id", None) == 22204), None)
+    if vlr is None:
+        return  # laspy reports a LAZ without its laszip record
+    with open(path, "rb") as f:
+        f.seek(int(header.offset_to_point_data))
+        try:
+            laz = lazrs.LazVlr(vlr.record_data)
+            table = lazrs.read_chunk_table(f, laz)
+        except Exception:  # a table that can't be read: laspy says so when it reads the points
+            return
+    if not table:
+        return
+    size = int(laz.chunk_size())
+    if size == 0xFFFFFFFF:  # variable chunks: the table counts every point
+        stored = sum(int(c) for c, _ in table)
+        if stored != n:
+            raise CloudFileError(f"{path}: the LAS header announces {n:,} points, the LAZ chunk table {stored:,}")
+    elif not (len(table) - 1) * size < n <= len(table) * size:
+        raise CloudFileError(f"{path}: the LAS header announces {n:,} points, the LAZ chunk table holds "
+                             f"{len(table):,} chunks of {size:,}")
 
 
 def las_scale_offset(lo, hi, path=None) -> tuple[np.ndarray, np.ndarray]:

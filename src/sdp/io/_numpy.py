@@ -13,8 +13,19 @@ __all__ = ["read_npy", "read_npz", "write_npz"]
 
 
 def read_npy(path):
-    """``(xyz, {}, None)`` of an NPY file (its shape is checked by the caller)."""
-    return np.load(path, allow_pickle=False), {}, None
+    """``(xyz, fields, None)`` of an NPY file: an (n, 3) array (its shape and type are checked by
+    the caller), or a structured array with fields x, y, z (its other fields kept)."""
+    a = np.load(path, allow_pickle=False)
+    if not isinstance(a, np.ndarray):  # np.load opens a zip archive whatever its name
+        a.close()
+        raise CloudFileError(f"{path}: an NPZ archive, not an NPY array: name it .npz (or give format npz)")
+    if a.dtype.names is None:
+        return a, {}, None
+    if not {"x", "y", "z"} <= set(a.dtype.names) or a.ndim != 1:
+        raise CloudFileError(f"{path}: a structured array needs fields x, y, z in one dimension (has "
+                             f"{list(a.dtype.names)}, shape {a.shape})")
+    fields = {k: a[k] for k in a.dtype.names if k not in ("x", "y", "z") and a[k].ndim == 1}
+    return np.c_[a["x"], a["y"], a["z"]], fields, None
 
 
 def read_npz(path):
@@ -31,5 +42,9 @@ def read_npz(path):
 
 
 def write_npz(tmp: Path, xyz: np.ndarray, fields: dict[str, np.ndarray]) -> None:
-    """Write ``xyz`` and the fields, each as its own array, compressed."""
-    np.savez_compressed(tmp, xyz=xyz, **fields)
+    """Write ``xyz`` and the fields, each as its own array, compressed.
+
+    Written through an open file: given a name, NumPy appends ``.npz`` to any name that does not
+    end in exactly that (``OUT.NPZ``), and the data would land beside the file named."""
+    with open(tmp, "wb") as fh:
+        np.savez_compressed(fh, xyz=xyz, **fields)

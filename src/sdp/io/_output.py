@@ -11,20 +11,27 @@ and :func:`write_mesh` pick the format's writer by file extension.
 from __future__ import annotations
 
 import os
+import re
+import signal
 import tempfile
+import threading
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import SDPError
+from ..errors import InvalidPointsError, SDPError
 from ._cloud import Cloud, CloudFileError
 from ._las import write_las
 from ._numpy import write_npz
 from ._ply import write_ply, write_ply_mesh
 
 __all__ = ["check_outputs", "refuse_overwrite", "all_or_none", "atomic_path", "write_points", "write_mesh"]
+
+
+def _main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
 
 
 def _umask() -> int:
@@ -106,17 +113,39 @@ def refuse_overwrite(path: str | os.PathLike, inputs=()) -> None:
 _PENDING: ContextVar[list | None] = ContextVar("sdp_pending_outputs", default=None)
 
 
+_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 @contextmanager
-def all_or_none():
+def all_or_none(*, on_commit=None):
     """Within the block, every :func:`atomic_path` (every writer of sdp) keeps its finished file
     under its temporary name; they are all renamed when the block succeeds, all removed when it
-    fails: a command writes all its outputs or none (``sdp`` runs each command inside one)."""
+    fails: a command writes all its outputs or none (``sdp`` runs each command inside one).
+
+    Nested in another, the block hands its files to the outer one: a function that writes its
+    outputs as one (:func:`sdp.compare_files`) commits nothing before the command around it has
+    also printed its summary (stdout on a full disk fails the command, and nothing is written).
+
+    The renames run with Ctrl-C and SIGTERM held back (in the main thread), then ``on_commit()``:
+    a signal arriving meanwhile is delivered after both, when the command is complete, and the
+    program can tell it came too late to stop anything."""
+    outer = _PENDING.get()
+    if outer is not None:
+        yield
+        return
     pending: list[tuple[str, Path]] = []
     token = _PENDING.set(pending)
     try:
         yield
-        for tmp, path in pending:
-            os.replace(tmp, path)
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS) if _main_thread() else None
+        try:
+            for tmp, path in pending:
+                os.replace(tmp, path)
+            if on_commit is not None:
+                on_commit()
+        finally:
+            if held is not None:
+                signal.pthread_sigmask(signal.SIG_SETMASK, held)
     finally:
         _PENDING.reset(token)
         for tmp, _ in pending:
@@ -135,13 +164,20 @@ def atomic_path(path: str | os.PathLike, *, inputs=()):
     if path.is_dir():
         raise SDPError(f"{path}: is an existing directory; choose a file name for the output")
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+        # the suffix in lower case, as the writers match it (a library choosing by extension, or
+        # completing one, sees the format's usual name)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix.lower(), dir=path.parent)
     except OSError as exc:
         raise SDPError(f"{path}: can't create files in {str(path.parent)!r} ({exc.strerror or exc})") from None
     pending, deferred = _PENDING.get(), False
     try:
         os.close(fd)
-        yield Path(tmp)
+        try:
+            yield Path(tmp)
+        except SDPError as exc:  # a writer's message may name the temporary file: name the output
+            raise type(exc)(str(exc).replace(str(tmp), str(path))) from None
+        except OSError as exc:  # a full disk, a quota: said of the output, not of its temporary name
+            raise SDPError(f"{path}: can't write ({exc.strerror or exc})") from None
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp made it private; give it a new file's mode
         if pending is not None:
             pending.append((tmp, path))
@@ -178,10 +214,10 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
     >>> folder.cleanup()
     """
     path = Path(path)
-    fields = dict(fields or {})
     ext = path.suffix.lower()
     if ext not in (".ply", ".las", ".laz", ".npz"):
         raise CloudFileError(f"{path}: can't write {ext or 'files without extension'}; use .ply, .las, .laz or .npz")
+    xyz, fields = _checked_points(path, xyz, fields)
     with atomic_path(path, inputs=inputs) as tmp:
         if ext == ".ply":
             write_ply(tmp, xyz, fields)
@@ -190,6 +226,37 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
         else:
             write_las(tmp, xyz, fields, like, compressed=ext == ".laz")
     return path
+
+
+_PLY_NAME = re.compile(r"\S+\Z")
+_LAS_NAME_BYTES = 32  # an extra-bytes record's name field (ASPRS LAS 1.4, table 24)
+
+
+def _checked_points(path: Path, xyz, fields) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """``xyz`` as (n, 3) float64 and ``fields`` as 1-D arrays of n real values (or booleans), with
+    names every format takes; else an :class:`~sdp.InvalidPointsError` naming the output."""
+    try:
+        xyz = np.asarray(xyz)
+    except Exception as exc:
+        raise InvalidPointsError(f"{path}: points are not an array ({exc})") from None
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or xyz.dtype.kind not in "iuf":
+        raise InvalidPointsError(f"{path}: points must be an (n, 3) array of real numbers, got shape {xyz.shape} "
+                                 f"of {xyz.dtype}")
+    checked = {}
+    for name, values in dict(fields or {}).items():
+        v = np.asarray(values)
+        if not isinstance(name, str) or not name.isprintable() or not name.strip() or name.lower() in ("x", "y", "z"):
+            raise InvalidPointsError(f"{path}: field name {name!r}: a printable name other than x, y, z")
+        if path.suffix.lower() == ".ply" and not _PLY_NAME.match(name):  # the header splits at spaces
+            raise InvalidPointsError(f"{path}: field name {name!r}: PLY names have no space")
+        if path.suffix.lower() in (".las", ".laz") and (not name.isascii() or len(name) > _LAS_NAME_BYTES):
+            raise InvalidPointsError(f"{path}: field name {name!r}: LAS names are ASCII, at most {_LAS_NAME_BYTES} "
+                                     "characters")
+        if v.ndim != 1 or len(v) != len(xyz) or v.dtype.kind not in "biuf":
+            raise InvalidPointsError(f"{path}: field {name!r} must hold one real number per point ({len(xyz):,}), "
+                                     f"got shape {v.shape} of {v.dtype}")
+        checked[name] = v
+    return np.asarray(xyz, np.float64), checked
 
 
 def write_mesh(path: str | os.PathLike, mesh, *, inputs=()) -> Path:

@@ -8,6 +8,8 @@ points. sdp writes no PCD.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from ._cloud import CloudFileError
@@ -20,11 +22,13 @@ def read_pcd(path):
     returns of an organized file as NaN; other fields in their declared integer types)."""
     from pypcd4 import PointCloud
 
+    _check_header_columns(path)
     pc = PointCloud.from_path(path)
     names = list(pc.fields)
     if not {"x", "y", "z"} <= set(names):
         raise CloudFileError(f"{path}: PCD fields {names} have no x, y, z")
     data = pc.numpy()
+    _check_count(path, pc, len(data))
     cols = {n: data[:, i] for i, n in enumerate(names)}
     fields = {n: _pcd_column(pc, n, cols[n]) for n in names if n not in ("x", "y", "z")}
     xyz = np.c_[cols["x"], cols["y"], cols["z"]]
@@ -35,6 +39,55 @@ def read_pcd(path):
         raise CloudFileError(f"{path}: VIEWPOINT must be 7 finite numbers (tx ty tz qw qx qy qz), "
                              f"got {pc.metadata.viewpoint}")
     return xyz, fields, None, viewpoint, pc.metadata.height > 1
+
+
+_HEADER_END = b"DATA"
+
+
+def _header(path) -> tuple[dict[str, list[str]], int]:
+    """The header's lines by keyword, and the byte where the data starts (after the DATA line)."""
+    entries: dict[str, list[str]] = {}
+    with open(path, "rb") as f:
+        for _ in range(64):  # a PCD header has 10 lines and comments
+            line = f.readline()
+            if not line:
+                break
+            words = line.decode("ascii", "replace").split()
+            if words and not words[0].startswith("#"):
+                entries[words[0].upper()] = words[1:]
+            if line.startswith(_HEADER_END):
+                return entries, f.tell()
+    return entries, -1
+
+
+def _check_header_columns(path) -> None:
+    """Refuse a header whose FIELDS, SIZE, TYPE and COUNT do not name as many columns (pypcd4
+    fails on them with an IndexError that names nothing)."""
+    entries, _ = _header(path)
+    lengths = {k: len(entries[k]) for k in ("FIELDS", "SIZE", "TYPE", "COUNT") if k in entries}
+    if len(set(lengths.values())) > 1:
+        told = ", ".join(f"{k} {n}" for k, n in lengths.items())
+        raise CloudFileError(f"{path}: corrupt PCD header: FIELDS, SIZE, TYPE and COUNT must list as many columns "
+                             f"(got {told})")
+
+
+def _check_count(path, pc, rows: int) -> None:
+    """Refuse a file holding another number of points than its header announces (POINTS, and
+    WIDTH × HEIGHT), or a binary one with bytes beyond them: a count that disagrees with the
+    data means a cut or corrupt file, and reading what is there would answer silently wrong."""
+    meta = pc.metadata
+    if meta.width * meta.height != meta.points:
+        raise CloudFileError(f"{path}: corrupt PCD header: WIDTH × HEIGHT = {meta.width * meta.height:,}, "
+                             f"POINTS {meta.points:,}")
+    if rows != meta.points:
+        raise CloudFileError(f"{path}: the PCD header announces {meta.points:,} points, the file holds {rows:,}")
+    if str(getattr(meta.data, "value", meta.data)) == "binary":
+        _, start = _header(path)
+        record = sum(int(s) * int(c) for s, c in zip(meta.size, meta.count))
+        extra = Path(path).stat().st_size - start - meta.points * record
+        if start >= 0 and extra > 0:
+            raise CloudFileError(f"{path}: the PCD header announces {meta.points:,} points, the file holds "
+                                 f"{extra:,} bytes more")
 
 
 def _pcd_column(pc, name, col):

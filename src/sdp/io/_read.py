@@ -3,7 +3,8 @@ extension and returns a :class:`~sdp.io.Cloud`.
 
 Readers use the field's libraries, one module per format: pypcd4 (PCD v0.7 ascii / binary /
 binary_compressed), plyfile (PLY), laspy with the lazrs backend (LAS/LAZ, scaled integers kept
-exact), NumPy (NPY/NPZ, XYZ/TXT/CSV text). Rows whose x, y or z is NaN (sensors' missing
+exact), NumPy (NPY/NPZ, XYZ/TXT/CSV text), pye57 (E57, :mod:`sdp.io._e57`: every scan with its
+pose). Rows whose x, y or z is NaN (sensors' missing
 returns, e.g. the organized Kinect PCD files), and points at exactly (0, 0, 0) in organized PCD
 files (the other marker of a missing return, e.g. the DLUT laser scans), are dropped and
 counted; other per-point fields (``label``, ``rgb``, ``intensity``, ``classification``, …) stay
@@ -21,7 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import MissingDependencyError
 from ._cloud import Cloud, CloudFileError, input_format, library_error, unreadable
+from ._e57 import read_e57
 from ._las import read_las
 from ._numpy import read_npy, read_npz
 from ._pcd import read_pcd
@@ -31,7 +34,7 @@ from ._text import read_text
 __all__ = ["read_points"]
 
 _READERS = {"pcd": read_pcd, "ply": read_ply, "las": read_las, "text": read_text, "npy": read_npy,
-            "npz": read_npz}
+            "npz": read_npz, "e57": read_e57}
 
 
 def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
@@ -41,8 +44,10 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
     ----------
     path : path-like
         A ``.pcd``, ``.ply``, ``.las``/``.laz``, ``.xyz``/``.txt``/``.csv``/``.pts``, ``.npy``
-        or ``.npz`` file (NPZ: arrays ``xyz``, or ``x``, ``y``, ``z``).
-    format : {"pcd", "ply", "las", "text", "npy", "npz"}, optional
+        or ``.npz`` file (NPZ: arrays ``xyz``, or ``x``, ``y``, ``z``), or an ``.e57`` scan file
+        (every scan moved by its pose, the ``scan`` field and :attr:`Cloud.sensors`; the
+        ``scans`` extra).
+    format : {"pcd", "ply", "las", "text", "npy", "npz", "e57"}, optional
         Override the extension.
 
     Raises
@@ -67,8 +72,12 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
     path = Path(path)
     fmt = input_format(path, format)
     try:
-        xyz, fields, las, *pose = _READERS[fmt](path)  # PCD adds its VIEWPOINT and whether organized
-    except CloudFileError:
+        xyz, fields, las, *pose = _READERS[fmt](path)  # PCD adds its VIEWPOINT and whether organized, E57 its scanners
+        xyz = np.asarray(xyz)
+        if xyz.dtype.kind not in "iuf":  # complex, text, structured: no coordinates to cast
+            raise CloudFileError(f"{path}: coordinates of type {xyz.dtype} (expected real numbers)")
+        xyz = xyz.astype(np.float64, copy=False)
+    except (CloudFileError, MissingDependencyError):
         raise
     except MemoryError:
         raise CloudFileError(f"{path}: too large to read into memory as {fmt}") from None
@@ -76,7 +85,6 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
         if not library_error(exc):
             raise
         raise unreadable(path, fmt, exc) from None
-    xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise CloudFileError(f"{path}: expected x, y, z columns, got an array of shape {xyz.shape}")
     finite = np.isfinite(xyz).all(axis=1)
@@ -86,5 +94,5 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
         fields = {k: v[finite] for k, v in fields.items()}
     if len(xyz) == 0:
         raise CloudFileError(f"{path}: holds no point with finite x, y, z")
-    viewpoint, organized = pose if pose else (None, False)
-    return Cloud(np.ascontiguousarray(xyz), fields, path, dropped, las, viewpoint, organized)
+    viewpoint, organized, sensors = (list(pose) + [None, False, None][len(pose):])[:3]
+    return Cloud(np.ascontiguousarray(xyz), fields, path, dropped, las, viewpoint, organized, sensors)

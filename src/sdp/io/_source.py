@@ -78,8 +78,9 @@ class PointSource:
                 n = len(v)
             elif fmt == "npy":
                 a = np.load(path, mmap_mode="r", allow_pickle=False)
-                if a.ndim != 2 or a.shape[1] != 3:
-                    raise CloudFileError(f"{path}: expected an (n, 3) array, got shape {a.shape}")
+                if a.ndim != 2 or a.shape[1] != 3 or a.dtype.kind not in "iuf":
+                    raise CloudFileError(f"{path}: expected an (n, 3) array of real numbers, got shape {a.shape} "
+                                         f"of {a.dtype}")
                 n = len(a)
             else:  # can't slice: read it once, spill the finite points to .npy
                 if spill_dir is None:

@@ -39,6 +39,10 @@ References
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from dataclasses import field as dataclass_field
@@ -212,13 +216,13 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
     Alignment
     """
     if method not in ("density", "gicp"):
-        raise ValueError(f"method must be 'density' or 'gicp', got {method!r}")
+        raise InvalidOptionError(f"method must be 'density' or 'gicp', got {method!r}")
     if method == "gicp" and fix_horizontal:
         raise InvalidOptionError("fix_horizontal is available with method='density' only")
     if not 0 <= min_constraint < 1:
-        raise ValueError(f"min_constraint must be in [0, 1), got {min_constraint}")
+        raise InvalidOptionError(f"min_constraint must be in [0, 1), got {min_constraint}")
     if levels < 1:
-        raise ValueError(f"levels must be at least 1, got {levels}")
+        raise InvalidOptionError(f"levels must be at least 1, got {levels}")
     cur = _enough_points(as_points(current, name="current").xyz, "current")
     ref_xyz = None
     if isinstance(reference, DensityField):
@@ -251,6 +255,13 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
         d = d[np.isfinite(d)]
         rmse = float(np.sqrt(np.mean(d**2))) if d.size else np.nan
     before, after = (float(ref_field.inside(transform_points(m, sample)).mean()) for m in (t0, matrix))
+    if after == 0 or (ref_xyz is not None and not np.isfinite(rmse)):  # nothing to register on: no answer
+        gap = "" if ref_xyz is None else \
+            f"; their centres are {np.linalg.norm(transform_points(t0, cur).mean(axis=0) - ref_xyz.mean(axis=0)):.4g} apart"
+        raise InvalidPointsError(f"the clouds do not overlap (no current point within the reference's volume{gap}): "
+                                 f"an alignment needs them within about "
+                                 f"{ref_field.sigma * 2 ** (levels - 1):.3g} of each other; give init= (a rough "
+                                 "transform) or move them together first")
     return Alignment(matrix=matrix, method=method, inside_before=before, inside_after=after, rmse=rmse,
                      seconds=seconds, centre=cur.mean(axis=0), **info)
 
@@ -440,7 +451,9 @@ class GicpTarget:
         self._target, self._tree = self._prepare(reference)
 
     def _prepare(self, points: np.ndarray):
-        return self._gicp.preprocess_points(points - self._o, downsampling_resolution=self.resolution, num_threads=2)
+        with _native_stderr("GICP"):
+            return self._gicp.preprocess_points(points - self._o, downsampling_resolution=self.resolution,
+                                                num_threads=2)
 
     def register(self, current: np.ndarray, init: np.ndarray | None = None) -> np.ndarray:
         """4×4 transform mapping ``current`` (finite rows) onto the reference, starting from ``init``."""
@@ -448,6 +461,29 @@ class GicpTarget:
         shift[:3, 3], unshift[:3, 3] = -self._o, self._o
         t0 = np.eye(4) if init is None else np.asarray(init, np.float64)
         source, _ = self._prepare(current)
-        result = self._gicp.align(self._target, source, self._tree, shift @ t0 @ unshift, registration_type="GICP",
-                                  max_correspondence_distance=self.max_distance, num_threads=2, max_iterations=100)
+        with _native_stderr("GICP"):
+            result = self._gicp.align(self._target, source, self._tree, shift @ t0 @ unshift, registration_type="GICP",
+                                      max_correspondence_distance=self.max_distance, num_threads=2, max_iterations=100)
         return unshift @ result.T_target_source @ shift
+
+
+@contextlib.contextmanager
+def _native_stderr(what: str):
+    """Run a C++ library's call with its standard error (file descriptor 2) captured: small_gicp
+    prints ``warning: …`` there when its input can't be registered (a cloud too small, points
+    beyond its voxel keys) and returns a transform anyway. Such a message becomes one
+    :class:`~sdp.InvalidPointsError` instead of a line on the terminal and an answer not to trust."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as capture:
+        os.dup2(capture.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        capture.seek(0)
+        text = capture.read().decode(errors="replace")
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    if lines:
+        raise InvalidPointsError(f"{what}: {lines[0]}" + (f" (and {len(lines) - 1} more lines)" if len(lines) > 1 else ""))

@@ -28,13 +28,16 @@ BYTES_PER_TILE_POINT = 1200  # a point of one epoch in a compare task: bucket re
 # with 1.2 M points per tile and epoch
 
 
-def dense_grid_bytes(lo, hi, voxel_size: float, *, sigma_voxels: float = 2.0, truncate: float = 3.0) -> int:
+def dense_grid_bytes(lo, hi, voxel_size: float, *, sigma_voxels: float = 2.0, truncate: float = 3.0) -> float:
     """Bytes of one float32 dense grid over the box [lo, hi] with its kernel margin: the size
     at which :func:`detect_changes_tiled` is worth its overhead (``sdp change`` switches when
-    two of them exceed the memory limit)."""
+    two of them exceed the memory limit). Infinite when the box has no finite size in nodes (a
+    1e-300 voxel, coordinates near ±1e308)."""
     reach = kernel_reach(sigma_voxels, truncate)
     nodes = np.floor((np.asarray(hi, float) - np.asarray(lo, float)) / positive_finite("voxel_size", voxel_size))
-    return int(np.prod(nodes + 2 * reach + 2) * 4)
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = float(np.prod(nodes + 2 * reach + 2)) * 4
+    return total if np.isfinite(total) else math.inf
 
 
 #: Resident bytes of ``sdp change`` in memory, per point of both clouds: float64 x, y, z, the file

@@ -5,15 +5,16 @@ failure, with Ctrl-C and SIGTERM ending the run and removing the work folder.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
 import shutil
 import signal
+import sys
 import tempfile
 import threading
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -83,8 +84,12 @@ def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: i
             path.mkdir(exist_ok=True)  # not its parents: a run that ended removed them, and stays removed
             # the task's first write to a bucket truncates it: a task run again (its worker died) writes
             # its rows once
-            with open(path / f"{part:06d}.bin", "ab" if key in counts else "wb") as f:
-                records[ends[b] - sizes[b]:ends[b]].tofile(f)
+            try:
+                with open(path / f"{part:06d}.bin", "ab" if key in counts else "wb") as f:
+                    records[ends[b] - sizes[b]:ends[b]].tofile(f)
+            except OSError as exc:  # NumPy's short write says neither the file nor why
+                raise SDPError(f"{path}: can't write a tile's points ({exc.strerror or exc}): is the work folder's "
+                               "disk full? give --workdir on a disk with room") from None
             counts[key] = counts.get(key, 0) + int(sizes[b])
     return counts, dropped, t_read
 
@@ -147,7 +152,7 @@ class Session:
         self.executor = self.cluster = None
         try:
             if not (scheduler is None or in_process):  # a cluster of its own: its workers share the limit,
-                self.executor, self.cluster = _connect(scheduler, workers)  # one task per thread at once
+                self.executor, self.cluster = _connect(scheduler, workers, self.root)  # one task per thread
                 workers = max(1, sum(self.executor.nthreads().values()))
             plan = JobBudget(_memory_limit(memory_limit), 1 if scheduler == "synchronous" else workers,
                              separate=not in_process)
@@ -170,12 +175,12 @@ class Session:
             for e in self.sources:
                 Path(self.root, e).mkdir()
             if self.executor is None:
-                self.executor, self.cluster = _connect(scheduler, workers)
+                self.executor, self.cluster = _connect(scheduler, workers, self.root)
             jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
                     for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
             done = self.tasks("bucket", _bucket_part, jobs, (), unit="slice")
         except BaseException:
-            self.__exit__()
+            self.__exit__(*sys.exc_info())
             raise
         self.budget = plan
         self.timings["read"] = sum(d[2] for d in done)
@@ -197,16 +202,31 @@ class Session:
 
     def __exit__(self, *exc):
         """Close the client and the local cluster, and remove the work folder whatever happens
-        (an error, Ctrl-C, SIGTERM turned into an exception by ``sdp``'s ``main``)."""
+        (an error, Ctrl-C, SIGTERM turned into an exception by ``sdp``'s ``main``).
+
+        A run that failed or was interrupted stops its local workers at once: a graceful close
+        waits for the tasks they are running (seconds each), and their results are not wanted."""
+        executor, cluster = getattr(self, "executor", None), getattr(self, "cluster", None)
         try:
-            if getattr(self, "executor", None) is not None and not isinstance(self.executor, str):
-                self.executor.close()
+            if executor is not None and not isinstance(executor, str):
+                if exc and exc[0] is not None and cluster is not None:
+                    _stop_workers(cluster)
+                executor.close()
         finally:
             try:
                 if getattr(self, "cluster", None) is not None:
                     self.cluster.close()  # stops the workers: nothing writes into the buckets any more
             finally:
                 shutil.rmtree(self.root, ignore_errors=True)
+
+
+def _stop_workers(cluster) -> None:
+    """Kill the worker processes of the run's own local cluster (their nannies' children)."""
+    for nanny in list(getattr(cluster, "workers", {}).values()):
+        pid = getattr(nanny, "pid", None)
+        if pid:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGTERM)  # no clean-up in the worker: a graceful close would wait for its task
 
 
 def sampled_lattice(clouds: list, *, voxel_size: float | str = DEFAULTS.voxel_size, k: float = DEFAULTS.k,
@@ -254,8 +274,11 @@ def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_poin
     cell = BLOCK * voxel_size
     if tile_size is None:  # tile_points in the tile and its halo at the mean density: whole blocks, rounded down
         blocks = math.floor((math.sqrt(tile_points / max(_density(sources), 1e-12)) - 2 * halo) / cell)
-    else:
-        blocks = math.ceil(tile_size / cell)
+    else:  # a tile wider than the clouds is one tile: its size in blocks stays a small number
+        lo = np.min([s.lo for s in sources.values()], axis=0)
+        hi = np.max([s.hi for s in sources.values()], axis=0)
+        span = float(np.max(hi[:2] - lo[:2])) + cell
+        blocks = math.ceil(min(tile_size, span) / cell) if math.isfinite(span) else math.ceil(tile_size / cell)
     blocks = max(1, blocks, math.ceil(2 * halo / cell))
     return Tiling(voxel_size, blocks, halo)
 
@@ -288,20 +311,30 @@ def _dask(module: str):
     return require(module, "tiles", "the tiled path (Dask)")
 
 
-def _connect(scheduler: str | None, workers: int):
-    """(executor, cluster): a distributed ``Client`` (and the local cluster it drives), or the
-    name of a Dask local scheduler."""
+_TRACKER_WARNING = "ignore:resource_tracker:UserWarning"
+
+
+def _connect(scheduler: str | None, workers: int, root: str):
+    """(executor, cluster): a distributed ``Client`` (and the local cluster it drives, its
+    workers' scratch space in the work folder ``root``), or the name of a Dask local scheduler."""
     if scheduler in ("synchronous", "threads"):
         return scheduler, None
     distributed = _dask("dask.distributed")
     Client, LocalCluster = distributed.Client, distributed.LocalCluster
 
     if scheduler is None:  # the tasks bound their own memory (``share``): no pausing by distributed
-        with _sigint_deferred() as interrupted:  # a cluster half started can't be closed
+        # an interrupted run stops its workers at once (_stop_workers); the nannies' queues then
+        # end with the process, and multiprocessing's resource tracker (started with this
+        # process's warning options) would warn of "leaked semaphores" it reclaims anyway
+        if _TRACKER_WARNING not in sys.warnoptions:
+            sys.warnoptions.append(_TRACKER_WARNING)
+        with _sigint_deferred() as interrupted, _dask("dask").config.set({"temporary-directory": root}):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=0,
                                    dashboard_address=":0", env={"NUMBA_NUM_THREADS": "1"},  # a core per worker
-                                   silence_logs=logging.ERROR,  # no warnings about tasks cancelled on Ctrl-C
-                                   preload=[_WORKER_PRELOAD])
+                                   # a task's error reaches the client, which says it in one line: no
+                                   # "Compute Failed" logs, no warnings about tasks cancelled on Ctrl-C
+                                   silence_logs=logging.CRITICAL,
+                                   preload=[_WORKER_PRELOAD])  # scratch space in root: removed with it
             try:
                 client = Client(cluster)
             except BaseException:
@@ -320,7 +353,7 @@ def _connect(scheduler: str | None, workers: int):
                        "start it (dask scheduler) or check the address") from None
 
 
-@contextmanager
+@contextlib.contextmanager
 def _sigint_deferred():
     """Hold Ctrl-C back in the block (main thread only), and tell afterwards whether it came."""
     if threading.current_thread() is not threading.main_thread():

@@ -47,7 +47,7 @@ from .._core._validate import integer_at_least
 from ..change._coverage import CHANGED, NOT_COMPARABLE, states_of
 from ..change._detect import inside_difference, judge_coverage, region_rules
 from ..change._regions import Region
-from ..change._visibility import RangeImage, resolve_sensor_origins
+from ..change._visibility import RangeImage, resolve_sensor_origins, scanner_of_points
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError
 from ..fields._density import DensityField
@@ -119,7 +119,7 @@ class FrameChange:
 
 
 def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update: str = DEFAULTS.update,
-          window: int = DEFAULTS.window, decay: float = DEFAULTS.decay,
+          window: int | None = None, decay: float | None = None,
           min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
           align: Registration | str | None = None, coverage: Coverage | None = None) -> Iterator[FrameChange]:
     """Compare each frame of a stream with a model of the scene, in order; yield as they come.
@@ -138,10 +138,11 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         point spacing, :func:`sdp.auto_voxel_size`); a reference field brings its own.
     update : {"window", "none", "decay"}
         How the model learns (see the module docstring); default ``"window"``.
-    window : int
-        Frames in the model (the reference counts as one) for ``update="window"``.
-    decay : float
-        λ in (0, 1) for ``update="decay"``.
+    window : int, optional
+        Frames in the model (the reference counts as one) for ``update="window"`` (default
+        ``DEFAULTS.window``); refused with another update, where it would be ignored.
+    decay : float, optional
+        λ in (0, 1) for ``update="decay"`` (default ``DEFAULTS.decay``); refused with another update.
     min_region_points : int
         Appeared regions with fewer points are dropped (noise); default 50.
     regions : bool
@@ -170,6 +171,11 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     registration = Registration.of(align)
     if update not in ("none", "window", "decay"):
         raise InvalidOptionError(f"update must be 'none', 'window' or 'decay', got {update!r}")
+    for name, value, mode in (("window", window, "window"), ("decay", decay, "decay")):
+        if value is not None and update != mode:  # it would be ignored
+            raise InvalidOptionError(f"{name} applies to update={mode!r} only (update is {update!r})")
+    window = DEFAULTS.window if window is None else window
+    decay = DEFAULTS.decay if decay is None else decay
     if update == "window" and window < 1:
         raise InvalidOptionError("window must be at least 1 frame")
     if update == "decay" and not 0 < decay < 1:
@@ -197,7 +203,8 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     model = base if update == "none" else base.copy()
     weight, history = 1.0, deque([base])
     target = None if align != "gicp" else GicpTarget(ref, resolution=base.sigma, max_distance=4 * base.sigma)
-    image = None if origin is None else RangeImage.from_points(ref, origin)
+    scan = None if is_field else scanner_of_points(reference, origin, len(ref))  # several scanners: each point's
+    image = None if origin is None or np.ndim(origin) == 2 else RangeImage.from_points(ref, origin)
     matrix = None if align is None else np.eye(4)
     for index, item in enumerate(frames):
         name, pts = item if isinstance(item, tuple) else (str(index), item)
@@ -216,7 +223,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         mask, d = inside_difference(frame, seen, cur.xyz)
         # the model's footprint, or the reference's rays (imaged once)
         states = judge_coverage(cur.xyz, mask, ref, seen, origin, coverage=coverage.enabled,
-                                range_noise=coverage.range_noise, image=image, present=frame.inside)
+                                range_noise=coverage.range_noise, image=image, present=frame.inside, other_scan=scan)
         mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
         labels = np.full(len(mask), -1, np.int32)

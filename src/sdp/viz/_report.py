@@ -41,7 +41,6 @@ from __future__ import annotations
 import base64
 import html
 import inspect
-import json
 import math
 import os
 import re
@@ -50,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._core._json import dumps
 from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ..defaults import DEFAULTS, Defaults
 from ..errors import require
@@ -511,7 +511,7 @@ def _details(title: str, content: str) -> str:
 
 
 def _json(s: dict) -> str:
-    return json.dumps(s, indent=2, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    return dumps(s)
 
 
 def _e(text: str) -> str:

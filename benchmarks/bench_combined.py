@@ -1,0 +1,144 @@
+"""One decision from density and distance, and an honest level of detection (issue 34).
+
+1. The 27 fixed-camera mOSD pairs of ``bench_decision.py`` read as ``sdp change`` reads them
+   (``sdp.read_points``: the sensor from each PCD's VIEWPOINT), each pair compared with
+   ``decision="point"`` (density alone, the paper's) and ``decision="combined"``, interleaved pair
+   by pair so that the shared machine's load falls on both alike: kappa over the scored points,
+   false positives (scored points) on the pairs without change, time per pair.
+2. Static real pairs: the share flagged changed and the share significant (``|distance| > lod``)
+   of ``decision="combined"``: the PCL grabber sequence (6 ordered pairs, after GICP), the DLUT
+   re-scans (after GICP; outside the people = points the density test leaves unchanged), the
+   Toronto ground (class 2, after density alignment).
+
+Nothing here is fitted: the rule's constants are in ``sdp.change._combined`` and
+``sdp.distance._noise`` with their reasons. Prints markdown; ``--only kinect|static``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_decision import LEARN, labelled_pairs
+
+import sdp
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def kinect(ablation: bool = False):
+    """``ablation``: also ``"combined"`` without the noise model (M3C2's level: the spreads alone,
+    no range law, no systematic part), to tell the distance's part of the gain from the model's."""
+    decisions = ("point", "combined") + (("m3c2 level",) if ablation else ())
+    rows = []
+    for t, _, _, truth, scored in labelled_pairs():
+        ref, cur = sdp.read_points(LEARN / f"learn{t - 1}.pcd"), sdp.read_points(LEARN / f"learn{t}.pcd")
+        row = {"pair": t, "static": not truth.any()}
+        for dec in decisions:
+            t0 = time.perf_counter()
+            if dec == "m3c2 level":
+                with _without_noise_model():
+                    r = sdp.detect_changes(ref, cur, decision="combined")
+            else:
+                r = sdp.detect_changes(ref, cur, decision=dec)
+            row[f"{dec}_s"] = time.perf_counter() - t0
+            app = r.appeared
+            row[dec] = sdp.kappa(truth[scored], app[scored]) if truth.any() else float("nan")
+            row[f"{dec}_fp"] = int((app & scored & ~truth).sum())
+            if dec != "point":
+                d, lod = r.current_distance, r.current_lod
+                ok = np.isfinite(d) & (r.current_state == 0)
+                row[f"{dec}_significant"] = float((np.abs(d[ok]) > lod[ok]).mean())
+        rows.append(row)
+        print(row, flush=True)
+    ks = {dec: np.nanmean([r[dec] for r in rows]) for dec in decisions}
+    times = {dec: np.mean([r[f"{dec}_s"] for r in rows]) for dec in decisions}
+    static = [r for r in rows if r["static"]]
+    print("\n| decision | kappa (27 pairs) | FP on the static pairs (scored points) | significant, static pairs | s per pair |")
+    print("|---|---:|---|---|---:|")
+    for dec in decisions:
+        sig = ", ".join(f"{100 * r[f'{dec}_significant']:.1f} %" for r in static) if dec != "point" else "—"
+        print(f"| {dec} | {ks[dec]:.3f} | {', '.join(str(r[f'{dec}_fp']) for r in static)} | {sig} | {times[dec]:.3f} |")
+    print(f"\ntime ratio combined / point: {times['combined'] / times['point']:.2f}; load {os.getloadavg()}")
+
+
+class _without_noise_model:
+    """``decision="combined"`` with M3C2's level of detection: the spreads alone (no range law,
+    no systematic part), for the ablation."""
+
+    def __enter__(self):
+        import sdp.distance._noise as N
+
+        self.module, self.original = N, N.point_distances
+
+        def plain(*args, **kw):
+            return self.original(*args, **{**kw, "registration_error": 0.0, "range_exponent": 0.0})
+
+        N.point_distances = plain
+
+    def __exit__(self, *exc):
+        self.module.point_distances = self.original
+
+
+def share(r):
+    """(flagged share, significant share over comparable unchanged points) of both directions."""
+    n = r.n_current + r.n_reference
+    flagged = (int(r.appeared.sum()) + int(r.disappeared.sum())) / n
+    sig = tot = 0
+    for d, lod, st in ((r.current_distance, r.current_lod, r.current_state),
+                       (r.reference_distance, r.reference_lod, r.reference_state)):
+        ok = np.isfinite(d) & (st == 0)
+        sig += int((np.abs(d[ok]) > lod[ok]).sum())
+        tot += int(ok.sum())
+    return flagged, sig / max(tot, 1)
+
+
+def static():
+    print("| data | pair | flagged changed | significant (unchanged points) |")
+    print("|---|---|---:|---:|")
+    seq = sorted((DATA / "pcl_kinect" / "grabber_sequence").glob("*.pcd"))
+    for i in range(len(seq)):
+        for j in range(len(seq)):
+            if i == j:
+                continue
+            ref, cur = sdp.read_points(seq[i]), sdp.read_points(seq[j])
+            a = sdp.align(ref, cur, method="gicp")
+            moved = a.apply(cur.xyz)
+            o = np.stack([ref.sensor_origin, a.matrix[:3, :3] @ cur.sensor_origin + a.matrix[:3, 3]])
+            r = sdp.detect_changes(ref, moved, decision="combined", coverage=sdp.Coverage(sensor_origin=o))
+            f, s = share(r)
+            print(f"| grabber | {i}→{j} | {100 * f:.2f} % | {100 * s:.1f} % |", flush=True)
+    dl = DATA / "dlut"
+    ref = sdp.read_points(dl / "A603_reference.pcd")
+    for k in (1, 2):
+        cur = sdp.read_points(dl / f"A603_rescan{k}.pcd")
+        a = sdp.align(ref, cur, method="gicp")
+        o = np.stack([ref.sensor_origin, a.matrix[:3, :3] @ cur.sensor_origin + a.matrix[:3, 3]])
+        r = sdp.detect_changes(ref, a.apply(cur.xyz), decision="combined", coverage=sdp.Coverage(sensor_origin=o))
+        f, s = share(r)
+        dens = sdp.detect_changes(ref, a.apply(cur.xyz), decision="point", coverage=sdp.Coverage(sensor_origin=o))
+        fd = (int(dens.appeared.sum()) + int(dens.disappeared.sum())) / (dens.n_current + dens.n_reference)
+        print(f"| DLUT | reference→rescan{k} (people are changes; density alone flags {100 * fd:.2f} %) | "
+              f"{100 * f:.2f} % | {100 * s:.1f} % |", flush=True)
+    t15, t23 = sdp.read_points(DATA / "als_toronto" / "TTP_2015.laz"), sdp.read_points(DATA / "als_toronto" / "TTP_2023.laz")
+    g15 = t15.xyz[t15.fields["classification"] == 2]
+    g23 = t23.xyz[t23.fields["classification"] == 2]
+    a = sdp.align(g15, g23, method="density", fix_horizontal=True)
+    r = sdp.detect_changes(g15, a.apply(g23), decision="combined")
+    f, s = share(r)
+    print(f"| Toronto ground | 2015→2023 aligned | {100 * f:.2f} % | {100 * s:.1f} % |", flush=True)
+    print(f"\nload {os.getloadavg()}")
+
+
+if __name__ == "__main__":
+    p = argparse.ArgumentParser()
+    p.add_argument("--only", choices=("kinect", "static"))
+    p.add_argument("--ablation", action="store_true", help="also the combined decision without the noise model")
+    a = p.parse_args()
+    if a.only != "static":
+        kinect(a.ablation)
+    if a.only != "kinect":
+        static()

@@ -1,0 +1,188 @@
+"""ROS bags: the ``sensor_msgs/PointCloud2`` messages of a topic, frame by frame, as clouds.
+
+Robots record their point clouds in bags, not folders of files: ROS 1 ``.bag`` files and
+ROS 2 bags (a folder with ``metadata.yaml`` and its ``.db3`` or ``.mcap`` files).
+:func:`bag_frames` reads them with rosbags (pure Python, no ROS installation; the ``scans``
+extra) and yields one :class:`~sdp.io.Cloud` per message of the topic, in the order recorded:
+x, y, z as float64, the other fields kept (``rgb``, ``intensity``, …), missing returns (NaN, and
+(0, 0, 0) in an organized cloud, as :func:`sdp.read_points` drops them in PCD files) dropped and
+counted. An organized cloud (``height`` > 1: one point per pixel) stays organized, and the sensor
+stands at the origin of the message's frame (``header.frame_id``: a camera's or a lidar's optical
+frame), so the visibility test of :func:`sdp.detect_changes` follows its rays unless the caller
+says otherwise (``--sensor-origin``).
+
+References
+----------
+.. [1] ROS ``sensor_msgs/PointCloud2`` and ``sensor_msgs/PointField`` message definitions
+   (https://docs.ros.org/en/rolling/p/sensor_msgs/).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import require
+from ._cloud import Cloud, CloudFileError, library_error
+
+__all__ = ["bag_frames", "bag_message", "bag_topics", "is_bag", "pointcloud2_arrays"]
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+# sensor_msgs/PointField datatypes: INT8 … FLOAT64
+_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+def is_bag(path) -> bool:
+    """A ROS 1 bag file (``.bag``), or a ROS 2 bag: a folder holding ``metadata.yaml``, or one of
+    its ``.db3`` / ``.mcap`` files."""
+    p = Path(path)
+    if p.is_dir():
+        return (p / "metadata.yaml").is_file()
+    return p.is_file() and p.suffix.lower() in (".bag", ".db3", ".mcap")
+
+
+def _reader(path):
+    highlevel = require("rosbags.highlevel", "scans", "reading ROS bags", package="rosbags")
+    p = Path(path)
+    if p.is_file() and p.suffix.lower() in (".db3", ".mcap") and (p.parent / "metadata.yaml").is_file():
+        p = p.parent  # a ROS 2 bag's storage file: its folder is the bag
+    try:
+        reader = highlevel.AnyReader([p])
+        reader.open()
+    except BaseException as exc:
+        if not library_error(exc):
+            raise
+        raise _error(path, exc) from None
+    return reader
+
+
+def _error(path, exc) -> CloudFileError:
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    text = lines[0][:200] if lines else type(exc).__name__
+    return CloudFileError(f"{path}: can't read as a ROS bag ({type(exc).__name__}: {text})")
+
+
+def bag_topics(path) -> dict[str, int]:
+    """The ``sensor_msgs/PointCloud2`` topics of a bag and their message counts."""
+    reader = _reader(path)
+    try:
+        out: dict[str, int] = {}
+        for c in reader.connections:
+            if c.msgtype == POINTCLOUD2:
+                out[c.topic] = out.get(c.topic, 0) + int(c.msgcount)
+        return out
+    finally:
+        reader.close()
+
+
+def bag_frames(path, topic: str) -> Iterator[tuple[str, Cloud]]:
+    """``(name, Cloud)`` of each ``PointCloud2`` message on ``topic``, in the order recorded; the
+    name is the message's index and its timestamp in nanoseconds (``000003@1355495015814212000``).
+
+    The bag and the topic are checked when this is called (a bag without the topic raises
+    :class:`~sdp.io.CloudFileError` listing its point-cloud topics); the messages are read as
+    the iterator advances.
+    """
+    reader = _reader(path)
+    try:
+        conns = [c for c in reader.connections if c.topic == topic]
+        if not conns or any(c.msgtype != POINTCLOUD2 for c in conns):
+            clouds = sorted({c.topic for c in reader.connections if c.msgtype == POINTCLOUD2})
+            what = "not a PointCloud2 topic" if conns else "no topic"
+            raise CloudFileError(f"{path}: {what} {topic!r}; its PointCloud2 topics: {', '.join(clouds) or 'none'}")
+    except BaseException:
+        reader.close()
+        raise
+    return _frames(reader, conns, path)
+
+
+def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
+    messages = reader.messages(connections=conns)
+    index = 0
+    try:
+        while True:
+            where = f"{path} message {index}"
+            try:  # a corrupt bag fails in the reader's iteration or in the message's decoding
+                item = next(messages, None)
+                if item is None:
+                    return
+                conn, stamp, raw = item
+                xyz, fields, organized = pointcloud2_arrays(reader.deserialize(raw, conn.msgtype))
+            except CloudFileError as exc:
+                raise CloudFileError(f"{where}: {exc}") from None
+            except MemoryError:
+                raise CloudFileError(f"{where}: too large to read into memory") from None
+            except BaseException as exc:
+                if not library_error(exc):
+                    raise
+                raise _error(where, exc) from None
+            finite = np.isfinite(xyz).all(axis=1)
+            dropped = int((~finite).sum())
+            if dropped:
+                xyz = xyz[finite]
+                fields = {k: v[finite] for k, v in fields.items()}
+            yield f"{index:06d}@{stamp}", Cloud(np.ascontiguousarray(xyz), fields, Path(path), dropped, None, None,
+                                                 organized, np.zeros((1, 3)))
+            index += 1
+    finally:
+        reader.close()
+
+
+def pointcloud2_arrays(msg) -> tuple[np.ndarray, dict[str, np.ndarray], bool]:
+    """(xyz float64 (n, 3) with NaN rows for missing returns, other fields, organized) of a
+    deserialized ``sensor_msgs/PointCloud2`` (fields read at their offsets, any point step and
+    row padding, either byte order)."""
+    h, w, step, row_step = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
+    order = ">" if msg.is_bigendian else "<"
+    names, formats, offsets = [], [], []
+    for f in msg.fields:
+        if int(f.datatype) not in _TYPES:
+            raise CloudFileError(f"field {f.name!r} has an unknown PointField datatype {f.datatype}")
+        count = max(int(f.count), 1)
+        names.append(f.name)
+        formats.append((order + _TYPES[int(f.datatype)], (count,)) if count > 1 else order + _TYPES[int(f.datatype)])
+        offsets.append(int(f.offset))
+    if not {"x", "y", "z"} <= set(names):
+        raise CloudFileError(f"PointCloud2 fields {names} have no x, y, z")
+    try:
+        dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
+    except (TypeError, ValueError) as exc:
+        raise CloudFileError(f"PointCloud2 fields don't fit a point of {step} bytes ({exc})") from None
+    data = np.asarray(msg.data, np.uint8)
+    if h * w and (step <= 0 or row_step < w * step or len(data) < (h - 1) * row_step + w * step):
+        raise CloudFileError(f"PointCloud2 of {h}×{w} points of {step} bytes (rows of {row_step}) needs more than its "
+                             f"{len(data):,} bytes")
+    if row_step != w * step:  # rows padded: drop each row's padding
+        rows = [data[r * row_step:r * row_step + w * step] for r in range(h)]
+    else:
+        rows = [data[:h * w * step]]
+    points = np.concatenate(rows).view(dtype) if h * w else np.zeros(0, dtype)
+    xyz = np.c_[points["x"], points["y"], points["z"]].astype(np.float64)
+    organized = h > 1
+    if organized:  # as PCD files: an organized cloud marks a missing return by NaN or by (0, 0, 0)
+        xyz[~xyz.any(axis=1)] = np.nan
+    fields = {n: np.ascontiguousarray(points[n]) for n in names if n not in ("x", "y", "z") and n}
+    return xyz, fields, organized
+
+
+def bag_message(path, topic: str) -> Cloud:
+    """One message of a bag as a cloud: ``topic`` is ``/points`` (its first message) or
+    ``/points:N`` (its N-th, from 0; negative from the end). ROS names hold no colon."""
+    name, number = topic.rsplit(":", 1) if ":" in topic else (topic, "0")
+    try:
+        index = int(number)
+    except ValueError:
+        raise CloudFileError(f"--topic {topic!r}: give TOPIC or TOPIC:N (the N-th message, from 0)") from None
+    count = 0
+    kept = deque(maxlen=-index if index < 0 else 1)  # the last -N messages, or the one asked for
+    for count, (_, cloud) in enumerate(bag_frames(path, name), start=1):
+        if index < 0 or count - 1 == index:
+            kept.append(cloud)
+        if index >= 0 and kept:
+            return cloud
+    if index < 0 and len(kept) == -index:
+        return kept[0]
+    raise CloudFileError(f"{path}: {name!r} holds {count} messages, no message {index}")

@@ -1,0 +1,173 @@
+"""ROS bags (issue 35): ``sensor_msgs/PointCloud2`` frames of a topic, ROS 1 and ROS 2, written
+by the tests, read without a ROS installation."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import sdp
+from sdp.io import CloudFileError
+
+pytest.importorskip("rosbags")
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+from sdp.cli import watch_folder  # noqa: E402
+from sdp.io._bag import bag_frames, bag_topics  # noqa: E402
+
+TS = get_typestore(Stores.ROS2_HUMBLE)
+TS1 = get_typestore(Stores.ROS1_NOETIC)
+MSGTYPE = "sensor_msgs/msg/PointCloud2"
+DATATYPE = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 8}
+GRABBER = "pcl_kinect/grabber_sequence"
+
+
+def message(records: np.ndarray, height: int, width: int, *, pad: int = 0, stamp: int = 0, ts=TS):
+    """A PointCloud2 (of ``ts``'s ROS version) of a structured array (its fields at their
+    offsets), each row padded by ``pad`` bytes."""
+    PC2, PF = ts.types[MSGTYPE], ts.types["sensor_msgs/msg/PointField"]
+    HEADER, TIME = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    header = dict(seq=0) if ts is TS1 else {}
+    step = records.dtype.itemsize
+    fields = [PF(name=n, offset=records.dtype.fields[n][1], datatype=DATATYPE[records.dtype[n].str[1:]], count=1)
+              for n in records.dtype.names]
+    rows = records.reshape(height, width)
+    data = b"".join(r.tobytes() + bytes(pad) for r in rows)
+    return PC2(header=HEADER(**header, stamp=TIME(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="sensor"),
+               height=height, width=width, fields=fields, is_bigendian=records.dtype.str[0] == ">",
+               point_step=step, row_step=step * width + pad, data=np.frombuffer(data, np.uint8), is_dense=False)
+
+
+def write_ros2(path: Path, messages, topic="/points"):
+    from rosbags.rosbag2 import Writer
+
+    with Writer(path, version=9) as w:
+        conn = w.add_connection(topic, MSGTYPE, typestore=TS)
+        for stamp, msg in messages:
+            w.write(conn, stamp, TS.serialize_cdr(msg, MSGTYPE))
+    return path
+
+
+def write_ros1(path: Path, messages, topic="/points"):
+    from rosbags.rosbag1 import Writer
+
+    with Writer(path) as w:
+        conn = w.add_connection(topic, MSGTYPE, typestore=TS1)
+        for stamp, msg in messages:
+            w.write(conn, stamp, TS1.serialize_ros1(msg, MSGTYPE))
+    return path
+
+
+def pcd_message(path, stamp):
+    from pypcd4 import PointCloud
+
+    pc = PointCloud.from_path(path)
+    return stamp, message(pc.pc_data, pc.metadata.height, pc.metadata.width, stamp=stamp)
+
+
+def small_frames():
+    """Two 4×5 organized frames: a missing return as NaN, one as (0, 0, 0), an intensity (f8), a pad byte per row."""
+    dtype = np.dtype({"names": ["x", "y", "z", "intensity"], "formats": ["<f4", "<f4", "<f4", "<f8"],
+                      "offsets": [0, 4, 8, 16], "itemsize": 32})
+    out = []
+    for k in range(2):
+        rec = np.zeros(20, dtype)
+        g = np.arange(20)
+        rec["x"], rec["y"], rec["z"], rec["intensity"] = g % 5 + k, g // 5, 1.0 + k, g * 0.5
+        rec["x"][3] = np.nan
+        rec[["x", "y", "z"]][7] = (0, 0, 0)
+        out.append(rec)
+    return out
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_bag_frames_read_pointcloud2_as_pcd_files_are_read(tmp_path, version):
+    frames = small_frames()
+    ts = TS1 if version == 1 else TS
+    msgs = [(10**9 * (k + 1), message(r, 4, 5, pad=3, stamp=10**9 * (k + 1), ts=ts)) for k, r in enumerate(frames)]
+    path = (write_ros1(tmp_path / "b.bag", msgs) if version == 1 else write_ros2(tmp_path / "b2", msgs))
+    assert bag_topics(path) == {"/points": 2}
+    got = list(bag_frames(path, "/points"))
+    assert [name for name, _ in got] == ["000000@1000000000", "000001@2000000000"]
+    for rec, (_, cloud) in zip(frames, got):
+        keep = np.ones(20, bool)
+        keep[[3, 7]] = False
+        assert cloud.n_dropped == 2 and cloud.organized
+        assert np.array_equal(cloud.xyz, np.c_[rec["x"], rec["y"], rec["z"]][keep].astype(np.float64))
+        assert np.array_equal(cloud.fields["intensity"], rec["intensity"][keep])
+        assert np.array_equal(cloud.sensor_origin, [0, 0, 0])  # the message frame's origin
+
+
+def test_a_bag_without_the_topic_lists_its_topics(tmp_path):
+    path = write_ros2(tmp_path / "b2", [(1, message(small_frames()[0], 4, 5))], topic="/lidar")
+    with pytest.raises(CloudFileError, match=r"no topic '/points'; its PointCloud2 topics: /lidar"):
+        bag_frames(path, "/points")
+    with pytest.raises(sdp.SDPError, match=r"give --topic, one of its PointCloud2 topics \(/lidar \(1 messages\)\)"):
+        watch_folder(np.zeros((10, 3)), path)
+
+
+def test_sdp_info_lists_a_bags_pointcloud2_topics(tmp_path):
+    path = write_ros2(tmp_path / "b2", [(1, message(small_frames()[0], 4, 5))] * 2, topic="/lidar")
+    from sdp.cli._files import describe_file
+
+    assert describe_file(path) == {"kind": "ROS bag", "pointcloud2_topics": {"/lidar": 2}}
+
+
+def test_corrupt_bag_is_one_line(tmp_path):
+    good = write_ros1(tmp_path / "good.bag", [(1, message(small_frames()[0], 4, 5, ts=TS1))])
+    (tmp_path / "cut.bag").write_bytes(good.read_bytes()[:300])
+    ref = tmp_path / "ref.npy"
+    np.save(ref, np.random.default_rng(0).random((500, 3)))
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "watch", ref, tmp_path / "cut.bag", "--topic", "/points"],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and p.stderr.startswith("sdp: error: ") and len(p.stderr.strip().splitlines()) == 1
+    assert "cut.bag: can't read as a ROS bag" in p.stderr
+
+
+def test_without_the_extra_says_how_to_install(monkeypatch, tmp_path):
+    path = write_ros1(tmp_path / "b.bag", [(1, message(small_frames()[0], 4, 5, ts=TS1))])
+    monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)
+    with pytest.raises(sdp.MissingDependencyError, match=r"pip install 'sdp\[scans\]'"):
+        bag_frames(path, "/points")
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_grabber_sequence_as_a_ros2_bag_gives_the_states_of_its_pcd_folder(shared_data, tmp_path):
+    folder = shared_data / GRABBER
+    pcds = sorted(folder.glob("*.pcd"))
+    bag = write_ros2(tmp_path / "grabber", [pcd_message(p, 10**9 + 250_000_000 * i) for i, p in enumerate(pcds)],
+                     topic="/camera/depth/points")
+    from_files = list(watch_folder(pcds[0], folder))
+    from_bag = list(watch_folder(pcds[0], bag, topic="/camera/depth/points"))
+    assert len(from_files) == len(from_bag) == 3
+    assert sum(int(f.appeared.sum()) for f in from_files) > 1000  # the sequence has changes to find
+    for a, b in zip(from_files, from_bag):
+        assert np.array_equal(a.appeared, b.appeared) and np.array_equal(a.not_comparable, b.not_comparable)
+        assert np.array_equal(a.appeared_labels, b.appeared_labels)
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "watch", pcds[0], bag, "--topic", "/camera/depth/points",
+                        "--json"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    frames = json.loads(p.stdout)
+    assert [f["appeared"] for f in frames] == [int(f.appeared.sum()) for f in from_files]
+    assert [f["not_comparable"] for f in frames] == [int(f.not_comparable.sum()) for f in from_files]
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_sdp_change_reads_a_message_of_a_bag_as_its_pcd_file(shared_data, tmp_path):
+    from sdp.cli import compare_files
+
+    pcds = sorted((shared_data / GRABBER).glob("*.pcd"))
+    bag = write_ros2(tmp_path / "grabber", [pcd_message(p, 10**9 * (i + 1)) for i, p in enumerate(pcds)])
+    files = compare_files(pcds[0], pcds[2], output=tmp_path / "files.npz", outputs=sdp.Outputs(both=True))
+    last = compare_files(pcds[0], bag, output=tmp_path / "bag.npz", topic="/points:-1", outputs=sdp.Outputs(both=True))
+    for cloud in ("current", "reference"):
+        assert files.summary[cloud] == last.summary[cloud]
+    a, b = np.load(tmp_path / "files.npz"), np.load(tmp_path / "bag.npz")
+    assert np.array_equal(a["change"], b["change"]) and a["change"].any()
+    with pytest.raises(sdp.SDPError, match="give --topic"):
+        compare_files(pcds[0], bag, output=tmp_path / "no.npz")

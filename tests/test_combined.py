@@ -1,0 +1,133 @@
+"""One decision from density and distance (decision="combined") and the level of detection of
+sdp.distance._noise (issue 34)."""
+
+import numpy as np
+import pytest
+
+import sdp
+from sdp.distance._noise import point_distances
+from sdp.errors import InvalidOptionError
+
+VOXEL = 0.02  # σ = 4 cm: the density test misses what stands less than about 2σ off a surface
+
+
+def _floor(rng, n=90000, noise=0.002):
+    """3 m × 3 m, 1 point per cm²."""
+    return np.c_[rng.random((n, 2)) * 3.0, noise * rng.standard_normal(n)]
+
+
+def _box(rng, size=0.3, height=0.12, per_cm2=1.0):
+    """A box standing on the floor, its top and four sides sampled: the top stands out of the
+    floor's kernel (2σ = 8 cm), the lower part of the sides does not."""
+    lo, hi = 1.5 - size / 2, 1.5 + size / 2
+    n_top, n_side = int(size * size * 1e4 * per_cm2), int(size * height * 1e4 * per_cm2)
+    top = np.c_[rng.uniform(lo, hi, (n_top, 2)), np.full(n_top, height)]
+    sides = []
+    for axis in (0, 1):
+        for at in (lo, hi):
+            p = np.c_[rng.uniform(lo, hi, n_side), rng.uniform(0, height, n_side)]
+            sides.append(np.insert(p, axis, at, axis=1))
+    pts = np.concatenate([top, *sides])
+    return pts + 0.002 * rng.standard_normal(pts.shape)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(1)
+    ref = _floor(rng)
+    cur_floor = _floor(rng)
+    inside = (np.abs(cur_floor[:, 0] - 1.5) < 0.15) & (np.abs(cur_floor[:, 1] - 1.5) < 0.15)
+    box = _box(rng)
+    cur = np.concatenate([cur_floor[~inside], box])
+    return ref, cur, np.r_[np.zeros((~inside).sum(), bool), np.ones(len(box), bool)]
+
+
+def test_the_combined_decision_finds_an_object_down_to_the_old_surface(scene):
+    ref, cur, box = scene
+    lattice = sdp.Lattice(voxel_size=VOXEL)
+    density = sdp.detect_changes(ref, cur, lattice=lattice, decision="density")
+    combined = sdp.detect_changes(ref, cur, lattice=lattice, decision="combined")
+    low = box & (cur[:, 2] > 0.02) & (cur[:, 2] < 0.06)  # the sides' lower part, 2–6 cm up
+    assert density.appeared[low].mean() < 0.5  # hidden in the floor's kernel
+    assert combined.appeared[low].mean() > 0.9
+    assert combined.appeared[box].mean() > density.appeared[box].mean() + 0.1
+    assert combined.appeared[~box].mean() < 0.005  # the floor stays unchanged
+    assert combined.current_distance.shape == (len(cur),) and combined.current_lod.shape == (len(cur),)
+    assert len(combined.appeared_regions) >= 1
+    assert combined.appeared_regions[0].n_points >= 0.8 * box.sum()
+    s = combined.summary()
+    assert s["decision"] == "combined" and s["current"]["significant"] > 0
+    assert density.current_distance is None and "significant" not in density.summary()["current"]
+
+
+def test_density_is_the_point_decision(scene):
+    ref, cur, _ = scene
+    lattice = sdp.Lattice(voxel_size=VOXEL)
+    a = sdp.detect_changes(ref, cur, lattice=lattice, decision="density")
+    b = sdp.detect_changes(ref, cur, lattice=lattice, decision="point")
+    assert np.array_equal(a.current_state, b.current_state) and a.decision == b.decision == "point"
+
+
+def test_a_static_pair_is_significant_at_the_promised_level_and_not_changed():
+    rng = np.random.default_rng(2)
+    ref, cur = _floor(rng), _floor(rng)
+    r = sdp.detect_changes(ref, cur, lattice=sdp.Lattice(voxel_size=VOXEL), decision="combined")
+    assert r.appeared.mean() <= 0.005 and r.disappeared.mean() <= 0.005
+    d, lod = r.current_distance, r.current_lod
+    ok = np.isfinite(d)
+    assert ok.mean() > 0.95
+    assert 0.0 < (np.abs(d[ok]) > lod[ok]).mean() <= 0.07
+
+
+def test_the_level_follows_the_range_law_of_a_depth_camera():
+    """Depth noise growing as r² along the rays: the fitted exponent is near 2 and the level
+    grows with range."""
+    rng = np.random.default_rng(3)
+    n = 60000
+
+    def wall(scale):
+        xy = rng.uniform(-1, 1, (n, 2))
+        z = 1.0 + 1.5 * (xy[:, 0] + 1)  # a floor-like plane seen from 1 m to 4 m
+        p = np.c_[xy[:, 0] * z, xy[:, 1], z]
+        ray = p / np.linalg.norm(p, axis=1)[:, None]
+        return p + ray * (scale * np.linalg.norm(p, axis=1) ** 2 * rng.standard_normal(n))[:, None]
+
+    ref, cur = wall(0.002), wall(0.002)
+    pd = point_distances(cur, ref, sigma=0.03, own_origin=np.zeros(3), other_origin=np.zeros(3))
+    assert 1.2 <= pd.range_exponent <= 2.0
+    r = np.linalg.norm(cur, axis=1)
+    ok = np.isfinite(pd.lod)
+    near, far = ok & (r < 1.8), ok & (r > 3.5)
+    assert np.median(pd.lod[far]) > 2.5 * np.median(pd.lod[near])
+    sig = pd.significant[ok].mean()
+    assert 0.02 <= sig <= 0.07
+
+
+def test_bad_options_are_refused():
+    pts = np.random.default_rng(0).random((100, 3))
+    with pytest.raises(InvalidOptionError, match="decision"):
+        sdp.detect_changes(pts, pts, decision="both")
+    with pytest.raises(InvalidOptionError, match="registration_error"):
+        point_distances(pts, pts, sigma=0.1, registration_error=-1.0)
+    with pytest.raises(InvalidOptionError, match="range_exponent"):
+        point_distances(pts, pts, sigma=0.1, range_exponent=3.0)
+
+
+def test_the_command_writes_distance_and_lod(tmp_path, scene):
+    ref, cur, box = scene
+    a, b, out = tmp_path / "a.npy", tmp_path / "b.npy", tmp_path / "out.ply"
+    np.save(a, ref)
+    np.save(b, cur)
+    res = sdp.compare_files(a, b, output=out, lattice=sdp.Lattice(voxel_size=VOXEL), decision="combined")
+    cloud = sdp.read_points(out)
+    assert {"change", "region", "distance", "lod"} <= set(cloud.fields)
+    assert (cloud.fields["change"][box] == 1).mean() > 0.8
+    assert res.summary["decision"] == "combined"
+
+
+def test_tiles_refuse_the_combined_decision_and_take_density():
+    from sdp._core._validate import check_tiled_options
+
+    check_tiled_options(decision="density")
+    with pytest.raises(InvalidOptionError, match="--decision combined is not available with --tiled"):
+        check_tiled_options(decision="combined")

@@ -1,0 +1,245 @@
+"""Scans as sensors record them (issue 35): E57 files with every scan's pose, several scanners
+in one epoch (coverage against each of them, normals towards each point's own)."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import sdp
+from sdp.io import CloudFileError
+
+pye57 = pytest.importorskip("pye57")
+
+PUMP = "e57/pumpAVisualReferenceImage.e57"
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "sdp.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, timeout=300)
+
+
+def cast(origin, boxes, *, step_deg=0.6, el_range=(-85, 60)):
+    """A terrestrial scanner at ``origin``: the nearest hit of a grid of rays (full turn in
+    azimuth, ``el_range`` in elevation, ``step_deg`` apart) on axis-aligned boxes (lo, hi).
+    Returns (points, NaN where a ray hits nothing; row; column)."""
+    az = np.deg2rad(np.arange(-180, 180, step_deg))
+    el = np.deg2rad(np.arange(el_range[0], el_range[1], step_deg))
+    a, e = np.meshgrid(az, el, indexing="ij")
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    best = np.full(len(d), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        for lo, hi in boxes:
+            t1, t2 = (np.asarray(lo) - origin) * inv, (np.asarray(hi) - origin) * inv
+            near, far = np.nanmax(np.minimum(t1, t2), axis=1), np.nanmin(np.maximum(t1, t2), axis=1)
+            hit = (near <= far) & (near > 0) & (near < best)
+            best[hit] = near[hit]
+    pts = np.full((len(d), 3), np.nan)
+    ok = np.isfinite(best)
+    pts[ok] = origin + d[ok] * best[ok, None]
+    rows, cols = np.meshgrid(np.arange(len(az)), np.arange(len(el)), indexing="ij")
+    return pts, rows.ravel(), cols.ravel()
+
+
+def write_e57(path, scans):
+    """An E57 file of ``scans`` [(world points with NaN rows, row, column, origin, yaw)]: each
+    scan stored in its scanner's frame (turned by ``yaw`` about z) with its pose, the rays that
+    hit nothing flagged invalid."""
+    e = pye57.E57(str(path), mode="w")
+    for pts, row, col, origin, yaw in scans:
+        c, s = np.cos(yaw), np.sin(yaw)
+        turn = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+        local = (pts - origin) @ turn  # turnᵀ (p − origin)
+        bad = ~np.isfinite(local).all(axis=1)
+        local[bad] = 0
+        e.write_scan_raw({"cartesianX": local[:, 0], "cartesianY": local[:, 1], "cartesianZ": local[:, 2],
+                          "cartesianInvalidState": bad.astype(np.int8), "rowIndex": row.astype(np.int32),
+                          "columnIndex": col.astype(np.int32), "intensity": np.full(len(pts), 0.5)},
+                         rotation=np.array([np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]), translation=np.asarray(origin))
+    e.close()
+    return path
+
+
+# A floor, a wall, a tower (2 m wide, 3 m tall) and a box. The reference's two scanners stand
+# low on either side of the tower; in the current epoch they stand higher (they see the tower's
+# top), the box has moved, a box stands behind the tower (hidden from scanner A by the tower,
+# seen by scanner B) and one on the tower's top (hidden from both reference scanners).
+FLOOR, WALL, TOWER = ([-6, -6, -0.1], [6, 6, 0]), ([-6, 5, 0], [6, 5.2, 3]), ([-1, -1, 0], [1, 1, 3])
+BOX_BEFORE, BOX_AFTER = ([-0.3, 2.5, 0], [0.3, 3.1, 0.6]), ([-0.3, -3.1, 0], [0.3, -2.5, 0.6])
+BEHIND, ON_TOP = ([1.3, -0.3, 0], [1.9, 0.3, 0.6]), ([-0.3, -0.3, 3], [0.3, 0.3, 3.4])
+A, B = np.array([-3.5, 0, 1.5]), np.array([3.5, 0.6, 1.5])
+LIFT = np.array([0, 0, 3.5])
+
+
+def inside(x, lo, hi, pad=0.01):
+    return ((x >= np.asarray(lo) - pad) & (x <= np.asarray(hi) + pad)).all(axis=1)
+
+
+@pytest.fixture(scope="module")
+def two_epochs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("e57")
+    before = [FLOOR, WALL, TOWER, BOX_BEFORE]
+    after = [FLOOR, WALL, TOWER, BOX_AFTER, BEHIND, ON_TOP]
+    ref = write_e57(d / "ref.e57", [(*cast(A, before), A, 0.0), (*cast(B, before), B, np.pi)])
+    cur = write_e57(d / "cur.e57", [(*cast(A + LIFT, after), A + LIFT, 0.0),
+                                    (*cast(B + LIFT, after), B + LIFT, np.pi)])
+    return ref, cur
+
+
+def test_multi_scan_e57_reads_every_scan_with_its_pose(two_epochs):
+    ref = sdp.read_points(two_epochs[0])
+    assert np.allclose(ref.sensors, [A, B]) and ref.sensor_origin is None
+    assert np.allclose(ref.sensor_origins, [A, B])
+    raw = [pye57.E57(str(two_epochs[0])).read_scan(i) for i in range(2)]  # pye57 applies the poses too
+    assert np.bincount(ref.scan).tolist() == [len(r["cartesianX"]) for r in raw]
+    for i, r in enumerate(raw):
+        assert np.allclose(ref.xyz[ref.scan == i], np.c_[r["cartesianX"], r["cartesianY"], r["cartesianZ"]])
+    # the invalid rays (into the sky) are dropped and counted; the grid is kept
+    e = pye57.E57(str(two_epochs[0]))
+    assert ref.n_dropped == e.get_header(0).point_count + e.get_header(1).point_count - len(ref)
+    assert {"row", "column", "intensity", "scan"} <= set(ref.fields)
+    # the scanner B's frame is turned by 180°: its points lie on its +x side
+    assert np.median(ref.xyz[ref.scan == 1, 0]) < B[0] and np.all(ref.xyz[ref.scan == 0, 0] >= -6 - 1e-9)
+    moved = ref.transformed(np.array([[1, 0, 0, 1.0], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]]))
+    assert np.allclose(moved.sensors, ref.sensors + [1, 2, 3])
+
+
+def test_every_scanner_of_the_other_epoch_is_asked(two_epochs):
+    ref, cur = (sdp.read_points(p) for p in two_epochs)
+    res = sdp.detect_changes(ref, cur, coverage=sdp.Coverage(range_noise=0.001))  # a laser scanner's noise
+    assert res.coverage == {"appeared": "sensor rays", "disappeared": "sensor rays"}
+    x, state = cur.xyz, res.current_state
+    moved = state[inside(x, [-0.3, -3.1, 0.2], [0.3, -2.5, 0.6])]
+    behind = state[inside(x, [1.3, -0.3, 0.2], [1.9, 0.3, 0.6])]
+    on_top = state[inside(x, [-0.3, -0.3, 3.2], [0.3, 0.3, 3.4])]
+    floor = state[x[:, 2] < 0.01]
+    assert len(moved) > 200 and (moved == sdp.CHANGED).mean() > 0.95 and not (moved == sdp.NOT_COMPARABLE).any()
+    # hidden from scanner A by the tower, seen through by scanner B: changed
+    assert len(behind) > 200 and (behind == sdp.CHANGED).mean() > 0.95
+    # in the shadow of both: not comparable, never changed
+    assert len(on_top) > 200 and (on_top == sdp.NOT_COMPARABLE).mean() > 0.8 and not (on_top == sdp.CHANGED).any()
+    assert (floor == sdp.UNCHANGED).all()
+    gone = res.reference_state[inside(ref.xyz, [-0.3, 2.5, 0.2], [0.3, 3.1, 0.6])]
+    assert len(gone) > 200 and (gone == sdp.CHANGED).mean() > 0.95 and not (gone == sdp.NOT_COMPARABLE).any()
+    assert np.allclose(res.summary()["sensor_origin"]["reference"], [A, B])
+    # with scanner A alone (its own points, its own position), the box behind the tower is not comparable
+    alone = sdp.detect_changes(ref.xyz[ref.scan == 0], cur, coverage=sdp.Coverage(sensor_origin=[A, A + LIFT],
+                                                                                     range_noise=0.001))
+    behind_alone = alone.current_state[inside(x, [1.3, -0.3, 0.2], [1.9, 0.3, 0.6])]
+    assert (behind_alone == sdp.CHANGED).mean() < 0.05
+
+
+def test_a_stream_against_a_reference_of_two_scanners(two_epochs):
+    ref, cur = (sdp.read_points(p) for p in two_epochs)
+    frame = next(sdp.watch(ref, [cur], coverage=sdp.Coverage(range_noise=0.001)))
+    x = cur.xyz
+    behind = inside(x, [1.3, -0.3, 0.2], [1.9, 0.3, 0.6])  # hidden from scanner A, seen through by B
+    on_top = inside(x, [-0.3, -0.3, 3.2], [0.3, 0.3, 3.4])  # hidden from both
+    assert frame.appeared[behind].mean() > 0.95
+    assert not frame.appeared[on_top].any() and frame.not_comparable[on_top].mean() > 0.8
+
+
+def test_normals_face_each_points_own_scanner(two_epochs):
+    ref, cur = (sdp.read_points(p) for p in two_epochs)
+    d = sdp.distances(ref, cur)
+    assert d.orientation == "towards each point's scanner"
+    x, n = d.core_points, d.normal
+    west = (np.abs(x[:, 0] + 1) < 0.005) & (x[:, 2] > 0.3) & (x[:, 2] < 2.7) & (np.abs(x[:, 1]) < 0.8)
+    east = (np.abs(x[:, 0] - 1) < 0.005) & (x[:, 2] > 0.3) & (x[:, 2] < 2.7) & (np.abs(x[:, 1]) < 0.8)
+    assert west.sum() > 1000 and east.sum() > 1000
+    assert (ref.scan[west] == 0).all() and (ref.scan[east] == 1).all()  # each face seen by one scanner
+    assert (n[west, 0] < -0.9).all() and (n[east, 0] > 0.9).all()
+    # one sensor for all (scanner A's): the east face's normals turn away from the scanner that saw it
+    one = sdp.distances(ref, cur, sensor_origin=A)
+    assert (one.normal[east, 0] < -0.9).all()
+
+
+def test_sdp_info_lists_the_scans_and_poses(two_epochs):
+    p = run("info", two_epochs[0])
+    assert p.returncode == 0, p.stderr
+    info = json.loads(p.stdout)
+    assert [s["translation"] for s in info["scans"]] == [A.tolist(), B.tolist()]
+    assert np.allclose(info["scans"][1]["rotation"], [0, 0, 0, 1], atol=1e-12)
+    assert info["scans"][0]["grid"] == [600, len(np.arange(-85, 60, 0.6))]
+    assert sum(s["kept"] for s in info["scans"]) == info["points"]
+    assert info["sensors"] == [A.tolist(), B.tolist()]
+
+
+def test_spherical_scans_are_converted():
+    from sdp.io._e57 import _scan_points  # pye57 writes Cartesian scans only
+
+    raw = {"sphericalRange": np.array([2.0, 3.0, 1.0]), "sphericalAzimuth": np.array([0.0, np.pi / 2, 0.0]),
+           "sphericalElevation": np.array([0.0, np.pi / 6, 0.0]), "sphericalInvalidState": np.array([0, 0, 1])}
+    turn = np.array([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])  # 90° about z
+    got = _scan_points(raw, turn, np.array([1.0, 0, 0]), 3, "s.e57")
+    assert np.allclose(got["xyz"][:2], [[1, 2, 0], [1 - 3 * np.cos(np.pi / 6), 0, 1.5]])
+    assert np.isnan(got["xyz"][2]).all() and (got["scan"] == 3).all()
+
+
+@pytest.mark.shared_data
+def test_pump_scan_reads_as_pye57_reports(shared_data):
+    path = shared_data / PUMP
+    c = sdp.read_points(path)
+    e = pye57.E57(str(path))
+    ref = e.read_scan(0, intensity=True, colors=True, row_column=True)
+    assert len(c) == len(ref["cartesianX"]) == e.get_header(0).point_count - c.n_dropped
+    assert np.array_equal(c.xyz, np.c_[ref["cartesianX"], ref["cartesianY"], ref["cartesianZ"]])
+    for ours, theirs in (("red", "colorRed"), ("green", "colorGreen"), ("blue", "colorBlue"),
+                         ("intensity", "intensity"), ("row", "rowIndex"), ("column", "columnIndex")):
+        assert np.array_equal(c.fields[ours], ref[theirs]), ours
+    assert np.allclose(c.sensor_origin, 0)  # no pose: the scanner at the scan frame's origin
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_sdp_change_finds_a_box_added_to_the_pump_scan(shared_data, tmp_path):
+    path = shared_data / PUMP
+    raw = pye57.E57(str(path)).read_scan_raw(0)
+    xyz = np.c_[raw["cartesianX"], raw["cartesianY"], raw["cartesianZ"]]
+    # a 0.3 m box between the scanner and the pump, its faces sampled every 5 mm
+    centre = 0.7 * np.median(xyz, axis=0)
+    g = np.arange(-0.15, 0.15 + 1e-9, 0.005)
+    u, v = (a.ravel() for a in np.meshgrid(g, g))
+    faces = [np.c_[np.full_like(u, s * 0.15), u, v] for s in (-1, 1)]
+    faces += [np.c_[u, np.full_like(u, s * 0.15), v] for s in (-1, 1)]
+    faces += [np.c_[u, v, np.full_like(u, s * 0.15)] for s in (-1, 1)]
+    box = np.unique(np.concatenate(faces), axis=0) + centre
+    data = {k: np.concatenate([raw[k], np.zeros(len(box), raw[k].dtype)]) for k in raw}
+    data["cartesianX"][-len(box):], data["cartesianY"][-len(box):], data["cartesianZ"][-len(box):] = box.T
+    data["rowIndex"][-len(box):], data["columnIndex"][-len(box):] = 0, 0
+    e = pye57.E57(str(tmp_path / "with_box.e57"), mode="w")
+    e.write_scan_raw(data)
+    e.close()
+    p = run("change", path, tmp_path / "with_box.e57", "-o", tmp_path / "out.ply", "--json")
+    assert p.returncode == 0, p.stderr
+    s = json.loads(p.stdout)
+    assert s["coverage"]["appeared"] == "sensor rays" and s["reference"]["disappeared"] == 0
+    regions = s["appeared_regions"]
+    assert len(regions) >= 1 and np.allclose(regions[0]["centroid"], centre, atol=0.1)
+    out = sdp.read_points(tmp_path / "out.ply")
+    change = out.fields["change"]
+    # the box's side facing the scanner (seen through in the reference): changed
+    assert (change[-len(box):] == sdp.CHANGED).mean() > 0.5
+    assert (change[:-len(box)] == sdp.CHANGED).mean() < 0.01
+
+
+def test_corrupt_or_foreign_e57_is_one_line(two_epochs, tmp_path):
+    cut = tmp_path / "cut.e57"
+    cut.write_bytes(two_epochs[0].read_bytes()[:5000])
+    (tmp_path / "text.e57").write_text("not an e57 file\n")
+    for name in ("cut.e57", "text.e57"):
+        with pytest.raises(CloudFileError, match=f"{name}: can't read as e57") as e:
+            sdp.read_points(tmp_path / name)
+        assert "\n" not in str(e.value)
+    p = run("change", two_epochs[0], cut, "-o", tmp_path / "out.ply")
+    assert p.returncode == 2 and p.stderr.startswith("sdp: error: ") and len(p.stderr.strip().splitlines()) == 1
+    assert "cut.e57: can't read as e57" in p.stderr and not (tmp_path / "out.ply").exists()
+
+
+def test_e57_without_the_extra_says_how_to_install(monkeypatch, two_epochs):
+    monkeypatch.setitem(sys.modules, "pye57", None)
+    with pytest.raises(sdp.MissingDependencyError, match=r"pip install 'sdp\[scans\]'"):
+        sdp.read_points(two_epochs[0])
