@@ -24,7 +24,8 @@ PYTHON = {  # function or option object → the DEFAULTS fields it takes as keyw
 }
 CLI = {"change": ("voxel_size", "sigma_voxels", "k", "min_region_points", "sensor_origin", "range_noise", "decision"),
        "watch": ("voxel_size", "min_region_points", "sensor_origin", "range_noise", "update"),
-       "build": ("voxel_size", "sigma_voxels", "k"), "bool": ("voxel_size", "sigma_voxels", "k")}
+       "build": ("voxel_size", "sigma_voxels", "k"), "bool": ("voxel_size", "sigma_voxels", "k"),
+       "series": ("projection_scale", "normal_scale", "max_distance")}
 
 
 def test_python_and_cli_defaults_are_the_same_objects():

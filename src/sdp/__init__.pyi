@@ -1,5 +1,5 @@
 # The one list of sdp's public names (read by lazy_loader at import, and by static tools).
-from . import actions, change, cli, data, distance, fields, io, registration, scale, stream, viz
+from . import actions, change, cli, data, distance, fields, io, registration, scale, stream, timeseries, viz
 from .change import (
     CHANGED,
     NOT_COMPARABLE,
@@ -52,6 +52,7 @@ from .options import Coverage, Cylinder, Execution, Lattice, Outputs, Registrati
 from .registration import Alignment, align, transform_points
 from .scale import FieldStore, build_field_tiled, detect_changes_tiled, distances_tiled
 from .stream import FrameChange, watch
+from .timeseries import open_series, series
 from .viz import change_report, distance_report, render_changes, render_changes_html, render_distances, render_field
 
 __version__: str

@@ -13,3 +13,4 @@ from ._files import (
     watch_folder,
 )
 from ._main import build_parser, main, run
+from ._series import SeriesRun, describe_series, series_files

@@ -22,6 +22,13 @@ DISTANCE = """  sdp distance 2015.laz 2023.laz -o d.laz --png d.png    how much,
   sdp distance a.ply b.ply -o d.ply --projection-scale 0.5 --normal-scale 1   M3C2's d and D, as diameters
 """
 
+SERIES = """  sdp series day*.laz -o slope.zarr --times 2024-05-01,2024-05-02,2024-05-03
+  sdp series day4.laz --append -o slope.zarr --times 2024-05-04   only the new epoch is measured
+  sdp series e*.laz -o s.zarr --core-points core.laz --registration-error 0.005 --report s.html
+  sdp series e*.laz -o s.zarr --epoch-output 3:e3.laz --points-output p.csv --points 10,20
+  sdp info s.zarr                                              epochs, objects, every parameter
+"""
+
 BUILD = """  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01
   sdp build city.laz -o city.zarr --voxel-size 0.1        any size: tiles on Dask, on disk
 """

@@ -30,6 +30,7 @@ from . import _change as C
 from . import _distance as D
 from . import _examples as X
 from . import _files as F
+from . import _series as S
 from ._text import action_eval_text, action_splits_text, alignment_text, frame_text, train_text, written_text
 from ._warmup import first_run
 
@@ -150,7 +151,35 @@ def cmd_build(a):
 
 
 def cmd_info(a):
+    from ..timeseries._archive import is_series
+
+    if is_series(a.file):  # a series archive: its summary (sdp.cli._series.describe_series)
+        return _show("", S.describe_series(a.file), as_json=True)
     return _show("", F.describe_file(a.file, format=a.format), as_json=True)
+
+
+def _epoch_output(text: str) -> tuple[str, str]:
+    k, sep, path = text.partition(":")
+    if not sep or not path:
+        raise SDPError(f"--epoch-output wants K:FILE (an epoch index and a file), got {text!r}")
+    return k, path
+
+
+def cmd_series(a):
+    options = dict(core_points=a.core_points, reference=a.reference, registration_error=a.registration_error,
+                   align=_registration(a), format=a.format,
+                   orientation=None if a.orientation is None else V.sensor_origin_option("--orientation", a.orientation))
+    given = (a.projection_scale, a.normal_scale, a.max_distance)
+    if not a.append or given != (DEFAULTS.projection_scale, DEFAULTS.normal_scale, DEFAULTS.max_distance):
+        options["cylinder"] = Cylinder(projection_scale=a.projection_scale, normal_scale=a.normal_scale,
+                                       max_distance=a.max_distance)
+    if isinstance(options["orientation"], str):
+        raise SDPError(f"--orientation must be X,Y,Z, got {a.orientation!r}")
+    r = S.series_files(a.epochs, output=a.output, append=a.append, times=a.times, options=options,
+                       execution=Execution(memory_limit=a.memory_limit), outputs=Outputs(report=a.report),
+                       exports={"epochs": [_epoch_output(e) for e in a.epoch_output or []],
+                                "points": None if a.points_output is None else (a.points_output, a.points)})
+    return _show(r.summary_text(), r.summary, a.json)
 
 
 def cmd_mesh(a):
@@ -307,6 +336,39 @@ def build_parser() -> argparse.ArgumentParser:
                     help="refuse work needing more (default $SDP_MEMORY_LIMIT or 4GiB)")
     _tile_options(ds, "large clouds: tiles on Dask (taken by itself beyond --memory-limit; output LAS/LAZ)")
 
+    se = _command(sub, "series", cmd_series, "many epochs against one reference: distances, smoothed change, "
+                  "velocity and 4D objects of change in one archive, appended epoch by epoch", X.SERIES)
+    se.add_argument("epochs", nargs="+", help="the epochs' files, in time order")
+    se.add_argument("-o", "--output", required=True, help="the archive (.zarr folder)")
+    se.add_argument("--append", action="store_true", help="add EPOCHS to the archive: only they are measured, "
+                    "with its reference, core points and options")
+    se.add_argument("--times", help="T1,T2,...: numbers or ISO dates (default: LAS creation dates, else the index)")
+    se.add_argument("--core-points", help="where to measure (a cloud file; default: the reference subsampled at the "
+                    "projection scale)")
+    se.add_argument("--reference", type=V.cli_type(V.integer_at_least, 0), help="index of the reference epoch "
+                    "(default 0)")
+    for flag, default, what in (
+            ("--projection-scale", DEFAULTS.projection_scale, "M3C2's d, the cylinder's diameter (from the reference)"),
+            ("--normal-scale", DEFAULTS.normal_scale, "M3C2's D, the normal's diameter (2d, up to 4d when rough)"),
+            ("--max-distance", DEFAULTS.max_distance, "how far along the normal an epoch is looked for (12d)")):
+        se.add_argument(flag, type=V.cli_type(V.auto_or_positive), default=default, help=f"{what}; default auto")
+    se.add_argument("--registration-error", type=V.cli_type(V.auto_or_nonnegative),
+                    help="added to each epoch's level of detection (default 0; auto: each alignment's RMS)")
+    se.add_argument("--orientation", metavar="X,Y,Z", help="normals point this way (default 0,0,1)")
+    se.add_argument("--align", choices=("density", "gicp"), help="register each epoch onto the reference first")
+    _align_options(se)
+    se.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
+                    help="memory of the job (default $SDP_MEMORY_LIMIT or 4GiB): epochs are read one at a time")
+    se.add_argument("--report", help="one HTML page: maps of change and velocity, the largest objects' series, "
+                    "the object table, the parameters (needs the plots extra)")
+    se.add_argument("--epoch-output", action="append", metavar="K:FILE",
+                    help="epoch K's distances, smoothed change, velocity and object per core point (.las, .laz, "
+                         ".ply, .npz); repeatable")
+    se.add_argument("--points-output", metavar="FILE", help="per-point series (.csv or .parquet)")
+    se.add_argument("--points", metavar="I,J,...", help="core points of --points-output (default: the peak of "
+                    "each of the five largest objects)")
+    se.add_argument("--json", action="store_true", help="print the summary as JSON")
+
     b = _command(sub, "build", cmd_build, "density field of a cloud, saved (.sdpf; a .zarr store in tiles)", X.BUILD)
     b.add_argument("cloud")
     b.add_argument("-o", "--output", required=True, help=".sdpf (in memory) or .zarr (a field store, built in tiles)")
@@ -399,7 +461,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--field", default="change",
                    help="per-point field whose nonzero points are drawn as changed (default change)")
 
-    for q in (c, ds, b, i, m, o, al, w, e, r):
+    for q in (c, ds, se, b, i, m, o, al, w, e, r):
         q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz)")
     for q in (c, b, m, o):
         _grid_options(q)
@@ -408,7 +470,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
     wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does)", "  sdp warmup")
-    for q in (c, ds, b, i, m, o, al, w, t, pr, ev, e, r, d, wu):
+    for q in (c, ds, se, b, i, m, o, al, w, t, pr, ev, e, r, d, wu):
         q.add_argument("-q", "--quiet", action="store_true",
                        help="print nothing but errors (and the JSON that --json asks for): no summary, progress "
                             "bar or notice")

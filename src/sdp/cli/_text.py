@@ -153,3 +153,24 @@ def distance_text(s: dict, reference, current) -> str:
         lines.append(alignment_text(s["alignment"]))
     lines += [f"wrote {path}" for path in s.get("outputs", [])]
     return "\n".join(lines)
+
+
+def series_text(s: dict) -> str:
+    """The summary of ``sdp series`` / ``sdp info ARCHIVE.zarr`` as text."""
+    p = s["parameters"]["used"]
+    sm = s["parameters"].get("smoother", {})
+    last = s["runs"][-1] if s["runs"] else {}
+    lines = [f"{s['path']}: {s['epochs']} epochs ({', '.join(s['time_source'])} times, {s['first_time']} .. "
+             f"{s['last_time']}) at {s['core_points']:,} core points against {s['reference']}",
+             f"  scales: projection {p['projection_scale']:.4g}, normal {p['normal_scale']:.4g}, search "
+             f"{p['max_distance']:.4g}; registration error {p['registration_error']}",
+             f"  significant: {100 * s['significant_fraction']:.1f} % of (epoch, core point); smoother: process "
+             f"noise {sm.get('process_noise', float('nan')):.3g}, velocity {sm.get('velocity', '')}",
+             f"  objects of change: {s['objects']}"]
+    for o in s["largest_objects"][:5]:
+        lines.append(f"    #{o['id']}: epochs {o['start']}..{o['end']}, {o['core_points']} core points, "
+                     f"peak {o['peak_change']:+.4g}, mean velocity {o['mean_velocity']:+.4g}")
+    if last:
+        lines.append(f"  this run: {last['added']} epoch(s) {'appended' if last['append'] else 'measured'} in "
+                     f"{last['timings'].get('total', 0):.2f} s")
+    return "\n".join(lines)

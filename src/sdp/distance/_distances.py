@@ -25,7 +25,9 @@ and their weighted moments are what M3C2 needs.
   a query costs the same however dense the cloud is. A counting sort over the box of cells
   orders them (beyond 2²⁵ cells, a sort by cell key and the spatial hash of
   :mod:`sdp._core._cells`); the search along a normal's line goes in steps of half a cell until
-  the line passes an occupied cell or one of its 26 neighbours.
+  the line passes an occupied cell or one of its 26 neighbours. The cells start at the corner of
+  the reference and core points, the current's whole cells lower where it reaches lower, so
+  every epoch compared with one reference is cut into the same cells.
 - **Uncertainty**: ``spread`` = the weighted standard deviation along the normal, ``n`` = the
   effective number of points ``(Σw)²/Σw²`` (the count of an equivalent uniform cylinder), and
   M3C2's level of detection ``lod = 1.96·(√(spread₁²/n₁ + spread₂²/n₂) + registration_error)``;
@@ -53,7 +55,7 @@ In tiles (:func:`sdp.distances_tiled`, on the buckets and Dask session of :mod:`
 tile measures its own reference points from buckets with a halo of the longest search plus the
 cylinder's and the normal's reach and whole cells (:func:`tile_halo`); core points just outside
 the tile are measured too, so that the cells whose points share a normal are whole, and the
-cells start at the clouds' common corner: the numbers equal the in-memory ones.
+cells start at the whole reference's corner: the numbers equal the in-memory ones.
 
 References
 ----------
@@ -86,7 +88,7 @@ from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
 from ..options import Cylinder
 
-__all__ = ["Distances", "distances", "search_reach", "tile_halo", "DISTANCE_FIELDS"]
+__all__ = ["Distances", "distances", "search_reach", "cells_below", "tile_halo", "DISTANCE_FIELDS"]
 
 #: The per-point outputs, in the order files store them.
 DISTANCE_FIELDS = ("distance", "lod", "significant", "n1", "n2", "spread1", "spread2",
@@ -233,9 +235,11 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
         As :func:`sdp.detect_changes` (``$SDP_MEMORY_LIMIT``, else 4 GiB): checked against an
         estimate of what the sorted clouds, their cells and the outputs need, before any work.
     corner : array_like (3,), optional
-        Where the cells start: a point below every input point in x, y and z (default: just
-        below the clouds' own lowest corner). Parts of a larger cloud given the same corner
-        (the tiles of :func:`sdp.distances_tiled`) are cut into the same cells.
+        Where the cells start: a point below every reference and core point in x, y and z
+        (default: just below their lowest corner); the current's cells start whole cells lower
+        where it reaches lower. Parts of a larger cloud given the same corner (the tiles of
+        :func:`sdp.distances_tiled`), and epochs against one reference (:func:`sdp.series`),
+        are cut into the same cells.
 
     Returns
     -------
@@ -294,12 +298,16 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     else:
         sigma_p = d_opt / 4.0
     max_half = search_reach(L_opt, 4.0 * sigma_p)
-    lo = np.minimum(np.minimum(ref.lo, cur.lo), core.min(axis=0)) - 1e-9
+    # the reference's cells start at its corner, the current's whole cells lower where it reaches lower:
+    # every epoch measured against one reference is cut into the same cells (sdp.series equals this)
+    lo = np.minimum(ref.lo, core.min(axis=0)) - 1e-9
     if corner is not None:
         corner = np.asarray(corner, np.float64).reshape(3)
         if not (np.isfinite(corner).all() and (corner <= lo).all()):
-            raise InvalidOptionError(f"corner {corner} must be finite and below every point (lowest {lo})")
+            raise InvalidOptionError(f"corner {corner} must be finite and below every reference and core point "
+                                     f"(lowest {lo})")
         lo = corner
+    cur_lo = cells_below(lo, cur.lo, _CELL * sigma_p)
     hi = np.maximum(np.maximum(ref.hi, cur.hi), core.max(axis=0))
     # per cloud point: a sorted copy, its permutation and cell (8 × 5 B) and its cell's moments
     # at two cell sizes (at most 2 × 80 B); per core point: its copy, normal and results (≈ 30 × 8 B);
@@ -314,6 +322,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
         raise InvalidOptionError(f"the clouds span {np.max(hi - lo):g} units, more than 2**{BITS} cells of "
                                  f"normal_scale / 4 = {D_opt / 4:g}: give a larger normal_scale, or compare in tiles")
     lists = _CellLists(lo, hi)
+    cur_lists = lists if np.array_equal(cur_lo, lo) else _CellLists(cur_lo, hi)
     t = time.perf_counter()
     # queries in cell order: neighbouring queries then read the same cells while they are cached,
     # and the core points of a cell share one normal, taken at their centroid
@@ -334,7 +343,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     normal, _ = lists.normals(ref.xyz, centroids, sigma_n)
     missing = ~np.isfinite(normal[:, 0])
     if missing.any():  # no reference point near: the current's surface gives the direction
-        normal[missing] = lists.normals(cur.xyz, centroids[missing], sigma_n)[0]
+        normal[missing] = cur_lists.normals(cur.xyz, centroids[missing], sigma_n)[0]
     normal = np.repeat(normal, per_cell, axis=0)
     if sensor is not None:  # one position (3,), or each core point's own scanner (m, 3)
         facing = (sensor[order] if sensor.ndim == 2 else sensor[None, :]) - core_sorted
@@ -347,7 +356,8 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     timings["normals"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    stats = [lists.cylinder(xyz, core_sorted, normal, sigma_p, max_half) for xyz in (ref.xyz, cur.xyz)]
+    stats = [lists.cylinder(ref.xyz, core_sorted, normal, sigma_p, max_half),
+             cur_lists.cylinder(cur.xyz, core_sorted, normal, sigma_p, max_half)]
     timings["cylinders"] = time.perf_counter() - t
 
     reach = max(max_half, 3.0 * sigma_p)
@@ -363,6 +373,13 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
                      n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
                      projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
                      registration_error=reg, orientation=how, timings=timings, mean1=mean1)
+
+
+def cells_below(corner: np.ndarray, lowest: np.ndarray, cell: float) -> np.ndarray:
+    """``corner`` moved down by whole cells of ``cell`` until it lies below ``lowest``: the same
+    cells, reaching lower."""
+    shift = np.ceil(np.maximum(np.asarray(corner) - np.asarray(lowest) + 1e-9, 0.0) / cell)
+    return corner - shift * cell
 
 
 def search_reach(max_distance: float | str, projection_scale: float) -> float:

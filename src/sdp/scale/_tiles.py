@@ -240,7 +240,7 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
 
     Each tile measures its own reference points from its buckets, which hold every point within
     a halo of the longest search (``max_distance`` + the cylinder and normal reach + two cells);
-    the cells start at the clouds' common corner, so with the same scales each distance equals
+    the cells start at the reference's corner, as in memory, so with the same scales each distance equals
     :func:`sdp.distances`' (tested). ``"auto"`` scales come from the first slice of each cloud
     (the tiles need them before the points); normals point along ``orientation`` (+z: the tiles
     follow no sensor). Parameters as in :func:`sdp.distances` and :func:`detect_changes_tiled`.
@@ -270,7 +270,8 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
                   h=None, truncate=DEFAULTS.truncate, method=DEFAULTS.method, halo=halo,
                   **execution.tile_keywords()) as run:
         opts = dict(cylinder=Cylinder(projection_scale=d, normal_scale=D, max_distance=reach),
-                    registration_error=reg, orientation=orientation, corner=run.lo - 1e-9, margin=margin,
+                    registration_error=reg, orientation=orientation, corner=np.asarray(run.sources["reference"].lo) - 1e-9,
+                    margin=margin,
                     memory_limit=run.opts["memory_limit"])
         results = run.tasks("distances", _distance_tile, [(key, run.root, run.tiling, opts) for key in run.tiles],
                             ())

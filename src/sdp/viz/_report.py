@@ -56,7 +56,7 @@ from ..errors import require
 from ..io._output import atomic_path
 from ._render import UNIT
 
-__all__ = ["change_report", "distance_report", "require_extras", "decimation", "POINT_BUDGET", "THUMBNAILS"]
+__all__ = ["change_report", "distance_report", "series_report", "require_extras", "decimation", "POINT_BUDGET", "THUMBNAILS"]
 
 #: Points drawn in the interactive 3-D view at most: above it, points are drawn 1 in ``factor``.
 POINT_BUDGET = 100_000
@@ -538,3 +538,124 @@ def _write(path, title: str, body: list[str]) -> Path:
     with atomic_path(path) as tmp:
         Path(tmp).write_text(page, encoding="utf-8")
     return path
+
+
+# --- sdp series --------------------------------------------------------------------------------------
+
+def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, points=None, seed: int = 0,
+                  max_points: int = 200_000) -> Path:
+    """Write the HTML report of a series archive (``sdp series --report``).
+
+    Maps of the total (smoothed) change at the last epoch and of its velocity, the series of the
+    five largest objects of change (their mean smoothed change, the raw distances of their peak
+    core point) and of chosen core points, the object table, and each parameter with its reason.
+
+    Parameters
+    ----------
+    path : path-like
+        The page to write (atomically).
+    ds : xarray.Dataset
+        A series archive (:func:`sdp.open_series`).
+    summary : dict, optional
+        :func:`sdp.cli.describe_series` of it.
+    points : list of int, optional
+        Core points whose series are drawn too.
+    seed, max_points
+        The maps draw at most ``max_points`` core points (a random sample of them beyond).
+
+    Returns
+    -------
+    Path
+
+    References
+    ----------
+    .. [1] L. Winiwarter et al., "Full four-dimensional change analysis of topographic point cloud
+       time series using Kalman filtering", Earth Surf. Dynam. 11 (2023) 593–613.
+    """
+    require_extras()
+    from ._render import png_bytes, pyplot
+
+    plt = pyplot()
+    t0 = time.perf_counter()
+    attrs = ds.attrs
+    E, m = ds.sizes["epoch"], ds.sizes["point"]
+    xyz = np.c_[ds.x.values, ds.y.values, ds.z.values]
+    last = ds.isel(epoch=E - 1)
+    total = np.asarray(last.smoothed.values, np.float64)
+    vel = np.asarray(last.velocity.values, np.float64)
+    sig = np.abs(total) > 1.96 * np.asarray(last.smoothed_sigma.values, np.float64)
+    idx = np.arange(m)
+    f = decimation(m, max_points)
+    if f > 1:
+        idx = idx[np.random.default_rng(seed).random(m) < 1.0 / f]
+    size = float(np.clip(40_000.0 / max(len(idx), 1), 1.5, 25.0))  # sparse core points stay visible
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.5))
+    for ax, values, what in ((axes[0], total, "smoothed change at the last epoch"),
+                             (axes[1], vel, f"velocity ({attrs['parameters']['smoother']['velocity']})")):
+        ok = np.isfinite(values[idx])
+        lim = float(np.nanquantile(np.abs(values[idx][ok]), 0.98)) if ok.any() else 1.0
+        pale = idx[ok & ~sig[idx]]
+        ax.scatter(xyz[pale, 0], xyz[pale, 1], s=size, c="#D9D9D9", linewidths=0)
+        strong = idx[ok & sig[idx]]
+        sc = ax.scatter(xyz[strong, 0], xyz[strong, 1], s=1.5 * size, c=values[strong], cmap="PuOr_r", vmin=-lim, vmax=lim,
+                        linewidths=0)
+        fig.colorbar(sc, ax=ax, shrink=0.8)
+        ax.set_aspect("equal")
+        ax.set_title(what + " (significant change coloured)", fontsize=10)
+        ax.set_xlabel("x")
+        ax.set_ylabel("y")
+    maps = _img(png_bytes(fig), "maps of the total change and the velocity")
+    times = np.asarray(ds.time.values)
+    ids = ds.object_id.values[:5]
+    fig, ax = plt.subplots(figsize=(11, 4.5))
+    obj = ds.object.values if len(ids) else None
+    smoothed = ds.smoothed.values if len(ids) else None
+    for oid in ids:
+        mask = obj == oid
+        mean = np.array([np.nanmean(smoothed[k][mask[k]]) if mask[k].any() else np.nan for k in range(E)])
+        ax.plot(times, mean, lw=2, label=f"object {oid}: mean smoothed change")
+    for p in list(points or []):
+        ax.plot(times, ds.distance.values[:, p], ".", ms=4, label=f"core point {p}: distance")
+        ax.plot(times, ds.smoothed.values[:, p], "-", lw=1, label=f"core point {p}: smoothed")
+    ax.axhline(0, color="#999", lw=0.8)
+    ax.set_xlabel("time")
+    ax.set_ylabel("change along the normal")
+    if len(ids) or points:
+        ax.legend(fontsize=8, ncol=2)
+    series_png = _img(png_bytes(fig), "series of the largest objects and chosen points")
+    rows = [(int(i), int(s), int(e), int(n), f"{a:.4g}", f"{pk:+.4g}", f"{v:+.4g}")
+            for i, s, e, n, a, pk, v in zip(ds.object_id.values[:_TABLE_ROWS], ds.object_start.values,
+                                            ds.object_end.values, ds.object_points.values, ds.object_area.values,
+                                            ds.object_peak_change.values, ds.object_mean_velocity.values)]
+    objects = (f"<p>{ds.sizes['object_id']:,} objects (the {min(len(rows), _TABLE_ROWS)} largest listed).</p>"
+               + _table(("object", "start epoch", "end epoch", "core points", "area", "peak change",
+                         "mean velocity"), rows))
+    p = attrs["parameters"]
+    used = p["used"]
+    reasons = [("projection scale d", f"{used['projection_scale']:.4g}", "given" if p["given"]["projection_scale"]
+                != "auto" else "auto: 4σ of the density kernel from the reference's point spacing"),
+               ("normal scale D", f"{used['normal_scale']:.4g}", "given" if p["given"]["normal_scale"] != "auto"
+                else "auto: 2d, raised to 20× the roughness (Lague et al.), at most 4d"),
+               ("search along the normal", f"{used['max_distance']:.4g}", "12d unless given"),
+               ("registration error", str(used["registration_error"]), "added to each epoch's level of detection"),
+               ("core points", p["core_points"], "where every epoch is measured"),
+               ("process noise q", f"{p['smoother']['process_noise']:.3g}", p["smoother"]["process_noise_reason"]),
+               ("observation noise", p["smoother"]["observation_noise"], "each epoch's own level of detection"),
+               ("steps", f"k = {p['smoother']['step_k']}", "an innovation beyond k σ confirmed by the next epoch, or "
+                "a step scan over all epochs beyond 4σ"),
+               ("objects", f"radius {p['objects']['neighbour_radius']:.4g}, ≥ {p['min_object_points']} core points",
+                p["objects"]["rule"])]
+    from ..cli._text import series_text
+
+    s = summary or {}
+    body = [f"<h1>{_e('sdp series: ' + str(s.get('path', '')))}</h1>",
+            _section("Summary", (f"<pre>{_e(series_text(s))}</pre>" if s else "")
+                     + _table(("parameter", "value", "why"), reasons)
+                     + f"<p>Report written in {time.perf_counter() - t0:.2f} s.</p>"
+                     + _details("The summary as JSON (sdp info ARCHIVE.zarr)", f"<pre>{_e(_json(s))}</pre>")),
+            _section("Total change and velocity", maps + "<p>Core points whose smoothed change at the last epoch "
+                     "is significant (beyond 1.96 of its smoothed standard deviation) are coloured, the others pale."
+                     "</p>"),
+            _section("Through time", series_png),
+            _section("Objects of change", objects)]
+    return _write(path, "sdp series report", body)

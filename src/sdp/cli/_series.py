@@ -1,0 +1,231 @@
+"""``sdp series`` as a function: many epochs against one reference, into one archive, files to files.
+
+References
+----------
+.. [1] D. Lague, N. Brodu, J. Leroux, "Accurate 3D comparison of complex topography with
+   terrestrial laser scanner", ISPRS J. Photogramm. 82 (2013) (M3C2).
+.. [2] L. Winiwarter et al., "Full four-dimensional change analysis of topographic point cloud
+   time series using Kalman filtering", Earth Surf. Dynam. 11 (2023) 593–613.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InvalidOptionError, SDPError
+from ..io._output import all_or_none, atomic_path, check_outputs
+from ..options import Execution, Outputs
+from ._text import series_text
+
+__all__ = ["SeriesRun", "series_files", "describe_series", "point_table"]
+
+
+@dataclass
+class SeriesRun:
+    """What :func:`series_files` measured and wrote."""
+
+    archive: str
+    dataset: object  # xarray.Dataset
+    summary: dict
+    outputs: list = field(default_factory=list)
+
+    def summary_text(self) -> str:
+        return series_text(self.summary)
+
+
+def _epoch_index(text: str, n: int) -> int:
+    try:
+        k = int(text)
+    except ValueError:
+        raise InvalidOptionError(f"--epoch-output wants K:FILE with K an epoch index, got {text!r}") from None
+    if not -n <= k < n:
+        raise InvalidOptionError(f"--epoch-output {k}: the archive has epochs 0..{n - 1}")
+    return k % n
+
+
+def _point_list(text: str | None) -> list[int] | None:
+    if text is None:
+        return None
+    try:
+        return [int(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise InvalidOptionError(f"--points wants core point indices I,J,..., got {text!r}") from None
+
+
+def series_files(epochs, *, output, append: bool = False, times=None, options: dict | None = None,
+                 execution: Execution | None = None, outputs: Outputs | None = None,
+                 exports: dict | None = None) -> SeriesRun:
+    """Distances of many epochs against one reference in one archive, smoothed, with objects of
+    change: ``sdp series`` as a function (see :func:`sdp.series`).
+
+    Parameters
+    ----------
+    epochs : sequence of path-like
+        The epochs' files, in time order.
+    output : path-like
+        The archive (``.zarr``).
+    append, times, execution
+        As :func:`sdp.series` (``times`` also "T1,T2,…").
+    options : dict, optional
+        The other keywords of :func:`sdp.series`: ``core_points`` (a file), ``reference``,
+        ``cylinder``, ``registration_error``, ``align``, ``orientation``, ``format``.
+    outputs : Outputs, optional
+        ``report``: one HTML page (maps of total change and velocity, the largest objects' series,
+        the object table, the parameters with their reasons).
+    exports : dict, optional
+        ``epochs``: list of (epoch index, file): that epoch's distances, smoothed change, velocity
+        and object per core point (.las, .laz, .ply, .npz, as ``sdp distance`` writes them);
+        ``points``: (file, indices or None): per-point series as CSV or Parquet (default: the
+        core point of each of the five largest objects with the largest change).
+
+    Returns
+    -------
+    SeriesRun
+
+    References
+    ----------
+    .. [1] Lague et al. 2013 (M3C2); Winiwarter et al. 2023 (Kalman smoothing).
+    """
+    from ..timeseries._compute import series
+
+    outputs = Outputs() if outputs is None else outputs
+    exports = {} if exports is None else exports
+    options = dict(options or {})
+    unknown = set(options) - {"core_points", "reference", "cylinder", "registration_error", "align", "orientation",
+                              "format"}
+    if unknown:
+        raise InvalidOptionError(f"series_files: unknown option(s) {sorted(unknown)}")
+    core_points = options.get("core_points")
+    epochs = [str(e) for e in epochs]
+    inputs = epochs + ([core_points] if core_points else [])
+    epoch_files = list(exports.get("epochs") or [])
+    points = exports.get("points")
+    report = outputs.report
+    for _, f in epoch_files:
+        if Path(f).suffix.lower() not in (".las", ".laz", ".ply", ".npz"):
+            raise InvalidOptionError(f"{f}: an epoch's distances are written as .las, .laz, .ply or .npz")
+    if points is not None and Path(points[0]).suffix.lower() not in (".csv", ".parquet"):
+        raise InvalidOptionError(f"{points[0]}: per-point series are written as .csv or .parquet")
+    if points is not None and Path(points[0]).suffix.lower() == ".parquet":
+        import importlib.util
+
+        if importlib.util.find_spec("pyarrow") is None:
+            raise SDPError(f"{points[0]}: Parquet needs pyarrow (pip install pyarrow); or write .csv")
+    check_outputs([output, report, *(f for _, f in epoch_files), points[0] if points else None], inputs)
+    if report:
+        from ..viz._report import require_extras
+
+        require_extras()
+    t0 = time.perf_counter()
+    ds = series(epochs, output=output, append=append, times=times, execution=execution, **options)
+    summary = describe_series(output, ds)
+    written = [str(output)]
+    with all_or_none():
+        n = ds.sizes["epoch"]
+        for k_text, f in epoch_files:
+            _write_epoch(ds, _epoch_index(str(k_text), n), f, inputs)
+            written.append(str(f))
+        if points is not None:
+            _write_points(ds, points[0], _point_list(points[1]), inputs)
+            written.append(str(points[0]))
+        if report:
+            from ..viz._report import series_report
+
+            chosen = _point_list(points[1]) if points is not None and points[1] is not None else default_points(ds)
+            series_report(report, ds, summary=summary, points=chosen[:5])
+            written.append(str(report))
+    summary["outputs"] = written
+    summary["seconds"] = round(time.perf_counter() - t0, 4)
+    return SeriesRun(str(output), ds, summary, written)
+
+
+def _write_epoch(ds, k: int, path, inputs) -> None:
+    from ..io._output import write_points
+
+    xyz = np.c_[ds.x.values, ds.y.values, ds.z.values]
+    row = ds.isel(epoch=k)
+    fields = {name: np.asarray(row[name].values) for name in ("distance", "lod", "smoothed", "velocity",
+                                                               "smoothed_sigma", "object")}
+    fields["significant"] = np.asarray(row["significant"].values).astype(np.uint8)
+    for axis in "xyz":
+        fields[f"normal_{axis}"] = ds[f"normal_{axis}"].values
+    write_points(path, xyz, fields, inputs=inputs)
+
+
+def default_points(ds, count: int = 5) -> list[int]:
+    """The core point of largest smoothed change in each of the ``count`` largest objects."""
+    chosen = []
+    objects = ds.object.values
+    change = np.abs(np.nan_to_num(ds.smoothed.values))
+    for oid in ds.object_id.values[:count]:
+        where = np.where(objects == oid, change, -1.0)
+        chosen.append(int(np.unravel_index(np.argmax(where), where.shape)[1]))
+    return sorted(set(chosen))
+
+
+def point_table(ds, points: list[int]):
+    """Per-point series as a pandas DataFrame (point, epoch, time, each per-epoch value)."""
+    import pandas as pd
+
+    m = ds.sizes["point"]
+    bad = [p for p in points if not 0 <= p < m]
+    if bad:
+        raise InvalidOptionError(f"--points {bad[0]}: the archive has core points 0..{m - 1}")
+    sub = ds.isel(point=points)
+    cols = {"point": np.repeat(points, ds.sizes["epoch"]),
+            "epoch": np.tile(np.arange(ds.sizes["epoch"]), len(points)),
+            "time": np.tile(ds.time.values, len(points))}
+    for axis in "xyz":
+        cols[axis] = np.repeat(sub[axis].values, ds.sizes["epoch"])
+    for name in ("distance", "lod", "significant", "smoothed", "smoothed_sigma", "velocity", "velocity_sigma",
+                 "object"):
+        cols[name] = np.asarray(sub[name].values).T.reshape(-1)
+    return pd.DataFrame(cols)
+
+
+def _write_points(ds, path, points, inputs) -> None:
+    table = point_table(ds, default_points(ds) if points is None else points)
+    with atomic_path(path, inputs=inputs) as tmp:
+        if Path(path).suffix.lower() == ".parquet":
+            try:
+                table.to_parquet(tmp, index=False)
+            except ImportError as exc:
+                raise SDPError(f"{path}: Parquet needs pyarrow ({exc}); write .csv instead") from None
+        else:
+            table.to_csv(tmp, index=False)
+
+
+def describe_series(path, ds=None) -> dict:
+    """What ``sdp info ARCHIVE.zarr`` prints: epochs, times, core points, objects, every parameter."""
+    from ..timeseries._archive import open_series
+
+    ds = open_series(path) if ds is None else ds
+    attrs = ds.attrs
+    epochs = attrs["epochs"]
+    sig_fraction = float(ds.significant.mean().values) if ds.sizes["epoch"] and ds.sizes["point"] else 0.0
+    kind = attrs["time_kind"]
+    times = [e["time"] for e in epochs]
+    if kind == "date":
+        times = [str(np.datetime64("1970-01-01T00:00:00", "s") + np.timedelta64(int(round(t * 86400)), "s"))
+                 for t in times]
+    last = np.asarray(ds.smoothed.isel(epoch=-1).values) if ds.sizes["epoch"] else np.empty(0)  # one row read
+    vel = np.asarray(ds.velocity.isel(epoch=-1).values) if ds.sizes["epoch"] else np.empty(0)
+    table = [{"id": int(i), "start": int(s), "end": int(e), "core_points": int(n), "area": float(a),
+              "peak_change": float(p), "mean_velocity": float(v)}
+             for i, s, e, n, a, p, v in zip(ds.object_id.values, ds.object_start.values, ds.object_end.values,
+                                            ds.object_points.values, ds.object_area.values,
+                                            ds.object_peak_change.values, ds.object_mean_velocity.values)]
+    return {"kind": "series archive", "path": str(path), "format_version": attrs["format_version"],
+            "sdp_version": attrs["sdp_version"], "epochs": len(epochs), "core_points": int(ds.sizes["point"]),
+            "time_kind": kind, "time_source": sorted({e["time_source"] for e in epochs}),
+            "first_time": times[0] if times else None, "last_time": times[-1] if times else None,
+            "reference": attrs["parameters"]["reference_file"],
+            "significant_fraction": sig_fraction,
+            "median_abs_smoothed_last": float(np.nanmedian(np.abs(last))) if np.isfinite(last).any() else None,
+            "max_abs_velocity_last": float(np.nanmax(np.abs(vel))) if np.isfinite(vel).any() else None,
+            "objects": len(table), "largest_objects": table[:10], "parameters": attrs["parameters"],
+            "runs": attrs["runs"]}

@@ -1,0 +1,217 @@
+"""The reference side of the signed distances, prepared once and measured against many epochs.
+
+:func:`sdp.distances` computes, for one pair, the core points' cells, their normals and the
+reference's kernel-weighted position in each cylinder, then the current's. In a series every
+epoch is measured against the same reference at the same core points, so all of that reference
+side is computed once (:meth:`PreparedReference.prepare`) and each epoch costs only its own
+cells and cylinders (:meth:`PreparedReference.measure`): O(n) to sum the epoch into cells, O(1)
+per core point. The prepared state is a few arrays per core point (:meth:`~PreparedReference.state`),
+so a series archive stores it and an epoch appended later is measured exactly as in the full run.
+
+The cells start at the reference's corner and an epoch reaching below it moves the corner down by
+whole cells, so every epoch is cut into the same cells, as :func:`sdp.distances` does for a pair:
+each epoch's numbers are those of :func:`sdp.distances` on that pair with the same scales (tested).
+
+References
+----------
+.. [1] D. Lague, N. Brodu, J. Leroux, "Accurate 3D comparison of complex topography with
+   terrestrial laser scanner", ISPRS J. Photogramm. 82 (2013) (M3C2, the level of detection).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._core._memory import check_memory
+from .._core._points import as_points
+from .._core._validate import auto_or_positive, nonnegative_finite
+from ..errors import InvalidOptionError, InvalidPointsError
+from ..fields._spacing import resolve_lattice
+from ..options import Cylinder
+from ._distances import (
+    _CELL,
+    _MAX_NORMAL_FACTOR,
+    _RADIUS,
+    _ROUGHNESS_RATIO,
+    Distances,
+    _CellLists,
+    cells_below,
+    _cell_moments,
+    _results,
+    search_reach,
+)
+
+__all__ = ["PreparedReference"]
+
+#: The arrays of :meth:`PreparedReference.state`, per core point (in the core points' order).
+STATE_ARRAYS = ("core_points", "normal", "ref_mean", "ref_spread", "ref_count", "ref_level")
+
+
+@dataclass
+class PreparedReference:
+    """The reference epoch's side of :func:`sdp.distances` at fixed core points.
+
+    Attributes
+    ----------
+    core_points, normal : ndarray (m, 3) float64
+        Where distances are measured and the unit normals there (NaN where the reference has no
+        points near: never comparable).
+    ref_mean, ref_spread, ref_count : ndarray (m,) float64
+        The reference's kernel-weighted offset along the normal, spread and effective count.
+    ref_level : ndarray (m,) int8
+        0: the reference answered in the cylinder at the core point; 1: farther along the normal.
+    projection_scale, normal_scale, max_distance : float
+        The scales used (M3C2's d, D and the search's half-length).
+    corner : ndarray (3,) float64
+        Where the cells start.
+    orientation : ndarray (3,) float64
+        The direction the normals were turned towards.
+    """
+
+    core_points: np.ndarray
+    normal: np.ndarray
+    ref_mean: np.ndarray
+    ref_spread: np.ndarray
+    ref_count: np.ndarray
+    ref_level: np.ndarray
+    projection_scale: float
+    normal_scale: float
+    max_distance: float
+    corner: np.ndarray
+    orientation: np.ndarray
+
+    @classmethod
+    def prepare(cls, reference, core_points=None, *, cylinder: Cylinder | None = None, orientation=None,
+                memory_limit=None) -> "PreparedReference":
+        """Cells, normals and the reference's cylinders at the core points (default: every reference point).
+
+        ``cylinder`` as in :func:`sdp.distances`, except that ``"auto"`` scales come from the
+        reference alone (they must not depend on epochs not seen yet)."""
+        ref = as_points(reference, name="reference")
+        if len(ref.xyz) < 3:
+            raise InvalidPointsError(f"the reference has {len(ref.xyz)} point(s): a surface normal and a spread "
+                                     "need at least 3")
+        cylinder = Cylinder() if cylinder is None else cylinder
+        d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
+        D_opt = auto_or_positive("normal_scale", cylinder.normal_scale)
+        L_opt = auto_or_positive("max_distance", cylinder.max_distance)
+        towards = np.array([0.0, 0.0, 1.0]) if orientation is None else np.asarray(orientation, np.float64).reshape(-1)
+        if towards.shape != (3,) or not np.isfinite(towards).all() or not np.any(towards):
+            raise InvalidOptionError(f"orientation must be a nonzero finite vector (x, y, z), got {orientation!r}")
+        towards = towards / np.linalg.norm(towards)
+        core = ref.xyz if core_points is None else as_points(core_points, name="core points").xyz
+        if d_opt == "auto":
+            voxel, sigma_voxels = resolve_lattice([ref], k=3.0)
+            sigma_p = sigma_voxels * voxel
+        else:
+            sigma_p = d_opt / 4.0
+        max_half = search_reach(L_opt, 4.0 * sigma_p)
+        lo = np.minimum(ref.lo, core.min(axis=0)) - 1e-9
+        hi = np.maximum(ref.hi, core.max(axis=0))
+        check_memory(200.0 * len(ref.xyz) + 240.0 * len(core),
+                     f"the reference's {len(ref.xyz):,} points at {len(core):,} core points", memory_limit,
+                     advice="measure at fewer core points")
+        lists = _CellLists(lo, hi)
+        order, starts = lists.order(core, _CELL * sigma_p)
+        core_sorted = lists.get(core, _CELL * sigma_p)[0]
+        centroids = np.ascontiguousarray(_cell_moments(core_sorted, starts)[:, 1:4])
+        if D_opt == "auto":
+            sigma_n = 2.0 * sigma_p
+            sample = centroids[:: max(1, len(centroids) // 2000)]
+            _, rough = lists.normals(ref.xyz, sample, sigma_n)
+            rough = rough[np.isfinite(rough)]
+            if rough.size:
+                sigma_n = min(max(sigma_n, _ROUGHNESS_RATIO * float(np.median(rough)) / 4.0),
+                              _MAX_NORMAL_FACTOR * sigma_p)
+        else:
+            sigma_n = D_opt / 4.0
+        normal, _ = lists.normals(ref.xyz, centroids, sigma_n)
+        normal = np.repeat(normal, np.diff(starts), axis=0)
+        normal[normal @ towards < 0] *= -1.0
+        m1, s1, c1, k1 = lists.cylinder(ref.xyz, core_sorted, normal, sigma_p, max_half)
+        back = np.empty_like(order)
+        back[order] = np.arange(len(order))
+
+        def unsort(a):
+            return np.ascontiguousarray(a[back])
+
+        return cls(core_points=np.ascontiguousarray(core, np.float64), normal=unsort(normal), ref_mean=unsort(m1),
+                   ref_spread=unsort(s1), ref_count=unsort(c1), ref_level=unsort(k1).astype(np.int8),
+                   projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=max_half,
+                   corner=lo, orientation=towards)
+
+    # ------------------------------------------------------------------ state
+    def state(self) -> tuple[dict[str, np.ndarray], dict]:
+        """(arrays per core point, scalars): everything :meth:`measure` needs, for an archive."""
+        arrays = {name: getattr(self, name) for name in STATE_ARRAYS}
+        scalars = {"projection_scale": self.projection_scale, "normal_scale": self.normal_scale,
+                   "max_distance": self.max_distance, "corner": [float(v) for v in self.corner],
+                   "orientation": [float(v) for v in self.orientation]}
+        return arrays, scalars
+
+    @classmethod
+    def from_state(cls, arrays: dict, scalars: dict) -> "PreparedReference":
+        """The object :meth:`state` described."""
+        return cls(**{name: np.ascontiguousarray(arrays[name]) for name in STATE_ARRAYS},
+                   projection_scale=float(scalars["projection_scale"]), normal_scale=float(scalars["normal_scale"]),
+                   max_distance=float(scalars["max_distance"]), corner=np.asarray(scalars["corner"], np.float64),
+                   orientation=np.asarray(scalars["orientation"], np.float64))
+
+    def memory_per_epoch(self, n_points: int) -> float:
+        """Bytes :meth:`measure` needs for an epoch of ``n_points`` (its cells and the outputs)."""
+        return 200.0 * n_points + 160.0 * len(self.core_points)
+
+    # ------------------------------------------------------------------ one epoch
+    def measure(self, current, *, registration_error: float = 0.0, memory_limit=None) -> Distances:
+        """Distances from the reference to ``current`` at the core points, as :func:`sdp.distances`."""
+        t0 = time.perf_counter()
+        cur = as_points(current, name="epoch")
+        if len(cur.xyz) < 3:
+            raise InvalidPointsError(f"an epoch has {len(cur.xyz)} point(s): a spread needs at least 3")
+        reg = nonnegative_finite("registration_error", registration_error)
+        check_memory(self.memory_per_epoch(len(cur.xyz)), f"an epoch of {len(cur.xyz):,} points", memory_limit,
+                     advice="measure at fewer core points")
+        sigma_p = self.projection_scale / 4.0
+        cell = _CELL * sigma_p
+        core = self.core_points
+        lo = cells_below(self.corner, cur.lo, cell)  # whole cells lower where the epoch reaches lower
+        hi = np.maximum(np.maximum(cur.hi, core.max(axis=0)), lo + cell)
+        lists = _CellLists(lo, hi)
+        order, _ = lists.order(core, cell)
+        queries = lists.get(core, cell)[0]
+        normal = np.ascontiguousarray(self.normal[order])
+        ref = tuple(np.ascontiguousarray(a[order]) for a in (self.ref_mean, self.ref_spread, self.ref_count,
+                                                             self.ref_level.astype(np.int64)))
+        cur_stats = lists.cylinder(cur.xyz, queries, normal, sigma_p, self.max_distance)
+        reach = max(self.max_distance, _RADIUS * sigma_p)
+        m = len(order)
+        dist, lod, n1, n2, s1, s2 = (np.empty(m) for _ in range(6))
+        out_normal, level = np.empty((m, 3)), np.empty(m, np.int8)
+        _results(order, ref, cur_stats, normal, reg, reach, dist, lod, n1, n2, s1, s2, out_normal, level)
+        how = "towards ({:g}, {:g}, {:g})".format(*self.orientation)
+        return Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
+                         n1=n1, n2=n2, spread1=s1, spread2=s2, normal=out_normal, level=level,
+                         projection_scale=self.projection_scale, normal_scale=self.normal_scale, max_distance=reach,
+                         registration_error=reg, orientation=how, timings={"total": time.perf_counter() - t0})
+
+
+def subsample(xyz: np.ndarray, spacing: float) -> np.ndarray:
+    """Rows of ``xyz``, one per occupied cube of ``spacing`` (the point nearest its cell's
+    centroid, the first in input order on ties), in input order: core points at a given spacing."""
+    if not (math.isfinite(spacing) and spacing > 0):
+        raise InvalidOptionError(f"core point spacing must be positive, got {spacing!r}")
+    cells = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
+    _, inverse = np.unique(cells, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    k = inverse.max() + 1
+    counts = np.bincount(inverse, minlength=k).astype(np.float64)
+    mean = np.stack([np.bincount(inverse, xyz[:, a], minlength=k) for a in range(3)], axis=1) / counts[:, None]
+    d2 = ((xyz - mean[inverse]) ** 2).sum(axis=1)
+    order = np.lexsort((np.arange(len(xyz)), d2, inverse))
+    first = np.ones(len(order), bool)
+    first[1:] = inverse[order[1:]] != inverse[order[:-1]]
+    return np.sort(order[first])

@@ -1,0 +1,285 @@
+"""The series archive: one Zarr folder per series, written all or nothing, appended epoch by epoch.
+
+Layout (a Zarr v3 group, ``*.zarr``, readable with ``xarray.open_zarr``)::
+
+    attrs          format "sdp-series", format_version, sdp_version, parameters (each option as
+                   given and as used), epochs (file, time, time source, registration error,
+                   alignment), time_units, runs (what each run added)
+    distance, lod, significant       (epoch, point)  float32, float32, bool: chunks of one epoch
+                                                     row and 16,384 points, written once
+    smoothed, velocity, smoothed_sigma, velocity_sigma, object   (epoch, point): rewritten by
+                                     every run, in chunks of up to 64 epochs × 16,384 points
+    time, registration_error         (epoch,)
+    x, y, z, onset, onset_kind       (point,)
+    normal_x/y/z, ref_mean, ref_spread, ref_count, ref_level     (point,): the reference side
+                                     (:class:`sdp.distance.PreparedReference`) that appending reuses
+    object_id, object_start, object_end, object_start_time, object_end_time, object_points,
+    object_area, object_peak_change, object_mean_velocity        (object_id,): the object table
+
+Atomicity: a run writes the new archive under a temporary name beside it (for an append, the
+measured rows of the archive are hard links to its chunk files, which are never written again:
+Zarr writes a chunk through a new file renamed over the old, so a link is never written through),
+marks it complete, renames it to ``.NAME.pending`` and swaps it in (``NAME`` to ``.NAME.old``,
+``.NAME.pending`` to ``NAME``, then the old one removed). A run interrupted before the mark
+leaves the archive as it was (its temporary folder is removed by the next run); one interrupted
+after it is completed by the next run or :func:`open_series` (:func:`recover`). Per-epoch arrays
+that depend on all epochs (the smoother's, the objects) are rewritten by every run: a smoother
+with a backward pass changes the past when an epoch is added.
+
+References
+----------
+.. [1] A. Miles et al., "Zarr: chunked, compressed, N-dimensional arrays", https://zarr.dev.
+.. [2] S. Hoyer, J. Hamman, "xarray: N-D labeled arrays and datasets in Python", J. Open Res.
+   Softw. 5(1) (2017).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SDPError, require
+
+__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "transaction", "Writer"]
+
+ARCHIVE_FORMAT = "sdp-series"
+ARCHIVE_VERSION = 1
+POINT_CHUNK = 16384  # points per chunk: an epoch row of 100,000 core points is 7 chunk files
+#: Arrays written once per epoch (or once per archive) and never again: hard-linked by an append.
+MEASURED = ("distance", "lod", "significant", "x", "y", "z", "normal_x", "normal_y", "normal_z",
+            "ref_mean", "ref_spread", "ref_count", "ref_level")
+_COMPLETE = ".sdp-complete"
+
+
+class SeriesArchiveError(SDPError, OSError):
+    """An archive that is not an sdp series, or that can't be written."""
+
+
+def require_series():
+    """(xarray, zarr), or a one-line :class:`~sdp.MissingDependencyError` naming the extra."""
+    return (require("xarray", "series", "a series archive"), require("zarr", "series", "a series archive"))
+
+
+def _siblings(path: Path) -> tuple[Path, Path]:
+    return path.parent / f".{path.name}.pending", path.parent / f".{path.name}.old"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def recover(path) -> str | None:
+    """Finish or undo what an interrupted run left beside the archive ``path``; what was done, or None.
+
+    A complete new version (``.NAME.pending``) is swapped in; a stale old one (``.NAME.old``)
+    and temporary folders of runs that are no longer alive are removed."""
+    path = Path(path)
+    pending, old = _siblings(path)
+    done = None
+    if pending.is_dir() and (pending / _COMPLETE).exists():
+        if path.exists():
+            if old.exists():
+                shutil.rmtree(old)
+            os.rename(path, old)
+        os.rename(pending, path)
+        done = "completed an interrupted run"
+    if old.exists() and path.exists():
+        shutil.rmtree(old, ignore_errors=True)
+    for tmp in path.parent.glob(f".{path.name}.tmp-*"):
+        try:
+            pid = int(tmp.name.rsplit("-", 1)[1])
+        except ValueError:
+            continue
+        if not _alive(pid) or pid == os.getpid():
+            shutil.rmtree(tmp, ignore_errors=True)
+            done = done or "removed what an interrupted run left"
+    return done
+
+
+def _snapshot(src: Path, dst: Path) -> None:
+    """``dst``: the measured arrays of ``src`` (chunks hard-linked, metadata copied) and its group metadata."""
+    dst.mkdir()
+    meta = json.loads((src / "zarr.json").read_text())
+    meta.pop("consolidated_metadata", None)  # lists arrays the new version rewrites: made again at its end
+    (dst / "zarr.json").write_text(json.dumps(meta))
+    for name in MEASURED:
+        if not (src / name).is_dir():
+            continue
+        for root, _, files in os.walk(src / name):
+            rel = Path(root).relative_to(src)
+            (dst / rel).mkdir(parents=True, exist_ok=True)
+            for f in files:
+                if f == "zarr.json":
+                    shutil.copy2(Path(root) / f, dst / rel / f)
+                    continue
+                try:
+                    os.link(Path(root) / f, dst / rel / f)
+                except OSError:  # a file system without hard links: copy
+                    shutil.copy2(Path(root) / f, dst / rel / f)
+
+
+@contextmanager
+def transaction(path, *, base: bool = False):
+    """Yield a temporary folder to write the archive's new version in; on success swap it in as
+    ``path``, else remove it (see the module docstring). ``base``: start from ``path``'s measured arrays."""
+    path = Path(path)
+    recover(path)
+    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    pending, old = _siblings(path)
+    try:
+        if base:
+            _snapshot(path, tmp)
+        else:
+            tmp.mkdir()
+        yield tmp
+        (tmp / _COMPLETE).write_text("complete\n")
+        os.rename(tmp, pending)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    # from here the new version is complete: a crash leaves it for recover() to swap in
+    if path.exists():
+        os.rename(path, old)
+    os.rename(pending, path)
+    (path / _COMPLETE).unlink()
+    shutil.rmtree(old, ignore_errors=True)
+
+
+class Writer:
+    """Arrays of one archive version being written (in a :func:`transaction` folder)."""
+
+    def __init__(self, folder: Path, *, create: bool):
+        _, zarr = require_series()
+        self.folder = Path(folder)
+        self.zarr = zarr
+        self.group = zarr.open_group(str(folder), mode="w" if create else "r+")
+        self._arrays: dict = {}  # opened once: each lookup reads the array's metadata again
+
+    def array(self, name, shape, dtype, dims, *, fill=None, attrs=None, epochs_per_chunk: int = 1):
+        """A new array (replacing one of that name); chunks: ``epochs_per_chunk`` epoch rows ×
+        :data:`POINT_CHUNK` points; chunk files ``c.i.j`` side by side (no folder per row: an
+        append links, and a swap removes, files rather than folders)."""
+        self._arrays.pop(name, None)
+        if name in self.group:
+            del self.group[name]
+        chunks = tuple(max(1, min(epochs_per_chunk, s)) if d == "epoch" and len(dims) > 1 else
+                       max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s) for d, s in zip(dims, shape))
+        if fill is None:
+            fill = np.nan if np.dtype(dtype).kind == "f" else 0
+        arr = self.group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill,
+                                      dimension_names=list(dims),
+                                      chunk_key_encoding={"name": "default", "separator": "."})
+        if attrs:
+            arr.attrs.update(attrs)
+        self._arrays[name] = arr
+        return arr
+
+    def write(self, name, values, dims, *, attrs=None):
+        """A whole array at once."""
+        values = np.asarray(values)
+        arr = self.array(name, values.shape, values.dtype, dims, attrs=attrs)
+        if values.size:
+            arr[...] = values
+        return arr
+
+    def __getitem__(self, name):
+        if name not in self._arrays:
+            self._arrays[name] = self.group[name]
+        return self._arrays[name]
+
+    def finish(self, attrs: dict) -> None:
+        """Group attributes (JSON), then consolidated metadata (one read opens the archive)."""
+        self.group.attrs.clear()
+        self.group.attrs.update(json.loads(json.dumps(attrs, default=_plain)))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # consolidated metadata: "not part of the v3 spec" (xarray reads it)
+            self.zarr.consolidate_metadata(str(self.folder))
+
+
+def _plain(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, Path):
+        return str(v)
+    raise TypeError(f"{type(v).__name__} is not JSON")
+
+
+def read_attrs(path) -> dict:
+    """The group attributes of an archive, checked to be an sdp series."""
+    path = Path(path)
+    _, zarr = require_series()
+    try:
+        group = zarr.open_group(str(path), mode="r")
+    except Exception as exc:  # zarr raises several types for missing or foreign folders
+        raise SeriesArchiveError(f"{path}: not a readable series archive ({type(exc).__name__})") from None
+    attrs = dict(group.attrs)
+    if attrs.get("format") != ARCHIVE_FORMAT or attrs.get("format_version") != ARCHIVE_VERSION:
+        raise SeriesArchiveError(f"{path}: format {attrs.get('format')!r} version {attrs.get('format_version')!r}; "
+                                 f"this sdp reads {ARCHIVE_FORMAT} version {ARCHIVE_VERSION}")
+    return attrs
+
+
+def is_series(path) -> bool:
+    """Whether ``path`` is a folder holding an sdp series archive."""
+    path = Path(path)
+    try:
+        meta = json.loads((path / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return meta.get("attributes", {}).get("format") == ARCHIVE_FORMAT
+
+
+def open_series(path):
+    """The series archive at ``path`` as an :class:`xarray.Dataset` (lazy, Dask-backed arrays).
+
+    An archive left by an interrupted run is completed or cleaned first (:func:`recover`).
+
+    Parameters
+    ----------
+    path : path-like
+        A folder written by :func:`sdp.series`.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``distance``, ``lod``, ``significant``, ``smoothed``, ``velocity``, ``smoothed_sigma``,
+        ``velocity_sigma``, ``object`` (epoch, point); ``time`` (epoch); ``x``, ``y``, ``z``
+        (point); the object table (object_id); every parameter in ``attrs``.
+
+    Raises
+    ------
+    SeriesArchiveError
+        Not a series archive (or one of another format version).
+
+    References
+    ----------
+    .. [1] S. Hoyer, J. Hamman, "xarray: N-D labeled arrays and datasets in Python" (2017).
+    """
+    xr, _ = require_series()
+    path = Path(path)
+    try:
+        recover(path)
+    except OSError:  # read-only: read what is there
+        pass
+    read_attrs(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds = xr.open_zarr(str(path), consolidated=True)
+    coords = [c for c in ("time", "x", "y", "z") if c in ds.variables]
+    return ds.set_coords(coords)

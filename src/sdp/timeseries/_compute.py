@@ -1,0 +1,522 @@
+"""Many epochs against one reference: distances per epoch, appended, smoothed, grouped into objects.
+
+:func:`series` measures every epoch against the reference at fixed core points, reusing the
+reference's cells, normals and cylinders (:class:`sdp.distance.PreparedReference`): an epoch
+costs reading it, summing it into cells and one cylinder per core point, and one write of its
+row to the archive (:mod:`sdp.timeseries._archive`). Epochs are read one at a time, so the memory
+is one epoch and the reference side whatever the number of epochs. With ``append=True`` only
+the new epochs are measured, against the reference state stored in the archive, so the rows
+equal those of a full run over all the epochs (tested bit for bit). Then, over the whole
+series, in blocks of core points sized from the memory limit: the Kalman smoother
+(:mod:`sdp.timeseries._kalman`), the onsets and the 4D objects (:mod:`sdp.timeseries._objects`).
+
+Times: ``times`` (numbers, or ISO dates: velocities are then per day), else each LAS/LAZ file's
+creation date, else the epochs' index; the archive records which.
+
+References
+----------
+.. [1] D. Lague, N. Brodu, J. Leroux, "Accurate 3D comparison of complex topography with
+   terrestrial laser scanner", ISPRS J. Photogramm. 82 (2013) (M3C2).
+.. [2] L. Winiwarter et al., "Full four-dimensional change analysis of topographic point cloud
+   time series using Kalman filtering", Earth Surf. Dynam. 11 (2023) 593–613.
+.. [3] K. Anders et al., "Fully automatic spatiotemporal segmentation of 3D LiDAR time series
+   for the extraction of natural surface changes", ISPRS J. Photogramm. 173 (2021) 297–308.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .._core._memory import memory_limit as resolve_memory_limit
+from .._core._points import as_points
+from .._core._validate import auto_or_nonnegative, auto_or_positive, integer_at_least
+from ..defaults import DEFAULTS
+from ..distance._reference import STATE_ARRAYS, PreparedReference, subsample
+from ..errors import InvalidOptionError, SDPError
+from ..fields._spacing import resolve_lattice
+from ..io._cloud import Cloud
+from ..io._output import check_outputs
+from ..io._read import read_points
+from ..options import Cylinder, Execution, Registration
+from . import _archive as A
+from ._kalman import BYTES_PER_VALUE, process_noise, smooth
+from ._objects import OBJECT_FIELDS, find_objects, min_object_points, objects_in_memory, onsets
+
+__all__ = ["series", "SERIES_FIELDS"]
+
+#: The per-(epoch, point) arrays of an archive.
+SERIES_FIELDS = ("distance", "lod", "significant", "smoothed", "velocity", "smoothed_sigma", "velocity_sigma",
+                 "object")
+_EPOCH_DIMS = ("epoch", "point")
+_DERIVED_EPOCHS = 64  # epochs per chunk of the arrays every run rewrites (4 MiB of float32)
+
+
+def _version() -> str:
+    from .. import __version__
+
+    return __version__
+
+
+# ------------------------------------------------------------------ times
+def _parse_time(value) -> tuple[float, str]:
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+        if not math.isfinite(float(value)):
+            raise InvalidOptionError(f"time {value!r} is not finite")
+        return float(value), "number"
+    if isinstance(value, (_dt.date, np.datetime64)):
+        value = str(np.datetime64(value))
+    text = str(value).strip()
+    try:
+        number = float(text)
+    except ValueError:
+        pass
+    else:
+        if math.isfinite(number):
+            return number, "number"
+    try:
+        stamp = np.datetime64(text, "s")
+    except ValueError:
+        raise InvalidOptionError(f"time {text!r} is neither a number nor an ISO date (2024-05-01 or "
+                                 "2024-05-01T12:00)") from None
+    return float((stamp - np.datetime64("1970-01-01T00:00:00", "s")).astype(np.int64)) / 86400.0, "date"
+
+
+def parse_times(values) -> tuple[np.ndarray, str]:
+    """(times as float64, "number" or "date": days since 1970-01-01) of numbers or ISO dates."""
+    if isinstance(values, str):
+        values = [v for v in values.split(",")]
+    parsed = [_parse_time(v) for v in values]
+    kinds = {k for _, k in parsed}
+    if len(kinds) > 1:
+        raise InvalidOptionError("times mix numbers and dates: give all as numbers or all as ISO dates")
+    return np.array([t for t, _ in parsed], np.float64), kinds.pop() if kinds else "number"
+
+
+def _file_time(path) -> float | None:
+    """Days since 1970 of a LAS/LAZ file's creation date (its header), else None."""
+    if not isinstance(path, (str, os.PathLike)) or Path(path).suffix.lower() not in (".las", ".laz"):
+        return None
+    try:
+        import laspy
+
+        with laspy.open(str(path)) as f:
+            date = f.header.creation_date
+    except Exception:  # an unreadable header: the file's own reader says why later
+        return None
+    if date is None:
+        return None
+    return float((np.datetime64(date, "D") - np.datetime64("1970-01-01", "D")).astype(np.int64))
+
+
+def _resolve_times(epochs, times, *, start_index: int = 0):
+    """(times, kind, source) of the epochs: given, from the files, else their index."""
+    if times is not None:
+        t, kind = parse_times(times)
+        if len(t) != len(epochs):
+            raise InvalidOptionError(f"{len(t)} time(s) for {len(epochs)} epoch(s)")
+        return t, kind, "given"
+    found = [_file_time(e) for e in epochs]
+    if found and all(f is not None for f in found) and len(set(found)) == len(found):
+        return np.array(found), "date", "file (LAS creation date)"
+    return np.arange(start_index, start_index + len(epochs), dtype=np.float64), "number", "index"
+
+
+# ------------------------------------------------------------------ inputs
+def _name(epoch, k: int) -> str:
+    return str(epoch) if isinstance(epoch, (str, os.PathLike)) else f"array {k}"
+
+
+def _load(epoch, fmt):
+    if isinstance(epoch, (str, os.PathLike)):
+        return read_points(epoch, format=fmt)
+    return epoch
+
+
+def _xyz(cloud) -> np.ndarray:
+    return cloud.xyz if isinstance(cloud, Cloud) else as_points(cloud, name="epoch").xyz
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=0.0)
+    return a == b
+
+
+def _check_append(archive: dict, given: dict, core_points, path: Path) -> None:
+    """Refuse, in one line, options that differ from the archive's (repeating them is fine)."""
+    for name, value in given.items():
+        if value is None:
+            continue
+        kept, used = archive["given"].get(name), archive["used"].get(name)
+        if not (_same(value, kept) or _same(value, used)):
+            flag = "--" + name.replace("_", "-")
+            raise InvalidOptionError(f"{flag} {value} differs from the archive's {kept} ({path}): an append keeps "
+                                     "the archive's options")
+
+
+# ------------------------------------------------------------------ the run
+def series(epochs, *, output, append: bool = False, times=None, core_points=None, reference: int | None = None,
+           cylinder: Cylinder | None = None, registration_error: float | str | None = None,
+           align: Registration | str | None = None, orientation=None, execution: Execution | None = None,
+           format: str | None = None):
+    """Signed distances of many epochs against one reference at fixed core points, in one Zarr
+    archive, with their smoothed change, velocity, onsets and 4D objects of change.
+
+    Parameters
+    ----------
+    epochs : sequence of path-like, array_like (n, 3) or Cloud
+        The epochs in time order (files are read one at a time).
+    output : path-like
+        The archive (a ``.zarr`` folder), written all or nothing; replaced unless ``append``.
+    append : bool
+        Add ``epochs`` to the archive ``output``: only they are measured, against its reference,
+        core points and parameters; the result equals a full run over all the epochs.
+    times : sequence of numbers or ISO date strings, or "T1,T2,…", optional
+        The epochs' times (strictly increasing; an append's come after the archive's last).
+        Default: each LAS/LAZ file's creation date, else the epochs' index.
+    core_points : path-like or array_like (m, 3), optional
+        Where to measure; default the reference subsampled at the projection scale (one point per
+        cube of d, the one nearest its cell's centroid). Stored in the archive.
+    reference : int, optional
+        Index of the reference epoch among ``epochs`` (default 0, the first).
+    cylinder : Cylinder, optional
+        M3C2's scales as in :func:`sdp.distances` (``"auto"`` from the reference alone).
+    registration_error : float or "auto", optional
+        Added to each epoch's level of detection (default 0; ``"auto"``: each epoch's alignment
+        RMS with ``align``).
+    align : Registration, "density" or "gicp", optional
+        Register each epoch onto the reference first.
+    orientation : array_like (3,), optional
+        Direction the normals point to (default +z).
+    execution : Execution, optional
+        The memory limit (an epoch, the reference side and the smoother's blocks are sized from it).
+    format : str, optional
+        Input format overriding the files' extensions.
+
+    Returns
+    -------
+    xarray.Dataset
+        The archive, opened (:func:`sdp.open_series`).
+
+    Raises
+    ------
+    SDPError
+        Bad options, epochs or times (before any work), an append whose options differ from the
+        archive's, an epoch time already in the archive.
+
+    References
+    ----------
+    .. [1] Lague et al. 2013 (M3C2); Winiwarter et al. 2023 (Kalman smoothing of change series);
+       Anders et al. 2021 (4D objects by change).
+
+    Examples
+    --------
+    >>> import numpy as np, sdp, tempfile, os
+    >>> rng = np.random.default_rng(1)
+    >>> ground = lambda dz: np.c_[rng.uniform(0, 4, (4000, 2)), dz + 0.002 * rng.standard_normal(4000)]
+    >>> out = os.path.join(tempfile.mkdtemp(), "s.zarr")
+    >>> ds = sdp.series([ground(0.0), ground(0.0), ground(0.05)], output=out,
+    ...                 cylinder=sdp.Cylinder(projection_scale=0.5))
+    >>> print(ds.sizes["epoch"], round(float(np.median(ds.distance[2])), 3))
+    3 0.05
+    """
+    t_start = time.perf_counter()
+    A.require_series()
+    epochs = list(epochs)
+    if not epochs:
+        raise InvalidOptionError("no epochs given")
+    execution = Execution() if execution is None else execution
+    if execution.tiled:
+        raise InvalidOptionError("a series runs epoch by epoch in memory bounded by --memory-limit; tiles on Dask "
+                                 "are not available for series")
+    limit = resolve_memory_limit(execution.memory_limit)
+    out = Path(output)
+    files = [e for e in epochs if isinstance(e, (str, os.PathLike))]
+    inputs = files + ([core_points] if isinstance(core_points, (str, os.PathLike)) else [])
+    check_outputs([out], inputs)
+    if out.exists() and not A.is_series(out):
+        raise SDPError(f"{out}: exists and is not a series archive; choose another output name")
+    registration = Registration.of(align)
+    if registration_error is not None:
+        auto_or_nonnegative("registration_error", registration_error)
+    given = {"projection_scale": None if cylinder is None else cylinder.projection_scale,
+             "normal_scale": None if cylinder is None else cylinder.normal_scale,
+             "max_distance": None if cylinder is None else cylinder.max_distance,
+             "registration_error": registration_error,
+             "align": None if registration is None else registration.method,
+             "orientation": None if orientation is None else [float(v) for v in np.asarray(orientation).reshape(-1)],
+             "reference": reference}
+    if append:
+        if not out.exists() and not A._siblings(out)[0].exists():
+            raise SDPError(f"{out}: no archive to append to; run without --append first")
+        A.recover(out)
+        attrs = A.read_attrs(out)
+        params = attrs["parameters"]
+        _check_append(params, given, core_points, out)
+        old_times = np.asarray([e["time"] for e in attrs["epochs"]], np.float64)
+        t_new, kind, source = _resolve_times(epochs, times, start_index=len(old_times))
+        if kind != attrs["time_kind"]:
+            raise InvalidOptionError(f"the new epochs' times are {kind}s, the archive's are {attrs['time_kind']}s")
+        dup = np.intersect1d(t_new, old_times)
+        if dup.size:
+            raise InvalidOptionError(f"epoch time {_show_time(dup[0], kind)} is already in the archive {out}")
+        if t_new.min() <= old_times.max():
+            raise InvalidOptionError(f"appended epochs must come after the archive's last time "
+                                     f"{_show_time(old_times.max(), kind)}")
+        if np.any(np.diff(t_new) <= 0):
+            raise InvalidOptionError("the times of the epochs must increase (and differ), in the order given")
+        if core_points is not None:
+            core = np.asarray(_xyz(_load(core_points, format)), np.float64)
+            import zarr
+
+            g = zarr.open_group(str(out), mode="r")
+            stored = np.c_[g["x"][:], g["y"][:], g["z"][:]]
+            if core.shape != stored.shape or not np.array_equal(core, stored):
+                raise InvalidOptionError(f"--core-points differs from the archive's core points ({out})")
+        reg_opt = params["given"]["registration_error"]
+        registration = Registration.of(params["given"]["align"])
+        return _run(epochs, out, t_new, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt,
+                    limit=limit, fmt=format, t_start=t_start)
+    if reference is None:
+        reference = 0
+    reference = integer_at_least("reference", reference, 0)
+    if reference >= len(epochs):
+        raise InvalidOptionError(f"reference {reference} is not an epoch (there are {len(epochs)})")
+    cylinder = Cylinder() if cylinder is None else cylinder
+    t, kind, source = _resolve_times(epochs, times)
+    if len(np.unique(t)) != len(t):
+        raise InvalidOptionError(f"two epochs have the time {_show_time(t[np.argmax(np.diff(np.sort(t)) == 0)], kind)}"
+                                 f" ({source}): give distinct --times")
+    if np.any(np.diff(t) <= 0):
+        raise InvalidOptionError("the times of the epochs must increase, in the order given")
+    reg_opt = DEFAULTS.registration_error if registration_error is None else registration_error
+    if reg_opt == "auto" and registration is None:
+        reg_opt = 0.0
+
+    ref_cloud = _load(epochs[reference], format)
+    ref_xyz = _xyz(ref_cloud)
+    d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
+    if d_opt == "auto":
+        voxel, sigma_voxels = resolve_lattice([as_points(ref_xyz)], k=DEFAULTS.k)
+        d_opt = 4.0 * sigma_voxels * voxel
+    if core_points is None:
+        core = ref_xyz[subsample(ref_xyz, d_opt)]
+        core_source = f"the reference subsampled at the projection scale ({d_opt:.6g})"
+    else:
+        core = _xyz(_load(core_points, format))
+        core_source = _name(core_points, -1)
+    prepared = PreparedReference.prepare(
+        ref_xyz, core, cylinder=Cylinder(projection_scale=d_opt, normal_scale=cylinder.normal_scale,
+                                         max_distance=cylinder.max_distance),
+        orientation=orientation, memory_limit=limit)
+    arrays, scalars = prepared.state()
+    used = {"projection_scale": prepared.projection_scale, "normal_scale": prepared.normal_scale,
+            "max_distance": prepared.max_distance, "registration_error": reg_opt,
+            "align": None if registration is None else registration.method,
+            "orientation": scalars["orientation"], "reference": reference}
+    given_rec = dict(given, projection_scale=cylinder.projection_scale, normal_scale=cylinder.normal_scale,
+                     max_distance=cylinder.max_distance, registration_error=reg_opt, reference=reference,
+                     orientation=scalars["orientation"] if orientation is None else given["orientation"])
+    attrs = {"format": A.ARCHIVE_FORMAT, "format_version": A.ARCHIVE_VERSION, "sdp_version": _version(),
+             "time_kind": kind, "epochs": [], "runs": [],
+             "parameters": {"given": given_rec, "used": used, "reference_state": scalars,
+                            "reference_file": _name(epochs[reference], reference), "core_points": core_source,
+                            "min_object_points": min_object_points(prepared.core_points,
+                                                                   prepared.projection_scale)}}
+    return _run(epochs, out, t, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
+                fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud))
+
+
+def _show_time(value: float, kind: str) -> str:
+    if kind == "date":
+        return str(np.datetime64("1970-01-01T00:00:00", "s") + np.timedelta64(int(round(value * 86400)), "s"))
+    return f"{value:g}"
+
+
+def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt, limit, fmt, t_start,
+         prepared=None, state=None, ref_cloud=None):
+    from ..registration._align import align as align_clouds
+
+    append = prepared is None
+    timings = {}
+    with A.transaction(out, base=append) as folder:
+        w = A.Writer(folder, create=not append)
+        if append:
+            g = w.group
+            arrays = {"core_points": np.c_[g["x"][:], g["y"][:], g["z"][:]],
+                      "normal": np.c_[g["normal_x"][:], g["normal_y"][:], g["normal_z"][:]],
+                      **{k: g[k][:] for k in ("ref_mean", "ref_spread", "ref_count", "ref_level")}}
+            prepared = PreparedReference.from_state(arrays, attrs["parameters"]["reference_state"])
+            n_old = len(attrs["epochs"])
+            for name in ("distance", "lod", "significant"):
+                g[name].resize((n_old + len(epochs), len(prepared.core_points)))
+        else:
+            n_old = 0
+            m = len(prepared.core_points)
+            for a, axis in enumerate("xyz"):
+                w.write(axis, state["core_points"][:, a], ("point",))
+                w.write(f"normal_{axis}", state["normal"][:, a], ("point",))
+            for name in ("ref_mean", "ref_spread", "ref_count", "ref_level"):
+                w.write(name, state[name], ("point",))
+            for name, dtype in (("distance", "f4"), ("lod", "f4"), ("significant", "bool")):
+                w.array(name, (len(epochs), m), dtype, _EPOCH_DIMS)
+        m = len(prepared.core_points)
+        ref_xyz = None
+        if registration is not None:
+            ref_xyz = _xyz(ref_cloud[1]) if ref_cloud is not None else _xyz(_load(attrs["parameters"]["reference_file"],
+                                                                                   fmt))
+        t0 = time.perf_counter()
+        # rows are written a few epochs at a time (one call writes their chunks together)
+        flush = int(max(1, min(len(epochs), 64, (limit / 16.0) // max(9.0 * m, 1.0))))
+        buffered: list = []
+
+        def write_rows():
+            if buffered:
+                a = n_old + buffered[0][0]
+                w["distance"][a:a + len(buffered)] = np.stack([r[1] for r in buffered])
+                w["lod"][a:a + len(buffered)] = np.stack([r[2] for r in buffered])
+                w["significant"][a:a + len(buffered)] = np.stack([r[3] for r in buffered])
+                buffered.clear()
+
+        for k, epoch in enumerate(epochs):
+            row = n_old + k
+            is_ref = ref_cloud is not None and k == ref_cloud[0]
+            cloud = ref_cloud[1] if is_ref else _load(epoch, fmt)
+            xyz = _xyz(cloud)
+            record = {"file": _name(epoch, row), "time": float(t_new[k]), "time_source": source}
+            reg = reg_opt
+            if registration is not None and not is_ref:
+                al = align_clouds(ref_xyz, xyz, method=registration.method, fix_horizontal=registration.fix_horizontal)
+                xyz = xyz @ al.matrix[:3, :3].T + al.matrix[:3, 3]
+                record["alignment"] = {"matrix": al.matrix.tolist(), "rmse": float(al.rmse)}
+                if reg_opt == "auto":
+                    reg = float(al.rmse) if np.isfinite(al.rmse) else 0.0
+            if reg == "auto":
+                reg = 0.0
+            d = prepared.measure(xyz, registration_error=reg, memory_limit=limit)
+            buffered.append((k, d.distance.astype(np.float32), d.lod.astype(np.float32), d.significant))
+            if len(buffered) >= flush:
+                write_rows()
+            record.update(registration_error=float(reg), points=int(len(xyz)), comparable=int(d.comparable.sum()),
+                          significant=int(d.significant.sum()))
+            attrs["epochs"].append(record)
+            del cloud, xyz, d
+        write_rows()
+        timings["epochs"] = time.perf_counter() - t0
+        E = len(attrs["epochs"])
+        times = np.array([e["time"] for e in attrs["epochs"]])
+        time_attrs = {"units": "days since 1970-01-01"} if kind == "date" else {}
+        w.write("time", times, ("epoch",), attrs=time_attrs)
+        w.write("registration_error", np.array([e["registration_error"] for e in attrs["epochs"]]), ("epoch",))
+        t0 = time.perf_counter()
+        q, info, held = _smooth_all(w, E, m, times, limit)
+        timings["smoother"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        xyz = prepared.core_points
+        obj = w.array("object", (E, m), "i4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS)
+        labels_all = np.zeros((E, m), np.int32) if held is not None else None
+        rows: dict = {}  # epochs read a chunk row at a time
+
+        def read(k):
+            if held is not None:  # the whole series is in memory: no read
+                return tuple(a[k].astype(np.float64) for a in held)
+            a = k - k % _DERIVED_EPOCHS
+            if a not in rows:
+                rows.clear()
+                rows[a] = [w[n][a:a + _DERIVED_EPOCHS] for n in ("smoothed", "smoothed_sigma", "velocity")]
+            return tuple(r[k - a].astype(np.float64) for r in rows[a])
+
+        pending: list = []
+
+        def write(k, labels):
+            if labels_all is not None:
+                labels_all[k] = labels
+                return
+            pending.append(labels)
+            if len(pending) == _DERIVED_EPOCHS or k == E - 1:
+                obj[k + 1 - len(pending):k + 1] = np.stack(pending)
+                pending.clear()
+
+        step = np.where(w["onset_kind"][:] == 1, w["onset"][:], -1)
+        min_points = attrs["parameters"]["min_object_points"]
+        if held is not None and E * m * 64 < limit / 4:  # the space-time graph fits: one call
+            table, labels_all = objects_in_memory(held[0], held[1], held[2], xyz, times, min_points=min_points,
+                                                  step=step)
+        else:
+            table = find_objects(read, E, xyz, times, min_points=min_points, step=step, write=write)
+        if labels_all is not None:
+            obj[...] = labels_all
+        ids = np.arange(1, len(table["object_start"]) + 1, dtype=np.int32)
+        w.write("object_id", ids, ("object_id",))
+        for name in OBJECT_FIELDS:
+            w.write(name, np.asarray(table[name]), ("object_id",),
+                    attrs=time_attrs if name.endswith("_time") else None)
+        timings["objects"] = time.perf_counter() - t0
+        for name in SERIES_FIELDS:
+            w[name].attrs.update({"coordinates": "time x y z"})
+        rate_unit = "per day" if kind == "date" else "per time unit"
+        attrs["parameters"]["smoother"] = {
+            "model": "constant velocity, white-noise acceleration", "process_noise": q,
+            "process_noise_reason": "robust spread of the standardised second differences equal to one",
+            "observation_noise": "(lod / 1.96)^2 per epoch and core point", "step_k": 4.0, "velocity": rate_unit,
+            **info}
+        attrs["parameters"]["objects"] = {"neighbour_radius": table["radius"], "area_per_point": table["area_per_point"],
+                                          "rule": "|smoothed| > 1.96 smoothed_sigma, same sign, connected in space "
+                                                  "(radius) and time (consecutive epochs)"}
+        timings["total"] = time.perf_counter() - t_start
+        attrs["runs"].append({"when": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                              "sdp_version": _version(), "added": len(epochs), "append": append,
+                              "timings": {k: round(v, 4) for k, v in timings.items()}})
+        w.finish(attrs)
+    return A.open_series(out)
+
+
+def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
+    """The smoother over blocks of core points (their number from the memory limit); (q, info,
+    (smoothed, smoothed_sigma, velocity) if one block held the whole series, else None)."""
+    names = ("smoothed", "velocity", "smoothed_sigma", "velocity_sigma")
+    outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS) for name in names}
+    dist, lod = w["distance"], w["lod"]
+    budget = max(limit / 4.0, 64e6)
+    block = int(max(256, min(m, budget // (E * BYTES_PER_VALUE))))
+    whole = None
+    if block >= m:  # the whole series fits: read it once
+        whole = dist[...], lod[...]
+    elif block >= A.POINT_CHUNK:
+        block -= block % A.POINT_CHUNK  # whole chunks per block
+    # q from a sample of core points spread over the archive (the median needs no more)
+    sample = np.arange(0, m, max(1, m // max(1, 200_000 // max(E, 1))))
+    if whole is not None:
+        zs, ls = whole[0][:, sample], whole[1][:, sample]
+    else:
+        zs, ls = dist.get_orthogonal_selection((slice(None), sample)), lod.get_orthogonal_selection((slice(None), sample))
+    vs = (ls.astype(np.float64) / 1.96) ** 2
+    q = process_noise(zs.astype(np.float64), vs, times)
+    good = np.isfinite(vs) & (vs > 0)
+    scale = float(np.sqrt(np.median(vs[good]))) if good.any() else 1.0  # one diffuse start for every block
+    onset = np.full(m, -1, np.int32)
+    kind = np.zeros(m, np.int8)
+    steps = 0
+    held = None
+    for a in range(0, m, block):
+        b = min(m, a + block)
+        zb, lb = (whole[0], whole[1]) if whole is not None else (dist[:, a:b], lod[:, a:b])
+        z = zb.astype(np.float64)
+        var = (lb.astype(np.float64) / 1.96) ** 2
+        sm, vel, ssd, vsd, step = smooth(z, var, times, q, scale=scale)
+        values = [v.astype(np.float32) for v in (sm, vel, ssd, vsd)]
+        for name, v in zip(names, values):
+            outs[name][:, a:b] = v
+        if block >= m:
+            held = (values[0], values[2], values[1])
+        onset[a:b], kind[a:b] = onsets(sm, ssd, step)
+        steps += int((step >= 0).sum())
+    w.write("onset", onset, ("point",), attrs={"meaning": "epoch the change starts, -1: none"})
+    w.write("onset_kind", kind, ("point",), attrs={"meaning": "0 none, 1 step, 2 gradual"})
+    return float(q), {"block_points": block, "core_points_with_step": steps}, held

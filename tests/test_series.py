@@ -1,0 +1,312 @@
+"""Many epochs: the archive, appending, atomicity, the smoother, objects and the command."""
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import sdp
+from sdp.cli import main
+from sdp.data import slope_series
+from sdp.distance import PreparedReference
+from sdp.timeseries import _archive
+from sdp.timeseries._kalman import kalman, smooth, step_scan
+
+pytest.importorskip("xarray")
+pytest.importorskip("zarr")
+
+CYL = sdp.Cylinder(projection_scale=0.8)
+
+
+@pytest.fixture(scope="module")
+def slope():
+    return slope_series(8, 12_000, size=12.0, step_epoch=4, seed=3)
+
+
+def _digest(folder: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(folder.rglob("*")):
+        if p.is_file():
+            h.update(str(p.relative_to(folder)).encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def _arrays(ds):
+    return {k: ds[k].values for k in ds.variables if k != "time"} | {"time": ds.time.values}
+
+
+def test_series_measures_the_known_change(slope, tmp_path):
+    ds = sdp.series(slope.epochs, output=tmp_path / "s.zarr", cylinder=CYL, registration_error=2 * slope.registration)
+    assert ds.sizes["epoch"] == 8 and ds.distance.dims == ("epoch", "point")
+    xyz = np.c_[ds.x.values, ds.y.values, ds.z.values]
+    truth = slope.truth(xyz)
+    zone = slope.zone(xyz, margin=0.8)
+    assert np.nanmedian(np.abs(ds.distance.values - truth)) < slope.noise / 2
+    assert ds.significant.values[:, zone == 0].mean() < 0.06
+    assert ds.significant.values[slope.step_epoch:, zone == 2].mean() > 0.9
+    vel = np.nanmedian(ds.velocity.values[:, zone == 1])
+    assert abs(vel - slope.creep_rate) < 0.2 * abs(slope.creep_rate)
+    onset, kind = ds.onset.values[zone == 2], ds.onset_kind.values[zone == 2]
+    assert np.mean((onset == slope.step_epoch) & (kind == 1)) > 0.9
+    obj = ds.object.values
+    starts = dict(zip(ds.object_id.values.tolist(), ds.object_start.values.tolist()))
+    inside = [starts.get(int(obj[slope.step_epoch, p]), -1) == slope.step_epoch for p in np.flatnonzero(zone == 2)]
+    assert np.mean(inside) > 0.9
+    assert (obj[:, zone == 0] > 0).any(axis=0).mean() < 0.02
+    params = ds.attrs["parameters"]
+    assert params["used"]["projection_scale"] == pytest.approx(0.8) and ds.attrs["sdp_version"] == sdp.__version__
+    assert params["smoother"]["process_noise"] >= 0 and ds.attrs["epochs"][0]["time_source"] == "index"
+
+
+def test_each_epoch_equals_sdp_distances_on_that_pair(tmp_path):
+    rng = np.random.default_rng(4)
+    ref = np.c_[rng.uniform(0, 6, (6000, 2)), 0.003 * rng.standard_normal(6000)]
+    cur = np.c_[rng.uniform(0.2, 5.8, (6000, 2)), 0.02 + 0.003 * rng.standard_normal(6000)]
+    low = np.c_[rng.uniform(-0.5, 6, (6000, 2)), -0.2 + 0.003 * rng.standard_normal(6000)]  # reaches below it
+    core = ref[::7]
+    pair = sdp.distances(ref, cur, core_points=core, cylinder=CYL)
+    cyl = sdp.Cylinder(projection_scale=pair.projection_scale, normal_scale=pair.normal_scale,
+                       max_distance=pair.max_distance)
+    prep = PreparedReference.prepare(ref, core, cylinder=cyl)
+    mine = prep.measure(cur)
+    low_pair = sdp.distances(ref, low, core_points=core, cylinder=cyl)
+    np.testing.assert_array_equal(prep.measure(low).distance, low_pair.distance)
+    np.testing.assert_array_equal(mine.distance, pair.distance)
+    np.testing.assert_array_equal(mine.lod, pair.lod)
+    ds = sdp.series([ref, cur, low], output=tmp_path / "s.zarr", core_points=core, cylinder=cyl)
+    np.testing.assert_allclose(ds.distance.values[1], pair.distance, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(ds.distance.values[2], low_pair.distance, rtol=1e-6, atol=1e-9)
+    np.testing.assert_array_equal(ds.significant.values[2], low_pair.significant)
+    assert np.all(ds.distance.values[0][np.isfinite(ds.distance.values[0])] == 0)
+
+
+def test_append_equals_the_full_run(slope, tmp_path):
+    eps = slope.epochs[:6]
+    full = sdp.series(eps, output=tmp_path / "full.zarr", cylinder=CYL, registration_error=0.002)
+    sdp.series(eps[:3], output=tmp_path / "a.zarr", cylinder=CYL, registration_error=0.002)
+    sdp.series(eps[3:5], output=tmp_path / "a.zarr", append=True)
+    grown = sdp.series(eps[5:], output=tmp_path / "a.zarr", append=True, cylinder=CYL, registration_error=0.002)
+    a, b = _arrays(full), _arrays(grown)
+    assert a.keys() == b.keys()
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    assert [r["added"] for r in grown.attrs["runs"]] == [3, 2, 1]
+    assert sorted(os.listdir(tmp_path)) == ["a.zarr", "full.zarr"]  # nothing left beside the archives
+
+
+def test_interrupted_append_leaves_the_archive_as_it_was(slope, tmp_path, monkeypatch):
+    out = tmp_path / "s.zarr"
+    sdp.series(slope.epochs[:3], output=out, cylinder=CYL)
+    before = _digest(out)
+    calls = []
+    real = PreparedReference.measure
+
+    def failing(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(PreparedReference, "measure", failing)
+    with pytest.raises(KeyboardInterrupt):
+        sdp.series(slope.epochs[3:6], output=out, append=True)
+    assert _digest(out) == before and sorted(os.listdir(tmp_path)) == ["s.zarr"]
+    assert sdp.open_series(out).sizes["epoch"] == 3
+
+
+def test_append_interrupted_after_it_completed_is_finished_by_the_next_open(slope, tmp_path, monkeypatch):
+    out = tmp_path / "s.zarr"
+    sdp.series(slope.epochs[:3], output=out, cylinder=CYL)
+    real = os.rename
+
+    def cut(src, dst):
+        if Path(dst) == out:  # the new version is complete; the swap is cut between its two renames
+            raise KeyboardInterrupt
+        return real(src, dst)
+
+    monkeypatch.setattr(_archive.os, "rename", cut)
+    with pytest.raises(KeyboardInterrupt):
+        sdp.series(slope.epochs[3:4], output=out, append=True)
+    monkeypatch.setattr(_archive.os, "rename", real)
+    assert not out.exists()
+    ds = sdp.open_series(out)
+    assert ds.sizes["epoch"] == 4 and sorted(os.listdir(tmp_path)) == ["s.zarr"]
+
+
+def test_append_refuses_other_options_and_repeated_times(slope, tmp_path):
+    out = tmp_path / "s.zarr"
+    sdp.series(slope.epochs[:3], output=out, cylinder=CYL, times=[10, 11, 12])
+    before = _digest(out)
+    with pytest.raises(sdp.InvalidOptionError, match="projection-scale 0.5 differs"):
+        sdp.series(slope.epochs[3:4], output=out, append=True, cylinder=sdp.Cylinder(projection_scale=0.5),
+                   times=[13])
+    with pytest.raises(sdp.InvalidOptionError, match="registration-error"):
+        sdp.series(slope.epochs[3:4], output=out, append=True, registration_error=0.01, times=[13])
+    with pytest.raises(sdp.InvalidOptionError, match="already in the archive"):
+        sdp.series(slope.epochs[3:4], output=out, append=True, times=[12])
+    with pytest.raises(sdp.InvalidOptionError, match="after the archive's last"):
+        sdp.series(slope.epochs[3:4], output=out, append=True, times=[11.5])
+    with pytest.raises(sdp.InvalidOptionError, match="core points"):
+        sdp.series(slope.epochs[3:4], output=out, append=True, times=[13], core_points=slope.epochs[0][::50])
+    assert _digest(out) == before
+    with pytest.raises(sdp.InvalidOptionError, match="time 1"):
+        sdp.series(slope.epochs[:3], output=tmp_path / "t.zarr", times=["0", "1", "1"])
+    with pytest.raises(sdp.InvalidOptionError, match="mix numbers and dates"):
+        sdp.series(slope.epochs[:2], output=tmp_path / "t.zarr", times=["2024-01-01", "3"])
+    with pytest.raises(sdp.SDPError, match="no archive to append to"):
+        sdp.series(slope.epochs[:2], output=tmp_path / "none.zarr", append=True)
+    other = tmp_path / "field.zarr"
+    other.mkdir()
+    (other / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group", "attributes": {}}')
+    with pytest.raises(sdp.SDPError, match="not a series archive"):
+        sdp.series(slope.epochs[:2], output=other)
+    assert sorted(p.name for p in other.iterdir()) == ["zarr.json"]
+    assert not (tmp_path / "t.zarr").exists()
+
+
+def test_dates_give_velocities_per_day_and_open_with_xarray(slope, tmp_path):
+    xr = pytest.importorskip("xarray")
+    out = tmp_path / "d.zarr"
+    sdp.series(slope.epochs[:4], output=out, cylinder=CYL, times="2024-05-01,2024-05-03,2024-05-05,2024-05-07")
+    ds = xr.open_zarr(out)
+    assert np.issubdtype(ds.time.dtype, np.datetime64) and str(ds.time.values[1])[:10] == "2024-05-03"
+    assert ds.attrs["parameters"]["smoother"]["velocity"] == "per day"
+    with pytest.raises(sdp.InvalidOptionError, match="are numbers, the archive's are dates"):
+        sdp.series(slope.epochs[4:5], output=out, append=True, times=[5])
+
+
+def test_smoother_recovers_velocity_and_steps():
+    rng = np.random.default_rng(0)
+    t = np.arange(30.0)
+    m = 400
+    truth = np.zeros((30, m))
+    truth[:, :200] = 0.5 * t[:, None]  # creep
+    truth[15:, 200:300] = 20.0  # a step at epoch 15
+    z = truth + rng.standard_normal((30, m))
+    var = np.ones((30, m))
+    sm, vel, ssd, vsd, step = smooth(z, var, t, 1e-6)
+    assert abs(np.median(vel[:, :200]) - 0.5) < 0.05
+    assert np.all(step[200:300] == 15) and np.mean(step[300:] >= 0) < 0.02
+    assert np.median(np.abs(sm[:15, 200:300])) < 1.0  # the step is not smeared back in time
+    assert np.all(ssd > 0) and np.all(vsd > 0)
+    at, stat = step_scan(z, var, t)
+    assert np.all(at[200:300] == 15) and np.median(stat[300:]) < 5
+    one = kalman(z[:, :1], var[:, :1], t, 1e-6)[0]
+    np.testing.assert_allclose(one[:, 0], sm[:, 0])
+
+
+def _write_epochs(slope, folder: Path, n: int) -> list[str]:
+    files = []
+    for k in range(n):
+        f = folder / f"e{k}.ply"
+        sdp.write_points(f, slope.epochs[k])
+        files.append(str(f))
+    return files
+
+
+def test_command_series_append_info_and_exports(slope, tmp_path, capsys):
+    files = _write_epochs(slope, tmp_path, 5)
+    out = tmp_path / "s.zarr"
+    assert main(["series", *files[:4], "-o", str(out), "--projection-scale", "0.8", "--times", "0,1,2,3",
+                 "--registration-error", "0.002", "--json", "--quiet", "--report", str(tmp_path / "r.html")]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["epochs"] == 4 and s["kind"] == "series archive" and str(tmp_path / "r.html") in s["outputs"]
+    page = (tmp_path / "r.html").read_text()
+    assert "Objects of change" in page and page.count("data:image/png") == 2 and "process noise q" in page
+    assert main(["series", files[4], "--append", "-o", str(out), "--times", "4", "--epoch-output",
+                 f"4:{tmp_path / 'e4.npz'}", "--points-output", str(tmp_path / "p.csv"), "--points", "0,5"]) == 0
+    text = capsys.readouterr().out
+    assert "5 epochs" in text and "appended" in text
+    assert main(["info", str(out)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["epochs"] == 5 and info["parameters"]["used"]["projection_scale"] == 0.8
+    with np.load(tmp_path / "e4.npz") as f:
+        assert f["distance"].shape == (info["core_points"],) and "velocity" in f.files
+    rows = (tmp_path / "p.csv").read_text().splitlines()
+    assert rows[0].startswith("point,epoch,time") and len(rows) == 1 + 2 * 5
+
+
+@pytest.mark.parametrize("args, message", [
+    (["missing.ply"], "missing.ply"),
+    (["{e0}", "{e1}", "--times", "1,x"], "neither a number nor an ISO date"),
+    (["{e0}", "{e1}", "--times", "1"], "1 time(s) for 2 epoch(s)"),
+    (["{e0}", "--append"], "no archive to append to"),
+    (["{e0}", "{e1}", "--reference", "5"], "reference 5"),
+    (["{e0}", "{e1}", "--epoch-output", "nope"], "K:FILE"),
+    (["{e0}", "{e1}", "--points-output", "p.txt"], ".csv or .parquet"),
+])
+def test_command_bad_input_exits_2(slope, tmp_path, capsys, args, message):
+    files = _write_epochs(slope, tmp_path, 2)
+    args = [a.format(e0=files[0], e1=files[1]) for a in args]
+    assert main(["series", *args, "-o", str(tmp_path / "x.zarr")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("sdp: error:") and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.zarr").exists()
+
+
+def test_objects_in_memory_equal_the_streamed_ones(slope, tmp_path):
+    from sdp.timeseries._objects import find_objects, objects_in_memory
+
+    ds = sdp.series(slope.epochs, output=tmp_path / "s.zarr", cylinder=CYL, registration_error=2 * slope.registration)
+    sm, sd, vel = ds.smoothed.values, ds.smoothed_sigma.values, ds.velocity.values
+    xyz = np.c_[ds.x.values, ds.y.values, ds.z.values]
+    step = np.where(ds.onset_kind.values == 1, ds.onset.values, -1)
+    times = ds.time.values
+    table, labels = objects_in_memory(sm, sd, vel, xyz, times, min_points=10, step=step)
+    streamed = np.zeros_like(labels)
+
+    def write(k, row):
+        streamed[k] = row
+
+    other = find_objects(lambda k: (sm[k].astype(float), sd[k].astype(float), vel[k].astype(float)), len(times),
+                         xyz, times, min_points=10, step=step, write=write)
+    assert len(table["object_start"]) >= 2
+    np.testing.assert_array_equal(labels, streamed)
+    np.testing.assert_array_equal(labels, ds.object.values)
+    for name in table:
+        np.testing.assert_allclose(np.asarray(table[name], float), np.asarray(other[name], float), rtol=1e-12,
+                                   err_msg=name)
+
+
+@pytest.mark.slow
+def test_real_epochs_equal_sdp_distance_on_each_pair(shared_data, tmp_path):
+    folder = shared_data / "pheno4d_tomato"
+    files = [folder / f for f in ("tomato_03-05.xyz", "tomato_03-06.xyz", "tomato_03-08.ply", "tomato_03-10.ply")]
+    ds = sdp.series(files, output=tmp_path / "t.zarr", times="2024-03-05,2024-03-06,2024-03-08,2024-03-10")
+    used = ds.attrs["parameters"]["used"]
+    cyl = sdp.Cylinder(projection_scale=used["projection_scale"], normal_scale=used["normal_scale"],
+                       max_distance=used["max_distance"])
+    core = np.c_[ds.x.values, ds.y.values, ds.z.values]
+    ref = sdp.read_points(files[0])
+    for k in (1, 3):  # the tomato grows: new leaves far from the first epoch's surface
+        pair = sdp.distances(ref, sdp.read_points(files[k]), core_points=core, cylinder=cyl)
+        np.testing.assert_allclose(ds.distance.values[k], pair.distance, rtol=1e-6, atol=1e-6)
+        np.testing.assert_array_equal(ds.significant.values[k], pair.significant)
+    assert ds.attrs["epochs"][3]["time_source"] == "given" and ds.sizes["object_id"] >= 1
+
+
+def test_blocks_beyond_memory_give_the_in_memory_numbers(slope, tmp_path, monkeypatch):
+    from sdp.timeseries import _compute
+
+    whole = sdp.series(slope.epochs, output=tmp_path / "w.zarr", cylinder=CYL, registration_error=0.002)
+    assert whole.sizes["point"] > 256
+    monkeypatch.setattr(_compute, "BYTES_PER_VALUE", 10**12)  # smoother blocks of 256 core points, objects streamed
+    blocks = sdp.series(slope.epochs, output=tmp_path / "b.zarr", cylinder=CYL, registration_error=0.002)
+    assert blocks.attrs["parameters"]["smoother"]["block_points"] == 256
+    a, b = _arrays(whole), _arrays(blocks)
+    differ = [name for name in a if not np.array_equal(a[name], b[name], equal_nan=True)]
+    assert differ in ([], ["object_mean_velocity"]), differ  # a sum in another order
+    np.testing.assert_allclose(a["object_mean_velocity"], b["object_mean_velocity"], rtol=1e-9)
+
+
+def test_without_the_series_extra_one_line_names_it(slope, tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "xarray", None)
+    with pytest.raises(sdp.MissingDependencyError, match=r"pip install 'sdp\[series\]'"):
+        sdp.series(slope.epochs[:2], output=tmp_path / "s.zarr")
+    assert not (tmp_path / "s.zarr").exists()
