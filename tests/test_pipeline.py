@@ -115,6 +115,7 @@ def test_options_are_refused_before_any_file_is_read(tmp_path, make, match):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_the_other_commands_as_functions(tmp_path, pair):
     ref, cur = pair
     fld = pipeline.build_field_file(ref, output=tmp_path / "r.sdpf", lattice=sdp.Lattice(voxel_size=0.03))

@@ -208,6 +208,7 @@ def _write_epochs(slope, folder: Path, n: int) -> list[str]:
     return files
 
 
+@pytest.mark.slow
 def test_command_series_append_info_and_exports(slope, tmp_path, capsys):
     files = _write_epochs(slope, tmp_path, 5)
     out = tmp_path / "s.zarr"
@@ -289,6 +290,7 @@ def test_real_epochs_equal_sdp_distance_on_each_pair(shared_data, tmp_path):
     assert ds.attrs["epochs"][3]["time_source"] == "given" and ds.sizes["object_id"] >= 1
 
 
+@pytest.mark.slow
 def test_blocks_beyond_memory_give_the_in_memory_numbers(slope, tmp_path, monkeypatch):
     from sdp.timeseries import _compute
 
