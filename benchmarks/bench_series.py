@@ -32,7 +32,6 @@ Usage: ``python benchmarks/bench_series.py [--quick] [--scale] [--workdir DIR]``
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import subprocess

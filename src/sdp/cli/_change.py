@@ -27,7 +27,6 @@ from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
-from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, Outputs, Registration
 from . import _text as report
 from ..io._bag import is_bag

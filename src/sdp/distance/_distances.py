@@ -88,7 +88,7 @@ from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
 from ..options import Cylinder
 
-__all__ = ["Distances", "distances", "search_reach", "cells_below", "tile_halo", "DISTANCE_FIELDS"]
+__all__ = ["Distances", "distances", "search_reach", "cells_below", "normal_sigma", "tile_halo", "DISTANCE_FIELDS"]
 
 #: The per-point outputs, in the order files store them.
 DISTANCE_FIELDS = ("distance", "lod", "significant", "n1", "n2", "spread1", "spread2",
@@ -330,16 +330,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     core_sorted = lists.get(core, _CELL * sigma_p)[0]
     centroids = np.ascontiguousarray(_cell_moments(core_sorted, starts)[:, 1:4])
     per_cell = np.diff(starts)
-    if D_opt == "auto":
-        sigma_n = 2.0 * sigma_p
-        sample = centroids[:: max(1, len(centroids) // 2000)]
-        _, rough = lists.normals(ref.xyz, sample, sigma_n)
-        rough = rough[np.isfinite(rough)]
-        if rough.size:
-            sigma_n = min(max(sigma_n, _ROUGHNESS_RATIO * float(np.median(rough)) / 4.0),
-                          _MAX_NORMAL_FACTOR * sigma_p)
-    else:
-        sigma_n = D_opt / 4.0
+    sigma_n = normal_sigma(lists, ref.xyz, centroids, sigma_p, D_opt)
     normal, _ = lists.normals(ref.xyz, centroids, sigma_n)
     missing = ~np.isfinite(normal[:, 0])
     if missing.any():  # no reference point near: the current's surface gives the direction
@@ -399,6 +390,21 @@ def tile_halo(projection_scale: float, normal_scale: float, reach: float) -> tup
     halo = (max(reach, _RADIUS * sigma_p) + _RADIUS * sigma_p + _NORMAL_REACH * sigma_n
             + 4.0 * cell * math.sqrt(3.0) + margin)
     return halo, margin
+
+
+def normal_sigma(lists: "_CellLists", ref_xyz: np.ndarray, centroids: np.ndarray, sigma_p: float, normal_scale) -> float:
+    """σ of the normals' Gaussian: a quarter of ``normal_scale``, or with ``"auto"`` twice the
+    projection's σ, widened on rough surfaces (the reference's roughness at a sample of the core
+    cells' centroids) up to :data:`_MAX_NORMAL_FACTOR` × σ_p."""
+    if normal_scale != "auto":
+        return normal_scale / 4.0
+    sigma_n = 2.0 * sigma_p
+    sample = centroids[:: max(1, len(centroids) // 2000)]
+    _, rough = lists.normals(ref_xyz, sample, sigma_n)
+    rough = rough[np.isfinite(rough)]
+    if rough.size:
+        sigma_n = min(max(sigma_n, _ROUGHNESS_RATIO * float(np.median(rough)) / 4.0), _MAX_NORMAL_FACTOR * sigma_p)
+    return sigma_n
 
 
 class _CellLists:

@@ -34,14 +34,13 @@ from ..fields._spacing import resolve_lattice
 from ..options import Cylinder
 from ._distances import (
     _CELL,
-    _MAX_NORMAL_FACTOR,
     _RADIUS,
-    _ROUGHNESS_RATIO,
     Distances,
     _CellLists,
-    cells_below,
     _cell_moments,
     _results,
+    cells_below,
+    normal_sigma,
     search_reach,
 )
 
@@ -119,16 +118,7 @@ class PreparedReference:
         order, starts = lists.order(core, _CELL * sigma_p)
         core_sorted = lists.get(core, _CELL * sigma_p)[0]
         centroids = np.ascontiguousarray(_cell_moments(core_sorted, starts)[:, 1:4])
-        if D_opt == "auto":
-            sigma_n = 2.0 * sigma_p
-            sample = centroids[:: max(1, len(centroids) // 2000)]
-            _, rough = lists.normals(ref.xyz, sample, sigma_n)
-            rough = rough[np.isfinite(rough)]
-            if rough.size:
-                sigma_n = min(max(sigma_n, _ROUGHNESS_RATIO * float(np.median(rough)) / 4.0),
-                              _MAX_NORMAL_FACTOR * sigma_p)
-        else:
-            sigma_n = D_opt / 4.0
+        sigma_n = normal_sigma(lists, ref.xyz, centroids, sigma_p, D_opt)
         normal, _ = lists.normals(ref.xyz, centroids, sigma_n)
         normal = np.repeat(normal, np.diff(starts), axis=0)
         normal[normal @ towards < 0] *= -1.0

@@ -24,8 +24,6 @@ References
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from ..errors import require

@@ -37,7 +37,7 @@ from .._core._memory import memory_limit as resolve_memory_limit
 from .._core._points import as_points
 from .._core._validate import auto_or_nonnegative, auto_or_positive, integer_at_least
 from ..defaults import DEFAULTS
-from ..distance._reference import STATE_ARRAYS, PreparedReference, subsample
+from ..distance._reference import PreparedReference, subsample
 from ..errors import InvalidOptionError, SDPError
 from ..fields._spacing import resolve_lattice
 from ..io._cloud import Cloud
