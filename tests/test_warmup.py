@@ -81,7 +81,9 @@ def test_after_warmup_the_commands_compile_nothing(tmp_path, rng):
     sdp.write_points(ref, floor)
     sdp.write_points(cur, np.concatenate([floor, box]))
     commands = [["change", str(ref), str(cur), "-o", str(tmp_path / "c.ply")],
-                ["distance", str(ref), str(cur), "-o", str(tmp_path / "d.laz")]]
+                ["distance", str(ref), str(cur), "-o", str(tmp_path / "d.laz")],
+                ["series", str(ref), str(cur), str(ref), str(cur), str(cur), "--times", "0,1,2,3,4", "-o",
+                 str(tmp_path / "s.zarr")]]
     learn = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mosd" / "learn"
     if learn.is_dir():  # a real Kinect pair, with its sensor's VIEWPOINT
         commands.append(["change", str(learn / "learn0.pcd"), str(learn / "learn1.pcd"), "-o",

@@ -36,9 +36,9 @@ __all__ = ["warmup", "first_run", "first_run_note", "record_warm"]
 #: Modules holding Numba kernels (their sources key the stamp).
 KERNEL_MODULES = ("fields/_kernels", "_core/_kdtree", "fields/_volume_kernels", "scale/_kernels", "io/_kernels",
                   "_core/_points", "actions/_actions", "distance/_distances", "fields/_spacing", "change/_visibility",
-                  "_core/_cells")
+                  "_core/_cells", "timeseries/_kalman", "timeseries/_objects")
 #: Commands whose first run compiles kernels, and what warmup runs for each.
-COMMANDS = ("change", "distance", "build", "bool", "mesh", "align", "watch", "action")
+COMMANDS = ("change", "distance", "build", "bool", "mesh", "align", "watch", "action", "series")
 _STAMP = "sdp-warm.json"
 
 
@@ -145,7 +145,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     Each command runs once on a small simulated office scan written to a temporary folder
     (PLY with the camera's position, LAZ, field files), as the command line runs it; the tiled
     path runs on Dask's synchronous scheduler when the ``tiles`` extra is installed, the action
-    features when ``actions`` is.
+    features when ``actions`` is, a five-epoch series when ``series`` is.
 
     Parameters
     ----------
@@ -232,4 +232,9 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
         step("align", align)
         step("watch", watch)
         step("action", action)
+        if importlib.util.find_spec("xarray") and importlib.util.find_spec("zarr"):
+            from ..timeseries._compute import series
+
+            # five epochs: the smoother's step scan needs them
+            step("series", lambda: series([s.reference, s.current] * 2 + [s.reference], output=d / "s.zarr"))
     return times

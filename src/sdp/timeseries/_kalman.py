@@ -25,9 +25,10 @@ et al. [1]_ do; not-comparable epochs are skipped (prediction only).
   step found on stable ground re-levels a series that stays near zero: no change, no onset.
 - Smoothed values and their standard deviations (the smoother's covariance) for ``d`` and ``v``.
 
-Everything is vectorised over a block of core points and loops over the epochs, so the memory is
-about 320 bytes per epoch and core point of the block (:data:`BYTES_PER_VALUE`): :func:`smooth`
-is called on blocks sized from the memory limit.
+The filter, the smoother and the step scan are Numba kernels that take one core point at a time
+(in parallel) through its epochs, reading a copy of the block with each point's epochs side by
+side; :func:`smooth` is called on blocks of core points sized from the memory limit
+(:data:`BYTES_PER_VALUE`).
 
 References
 ----------
@@ -42,13 +43,15 @@ References
 
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 
 __all__ = ["process_noise", "smooth", "kalman", "step_scan", "BYTES_PER_VALUE"]
 
-#: Working memory of :func:`smooth` per epoch and core point: the filter's ten float64 arrays, the
-#: step scan's dozen, the inputs and outputs (a 1,000-epoch series at 120 B per value peaked at
-#: twice its memory limit).
+#: Working memory of :func:`smooth` and its caller per epoch and core point, a bound: the float64
+#: inputs and their transposed copies (32 B), the four float64 outputs (32 B) and as much again for
+#: the columns smoothed a second time, the float32 reads and results (24 B); 320 leaves room for
+#: the allocator and NumPy's temporaries.
 BYTES_PER_VALUE = 320
 _STEP_K = 4.0
 _SCAN = 16.0  # the step scan's statistic (χ²(1) at one epoch): 4σ, 6e-5 per epoch tried
@@ -96,33 +99,54 @@ def process_noise(z: np.ndarray, var: np.ndarray, t: np.ndarray, *, max_samples:
 def step_scan(z: np.ndarray, var: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(best step epoch, its statistic) per column: the likelihood ratio of a line plus a step at
     epoch s against the line alone (weighted least squares, weights 1/var), maximised over s with
-    at least two observations on each side; χ²(1) for one s. All s at once from cumulative sums:
-    with the line's residuals r, the statistic is (Σ_{k≥s} w r)² / (Σ_{k≥s} w − gᵀG⁻¹g)."""
-    E = len(t)
-    ok = np.isfinite(z) & np.isfinite(var) & (var > 0)
-    w = np.where(ok, 1.0 / np.where(ok, var, 1.0), 0.0)
-    zz = np.where(ok, z, 0.0)
-    tc = (t - t.mean())[:, None]
-    s0, s1, s2 = w.sum(0), (w * tc).sum(0), (w * tc * tc).sum(0)
-    z0, z1 = (w * zz).sum(0), (w * tc * zz).sum(0)
-    det = s0 * s2 - s1 * s1
-    good = det > 1e-300 * np.maximum(s0 * s2, 1e-300)
-    det = np.where(good, det, 1.0)
-    a, b = (s2 * z0 - s1 * z1) / det, (s0 * z1 - s1 * z0) / det
-    r = np.where(ok, zz - a - b * tc, 0.0)
+    at least two observations on each side; χ²(1) for one s. All s at once from sums over the
+    tail: with the line's residuals r, the statistic is (Σ_{k≥s} w r)² / (Σ_{k≥s} w − gᵀG⁻¹g)."""
+    z = np.asarray(z, np.float64)
+    t = np.asarray(t, np.float64)
+    at = np.zeros(z.shape[1], np.int64)
+    stat = np.zeros(z.shape[1])
+    if len(t):  # each point's epochs side by side, as the kernel walks them
+        _step_scan(np.ascontiguousarray(z.T), np.ascontiguousarray(np.asarray(var, np.float64).T), t - t.mean(), at,
+                   stat)
+    return at, stat
 
-    def tail(x):  # Σ_{k≥s}
-        return np.cumsum(x[::-1], axis=0)[::-1]
 
-    num = tail(w * r)
-    g0, g1 = tail(w), tail(w * tc)
-    den = g0 - (s2 * g0 * g0 - 2 * s1 * g0 * g1 + s0 * g1 * g1) / det
-    count = tail(ok.astype(np.int64))
-    valid = (count >= 2) & (count <= ok.sum(0) - 2) & (den > 1e-12 * np.maximum(g0, 1e-300)) & good
-    stat = np.where(valid, num * num / np.where(valid, den, 1.0), 0.0)
-    stat[0] = 0.0
-    at = np.argmax(stat, axis=0)
-    return at, stat[at, np.arange(stat.shape[1])] if E else np.zeros(0)
+@nb.njit(cache=True, parallel=True)
+def _step_scan(z, var, tc, at, stat):
+    m, E = z.shape
+    for j in nb.prange(m):
+        s0 = s1 = s2 = z0 = z1 = 0.0
+        n_ok = 0
+        for k in range(E):
+            if np.isfinite(z[j, k]) and np.isfinite(var[j, k]) and var[j, k] > 0:
+                w = 1.0 / var[j, k]
+                s0 += w
+                s1 += w * tc[k]
+                s2 += w * tc[k] * tc[k]
+                z0 += w * z[j, k]
+                z1 += w * tc[k] * z[j, k]
+                n_ok += 1
+        det = s0 * s2 - s1 * s1
+        if not det > 1e-300 * max(s0 * s2, 1e-300):
+            continue
+        a, b = (s2 * z0 - s1 * z1) / det, (s0 * z1 - s1 * z0) / det
+        num = g0 = g1 = 0.0
+        count = 0
+        best, best_at = 0.0, 0
+        for k in range(E - 1, 0, -1):  # the tail sums Σ_{k≥s}; s = 0 is no step
+            if np.isfinite(z[j, k]) and np.isfinite(var[j, k]) and var[j, k] > 0:
+                w = 1.0 / var[j, k]
+                num += w * (z[j, k] - a - b * tc[k])
+                g0 += w
+                g1 += w * tc[k]
+                count += 1
+            den = g0 - (s2 * g0 * g0 - 2 * s1 * g0 * g1 + s0 * g1 * g1) / det
+            if count >= 2 and count <= n_ok - 2 and den > 1e-12 * max(g0, 1e-300):
+                value = num * num / den
+                if value > 0 and value >= best:  # ties: the earliest epoch (none found: 0)
+                    best, best_at = value, k
+        at[j] = best_at
+        stat[j] = best
 
 
 def smooth(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: float = _STEP_K,
@@ -171,79 +195,95 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: f
     step : ndarray (m,) int32
         The epoch of each point's first step, -1 if none.
     """
-    z = np.asarray(z, np.float64)
-    var = np.asarray(var, np.float64)
+    z = np.ascontiguousarray(z, np.float64)
+    var = np.ascontiguousarray(var, np.float64)
     t = np.asarray(t, np.float64)
     E, m = z.shape
-    ok = np.isfinite(z) & np.isfinite(var) & (var > 0)
     if scale is None:
+        ok = np.isfinite(z) & np.isfinite(var) & (var > 0)
         scale = float(np.sqrt(np.median(var[ok]))) if ok.any() else 1.0
     dt0 = float(np.median(np.diff(t))) if E > 1 else 1.0
     # a diffuse start, 1000 noise deviations wide: wider, and the smoother's 2×2 inverse loses its digits
     big_d, big_v = (1e3 * scale) ** 2, (1e3 * scale / dt0) ** 2
-    xp = np.empty((E, 2, m))  # predictions
-    Pp = np.empty((E, 3, m))  # their covariances: 00, 01, 11
-    xf = np.empty((E, 2, m))
-    Pf = np.empty((E, 3, m))
+    forced = np.full(m, -1, np.int64) if forced is None else np.asarray(forced, np.int64)
+    out = np.empty((4, E, m))
     step = np.full(m, -1, np.int32)
-    x0, x1 = np.zeros(m), np.zeros(m)
-    p00, p01, p11 = np.full(m, big_d), np.zeros(m), np.full(m, big_v)
-    for k in range(E):
-        if k:
-            h = t[k] - t[k - 1]
-            x0 = x0 + h * x1
-            p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3.0,
-                             p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
-        if forced is not None and k:
-            p00 = p00 + np.where(forced == k, big_d, 0.0)
-        nu = np.where(ok[k], z[k] - x0, 0.0)
-        s = p00 + np.where(ok[k], var[k], np.inf)
-        if 0 < k < E - 1:
+    # the inputs with each point's epochs side by side, as the kernel reads them
+    _kalman_columns(np.ascontiguousarray(z.T), np.ascontiguousarray(var.T), t, float(q), float(step_k), forced,
+                    big_d, big_v, out, step)
+    return out[0], out[1], out[2], out[3], step
+
+
+@nb.njit(cache=True, parallel=True)
+def _kalman_columns(z, var, t, q, step_k, forced, big_d, big_v, out, step):
+    """The filter and smoother of :func:`kalman` on (points, epochs) arrays, one core point per
+    iteration (its epochs in a scratch of ten values per epoch)."""
+    m, E = z.shape
+    for j in nb.prange(m):
+        xp = np.empty((E, 2))  # predictions
+        Pp = np.empty((E, 3))  # their covariances: 00, 01, 11
+        xf = np.empty((E, 2))
+        Pf = np.empty((E, 3))
+        x0, x1 = 0.0, 0.0
+        p00, p01, p11 = big_d, 0.0, big_v
+        seen = False
+        for k in range(E):
+            if k:
+                h = t[k] - t[k - 1]
+                x0 = x0 + h * x1
+                p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3.0,
+                                 p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
+                if forced[j] == k:
+                    p00 = p00 + big_d
+            ok = np.isfinite(z[j, k]) and np.isfinite(var[j, k]) and var[j, k] > 0
+            seen = seen or ok
+            nu = z[j, k] - x0 if ok else 0.0
+            s = p00 + var[j, k] if ok else np.inf
+            if ok and 0 < k < E - 1:
+                ok2 = np.isfinite(z[j, k + 1]) and np.isfinite(var[j, k + 1]) and var[j, k + 1] > 0
+                if ok2:
+                    h = t[k + 1] - t[k]
+                    nu2 = z[j, k + 1] - (x0 + h * x1)
+                    s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, k + 1]
+                    if (abs(nu) > step_k * np.sqrt(s) and abs(nu2) > step_k * np.sqrt(s2)
+                            and np.sign(nu) == np.sign(nu2)):
+                        p00 = p00 + nu * nu
+                        s = s + nu * nu
+                        if step[j] < 0:
+                            step[j] = k
+            xp[k, 0], xp[k, 1] = x0, x1
+            Pp[k, 0], Pp[k, 1], Pp[k, 2] = p00, p01, p11
+            g0, g1 = p00 / s, p01 / s  # gain (0 where there is no observation: s = inf)
+            x0, x1 = x0 + g0 * nu, x1 + g1 * nu
+            p00, p01, p11 = p00 - g0 * p00, p01 - g0 * p01, p11 - g1 * p01
+            xf[k, 0], xf[k, 1] = x0, x1
+            Pf[k, 0], Pf[k, 1], Pf[k, 2] = p00, p01, p11
+        if not seen:
+            out[:, :, j] = np.nan
+            continue
+        # Rauch–Tung–Striebel: back from the last epoch
+        s0, s1 = x0, x1
+        q00, q01, q11 = p00, p01, p11
+        out[0, E - 1, j], out[1, E - 1, j] = s0, s1
+        out[2, E - 1, j], out[3, E - 1, j] = np.sqrt(max(q00, 0.0)), np.sqrt(max(q11, 0.0))
+        for k in range(E - 2, -1, -1):
             h = t[k + 1] - t[k]
-            nu2 = z[k + 1] - (x0 + h * x1)
-            s2 = p00 + 2 * h * p01 + h * h * p11 + var[k + 1]
-            jump = (ok[k] & ok[k + 1] & (np.abs(nu) > step_k * np.sqrt(s)) & (np.abs(nu2) > step_k * np.sqrt(s2))
-                    & (np.sign(nu) == np.sign(nu2)))
-            if jump.any():
-                p00 = p00 + np.where(jump, nu * nu, 0.0)
-                s = s + np.where(jump, nu * nu, 0.0)
-                step = np.where(jump & (step < 0), k, step)
-        xp[k, 0], xp[k, 1] = x0, x1
-        Pp[k, 0], Pp[k, 1], Pp[k, 2] = p00, p01, p11
-        g0, g1 = p00 / s, p01 / s  # gain (0 where there is no observation: s = inf)
-        x0, x1 = x0 + g0 * nu, x1 + g1 * nu
-        p00, p01, p11 = p00 - g0 * p00, p01 - g0 * p01, p11 - g1 * p01
-        xf[k, 0], xf[k, 1] = x0, x1
-        Pf[k, 0], Pf[k, 1], Pf[k, 2] = p00, p01, p11
-    # Rauch–Tung–Striebel: back from the last epoch
-    s0, s1 = x0.copy(), x1.copy()
-    q00, q01, q11 = p00.copy(), p01.copy(), p11.copy()
-    out_d, out_v = np.empty((E, m)), np.empty((E, m))
-    out_sd, out_sv = np.empty((E, m)), np.empty((E, m))
-    out_d[-1], out_v[-1] = s0, s1
-    out_sd[-1], out_sv[-1] = np.sqrt(np.maximum(q00, 0)), np.sqrt(np.maximum(q11, 0))
-    for k in range(E - 2, -1, -1):
-        h = t[k + 1] - t[k]
-        f00, f01, f11 = Pf[k]
-        # C = Pf F' Pp⁻¹ with F = [[1, h], [0, 1]]
-        a00, a01, a10, a11 = f00 + h * f01, f01, f01 + h * f11, f11
-        b00, b01, b11 = Pp[k + 1]
-        det = b00 * b11 - b01 * b01
-        i00, i01, i11 = b11 / det, -b01 / det, b00 / det
-        c00, c01 = a00 * i00 + a01 * i01, a00 * i01 + a01 * i11
-        c10, c11 = a10 * i00 + a11 * i01, a10 * i01 + a11 * i11
-        e0, e1 = s0 - xp[k + 1, 0], s1 - xp[k + 1, 1]
-        s0, s1 = xf[k, 0] + c00 * e0 + c01 * e1, xf[k, 1] + c10 * e0 + c11 * e1
-        d00, d01, d11 = q00 - b00, q01 - b01, q11 - b11
-        # P = Pf + C D C'
-        t00, t01 = c00 * d00 + c01 * d01, c00 * d01 + c01 * d11
-        t10, t11 = c10 * d00 + c11 * d01, c10 * d01 + c11 * d11
-        q00 = f00 + t00 * c00 + t01 * c01
-        q01 = f01 + t00 * c10 + t01 * c11
-        q11 = f11 + t10 * c10 + t11 * c11
-        out_d[k], out_v[k] = s0, s1
-        out_sd[k], out_sv[k] = np.sqrt(np.maximum(q00, 0)), np.sqrt(np.maximum(q11, 0))
-    never = ~ok.any(axis=0)
-    for a in (out_d, out_v, out_sd, out_sv):
-        a[:, never] = np.nan
-    return out_d, out_v, out_sd, out_sv, step
+            f00, f01, f11 = Pf[k, 0], Pf[k, 1], Pf[k, 2]
+            # C = Pf F' Pp⁻¹ with F = [[1, h], [0, 1]]
+            a00, a01, a10, a11 = f00 + h * f01, f01, f01 + h * f11, f11
+            b00, b01, b11 = Pp[k + 1, 0], Pp[k + 1, 1], Pp[k + 1, 2]
+            det = b00 * b11 - b01 * b01
+            i00, i01, i11 = b11 / det, -b01 / det, b00 / det
+            c00, c01 = a00 * i00 + a01 * i01, a00 * i01 + a01 * i11
+            c10, c11 = a10 * i00 + a11 * i01, a10 * i01 + a11 * i11
+            e0, e1 = s0 - xp[k + 1, 0], s1 - xp[k + 1, 1]
+            s0, s1 = xf[k, 0] + c00 * e0 + c01 * e1, xf[k, 1] + c10 * e0 + c11 * e1
+            d00, d01, d11 = q00 - b00, q01 - b01, q11 - b11
+            # P = Pf + C D C'
+            t00, t01 = c00 * d00 + c01 * d01, c00 * d01 + c01 * d11
+            t10, t11 = c10 * d00 + c11 * d01, c10 * d01 + c11 * d11
+            q00 = f00 + t00 * c00 + t01 * c01
+            q01 = f01 + t00 * c10 + t01 * c11
+            q11 = f11 + t10 * c10 + t11 * c11
+            out[0, k, j], out[1, k, j] = s0, s1
+            out[2, k, j], out[3, k, j] = np.sqrt(max(q00, 0.0)), np.sqrt(max(q11, 0.0))

@@ -15,8 +15,8 @@ their noise). An object *starts* at the first epoch at which ``min_points`` of i
 changed together (the first epoch with any, if it never has that many at once): a few core points
 at its rim, where a change smoothed over time leaks before it happens, do not date it.
 
-A series that fits in memory is one sparse graph over every (epoch, point), cut into components
-by one call (:func:`objects_in_memory`). Beyond memory the work streams over the epochs
+A series that fits in memory is one graph over every (epoch, point), cut into components by one
+union-find (:func:`objects_in_memory`). Beyond memory the work streams over the epochs
 (:func:`find_objects`): each epoch's spatial components, then the components of consecutive
 epochs that share a point are joined (a union over component ids); a second pass gives every
 pair its object and sums the object table. Memory: the neighbour pairs, two epochs' rows and one
@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 
+import numba as nb
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -75,18 +76,11 @@ def min_object_points(xyz: np.ndarray, projection_scale: float, *, footprints: f
     return int(max(floor, math.ceil(footprints * math.pi * projection_scale**2 / 4.0 / area)))
 
 
-def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray, together: np.ndarray) -> tuple[np.ndarray, int]:
-    """Per core point, its component among the changed points of one epoch (-1: unchanged);
-    ``together``: the neighbour pairs whose changes are of one kind."""
-    m = len(sign)
-    keep = (sign[i] != 0) & (sign[i] == sign[j]) & together
-    graph = coo_matrix((np.ones(int(keep.sum()), np.int8), (i[keep], j[keep])), shape=(m, m))
-    _, labels = connected_components(graph, directed=False)
-    changed = sign != 0
-    uniq, local = np.unique(labels[changed], return_inverse=True)
-    out = np.full(m, -1, np.int64)
-    out[changed] = local
-    return out, len(uniq)
+def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, int]:
+    """Per core point, its component among the changed points of one epoch (-1: unchanged), numbered
+    in the order of their first point; ``i, j``: the neighbour pairs whose changes are of one kind."""
+    out = np.full(len(sign), -1, np.int64)
+    return out, _epoch_labels(np.ascontiguousarray(sign, np.int8), i, j, out)
 
 
 def _table(start, first, end, npts, peak, vsum, vcount, anchor, min_points, times, radius, area):
@@ -105,22 +99,14 @@ def _table(start, first, end, npts, peak, vsum, vcount, anchor, min_points, time
 
 def objects_in_memory(smoothed, sigma, velocity, xyz, times, *, min_points: int, step=None, radius=None):
     """:func:`find_objects` on a whole series in memory (epochs, points): one graph over every
-    (epoch, point), one call of the components; (table, object ids (epochs, points) int32)."""
+    (epoch, point), one union-find; (table, object ids (epochs, points) int32)."""
     i, j, radius, area = neighbour_pairs(xyz, radius)
     E, m = smoothed.shape
     step = np.full(m, -1) if step is None else np.asarray(step)
     together = (step[i] < 0) & (step[j] < 0) | (step[i] >= 0) & (step[j] >= 0) & (np.abs(step[i] - step[j]) <= 1)
     sig = np.isfinite(smoothed) & np.isfinite(sigma) & (np.abs(smoothed) > 1.96 * sigma)
     sign = np.where(sig, np.sign(smoothed), 0).astype(np.int8)
-    i, j = i[together], j[together]
-    space = (sign[:, i] != 0) & (sign[:, i] == sign[:, j])
-    ek, pk = np.nonzero(space)
-    time_ = (sign[:-1] != 0) & (sign[:-1] == sign[1:])
-    tk, tp = np.nonzero(time_)
-    a = np.concatenate([ek * m + i[pk], tk * m + tp])
-    b = np.concatenate([ek * m + j[pk], (tk + 1) * m + tp])
-    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(E * m, E * m))
-    _, label = connected_components(graph, directed=False)
+    label = _space_time_labels(sign, i[together], j[together])
     node = np.flatnonzero(sign.reshape(-1))
     uniq, root = np.unique(label[node], return_inverse=True)
     n_roots = len(uniq)
@@ -152,6 +138,66 @@ def objects_in_memory(smoothed, sigma, velocity, xyz, times, *, min_points: int,
     return table, labels.reshape(E, m)
 
 
+@nb.njit(cache=True, inline="always")
+def _find(parent, a):
+    while parent[a] != a:  # path halving
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@nb.njit(cache=True, inline="always")
+def _union(parent, a, b):
+    ra, rb = _find(parent, a), _find(parent, b)
+    if ra < rb:
+        parent[rb] = ra
+    elif rb < ra:
+        parent[ra] = rb
+
+
+@nb.njit(cache=True, parallel=True)
+def _space_time_labels(sign, i, j):
+    """Per (epoch, point) node ``k·m + p``, the smallest node of its component: neighbours ``i[e],
+    j[e]`` of one sign at one epoch, a point of one sign at consecutive epochs (a union-find; the
+    epochs' own unions touch disjoint nodes, so they run in parallel)."""
+    E, m = sign.shape
+    parent = np.arange(E * m)
+    for k in nb.prange(E):
+        base = k * m
+        for e in range(len(i)):
+            sa = sign[k, i[e]]
+            if sa != 0 and sa == sign[k, j[e]]:
+                _union(parent, base + i[e], base + j[e])
+    for k in range(E - 1):
+        base = k * m
+        for p in range(m):
+            if sign[k, p] != 0 and sign[k, p] == sign[k + 1, p]:
+                _union(parent, base + p, base + m + p)
+    for a in nb.prange(E * m):
+        parent[a] = _find(parent, a)
+    return parent
+
+
+@nb.njit(cache=True)
+def _epoch_labels(sign, i, j, out):
+    m = len(sign)
+    parent = np.arange(m)
+    for e in range(len(i)):
+        sa = sign[i[e]]
+        if sa != 0 and sa == sign[j[e]]:
+            _union(parent, i[e], j[e])
+    ids = np.full(m, -1, np.int64)  # root → component
+    n = 0
+    for p in range(m):
+        if sign[p] != 0:
+            r = _find(parent, p)
+            if ids[r] < 0:
+                ids[r] = n
+                n += 1
+            out[p] = ids[r]
+    return n
+
+
 def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, *, min_points: int,
                  step: np.ndarray | None = None, radius: float | None = None, write=None) -> dict:
     """The 4D objects of change (see the module docstring).
@@ -165,6 +211,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
     m = len(xyz)
     step = np.full(m, -1) if step is None else np.asarray(step)
     together = (step[i] < 0) & (step[j] < 0) | (step[i] >= 0) & (step[j] >= 0) & (np.abs(step[i] - step[j]) <= 1)
+    i, j = i[together], j[together]
 
     def signs(k):
         d, s, v = read_epoch(k)
@@ -176,7 +223,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
     total = 0
     for k in range(n_epochs):
         sign, _, _ = signs(k)
-        comp, n = _components(sign, i, j, together)
+        comp, n = _components(sign, i, j)
         offsets.append(total)
         if prev is not None:
             both = (sign != 0) & (sign == prev_sign)
@@ -199,7 +246,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
     pairs = []
     for k in range(n_epochs):
         sign, d, v = signs(k)
-        comp, _ = _components(sign, i, j, together)
+        comp, _ = _components(sign, i, j)
         at = np.flatnonzero(comp >= 0)
         r = root[comp[at] + offsets[k]]
         np.minimum.at(first, r, k)
@@ -227,7 +274,7 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
     if write is not None:
         for k in range(n_epochs):
             sign, _, _ = signs(k)
-            comp, _ = _components(sign, i, j, together)
+            comp, _ = _components(sign, i, j)
             labels = np.zeros(m, np.int32)
             at = comp >= 0
             labels[at] = ids[root[comp[at] + offsets[k]]]
