@@ -91,6 +91,7 @@ def test_every_scale_bar_and_axis_names_its_unit(rng):
     assert bars == ["20 m"] and "signed distance (m)" in labels and "points" in labels
 
 
+@pytest.mark.slow
 def test_the_3d_view_is_decimated_above_the_budget_by_the_stated_factor(tmp_path, rng):
     from sdp.viz._report import decimation
 

@@ -249,6 +249,7 @@ def test_command_bad_input_exits_2(slope, tmp_path, capsys, args, message):
     assert not (tmp_path / "x.zarr").exists()
 
 
+@pytest.mark.slow
 def test_objects_in_memory_equal_the_streamed_ones(slope, tmp_path):
     from sdp.timeseries._objects import find_objects, objects_in_memory
 

@@ -39,7 +39,7 @@ def regions_of(rs):
     return sorted((r.n_points, round(r.volume, 6), tuple(np.round(r.centroid, 6))) for r in rs)
 
 
-@pytest.mark.parametrize("min_region_points", [1, 500])
+@pytest.mark.parametrize("min_region_points", [pytest.param(1, marks=pytest.mark.slow), 500])
 def test_tiled_equals_untiled(epochs, min_region_points):
     ref, cur = epochs
     a = sdp.detect_changes(ref, cur, min_region_points=min_region_points, lattice=sdp.Lattice(voxel_size=0.1))
@@ -70,6 +70,7 @@ def test_tiled_equals_untiled(epochs, min_region_points):
     assert b.n_dropped_current == 2 and b.summary()["current"]["appeared"] == a.appeared.sum()
 
 
+@pytest.mark.slow
 def test_tiled_regions_join_across_many_tiles(rng):
     """Regions labelled tile by tile and joined across the faces equal the whole volume's, for
     objects over many tiles: a wall along x, a staircase along the diagonal, a ring around a
