@@ -313,3 +313,52 @@ def test_without_the_series_extra_one_line_names_it(slope, tmp_path, monkeypatch
     with pytest.raises(sdp.MissingDependencyError, match=r"pip install 'sdp\[series\]'"):
         sdp.series(slope.epochs[:2], output=tmp_path / "s.zarr")
     assert not (tmp_path / "s.zarr").exists()
+
+
+def test_times_are_read_from_the_files(slope, tmp_path):
+    """LAS adjusted standard GPS time (leap seconds removed), E57 acquisition start, else the
+    creation date; an hour apart, as hourly scans are."""
+    import datetime as dt
+
+    import laspy
+
+    from sdp.io._time import file_time, gps_to_days
+
+    def gps_of(when):  # GPS seconds of a UTC time after 2017 (18 leap seconds)
+        return (when - dt.datetime(1980, 1, 6)).total_seconds() + 18
+
+    noon = dt.datetime(2024, 5, 1, 12)
+    days_noon = (noon - dt.datetime(1970, 1, 1)).total_seconds() / 86400
+    assert gps_to_days(gps_of(noon)) == pytest.approx(days_noon, abs=1e-9)
+    files = []
+    for k, xyz in enumerate(slope.epochs[:3]):
+        header = laspy.LasHeader(point_format=1, version="1.4")
+        header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
+        header.offsets, header.scales = xyz.min(0), [1e-4] * 3
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = xyz.T
+        las.gps_time = gps_of(noon + dt.timedelta(hours=k)) - 1e9 + np.linspace(0, 60, len(xyz))
+        las.write(tmp_path / f"e{k}.laz")
+        files.append(tmp_path / f"e{k}.laz")
+    t, source = file_time(files[1])
+    assert source == "LAS GPS time" and t == pytest.approx(days_noon + 1 / 24 + 30 / 86400, abs=1e-6)
+    ds = sdp.series(files, output=tmp_path / "s.zarr", cylinder=CYL)
+    assert ds.attrs["epochs"][0]["time_source"] == "file (LAS GPS time)"
+    hours = (ds.time.values - ds.time.values[0]) / np.timedelta64(1, "h")  # xarray decodes the days
+    assert hours == pytest.approx([0, 1, 2], abs=1e-6)
+    # week time dates nothing: the header's creation date (a day) instead
+    las = laspy.read(files[0])
+    las.header.global_encoding.gps_time_type = laspy.header.GpsTimeType.WEEK_TIME
+    las.header.creation_date = dt.date(2023, 3, 4)
+    las.write(tmp_path / "week.las")
+    assert file_time(tmp_path / "week.las") == ((dt.date(2023, 3, 4) - dt.date(1970, 1, 1)).days, "LAS creation date")
+    pye57 = pytest.importorskip("pye57")
+    e = pye57.E57(str(tmp_path / "a.e57"), mode="w")
+    xyz = slope.epochs[0][:1000]
+    e.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]},
+                     scan_header=type("H", (), {"acquisitionStart_dateTimeValue": gps_of(noon),
+                                                **dict(zip(["xMinimum", "yMinimum", "zMinimum"], xyz.min(0))),
+                                                **dict(zip(["xMaximum", "yMaximum", "zMaximum"], xyz.max(0)))})())
+    e.close()
+    assert file_time(tmp_path / "a.e57") == (pytest.approx(days_noon, abs=1e-9), "E57 acquisition start")
+    assert file_time(tmp_path / "missing.laz") is None and file_time(np.zeros((3, 3))) is None

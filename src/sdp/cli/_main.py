@@ -342,7 +342,8 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("-o", "--output", required=True, help="the archive (.zarr folder)")
     se.add_argument("--append", action="store_true", help="add EPOCHS to the archive: only they are measured, "
                     "with its reference, core points and options")
-    se.add_argument("--times", help="T1,T2,...: numbers or ISO dates (default: LAS creation dates, else the index)")
+    se.add_argument("--times", help="T1,T2,...: numbers or ISO dates (default: the files' own: LAS GPS time or "
+                    "creation date, E57 acquisition start; else the index)")
     se.add_argument("--core-points", help="where to measure (a cloud file; default: the reference subsampled at the "
                     "projection scale)")
     se.add_argument("--reference", type=V.cli_type(V.integer_at_least, 0), help="index of the reference epoch "

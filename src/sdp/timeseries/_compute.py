@@ -10,8 +10,9 @@ equal those of a full run over all the epochs (tested bit for bit). Then, over t
 series, in blocks of core points sized from the memory limit: the Kalman smoother
 (:mod:`sdp.timeseries._kalman`), the onsets and the 4D objects (:mod:`sdp.timeseries._objects`).
 
-Times: ``times`` (numbers, or ISO dates: velocities are then per day), else each LAS/LAZ file's
-creation date, else the epochs' index; the archive records which.
+Times: ``times`` (numbers, or ISO dates: velocities are then per day), else each file's own
+(:func:`sdp.io._time.file_time`: LAS GPS time or creation date, E57 acquisition start), else the
+epochs' index; the archive records which.
 
 References
 ----------
@@ -43,6 +44,7 @@ from ..fields._spacing import resolve_lattice
 from ..io._cloud import Cloud
 from ..io._output import check_outputs
 from ..io._read import read_points
+from ..io._time import file_time
 from ..options import Cylinder, Execution, Registration
 from . import _archive as A
 from ._kalman import BYTES_PER_VALUE, process_noise, smooth
@@ -98,22 +100,6 @@ def parse_times(values) -> tuple[np.ndarray, str]:
     return np.array([t for t, _ in parsed], np.float64), kinds.pop() if kinds else "number"
 
 
-def _file_time(path) -> float | None:
-    """Days since 1970 of a LAS/LAZ file's creation date (its header), else None."""
-    if not isinstance(path, (str, os.PathLike)) or Path(path).suffix.lower() not in (".las", ".laz"):
-        return None
-    try:
-        import laspy
-
-        with laspy.open(str(path)) as f:
-            date = f.header.creation_date
-    except Exception:  # an unreadable header: the file's own reader says why later
-        return None
-    if date is None:
-        return None
-    return float((np.datetime64(date, "D") - np.datetime64("1970-01-01", "D")).astype(np.int64))
-
-
 def _resolve_times(epochs, times, *, start_index: int = 0):
     """(times, kind, source) of the epochs: given, from the files, else their index."""
     if times is not None:
@@ -121,9 +107,9 @@ def _resolve_times(epochs, times, *, start_index: int = 0):
         if len(t) != len(epochs):
             raise InvalidOptionError(f"{len(t)} time(s) for {len(epochs)} epoch(s)")
         return t, kind, "given"
-    found = [_file_time(e) for e in epochs]
-    if found and all(f is not None for f in found) and len(set(found)) == len(found):
-        return np.array(found), "date", "file (LAS creation date)"
+    found = [file_time(e) for e in epochs]
+    if found and all(f is not None for f in found) and len({f[0] for f in found}) == len(found):
+        return np.array([f[0] for f in found]), "date", f"file ({', '.join(sorted({f[1] for f in found}))})"
     return np.arange(start_index, start_index + len(epochs), dtype=np.float64), "number", "index"
 
 
@@ -179,7 +165,8 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
         core points and parameters; the result equals a full run over all the epochs.
     times : sequence of numbers or ISO date strings, or "T1,T2,…", optional
         The epochs' times (strictly increasing; an append's come after the archive's last).
-        Default: each LAS/LAZ file's creation date, else the epochs' index.
+        Default: each file's recorded time (LAS GPS time or creation date, E57 acquisition start),
+        else the epochs' index.
     core_points : path-like or array_like (m, 3), optional
         Where to measure; default the reference subsampled at the projection scale (one point per
         cube of d, the one nearest its cell's centroid). Stored in the archive.
