@@ -213,8 +213,8 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     >>> print(ds.sizes["epoch"], round(float(np.median(ds.distance[2])), 3))
     3 0.05
     """
-    t_start = time.perf_counter()
     A.require_series()
+    t_start = time.perf_counter()  # after the imports (xarray, zarr, dask: about a second), start-up like Python's
     epochs = list(epochs)
     if not epochs:
         raise InvalidOptionError("no epochs given")

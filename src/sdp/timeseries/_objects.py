@@ -158,8 +158,8 @@ def _union(parent, a, b):
 @nb.njit(cache=True, parallel=True)
 def _space_time_labels(sign, i, j):
     """Per (epoch, point) node ``k·m + p``, the smallest node of its component: neighbours ``i[e],
-    j[e]`` of one sign at one epoch, a point of one sign at consecutive epochs (a union-find; the
-    epochs' own unions touch disjoint nodes, so they run in parallel)."""
+    j[e]`` of one sign at one epoch, a point of one sign at consecutive epochs (a union-find; each
+    epoch's own unions touch only its nodes, so the epochs run in parallel)."""
     E, m = sign.shape
     parent = np.arange(E * m)
     for k in nb.prange(E):
@@ -173,13 +173,14 @@ def _space_time_labels(sign, i, j):
         for p in range(m):
             if sign[k, p] != 0 and sign[k, p] == sign[k + 1, p]:
                 _union(parent, base + p, base + m + p)
-    for a in nb.prange(E * m):
+    for a in range(E * m):
         parent[a] = _find(parent, a)
     return parent
 
 
 @nb.njit(cache=True)
 def _epoch_labels(sign, i, j, out):
+    """:func:`_components`' kernel: ``out`` filled, the number of components returned."""
     m = len(sign)
     parent = np.arange(m)
     for e in range(len(i)):
