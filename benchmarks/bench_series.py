@@ -23,7 +23,8 @@ Prints markdown (docs/benchmarks.md §12 quotes it; ``results/series.md`` keeps 
    whether every array of the archive equals the full run's.
 4. ``--scale`` (or ``--only-scale``): 1,000 epochs × 100,000 core points (epochs of 120,000
    points as .npy files, a 40 m square with a subsiding disk), one job at ``--memory-limit 2GB``,
-   niced: time and peak memory of the job (``results/series-scale.md``).
+   niced: time and peak memory of the job, then of appending a 1,001st epoch
+   (``results/series-scale.md``).
 
 Usage: ``python benchmarks/bench_series.py [--quick] [--scale] [--rounds N] [--workdir DIR]``. Needs py4dgeo
 (``pip install 'sdp[m3c2]'``) for 2.
@@ -309,13 +310,21 @@ def scale_run(work: Path) -> list[str]:
              "--quiet"], nice=10)
     ds = sdp.open_series(work / "big.zarr")
     t = ds.attrs["runs"][-1]["timings"]
+    e = np.c_[xy + rng.normal(0, 0.01, (n, 2)), 0.2 * xy[:, 0] + 0.004 * rng.standard_normal(n)]
+    np.save(work / "next.npy", e)
+    ra = job([sys.executable, "-m", "sdp.cli", "series", str(work / "next.npy"), "--append", "-o", str(work / "big.zarr"),
+              "--memory-limit", "2GB", "--quiet"], nice=10)
+    ta = sdp.open_series(work / "big.zarr").attrs["runs"][-1]["timings"]
     return ["### 4. 1,000 epochs × 100,000 core points", "",
             f"Epochs of {n:,} points (.npy), one job, `--memory-limit 2GB`, nice 10, load before {load[0]:.1f}: "
             f"{r['seconds']:.0f} s "
             f"({r['seconds'] / E:.3f} s per epoch), peak memory {r['peak_mb']:.0f} MB (the job is one process). "
             f"Inside: epochs {t['epochs']:.0f} s, smoother {t['smoother']:.0f} s, objects {t['objects']:.0f} s. "
             f"Archive {size_mb(work / 'big.zarr'):.0f} MB, {ds.sizes['epoch']} epochs × {ds.sizes['point']:,} "
-            f"core points, {ds.sizes['object_id']} objects.", ""]
+            f"core points, {ds.sizes['object_id']} objects.", "",
+            f"Appending a 1,001st epoch: the job {ra['seconds']:.0f} s, peak memory {ra['peak_mb']:.0f} MB; inside: "
+            f"the epoch {ta['epochs']:.1f} s, smoother {ta['smoother']:.0f} s, objects {ta['objects']:.0f} s, "
+            f"total {ta['total']:.0f} s.", ""]
 
 
 if __name__ == "__main__":
