@@ -113,6 +113,7 @@ def step_scan(z: np.ndarray, var: np.ndarray, t: np.ndarray) -> tuple[np.ndarray
 
 @nb.njit(cache=True, parallel=True)
 def _step_scan(z, var, tc, at, stat):
+    """:func:`step_scan`'s kernel on (points, epochs) arrays, centred times ``tc``: fills ``at``, ``stat``."""
     m, E = z.shape
     for j in nb.prange(m):
         s0 = s1 = s2 = z0 = z1 = 0.0
