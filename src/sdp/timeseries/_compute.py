@@ -332,7 +332,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
 
     append = prepared is None
     timings = {}
-    with A.transaction(out, base=append) as folder:
+    with A.transaction(out, base=append) as folder, A.many_chunks_at_once():
         w = A.Writer(folder, create=not append)
         if append:
             g = w.group
@@ -473,10 +473,18 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
     budget = max(limit / 4.0, 64e6)
     block = int(max(256, min(m, budget // (E * BYTES_PER_VALUE))))
     whole = None
+    col = m
     if block >= m:  # the whole series fits: read it once
         whole = dist[...], lod[...]
-    elif block >= A.POINT_CHUNK:
-        block -= block % A.POINT_CHUNK  # whole chunks per block
+    else:
+        # columns of whole chunks, read once and written once (a block narrower than a chunk would read and
+        # rewrite each chunk once per block), its inputs and results in float32 (24 B per value) in another
+        # quarter of the limit; else blocks of whole chunks, or narrower ones read again per block
+        col = int(budget // (E * 24)) // A.POINT_CHUNK * A.POINT_CHUNK
+        if col < A.POINT_CHUNK:
+            if block >= A.POINT_CHUNK:
+                block -= block % A.POINT_CHUNK
+            col = block
     # q from a sample of core points spread over the archive (the median needs no more)
     sample = np.arange(0, m, max(1, m // max(1, 200_000 // max(E, 1))))
     if whole is not None:
@@ -491,19 +499,23 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
     kind = np.zeros(m, np.int8)
     steps = 0
     held = None
-    for a in range(0, m, block):
-        b = min(m, a + block)
-        zb, lb = (whole[0], whole[1]) if whole is not None else (dist[:, a:b], lod[:, a:b])
-        z = zb.astype(np.float64)
-        var = (lb.astype(np.float64) / 1.96) ** 2
-        sm, vel, ssd, vsd, step = smooth(z, var, times, q, scale=scale)
-        values = [v.astype(np.float32) for v in (sm, vel, ssd, vsd)]
-        for name, v in zip(names, values):
+    for a in range(0, m, col):
+        b = min(m, a + col)
+        zc, lc = (whole[0], whole[1]) if whole is not None else (dist[:, a:b], lod[:, a:b])
+        results = [np.empty((E, b - a), np.float32) for _ in names]
+        for c in range(0, b - a, block):
+            d = min(b - a, c + block)
+            z = zc[:, c:d].astype(np.float64)
+            var = (lc[:, c:d].astype(np.float64) / 1.96) ** 2
+            sm, vel, ssd, vsd, step = smooth(z, var, times, q, scale=scale)
+            for out, v in zip(results, (sm, vel, ssd, vsd)):
+                out[:, c:d] = v
+            onset[a + c:a + d], kind[a + c:a + d] = onsets(sm, ssd, step)
+            steps += int((step >= 0).sum())
+        for name, v in zip(names, results):
             outs[name][:, a:b] = v
-        if block >= m:
-            held = (values[0], values[2], values[1])
-        onset[a:b], kind[a:b] = onsets(sm, ssd, step)
-        steps += int((step >= 0).sum())
+        if whole is not None:
+            held = (results[0], results[2], results[1])
     w.write("onset", onset, ("point",), attrs={"meaning": "epoch the change starts, -1: none"})
     w.write("onset_kind", kind, ("point",), attrs={"meaning": "0 none, 1 step, 2 gradual"})
     return float(q), {"block_points": block, "core_points_with_step": steps}, held
