@@ -153,30 +153,26 @@ def _before(d1, i1, d2, i2):
 
 
 @nb.njit(cache=True, inline="always")
-def _sift(best, who, i, end, d2, p):
-    """Place (d2, p) in the max-heap ``best[:end]``, ``who[:end]`` from position ``i`` down."""
-    while True:
-        c = 2 * i + 1
-        if c >= end:
-            break
-        if c + 1 < end and _before(best[c], who[c], best[c + 1], who[c + 1]):
-            c += 1
-        if not _before(d2, p, best[c], who[c]):
-            break
-        best[i] = best[c]
-        who[i] = who[c]
-        i = c
-    best[i] = d2
-    who[i] = p
+def _insert(best, who, j, d2, p):
+    """Place (d2, p) in the list ``best[:j + 1]``, ``who[:j + 1]`` sorted by (distance, index),
+    whose entry ``j`` it replaces: the entries before it that rank after it move up one."""
+    while j > 0 and _before(d2, p, best[j - 1], who[j - 1]):
+        best[j] = best[j - 1]
+        who[j] = who[j - 1]
+        j -= 1
+    best[j] = d2
+    who[j] = p
 
 
 @nb.njit(cache=True, nogil=True)
 def _query(order, start, end, left, right, lo, hi, points, queries, k):
     """The k nearest rows of ``points`` to each query, sorted by (distance, index).
 
+    The k best so far are kept sorted (insertion: a few dozen points enter per query, and a
+    sorted list needs no final sort; a heap's sifts mispredict their branches at every level).
     Each query after the first starts from the previous query's k nearest, measured from it: the
     farthest of them bounds its k-th distance, so boxes and points beyond are skipped from the
-    start and fewer points enter the heap; those points are not counted twice (``seen``). The
+    start and fewer points enter the list; those points are not counted twice (``seen``). The
     result is the same; queries in spatial order (cube means) gain most."""
     m = queries.shape[0]
     out = np.empty((m, k), np.int64)
@@ -184,17 +180,15 @@ def _query(order, start, end, left, right, lo, hi, points, queries, k):
     who = np.empty(k, np.int64)
     seen = np.full(points.shape[0], -1, np.int64)  # the query whose warm start holds the point
     stack = np.empty(start.shape[0] + 1, np.int64)  # never holds more than every node
+    last = k - 1
     for q in range(m):
         x, y, z = queries[q, 0], queries[q, 1], queries[q, 2]
         if q > 0:
-            for j in range(k):
+            for j in range(k):  # nearly in order already: the previous query is near
                 p = out[q - 1, j]
                 dx, dy, dz = points[p, 0] - x, points[p, 1] - y, points[p, 2] - z
-                best[j] = dx * dx + dy * dy + dz * dz
-                who[j] = p
+                _insert(best, who, j, dx * dx + dy * dy + dz * dz, p)
                 seen[p] = q
-            for j in range(k // 2 - 1, -1, -1):  # heapify
-                _sift(best, who, j, k, best[j], who[j])
         else:
             best[:] = np.inf
             who[:] = _NO_POINT
@@ -206,15 +200,15 @@ def _query(order, start, end, left, right, lo, hi, points, queries, k):
             gx = max(lo[node, 0] - x, 0.0, x - hi[node, 0])
             gy = max(lo[node, 1] - y, 0.0, y - hi[node, 1])
             gz = max(lo[node, 2] - z, 0.0, z - hi[node, 2])
-            if gx * gx + gy * gy + gz * gz > best[0]:
+            if gx * gx + gy * gy + gz * gz > best[last]:
                 continue  # the whole box is farther than the k-th so far
             if left[node] < 0:
                 for i in range(start[node], end[node]):
                     p = order[i]
                     dx, dy, dz = points[p, 0] - x, points[p, 1] - y, points[p, 2] - z
                     d2 = dx * dx + dy * dy + dz * dz
-                    if _before(d2, p, best[0], who[0]) and seen[p] != q:
-                        _sift(best, who, 0, k, d2, p)
+                    if _before(d2, p, best[last], who[last]) and seen[p] != q:
+                        _insert(best, who, last, d2, p)
                 continue
             a, b = left[node], right[node]
             # the child whose box centre is nearer goes on the stack last: it is visited first
@@ -226,9 +220,5 @@ def _query(order, start, end, left, right, lo, hi, points, queries, k):
                 a, b = b, a
             stack[top + 1], stack[top + 2] = a, b
             top += 2
-        for end_ in range(k - 1, 0, -1):  # heap sort: the farthest goes to the end, in turn
-            d2, p = best[end_], who[end_]
-            best[end_], who[end_] = best[0], who[0]
-            _sift(best, who, 0, end_, d2, p)
         out[q] = who
     return out
