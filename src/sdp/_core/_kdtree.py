@@ -55,9 +55,13 @@ def k_nearest(points: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
 @nb.njit(cache=True, nogil=True)
 def _build(points, leaf):
     """(order of the points, per node: first and end position in ``order``, children (-1: a leaf),
-    bounding box lo and hi)."""
+    bounding box lo and hi).
+
+    The coordinates are copied in ``order`` and swapped along with it (``xyz``), so that the
+    scans of a node's points read memory in sequence rather than through the permutation."""
     n = points.shape[0]
     order = np.arange(n)
+    xyz = points.copy()
     cap = 2 * n + 1  # every split leaves points on both sides: at most n leaves
     start = np.empty(cap, np.int64)
     end = np.empty(cap, np.int64)
@@ -78,8 +82,7 @@ def _build(points, leaf):
         lo0 = lo1 = lo2 = np.inf  # in locals: the loop then keeps them in registers
         hi0 = hi1 = hi2 = -np.inf
         for i in range(a, b):
-            p = order[i]
-            x, y, z = points[p, 0], points[p, 1], points[p, 2]
+            x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
             lo0, lo1, lo2 = min(lo0, x), min(lo1, y), min(lo2, z)
             hi0, hi1, hi2 = max(hi0, x), max(hi1, y), max(hi2, z)
         lo[node, 0], lo[node, 1], lo[node, 2] = lo0, lo1, lo2
@@ -92,10 +95,10 @@ def _build(points, leaf):
                 dim = d
         if not hi[node, dim] > lo[node, dim]:
             continue  # every point equal: a leaf however many
-        mid = _partition(points, order, a, b, dim, 0.5 * (lo[node, dim] + hi[node, dim]))
+        mid = _partition(xyz, order, a, b, dim, 0.5 * (lo[node, dim] + hi[node, dim]))
         if mid == a or mid == b:  # all on one side of the box's midpoint (ties): the median instead
             mid = (a + b) // 2
-            _select(points, order, a, b - 1, mid, dim)
+            _select(xyz, order, a, b - 1, mid, dim)
         left[node], right[node] = nodes, nodes + 1
         start[nodes], end[nodes] = a, mid
         start[nodes + 1], end[nodes + 1] = mid, b
@@ -106,36 +109,44 @@ def _build(points, leaf):
 
 
 @nb.njit(cache=True, inline="always")
-def _partition(points, order, a, b, dim, split):
-    """Reorder ``order[a:b]`` so that the points below ``split`` along ``dim`` come first; returns
-    where the others start."""
+def _swap(xyz, order, i, j):
+    order[i], order[j] = order[j], order[i]
+    for d in range(3):
+        xyz[i, d], xyz[j, d] = xyz[j, d], xyz[i, d]
+
+
+@nb.njit(cache=True, inline="always")
+def _partition(xyz, order, a, b, dim, split):
+    """Reorder ``order[a:b]`` (and the rows of ``xyz``, its points) so that the points below
+    ``split`` along ``dim`` come first; returns where the others start."""
     i, j = a, b - 1
     while True:
-        while i <= j and points[order[i], dim] < split:
+        while i <= j and xyz[i, dim] < split:
             i += 1
-        while i <= j and points[order[j], dim] >= split:
+        while i <= j and xyz[j, dim] >= split:
             j -= 1
         if i >= j:
             return i
-        order[i], order[j] = order[j], order[i]
+        _swap(xyz, order, i, j)
         i += 1
         j -= 1
 
 
 @nb.njit(cache=True, inline="always")
-def _select(points, order, a, b, nth, dim):
-    """Reorder ``order[a:b + 1]`` so that position ``nth`` holds its point of rank nth − a along
-    ``dim``, smaller or equal ones before it, larger or equal after (quickselect, Hoare's partition)."""
+def _select(xyz, order, a, b, nth, dim):
+    """Reorder ``order[a:b + 1]`` (and the rows of ``xyz``) so that position ``nth`` holds its
+    point of rank nth − a along ``dim``, smaller or equal ones before it, larger or equal after
+    (quickselect, Hoare's partition)."""
     while b > a:
-        pivot = points[order[(a + b) // 2], dim]
+        pivot = xyz[(a + b) // 2, dim]
         i, j = a, b
         while i <= j:
-            while points[order[i], dim] < pivot:
+            while xyz[i, dim] < pivot:
                 i += 1
-            while points[order[j], dim] > pivot:
+            while xyz[j, dim] > pivot:
                 j -= 1
             if i <= j:
-                order[i], order[j] = order[j], order[i]
+                _swap(xyz, order, i, j)
                 i += 1
                 j -= 1
         if nth <= j:

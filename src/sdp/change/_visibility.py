@@ -74,15 +74,18 @@ _DIRECTION_SAMPLE = 5_000  # points used to choose the image's frame
 # Serial on purpose: a few ms of work each, where a thread pool on busy shared cores costs more
 # than it saves (measured: the plane fits 0.5 ms serial, 16 ms parallel on a loaded 2-core machine).
 
+# Each branch below is a select of two values both computed (no early exit, no exception: the
+# numpy error model), so that the angles' loop runs on SIMD lanes; the values are those of the
+# branching form, operation for operation.
+
 @nb.njit(cache=True, inline="always")
 def _atan01(a):
     """atan(a) for 0 ≤ a ≤ 1 within 4e-10 rad: above tan(π/8), π/4 + atan((a − 1)/(a + 1)), so
     the argument of the alternating Taylor series stays within ±tan(π/8), where its terms up to
     t¹⁹ leave less than the next (twice as fast as libm's atan2, far below a range-image cell)."""
-    off = 0.0
-    if a > 0.41421356237309503:
-        a = (a - 1.0) / (a + 1.0)
-        off = 0.7853981633974483
+    big = a > 0.41421356237309503
+    off = 0.7853981633974483 if big else 0.0
+    a = (a - 1.0) / (a + 1.0) if big else a
     s = a * a
     p = -1.0 / 19.0
     p = p * s + 1.0 / 17.0
@@ -100,50 +103,63 @@ def _atan01(a):
 def _atan2(y, x):
     """atan2(y, x) by :func:`_atan01` (atan2(0, 0) = 0)."""
     ax, ay = abs(x), abs(y)
-    if ax >= ay:
-        r = _atan01(ay / ax) if ax > 0.0 else 0.0
-    else:
-        r = 1.5707963267948966 - _atan01(ax / ay)
-    if x < 0.0:
-        r = 3.141592653589793 - r
+    steep = ax < ay
+    num = ax if steep else ay
+    den = ay if steep else ax
+    r = _atan01(num / den) if den > 0.0 else 0.0
+    r = 1.5707963267948966 - r if steep else r
+    r = 3.141592653589793 - r if x < 0.0 else r
     return -r if y < 0.0 else r
 
 
-@nb.njit(cache=True, nogil=True, fastmath={"contract", "arcp"})  # no NaN or inf assumptions
+_BLOCK = 512  # points whose coordinates are copied into contiguous buffers before the SIMD loop
+
+
+@nb.njit(cache=True, nogil=True, fastmath={"contract", "arcp"}, error_model="numpy")  # no NaN or inf assumptions
 def _angles(points, origin, frame):
     """Azimuth, elevation (radians) and range of each point seen from ``origin``; frame rows are
     forward (azimuth 0), left (azimuth +π/2) and pole (elevation +π/2). Range 0 gives NaN angles.
     Also (lowest azimuth, lowest elevation, highest azimuth, highest elevation, count) of the
-    finite angles, in the same pass."""
+    finite angles. The points go through in blocks, each copied to three contiguous columns
+    first: the SIMD loop then reads contiguous lanes (4× faster than reading the rows)."""
     n = points.shape[0]
     az = np.empty(n)
     el = np.empty(n)
     rng = np.empty(n)
+    bx = np.empty(_BLOCK)
+    by = np.empty(_BLOCK)
+    bz = np.empty(_BLOCK)
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    f00, f01, f02 = frame[0, 0], frame[0, 1], frame[0, 2]
+    f10, f11, f12 = frame[1, 0], frame[1, 1], frame[1, 2]
+    f20, f21, f22 = frame[2, 0], frame[2, 1], frame[2, 2]
     lo_a = lo_e = np.inf
     hi_a = hi_e = -np.inf
     count = 0
-    for i in range(n):
-        dx = points[i, 0] - origin[0]
-        dy = points[i, 1] - origin[1]
-        dz = points[i, 2] - origin[2]
-        f = dx * frame[0, 0] + dy * frame[0, 1] + dz * frame[0, 2]
-        lf = dx * frame[1, 0] + dy * frame[1, 1] + dz * frame[1, 2]
-        p = dx * frame[2, 0] + dy * frame[2, 1] + dz * frame[2, 2]
-        h2 = f * f + lf * lf
-        r = math.sqrt(h2 + p * p)
-        rng[i] = r
-        if r > 0.0:
+    for b0 in range(0, n, _BLOCK):
+        m = min(_BLOCK, n - b0)
+        for i in range(m):
+            bx[i] = points[b0 + i, 0] - o0
+            by[i] = points[b0 + i, 1] - o1
+            bz[i] = points[b0 + i, 2] - o2
+        for i in range(m):
+            dx, dy, dz = bx[i], by[i], bz[i]
+            f = dx * f00 + dy * f01 + dz * f02
+            lf = dx * f10 + dy * f11 + dz * f12
+            p = dx * f20 + dy * f21 + dz * f22
+            h2 = f * f + lf * lf
+            r = math.sqrt(h2 + p * p)
             a = _atan2(lf, f)
             e = _atan2(p, math.sqrt(h2))
-            az[i] = a
-            el[i] = e
+            rng[b0 + i] = r
+            az[b0 + i] = a if r > 0.0 else np.nan
+            el[b0 + i] = e if r > 0.0 else np.nan
+        for i in range(b0, b0 + m):  # in order, as min and max of ±0 depend on it
+            a = az[i]
             if math.isfinite(a):
                 lo_a, hi_a = min(lo_a, a), max(hi_a, a)
-                lo_e, hi_e = min(lo_e, e), max(hi_e, e)
+                lo_e, hi_e = min(lo_e, el[i]), max(hi_e, el[i])
                 count += 1
-        else:
-            az[i] = np.nan
-            el[i] = np.nan
     return az, el, rng, (lo_a, lo_e, hi_a, hi_e, count)
 
 
@@ -223,6 +239,19 @@ def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noi
         else:
             out[i] = 3  # UNOBSERVED
     return out, hider
+
+
+@nb.njit(cache=True, nogil=True)
+def _hider_points(points, origin, hide, rng, cls):
+    """Where the surface hiding each :data:`HIDDEN` point was seen: origin + (point − origin) ·
+    hide / range (NaN rows for the other classes)."""
+    out = np.full(points.shape, np.nan)
+    for i in range(points.shape[0]):
+        if cls[i] == 2:  # HIDDEN
+            t = hide[i] / rng[i]
+            for d in range(3):
+                out[i, d] = origin[d] + (points[i, d] - origin[d]) * t
+    return out
 
 
 @nb.njit(cache=True, nogil=True)
@@ -406,10 +435,7 @@ class RangeImage:
                               self.shape[1], int(reach), float(range_noise), float(floor))
         if not hiders:
             return cls
-        hider = np.full(points.shape, np.nan)
-        h = np.flatnonzero(cls == HIDDEN)  # the others have none: NaN without computing it
-        hider[h] = self.origin + (np.take(points, h, axis=0) - self.origin) * (hide[h] / rng[h])[:, None]
-        return cls, hider
+        return cls, _hider_points(points, self.origin, hide, rng, cls)
 
 
 @nb.njit(cache=True, nogil=True)
