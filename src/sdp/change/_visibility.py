@@ -163,19 +163,24 @@ def _angles(points, origin, frame):
     return az, el, rng, (lo_a, lo_e, hi_a, hi_e, count)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _occupied_solid_angle(az, el, lo_az, lo_el, bin_size, n_az, n_el):
     """Solid angle (sr) of the bins of a coarse (azimuth, elevation) grid holding a point, and the
-    number of points binned."""
+    number of points binned. Each block's bins are computed on SIMD lanes first (-1: no angle)."""
     occ = np.zeros(n_az * n_el, np.bool_)
+    bins = np.empty(_BLOCK, np.int64)
     n = 0
-    for i in range(az.shape[0]):
-        if not math.isfinite(az[i]):
-            continue
-        a = min(int((az[i] - lo_az) / bin_size), n_az - 1)
-        e = min(int((el[i] - lo_el) / bin_size), n_el - 1)
-        occ[a * n_el + e] = True
-        n += 1
+    for b0 in range(0, az.shape[0], _BLOCK):
+        m = min(_BLOCK, az.shape[0] - b0)
+        for i in range(m):
+            x, y = az[b0 + i], el[b0 + i]
+            a = min(int((x - lo_az) / bin_size), n_az - 1)
+            e = min(int((y - lo_el) / bin_size), n_el - 1)
+            bins[i] = a * n_el + e if math.isfinite(x) else -1
+        for i in range(m):
+            if bins[i] >= 0:
+                occ[bins[i]] = True
+                n += 1
     omega = 0.0
     for a in range(n_az):
         for e in range(n_el):
@@ -534,14 +539,29 @@ def _fill_polygon(v, n_rows, n_cols):
     return out
 
 
+@nb.njit(cache=True, nogil=True)
+def _unit_directions(points, origin, step):
+    """Unit vectors from ``origin`` to every ``step``-th point (those at the origin left out), as
+    ``d / np.linalg.norm(d, axis=1)`` computes them, in one pass."""
+    m = (points.shape[0] + step - 1) // step
+    out = np.empty((m, 3))
+    k = 0
+    for i in range(0, points.shape[0], step):
+        dx = points[i, 0] - origin[0]
+        dy = points[i, 1] - origin[1]
+        dz = points[i, 2] - origin[2]
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if norm > 0.0:
+            out[k, 0], out[k, 1], out[k, 2] = dx / norm, dy / norm, dz / norm
+            k += 1
+    return out[:k]
+
+
 def _view_frame(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """Forward = main eigenvector of the unit directions' second moments (sign: towards the mean
     direction), pole = the least one: a camera's cone sits on the equator around azimuth 0, a
     horizontal 360° scan gets a vertical pole; the azimuth seam (±π) lies behind the sensor."""
-    step = max(1, len(points) // _DIRECTION_SAMPLE)
-    d = points[::step] - origin
-    norm = np.linalg.norm(d, axis=1)
-    d = d[norm > 0] / norm[norm > 0, None]
+    d = _unit_directions(points, origin, max(1, len(points) // _DIRECTION_SAMPLE))
     if len(d) == 0:
         return np.eye(3)
     w, v = np.linalg.eigh(d.T @ d / len(d))
@@ -837,20 +857,20 @@ def _group_means(query, bin_size):
 
 @nb.njit(cache=True, nogil=True)
 def _every_nth_unchanged(points, changed, stride):
-    """Every ``stride``-th row of ``points`` not ``changed`` (the first, the stride-th, …)."""
-    n = 0
-    for i in range(changed.shape[0]):
-        n += not changed[i]
-    out = np.empty(((n + stride - 1) // stride, 3))
+    """Every ``stride``-th row of ``points`` not ``changed`` (the first, the stride-th, …), in one
+    pass into room for every row's share."""
+    out = np.empty(((changed.shape[0] + stride - 1) // stride, 3))
     j = 0
     m = 0
     for i in range(changed.shape[0]):
         if not changed[i]:
-            if j % stride == 0:
+            if j == 0:
                 out[m, 0], out[m, 1], out[m, 2] = points[i, 0], points[i, 1], points[i, 2]
                 m += 1
             j += 1
-    return out
+            if j == stride:
+                j = 0
+    return out[:m]
 
 
 @nb.njit(cache=True, nogil=True)
