@@ -231,9 +231,12 @@ def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noi
                     observed = True
                     if near[j] - band <= r <= far[j] + band:
                         same = True
+                        break  # the same surface decides: the other cells need not be read
                     elif r > far[j]:
                         nearer = True
                         hide = max(hide, far[j])
+                if same:
+                    break
         if same:
             out[i] = 1  # SAME_SURFACE
         elif nearer:
