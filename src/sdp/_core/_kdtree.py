@@ -55,9 +55,13 @@ def k_nearest(points: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
 @nb.njit(cache=True, nogil=True)
 def _build(points, leaf):
     """(order of the points, per node: first and end position in ``order``, children (-1: a leaf),
-    bounding box lo and hi)."""
+    bounding box lo and hi).
+
+    The coordinates are copied in ``order`` and swapped along with it (``xyz``), so that the
+    scans of a node's points read memory in sequence rather than through the permutation."""
     n = points.shape[0]
     order = np.arange(n)
+    xyz = points.copy()
     cap = 2 * n + 1  # every split leaves points on both sides: at most n leaves
     start = np.empty(cap, np.int64)
     end = np.empty(cap, np.int64)
@@ -78,8 +82,7 @@ def _build(points, leaf):
         lo0 = lo1 = lo2 = np.inf  # in locals: the loop then keeps them in registers
         hi0 = hi1 = hi2 = -np.inf
         for i in range(a, b):
-            p = order[i]
-            x, y, z = points[p, 0], points[p, 1], points[p, 2]
+            x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
             lo0, lo1, lo2 = min(lo0, x), min(lo1, y), min(lo2, z)
             hi0, hi1, hi2 = max(hi0, x), max(hi1, y), max(hi2, z)
         lo[node, 0], lo[node, 1], lo[node, 2] = lo0, lo1, lo2
@@ -92,10 +95,10 @@ def _build(points, leaf):
                 dim = d
         if not hi[node, dim] > lo[node, dim]:
             continue  # every point equal: a leaf however many
-        mid = _partition(points, order, a, b, dim, 0.5 * (lo[node, dim] + hi[node, dim]))
+        mid = _partition(xyz, order, a, b, dim, 0.5 * (lo[node, dim] + hi[node, dim]))
         if mid == a or mid == b:  # all on one side of the box's midpoint (ties): the median instead
             mid = (a + b) // 2
-            _select(points, order, a, b - 1, mid, dim)
+            _select(xyz, order, a, b - 1, mid, dim)
         left[node], right[node] = nodes, nodes + 1
         start[nodes], end[nodes] = a, mid
         start[nodes + 1], end[nodes + 1] = mid, b
@@ -106,36 +109,44 @@ def _build(points, leaf):
 
 
 @nb.njit(cache=True, inline="always")
-def _partition(points, order, a, b, dim, split):
-    """Reorder ``order[a:b]`` so that the points below ``split`` along ``dim`` come first; returns
-    where the others start."""
+def _swap(xyz, order, i, j):
+    order[i], order[j] = order[j], order[i]
+    for d in range(3):
+        xyz[i, d], xyz[j, d] = xyz[j, d], xyz[i, d]
+
+
+@nb.njit(cache=True, inline="always")
+def _partition(xyz, order, a, b, dim, split):
+    """Reorder ``order[a:b]`` (and the rows of ``xyz``, its points) so that the points below
+    ``split`` along ``dim`` come first; returns where the others start."""
     i, j = a, b - 1
     while True:
-        while i <= j and points[order[i], dim] < split:
+        while i <= j and xyz[i, dim] < split:
             i += 1
-        while i <= j and points[order[j], dim] >= split:
+        while i <= j and xyz[j, dim] >= split:
             j -= 1
         if i >= j:
             return i
-        order[i], order[j] = order[j], order[i]
+        _swap(xyz, order, i, j)
         i += 1
         j -= 1
 
 
 @nb.njit(cache=True, inline="always")
-def _select(points, order, a, b, nth, dim):
-    """Reorder ``order[a:b + 1]`` so that position ``nth`` holds its point of rank nth − a along
-    ``dim``, smaller or equal ones before it, larger or equal after (quickselect, Hoare's partition)."""
+def _select(xyz, order, a, b, nth, dim):
+    """Reorder ``order[a:b + 1]`` (and the rows of ``xyz``) so that position ``nth`` holds its
+    point of rank nth − a along ``dim``, smaller or equal ones before it, larger or equal after
+    (quickselect, Hoare's partition)."""
     while b > a:
-        pivot = points[order[(a + b) // 2], dim]
+        pivot = xyz[(a + b) // 2, dim]
         i, j = a, b
         while i <= j:
-            while points[order[i], dim] < pivot:
+            while xyz[i, dim] < pivot:
                 i += 1
-            while points[order[j], dim] > pivot:
+            while xyz[j, dim] > pivot:
                 j -= 1
             if i <= j:
-                order[i], order[j] = order[j], order[i]
+                _swap(xyz, order, i, j)
                 i += 1
                 j -= 1
         if nth <= j:
@@ -153,30 +164,26 @@ def _before(d1, i1, d2, i2):
 
 
 @nb.njit(cache=True, inline="always")
-def _sift(best, who, i, end, d2, p):
-    """Place (d2, p) in the max-heap ``best[:end]``, ``who[:end]`` from position ``i`` down."""
-    while True:
-        c = 2 * i + 1
-        if c >= end:
-            break
-        if c + 1 < end and _before(best[c], who[c], best[c + 1], who[c + 1]):
-            c += 1
-        if not _before(d2, p, best[c], who[c]):
-            break
-        best[i] = best[c]
-        who[i] = who[c]
-        i = c
-    best[i] = d2
-    who[i] = p
+def _insert(best, who, j, d2, p):
+    """Place (d2, p) in the list ``best[:j + 1]``, ``who[:j + 1]`` sorted by (distance, index),
+    whose entry ``j`` it replaces: the entries before it that rank after it move up one."""
+    while j > 0 and _before(d2, p, best[j - 1], who[j - 1]):
+        best[j] = best[j - 1]
+        who[j] = who[j - 1]
+        j -= 1
+    best[j] = d2
+    who[j] = p
 
 
 @nb.njit(cache=True, nogil=True)
 def _query(order, start, end, left, right, lo, hi, points, queries, k):
     """The k nearest rows of ``points`` to each query, sorted by (distance, index).
 
+    The k best so far are kept sorted (insertion: a few dozen points enter per query, and a
+    sorted list needs no final sort; a heap's sifts mispredict their branches at every level).
     Each query after the first starts from the previous query's k nearest, measured from it: the
     farthest of them bounds its k-th distance, so boxes and points beyond are skipped from the
-    start and fewer points enter the heap; those points are not counted twice (``seen``). The
+    start and fewer points enter the list; those points are not counted twice (``seen``). The
     result is the same; queries in spatial order (cube means) gain most."""
     m = queries.shape[0]
     out = np.empty((m, k), np.int64)
@@ -184,17 +191,15 @@ def _query(order, start, end, left, right, lo, hi, points, queries, k):
     who = np.empty(k, np.int64)
     seen = np.full(points.shape[0], -1, np.int64)  # the query whose warm start holds the point
     stack = np.empty(start.shape[0] + 1, np.int64)  # never holds more than every node
+    last = k - 1
     for q in range(m):
         x, y, z = queries[q, 0], queries[q, 1], queries[q, 2]
         if q > 0:
-            for j in range(k):
+            for j in range(k):  # nearly in order already: the previous query is near
                 p = out[q - 1, j]
                 dx, dy, dz = points[p, 0] - x, points[p, 1] - y, points[p, 2] - z
-                best[j] = dx * dx + dy * dy + dz * dz
-                who[j] = p
+                _insert(best, who, j, dx * dx + dy * dy + dz * dz, p)
                 seen[p] = q
-            for j in range(k // 2 - 1, -1, -1):  # heapify
-                _sift(best, who, j, k, best[j], who[j])
         else:
             best[:] = np.inf
             who[:] = _NO_POINT
@@ -206,15 +211,15 @@ def _query(order, start, end, left, right, lo, hi, points, queries, k):
             gx = max(lo[node, 0] - x, 0.0, x - hi[node, 0])
             gy = max(lo[node, 1] - y, 0.0, y - hi[node, 1])
             gz = max(lo[node, 2] - z, 0.0, z - hi[node, 2])
-            if gx * gx + gy * gy + gz * gz > best[0]:
+            if gx * gx + gy * gy + gz * gz > best[last]:
                 continue  # the whole box is farther than the k-th so far
             if left[node] < 0:
                 for i in range(start[node], end[node]):
                     p = order[i]
                     dx, dy, dz = points[p, 0] - x, points[p, 1] - y, points[p, 2] - z
                     d2 = dx * dx + dy * dy + dz * dz
-                    if _before(d2, p, best[0], who[0]) and seen[p] != q:
-                        _sift(best, who, 0, k, d2, p)
+                    if _before(d2, p, best[last], who[last]) and seen[p] != q:
+                        _insert(best, who, last, d2, p)
                 continue
             a, b = left[node], right[node]
             # the child whose box centre is nearer goes on the stack last: it is visited first
@@ -226,9 +231,5 @@ def _query(order, start, end, left, right, lo, hi, points, queries, k):
                 a, b = b, a
             stack[top + 1], stack[top + 2] = a, b
             top += 2
-        for end_ in range(k - 1, 0, -1):  # heap sort: the farthest goes to the end, in turn
-            d2, p = best[end_], who[end_]
-            best[end_], who[end_] = best[0], who[0]
-            _sift(best, who, 0, end_, d2, p)
         out[q] = who
     return out

@@ -74,15 +74,18 @@ _DIRECTION_SAMPLE = 5_000  # points used to choose the image's frame
 # Serial on purpose: a few ms of work each, where a thread pool on busy shared cores costs more
 # than it saves (measured: the plane fits 0.5 ms serial, 16 ms parallel on a loaded 2-core machine).
 
+# Each branch below is a select of two values both computed (no early exit, no exception: the
+# numpy error model), so that the angles' loop runs on SIMD lanes; the values are those of the
+# branching form, operation for operation.
+
 @nb.njit(cache=True, inline="always")
 def _atan01(a):
     """atan(a) for 0 ≤ a ≤ 1 within 4e-10 rad: above tan(π/8), π/4 + atan((a − 1)/(a + 1)), so
     the argument of the alternating Taylor series stays within ±tan(π/8), where its terms up to
     t¹⁹ leave less than the next (twice as fast as libm's atan2, far below a range-image cell)."""
-    off = 0.0
-    if a > 0.41421356237309503:
-        a = (a - 1.0) / (a + 1.0)
-        off = 0.7853981633974483
+    big = a > 0.41421356237309503
+    off = 0.7853981633974483 if big else 0.0
+    a = (a - 1.0) / (a + 1.0) if big else a
     s = a * a
     p = -1.0 / 19.0
     p = p * s + 1.0 / 17.0
@@ -100,70 +103,85 @@ def _atan01(a):
 def _atan2(y, x):
     """atan2(y, x) by :func:`_atan01` (atan2(0, 0) = 0)."""
     ax, ay = abs(x), abs(y)
-    if ax >= ay:
-        r = _atan01(ay / ax) if ax > 0.0 else 0.0
-    else:
-        r = 1.5707963267948966 - _atan01(ax / ay)
-    if x < 0.0:
-        r = 3.141592653589793 - r
+    steep = ax < ay
+    num = ax if steep else ay
+    den = ay if steep else ax
+    r = _atan01(num / den) if den > 0.0 else 0.0
+    r = 1.5707963267948966 - r if steep else r
+    r = 3.141592653589793 - r if x < 0.0 else r
     return -r if y < 0.0 else r
 
 
-@nb.njit(cache=True, nogil=True)
-def _angle_box(az, el):
-    """(lowest azimuth, lowest elevation, highest azimuth, highest elevation, count) of the
-    finite angles, in one pass."""
-    lo_a = lo_e = np.inf
-    hi_a = hi_e = -np.inf
-    n = 0
-    for i in range(az.shape[0]):
-        if math.isfinite(az[i]):
-            lo_a, hi_a = min(lo_a, az[i]), max(hi_a, az[i])
-            lo_e, hi_e = min(lo_e, el[i]), max(hi_e, el[i])
-            n += 1
-    return lo_a, lo_e, hi_a, hi_e, n
+_BLOCK = 512  # points whose coordinates are copied into contiguous buffers before the SIMD loop
 
 
-@nb.njit(cache=True, nogil=True, fastmath={"contract", "arcp"})  # no NaN or inf assumptions
+@nb.njit(cache=True, nogil=True, fastmath={"contract", "arcp"}, error_model="numpy")  # no NaN or inf assumptions
 def _angles(points, origin, frame):
     """Azimuth, elevation (radians) and range of each point seen from ``origin``; frame rows are
-    forward (azimuth 0), left (azimuth +π/2) and pole (elevation +π/2). Range 0 gives NaN angles."""
+    forward (azimuth 0), left (azimuth +π/2) and pole (elevation +π/2). Range 0 gives NaN angles.
+    Also (lowest azimuth, lowest elevation, highest azimuth, highest elevation, count) of the
+    finite angles. The points go through in blocks, each copied to three contiguous columns
+    first: the SIMD loop then loads contiguous lanes (from the rows' interleaved coordinates
+    the compiled loop stays on scalars)."""
     n = points.shape[0]
     az = np.empty(n)
     el = np.empty(n)
     rng = np.empty(n)
-    for i in range(n):
-        dx = points[i, 0] - origin[0]
-        dy = points[i, 1] - origin[1]
-        dz = points[i, 2] - origin[2]
-        f = dx * frame[0, 0] + dy * frame[0, 1] + dz * frame[0, 2]
-        lf = dx * frame[1, 0] + dy * frame[1, 1] + dz * frame[1, 2]
-        p = dx * frame[2, 0] + dy * frame[2, 1] + dz * frame[2, 2]
-        h2 = f * f + lf * lf
-        r = math.sqrt(h2 + p * p)
-        rng[i] = r
-        if r > 0.0:
-            az[i] = _atan2(lf, f)
-            el[i] = _atan2(p, math.sqrt(h2))
-        else:
-            az[i] = np.nan
-            el[i] = np.nan
-    return az, el, rng
+    bx = np.empty(_BLOCK)
+    by = np.empty(_BLOCK)
+    bz = np.empty(_BLOCK)
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    f00, f01, f02 = frame[0, 0], frame[0, 1], frame[0, 2]
+    f10, f11, f12 = frame[1, 0], frame[1, 1], frame[1, 2]
+    f20, f21, f22 = frame[2, 0], frame[2, 1], frame[2, 2]
+    lo_a = lo_e = np.inf
+    hi_a = hi_e = -np.inf
+    count = 0
+    for b0 in range(0, n, _BLOCK):
+        m = min(_BLOCK, n - b0)
+        for i in range(m):
+            bx[i] = points[b0 + i, 0] - o0
+            by[i] = points[b0 + i, 1] - o1
+            bz[i] = points[b0 + i, 2] - o2
+        for i in range(m):
+            dx, dy, dz = bx[i], by[i], bz[i]
+            f = dx * f00 + dy * f01 + dz * f02
+            lf = dx * f10 + dy * f11 + dz * f12
+            p = dx * f20 + dy * f21 + dz * f22
+            h2 = f * f + lf * lf
+            r = math.sqrt(h2 + p * p)
+            a = _atan2(lf, f)
+            e = _atan2(p, math.sqrt(h2))
+            rng[b0 + i] = r
+            az[b0 + i] = a if r > 0.0 else np.nan
+            el[b0 + i] = e if r > 0.0 else np.nan
+        for i in range(b0, b0 + m):  # in order, as min and max of ±0 depend on it
+            a = az[i]
+            if math.isfinite(a):
+                lo_a, hi_a = min(lo_a, a), max(hi_a, a)
+                lo_e, hi_e = min(lo_e, el[i]), max(hi_e, el[i])
+                count += 1
+    return az, el, rng, (lo_a, lo_e, hi_a, hi_e, count)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _occupied_solid_angle(az, el, lo_az, lo_el, bin_size, n_az, n_el):
     """Solid angle (sr) of the bins of a coarse (azimuth, elevation) grid holding a point, and the
-    number of points binned."""
+    number of points binned. Each block's bins are computed on SIMD lanes first (-1: no angle)."""
     occ = np.zeros(n_az * n_el, np.bool_)
+    bins = np.empty(_BLOCK, np.int64)
     n = 0
-    for i in range(az.shape[0]):
-        if not math.isfinite(az[i]):
-            continue
-        a = min(int((az[i] - lo_az) / bin_size), n_az - 1)
-        e = min(int((el[i] - lo_el) / bin_size), n_el - 1)
-        occ[a * n_el + e] = True
-        n += 1
+    for b0 in range(0, az.shape[0], _BLOCK):
+        m = min(_BLOCK, az.shape[0] - b0)
+        for i in range(m):
+            x, y = az[b0 + i], el[b0 + i]
+            a = min(int((x - lo_az) / bin_size), n_az - 1)
+            e = min(int((y - lo_el) / bin_size), n_el - 1)
+            bins[i] = a * n_el + e if math.isfinite(x) else -1
+        for i in range(m):
+            if bins[i] >= 0:
+                occ[bins[i]] = True
+                n += 1
     omega = 0.0
     for a in range(n_az):
         for e in range(n_el):
@@ -214,9 +232,12 @@ def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noi
                     observed = True
                     if near[j] - band <= r <= far[j] + band:
                         same = True
+                        break  # the same surface decides: the other cells need not be read
                     elif r > far[j]:
                         nearer = True
                         hide = max(hide, far[j])
+                if same:
+                    break
         if same:
             out[i] = 1  # SAME_SURFACE
         elif nearer:
@@ -227,6 +248,19 @@ def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noi
         else:
             out[i] = 3  # UNOBSERVED
     return out, hider
+
+
+@nb.njit(cache=True, nogil=True)
+def _hider_points(points, origin, hide, rng, cls):
+    """Where the surface hiding each :data:`HIDDEN` point was seen: origin + (point − origin) ·
+    hide / range (NaN rows for the other classes)."""
+    out = np.full(points.shape, np.nan)
+    for i in range(points.shape[0]):
+        if cls[i] == 2:  # HIDDEN
+            t = hide[i] / rng[i]
+            for d in range(3):
+                out[i, d] = origin[d] + (points[i, d] - origin[d]) * t
+    return out
 
 
 @nb.njit(cache=True, nogil=True)
@@ -367,8 +401,7 @@ class RangeImage:
         points = np.ascontiguousarray(points, dtype=np.float64)
         origin = np.asarray(origin, dtype=np.float64)
         frame = _view_frame(points, origin)
-        az, el, rng = _angles(points, origin, frame)
-        lo_a, lo_e, hi_a, hi_e, n = _angle_box(az, el)
+        az, el, rng, (lo_a, lo_e, hi_a, hi_e, n) = _angles(points, origin, frame)
         if n == 0:
             raise InvalidPointsError("sensor_origin coincides with every point: no ray to follow")
         lo = np.array([lo_a, lo_e])
@@ -384,7 +417,7 @@ class RangeImage:
 
     def in_view(self, points: np.ndarray) -> np.ndarray:
         """Is each point inside the field of view (:attr:`view`) and within :attr:`reach_range`?"""
-        az, el, rng = _angles(np.ascontiguousarray(points, dtype=np.float64), self.origin, self.frame)
+        az, el, rng, _ = _angles(np.ascontiguousarray(points, dtype=np.float64), self.origin, self.frame)
         with np.errstate(invalid="ignore"):
             a = np.floor((az - self.lo[0]) / self.cell)
             e = np.floor((el - self.lo[1]) / self.cell)
@@ -406,13 +439,12 @@ class RangeImage:
         the returns are all farther than r + b; :data:`UNOBSERVED` (3): no return at all.
         """
         points = np.ascontiguousarray(points, dtype=np.float64)
-        az, el, rng = _angles(points, self.origin, self.frame)
+        az, el, rng, _ = _angles(points, self.origin, self.frame)
         cls, hide = _classify(az, el, rng, self.near, self.far, self.lo[0], self.lo[1], self.cell, self.shape[0],
                               self.shape[1], int(reach), float(range_noise), float(floor))
         if not hiders:
             return cls
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return cls, self.origin + (points - self.origin) * (hide / rng)[:, None]
+        return cls, _hider_points(points, self.origin, hide, rng, cls)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -440,15 +472,53 @@ def _convex_hull(seen: np.ndarray) -> np.ndarray:
     each row's outermost cells, filled row by row (a convex polygon cuts each row in one
     interval), 0.25 ms on a Kinect frame's image where ``skimage.morphology.convex_hull_image``,
     whose border rule differs slightly, takes 18 ms."""
-    rows = np.flatnonzero(seen.any(axis=1))
-    if len(rows) == 0:
+    corners = _sorted_corners(seen)
+    if len(corners) == 0:
         return np.zeros_like(seen)
-    first = seen[rows].argmax(axis=1)
-    last = seen.shape[1] - 1 - seen[rows, ::-1].argmax(axis=1)
-    ends = np.r_[np.c_[rows, first], np.c_[rows, last]].astype(np.float64)
-    corners = (ends[:, None, :] + np.array([[-0.5, -0.5], [-0.5, 0.5], [0.5, -0.5], [0.5, 0.5]])).reshape(-1, 2)
-    return _fill_polygon(_hull_polygon(corners[np.lexsort((corners[:, 1], corners[:, 0]))]), seen.shape[0],
-                         seen.shape[1])
+    return _fill_polygon(_hull_polygon(corners), seen.shape[0], seen.shape[1])
+
+
+@nb.njit(cache=True, nogil=True)
+def _sorted_corners(seen):
+    """The corners of each row's first and last True cell (the cell (a, c) spans a ± 0.5,
+    c ± 0.5), sorted by x then y, in one pass over the grid: the corners at x = a − 0.5 are
+    those of rows a − 1 and a, eight at most, sorted by insertion."""
+    n_rows, n_cols = seen.shape
+    first = np.full(n_rows, -1, np.int64)
+    last = np.full(n_rows, -1, np.int64)
+    used = 0
+    for a in range(n_rows):
+        for c in range(n_cols):
+            if seen[a, c]:
+                first[a] = c
+                break
+        if first[a] >= 0:
+            used += 1
+            for c in range(n_cols - 1, -1, -1):
+                if seen[a, c]:
+                    last[a] = c
+                    break
+    out = np.empty((8 * used, 2))
+    ys = np.empty(8)
+    m = 0
+    for xa in range(n_rows + 1):  # the line x = xa − 0.5
+        cnt = 0
+        for a in range(xa - 1, xa + 1):
+            if 0 <= a < n_rows and first[a] >= 0:
+                ys[cnt], ys[cnt + 1] = first[a] - 0.5, first[a] + 0.5
+                ys[cnt + 2], ys[cnt + 3] = last[a] - 0.5, last[a] + 0.5
+                cnt += 4
+        for i in range(1, cnt):
+            y = ys[i]
+            j = i
+            while j > 0 and ys[j - 1] > y:
+                ys[j] = ys[j - 1]
+                j -= 1
+            ys[j] = y
+        for i in range(cnt):
+            out[m, 0], out[m, 1] = xa - 0.5, ys[i]
+            m += 1
+    return out
 
 
 @nb.njit(cache=True, nogil=True)
@@ -473,14 +543,29 @@ def _fill_polygon(v, n_rows, n_cols):
     return out
 
 
+@nb.njit(cache=True, nogil=True)
+def _unit_directions(points, origin, step):
+    """Unit vectors from ``origin`` to every ``step``-th point (those at the origin left out), as
+    ``d / np.linalg.norm(d, axis=1)`` computes them, in one pass."""
+    m = (points.shape[0] + step - 1) // step
+    out = np.empty((m, 3))
+    k = 0
+    for i in range(0, points.shape[0], step):
+        dx = points[i, 0] - origin[0]
+        dy = points[i, 1] - origin[1]
+        dz = points[i, 2] - origin[2]
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if norm > 0.0:
+            out[k, 0], out[k, 1], out[k, 2] = dx / norm, dy / norm, dz / norm
+            k += 1
+    return out[:k]
+
+
 def _view_frame(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """Forward = main eigenvector of the unit directions' second moments (sign: towards the mean
     direction), pole = the least one: a camera's cone sits on the equator around azimuth 0, a
     horizontal 360° scan gets a vertical pole; the azimuth seam (±π) lies behind the sensor."""
-    step = max(1, len(points) // _DIRECTION_SAMPLE)
-    d = points[::step] - origin
-    norm = np.linalg.norm(d, axis=1)
-    d = d[norm > 0] / norm[norm > 0, None]
+    d = _unit_directions(points, origin, max(1, len(points) // _DIRECTION_SAMPLE))
     if len(d) == 0:
         return np.eye(3)
     w, v = np.linalg.eigh(d.T @ d / len(d))
@@ -640,8 +725,8 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
                               present=present, **plane)
     if image is None:
         image = RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)
-    cls, hider = image.classify(points[cand], range_noise=range_noise, floor=band_floor * sigma, reach=reach,
-                                hiders=True)
+    query = np.take(points, cand, axis=0)  # a plain gather of rows (fancy indexing takes a slower, general path)
+    cls, hider = image.classify(query, range_noise=range_noise, floor=band_floor * sigma, reach=reach, hiders=True)
     states[cand[cls == SAME_SURFACE]] = UNCHANGED
     hidden, missing = cls == HIDDEN, cls == UNOBSERVED
     if present is not None and hidden.any():  # hidden behind what is still there: not seen
@@ -649,7 +734,7 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     else:
         states[cand[hidden]] = NOT_COMPARABLE
     if missing.any():  # no return: free in range inside the field of view, unseen outside it
-        states[cand[missing]] = np.where(image.in_view(points[cand[missing]]), CHANGED, NOT_COMPARABLE)
+        states[cand[missing]] = np.where(image.in_view(query[missing]), CHANGED, NOT_COMPARABLE)
     return _explain_by_planes(points, changed, states, cand[hidden | missing], **plane)
 
 
@@ -658,7 +743,7 @@ def _explain_by_planes(points, changed, states, unseen, *, plane_points, plane_s
     """``states`` with the ``unseen`` points that continue the unchanged surface made unchanged."""
     static = _every_nth_unchanged(points, changed, max(1, int(plane_stride)))
     if len(unseen) and len(static) >= 3:
-        on_plane = _on_unchanged_plane(points[unseen], static, k=min(int(plane_points), len(static)),
+        on_plane = _on_unchanged_plane(np.take(points, unseen, axis=0), static, k=min(int(plane_points), len(static)),
                                        distance=plane_distance, flatness=plane_flatness, bin_size=plane_bin)
         states[unseen[on_plane]] = UNCHANGED
     return states
@@ -776,20 +861,20 @@ def _group_means(query, bin_size):
 
 @nb.njit(cache=True, nogil=True)
 def _every_nth_unchanged(points, changed, stride):
-    """Every ``stride``-th row of ``points`` not ``changed`` (the first, the stride-th, …)."""
-    n = 0
-    for i in range(changed.shape[0]):
-        n += not changed[i]
-    out = np.empty(((n + stride - 1) // stride, 3))
+    """Every ``stride``-th row of ``points`` not ``changed`` (the first, the stride-th, …), in one
+    pass into room for every row's share."""
+    out = np.empty(((changed.shape[0] + stride - 1) // stride, 3))
     j = 0
     m = 0
     for i in range(changed.shape[0]):
         if not changed[i]:
-            if j % stride == 0:
+            if j == 0:
                 out[m, 0], out[m, 1], out[m, 2] = points[i, 0], points[i, 1], points[i, 2]
                 m += 1
             j += 1
-    return out
+            if j == stride:
+                j = 0
+    return out[:m]
 
 
 @nb.njit(cache=True, nogil=True)
