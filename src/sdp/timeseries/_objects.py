@@ -220,12 +220,13 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
         return np.where(sig, np.sign(d), 0).astype(np.int8), d, v
 
     # pass 1: components per epoch, joined to the previous epoch's where a point stays changed
-    offsets, links, prev, prev_sign = [], [], None, None
+    offsets, links, sizes, prev, prev_sign = [], [], [], None, None
     total = 0
     for k in range(n_epochs):
         sign, _, _ = signs(k)
         comp, n = _components(sign, i, j)
         offsets.append(total)
+        sizes.append(np.bincount(comp[comp >= 0], minlength=n))
         if prev is not None:
             both = (sign != 0) & (sign == prev_sign)
             # one row per pair of components, not per point: the memory stays with the components
@@ -236,6 +237,11 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
     graph = coo_matrix((np.ones(len(links), np.int8), (links[:, 0], links[:, 1])), shape=(total, total))
     _, root = connected_components(graph, directed=False) if total else (0, np.empty(0, np.int64))
     n_roots = int(root.max()) + 1 if total else 0
+    # a root of fewer (epoch, point) pairs than min_points has fewer distinct points: no object, and
+    # its points need not be listed (the noise's many small roots would make that list grow with the epochs)
+    nodes = np.bincount(root, np.concatenate(sizes), minlength=n_roots).astype(np.int64) if total else \
+        np.zeros(0, np.int64)
+    listed = nodes >= min_points
 
     # pass 2: per root, its epochs, distinct points, peak change and velocity sums
     start = np.full(n_roots, n_epochs, np.int64)  # the first epoch with min_points changed core points
@@ -264,11 +270,11 @@ def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, 
         fv = np.isfinite(v[at])
         np.add.at(vsum, r[fv], v[at][fv])
         np.add.at(vcount, r[fv], 1)
-        pairs.append(np.unique(r * m + at))
+        pairs.append(np.unique(r[listed[r]] * m + at[listed[r]]))
         if len(pairs) > 64:
             pairs = [np.unique(np.concatenate(pairs))]
     pairs = np.unique(np.concatenate(pairs)) if pairs else np.empty(0, np.int64)
-    npts = np.bincount(pairs // m, minlength=n_roots) if n_roots else np.zeros(0, np.int64)
+    npts = np.where(listed, np.bincount(pairs // m, minlength=n_roots), nodes) if n_roots else np.zeros(0, np.int64)
     table, ids = _table(start, first, end, npts, peak, vsum, vcount, anchor, min_points, times, radius, area)
 
     # pass 3: each epoch's object ids
