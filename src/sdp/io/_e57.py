@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import require
 from ._cloud import CloudFileError
 
-__all__ = ["read_e57", "e57_scans"]
+__all__ = ["read_e57", "e57_scans", "e57_start"]
 
 _E57_SIGNATURE = b"ASTM-E57"
 
@@ -84,6 +84,18 @@ def e57_scans(path) -> list[dict]:
                     "rotation": q.tolist(), "translation": t.tolist(), "grid": grid})
     return out
 
+
+def e57_start(path) -> float | None:
+    """The earliest ``acquisitionStart`` of the file's scans, GPS seconds (None: none recorded, or 0)."""
+    e = _open(path)
+    starts = []
+    for i in range(e.scan_count):
+        node = e.get_header(i).node
+        if node.isDefined("acquisitionStart/dateTimeValue"):  # asked first: pye57 prints a missing path
+            value = float(node["acquisitionStart"]["dateTimeValue"].value())
+            if np.isfinite(value) and value > 0:
+                starts.append(value)
+    return min(starts) if starts else None
 
 def read_e57(path):
     """``(xyz, fields, None, None, False, sensors)`` of an E57 file: every scan moved by its pose

@@ -60,17 +60,10 @@ def _las_time(path) -> tuple[float, str] | None:
 
 
 def _e57_time(path) -> tuple[float, str] | None:
-    from ._e57 import _open
+    from ._e57 import e57_start
 
-    e = _open(path)
-    starts = []
-    for i in range(e.scan_count):
-        node = e.get_header(i).node
-        if node.isDefined("acquisitionStart/dateTimeValue"):
-            value = float(node["acquisitionStart"]["dateTimeValue"].value())
-            if np.isfinite(value) and value > 0:
-                starts.append(value)
-    return (float(gps_to_days(min(starts))), "E57 acquisition start") if starts else None
+    start = e57_start(path)
+    return None if start is None else (float(gps_to_days(start)), "E57 acquisition start")
 
 
 def file_time(path) -> tuple[float, str] | None:
