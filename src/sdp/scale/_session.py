@@ -207,6 +207,11 @@ class Session:
         A run that failed or was interrupted stops its local workers at once: a graceful close
         waits for the tasks they are running (seconds each), and their results are not wanted."""
         executor, cluster = getattr(self, "executor", None), getattr(self, "cluster", None)
+        # the connections to workers just stopped close as the client and cluster do: distributed
+        # logs that (INFO, with a traceback) from its own thread; the command's error is the one line
+        quiet = logging.getLogger("distributed")
+        level = quiet.level
+        quiet.setLevel(logging.CRITICAL)
         try:
             if executor is not None and not isinstance(executor, str):
                 if exc and exc[0] is not None and cluster is not None:
@@ -217,6 +222,7 @@ class Session:
                 if getattr(self, "cluster", None) is not None:
                     self.cluster.close()  # stops the workers: nothing writes into the buckets any more
             finally:
+                quiet.setLevel(level)
                 shutil.rmtree(self.root, ignore_errors=True)
 
 
