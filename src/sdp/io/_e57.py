@@ -97,6 +97,7 @@ def e57_start(path) -> float | None:
                 starts.append(value)
     return min(starts) if starts else None
 
+
 def read_e57(path):
     """``(xyz, fields, None, None, False, sensors)`` of an E57 file: every scan moved by its pose
     into the file's frame (invalid points as NaN rows), the fields ``scan`` (uint16: which scan),

@@ -162,9 +162,8 @@ def transaction(path, *, base: bool = False):
 
 @contextmanager
 def many_chunks_at_once(n: int = 64):
-    """Zarr reading and writing up to ``n`` chunks at once (its default, 10, leaves a reader of many
-    small chunks, an epoch row each, waiting on each file in turn: a series' column of 300 epochs
-    read 3× faster with 64)."""
+    """Zarr reading and writing up to ``n`` chunks at once: a series reads columns of many small
+    chunks (an epoch row each), and Zarr's default of 10 leaves it waiting on each file in turn."""
     _, zarr = require_series()
     with zarr.config.set({"async.concurrency": n}):
         yield

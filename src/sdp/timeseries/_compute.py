@@ -464,6 +464,10 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
     return A.open_series(out)
 
 
+#: A column's float32 inputs (distance, lod) and results (four arrays) per epoch and core point.
+_COLUMN_BYTES = 24
+
+
 def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
     """The smoother over blocks of core points (their number from the memory limit); (q, info,
     (smoothed, smoothed_sigma, velocity) if one block held the whole series, else None)."""
@@ -478,9 +482,9 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
         whole = dist[...], lod[...]
     else:
         # columns of whole chunks, read once and written once (a block narrower than a chunk would read and
-        # rewrite each chunk once per block), its inputs and results in float32 (24 B per value) in another
+        # rewrite each chunk once per block), its inputs and results in float32 (_COLUMN_BYTES) in another
         # quarter of the limit; else blocks of whole chunks, or narrower ones read again per block
-        col = int(budget // (E * 24)) // A.POINT_CHUNK * A.POINT_CHUNK
+        col = int(budget // (E * _COLUMN_BYTES)) // A.POINT_CHUNK * A.POINT_CHUNK
         if col < A.POINT_CHUNK:
             if block >= A.POINT_CHUNK:
                 block -= block % A.POINT_CHUNK
