@@ -190,8 +190,10 @@ class Writer:
                        max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s) for d, s in zip(dims, shape))
         if fill is None:
             fill = np.nan if np.dtype(dtype).kind == "f" else 0
+        # write_empty_chunks: Zarr otherwise compares every chunk with the fill value before writing it, which
+        # costs more than the write (a series' chunks are seldom empty)
         arr = self.group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill,
-                                      dimension_names=list(dims),
+                                      dimension_names=list(dims), config={"write_empty_chunks": True},
                                       chunk_key_encoding={"name": "default", "separator": "."})
         if attrs:
             arr.attrs.update(attrs)
