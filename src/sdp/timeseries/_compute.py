@@ -47,7 +47,7 @@ from ..io._read import read_points
 from ..io._time import file_time
 from ..options import Cylinder, Execution, Registration
 from . import _archive as A
-from ._kalman import BYTES_PER_VALUE, process_noise, smooth
+from ._kalman import BYTES_PER_VALUE, observation_variance, process_noise, smooth
 from ._objects import OBJECT_FIELDS, find_objects, min_object_points, objects_in_memory, onsets
 
 __all__ = ["series", "SERIES_FIELDS"]
@@ -451,8 +451,9 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         attrs["parameters"]["smoother"] = {
             "model": "constant velocity, white-noise acceleration", "process_noise": q,
             "process_noise_reason": "robust spread of the standardised second differences equal to one",
-            "observation_noise": "(lod / 1.96)^2 per epoch and core point", "step_k": 4.0, "velocity": rate_unit,
-            **info}
+            "observation_noise": "(lod / 1.96)^2 per epoch and core point without the reference's part "
+                                 "(ref_spread^2 / ref_count), which is added once to smoothed_sigma^2",
+            "step_k": 4.0, "velocity": rate_unit, **info}
         attrs["parameters"]["objects"] = {"neighbour_radius": table["radius"], "area_per_point": table["area_per_point"],
                                           "rule": "|smoothed| > 1.96 smoothed_sigma, same sign, connected in space "
                                                   "(radius) and time (consecutive epochs)"}
@@ -495,7 +496,9 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
         zs, ls = whole[0][:, sample], whole[1][:, sample]
     else:
         zs, ls = dist.get_orthogonal_selection((slice(None), sample)), lod.get_orthogonal_selection((slice(None), sample))
-    vs = (ls.astype(np.float64) / 1.96) ** 2
+    reg = w["registration_error"][:]
+    ref_var = w["ref_spread"][:] ** 2 / w["ref_count"][:]
+    vs = observation_variance(ls, reg, ref_var[sample])
     q = process_noise(zs.astype(np.float64), vs, times)
     good = np.isfinite(vs) & (vs > 0)
     scale = float(np.sqrt(np.median(vs[good]))) if good.any() else 1.0  # one diffuse start for every block
@@ -510,8 +513,9 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
         for c in range(0, b - a, block):
             d = min(b - a, c + block)
             z = zc[:, c:d].astype(np.float64)
-            var = (lc[:, c:d].astype(np.float64) / 1.96) ** 2
+            var = observation_variance(lc[:, c:d], reg, ref_var[a + c:a + d])
             sm, vel, ssd, vsd, step = smooth(z, var, times, q, scale=scale)
+            ssd = np.sqrt(ssd**2 + ref_var[a + c:a + d])  # the reference's error, shared by every epoch
             for out, v in zip(results, (sm, vel, ssd, vsd)):
                 out[:, c:d] = v
             onset[a + c:a + d], kind[a + c:a + d] = onsets(sm, ssd, step)

@@ -5,7 +5,11 @@ State ``(d, v)``: the change since the reference and its rate. Between epochs ``
 change moves by ``v·dt`` and a white-noise acceleration of spectral density ``q`` perturbs both
 (``Q = q·[[dt³/3, dt²/2], [dt²/2, dt]]``). Each epoch observes ``d`` with the variance of its own
 level of detection, ``(lod/1.96)²`` (M3C2's LoD95 is 1.96 standard deviations), as Winiwarter
-et al. [1]_ do; not-comparable epochs are skipped (prediction only).
+et al. [1]_ do, less the reference cylinder's part: every epoch is measured against the same
+reference, so that part is one error shared by the whole series, which smoothing cannot average
+away; the caller adds it once to the smoothed variance
+(:func:`observation_variance`). Not-comparable epochs are skipped
+(prediction only).
 
 - **Process noise from the data**: ``q`` makes the robust spread (1.4826 × the median absolute
   value) of the standardised second differences of the observed series equal to one: the
@@ -46,7 +50,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["process_noise", "smooth", "kalman", "step_scan", "BYTES_PER_VALUE"]
+__all__ = ["observation_variance", "process_noise", "smooth", "kalman", "step_scan", "BYTES_PER_VALUE"]
 
 #: Working memory of :func:`smooth` and its caller per epoch and core point, a bound: the float64
 #: inputs and their transposed copies (32 B), the four float64 outputs (32 B) and as much again for
@@ -55,6 +59,19 @@ __all__ = ["process_noise", "smooth", "kalman", "step_scan", "BYTES_PER_VALUE"]
 BYTES_PER_VALUE = 320
 _STEP_K = 4.0
 _SCAN = 16.0  # the step scan's statistic (χ²(1) at one epoch): 4σ, 6e-5 per epoch tried
+
+
+def observation_variance(lod: np.ndarray, registration_error: np.ndarray, ref_var: np.ndarray) -> np.ndarray:
+    """Each epoch's own noise variance (epochs, points) from its level of detection: the level's
+    standard deviation ``lod/1.96 = sqrt(ref_var + epoch_var) + registration_error`` without the
+    reference's part ``ref_var``, which every epoch shares. Treated as independent, that part would
+    average away over many epochs and a stable place would read as changed by its reference's
+    noise; it is added once to the smoothed variance instead."""
+    reg = np.asarray(registration_error, np.float64)[:, None]
+    sd = np.maximum(lod.astype(np.float64) / 1.96 - reg, 0.0)
+    # float32 levels: where the epoch's part is below their rounding, keep a thousandth of the whole
+    own = np.maximum(sd**2 - ref_var, 1e-3 * sd**2)
+    return (np.sqrt(own) + reg) ** 2
 
 
 def _second_differences(z, var, t):
