@@ -47,14 +47,17 @@ import numpy as np
 from ..errors import SDPError, require
 
 __all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "transaction", "Writer",
-           "many_chunks_at_once"]
+           "many_chunks_at_once", "write_state", "read_filter_state", "read_tracker_state"]
 
 ARCHIVE_FORMAT = "sdp-series"
-ARCHIVE_VERSION = 1
+ARCHIVE_VERSION = 2  # 2: the state an append goes on from (fixed-lag smoother, tracked objects)
 POINT_CHUNK = 16384  # points per chunk: an epoch row of 100,000 core points is 7 chunk files
-#: Arrays written once per epoch (or once per archive) and never again: hard-linked by an append.
-MEASURED = ("distance", "lod", "significant", "x", "y", "z", "normal_x", "normal_y", "normal_z",
-            "ref_mean", "ref_spread", "ref_count", "ref_level")
+#: Arrays an append keeps: its chunks hard-linked into the new version (the measured ones are
+#: never written again, the smoothed ones and the objects only in their last rows).
+KEPT = ("distance", "lod", "significant", "x", "y", "z", "normal_x", "normal_y", "normal_z",
+        "ref_mean", "ref_spread", "ref_count", "ref_level", "smoothed", "velocity", "smoothed_sigma",
+        "velocity_sigma", "object")
+_STATE = "state"  # the subgroup of what an append goes on from (not a dataset variable)
 _COMPLETE = ".sdp-complete"
 
 
@@ -110,12 +113,12 @@ def recover(path) -> str | None:
 
 
 def _snapshot(src: Path, dst: Path) -> None:
-    """``dst``: the measured arrays of ``src`` (chunks hard-linked, metadata copied) and its group metadata."""
+    """``dst``: the arrays of ``src`` an append keeps (chunks hard-linked, metadata copied) and its group metadata."""
     dst.mkdir()
     meta = json.loads((src / "zarr.json").read_text())
     meta.pop("consolidated_metadata", None)  # lists arrays the new version rewrites: made again at its end
     (dst / "zarr.json").write_text(json.dumps(meta))
-    for name in MEASURED:
+    for name in KEPT:
         if not (src / name).is_dir():
             continue
         for root, _, files in os.walk(src / name):
@@ -220,6 +223,43 @@ class Writer:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # consolidated metadata: "not part of the v3 spec" (xarray reads it)
             self.zarr.consolidate_metadata(str(self.folder))
+
+
+def write_state(group, filt, tracker: dict) -> None:
+    """The filter and the tracker after the last final epoch, in the ``state`` subgroup (written
+    anew by every run)."""
+    if _STATE in group:
+        del group[_STATE]
+    sub = group.create_group(_STATE)
+    arrays = {"filter_x": filt.x, "filter_seen": filt.seen, "filter_step": filt.step,
+              **{f"tracker_{k}": v for k, v in tracker.items()}}
+    for name, values in arrays.items():
+        values = np.ascontiguousarray(values)
+        arr = sub.create_array(name, shape=values.shape, chunks=tuple(max(1, s) for s in values.shape),
+                               dtype=values.dtype, config={"write_empty_chunks": True})
+        if values.size:
+            arr[...] = values
+    sub.attrs["filter_epoch"] = int(filt.epoch)
+
+
+def _state_group(path):
+    _, zarr = require_series()
+    return zarr.open_group(str(path), mode="r")[_STATE]
+
+
+def read_filter_state(path):
+    """The :class:`~sdp.timeseries._kalman.FilterState` :func:`write_state` saved in the archive ``path``."""
+    from ._kalman import FilterState
+
+    sub = _state_group(path)
+    return FilterState(int(sub.attrs["filter_epoch"]), sub["filter_x"][...], sub["filter_seen"][...],
+                       sub["filter_step"][...])
+
+
+def read_tracker_state(path) -> dict:
+    """The tracker's arrays :func:`write_state` saved in the archive ``path``."""
+    sub = _state_group(path)
+    return {name[len("tracker_"):]: sub[name][...] for name in sub.array_keys() if name.startswith("tracker_")}
 
 
 def _plain(v):

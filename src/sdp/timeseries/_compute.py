@@ -47,8 +47,8 @@ from ..io._read import read_points
 from ..io._time import file_time
 from ..options import Cylinder, Execution, Registration
 from . import _archive as A
-from ._kalman import BYTES_PER_VALUE, observation_variance, process_noise, smooth
-from ._objects import OBJECT_FIELDS, find_objects, min_object_points, objects_in_memory, onsets
+from ._kalman import BYTES_PER_VALUE, FilterState, kalman, observation_variance, process_noise
+from ._objects import OBJECT_FIELDS, Tracker, min_object_points
 
 __all__ = ["series", "SERIES_FIELDS"]
 
@@ -149,8 +149,8 @@ def _check_append(archive: dict, given: dict, core_points, path: Path) -> None:
 # ------------------------------------------------------------------ the run
 def series(epochs, *, output, append: bool = False, times=None, core_points=None, reference: int | None = None,
            cylinder: Cylinder | None = None, registration_error: float | str | None = None,
-           align: Registration | str | None = None, orientation=None, execution: Execution | None = None,
-           format: str | None = None):
+           align: Registration | str | None = None, orientation=None, lag: int | None = None,
+           execution: Execution | None = None, format: str | None = None):
     """Signed distances of many epochs against one reference at fixed core points, in one Zarr
     archive, with their smoothed change, velocity, onsets and 4D objects of change.
 
@@ -181,6 +181,9 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
         Register each epoch onto the reference first.
     orientation : array_like (3,), optional
         Direction the normals point to (default +z).
+    lag : int, optional
+        Epochs after an epoch that smooth it (``DEFAULTS.smoothing_lag``, 16): older epochs are
+        final, an append rewrites the last ``lag + 1`` rows of the smoothed arrays.
     execution : Execution, optional
         The memory limit (an epoch, the reference side and the smoother's blocks are sized from it).
     format : str, optional
@@ -238,7 +241,7 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
              "registration_error": registration_error,
              "align": None if registration is None else registration.method,
              "orientation": None if orientation is None else [float(v) for v in np.asarray(orientation).reshape(-1)],
-             "reference": reference}
+             "reference": reference, "lag": lag}
     if append:
         if not out.exists() and not A._siblings(out)[0].exists():
             raise SDPError(f"{out}: no archive to append to; run without --append first")
@@ -282,6 +285,7 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
                                  f" ({source}): give distinct --times")
     if np.any(np.diff(t) <= 0):
         raise InvalidOptionError("the times of the epochs must increase, in the order given")
+    lag = integer_at_least("lag", DEFAULTS.smoothing_lag if lag is None else lag, 1)
     reg_opt = DEFAULTS.registration_error if registration_error is None else registration_error
     if reg_opt == "auto" and registration is None:
         reg_opt = 0.0
@@ -306,9 +310,9 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     used = {"projection_scale": prepared.projection_scale, "normal_scale": prepared.normal_scale,
             "max_distance": prepared.max_distance, "registration_error": reg_opt,
             "align": None if registration is None else registration.method,
-            "orientation": scalars["orientation"], "reference": reference}
+            "orientation": scalars["orientation"], "reference": reference, "lag": lag}
     given_rec = dict(given, projection_scale=cylinder.projection_scale, normal_scale=cylinder.normal_scale,
-                     max_distance=cylinder.max_distance, registration_error=reg_opt, reference=reference,
+                     max_distance=cylinder.max_distance, registration_error=reg_opt, reference=reference, lag=lag,
                      orientation=scalars["orientation"] if orientation is None else given["orientation"])
     attrs = {"format": A.ARCHIVE_FORMAT, "format_version": A.ARCHIVE_VERSION, "sdp_version": _version(),
              "time_kind": kind, "epochs": [], "runs": [],
@@ -401,44 +405,57 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         time_attrs = {"units": "days since 1970-01-01"} if kind == "date" else {}
         w.write("time", times, ("epoch",), attrs=time_attrs)
         w.write("registration_error", np.array([e["registration_error"] for e in attrs["epochs"]]), ("epoch",))
+        params = attrs["parameters"]
+        lag = int(params["used"]["lag"])
         t0 = time.perf_counter()
-        q, info, held = _smooth_all(w, E, m, times, limit)
+        # the smoother's noise is estimated from the first 2^n epochs (n as large as there are):
+        # an append between two powers of two filters on from the saved state and rewrites lag + 1
+        # rows; one reaching the next power estimates again and runs over the whole series
+        first_epochs = 2 ** int(math.floor(math.log2(E)))
+        go_on = append and params.get("smoother", {}).get("estimated_from_epochs") == first_epochs
+        filt = A.read_filter_state(out) if go_on else None
+        q, info, held, filt, step = _smooth_all(w, E, m, times, limit, lag=lag, first_epochs=first_epochs,
+                                                frozen=params["smoother"] if go_on else None, state=filt)
         timings["smoother"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         xyz = prepared.core_points
-        obj = w.array("object", (E, m), "i4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS)
-        labels_all = np.zeros((E, m), np.int32) if held is not None else None
+        r0 = info.pop("first_row")
+        min_points = params["min_object_points"]
+        if go_on:
+            tracker = Tracker.from_state(xyz, A.read_tracker_state(out), min_points=min_points,
+                                         radius=params["objects"]["neighbour_radius"])
+            obj = w["object"]
+            obj.resize((E, m))
+        else:
+            tracker = Tracker(xyz, min_points=min_points)
+            obj = w.array("object", (E, m), "i4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS)
         rows: dict = {}  # epochs read a chunk row at a time
 
         def read(k):
-            if held is not None:  # the whole series is in memory: no read
-                return tuple(a[k].astype(np.float64) for a in held)
+            if held is not None:  # the rows are in memory: no read
+                return tuple(a[k - r0].astype(np.float64) for a in held)
             a = k - k % _DERIVED_EPOCHS
             if a not in rows:
                 rows.clear()
                 rows[a] = [w[n][a:a + _DERIVED_EPOCHS] for n in ("smoothed", "smoothed_sigma", "velocity")]
             return tuple(r[k - a].astype(np.float64) for r in rows[a])
 
-        pending: list = []
+        def frozen():
+            return {key: np.array(v, copy=True) for key, v in tracker.state().items()}
 
-        def write(k, labels):
-            if labels_all is not None:
-                labels_all[k] = labels
-                return
-            pending.append(labels)
-            if len(pending) == _DERIVED_EPOCHS or k == E - 1:
-                obj[k + 1 - len(pending):k + 1] = np.stack(pending)
-                pending.clear()
-
-        step = np.where(w["onset_kind"][:] == 1, w["onset"][:], -1)
-        min_points = attrs["parameters"]["min_object_points"]
-        if held is not None and E * m * 64 < limit / 4:  # the space-time graph fits: one call
-            table, labels_all = objects_in_memory(held[0], held[1], held[2], xyz, times, min_points=min_points,
-                                                  step=step)
-        else:
-            table = find_objects(read, E, xyz, times, min_points=min_points, step=step, write=write)
-        if labels_all is not None:
-            obj[...] = labels_all
+        saved = frozen() if E - 1 - lag < tracker.epoch + 1 else None
+        labels = []
+        for k in range(tracker.epoch + 1, E):
+            if k == E - 1 - lag:  # the rows from here are not final yet: the next run goes on from here
+                saved = frozen()
+            labels.append(tracker.add(k, *read(k), step))
+            if len(labels) == _DERIVED_EPOCHS or k == E - 1:
+                obj[k + 1 - len(labels):k + 1] = np.stack(labels)
+                labels.clear()
+        table = tracker.table(times)
+        A.write_state(w.group, filt, saved)
+        w.write("onset", tracker.onset, ("point",), attrs={"meaning": "epoch the change starts, -1: none"})
+        w.write("onset_kind", tracker.onset_kind, ("point",), attrs={"meaning": "0 none, 1 step, 2 gradual"})
         ids = np.arange(1, len(table["object_start"]) + 1, dtype=np.int32)
         w.write("object_id", ids, ("object_id",))
         for name in OBJECT_FIELDS:
@@ -453,10 +470,13 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
             "process_noise_reason": "robust spread of the standardised second differences equal to one",
             "observation_noise": "(lod / 1.96)^2 per epoch and core point without the reference's part "
                                  "(ref_spread^2 / ref_count), which is added once to smoothed_sigma^2",
-            "step_k": 4.0, "velocity": rate_unit, **info}
+            "step_k": 4.0, "velocity": rate_unit, "lag": lag,
+            "lag_reason": "an epoch is smoothed with the lag epochs after it; older epochs are final",
+            **info}
         attrs["parameters"]["objects"] = {"neighbour_radius": table["radius"], "area_per_point": table["area_per_point"],
                                           "rule": "|smoothed| > 1.96 smoothed_sigma, same sign, connected in space "
-                                                  "(radius) and time (consecutive epochs)"}
+                                                  "(radius) and tracked forward in time (consecutive epochs); an "
+                                                  "object from min_object_points changed together"}
         timings["total"] = time.perf_counter() - t_start
         attrs["runs"].append({"when": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                               "sdp_version": _version(), "added": len(epochs), "append": append,
@@ -469,61 +489,77 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
 _COLUMN_BYTES = 24
 
 
-def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
-    """The smoother over blocks of core points (their number from the memory limit); (q, info,
-    (smoothed, smoothed_sigma, velocity) if one block held the whole series, else None)."""
+def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int, first_epochs: int,
+                frozen: dict | None, state: FilterState | None):
+    """The smoother over blocks of core points (their number from the memory limit), from the
+    saved filter ``state`` (an append) or the first epoch; the noise ``frozen`` (an append's) or
+    estimated from the first ``first_epochs`` epochs. Returns (q, info, the rows written of
+    (smoothed, smoothed_sigma, velocity) if one block held them, else None, the filter state to
+    save, each point's first step)."""
     names = ("smoothed", "velocity", "smoothed_sigma", "velocity_sigma")
-    outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS) for name in names}
+    f = -1 if state is None else state.epoch
+    r0, a0 = max(f, 0), f + 1  # the first row written, the first epoch read
+    if state is None:
+        outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS) for name in names}
+        state = FilterState.start(m)
+    else:
+        outs = {name: w[name] for name in names}
+        for arr in outs.values():
+            arr.resize((E, m))
+    R, W = E - r0, E - a0
     dist, lod = w["distance"], w["lod"]
+    reg = w["registration_error"][:]
+    ref_var = w["ref_spread"][:] ** 2 / w["ref_count"][:]
     budget = max(limit / 4.0, 64e6)
-    block = int(max(256, min(m, budget // (E * BYTES_PER_VALUE))))
+    block = int(max(256, min(m, budget // (R * BYTES_PER_VALUE))))
     whole = None
     col = m
-    if block >= m:  # the whole series fits: read it once
-        whole = dist[...], lod[...]
+    if block >= m:  # the rows fit: read them once
+        whole = dist[a0:], lod[a0:]
     else:
         # columns of whole chunks, read once and written once (a block narrower than a chunk would read and
         # rewrite each chunk once per block), its inputs and results in float32 (_COLUMN_BYTES) in another
         # quarter of the limit; else blocks of whole chunks, or narrower ones read again per block
-        col = int(budget // (E * _COLUMN_BYTES)) // A.POINT_CHUNK * A.POINT_CHUNK
+        col = int(budget // (R * _COLUMN_BYTES)) // A.POINT_CHUNK * A.POINT_CHUNK
         if col < A.POINT_CHUNK:
             if block >= A.POINT_CHUNK:
                 block -= block % A.POINT_CHUNK
             col = block
-    # q from a sample of core points spread over the archive (the median needs no more)
-    sample = np.arange(0, m, max(1, m // max(1, 200_000 // max(E, 1))))
-    if whole is not None:
-        zs, ls = whole[0][:, sample], whole[1][:, sample]
+    if frozen is None:
+        # q from a sample of core points spread over the first epochs (the median needs no more)
+        sample = np.arange(0, m, max(1, m // max(1, 200_000 // first_epochs)))
+        zs = dist.get_orthogonal_selection((slice(0, first_epochs), sample))
+        ls = lod.get_orthogonal_selection((slice(0, first_epochs), sample))
+        vs = observation_variance(ls, reg[:first_epochs], ref_var[sample])
+        q = process_noise(zs.astype(np.float64), vs, times[:first_epochs])
+        good = np.isfinite(vs) & (vs > 0)
+        scale = float(np.sqrt(np.median(vs[good]))) if good.any() else 1.0  # one diffuse start for every block
+        dt = float(np.median(np.diff(times[:first_epochs]))) if first_epochs > 1 else 1.0
     else:
-        zs, ls = dist.get_orthogonal_selection((slice(None), sample)), lod.get_orthogonal_selection((slice(None), sample))
-    reg = w["registration_error"][:]
-    ref_var = w["ref_spread"][:] ** 2 / w["ref_count"][:]
-    vs = observation_variance(ls, reg, ref_var[sample])
-    q = process_noise(zs.astype(np.float64), vs, times)
-    good = np.isfinite(vs) & (vs > 0)
-    scale = float(np.sqrt(np.median(vs[good]))) if good.any() else 1.0  # one diffuse start for every block
-    onset = np.full(m, -1, np.int32)
-    kind = np.zeros(m, np.int8)
-    steps = 0
+        q, scale, dt = frozen["process_noise"], frozen["diffuse_scale"], frozen["diffuse_dt"]
+    step = np.full(m, -1, np.int32)
+    saved = []
     held = None
     for a in range(0, m, col):
         b = min(m, a + col)
-        zc, lc = (whole[0], whole[1]) if whole is not None else (dist[:, a:b], lod[:, a:b])
-        results = [np.empty((E, b - a), np.float32) for _ in names]
+        zc, lc = (whole[0], whole[1]) if whole is not None else (dist[a0:, a:b], lod[a0:, a:b])
+        results = [np.empty((R, b - a), np.float32) for _ in names]
         for c in range(0, b - a, block):
             d = min(b - a, c + block)
             z = zc[:, c:d].astype(np.float64)
-            var = observation_variance(lc[:, c:d], reg, ref_var[a + c:a + d])
-            sm, vel, ssd, vsd, step = smooth(z, var, times, q, scale=scale)
+            var = observation_variance(lc[:, c:d], reg[a0:], ref_var[a + c:a + d])
+            sm, vel, ssd, vsd, step[a + c:a + d], kept = kalman(z, var, times, q, lag=lag, scale=scale, dt=dt,
+                                                                state=state.columns(a + c, a + d))
             ssd = np.sqrt(ssd**2 + ref_var[a + c:a + d])  # the reference's error, shared by every epoch
             for out, v in zip(results, (sm, vel, ssd, vsd)):
                 out[:, c:d] = v
-            onset[a + c:a + d], kind[a + c:a + d] = onsets(sm, ssd, step)
-            steps += int((step >= 0).sum())
+            saved.append(kept)
         for name, v in zip(names, results):
-            outs[name][:, a:b] = v
+            outs[name][r0:, a:b] = v
         if whole is not None:
             held = (results[0], results[2], results[1])
-    w.write("onset", onset, ("point",), attrs={"meaning": "epoch the change starts, -1: none"})
-    w.write("onset_kind", kind, ("point",), attrs={"meaning": "0 none, 1 step, 2 gradual"})
-    return float(q), {"block_points": block, "core_points_with_step": steps}, held
+    filt = FilterState(saved[0].epoch, np.concatenate([s.x for s in saved]), np.concatenate([s.seen for s in saved]),
+                       np.concatenate([s.step for s in saved]))
+    info = {"block_points": block, "core_points_with_step": int((step >= 0).sum()), "first_row": r0,
+            "estimated_from_epochs": first_epochs, "diffuse_scale": scale, "diffuse_dt": dt}
+    return float(q), info, held, filt, step
