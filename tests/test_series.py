@@ -242,7 +242,7 @@ def test_tracked_objects_split_merge_and_start_when_large():
     np.testing.assert_array_equal(table["object_start"], [1, 2])
     np.testing.assert_array_equal(table["object_end"], [5, 3])
     np.testing.assert_array_equal(table["object_points"], [26, 12])
-    again = Tracker.from_state(xyz, tr.state(), min_points=5, radius=1.5)
+    again = Tracker.from_state(xyz, tr.state(), min_points=5)
     d = np.zeros(40)
     d[30:40] = -5.0
     np.testing.assert_array_equal(again.add(6, d, sigma, vel, step), tr.add(6, d, sigma, vel, step))

@@ -47,7 +47,7 @@ import numpy as np
 from ..errors import SDPError, require
 
 __all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "transaction", "Writer",
-           "many_chunks_at_once", "write_state", "read_filter_state", "read_tracker_state"]
+           "many_chunks_at_once", "write_state", "read_state"]
 
 ARCHIVE_FORMAT = "sdp-series"
 ARCHIVE_VERSION = 2  # 2: the state an append goes on from (fixed-lag smoother, tracked objects)
@@ -57,7 +57,7 @@ POINT_CHUNK = 16384  # points per chunk: an epoch row of 100,000 core points is 
 KEPT = ("distance", "lod", "significant", "x", "y", "z", "normal_x", "normal_y", "normal_z",
         "ref_mean", "ref_spread", "ref_count", "ref_level", "smoothed", "velocity", "smoothed_sigma",
         "velocity_sigma", "object")
-_STATE = "state"  # the subgroup of what an append goes on from (not a dataset variable)
+_STATE = "state.npz"  # what an append goes on from (not a dataset variable)
 _COMPLETE = ".sdp-complete"
 
 
@@ -182,14 +182,16 @@ class Writer:
         self.group = zarr.open_group(str(folder), mode="w" if create else "r+")
         self._arrays: dict = {}  # opened once: each lookup reads the array's metadata again
 
-    def array(self, name, shape, dtype, dims, *, fill=None, attrs=None, epochs_per_chunk: int = 1):
+    def array(self, name, shape, dtype, dims, *, fill=None, attrs=None, epochs_per_chunk: int = 1,
+              compressed: bool = True):
         """A new array (replacing one of that name); chunks: ``epochs_per_chunk`` epoch rows ×
         :data:`POINT_CHUNK` points; chunk files ``c.i.j`` side by side (no folder per row: an
-        append links, and a swap removes, files rather than folders)."""
+        append links, and a swap removes, files rather than folders). ``compressed=False`` for
+        rows rewritten by every append whose values hardly compress (smoothed float32)."""
         self._arrays.pop(name, None)
         if name in self.group:
             del self.group[name]
-        chunks = tuple(max(1, min(epochs_per_chunk, s)) if d == "epoch" and len(dims) > 1 else
+        chunks = tuple(max(1, epochs_per_chunk) if d == "epoch" and len(dims) > 1 else
                        max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s) for d, s in zip(dims, shape))
         if fill is None:
             fill = np.nan if np.dtype(dtype).kind == "f" else 0
@@ -197,7 +199,8 @@ class Writer:
         # costs more than the write (a series' chunks are seldom empty)
         arr = self.group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill,
                                       dimension_names=list(dims), config={"write_empty_chunks": True},
-                                      chunk_key_encoding={"name": "default", "separator": "."})
+                                      chunk_key_encoding={"name": "default", "separator": "."},
+                                      **({} if compressed else {"compressors": None}))
         if attrs:
             arr.attrs.update(attrs)
         self._arrays[name] = arr
@@ -210,6 +213,61 @@ class Writer:
         if values.size:
             arr[...] = values
         return arr
+
+    def write_all(self, items: dict) -> None:
+        """Whole arrays, ``{name: (values, dims, attrs or None)}``, created and written together:
+        one round of Zarr's event loop for all of them instead of two per array (a series' small
+        arrays cost more in those rounds than in their bytes)."""
+        import asyncio
+
+        from zarr.api.asynchronous import open_group
+        from zarr.core.sync import sync
+
+        for name in items:
+            self._arrays.pop(name, None)
+            if (self.folder / name).exists():
+                del self.group[name]
+
+        async def one(group, name, values, dims, attrs):
+            values = np.ascontiguousarray(values)
+            chunks = tuple(max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s) for d, s in zip(dims, values.shape))
+            fill = np.nan if values.dtype.kind == "f" else 0
+            await group.create_array(name, data=values, chunks=chunks, fill_value=fill, dimension_names=list(dims),
+                                     attributes=attrs or {}, config={"write_empty_chunks": True},
+                                     chunk_key_encoding={"name": "default", "separator": "."})
+
+        async def every():
+            group = await open_group(store=str(self.folder), mode="r+")
+            await asyncio.gather(*(one(group, name, *item) for name, item in items.items()))
+
+        sync(every())
+
+    def set_all(self, items: dict) -> None:
+        """``{name: (selection, values)}`` written together (one round of Zarr's event loop)."""
+        import asyncio
+
+        from zarr.core.sync import sync
+
+        async def every():
+            await asyncio.gather(*(self[name]._async_array.setitem(sel, values) for name, (sel, values) in items.items()))
+
+        sync(every())
+
+    def read_all(self, names) -> dict:
+        """Whole arrays read together (one round of Zarr's event loop)."""
+        import asyncio
+
+        from zarr.api.asynchronous import open_array
+        from zarr.core.sync import sync
+
+        async def one(name):
+            arr = await open_array(store=str(self.folder), path=name, mode="r")
+            return await arr.getitem(...)
+
+        async def every():
+            return await asyncio.gather(*(one(name) for name in names))
+
+        return dict(zip(names, sync(every())))
 
     def __getitem__(self, name):
         if name not in self._arrays:
@@ -225,41 +283,35 @@ class Writer:
             self.zarr.consolidate_metadata(str(self.folder))
 
 
-def write_state(group, filt, tracker: dict) -> None:
-    """The filter and the tracker after the last final epoch, in the ``state`` subgroup (written
-    anew by every run)."""
-    if _STATE in group:
-        del group[_STATE]
-    sub = group.create_group(_STATE)
-    arrays = {"filter_x": filt.x, "filter_seen": filt.seen, "filter_step": filt.step,
+def write_state(folder, filt, tracker: dict, recent) -> None:
+    """The filter and the tracker after the last final epoch, in one NumPy file beside the arrays
+    (``state.npz``, written anew by every run, not a dataset variable): the filter per core point
+    (its state, covariance, first epoch seen and first step, float64),
+    :meth:`sdp.timeseries._objects.Tracker.state`'s arrays and the distances and levels of the
+    epochs after the filter's (a copy of their rows, which the next run reads at once)."""
+    arrays = {"filter": np.c_[filt.x, filt.seen.astype(np.float64), filt.step.astype(np.float64)],
+              "filter_epoch": np.array([filt.epoch]), "recent_distance": recent[0], "recent_lod": recent[1],
               **{f"tracker_{k}": v for k, v in tracker.items()}}
-    for name, values in arrays.items():
-        values = np.ascontiguousarray(values)
-        arr = sub.create_array(name, shape=values.shape, chunks=tuple(max(1, s) for s in values.shape),
-                               dtype=values.dtype, config={"write_empty_chunks": True})
-        if values.size:
-            arr[...] = values
-    sub.attrs["filter_epoch"] = int(filt.epoch)
+    with open(Path(folder) / _STATE, "wb") as f:
+        np.savez(f, **arrays)
 
 
-def _state_group(path):
-    _, zarr = require_series()
-    return zarr.open_group(str(path), mode="r")[_STATE]
-
-
-def read_filter_state(path):
-    """The :class:`~sdp.timeseries._kalman.FilterState` :func:`write_state` saved in the archive ``path``."""
+def read_state(path):
+    """(:class:`~sdp.timeseries._kalman.FilterState`, the tracker's arrays, the recent distances
+    and levels) :func:`write_state` saved in the archive ``path``."""
     from ._kalman import FilterState
 
-    sub = _state_group(path)
-    return FilterState(int(sub.attrs["filter_epoch"]), sub["filter_x"][...], sub["filter_seen"][...],
-                       sub["filter_step"][...])
-
-
-def read_tracker_state(path) -> dict:
-    """The tracker's arrays :func:`write_state` saved in the archive ``path``."""
-    sub = _state_group(path)
-    return {name[len("tracker_"):]: sub[name][...] for name in sub.array_keys() if name.startswith("tracker_")}
+    try:
+        with np.load(Path(path) / _STATE) as z:
+            arrays = dict(z)
+    except (OSError, ValueError) as exc:
+        raise SeriesArchiveError(f"{path}: its state ({_STATE}) can't be read ({type(exc).__name__}): the archive "
+                                 "can't be appended to") from None
+    f = arrays["filter"]
+    filt = FilterState(int(arrays["filter_epoch"][0]), np.ascontiguousarray(f[:, :5]), f[:, 5].astype(np.int64),
+                       f[:, 6].astype(np.int32))
+    tracked = {name[len("tracker_"):]: v for name, v in arrays.items() if name.startswith("tracker_")}
+    return filt, tracked, (arrays["recent_distance"], arrays["recent_lod"])
 
 
 def _plain(v):

@@ -56,7 +56,7 @@ __all__ = ["series", "SERIES_FIELDS"]
 SERIES_FIELDS = ("distance", "lod", "significant", "smoothed", "velocity", "smoothed_sigma", "velocity_sigma",
                  "object")
 _EPOCH_DIMS = ("epoch", "point")
-_DERIVED_EPOCHS = 64  # epochs per chunk of the arrays every run rewrites (4 MiB of float32)
+_DERIVED_EPOCHS = 16  # epochs per chunk of the smoothed arrays: an append rewrites lag + 1 rows (16 by default)
 
 
 def _version() -> str:
@@ -340,9 +340,11 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         w = A.Writer(folder, create=not append)
         if append:
             g = w.group
-            arrays = {"core_points": np.c_[g["x"][:], g["y"][:], g["z"][:]],
-                      "normal": np.c_[g["normal_x"][:], g["normal_y"][:], g["normal_z"][:]],
-                      **{k: g[k][:] for k in ("ref_mean", "ref_spread", "ref_count", "ref_level")}}
+            got = w.read_all(["x", "y", "z", "normal_x", "normal_y", "normal_z", "ref_mean", "ref_spread", "ref_count",
+                              "ref_level"])
+            arrays = {"core_points": np.c_[got["x"], got["y"], got["z"]],
+                      "normal": np.c_[got["normal_x"], got["normal_y"], got["normal_z"]],
+                      **{k: got[k] for k in ("ref_mean", "ref_spread", "ref_count", "ref_level")}}
             prepared = PreparedReference.from_state(arrays, attrs["parameters"]["reference_state"])
             n_old = len(attrs["epochs"])
             for name in ("distance", "lod", "significant"):
@@ -350,11 +352,10 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         else:
             n_old = 0
             m = len(prepared.core_points)
-            for a, axis in enumerate("xyz"):
-                w.write(axis, state["core_points"][:, a], ("point",))
-                w.write(f"normal_{axis}", state["normal"][:, a], ("point",))
-            for name in ("ref_mean", "ref_spread", "ref_count", "ref_level"):
-                w.write(name, state[name], ("point",))
+            w.write_all({**{axis: (state["core_points"][:, a], ("point",), None) for a, axis in enumerate("xyz")},
+                         **{f"normal_{axis}": (state["normal"][:, a], ("point",), None) for a, axis in enumerate("xyz")},
+                         **{name: (state[name], ("point",), None)
+                            for name in ("ref_mean", "ref_spread", "ref_count", "ref_level")}})
             for name, dtype in (("distance", "f4"), ("lod", "f4"), ("significant", "bool")):
                 w.array(name, (len(epochs), m), dtype, _EPOCH_DIMS)
         m = len(prepared.core_points)
@@ -403,8 +404,9 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         E = len(attrs["epochs"])
         times = np.array([e["time"] for e in attrs["epochs"]])
         time_attrs = {"units": "days since 1970-01-01"} if kind == "date" else {}
-        w.write("time", times, ("epoch",), attrs=time_attrs)
-        w.write("registration_error", np.array([e["registration_error"] for e in attrs["epochs"]]), ("epoch",))
+        w.write_all({"time": (times, ("epoch",), time_attrs),
+                     "registration_error": (np.array([e["registration_error"] for e in attrs["epochs"]]), ("epoch",),
+                                            None)})
         params = attrs["parameters"]
         lag = int(params["used"]["lag"])
         t0 = time.perf_counter()
@@ -413,17 +415,17 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         # rows; one reaching the next power estimates again and runs over the whole series
         first_epochs = 2 ** int(math.floor(math.log2(E)))
         go_on = append and params.get("smoother", {}).get("estimated_from_epochs") == first_epochs
-        filt = A.read_filter_state(out) if go_on else None
-        q, info, held, filt, step = _smooth_all(w, E, m, times, limit, lag=lag, first_epochs=first_epochs,
-                                                frozen=params["smoother"] if go_on else None, state=filt)
+        filt, tracked, recent = A.read_state(out) if go_on else (None, None, None)
+        q, info, held, filt, step, recent = _smooth_all(w, E, m, times, limit, lag=lag, first_epochs=first_epochs,
+                                                        frozen=params["smoother"] if go_on else None, state=filt,
+                                                        recent=recent)
         timings["smoother"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         xyz = prepared.core_points
         r0 = info.pop("first_row")
         min_points = params["min_object_points"]
         if go_on:
-            tracker = Tracker.from_state(xyz, A.read_tracker_state(out), min_points=min_points,
-                                         radius=params["objects"]["neighbour_radius"])
+            tracker = Tracker.from_state(xyz, tracked, min_points=min_points)
             obj = w["object"]
             obj.resize((E, m))
         else:
@@ -440,27 +442,24 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                 rows[a] = [w[n][a:a + _DERIVED_EPOCHS] for n in ("smoothed", "smoothed_sigma", "velocity")]
             return tuple(r[k - a].astype(np.float64) for r in rows[a])
 
-        def frozen():
-            return {key: np.array(v, copy=True) for key, v in tracker.state().items()}
-
-        saved = frozen() if E - 1 - lag < tracker.epoch + 1 else None
+        saved = tracker.state() if E - 1 - lag < tracker.epoch + 1 else None
         labels = []
         for k in range(tracker.epoch + 1, E):
             if k == E - 1 - lag:  # the rows from here are not final yet: the next run goes on from here
-                saved = frozen()
+                saved = tracker.state()
             labels.append(tracker.add(k, *read(k), step))
             if len(labels) == _DERIVED_EPOCHS or k == E - 1:
                 obj[k + 1 - len(labels):k + 1] = np.stack(labels)
                 labels.clear()
         table = tracker.table(times)
-        A.write_state(w.group, filt, saved)
-        w.write("onset", tracker.onset, ("point",), attrs={"meaning": "epoch the change starts, -1: none"})
-        w.write("onset_kind", tracker.onset_kind, ("point",), attrs={"meaning": "0 none, 1 step, 2 gradual"})
-        ids = np.arange(1, len(table["object_start"]) + 1, dtype=np.int32)
-        w.write("object_id", ids, ("object_id",))
-        for name in OBJECT_FIELDS:
-            w.write(name, np.asarray(table[name]), ("object_id",),
-                    attrs=time_attrs if name.endswith("_time") else None)
+        A.write_state(folder, filt, saved, recent)
+        small = {"onset": (tracker.onset.astype(np.int32), ("point",), {"meaning": "epoch the change starts, -1: none"}),
+                 "onset_kind": (tracker.onset_kind.astype(np.int8), ("point",),
+                                {"meaning": "0 none, 1 step, 2 gradual"}),
+                 "object_id": (np.arange(1, len(table["object_start"]) + 1, dtype=np.int32), ("object_id",), None)}
+        small.update({name: (np.asarray(table[name]), ("object_id",), time_attrs if name.endswith("_time") else None)
+                      for name in OBJECT_FIELDS})
+        w.write_all(small)
         timings["objects"] = time.perf_counter() - t0
         for name in SERIES_FIELDS:
             w[name].attrs.update({"coordinates": "time x y z"})
@@ -490,7 +489,7 @@ _COLUMN_BYTES = 24
 
 
 def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int, first_epochs: int,
-                frozen: dict | None, state: FilterState | None):
+                frozen: dict | None, state: FilterState | None, recent=None):
     """The smoother over blocks of core points (their number from the memory limit), from the
     saved filter ``state`` (an append) or the first epoch; the noise ``frozen`` (an append's) or
     estimated from the first ``first_epochs`` epochs. Returns (q, info, the rows written of
@@ -500,7 +499,8 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
     f = -1 if state is None else state.epoch
     r0, a0 = max(f, 0), f + 1  # the first row written, the first epoch read
     if state is None:
-        outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS) for name in names}
+        outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS, compressed=False)
+                for name in names}
         state = FilterState.start(m)
     else:
         outs = {name: w[name] for name in names}
@@ -508,14 +508,25 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
             arr.resize((E, m))
     R, W = E - r0, E - a0
     dist, lod = w["distance"], w["lod"]
-    reg = w["registration_error"][:]
-    ref_var = w["ref_spread"][:] ** 2 / w["ref_count"][:]
+    # the inputs from epoch a0 on: an append's older ones kept with the state, the new ones read
+    recent = (np.zeros((0, m), np.float32),) * 2 if recent is None else recent
+    a1 = a0 + len(recent[0])
+
+    def inputs(a, b):
+        if not len(recent[0]):
+            return dist[a0:, a:b], lod[a0:, a:b]
+        return (np.concatenate([recent[0][:, a:b], dist[a1:, a:b]]),
+                np.concatenate([recent[1][:, a:b], lod[a1:, a:b]]))
+
+    got = w.read_all(["registration_error", "ref_spread", "ref_count"])
+    reg = got["registration_error"]
+    ref_var = got["ref_spread"] ** 2 / got["ref_count"]
     budget = max(limit / 4.0, 64e6)
     block = int(max(256, min(m, budget // (R * BYTES_PER_VALUE))))
     whole = None
     col = m
     if block >= m:  # the rows fit: read them once
-        whole = dist[a0:], lod[a0:]
+        whole = inputs(0, m)
     else:
         # columns of whole chunks, read once and written once (a block narrower than a chunk would read and
         # rewrite each chunk once per block), its inputs and results in float32 (_COLUMN_BYTES) in another
@@ -542,7 +553,7 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
     held = None
     for a in range(0, m, col):
         b = min(m, a + col)
-        zc, lc = (whole[0], whole[1]) if whole is not None else (dist[a0:, a:b], lod[a0:, a:b])
+        zc, lc = whole if whole is not None else inputs(a, b)
         results = [np.empty((R, b - a), np.float32) for _ in names]
         for c in range(0, b - a, block):
             d = min(b - a, c + block)
@@ -554,12 +565,17 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
             for out, v in zip(results, (sm, vel, ssd, vsd)):
                 out[:, c:d] = v
             saved.append(kept)
-        for name, v in zip(names, results):
-            outs[name][r0:, a:b] = v
+        w.set_all({name: ((slice(r0, E), slice(a, b)), v) for name, v in zip(names, results)})
         if whole is not None:
             held = (results[0], results[2], results[1])
     filt = FilterState(saved[0].epoch, np.concatenate([s.x for s in saved]), np.concatenate([s.seen for s in saved]),
                        np.concatenate([s.step for s in saved]))
+    # the inputs after the saved epoch, for the next run
+    keep = filt.epoch + 1
+    if whole is not None:
+        recent = whole[0][keep - a0:], whole[1][keep - a0:]
+    else:
+        recent = inputs(0, m) if keep == a0 else (dist[keep:], lod[keep:])
     info = {"block_points": block, "core_points_with_step": int((step >= 0).sum()), "first_row": r0,
             "estimated_from_epochs": first_epochs, "diffuse_scale": scale, "diffuse_dt": dt}
-    return float(q), info, held, filt, step
+    return float(q), info, held, filt, step, recent

@@ -198,62 +198,72 @@ def _fixed_lag(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, se
     E = f + 1 + W
     base = max(f, 0)  # epoch of the scratch's first row
     R = E - base
-    for j in nb.prange(m):
+    per = 64  # points per task: the scratch allocated once for them
+    for block in nb.prange((m + per - 1) // per):
         xp = np.empty((R, 2))  # predictions
         Pp = np.empty((R, 3))  # their covariances: 00, 01, 11
         xf = np.empty((R, 2))
         Pf = np.empty((R, 3))
-        if f >= 0:
-            x0, x1 = x_in[j, 0], x_in[j, 1]
-            p00, p01, p11 = x_in[j, 2], x_in[j, 3], x_in[j, 4]
-            xf[0, 0], xf[0, 1] = x0, x1
-            Pf[0, 0], Pf[0, 1], Pf[0, 2] = p00, p01, p11
-        else:
-            x0, x1 = 0.0, 0.0
-            p00, p01, p11 = big_d, 0.0, big_v
-        for k in range(f + 1, E):
-            w = k - f - 1  # column of the inputs
-            r = k - base  # row of the scratch
-            if k:
-                h = t[k] - t[k - 1]
-                x0 = x0 + h * x1
-                p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3.0,
-                                 p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
-            ok = np.isfinite(z[j, w]) and np.isfinite(var[j, w]) and var[j, w] > 0
-            if ok and seen[j] > k:
-                seen[j] = k
-            nu = z[j, w] - x0 if ok else 0.0
-            s = p00 + var[j, w] if ok else np.inf
-            if ok and 0 < k < E - 1:
-                ok2 = np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1]) and var[j, w + 1] > 0
-                if ok2:
-                    h = t[k + 1] - t[k]
-                    nu2 = z[j, w + 1] - (x0 + h * x1)
-                    s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, w + 1]
-                    if (abs(nu) > step_k * np.sqrt(s) and abs(nu2) > step_k * np.sqrt(s2)
-                            and np.sign(nu) == np.sign(nu2)):
-                        p00 = p00 + nu * nu
-                        s = s + nu * nu
-                        if step[j] < 0:
-                            step[j] = k
-            xp[r, 0], xp[r, 1] = x0, x1
-            Pp[r, 0], Pp[r, 1], Pp[r, 2] = p00, p01, p11
-            g0, g1 = p00 / s, p01 / s  # gain (0 where there is no observation: s = inf)
-            x0, x1 = x0 + g0 * nu, x1 + g1 * nu
-            p00, p01, p11 = p00 - g0 * p00, p01 - g0 * p01, p11 - g1 * p01
-            xf[r, 0], xf[r, 1] = x0, x1
-            Pf[r, 0], Pf[r, 1], Pf[r, 2] = p00, p01, p11
-            if k == keep:
-                x_out[j, 0], x_out[j, 1] = x0, x1
-                x_out[j, 2], x_out[j, 3], x_out[j, 4] = p00, p01, p11
-        # rows final now (each smoothed from lag epochs on), then the last ones from the last epoch
-        last = E - 1
-        for row in range(base, E):
-            end = min(row + lag, last)
-            if row + lag < last or row == max(base, last - lag):
-                _rts(t, xp, Pp, xf, Pf, base, end, row, seen[j], out, j)
-            if row + lag >= last:
-                break
+        for j in range(block * per, min(m, block * per + per)):
+            _one_point(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
+                       xp, Pp, xf, Pf)
+
+
+@nb.njit(cache=True, inline="always")
+def _one_point(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
+               xp, Pp, xf, Pf):
+    """:func:`_fixed_lag` for core point ``j`` in the scratch ``xp, Pp, xf, Pf``."""
+    if f >= 0:
+        x0, x1 = x_in[j, 0], x_in[j, 1]
+        p00, p01, p11 = x_in[j, 2], x_in[j, 3], x_in[j, 4]
+        xf[0, 0], xf[0, 1] = x0, x1
+        Pf[0, 0], Pf[0, 1], Pf[0, 2] = p00, p01, p11
+    else:
+        x0, x1 = 0.0, 0.0
+        p00, p01, p11 = big_d, 0.0, big_v
+    for k in range(f + 1, E):
+        w = k - f - 1  # column of the inputs
+        r = k - base  # row of the scratch
+        if k:
+            h = t[k] - t[k - 1]
+            x0 = x0 + h * x1
+            p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3.0,
+                             p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
+        ok = np.isfinite(z[j, w]) and np.isfinite(var[j, w]) and var[j, w] > 0
+        if ok and seen[j] > k:
+            seen[j] = k
+        nu = z[j, w] - x0 if ok else 0.0
+        s = p00 + var[j, w] if ok else np.inf
+        if ok and 0 < k < E - 1:
+            ok2 = np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1]) and var[j, w + 1] > 0
+            if ok2:
+                h = t[k + 1] - t[k]
+                nu2 = z[j, w + 1] - (x0 + h * x1)
+                s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, w + 1]
+                if (abs(nu) > step_k * np.sqrt(s) and abs(nu2) > step_k * np.sqrt(s2)
+                        and np.sign(nu) == np.sign(nu2)):
+                    p00 = p00 + nu * nu
+                    s = s + nu * nu
+                    if step[j] < 0:
+                        step[j] = k
+        xp[r, 0], xp[r, 1] = x0, x1
+        Pp[r, 0], Pp[r, 1], Pp[r, 2] = p00, p01, p11
+        g0, g1 = p00 / s, p01 / s  # gain (0 where there is no observation: s = inf)
+        x0, x1 = x0 + g0 * nu, x1 + g1 * nu
+        p00, p01, p11 = p00 - g0 * p00, p01 - g0 * p01, p11 - g1 * p01
+        xf[r, 0], xf[r, 1] = x0, x1
+        Pf[r, 0], Pf[r, 1], Pf[r, 2] = p00, p01, p11
+        if k == keep:
+            x_out[j, 0], x_out[j, 1] = x0, x1
+            x_out[j, 2], x_out[j, 3], x_out[j, 4] = p00, p01, p11
+    # rows final now (each smoothed from lag epochs on), then the last ones from the last epoch
+    last = E - 1
+    for row in range(base, E):
+        end = min(row + lag, last)
+        if row + lag < last or row == max(base, last - lag):
+            _rts(t, xp, Pp, xf, Pf, base, end, row, seen[j], out, j)
+        if row + lag >= last:
+            break
 
 
 @nb.njit(cache=True, inline="always")

@@ -149,24 +149,34 @@ class Tracker:
         The fewest core points changed together that make a track an object.
     radius : float, optional
         Neighbour distance (default from the core points' spacing, :func:`neighbour_pairs`).
+    pairs : tuple, optional
+        The neighbour pairs, radius and area per point :func:`neighbour_pairs` gave these core
+        points before (the state of an earlier run).
     """
 
-    def __init__(self, xyz: np.ndarray, *, min_points: int, radius: float | None = None):
-        self.i, self.j, self.radius, self.area = neighbour_pairs(xyz, radius)
+    def __init__(self, xyz: np.ndarray, *, min_points: int, radius: float | None = None, pairs=None):
+        if pairs is None:
+            self.i, self.j, self.radius, self.area = neighbour_pairs(xyz, radius)
+        else:  # (i, j, radius, area) of an earlier run on these core points
+            self.i, self.j, self.radius, self.area = pairs
         m = len(xyz)
         self.m, self.min_points = m, int(min_points)
         self.epoch = -1
         self.track = np.full(m, -1, np.int64)  # each point's live track (an index) at the last epoch
         self.sign = np.zeros(m, np.int8)
-        self.onset = np.full(m, -1, np.int32)
-        self.onset_kind = np.zeros(m, np.int8)
+        self.onset = np.full(m, -1, np.int64)
+        self.onset_kind = np.zeros(m, np.int64)
         self.live = {k: np.zeros(0, np.float64 if k in ("peak", "vsum", "vcount") else np.int64) for k in _TRACK}
-        self.members: list[np.ndarray] = []  # each live track's distinct core points, sorted
+        self.keys = np.zeros(0, np.int64)  # the live tracks' distinct core points: uid·m + point, sorted
         self.objects = {k: np.zeros(0, np.float64 if k in ("peak", "vsum", "vcount") else np.int64)
                         for k in _OBJECT}
 
     def copy(self) -> "Tracker":
         return copy.deepcopy(self)
+
+    def _count(self, uid: np.ndarray) -> np.ndarray:
+        """Distinct core points of the live tracks ``uid``."""
+        return np.searchsorted(self.keys, (uid + 1) * self.m) - np.searchsorted(self.keys, uid * self.m)
 
     # ---------------------------------------------------------------- one epoch
     def add(self, k: int, smoothed: np.ndarray, sigma: np.ndarray, velocity: np.ndarray,
@@ -179,20 +189,22 @@ class Tracker:
         sig = np.isfinite(smoothed) & np.isfinite(sigma) & (np.abs(smoothed) > 1.96 * sigma)
         sign = np.where(sig, np.sign(smoothed), 0).astype(np.int8)
         stepped = (step >= 0) & (step <= k)
-        si, sj = stepped[self.i], stepped[self.j]
-        together = ~si & ~sj | si & sj & (np.abs(step[self.i] - step[self.j]) <= 1)
-        comp, n = _components(sign, self.i[together], self.j[together])
+        i, j = self.i, self.j
+        if stepped.any():
+            si, sj = stepped[i], stepped[j]
+            together = ~si & ~sj | si & sj & (np.abs(step[i] - step[j]) <= 1)
+            i, j = i[together], j[together]
+        comp, n = _components(sign, i, j)
         at = np.flatnonzero(comp >= 0)
         c = comp[at]
         live = self.live
         n_live = len(live["uid"])
+        width = max(n_live, 1)
         # links: a point changed the same way at this epoch and the last, in a live track
         linked = at[(sign[at] == self.sign[at]) & (self.track[at] >= 0)]
-        pairs = np.unique(comp[linked] * max(n_live, 1) + self.track[linked]) if linked.size else \
-            np.zeros(0, np.int64)
-        pc, pt = pairs // max(n_live, 1), pairs % max(n_live, 1)
-        big = np.int64(2**62)
-        prio = np.where(live["obj"] > 0, live["obj"], big // 2 + live["uid"])  # objects first, oldest first
+        pairs = np.unique(comp[linked] * width + self.track[linked])
+        pc, pt = pairs // width, pairs % width
+        prio = np.where(live["obj"] > 0, live["obj"], 2**61 + live["uid"])  # objects first, oldest first
         best = np.full(n, -1, np.int64)
         if pairs.size:
             won = _first_per_group(pc, prio[pt])
@@ -212,26 +224,38 @@ class Tracker:
         nxt = {key: np.concatenate([live[key][cont], np.zeros(len(new_comps), live[key].dtype)]) for key in _TRACK}
         nxt["uid"][len(cont):] = k * m + anchor[new_comps]
         nxt["first"][len(cont):] = k
-        members = [self.members[t] for t in cont] + [np.zeros(0, np.int64) for _ in new_comps]
-        # live tracks not continued: merged into a set's track if they touch one, else ended
+        # live tracks not continued: objects end the epoch before; others are taken in whole by a
+        # set they touch, or are noise that ends
         ended = np.setdiff1d(np.arange(n_live), cont)
+        gone = np.zeros(0, np.int64)
         if ended.size:
             into = np.full(n_live, -1, np.int64)
             if pairs.size:
                 lost = np.isin(pt, ended)
                 first = _first_per_group(pt[lost], pc[lost])
                 into[pt[lost][first]] = track_of_comp[pc[lost][first]]
-            for t in ended:
-                if live["obj"][t] > 0:  # an object ends at the epoch before
-                    self._record(t, live, self.members[t])
-                elif into[t] >= 0:  # a track not yet an object: taken in whole
-                    u = into[t]
-                    nxt["first"][u] = min(nxt["first"][u], live["first"][t])
-                    if abs(live["peak"][t]) > abs(nxt["peak"][u]):
-                        nxt["peak"][u] = live["peak"][t]
-                    nxt["vsum"][u] += live["vsum"][t]
-                    nxt["vcount"][u] += live["vcount"][t]
-                    members[u] = np.union1d(members[u], self.members[t])
+            done = ended[live["obj"][ended] > 0]
+            o = live["obj"][done] - 1
+            for key in ("end", "peak", "vsum", "vcount"):
+                self.objects[key][o] = live[key][done]
+            self.objects["points"][o] = self._count(live["uid"][done])
+            taken = ended[(live["obj"][ended] == 0) & (into[ended] >= 0)]
+            u = into[taken]
+            np.minimum.at(nxt["first"], u, live["first"][taken])
+            np.add.at(nxt["vsum"], u, live["vsum"][taken])
+            np.add.at(nxt["vcount"], u, live["vcount"][taken])
+            for t, v in zip(taken, u):  # the larger change, its sign kept
+                if abs(live["peak"][t]) > abs(nxt["peak"][v]):
+                    nxt["peak"][v] = live["peak"][t]
+            gone = live["uid"][np.setdiff1d(ended, taken)]
+            if taken.size:  # their points now count for the track that took them
+                uids = self.keys // m
+                moved = np.isin(uids, live["uid"][taken])
+                remap = dict(zip(live["uid"][taken].tolist(), nxt["uid"][u].tolist()))
+                again = np.array([remap[x] for x in uids[moved].tolist()], np.int64) * m + self.keys[moved] % m
+                self.keys = np.union1d(self.keys[~moved], again)
+        if gone.size:
+            self.keys = self.keys[~np.isin(self.keys // m, gone)]
         # this epoch's points into their tracks
         tr = track_of_comp[c]
         d, v = smoothed[at], velocity[at]
@@ -245,10 +269,7 @@ class Tracker:
         nxt["vsum"] += np.bincount(tr[fv], v[fv], minlength=n_next)
         nxt["vcount"] += np.bincount(tr[fv], minlength=n_next)
         nxt["end"][:] = k
-        by_track = np.split(at[np.argsort(tr, kind="stable")], np.cumsum(np.bincount(tr, minlength=n_next))[:-1])
-        for u in range(n_next):
-            if by_track[u].size:
-                members[u] = np.union1d(members[u], by_track[u])
+        self.keys = np.union1d(self.keys, nxt["uid"][tr] * m + at)
         # tracks with min_points changed together become objects, in the order of their priority
         size = np.bincount(tr, minlength=n_next)
         born = np.flatnonzero((nxt["obj"] == 0) & (size >= self.min_points))
@@ -261,24 +282,17 @@ class Tracker:
         labels = np.zeros(m, np.int32)
         labels[at] = nxt["obj"][tr]
         # onsets: the first of two epochs running with significant change, or the step before it
-        run = (self.onset < 0) & sig & (self.sign != 0) if k else np.zeros(m, bool)
+        run = (self.onset < 0) & sig & (self.sign != 0)
         if run.any():
             first = k - 1
             st = (step >= 0) & (step <= first)
             self.onset[run] = np.where(st[run], step[run], first)
             self.onset_kind[run] = np.where(st[run], 1, 2)
-        self.live, self.members = nxt, members
+        self.live = nxt
         self.track = np.full(m, -1, np.int64)
         self.track[at] = tr
         self.sign, self.epoch = sign, k
         return labels
-
-    def _record(self, t: int, live: dict, members: np.ndarray) -> None:
-        """Live track ``t`` (an object) into the objects' table."""
-        o = int(live["obj"][t]) - 1
-        for key in ("end", "peak", "vsum", "vcount"):
-            self.objects[key][o] = live[key][t]
-        self.objects["points"][o] = len(members)
 
     # ---------------------------------------------------------------- results and state
     def table(self, times: np.ndarray) -> dict:
@@ -286,11 +300,11 @@ class Tracker:
         with the live objects as they stand."""
         obj = {k: v.copy() for k, v in self.objects.items()}
         live = self.live
-        for t in np.flatnonzero(live["obj"] > 0):
-            o = int(live["obj"][t]) - 1
-            for key in ("end", "peak", "vsum", "vcount"):
-                obj[key][o] = live[key][t]
-            obj["points"][o] = len(self.members[t])
+        now = np.flatnonzero(live["obj"] > 0)
+        o = live["obj"][now] - 1
+        for key in ("end", "peak", "vsum", "vcount"):
+            obj[key][o] = live[key][now]
+        obj["points"][o] = self._count(live["uid"][now])
         start, end = obj["start"].astype(np.int32), obj["end"].astype(np.int32)
         return {"object_start": start, "object_end": end, "object_start_time": times[start],
                 "object_end_time": times[end], "object_points": obj["points"].astype(np.int64),
@@ -299,25 +313,24 @@ class Tracker:
                 "radius": self.radius, "area_per_point": self.area}
 
     def state(self) -> dict[str, np.ndarray]:
-        """Arrays from which :meth:`from_state` makes this tracker again."""
-        sizes = np.array([len(a) for a in self.members], np.int64)
-        out = {"epoch": np.array([self.epoch]), "track": self.track, "sign": self.sign, "onset": self.onset,
-               "onset_kind": self.onset_kind, "member_counts": sizes,
-               "members": np.concatenate(self.members) if self.members else np.zeros(0, np.int64)}
-        out.update({f"live_{k}": v for k, v in self.live.items()})
-        out.update({f"object_{k}": v for k, v in self.objects.items()})
-        return out
+        """Arrays (copies) from which :meth:`from_state` makes this tracker again: per core point,
+        per live track, per object, the live tracks' points, and the epoch."""
+        return {"points": np.c_[self.track, self.sign, self.onset, self.onset_kind],
+                "live": np.stack([self.live[k].astype(np.float64) for k in _TRACK], axis=1),
+                "objects": np.stack([self.objects[k].astype(np.float64) for k in _OBJECT], axis=1),
+                "keys": self.keys.copy(), "epoch": np.array([self.epoch]), "pair_i": self.i, "pair_j": self.j,
+                "pair_scales": np.array([self.radius, self.area])}
 
     @classmethod
-    def from_state(cls, xyz: np.ndarray, arrays: dict, *, min_points: int, radius: float) -> "Tracker":
-        tr = cls(xyz, min_points=min_points, radius=radius)
+    def from_state(cls, xyz: np.ndarray, arrays: dict, *, min_points: int) -> "Tracker":
+        radius, area = (float(v) for v in arrays["pair_scales"])
+        tr = cls(xyz, min_points=min_points, pairs=(arrays["pair_i"], arrays["pair_j"], radius, area))
         tr.epoch = int(arrays["epoch"][0])
-        for name in ("track", "sign", "onset", "onset_kind"):
-            setattr(tr, name, np.asarray(arrays[name]).astype(getattr(tr, name).dtype))
-        tr.live = {k: np.asarray(arrays[f"live_{k}"]).astype(tr.live[k].dtype) for k in _TRACK}
-        tr.objects = {k: np.asarray(arrays[f"object_{k}"]).astype(tr.objects[k].dtype) for k in _OBJECT}
-        counts = np.asarray(arrays["member_counts"], np.int64)
-        tr.members = np.split(np.asarray(arrays["members"], np.int64), np.cumsum(counts)[:-1]) if counts.size else []
+        pts = np.asarray(arrays["points"], np.int64)
+        tr.track, tr.sign, tr.onset, tr.onset_kind = pts[:, 0], pts[:, 1].astype(np.int8), pts[:, 2], pts[:, 3]
+        for name, into, keys in (("live", tr.live, _TRACK), ("objects", tr.objects, _OBJECT)):
+            a = np.asarray(arrays[name], np.float64).reshape(-1, len(keys))
+            for n, key in enumerate(keys):
+                into[key] = a[:, n].astype(into[key].dtype)
+        tr.keys = np.asarray(arrays["keys"], np.int64)
         return tr
-
-
