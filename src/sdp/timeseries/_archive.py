@@ -47,7 +47,7 @@ import numpy as np
 from ..errors import SDPError, require
 
 __all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "transaction", "Writer",
-           "many_chunks_at_once", "write_state", "read_state"]
+           "many_chunks_at_once", "write_state", "read_state", "objects_by_size"]
 
 ARCHIVE_FORMAT = "sdp-series"
 ARCHIVE_VERSION = 2  # 2: the state an append goes on from (fixed-lag smoother, tracked objects)
@@ -347,6 +347,12 @@ def is_series(path) -> bool:
     except (OSError, ValueError):
         return False
     return meta.get("attributes", {}).get("format") == ARCHIVE_FORMAT
+
+
+def objects_by_size(ds) -> np.ndarray:
+    """Positions along ``object_id`` of an archive's objects, the most core points first (ids
+    count in the order objects were found)."""
+    return np.lexsort((ds.object_id.values, -ds.object_points.values))
 
 
 def open_series(path):

@@ -149,8 +149,8 @@ def _check_append(archive: dict, given: dict, core_points, path: Path) -> None:
 # ------------------------------------------------------------------ the run
 def series(epochs, *, output, append: bool = False, times=None, core_points=None, reference: int | None = None,
            cylinder: Cylinder | None = None, registration_error: float | str | None = None,
-           align: Registration | str | None = None, orientation=None, lag: int | None = None,
-           execution: Execution | None = None, format: str | None = None):
+           align: Registration | str | None = None, orientation=None, execution: Execution | None = None,
+           format: str | None = None):
     """Signed distances of many epochs against one reference at fixed core points, in one Zarr
     archive, with their smoothed change, velocity, onsets and 4D objects of change.
 
@@ -181,9 +181,6 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
         Register each epoch onto the reference first.
     orientation : array_like (3,), optional
         Direction the normals point to (default +z).
-    lag : int, optional
-        Epochs after an epoch that smooth it (``DEFAULTS.smoothing_lag``, 16): older epochs are
-        final, an append rewrites the last ``lag + 1`` rows of the smoothed arrays.
     execution : Execution, optional
         The memory limit (an epoch, the reference side and the smoother's blocks are sized from it).
     format : str, optional
@@ -241,7 +238,7 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
              "registration_error": registration_error,
              "align": None if registration is None else registration.method,
              "orientation": None if orientation is None else [float(v) for v in np.asarray(orientation).reshape(-1)],
-             "reference": reference, "lag": lag}
+             "reference": reference}
     if append:
         if not out.exists() and not A._siblings(out)[0].exists():
             raise SDPError(f"{out}: no archive to append to; run without --append first")
@@ -285,7 +282,6 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
                                  f" ({source}): give distinct --times")
     if np.any(np.diff(t) <= 0):
         raise InvalidOptionError("the times of the epochs must increase, in the order given")
-    lag = integer_at_least("lag", DEFAULTS.smoothing_lag if lag is None else lag, 1)
     reg_opt = DEFAULTS.registration_error if registration_error is None else registration_error
     if reg_opt == "auto" and registration is None:
         reg_opt = 0.0
@@ -310,9 +306,9 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     used = {"projection_scale": prepared.projection_scale, "normal_scale": prepared.normal_scale,
             "max_distance": prepared.max_distance, "registration_error": reg_opt,
             "align": None if registration is None else registration.method,
-            "orientation": scalars["orientation"], "reference": reference, "lag": lag}
+            "orientation": scalars["orientation"], "reference": reference, "lag": DEFAULTS.smoothing_lag}
     given_rec = dict(given, projection_scale=cylinder.projection_scale, normal_scale=cylinder.normal_scale,
-                     max_distance=cylinder.max_distance, registration_error=reg_opt, reference=reference, lag=lag,
+                     max_distance=cylinder.max_distance, registration_error=reg_opt, reference=reference,
                      orientation=scalars["orientation"] if orientation is None else given["orientation"])
     attrs = {"format": A.ARCHIVE_FORMAT, "format_version": A.ARCHIVE_VERSION, "sdp_version": _version(),
              "time_kind": kind, "epochs": [], "runs": [],
