@@ -85,7 +85,13 @@ def test_each_epoch_equals_sdp_distances_on_that_pair(tmp_path):
     assert np.all(ds.distance.values[0][np.isfinite(ds.distance.values[0])] == 0)
 
 
-def test_append_equals_the_full_run(slope, tmp_path):
+def test_append_equals_the_full_run(slope, tmp_path, monkeypatch):
+    """3 epochs, then 2 (the noise estimated again at 4), then 1 going on from the saved state (lag 2)."""
+    import dataclasses
+
+    from sdp.timeseries import _compute
+
+    monkeypatch.setattr(_compute, "DEFAULTS", dataclasses.replace(_compute.DEFAULTS, smoothing_lag=2))
     eps = slope.epochs[:6]
     full = sdp.series(eps, output=tmp_path / "full.zarr", cylinder=CYL, registration_error=0.002)
     sdp.series(eps[:3], output=tmp_path / "a.zarr", cylinder=CYL, registration_error=0.002)
@@ -97,6 +103,29 @@ def test_append_equals_the_full_run(slope, tmp_path):
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
     assert [r["added"] for r in grown.attrs["runs"]] == [3, 2, 1]
     assert sorted(os.listdir(tmp_path)) == ["a.zarr", "full.zarr"]  # nothing left beside the archives
+
+
+@pytest.mark.slow
+def test_appends_one_by_one_equal_the_full_run_with_a_short_lag(slope, tmp_path, monkeypatch):
+    """With a lag of 2, appends between powers of two go on from the saved state (rows older than
+    the lag final, objects and onsets tracked on); reaching 4 epochs estimates the noise again."""
+    import dataclasses
+
+    from sdp.timeseries import _compute
+
+    monkeypatch.setattr(_compute, "DEFAULTS", dataclasses.replace(_compute.DEFAULTS, smoothing_lag=2))
+    kw = dict(cylinder=CYL, registration_error=0.002)
+    full = sdp.series(slope.epochs[:7], output=tmp_path / "full.zarr", **kw)
+    out = tmp_path / "a.zarr"
+    sdp.series(slope.epochs[:3], output=out, times=range(3), **kw)
+    for k in range(3, 7):
+        grown = sdp.series(slope.epochs[k:k + 1], output=out, append=True, times=[k])
+    a, b = _arrays(full), _arrays(grown)
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    smoother = grown.attrs["parameters"]["smoother"]
+    assert smoother["lag"] == 2 and smoother["estimated_from_epochs"] == 4
+    assert full.sizes["object_id"] >= 2 and (full.onset.values >= 0).any()
 
 
 def test_interrupted_append_leaves_the_archive_as_it_was(slope, tmp_path, monkeypatch):
@@ -396,6 +425,7 @@ def test_times_are_read_from_the_files(slope, tmp_path):
     assert file_time(tmp_path / "missing.laz") is None and file_time(np.zeros((3, 3))) is None
 
 
+@pytest.mark.slow
 def test_the_reference_noise_shared_by_every_epoch_is_not_averaged_away(tmp_path):
     """Every epoch is measured against the same reference cylinders: their noise is one error
     common to the whole series. Smoothing over 40 epochs of stable ground must keep it, so the

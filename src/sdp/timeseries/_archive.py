@@ -7,24 +7,25 @@ Layout (a Zarr v3 group, ``*.zarr``, readable with ``xarray.open_zarr``)::
                    alignment), time_units, runs (what each run added)
     distance, lod, significant       (epoch, point)  float32, float32, bool: chunks of one epoch
                                                      row and 16,384 points, written once
-    smoothed, velocity, smoothed_sigma, velocity_sigma, object   (epoch, point): rewritten by
-                                     every run, in chunks of up to 64 epochs × 16,384 points
+    smoothed, velocity, smoothed_sigma, velocity_sigma, object   (epoch, point): float32
+                                     uncompressed and int32, in chunks of 16 epochs × 16,384
+                                     points; an append rewrites the rows from the saved epoch on
     time, registration_error         (epoch,)
     x, y, z, onset, onset_kind       (point,)
     normal_x/y/z, ref_mean, ref_spread, ref_count, ref_level     (point,): the reference side
                                      (:class:`sdp.distance.PreparedReference`) that appending reuses
     object_id, object_start, object_end, object_start_time, object_end_time, object_points,
     object_area, object_peak_change, object_mean_velocity        (object_id,): the object table
+    state.npz                        what an append goes on from (:func:`write_state`), not a
+                                     dataset variable
 
 Atomicity: a run writes the new archive under a temporary name beside it (for an append, the
-measured rows of the archive are hard links to its chunk files, which are never written again:
-Zarr writes a chunk through a new file renamed over the old, so a link is never written through),
-marks it complete, renames it to ``.NAME.pending`` and swaps it in (``NAME`` to ``.NAME.old``,
-``.NAME.pending`` to ``NAME``, then the old one removed). A run interrupted before the mark
-leaves the archive as it was (its temporary folder is removed by the next run); one interrupted
-after it is completed by the next run or :func:`open_series` (:func:`recover`). Per-epoch arrays
-that depend on all epochs (the smoother's, the objects) are rewritten by every run: a smoother
-with a backward pass changes the past when an epoch is added.
+kept arrays' chunk files are hard links to the archive's: Zarr writes a chunk through a new file
+renamed over the old, so a link is never written through), marks it complete, renames it to
+``.NAME.pending`` and swaps it in (``NAME`` to ``.NAME.old``, ``.NAME.pending`` to ``NAME``, then
+the old one removed). A run interrupted before the mark leaves the archive as it was (its
+temporary folder is removed by the next run); one interrupted after it is completed by the next
+run or :func:`open_series` (:func:`recover`).
 
 References
 ----------
@@ -230,7 +231,8 @@ class Writer:
 
         async def one(group, name, values, dims, attrs):
             values = np.ascontiguousarray(values)
-            chunks = tuple(max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s) for d, s in zip(dims, values.shape))
+            chunks = tuple(max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s)
+                           for d, s in zip(dims, values.shape))
             fill = np.nan if values.dtype.kind == "f" else 0
             await group.create_array(name, data=values, chunks=chunks, fill_value=fill, dimension_names=list(dims),
                                      attributes=attrs or {}, config={"write_empty_chunks": True},
@@ -246,10 +248,15 @@ class Writer:
         """``{name: (selection, values)}`` written together (one round of Zarr's event loop)."""
         import asyncio
 
+        from zarr.api.asynchronous import open_array
         from zarr.core.sync import sync
 
+        async def one(name, sel, values):
+            arr = await open_array(store=str(self.folder), path=name, mode="r+")
+            await arr.setitem(sel, values)
+
         async def every():
-            await asyncio.gather(*(self[name]._async_array.setitem(sel, values) for name, (sel, values) in items.items()))
+            await asyncio.gather(*(one(name, sel, values) for name, (sel, values) in items.items()))
 
         sync(every())
 

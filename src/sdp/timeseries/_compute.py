@@ -6,9 +6,13 @@ costs reading it, summing it into cells and one cylinder per core point, and one
 row to the archive (:mod:`sdp.timeseries._archive`). Epochs are read one at a time, so the memory
 is one epoch and the reference side whatever the number of epochs. With ``append=True`` only
 the new epochs are measured, against the reference state stored in the archive, so the rows
-equal those of a full run over all the epochs (tested bit for bit). Then, over the whole
-series, in blocks of core points sized from the memory limit: the Kalman smoother
-(:mod:`sdp.timeseries._kalman`), the onsets and the 4D objects (:mod:`sdp.timeseries._objects`).
+equal those of a full run over all the epochs (tested bit for bit). Then, in blocks of core
+points sized from the memory limit, the fixed-lag Kalman smoother (:mod:`sdp.timeseries._kalman`),
+and epoch by epoch the onsets and the 4D objects (:mod:`sdp.timeseries._objects`): a full run
+from the first epoch, an append from the state the archive saved ``lag`` epochs back (the
+filter, the tracked objects, the inputs since), so that it rewrites ``lag + 1`` rows and the
+result is that of a full run. The process noise comes from the first 2ⁿ epochs: an append that
+reaches the next power of two estimates it again and runs over the whole series.
 
 Times: ``times`` (numbers, or ISO dates: velocities are then per day), else each file's own
 (:func:`sdp.io._time.file_time`: LAS GPS time or creation date, E57 acquisition start), else the
@@ -349,7 +353,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
             n_old = 0
             m = len(prepared.core_points)
             w.write_all({**{axis: (state["core_points"][:, a], ("point",), None) for a, axis in enumerate("xyz")},
-                         **{f"normal_{axis}": (state["normal"][:, a], ("point",), None) for a, axis in enumerate("xyz")},
+                         **{f"normal_{axis}": (state["normal"][:, a], ("point",), None)
+                            for a, axis in enumerate("xyz")},
                          **{name: (state[name], ("point",), None)
                             for name in ("ref_mean", "ref_spread", "ref_count", "ref_level")}})
             for name, dtype in (("distance", "f4"), ("lod", "f4"), ("significant", "bool")):
@@ -449,7 +454,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                 labels.clear()
         table = tracker.table(times)
         A.write_state(folder, filt, saved, recent)
-        small = {"onset": (tracker.onset.astype(np.int32), ("point",), {"meaning": "epoch the change starts, -1: none"}),
+        small = {"onset": (tracker.onset.astype(np.int32), ("point",),
+                           {"meaning": "epoch the change starts, -1: none"}),
                  "onset_kind": (tracker.onset_kind.astype(np.int8), ("point",),
                                 {"meaning": "0 none, 1 step, 2 gradual"}),
                  "object_id": (np.arange(1, len(table["object_start"]) + 1, dtype=np.int32), ("object_id",), None)}
@@ -468,7 +474,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
             "step_k": 4.0, "velocity": rate_unit, "lag": lag,
             "lag_reason": "an epoch is smoothed with the lag epochs after it; older epochs are final",
             **info}
-        attrs["parameters"]["objects"] = {"neighbour_radius": table["radius"], "area_per_point": table["area_per_point"],
+        attrs["parameters"]["objects"] = {"neighbour_radius": table["radius"],
+                                          "area_per_point": table["area_per_point"],
                                           "rule": "|smoothed| > 1.96 smoothed_sigma, same sign, connected in space "
                                                   "(radius) and tracked forward in time (consecutive epochs); an "
                                                   "object from min_object_points changed together"}
@@ -502,7 +509,7 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
         outs = {name: w[name] for name in names}
         for arr in outs.values():
             arr.resize((E, m))
-    R, W = E - r0, E - a0
+    R = E - r0
     dist, lod = w["distance"], w["lod"]
     # the inputs from epoch a0 on: an append's older ones kept with the state, the new ones read
     recent = (np.zeros((0, m), np.float32),) * 2 if recent is None else recent
