@@ -365,6 +365,19 @@ def test_blocks_beyond_memory_give_the_in_memory_numbers(slope, tmp_path, monkey
                               execution=sdp.Execution(memory_limit="256MB")))  # a budget of 64 MB: 128 points
     differ = [name for name in a if not np.array_equal(a[name], cols[name], equal_nan=True)]
     assert differ in ([], ["object_mean_velocity"]), differ
+    # an append in columns, going on from the saved state (lag 2): the same numbers again
+    import dataclasses
+
+    monkeypatch.setattr(_compute, "DEFAULTS", dataclasses.replace(_compute.DEFAULTS, smoothing_lag=2))
+    small = dict(cylinder=CYL, registration_error=0.002, execution=sdp.Execution(memory_limit="256MB"))
+    whole = _arrays(sdp.series(slope.epochs[:7], output=tmp_path / "w7.zarr", **small))
+    sdp.series(slope.epochs[:6], output=tmp_path / "a.zarr", times=range(6), **small)
+    grown = sdp.series(slope.epochs[6:7], output=tmp_path / "a.zarr", append=True, times=[6],
+                       execution=sdp.Execution(memory_limit="256MB"))
+    assert grown.attrs["runs"][-1]["append"] and grown.attrs["parameters"]["smoother"]["estimated_from_epochs"] == 4
+    b = _arrays(grown)
+    differ = [name for name in whole if not np.array_equal(whole[name], b[name], equal_nan=True)]
+    assert differ == [], differ
 
 
 def test_without_the_series_extra_one_line_names_it(slope, tmp_path, monkeypatch):

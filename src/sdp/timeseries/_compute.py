@@ -464,7 +464,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         w.write_all(small)
         timings["objects"] = time.perf_counter() - t0
         for name in SERIES_FIELDS:
-            w[name].attrs.update({"coordinates": "time x y z"})
+            if w[name].attrs.get("coordinates") != "time x y z":  # an append's kept arrays have it
+                w[name].attrs.update({"coordinates": "time x y z"})
         rate_unit = "per day" if kind == "date" else "per time unit"
         attrs["parameters"]["smoother"] = {
             "model": "constant velocity, white-noise acceleration", "process_noise": q,
@@ -502,7 +503,7 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
     f = -1 if state is None else state.epoch
     r0, a0 = max(f, 0), f + 1  # the first row written, the first epoch read
     if state is None:
-        outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS, compressed=False)
+        outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS, rewritten=True)
                 for name in names}
         state = FilterState.start(m)
     else:

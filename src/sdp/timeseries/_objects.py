@@ -48,7 +48,6 @@ import math
 
 import numba as nb
 import numpy as np
-from scipy.spatial import cKDTree
 
 __all__ = ["neighbour_pairs", "min_object_points", "Tracker", "OBJECT_FIELDS"]
 
@@ -64,6 +63,8 @@ def neighbour_pairs(xyz: np.ndarray, radius: float | None = None) -> tuple[np.nd
     (default 1.5 × the 90th percentile of the nearest-neighbour spacing: core points subsampled
     on a grid lie up to a cell and a half apart and must still touch); the area is the median
     spacing squared."""
+    from scipy.spatial import cKDTree  # imported here: an append reads the pairs it saved (0.2–1 s of imports)
+
     tree = cKDTree(xyz)
     if len(xyz) > 1:
         d, _ = tree.query(xyz[:: max(1, len(xyz) // 5000)], k=2)
