@@ -13,7 +13,8 @@ from sdp.cli import main
 from sdp.data import slope_series
 from sdp.distance import PreparedReference
 from sdp.timeseries import _archive
-from sdp.timeseries._kalman import kalman, smooth, step_scan
+from sdp.timeseries._kalman import FilterState, kalman
+from sdp.timeseries._objects import Tracker
 
 pytest.importorskip("xarray")
 pytest.importorskip("zarr")
@@ -84,7 +85,13 @@ def test_each_epoch_equals_sdp_distances_on_that_pair(tmp_path):
     assert np.all(ds.distance.values[0][np.isfinite(ds.distance.values[0])] == 0)
 
 
-def test_append_equals_the_full_run(slope, tmp_path):
+def test_append_equals_the_full_run(slope, tmp_path, monkeypatch):
+    """3 epochs, then 2 (the noise estimated again at 4), then 1 going on from the saved state (lag 2)."""
+    import dataclasses
+
+    from sdp.timeseries import _compute
+
+    monkeypatch.setattr(_compute, "DEFAULTS", dataclasses.replace(_compute.DEFAULTS, smoothing_lag=2))
     eps = slope.epochs[:6]
     full = sdp.series(eps, output=tmp_path / "full.zarr", cylinder=CYL, registration_error=0.002)
     sdp.series(eps[:3], output=tmp_path / "a.zarr", cylinder=CYL, registration_error=0.002)
@@ -96,6 +103,29 @@ def test_append_equals_the_full_run(slope, tmp_path):
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
     assert [r["added"] for r in grown.attrs["runs"]] == [3, 2, 1]
     assert sorted(os.listdir(tmp_path)) == ["a.zarr", "full.zarr"]  # nothing left beside the archives
+
+
+@pytest.mark.slow
+def test_appends_one_by_one_equal_the_full_run_with_a_short_lag(slope, tmp_path, monkeypatch):
+    """With a lag of 2, appends between powers of two go on from the saved state (rows older than
+    the lag final, objects and onsets tracked on); reaching 4 epochs estimates the noise again."""
+    import dataclasses
+
+    from sdp.timeseries import _compute
+
+    monkeypatch.setattr(_compute, "DEFAULTS", dataclasses.replace(_compute.DEFAULTS, smoothing_lag=2))
+    kw = dict(cylinder=CYL, registration_error=0.002)
+    full = sdp.series(slope.epochs[:7], output=tmp_path / "full.zarr", **kw)
+    out = tmp_path / "a.zarr"
+    sdp.series(slope.epochs[:3], output=out, times=range(3), **kw)
+    for k in range(3, 7):
+        grown = sdp.series(slope.epochs[k:k + 1], output=out, append=True, times=[k])
+    a, b = _arrays(full), _arrays(grown)
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    smoother = grown.attrs["parameters"]["smoother"]
+    assert smoother["lag"] == 2 and smoother["estimated_from_epochs"] == 4
+    assert full.sizes["object_id"] >= 2 and (full.onset.values >= 0).any()
 
 
 def test_interrupted_append_leaves_the_archive_as_it_was(slope, tmp_path, monkeypatch):
@@ -188,15 +218,63 @@ def test_smoother_recovers_velocity_and_steps():
     truth[15:, 200:300] = 20.0  # a step at epoch 15
     z = truth + rng.standard_normal((30, m))
     var = np.ones((30, m))
-    sm, vel, ssd, vsd, step = smooth(z, var, t, 1e-6)
+    sm, vel, ssd, vsd, step, _ = kalman(z, var, t, 1e-6, lag=8, scale=1.0, dt=1.0)
     assert abs(np.median(vel[:, :200]) - 0.5) < 0.05
     assert np.all(step[200:300] == 15) and np.mean(step[300:] >= 0) < 0.02
     assert np.median(np.abs(sm[:15, 200:300])) < 1.0  # the step is not smeared back in time
     assert np.all(ssd > 0) and np.all(vsd > 0)
-    at, stat = step_scan(z, var, t)
-    assert np.all(at[200:300] == 15) and np.median(stat[300:]) < 5
-    one = kalman(z[:, :1], var[:, :1], t, 1e-6)[0]
-    np.testing.assert_allclose(one[:, 0], sm[:, 0])
+    one = kalman(z[:, :1], var[:, :1], t, 1e-6, lag=8, scale=1.0, dt=1.0)[0]
+    np.testing.assert_array_equal(one[:, 0], sm[:, 0])
+
+
+def test_the_fixed_lag_smoother_goes_on_from_its_saved_state():
+    """Rows older than the lag are final; filtering on from the state saved with 20 epochs gives
+    the run over 23 epochs bit for bit, with a step confirmed by the appended epochs."""
+    rng = np.random.default_rng(1)
+    t = np.cumsum(rng.uniform(0.5, 1.5, 23))
+    z = 0.3 * t[:, None] + rng.standard_normal((23, 50))
+    z[20:, :10] += 15.0  # a step at epoch 20: confirmed only by epoch 21
+    z[5, 40] = np.nan
+    var = np.full((23, 50), 1.0)
+    kw = dict(lag=4, scale=1.0, dt=1.0)
+    full = kalman(z, var, t, 1e-3, **kw)
+    part = kalman(z[:20], var[:20], t[:20], 1e-3, **kw)
+    assert part[5].epoch == 20 - 1 - 4
+    np.testing.assert_array_equal(part[0][:15], full[0][:15])  # final rows
+    again = kalman(z[part[5].epoch + 1:], var[part[5].epoch + 1:], t, 1e-3, state=part[5], **kw)
+    for a, b in zip(again[:4], full[:4]):
+        np.testing.assert_array_equal(a, b[part[5].epoch:])
+    np.testing.assert_array_equal(again[4], full[4])
+    assert np.all(full[4][:10] == 20) and np.all(part[4][:10] == -1)
+    start = FilterState.start(50)
+    np.testing.assert_array_equal(kalman(z, var, t, 1e-3, state=start, **kw)[0], full[0])
+
+
+def test_tracked_objects_split_merge_and_start_when_large():
+    """Two changes that meet: the younger object ends where they meet; a set that splits keeps its
+    id; a track becomes an object when min_points of its points change together."""
+    xyz = np.c_[np.arange(40.0), np.zeros(40), np.zeros(40)]
+    tr = Tracker(xyz, min_points=5, radius=1.5)
+    sigma, vel, step = np.ones(40), np.zeros(40), np.full(40, -1)
+    rows = []
+    for k, parts in enumerate([[(0, 3)], [(0, 6)], [(0, 6), (20, 26)], [(0, 12), (14, 26)], [(0, 26)],
+                               [(0, 10), (16, 26)]]):
+        d = np.zeros(40)
+        for a, b in parts:
+            d[a:b] = 5.0
+        rows.append(tr.add(k, d, sigma, vel, step))
+    assert rows[0].max() == 0 and set(rows[1][:6]) == {1}  # 3 points: noise; 6: object 1 from epoch 1
+    assert set(rows[2][20:26]) == {2}
+    assert set(rows[4][:26]) == {1}  # the two met: the older goes on
+    assert set(rows[5][:10]) == {1} and set(rows[5][16:26]) == {1}  # a split keeps the id
+    table = tr.table(np.arange(6.0))
+    np.testing.assert_array_equal(table["object_start"], [1, 2])
+    np.testing.assert_array_equal(table["object_end"], [5, 3])
+    np.testing.assert_array_equal(table["object_points"], [26, 12])
+    again = Tracker.from_state(xyz, tr.state(), min_points=5)
+    d = np.zeros(40)
+    d[30:40] = -5.0
+    np.testing.assert_array_equal(again.add(6, d, sigma, vel, step), tr.add(6, d, sigma, vel, step))
 
 
 def _write_epochs(slope, folder: Path, n: int) -> list[str]:
@@ -250,30 +328,6 @@ def test_command_bad_input_exits_2(slope, tmp_path, capsys, args, message):
 
 
 @pytest.mark.slow
-def test_objects_in_memory_equal_the_streamed_ones(slope, tmp_path):
-    from sdp.timeseries._objects import find_objects, objects_in_memory
-
-    ds = sdp.series(slope.epochs, output=tmp_path / "s.zarr", cylinder=CYL, registration_error=2 * slope.registration)
-    sm, sd, vel = ds.smoothed.values, ds.smoothed_sigma.values, ds.velocity.values
-    xyz = np.c_[ds.x.values, ds.y.values, ds.z.values]
-    step = np.where(ds.onset_kind.values == 1, ds.onset.values, -1)
-    times = ds.time.values
-    table, labels = objects_in_memory(sm, sd, vel, xyz, times, min_points=10, step=step)
-    streamed = np.zeros_like(labels)
-
-    def write(k, row):
-        streamed[k] = row
-
-    other = find_objects(lambda k: (sm[k].astype(float), sd[k].astype(float), vel[k].astype(float)), len(times),
-                         xyz, times, min_points=10, step=step, write=write)
-    assert len(table["object_start"]) >= 2
-    np.testing.assert_array_equal(labels, streamed)
-    np.testing.assert_array_equal(labels, ds.object.values)
-    for name in table:
-        np.testing.assert_allclose(np.asarray(table[name], float), np.asarray(other[name], float), rtol=1e-12,
-                                   err_msg=name)
-
-
 @pytest.mark.slow
 def test_real_epochs_equal_sdp_distance_on_each_pair(shared_data, tmp_path):
     folder = shared_data / "pheno4d_tomato"
@@ -311,6 +365,19 @@ def test_blocks_beyond_memory_give_the_in_memory_numbers(slope, tmp_path, monkey
                               execution=sdp.Execution(memory_limit="256MB")))  # a budget of 64 MB: 128 points
     differ = [name for name in a if not np.array_equal(a[name], cols[name], equal_nan=True)]
     assert differ in ([], ["object_mean_velocity"]), differ
+    # an append in columns, going on from the saved state (lag 2): the same numbers again
+    import dataclasses
+
+    monkeypatch.setattr(_compute, "DEFAULTS", dataclasses.replace(_compute.DEFAULTS, smoothing_lag=2))
+    small = dict(cylinder=CYL, registration_error=0.002, execution=sdp.Execution(memory_limit="256MB"))
+    whole = _arrays(sdp.series(slope.epochs[:7], output=tmp_path / "w7.zarr", **small))
+    sdp.series(slope.epochs[:6], output=tmp_path / "a.zarr", times=range(6), **small)
+    grown = sdp.series(slope.epochs[6:7], output=tmp_path / "a.zarr", append=True, times=[6],
+                       execution=sdp.Execution(memory_limit="256MB"))
+    assert grown.attrs["runs"][-1]["append"] and grown.attrs["parameters"]["smoother"]["estimated_from_epochs"] == 4
+    b = _arrays(grown)
+    differ = [name for name in whole if not np.array_equal(whole[name], b[name], equal_nan=True)]
+    assert differ == [], differ
 
 
 def test_without_the_series_extra_one_line_names_it(slope, tmp_path, monkeypatch):
@@ -371,6 +438,7 @@ def test_times_are_read_from_the_files(slope, tmp_path):
     assert file_time(tmp_path / "missing.laz") is None and file_time(np.zeros((3, 3))) is None
 
 
+@pytest.mark.slow
 def test_the_reference_noise_shared_by_every_epoch_is_not_averaged_away(tmp_path):
     """Every epoch is measured against the same reference cylinders: their noise is one error
     common to the whole series. Smoothing over 40 epochs of stable ground must keep it, so the

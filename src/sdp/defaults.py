@@ -91,6 +91,11 @@ class Defaults:
         whose d is 18 cm, in ``benchmarks/bench_distance.py``).
     registration_error : float
         0: M3C2's default; give the alignment's residual when the epochs were registered.
+    smoothing_lag : int
+        16 epochs: a series' epoch is smoothed with the 16 after it (the last 16 with all that
+        follow), then final, so an appended epoch rewrites 17 rows whatever the series' length.
+        A velocity from 16 epochs of noise σ has a standard deviation of σ·√12/16^1.5 = 0.054σ
+        per epoch; the whole series would add little for a change that is not steady anyway.
     align_method : str
         ``"density"``: registration on the ridges of the reference's density field, which needs
         no extra and matches GICP on the benchmarks' re-scans (``benchmarks/bench_align_online.py``).
@@ -121,6 +126,7 @@ class Defaults:
     normal_scale: str = "auto"
     max_distance: str = "auto"
     registration_error: float = 0.0
+    smoothing_lag: int = 16
     align_method: str = "density"
     action_window: int = 40
     action_every: int = 5

@@ -161,7 +161,9 @@ def default_points(ds, count: int = 5) -> list[int]:
     chosen = []
     objects = ds.object.values
     change = np.abs(np.nan_to_num(ds.smoothed.values))
-    for oid in ds.object_id.values[:count]:
+    from ..timeseries._archive import objects_by_size
+
+    for oid in ds.object_id.values[objects_by_size(ds)[:count]]:
         where = np.where(objects == oid, change, -1.0)
         chosen.append(int(np.unravel_index(np.argmax(where), where.shape)[1]))
     return sorted(set(chosen))
@@ -201,12 +203,13 @@ def _write_points(ds, path, points, inputs) -> None:
 
 def describe_series(path, ds=None) -> dict:
     """What ``sdp info ARCHIVE.zarr`` prints: epochs, times, core points, objects, every parameter."""
-    from ..timeseries._archive import open_series
+    from ..timeseries._archive import objects_by_size, open_series
 
     ds = open_series(path) if ds is None else ds
     attrs = ds.attrs
     epochs = attrs["epochs"]
-    sig_fraction = float(ds.significant.mean().values) if ds.sizes["epoch"] and ds.sizes["point"] else 0.0
+    cells = len(epochs) * ds.sizes["point"]  # from each epoch's record: no pass over the archive
+    sig_fraction = sum(e["significant"] for e in epochs) / cells if cells else 0.0
     kind = attrs["time_kind"]
     times = [e["time"] for e in epochs]
     if kind == "date":
@@ -216,9 +219,9 @@ def describe_series(path, ds=None) -> dict:
     vel = np.asarray(ds.velocity.isel(epoch=-1).values) if ds.sizes["epoch"] else np.empty(0)
     table = [{"id": int(i), "start": int(s), "end": int(e), "core_points": int(n), "area": float(a),
               "peak_change": float(p), "mean_velocity": float(v)}
-             for i, s, e, n, a, p, v in zip(ds.object_id.values, ds.object_start.values, ds.object_end.values,
-                                            ds.object_points.values, ds.object_area.values,
-                                            ds.object_peak_change.values, ds.object_mean_velocity.values)]
+             for i, s, e, n, a, p, v in zip(*(ds[name].values[objects_by_size(ds)] for name in (
+                 "object_id", "object_start", "object_end", "object_points", "object_area", "object_peak_change",
+                 "object_mean_velocity")))]
     return {"kind": "series archive", "path": str(path), "format_version": attrs["format_version"],
             "sdp_version": attrs["sdp_version"], "epochs": len(epochs), "core_points": int(ds.sizes["point"]),
             "time_kind": kind, "time_source": sorted({e["time_source"] for e in epochs}),

@@ -6,9 +6,13 @@ costs reading it, summing it into cells and one cylinder per core point, and one
 row to the archive (:mod:`sdp.timeseries._archive`). Epochs are read one at a time, so the memory
 is one epoch and the reference side whatever the number of epochs. With ``append=True`` only
 the new epochs are measured, against the reference state stored in the archive, so the rows
-equal those of a full run over all the epochs (tested bit for bit). Then, over the whole
-series, in blocks of core points sized from the memory limit: the Kalman smoother
-(:mod:`sdp.timeseries._kalman`), the onsets and the 4D objects (:mod:`sdp.timeseries._objects`).
+equal those of a full run over all the epochs (tested bit for bit). Then, in blocks of core
+points sized from the memory limit, the fixed-lag Kalman smoother (:mod:`sdp.timeseries._kalman`),
+and epoch by epoch the onsets and the 4D objects (:mod:`sdp.timeseries._objects`): a full run
+from the first epoch, an append from the state the archive saved ``lag`` epochs back (the
+filter, the tracked objects, the inputs since), so that it rewrites ``lag + 1`` rows and the
+result is that of a full run. The process noise comes from the first 2ⁿ epochs: an append that
+reaches the next power of two estimates it again and runs over the whole series.
 
 Times: ``times`` (numbers, or ISO dates: velocities are then per day), else each file's own
 (:func:`sdp.io._time.file_time`: LAS GPS time or creation date, E57 acquisition start), else the
@@ -47,8 +51,8 @@ from ..io._read import read_points
 from ..io._time import file_time
 from ..options import Cylinder, Execution, Registration
 from . import _archive as A
-from ._kalman import BYTES_PER_VALUE, observation_variance, process_noise, smooth
-from ._objects import OBJECT_FIELDS, find_objects, min_object_points, objects_in_memory, onsets
+from ._kalman import BYTES_PER_VALUE, FilterState, kalman, observation_variance, process_noise
+from ._objects import OBJECT_FIELDS, Tracker, min_object_points
 
 __all__ = ["series", "SERIES_FIELDS"]
 
@@ -56,7 +60,7 @@ __all__ = ["series", "SERIES_FIELDS"]
 SERIES_FIELDS = ("distance", "lod", "significant", "smoothed", "velocity", "smoothed_sigma", "velocity_sigma",
                  "object")
 _EPOCH_DIMS = ("epoch", "point")
-_DERIVED_EPOCHS = 64  # epochs per chunk of the arrays every run rewrites (4 MiB of float32)
+_DERIVED_EPOCHS = 16  # epochs per chunk of the smoothed arrays: an append rewrites lag + 1 rows (16 by default)
 
 
 def _version() -> str:
@@ -306,7 +310,7 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     used = {"projection_scale": prepared.projection_scale, "normal_scale": prepared.normal_scale,
             "max_distance": prepared.max_distance, "registration_error": reg_opt,
             "align": None if registration is None else registration.method,
-            "orientation": scalars["orientation"], "reference": reference}
+            "orientation": scalars["orientation"], "reference": reference, "lag": DEFAULTS.smoothing_lag}
     given_rec = dict(given, projection_scale=cylinder.projection_scale, normal_scale=cylinder.normal_scale,
                      max_distance=cylinder.max_distance, registration_error=reg_opt, reference=reference,
                      orientation=scalars["orientation"] if orientation is None else given["orientation"])
@@ -336,9 +340,11 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         w = A.Writer(folder, create=not append)
         if append:
             g = w.group
-            arrays = {"core_points": np.c_[g["x"][:], g["y"][:], g["z"][:]],
-                      "normal": np.c_[g["normal_x"][:], g["normal_y"][:], g["normal_z"][:]],
-                      **{k: g[k][:] for k in ("ref_mean", "ref_spread", "ref_count", "ref_level")}}
+            got = w.read_all(["x", "y", "z", "normal_x", "normal_y", "normal_z", "ref_mean", "ref_spread", "ref_count",
+                              "ref_level"])
+            arrays = {"core_points": np.c_[got["x"], got["y"], got["z"]],
+                      "normal": np.c_[got["normal_x"], got["normal_y"], got["normal_z"]],
+                      **{k: got[k] for k in ("ref_mean", "ref_spread", "ref_count", "ref_level")}}
             prepared = PreparedReference.from_state(arrays, attrs["parameters"]["reference_state"])
             n_old = len(attrs["epochs"])
             for name in ("distance", "lod", "significant"):
@@ -346,11 +352,11 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         else:
             n_old = 0
             m = len(prepared.core_points)
-            for a, axis in enumerate("xyz"):
-                w.write(axis, state["core_points"][:, a], ("point",))
-                w.write(f"normal_{axis}", state["normal"][:, a], ("point",))
-            for name in ("ref_mean", "ref_spread", "ref_count", "ref_level"):
-                w.write(name, state[name], ("point",))
+            w.write_all({**{axis: (state["core_points"][:, a], ("point",), None) for a, axis in enumerate("xyz")},
+                         **{f"normal_{axis}": (state["normal"][:, a], ("point",), None)
+                            for a, axis in enumerate("xyz")},
+                         **{name: (state[name], ("point",), None)
+                            for name in ("ref_mean", "ref_spread", "ref_count", "ref_level")}})
             for name, dtype in (("distance", "f4"), ("lod", "f4"), ("significant", "bool")):
                 w.array(name, (len(epochs), m), dtype, _EPOCH_DIMS)
         m = len(prepared.core_points)
@@ -399,64 +405,81 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         E = len(attrs["epochs"])
         times = np.array([e["time"] for e in attrs["epochs"]])
         time_attrs = {"units": "days since 1970-01-01"} if kind == "date" else {}
-        w.write("time", times, ("epoch",), attrs=time_attrs)
-        w.write("registration_error", np.array([e["registration_error"] for e in attrs["epochs"]]), ("epoch",))
+        w.write_all({"time": (times, ("epoch",), time_attrs),
+                     "registration_error": (np.array([e["registration_error"] for e in attrs["epochs"]]), ("epoch",),
+                                            None)})
+        params = attrs["parameters"]
+        lag = int(params["used"]["lag"])
         t0 = time.perf_counter()
-        q, info, held = _smooth_all(w, E, m, times, limit)
+        # the smoother's noise is estimated from the first 2^n epochs (n as large as there are):
+        # an append between two powers of two filters on from the saved state and rewrites lag + 1
+        # rows; one reaching the next power estimates again and runs over the whole series
+        first_epochs = 2 ** int(math.floor(math.log2(E)))
+        go_on = append and params.get("smoother", {}).get("estimated_from_epochs") == first_epochs
+        filt, tracked, recent = A.read_state(out) if go_on else (None, None, None)
+        q, info, held, filt, step, recent = _smooth_all(w, E, m, times, limit, lag=lag, first_epochs=first_epochs,
+                                                        frozen=params["smoother"] if go_on else None, state=filt,
+                                                        recent=recent)
         timings["smoother"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         xyz = prepared.core_points
-        obj = w.array("object", (E, m), "i4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS)
-        labels_all = np.zeros((E, m), np.int32) if held is not None else None
+        r0 = info.pop("first_row")
+        min_points = params["min_object_points"]
+        if go_on:
+            tracker = Tracker.from_state(xyz, tracked, min_points=min_points)
+            obj = w["object"]
+            obj.resize((E, m))
+        else:
+            tracker = Tracker(xyz, min_points=min_points)
+            obj = w.array("object", (E, m), "i4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS)
         rows: dict = {}  # epochs read a chunk row at a time
 
         def read(k):
-            if held is not None:  # the whole series is in memory: no read
-                return tuple(a[k].astype(np.float64) for a in held)
+            if held is not None:  # the rows are in memory: no read
+                return tuple(a[k - r0].astype(np.float64) for a in held)
             a = k - k % _DERIVED_EPOCHS
             if a not in rows:
                 rows.clear()
                 rows[a] = [w[n][a:a + _DERIVED_EPOCHS] for n in ("smoothed", "smoothed_sigma", "velocity")]
             return tuple(r[k - a].astype(np.float64) for r in rows[a])
 
-        pending: list = []
-
-        def write(k, labels):
-            if labels_all is not None:
-                labels_all[k] = labels
-                return
-            pending.append(labels)
-            if len(pending) == _DERIVED_EPOCHS or k == E - 1:
-                obj[k + 1 - len(pending):k + 1] = np.stack(pending)
-                pending.clear()
-
-        step = np.where(w["onset_kind"][:] == 1, w["onset"][:], -1)
-        min_points = attrs["parameters"]["min_object_points"]
-        if held is not None and E * m * 64 < limit / 4:  # the space-time graph fits: one call
-            table, labels_all = objects_in_memory(held[0], held[1], held[2], xyz, times, min_points=min_points,
-                                                  step=step)
-        else:
-            table = find_objects(read, E, xyz, times, min_points=min_points, step=step, write=write)
-        if labels_all is not None:
-            obj[...] = labels_all
-        ids = np.arange(1, len(table["object_start"]) + 1, dtype=np.int32)
-        w.write("object_id", ids, ("object_id",))
-        for name in OBJECT_FIELDS:
-            w.write(name, np.asarray(table[name]), ("object_id",),
-                    attrs=time_attrs if name.endswith("_time") else None)
+        saved = tracker.state() if E - 1 - lag < tracker.epoch + 1 else None
+        labels = []
+        for k in range(tracker.epoch + 1, E):
+            if k == E - 1 - lag:  # the rows from here are not final yet: the next run goes on from here
+                saved = tracker.state()
+            labels.append(tracker.add(k, *read(k), step))
+            if len(labels) == _DERIVED_EPOCHS or k == E - 1:
+                obj[k + 1 - len(labels):k + 1] = np.stack(labels)
+                labels.clear()
+        table = tracker.table(times)
+        A.write_state(folder, filt, saved, recent)
+        small = {"onset": (tracker.onset.astype(np.int32), ("point",),
+                           {"meaning": "epoch the change starts, -1: none"}),
+                 "onset_kind": (tracker.onset_kind.astype(np.int8), ("point",),
+                                {"meaning": "0 none, 1 step, 2 gradual"}),
+                 "object_id": (np.arange(1, len(table["object_start"]) + 1, dtype=np.int32), ("object_id",), None)}
+        small.update({name: (np.asarray(table[name]), ("object_id",), time_attrs if name.endswith("_time") else None)
+                      for name in OBJECT_FIELDS})
+        w.write_all(small)
         timings["objects"] = time.perf_counter() - t0
         for name in SERIES_FIELDS:
-            w[name].attrs.update({"coordinates": "time x y z"})
+            if w[name].attrs.get("coordinates") != "time x y z":  # an append's kept arrays have it
+                w[name].attrs.update({"coordinates": "time x y z"})
         rate_unit = "per day" if kind == "date" else "per time unit"
         attrs["parameters"]["smoother"] = {
             "model": "constant velocity, white-noise acceleration", "process_noise": q,
             "process_noise_reason": "robust spread of the standardised second differences equal to one",
             "observation_noise": "(lod / 1.96)^2 per epoch and core point without the reference's part "
                                  "(ref_spread^2 / ref_count), which is added once to smoothed_sigma^2",
-            "step_k": 4.0, "velocity": rate_unit, **info}
-        attrs["parameters"]["objects"] = {"neighbour_radius": table["radius"], "area_per_point": table["area_per_point"],
+            "step_k": 4.0, "velocity": rate_unit, "lag": lag,
+            "lag_reason": "an epoch is smoothed with the lag epochs after it; older epochs are final",
+            **info}
+        attrs["parameters"]["objects"] = {"neighbour_radius": table["radius"],
+                                          "area_per_point": table["area_per_point"],
                                           "rule": "|smoothed| > 1.96 smoothed_sigma, same sign, connected in space "
-                                                  "(radius) and time (consecutive epochs)"}
+                                                  "(radius) and tracked forward in time (consecutive epochs); an "
+                                                  "object from min_object_points changed together"}
         timings["total"] = time.perf_counter() - t_start
         attrs["runs"].append({"when": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                               "sdp_version": _version(), "added": len(epochs), "append": append,
@@ -469,61 +492,94 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
 _COLUMN_BYTES = 24
 
 
-def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float):
-    """The smoother over blocks of core points (their number from the memory limit); (q, info,
-    (smoothed, smoothed_sigma, velocity) if one block held the whole series, else None)."""
+def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int, first_epochs: int,
+                frozen: dict | None, state: FilterState | None, recent=None):
+    """The smoother over blocks of core points (their number from the memory limit), from the
+    saved filter ``state`` (an append) or the first epoch; the noise ``frozen`` (an append's) or
+    estimated from the first ``first_epochs`` epochs. Returns (q, info, the rows written of
+    (smoothed, smoothed_sigma, velocity) if one block held them, else None, the filter state to
+    save, each point's first step)."""
     names = ("smoothed", "velocity", "smoothed_sigma", "velocity_sigma")
-    outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS) for name in names}
+    f = -1 if state is None else state.epoch
+    r0, a0 = max(f, 0), f + 1  # the first row written, the first epoch read
+    if state is None:
+        outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS, rewritten=True)
+                for name in names}
+        state = FilterState.start(m)
+    else:
+        outs = {name: w[name] for name in names}
+        for arr in outs.values():
+            arr.resize((E, m))
+    R = E - r0
     dist, lod = w["distance"], w["lod"]
+    # the inputs from epoch a0 on: an append's older ones kept with the state, the new ones read
+    recent = (np.zeros((0, m), np.float32),) * 2 if recent is None else recent
+    a1 = a0 + len(recent[0])
+
+    def inputs(a, b):
+        if not len(recent[0]):
+            return dist[a0:, a:b], lod[a0:, a:b]
+        return (np.concatenate([recent[0][:, a:b], dist[a1:, a:b]]),
+                np.concatenate([recent[1][:, a:b], lod[a1:, a:b]]))
+
+    got = w.read_all(["registration_error", "ref_spread", "ref_count"])
+    reg = got["registration_error"]
+    ref_var = got["ref_spread"] ** 2 / got["ref_count"]
     budget = max(limit / 4.0, 64e6)
-    block = int(max(256, min(m, budget // (E * BYTES_PER_VALUE))))
+    block = int(max(256, min(m, budget // (R * BYTES_PER_VALUE))))
     whole = None
     col = m
-    if block >= m:  # the whole series fits: read it once
-        whole = dist[...], lod[...]
+    if block >= m:  # the rows fit: read them once
+        whole = inputs(0, m)
     else:
         # columns of whole chunks, read once and written once (a block narrower than a chunk would read and
         # rewrite each chunk once per block), its inputs and results in float32 (_COLUMN_BYTES) in another
         # quarter of the limit; else blocks of whole chunks, or narrower ones read again per block
-        col = int(budget // (E * _COLUMN_BYTES)) // A.POINT_CHUNK * A.POINT_CHUNK
+        col = int(budget // (R * _COLUMN_BYTES)) // A.POINT_CHUNK * A.POINT_CHUNK
         if col < A.POINT_CHUNK:
             if block >= A.POINT_CHUNK:
                 block -= block % A.POINT_CHUNK
             col = block
-    # q from a sample of core points spread over the archive (the median needs no more)
-    sample = np.arange(0, m, max(1, m // max(1, 200_000 // max(E, 1))))
-    if whole is not None:
-        zs, ls = whole[0][:, sample], whole[1][:, sample]
+    if frozen is None:
+        # q from a sample of core points spread over the first epochs (the median needs no more)
+        sample = np.arange(0, m, max(1, m // max(1, 200_000 // first_epochs)))
+        zs = dist.get_orthogonal_selection((slice(0, first_epochs), sample))
+        ls = lod.get_orthogonal_selection((slice(0, first_epochs), sample))
+        vs = observation_variance(ls, reg[:first_epochs], ref_var[sample])
+        q = process_noise(zs.astype(np.float64), vs, times[:first_epochs])
+        good = np.isfinite(vs) & (vs > 0)
+        scale = float(np.sqrt(np.median(vs[good]))) if good.any() else 1.0  # one diffuse start for every block
+        dt = float(np.median(np.diff(times[:first_epochs]))) if first_epochs > 1 else 1.0
     else:
-        zs, ls = dist.get_orthogonal_selection((slice(None), sample)), lod.get_orthogonal_selection((slice(None), sample))
-    reg = w["registration_error"][:]
-    ref_var = w["ref_spread"][:] ** 2 / w["ref_count"][:]
-    vs = observation_variance(ls, reg, ref_var[sample])
-    q = process_noise(zs.astype(np.float64), vs, times)
-    good = np.isfinite(vs) & (vs > 0)
-    scale = float(np.sqrt(np.median(vs[good]))) if good.any() else 1.0  # one diffuse start for every block
-    onset = np.full(m, -1, np.int32)
-    kind = np.zeros(m, np.int8)
-    steps = 0
+        q, scale, dt = frozen["process_noise"], frozen["diffuse_scale"], frozen["diffuse_dt"]
+    step = np.full(m, -1, np.int32)
+    saved = []
     held = None
     for a in range(0, m, col):
         b = min(m, a + col)
-        zc, lc = (whole[0], whole[1]) if whole is not None else (dist[:, a:b], lod[:, a:b])
-        results = [np.empty((E, b - a), np.float32) for _ in names]
+        zc, lc = whole if whole is not None else inputs(a, b)
+        results = [np.empty((R, b - a), np.float32) for _ in names]
         for c in range(0, b - a, block):
             d = min(b - a, c + block)
             z = zc[:, c:d].astype(np.float64)
-            var = observation_variance(lc[:, c:d], reg, ref_var[a + c:a + d])
-            sm, vel, ssd, vsd, step = smooth(z, var, times, q, scale=scale)
+            var = observation_variance(lc[:, c:d], reg[a0:], ref_var[a + c:a + d])
+            sm, vel, ssd, vsd, step[a + c:a + d], kept = kalman(z, var, times, q, lag=lag, scale=scale, dt=dt,
+                                                                state=state.columns(a + c, a + d))
             ssd = np.sqrt(ssd**2 + ref_var[a + c:a + d])  # the reference's error, shared by every epoch
             for out, v in zip(results, (sm, vel, ssd, vsd)):
                 out[:, c:d] = v
-            onset[a + c:a + d], kind[a + c:a + d] = onsets(sm, ssd, step)
-            steps += int((step >= 0).sum())
-        for name, v in zip(names, results):
-            outs[name][:, a:b] = v
+            saved.append(kept)
+        w.set_all({name: ((slice(r0, E), slice(a, b)), v) for name, v in zip(names, results)})
         if whole is not None:
             held = (results[0], results[2], results[1])
-    w.write("onset", onset, ("point",), attrs={"meaning": "epoch the change starts, -1: none"})
-    w.write("onset_kind", kind, ("point",), attrs={"meaning": "0 none, 1 step, 2 gradual"})
-    return float(q), {"block_points": block, "core_points_with_step": steps}, held
+    filt = FilterState(saved[0].epoch, np.concatenate([s.x for s in saved]), np.concatenate([s.seen for s in saved]),
+                       np.concatenate([s.step for s in saved]))
+    # the inputs after the saved epoch, for the next run
+    keep = filt.epoch + 1
+    if whole is not None:
+        recent = whole[0][keep - a0:], whole[1][keep - a0:]
+    else:
+        recent = inputs(0, m) if keep == a0 else (dist[keep:], lod[keep:])
+    info = {"block_points": block, "core_points_with_step": int((step >= 0).sum()), "first_row": r0,
+            "estimated_from_epochs": first_epochs, "diffuse_scale": scale, "diffuse_dt": dt}
+    return float(q), info, held, filt, step, recent

@@ -1,4 +1,4 @@
-"""Change through time at every core point: a constant-velocity Kalman filter and its
+"""Change through time at every core point: a constant-velocity Kalman filter and a fixed-lag
 Rauch–Tung–Striebel smoother, with steps taken as they come.
 
 State ``(d, v)``: the change since the reference and its rate. Between epochs ``dt`` apart the
@@ -7,9 +7,8 @@ change moves by ``v·dt`` and a white-noise acceleration of spectral density ``q
 level of detection, ``(lod/1.96)²`` (M3C2's LoD95 is 1.96 standard deviations), as Winiwarter
 et al. [1]_ do, less the reference cylinder's part: every epoch is measured against the same
 reference, so that part is one error shared by the whole series, which smoothing cannot average
-away; the caller adds it once to the smoothed variance
-(:func:`observation_variance`). Not-comparable epochs are skipped
-(prediction only).
+away; the caller adds it once to the smoothed variance (:func:`observation_variance`).
+Not-comparable epochs are skipped (prediction only).
 
 - **Process noise from the data**: ``q`` makes the robust spread (1.4826 × the median absolute
   value) of the standardised second differences of the observed series equal to one: the
@@ -23,16 +22,17 @@ away; the caller adds it once to the smoothed variance
   the position's variance is raised by the innovation's square before the update, so the filter
   takes the new level at once and the smoother does not carry the step back into the epochs
   before it (an intervention, as in structural time-series models [2]_). Its epoch is recorded.
-  A step too small for one epoch to show is found afterwards by all the epochs together
-  (:func:`step_scan`: a line plus a step against the line, the step's epoch chosen where it
-  explains most, kept beyond 16, 4σ); those points are smoothed again with the step there. A
-  step found on stable ground re-levels a series that stays near zero: no change, no onset.
+- **Fixed lag** [3]_ [4]_: epoch ``k`` is smoothed with the epochs up to ``k + lag`` (all of
+  them for the last ``lag``). A smoother over the whole series would change every epoch when one
+  is added; with a lag, an epoch is final once ``lag`` more have come, so appending an epoch
+  filters on from the state saved ``lag`` epochs back and rewrites ``lag + 1`` rows, and the
+  result is that of a run over all the epochs. The smoother's memory is the lag: a velocity is
+  the slope of about ``lag`` epochs around it at most.
 - Smoothed values and their standard deviations (the smoother's covariance) for ``d`` and ``v``.
 
-The filter, the smoother and the step scan are Numba kernels that take one core point at a time
-(in parallel) through its epochs, reading a copy of the block with each point's epochs side by
-side; :func:`smooth` is called on blocks of core points sized from the memory limit
-(:data:`BYTES_PER_VALUE`).
+The filter and the smoother are a Numba kernel that takes one core point at a time (in parallel)
+through its epochs, reading a copy of the block with each point's epochs side by side; callers
+size blocks of core points from the memory limit (:data:`BYTES_PER_VALUE`).
 
 References
 ----------
@@ -43,6 +43,8 @@ References
    Cambridge University Press (1989).
 .. [3] H. E. Rauch, F. Tung, C. T. Striebel, "Maximum likelihood estimates of linear dynamic
    systems", AIAA Journal 3(8) (1965) 1445–1450.
+.. [4] S. Särkkä, "Bayesian Filtering and Smoothing", Cambridge University Press (2013), ch. 8
+   (fixed-lag smoothing).
 """
 
 from __future__ import annotations
@@ -50,15 +52,13 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["observation_variance", "process_noise", "smooth", "kalman", "step_scan", "BYTES_PER_VALUE"]
+__all__ = ["observation_variance", "process_noise", "kalman", "FilterState", "BYTES_PER_VALUE"]
 
-#: Working memory of :func:`smooth` and its caller per epoch and core point, a bound: the float64
-#: inputs and their transposed copies (32 B), the four float64 outputs (32 B) and as much again for
-#: the columns smoothed a second time, the float32 reads and results (24 B); 320 leaves room for
-#: the allocator and NumPy's temporaries.
+#: Working memory of :func:`kalman` and its caller per epoch and core point, a bound: the float64
+#: inputs and their transposed copies (32 B), the four float64 outputs (32 B), the kernel's
+#: scratch (80 B), the float32 reads and results (24 B); 320 leaves room for NumPy's temporaries.
 BYTES_PER_VALUE = 320
 _STEP_K = 4.0
-_SCAN = 16.0  # the step scan's statistic (χ²(1) at one epoch): 4σ, 6e-5 per epoch tried
 
 
 def observation_variance(lod: np.ndarray, registration_error: np.ndarray, ref_var: np.ndarray) -> np.ndarray:
@@ -113,195 +113,195 @@ def process_noise(z: np.ndarray, var: np.ndarray, t: np.ndarray, *, max_samples:
     return max(hi, floor)
 
 
-def step_scan(z: np.ndarray, var: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(best step epoch, its statistic) per column: the likelihood ratio of a line plus a step at
-    epoch s against the line alone (weighted least squares, weights 1/var), maximised over s with
-    at least two observations on each side; χ²(1) for one s. All s at once from sums over the
-    tail: with the line's residuals r, the statistic is (Σ_{k≥s} w r)² / (Σ_{k≥s} w − gᵀG⁻¹g)."""
-    z = np.asarray(z, np.float64)
-    t = np.asarray(t, np.float64)
-    at = np.zeros(z.shape[1], np.int64)
-    stat = np.zeros(z.shape[1])
-    if len(t):  # each point's epochs side by side, as the kernel walks them
-        _step_scan(np.ascontiguousarray(z.T), np.ascontiguousarray(np.asarray(var, np.float64).T), t - t.mean(), at,
-                   stat)
-    return at, stat
+class FilterState:
+    """Each core point's filter after one epoch (``epoch``; -1: before the first), which a later
+    run filters on from: the state ``(d, v)`` and its covariance (00, 01, 11) in ``x`` (m, 5), the
+    first epoch observed (``seen``, a large number if none) and of the first step (``step``, -1)."""
+
+    def __init__(self, epoch: int, x: np.ndarray, seen: np.ndarray, step: np.ndarray):
+        self.epoch, self.x, self.seen, self.step = int(epoch), x, seen, step
+
+    @classmethod
+    def start(cls, m: int) -> "FilterState":
+        return cls(-1, np.zeros((m, 5)), np.full(m, 2**62, np.int64), np.full(m, -1, np.int32))
+
+    def columns(self, a: int, b: int) -> "FilterState":
+        return FilterState(self.epoch, self.x[a:b], self.seen[a:b], self.step[a:b])
 
 
-@nb.njit(cache=True, parallel=True)
-def _step_scan(z, var, tc, at, stat):
-    """:func:`step_scan`'s kernel on (points, epochs) arrays, centred times ``tc``: fills ``at``, ``stat``."""
-    m, E = z.shape
-    for j in nb.prange(m):
-        s0 = s1 = s2 = z0 = z1 = 0.0
-        n_ok = 0
-        for k in range(E):
-            if np.isfinite(z[j, k]) and np.isfinite(var[j, k]) and var[j, k] > 0:
-                w = 1.0 / var[j, k]
-                s0 += w
-                s1 += w * tc[k]
-                s2 += w * tc[k] * tc[k]
-                z0 += w * z[j, k]
-                z1 += w * tc[k] * z[j, k]
-                n_ok += 1
-        det = s0 * s2 - s1 * s1
-        if not det > 1e-300 * max(s0 * s2, 1e-300):
-            continue
-        a, b = (s2 * z0 - s1 * z1) / det, (s0 * z1 - s1 * z0) / det
-        num = g0 = g1 = 0.0
-        count = 0
-        best, best_at = 0.0, 0
-        for k in range(E - 1, 0, -1):  # the tail sums Σ_{k≥s}; s = 0 is no step
-            if np.isfinite(z[j, k]) and np.isfinite(var[j, k]) and var[j, k] > 0:
-                w = 1.0 / var[j, k]
-                num += w * (z[j, k] - a - b * tc[k])
-                g0 += w
-                g1 += w * tc[k]
-                count += 1
-            den = g0 - (s2 * g0 * g0 - 2 * s1 * g0 * g1 + s0 * g1 * g1) / det
-            if count >= 2 and count <= n_ok - 2 and den > 1e-12 * max(g0, 1e-300):
-                value = num * num / den
-                if value > 0 and value >= best:  # ties: the earliest epoch (none found: 0)
-                    best, best_at = value, k
-        at[j] = best_at
-        stat[j] = best
-
-
-def smooth(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: float = _STEP_K,
-           scan: float = _SCAN, scale: float | None = None):
-    """The smoother of :func:`kalman` with steps found twice: by the filter's innovations, then by
-    :func:`step_scan` where a step too small for one epoch to show is seen by all of them (its
-    statistic beyond ``scan``); those points are smoothed again with a step there. Same returns
-    as :func:`kalman`."""
-    sm, vel, ssd, vsd, step = kalman(z, var, t, q, step_k=step_k, scale=scale)
-    if len(t) < 5 or not scan:
-        return sm, vel, ssd, vsd, step
-    at, stat = step_scan(z, var, t)
-    todo = np.flatnonzero((stat > scan) & (step < 0))
-    if todo.size:
-        again = kalman(z[:, todo], var[:, todo], t, q, step_k=step_k, forced=at[todo], scale=scale)
-        for out, new in zip((sm, vel, ssd, vsd), again[:4]):
-            out[:, todo] = new
-        step[todo] = np.where((again[4] >= 0) & (again[4] < at[todo]), again[4], at[todo])
-    return sm, vel, ssd, vsd, step
-
-
-def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, step_k: float = _STEP_K, forced=None,
-           scale: float | None = None):
-    """Kalman filter and RTS smoother of each column of ``z`` (epochs, points).
+def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, lag: int, scale: float, dt: float,
+           state: FilterState | None = None, step_k: float = _STEP_K):
+    """Kalman filter and fixed-lag RTS smoother of each column of ``z``.
 
     Parameters
     ----------
-    z, var : ndarray (E, m)
-        Observed change and its variance (NaN: no observation).
+    z, var : ndarray (W, m)
+        Observed change and its variance (NaN: no observation) at the epochs after
+        ``state.epoch``, up to the last of the series.
     t : ndarray (E,)
-        Epoch times, increasing.
+        All the epochs' times, increasing (``E = state.epoch + 1 + W``).
     q : float
         Process noise density (:func:`process_noise`).
+    lag : int
+        Epochs smoothed with those up to ``lag`` after them; the last ``lag`` with all that follow.
+    scale, dt : float
+        The noise's typical standard deviation and the typical time step, which set the width of
+        the diffuse start (a run and its appends give the same values for every block).
+    state : FilterState, optional
+        The filter after epoch ``state.epoch`` (default: before the first epoch).
     step_k : float
         Innovations beyond this many standard deviations, confirmed by the next epoch, are steps.
-    forced : ndarray (m,) int, optional
-        An epoch per point where a step is taken whatever its innovation (-1: none).
-    scale : float, optional
-        The noise's typical standard deviation, which sets the width of the diffuse start
-        (default: from these columns; give one value for every block of a series, so that blocks
-        give the numbers of the whole).
 
     Returns
     -------
-    (smoothed, velocity, smoothed_sigma, velocity_sigma) : ndarray (E, m) float64
+    (smoothed, velocity, smoothed_sigma, velocity_sigma) : ndarray (R, m) float64
+        Rows ``r0 = max(state.epoch, 0)`` to ``E - 1``: the saved epoch's row is final now.
     step : ndarray (m,) int32
-        The epoch of each point's first step, -1 if none.
+        The epoch of each point's first step up to the last epoch, -1 if none.
+    saved : FilterState
+        The filter after epoch ``E - 1 - lag``, from which the next run (one more epoch or more)
+        filters on.
     """
     z = np.ascontiguousarray(z, np.float64)
     var = np.ascontiguousarray(var, np.float64)
     t = np.asarray(t, np.float64)
-    E, m = z.shape
-    if scale is None:
-        ok = np.isfinite(z) & np.isfinite(var) & (var > 0)
-        scale = float(np.sqrt(np.median(var[ok]))) if ok.any() else 1.0
-    dt0 = float(np.median(np.diff(t))) if E > 1 else 1.0
+    W, m = z.shape
+    state = FilterState.start(m) if state is None else state
+    E = state.epoch + 1 + W
+    if len(t) != E:
+        raise ValueError(f"{len(t)} times for {E} epochs")
     # a diffuse start, 1000 noise deviations wide: wider, and the smoother's 2×2 inverse loses its digits
-    big_d, big_v = (1e3 * scale) ** 2, (1e3 * scale / dt0) ** 2
-    forced = np.full(m, -1, np.int64) if forced is None else np.asarray(forced, np.int64)
-    out = np.empty((4, E, m))
-    step = np.full(m, -1, np.int32)
+    big_d, big_v = (1e3 * scale) ** 2, (1e3 * scale / dt) ** 2
+    r0 = max(state.epoch, 0)
+    out = np.empty((4, E - r0, m))
+    keep = E - 1 - lag
+    x_out = state.x.copy()
+    seen = state.seen.copy()
+    step = state.step.copy()
     # the inputs with each point's epochs side by side, as the kernel reads them
-    _kalman_columns(np.ascontiguousarray(z.T), np.ascontiguousarray(var.T), t, float(q), float(step_k), forced,
-                    big_d, big_v, out, step)
-    return out[0], out[1], out[2], out[3], step
+    _fixed_lag(np.ascontiguousarray(z.T), np.ascontiguousarray(var.T), t, float(q), float(step_k), big_d, big_v,
+               int(lag), state.epoch, np.ascontiguousarray(state.x), keep, x_out, seen, step, out)
+    if keep > state.epoch:
+        saved = FilterState(keep, x_out, np.where(seen <= keep, seen, 2**62), np.where(step <= keep, step, -1)
+                            .astype(np.int32))
+    else:  # too few epochs yet to move the saved state
+        saved = state
+    return out[0], out[1], out[2], out[3], step, saved
 
 
 @nb.njit(cache=True, parallel=True)
-def _kalman_columns(z, var, t, q, step_k, forced, big_d, big_v, out, step):
-    """The filter and smoother of :func:`kalman` on (points, epochs) arrays, one core point per
-    iteration (its epochs in a scratch of ten values per epoch)."""
-    m, E = z.shape
-    for j in nb.prange(m):
-        xp = np.empty((E, 2))  # predictions
-        Pp = np.empty((E, 3))  # their covariances: 00, 01, 11
-        xf = np.empty((E, 2))
-        Pf = np.empty((E, 3))
+def _fixed_lag(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, seen, step, out):
+    """:func:`kalman`'s kernel on (points, epochs) arrays, one core point per iteration (its epochs
+    in a scratch of ten values per epoch): filtered on from epoch ``f`` (state ``x_in``), the state
+    after epoch ``keep`` written to ``x_out``, rows from ``max(f, 0)`` smoothed into ``out``."""
+    m, W = z.shape
+    E = f + 1 + W
+    base = max(f, 0)  # epoch of the scratch's first row
+    R = E - base
+    per = 64  # points per task: the scratch allocated once for them
+    for block in nb.prange((m + per - 1) // per):
+        xp = np.empty((R, 2))  # predictions
+        Pp = np.empty((R, 3))  # their covariances: 00, 01, 11
+        xf = np.empty((R, 2))
+        Pf = np.empty((R, 3))
+        for j in range(block * per, min(m, block * per + per)):
+            _one_point(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
+                       xp, Pp, xf, Pf)
+
+
+@nb.njit(cache=True, inline="always")
+def _one_point(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
+               xp, Pp, xf, Pf):
+    """:func:`_fixed_lag` for core point ``j`` in the scratch ``xp, Pp, xf, Pf``."""
+    if f >= 0:
+        x0, x1 = x_in[j, 0], x_in[j, 1]
+        p00, p01, p11 = x_in[j, 2], x_in[j, 3], x_in[j, 4]
+        xf[0, 0], xf[0, 1] = x0, x1
+        Pf[0, 0], Pf[0, 1], Pf[0, 2] = p00, p01, p11
+    else:
         x0, x1 = 0.0, 0.0
         p00, p01, p11 = big_d, 0.0, big_v
-        seen = False
-        for k in range(E):
-            if k:
-                h = t[k] - t[k - 1]
-                x0 = x0 + h * x1
-                p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3.0,
-                                 p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
-                if forced[j] == k:
-                    p00 = p00 + big_d
-            ok = np.isfinite(z[j, k]) and np.isfinite(var[j, k]) and var[j, k] > 0
-            seen = seen or ok
-            nu = z[j, k] - x0 if ok else 0.0
-            s = p00 + var[j, k] if ok else np.inf
-            if ok and 0 < k < E - 1:
-                ok2 = np.isfinite(z[j, k + 1]) and np.isfinite(var[j, k + 1]) and var[j, k + 1] > 0
-                if ok2:
-                    h = t[k + 1] - t[k]
-                    nu2 = z[j, k + 1] - (x0 + h * x1)
-                    s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, k + 1]
-                    if (abs(nu) > step_k * np.sqrt(s) and abs(nu2) > step_k * np.sqrt(s2)
-                            and np.sign(nu) == np.sign(nu2)):
-                        p00 = p00 + nu * nu
-                        s = s + nu * nu
-                        if step[j] < 0:
-                            step[j] = k
-            xp[k, 0], xp[k, 1] = x0, x1
-            Pp[k, 0], Pp[k, 1], Pp[k, 2] = p00, p01, p11
-            g0, g1 = p00 / s, p01 / s  # gain (0 where there is no observation: s = inf)
-            x0, x1 = x0 + g0 * nu, x1 + g1 * nu
-            p00, p01, p11 = p00 - g0 * p00, p01 - g0 * p01, p11 - g1 * p01
-            xf[k, 0], xf[k, 1] = x0, x1
-            Pf[k, 0], Pf[k, 1], Pf[k, 2] = p00, p01, p11
-        if not seen:
-            out[:, :, j] = np.nan
-            continue
-        # Rauch–Tung–Striebel: back from the last epoch
-        s0, s1 = x0, x1
-        q00, q01, q11 = p00, p01, p11
-        out[0, E - 1, j], out[1, E - 1, j] = s0, s1
-        out[2, E - 1, j], out[3, E - 1, j] = np.sqrt(max(q00, 0.0)), np.sqrt(max(q11, 0.0))
-        for k in range(E - 2, -1, -1):
-            h = t[k + 1] - t[k]
-            f00, f01, f11 = Pf[k, 0], Pf[k, 1], Pf[k, 2]
-            # C = Pf F' Pp⁻¹ with F = [[1, h], [0, 1]]
-            a00, a01, a10, a11 = f00 + h * f01, f01, f01 + h * f11, f11
-            b00, b01, b11 = Pp[k + 1, 0], Pp[k + 1, 1], Pp[k + 1, 2]
-            det = b00 * b11 - b01 * b01
-            i00, i01, i11 = b11 / det, -b01 / det, b00 / det
-            c00, c01 = a00 * i00 + a01 * i01, a00 * i01 + a01 * i11
-            c10, c11 = a10 * i00 + a11 * i01, a10 * i01 + a11 * i11
-            e0, e1 = s0 - xp[k + 1, 0], s1 - xp[k + 1, 1]
-            s0, s1 = xf[k, 0] + c00 * e0 + c01 * e1, xf[k, 1] + c10 * e0 + c11 * e1
-            d00, d01, d11 = q00 - b00, q01 - b01, q11 - b11
-            # P = Pf + C D C'
-            t00, t01 = c00 * d00 + c01 * d01, c00 * d01 + c01 * d11
-            t10, t11 = c10 * d00 + c11 * d01, c10 * d01 + c11 * d11
-            q00 = f00 + t00 * c00 + t01 * c01
-            q01 = f01 + t00 * c10 + t01 * c11
-            q11 = f11 + t10 * c10 + t11 * c11
-            out[0, k, j], out[1, k, j] = s0, s1
-            out[2, k, j], out[3, k, j] = np.sqrt(max(q00, 0.0)), np.sqrt(max(q11, 0.0))
+    for k in range(f + 1, E):
+        w = k - f - 1  # column of the inputs
+        r = k - base  # row of the scratch
+        if k:
+            h = t[k] - t[k - 1]
+            x0 = x0 + h * x1
+            p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3.0,
+                             p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
+        ok = np.isfinite(z[j, w]) and np.isfinite(var[j, w]) and var[j, w] > 0
+        if ok and seen[j] > k:
+            seen[j] = k
+        nu = z[j, w] - x0 if ok else 0.0
+        s = p00 + var[j, w] if ok else np.inf
+        if ok and 0 < k < E - 1:
+            ok2 = np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1]) and var[j, w + 1] > 0
+            if ok2:
+                h = t[k + 1] - t[k]
+                nu2 = z[j, w + 1] - (x0 + h * x1)
+                s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, w + 1]
+                if (abs(nu) > step_k * np.sqrt(s) and abs(nu2) > step_k * np.sqrt(s2)
+                        and np.sign(nu) == np.sign(nu2)):
+                    p00 = p00 + nu * nu
+                    s = s + nu * nu
+                    if step[j] < 0:
+                        step[j] = k
+        xp[r, 0], xp[r, 1] = x0, x1
+        Pp[r, 0], Pp[r, 1], Pp[r, 2] = p00, p01, p11
+        g0, g1 = p00 / s, p01 / s  # gain (0 where there is no observation: s = inf)
+        x0, x1 = x0 + g0 * nu, x1 + g1 * nu
+        p00, p01, p11 = p00 - g0 * p00, p01 - g0 * p01, p11 - g1 * p01
+        xf[r, 0], xf[r, 1] = x0, x1
+        Pf[r, 0], Pf[r, 1], Pf[r, 2] = p00, p01, p11
+        if k == keep:
+            x_out[j, 0], x_out[j, 1] = x0, x1
+            x_out[j, 2], x_out[j, 3], x_out[j, 4] = p00, p01, p11
+    # rows final now (each smoothed from lag epochs on), then the last ones from the last epoch
+    last = E - 1
+    for row in range(base, E):
+        end = min(row + lag, last)
+        if row + lag < last or row == max(base, last - lag):
+            _rts(t, xp, Pp, xf, Pf, base, end, row, seen[j], out, j)
+        if row + lag >= last:
+            break
+
+
+@nb.njit(cache=True, inline="always")
+def _rts(t, xp, Pp, xf, Pf, base, end, stop, seen, out, j):
+    """Rauch–Tung–Striebel back from epoch ``end`` to ``stop``: rows ``stop`` (and, from the last
+    epoch, every row down to it) of ``out``; NaN where nothing was observed up to ``end``."""
+    last = out.shape[1] + base - 1
+    if seen > end:
+        for k in range(stop, end + 1 if end == last else stop + 1):
+            for a in range(4):
+                out[a, k - base, j] = np.nan
+        return
+    r = end - base
+    s0, s1 = xf[r, 0], xf[r, 1]
+    q00, q01, q11 = Pf[r, 0], Pf[r, 1], Pf[r, 2]
+    if end == last:
+        out[0, r, j], out[1, r, j] = s0, s1
+        out[2, r, j], out[3, r, j] = np.sqrt(max(q00, 0.0)), np.sqrt(max(q11, 0.0))
+    for k in range(end - 1, stop - 1, -1):
+        r = k - base
+        h = t[k + 1] - t[k]
+        f00, f01, f11 = Pf[r, 0], Pf[r, 1], Pf[r, 2]
+        # C = Pf F' Pp⁻¹ with F = [[1, h], [0, 1]]
+        a00, a01, a10, a11 = f00 + h * f01, f01, f01 + h * f11, f11
+        b00, b01, b11 = Pp[r + 1, 0], Pp[r + 1, 1], Pp[r + 1, 2]
+        det = b00 * b11 - b01 * b01
+        i00, i01, i11 = b11 / det, -b01 / det, b00 / det
+        c00, c01 = a00 * i00 + a01 * i01, a00 * i01 + a01 * i11
+        c10, c11 = a10 * i00 + a11 * i01, a10 * i01 + a11 * i11
+        e0, e1 = s0 - xp[r + 1, 0], s1 - xp[r + 1, 1]
+        s0, s1 = xf[r, 0] + c00 * e0 + c01 * e1, xf[r, 1] + c10 * e0 + c11 * e1
+        d00, d01, d11 = q00 - b00, q01 - b01, q11 - b11
+        # P = Pf + C D C'
+        t00, t01 = c00 * d00 + c01 * d01, c00 * d01 + c01 * d11
+        t10, t11 = c10 * d00 + c11 * d01, c10 * d01 + c11 * d11
+        q00 = f00 + t00 * c00 + t01 * c01
+        q01 = f01 + t00 * c10 + t01 * c11
+        q11 = f11 + t10 * c10 + t11 * c11
+        if end == last or k == stop:
+            out[0, r, j], out[1, r, j] = s0, s1
+            out[2, r, j], out[3, r, j] = np.sqrt(max(q00, 0.0)), np.sqrt(max(q11, 0.0))

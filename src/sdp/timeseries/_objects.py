@@ -1,31 +1,38 @@
-"""4D objects of change and the epoch each change starts.
+"""4D objects of change, tracked epoch by epoch, and the epoch each change starts.
 
 A core point at an epoch is *changed* when its smoothed change is significant: ``|smoothed| >
-1.96·smoothed_sigma`` (the smoother's own 95 % bound). Changed (epoch, point) pairs of the same
-sign are joined to their spatial neighbours at the same epoch (core points closer than
-``radius``, by default 1.5 × the 90th percentile of the core points' spacing) and to themselves at the
-next epoch, where both changed in one way: gradually, or by steps at the same epoch (± 1; the
-steps of :mod:`sdp.timeseries._kalman`), since a step and a creep beside it, or two steps at
-different epochs, are different events. The connected sets in space and time are the 4D objects
-of change, like the objects-by-change of Anders et al. [1]_, here grown from every significant
-pair at once instead of from seeds. Sets of fewer than ``min_points`` distinct core points are noise and are left out
-(object 0): ten, or as many as cover three cylinders' footprints if the core points are denser
-than the cylinders (:func:`min_object_points`: neighbouring cylinders then share their points and
-their noise). An object *starts* at the first epoch at which ``min_points`` of its core points are
-changed together (the first epoch with any, if it never has that many at once): a few core points
-at its rim, where a change smoothed over time leaks before it happens, do not date it.
+1.96·smoothed_sigma`` (the smoother's own 95 % bound). Changed core points of the same sign are
+joined to their spatial neighbours at the same epoch (core points closer than ``radius``, by
+default 1.5 × the 90th percentile of the core points' spacing) where both changed in one way:
+gradually, or by steps at the same epoch (± 1; the steps of :mod:`sdp.timeseries._kalman`),
+since a step and a creep beside it, or two steps at different epochs, are different events.
+Each epoch's connected sets continue the tracks of the epoch before that share a core point
+changed the same way in both, as the objects-by-change of Anders et al. [1]_ grow in space and
+time; a set touching no track starts one. Tracks are followed forward only, so an epoch's
+objects never change once its smoothed values are final (:mod:`sdp.timeseries._kalman`'s lag):
 
-A series that fits in memory is one graph over every (epoch, point), cut into components by one
-union-find (:func:`objects_in_memory`). Beyond memory the work streams over the epochs
-(:func:`find_objects`): each epoch's spatial components, then the components of consecutive
-epochs that share a point are joined (a union over component ids); a second pass gives every
-pair its object and sums the object table. Memory: the neighbour pairs, two epochs' rows and one
-id per component. Both give the same objects (tested).
+- a set that touches several tracks continues the oldest object among them (the smallest id),
+  or if none is an object yet, the oldest track; an object that loses this way ends the epoch
+  before (two changes that meet are two objects, the younger ending where they meet), and a
+  track that is not yet an object is taken in whole;
+- a set's track splits when it does: the parts keep its id;
+- a track becomes an object at the first epoch at which ``min_points`` of its core points are
+  changed together (:func:`min_object_points`: ten, or as many as cover three cylinders'
+  footprints where core points are denser than the cylinders, which then share their noise);
+  its ids count from 1 in that order, its rows are labelled from that epoch (0 before and for
+  tracks that never grow so large: noise);
+- the object table: the epochs it starts and ends, its distinct core points and their area,
+  its largest smoothed change (signed) and its mean velocity over every (epoch, point) of the
+  track, including those before it became an object.
 
 The onset of a core point's change is the first epoch from which its smoothed change stays
-significant for two epochs running, or the epoch of its first step (:mod:`sdp.timeseries._kalman`)
-if that comes first; ``onset_kind`` says which (1: step, 2: gradual). A step with no significant
-change after it is no onset.
+significant for two epochs running, or the epoch of its first step if that comes first;
+``onset_kind`` says which (1: step, 2: gradual). A step with no significant change after it is
+no onset.
+
+:class:`Tracker` holds what an epoch needs of the ones before (each point's track and sign at the
+last epoch, the live tracks, the objects' table, the onsets), so that a run saves it after the
+last final epoch and an append goes on from there.
 
 References
 ----------
@@ -36,18 +43,19 @@ References
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numba as nb
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
-__all__ = ["neighbour_pairs", "find_objects", "objects_in_memory", "onsets", "OBJECT_FIELDS"]
+__all__ = ["neighbour_pairs", "min_object_points", "Tracker", "OBJECT_FIELDS"]
 
 OBJECT_FIELDS = ("object_start", "object_end", "object_start_time", "object_end_time", "object_points",
                  "object_area", "object_peak_change", "object_mean_velocity")
+#: The per-track numbers of :class:`Tracker` (live tracks, and the objects' table): one array each.
+_TRACK = ("uid", "obj", "first", "end", "peak", "vsum", "vcount")
+_OBJECT = ("start", "end", "points", "peak", "vsum", "vcount")
 
 
 def neighbour_pairs(xyz: np.ndarray, radius: float | None = None) -> tuple[np.ndarray, np.ndarray, float, float]:
@@ -55,6 +63,8 @@ def neighbour_pairs(xyz: np.ndarray, radius: float | None = None) -> tuple[np.nd
     (default 1.5 × the 90th percentile of the nearest-neighbour spacing: core points subsampled
     on a grid lie up to a cell and a half apart and must still touch); the area is the median
     spacing squared."""
+    from scipy.spatial import cKDTree  # imported here: an append reads the pairs it saved (0.2–1 s of imports)
+
     tree = cKDTree(xyz)
     if len(xyz) > 1:
         d, _ = tree.query(xyz[:: max(1, len(xyz) // 5000)], k=2)
@@ -83,61 +93,6 @@ def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndar
     return out, _epoch_labels(np.ascontiguousarray(sign, np.int8), i, j, out)
 
 
-def _table(start, first, end, npts, peak, vsum, vcount, anchor, min_points, times, radius, area):
-    """The object table of the roots with at least ``min_points`` core points, largest first; (table, root → id)."""
-    start = np.where(start >= len(times), first, start)
-    kept = np.flatnonzero(npts >= min_points)
-    kept = kept[np.lexsort((anchor[kept], start[kept], -npts[kept]))]  # largest, then earliest, first
-    ids = np.zeros(len(npts), np.int32)
-    ids[kept] = np.arange(1, len(kept) + 1, dtype=np.int32)
-    return {"object_start": start[kept].astype(np.int32), "object_end": end[kept].astype(np.int32),
-            "object_start_time": times[start[kept]], "object_end_time": times[end[kept]],
-            "object_points": npts[kept].astype(np.int64), "object_area": npts[kept] * area,
-            "object_peak_change": peak[kept], "object_mean_velocity": vsum[kept] / np.maximum(vcount[kept], 1),
-            "radius": radius, "area_per_point": area}, ids
-
-
-def objects_in_memory(smoothed, sigma, velocity, xyz, times, *, min_points: int, step=None, radius=None):
-    """:func:`find_objects` on a whole series in memory (epochs, points): one graph over every
-    (epoch, point), one union-find; (table, object ids (epochs, points) int32)."""
-    i, j, radius, area = neighbour_pairs(xyz, radius)
-    E, m = smoothed.shape
-    step = np.full(m, -1) if step is None else np.asarray(step)
-    together = (step[i] < 0) & (step[j] < 0) | (step[i] >= 0) & (step[j] >= 0) & (np.abs(step[i] - step[j]) <= 1)
-    sig = np.isfinite(smoothed) & np.isfinite(sigma) & (np.abs(smoothed) > 1.96 * sigma)
-    sign = np.where(sig, np.sign(smoothed), 0).astype(np.int8)
-    label = _space_time_labels(sign, i[together], j[together])
-    node = np.flatnonzero(sign.reshape(-1))
-    uniq, root = np.unique(label[node], return_inverse=True)
-    n_roots = len(uniq)
-    epoch, point = node // m, node % m
-    start = np.full(n_roots, E, np.int64)
-    first = np.full(n_roots, E, np.int64)
-    end = np.full(n_roots, -1, np.int64)
-    np.minimum.at(first, root, epoch)
-    np.maximum.at(end, root, epoch)
-    keys, counts = np.unique(root * E + epoch, return_counts=True)
-    full = counts >= min_points
-    np.minimum.at(start, keys[full] // E, keys[full] % E)
-    d = smoothed.reshape(-1)[node]
-    order = np.lexsort((-np.abs(d), root))
-    head = np.ones(len(order), bool)
-    head[1:] = root[order[1:]] != root[order[:-1]]
-    peak = np.zeros(n_roots)
-    peak[root[order[head]]] = d[order[head]]
-    v = velocity.reshape(-1)[node]
-    fv = np.isfinite(v)
-    vsum = np.bincount(root[fv], v[fv], minlength=n_roots)
-    vcount = np.bincount(root[fv], minlength=n_roots).astype(np.float64)
-    npts = np.bincount(np.unique(root * m + point) // m, minlength=n_roots)
-    anchor = np.full(n_roots, E * m, np.int64)
-    np.minimum.at(anchor, root, node)
-    table, ids = _table(start, first, end, npts, peak, vsum, vcount, anchor, min_points, times, radius, area)
-    labels = np.zeros(E * m, np.int32)
-    labels[node] = ids[root]
-    return table, labels.reshape(E, m)
-
-
 @nb.njit(cache=True, inline="always")
 def _find(parent, a):
     while parent[a] != a:  # path halving
@@ -153,29 +108,6 @@ def _union(parent, a, b):
         parent[rb] = ra
     elif rb < ra:
         parent[ra] = rb
-
-
-@nb.njit(cache=True, parallel=True)
-def _space_time_labels(sign, i, j):
-    """Per (epoch, point) node ``k·m + p``, the smallest node of its component: neighbours ``i[e],
-    j[e]`` of one sign at one epoch, a point of one sign at consecutive epochs (a union-find; each
-    epoch's own unions touch only its nodes, so the epochs run in parallel)."""
-    E, m = sign.shape
-    parent = np.arange(E * m)
-    for k in nb.prange(E):
-        base = k * m
-        for e in range(len(i)):
-            sa = sign[k, i[e]]
-            if sa != 0 and sa == sign[k, j[e]]:
-                _union(parent, base + i[e], base + j[e])
-    for k in range(E - 1):
-        base = k * m
-        for p in range(m):
-            if sign[k, p] != 0 and sign[k, p] == sign[k + 1, p]:
-                _union(parent, base + p, base + m + p)
-    for a in range(E * m):
-        parent[a] = _find(parent, a)
-    return parent
 
 
 @nb.njit(cache=True)
@@ -199,104 +131,207 @@ def _epoch_labels(sign, i, j, out):
     return n
 
 
-def find_objects(read_epoch, n_epochs: int, xyz: np.ndarray, times: np.ndarray, *, min_points: int,
-                 step: np.ndarray | None = None, radius: float | None = None, write=None) -> dict:
-    """The 4D objects of change (see the module docstring).
+def _first_per_group(group: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """Indices of the row of smallest ``key`` in each group (groups sorted ascending)."""
+    order = np.lexsort((key, group))
+    head = np.ones(len(order), bool)
+    head[1:] = group[order[1:]] != group[order[:-1]]
+    return order[head]
 
-    ``read_epoch(k)`` returns (smoothed, smoothed_sigma, velocity) of epoch ``k``; ``write(k,
-    labels)`` receives each epoch's object ids (int32, 0: none). Returns the object table
-    (:data:`OBJECT_FIELDS`, objects ordered by size, ids 1…) and the neighbourhood used.
-    ``step``: each core point's step epoch (-1: none); neighbours join only if both changed
-    gradually or both stepped within an epoch of each other."""
-    i, j, radius, area = neighbour_pairs(xyz, radius)
-    m = len(xyz)
-    step = np.full(m, -1) if step is None else np.asarray(step)
-    together = (step[i] < 0) & (step[j] < 0) | (step[i] >= 0) & (step[j] >= 0) & (np.abs(step[i] - step[j]) <= 1)
-    i, j = i[together], j[together]
 
-    def signs(k):
-        d, s, v = read_epoch(k)
-        sig = np.isfinite(d) & np.isfinite(s) & (np.abs(d) > 1.96 * s)
-        return np.where(sig, np.sign(d), 0).astype(np.int8), d, v
+class Tracker:
+    """The objects and onsets of a series, built one epoch at a time (see the module docstring).
 
-    # pass 1: components per epoch, joined to the previous epoch's where a point stays changed
-    offsets, links, sizes, prev, prev_sign = [], [], [], None, None
-    total = 0
-    for k in range(n_epochs):
-        sign, _, _ = signs(k)
+    Parameters
+    ----------
+    xyz : ndarray (m, 3)
+        The core points.
+    min_points : int
+        The fewest core points changed together that make a track an object.
+    radius : float, optional
+        Neighbour distance (default from the core points' spacing, :func:`neighbour_pairs`).
+    pairs : tuple, optional
+        The neighbour pairs, radius and area per point :func:`neighbour_pairs` gave these core
+        points before (the state of an earlier run).
+    """
+
+    def __init__(self, xyz: np.ndarray, *, min_points: int, radius: float | None = None, pairs=None):
+        if pairs is None:
+            self.i, self.j, self.radius, self.area = neighbour_pairs(xyz, radius)
+        else:  # (i, j, radius, area) of an earlier run on these core points
+            self.i, self.j, self.radius, self.area = pairs
+        m = len(xyz)
+        self.m, self.min_points = m, int(min_points)
+        self.epoch = -1
+        self.track = np.full(m, -1, np.int64)  # each point's live track (an index) at the last epoch
+        self.sign = np.zeros(m, np.int8)
+        self.onset = np.full(m, -1, np.int64)
+        self.onset_kind = np.zeros(m, np.int64)
+        self.live = {k: np.zeros(0, np.float64 if k in ("peak", "vsum", "vcount") else np.int64) for k in _TRACK}
+        self.keys = np.zeros(0, np.int64)  # the live tracks' distinct core points: uid·m + point, sorted
+        self.objects = {k: np.zeros(0, np.float64 if k in ("peak", "vsum", "vcount") else np.int64)
+                        for k in _OBJECT}
+
+    def copy(self) -> "Tracker":
+        return copy.deepcopy(self)
+
+    def _count(self, uid: np.ndarray) -> np.ndarray:
+        """Distinct core points of the live tracks ``uid``."""
+        return np.searchsorted(self.keys, (uid + 1) * self.m) - np.searchsorted(self.keys, uid * self.m)
+
+    # ---------------------------------------------------------------- one epoch
+    def add(self, k: int, smoothed: np.ndarray, sigma: np.ndarray, velocity: np.ndarray,
+            step: np.ndarray) -> np.ndarray:
+        """Epoch ``k`` (the one after the last added): its object ids per core point (int32, 0: none).
+        ``step``: each point's first step epoch (-1: none); a step counts from its epoch on."""
+        if k != self.epoch + 1:
+            raise ValueError(f"epoch {k} after {self.epoch}")
+        m = self.m
+        sig = np.isfinite(smoothed) & np.isfinite(sigma) & (np.abs(smoothed) > 1.96 * sigma)
+        sign = np.where(sig, np.sign(smoothed), 0).astype(np.int8)
+        stepped = (step >= 0) & (step <= k)
+        i, j = self.i, self.j
+        if stepped.any():
+            si, sj = stepped[i], stepped[j]
+            together = ~si & ~sj | si & sj & (np.abs(step[i] - step[j]) <= 1)
+            i, j = i[together], j[together]
         comp, n = _components(sign, i, j)
-        offsets.append(total)
-        sizes.append(np.bincount(comp[comp >= 0], minlength=n))
-        if prev is not None:
-            both = (sign != 0) & (sign == prev_sign)
-            # one row per pair of components, not per point: the memory stays with the components
-            links.append(np.unique(np.c_[prev[both] + offsets[k - 1], comp[both] + total], axis=0))
-        prev, prev_sign = comp, sign
-        total += n
-    links = np.concatenate(links) if links else np.empty((0, 2), np.int64)
-    graph = coo_matrix((np.ones(len(links), np.int8), (links[:, 0], links[:, 1])), shape=(total, total))
-    _, root = connected_components(graph, directed=False) if total else (0, np.empty(0, np.int64))
-    n_roots = int(root.max()) + 1 if total else 0
-    # a root of fewer (epoch, point) pairs than min_points has fewer distinct points: no object, and
-    # its points need not be listed (the noise's many small roots would make that list grow with the epochs)
-    nodes = np.bincount(root, np.concatenate(sizes), minlength=n_roots).astype(np.int64) if total else \
-        np.zeros(0, np.int64)
-    listed = nodes >= min_points
-
-    # pass 2: per root, its epochs, distinct points, peak change and velocity sums
-    start = np.full(n_roots, n_epochs, np.int64)  # the first epoch with min_points changed core points
-    first = np.full(n_roots, n_epochs, np.int64)  # the first epoch with any
-    anchor = np.full(n_roots, n_epochs * m, np.int64)  # the first (epoch, point): ties in the order
-    end = np.full(n_roots, -1, np.int64)
-    peak = np.zeros(n_roots)
-    vsum, vcount = np.zeros(n_roots), np.zeros(n_roots)
-    pairs = []
-    for k in range(n_epochs):
-        sign, d, v = signs(k)
-        comp, _ = _components(sign, i, j)
         at = np.flatnonzero(comp >= 0)
-        r = root[comp[at] + offsets[k]]
-        np.minimum.at(first, r, k)
-        np.minimum.at(anchor, r, k * m + at)
-        np.maximum.at(end, r, k)
-        born = (np.bincount(r, minlength=n_roots) >= min_points) & (start == n_epochs)
-        start[born] = k
-        order = np.lexsort((-np.abs(d[at]), r))
+        c = comp[at]
+        live = self.live
+        n_live = len(live["uid"])
+        width = max(n_live, 1)
+        # links: a point changed the same way at this epoch and the last, in a live track
+        linked = at[(sign[at] == self.sign[at]) & (self.track[at] >= 0)]
+        pairs = np.unique(comp[linked] * width + self.track[linked])
+        pc, pt = pairs // width, pairs % width
+        prio = np.where(live["obj"] > 0, live["obj"], 2**61 + live["uid"])  # objects first, oldest first
+        best = np.full(n, -1, np.int64)
+        if pairs.size:
+            won = _first_per_group(pc, prio[pt])
+            best[pc[won]] = pt[won]
+        # the tracks of this epoch: continued ones (in the order of their priority), then new ones
+        cont = np.unique(best[best >= 0])
+        cont = cont[np.argsort(prio[cont], kind="stable")]
+        new_comps = np.flatnonzero(best < 0)
+        anchor = np.full(n, m, np.int64)
+        np.minimum.at(anchor, c, at)
+        slot = np.full(n_live, -1, np.int64)
+        slot[cont] = np.arange(len(cont))
+        track_of_comp = np.zeros(n, np.int64)
+        track_of_comp[best >= 0] = slot[best[best >= 0]]
+        track_of_comp[new_comps] = len(cont) + np.arange(len(new_comps))
+        n_next = len(cont) + len(new_comps)
+        nxt = {key: np.concatenate([live[key][cont], np.zeros(len(new_comps), live[key].dtype)]) for key in _TRACK}
+        nxt["uid"][len(cont):] = k * m + anchor[new_comps]
+        nxt["first"][len(cont):] = k
+        # live tracks not continued: objects end the epoch before; others are taken in whole by a
+        # set they touch, or are noise that ends
+        ended = np.setdiff1d(np.arange(n_live), cont)
+        gone = np.zeros(0, np.int64)
+        if ended.size:
+            into = np.full(n_live, -1, np.int64)
+            if pairs.size:
+                lost = np.isin(pt, ended)
+                first = _first_per_group(pt[lost], pc[lost])
+                into[pt[lost][first]] = track_of_comp[pc[lost][first]]
+            done = ended[live["obj"][ended] > 0]
+            o = live["obj"][done] - 1
+            for key in ("end", "peak", "vsum", "vcount"):
+                self.objects[key][o] = live[key][done]
+            self.objects["points"][o] = self._count(live["uid"][done])
+            taken = ended[(live["obj"][ended] == 0) & (into[ended] >= 0)]
+            u = into[taken]
+            np.minimum.at(nxt["first"], u, live["first"][taken])
+            np.add.at(nxt["vsum"], u, live["vsum"][taken])
+            np.add.at(nxt["vcount"], u, live["vcount"][taken])
+            for t, v in zip(taken, u):  # the larger change, its sign kept
+                if abs(live["peak"][t]) > abs(nxt["peak"][v]):
+                    nxt["peak"][v] = live["peak"][t]
+            gone = live["uid"][np.setdiff1d(ended, taken)]
+            if taken.size:  # their points now count for the track that took them
+                uids = self.keys // m
+                moved = np.isin(uids, live["uid"][taken])
+                remap = dict(zip(live["uid"][taken].tolist(), nxt["uid"][u].tolist()))
+                again = np.array([remap[x] for x in uids[moved].tolist()], np.int64) * m + self.keys[moved] % m
+                self.keys = np.union1d(self.keys[~moved], again)
+        if gone.size:
+            self.keys = self.keys[~np.isin(self.keys // m, gone)]
+        # this epoch's points into their tracks
+        tr = track_of_comp[c]
+        d, v = smoothed[at], velocity[at]
+        order = np.lexsort((-np.abs(d), tr))
         head = np.ones(len(order), bool)
-        head[1:] = r[order[1:]] != r[order[:-1]]
+        head[1:] = tr[order[1:]] != tr[order[:-1]]
         cand = order[head]
-        better = np.abs(d[at][cand]) > np.abs(peak[r[cand]])
-        peak[r[cand][better]] = d[at][cand][better]
-        fv = np.isfinite(v[at])
-        np.add.at(vsum, r[fv], v[at][fv])
-        np.add.at(vcount, r[fv], 1)
-        pairs.append(np.unique(r[listed[r]] * m + at[listed[r]]))
-        if len(pairs) > 64:
-            pairs = [np.unique(np.concatenate(pairs))]
-    pairs = np.unique(np.concatenate(pairs)) if pairs else np.empty(0, np.int64)
-    npts = np.where(listed, np.bincount(pairs // m, minlength=n_roots), nodes) if n_roots else np.zeros(0, np.int64)
-    table, ids = _table(start, first, end, npts, peak, vsum, vcount, anchor, min_points, times, radius, area)
+        better = np.abs(d[cand]) > np.abs(nxt["peak"][tr[cand]])
+        nxt["peak"][tr[cand][better]] = d[cand][better]
+        fv = np.isfinite(v)
+        nxt["vsum"] += np.bincount(tr[fv], v[fv], minlength=n_next)
+        nxt["vcount"] += np.bincount(tr[fv], minlength=n_next)
+        nxt["end"][:] = k
+        self.keys = np.union1d(self.keys, nxt["uid"][tr] * m + at)
+        # tracks with min_points changed together become objects, in the order of their priority
+        size = np.bincount(tr, minlength=n_next)
+        born = np.flatnonzero((nxt["obj"] == 0) & (size >= self.min_points))
+        if born.size:
+            first_id = len(self.objects["start"]) + 1
+            nxt["obj"][born] = first_id + np.arange(born.size)
+            for key in _OBJECT:
+                self.objects[key] = np.concatenate([self.objects[key], np.zeros(born.size, self.objects[key].dtype)])
+            self.objects["start"][first_id - 1:] = k
+        labels = np.zeros(m, np.int32)
+        labels[at] = nxt["obj"][tr]
+        # onsets: the first of two epochs running with significant change, or the step before it
+        run = (self.onset < 0) & sig & (self.sign != 0)
+        if run.any():
+            first = k - 1
+            st = (step >= 0) & (step <= first)
+            self.onset[run] = np.where(st[run], step[run], first)
+            self.onset_kind[run] = np.where(st[run], 1, 2)
+        self.live = nxt
+        self.track = np.full(m, -1, np.int64)
+        self.track[at] = tr
+        self.sign, self.epoch = sign, k
+        return labels
 
-    # pass 3: each epoch's object ids
-    if write is not None:
-        for k in range(n_epochs):
-            sign, _, _ = signs(k)
-            comp, _ = _components(sign, i, j)
-            labels = np.zeros(m, np.int32)
-            at = comp >= 0
-            labels[at] = ids[root[comp[at] + offsets[k]]]
-            write(k, labels)
-    return table
+    # ---------------------------------------------------------------- results and state
+    def table(self, times: np.ndarray) -> dict:
+        """The object table (:data:`OBJECT_FIELDS`, ids 1… in the order the objects were found)
+        with the live objects as they stand."""
+        obj = {k: v.copy() for k, v in self.objects.items()}
+        live = self.live
+        now = np.flatnonzero(live["obj"] > 0)
+        o = live["obj"][now] - 1
+        for key in ("end", "peak", "vsum", "vcount"):
+            obj[key][o] = live[key][now]
+        obj["points"][o] = self._count(live["uid"][now])
+        start, end = obj["start"].astype(np.int32), obj["end"].astype(np.int32)
+        return {"object_start": start, "object_end": end, "object_start_time": times[start],
+                "object_end_time": times[end], "object_points": obj["points"].astype(np.int64),
+                "object_area": obj["points"] * self.area, "object_peak_change": obj["peak"],
+                "object_mean_velocity": obj["vsum"] / np.maximum(obj["vcount"], 1),
+                "radius": self.radius, "area_per_point": self.area}
 
+    def state(self) -> dict[str, np.ndarray]:
+        """Arrays (copies) from which :meth:`from_state` makes this tracker again: per core point,
+        per live track, per object, the live tracks' points, and the epoch."""
+        return {"points": np.c_[self.track, self.sign, self.onset, self.onset_kind],
+                "live": np.stack([self.live[k].astype(np.float64) for k in _TRACK], axis=1),
+                "objects": np.stack([self.objects[k].astype(np.float64) for k in _OBJECT], axis=1),
+                "keys": self.keys.copy(), "epoch": np.array([self.epoch]), "pair_i": self.i, "pair_j": self.j,
+                "pair_scales": np.array([self.radius, self.area])}
 
-def onsets(smoothed: np.ndarray, sigma: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(onset epoch or -1, kind: 0 none, 1 step, 2 gradual) per core point of a block (epochs, points):
-    the first epoch of two running with significant smoothed change, or the step before it."""
-    sig = np.isfinite(smoothed) & (np.abs(smoothed) > 1.96 * sigma)
-    run = sig[:-1] & sig[1:] if len(sig) > 1 else sig
-    has = run.any(axis=0)
-    first = np.where(has, np.argmax(run, axis=0), -1)
-    stepped = (step >= 0) & (first >= 0) & (step <= first)
-    onset = np.where(stepped, step, first).astype(np.int32)
-    kind = np.where(stepped, 1, np.where(first >= 0, 2, 0)).astype(np.int8)
-    return onset, kind
+    @classmethod
+    def from_state(cls, xyz: np.ndarray, arrays: dict, *, min_points: int) -> "Tracker":
+        radius, area = (float(v) for v in arrays["pair_scales"])
+        tr = cls(xyz, min_points=min_points, pairs=(arrays["pair_i"], arrays["pair_j"], radius, area))
+        tr.epoch = int(arrays["epoch"][0])
+        pts = np.asarray(arrays["points"], np.int64)
+        tr.track, tr.sign, tr.onset, tr.onset_kind = pts[:, 0], pts[:, 1].astype(np.int8), pts[:, 2], pts[:, 3]
+        for name, into, keys in (("live", tr.live, _TRACK), ("objects", tr.objects, _OBJECT)):
+            a = np.asarray(arrays[name], np.float64).reshape(-1, len(keys))
+            for n, key in enumerate(keys):
+                into[key] = a[:, n].astype(into[key].dtype)
+        tr.keys = np.asarray(arrays["keys"], np.int64)
+        return tr

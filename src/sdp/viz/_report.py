@@ -606,7 +606,10 @@ def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, p
         ax.set_ylabel("y")
     maps = _img(png_bytes(fig), "maps of the total change and the velocity")
     times = np.asarray(ds.time.values)
-    ids = ds.object_id.values[:5]
+    from ..timeseries._archive import objects_by_size
+
+    by_size = objects_by_size(ds)
+    ids = ds.object_id.values[by_size[:5]]
     fig, ax = plt.subplots(figsize=(11, 4.5))
     obj = ds.object.values if len(ids) else None
     smoothed = ds.smoothed.values if len(ids) else None
@@ -624,9 +627,9 @@ def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, p
         ax.legend(fontsize=8, ncol=2)
     series_png = _img(png_bytes(fig), "series of the largest objects and chosen points")
     rows = [(int(i), int(s), int(e), int(n), f"{a:.4g}", f"{pk:+.4g}", f"{v:+.4g}")
-            for i, s, e, n, a, pk, v in zip(ds.object_id.values[:_TABLE_ROWS], ds.object_start.values,
-                                            ds.object_end.values, ds.object_points.values, ds.object_area.values,
-                                            ds.object_peak_change.values, ds.object_mean_velocity.values)]
+            for i, s, e, n, a, pk, v in zip(*(ds[name].values[by_size[:_TABLE_ROWS]] for name in (
+                "object_id", "object_start", "object_end", "object_points", "object_area", "object_peak_change",
+                "object_mean_velocity")))]
     objects = (f"<p>{ds.sizes['object_id']:,} objects (the {min(len(rows), _TABLE_ROWS)} largest listed).</p>"
                + _table(("object", "start epoch", "end epoch", "core points", "area", "peak change",
                          "mean velocity"), rows))
