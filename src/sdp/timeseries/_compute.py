@@ -503,13 +503,12 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
     f = -1 if state is None else state.epoch
     r0, a0 = max(f, 0), f + 1  # the first row written, the first epoch read
     if state is None:
-        outs = {name: w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS, rewritten=True)
-                for name in names}
+        for name in names:
+            w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS, rewritten=True)
         state = FilterState.start(m)
     else:
-        outs = {name: w[name] for name in names}
-        for arr in outs.values():
-            arr.resize((E, m))
+        for name in names:
+            w[name].resize((E, m))
     R = E - r0
     dist, lod = w["distance"], w["lod"]
     # the inputs from epoch a0 on: an append's older ones kept with the state, the new ones read

@@ -43,7 +43,6 @@ References
 
 from __future__ import annotations
 
-import copy
 import math
 
 import numba as nb
@@ -171,9 +170,6 @@ class Tracker:
         self.keys = np.zeros(0, np.int64)  # the live tracks' distinct core points: uid·m + point, sorted
         self.objects = {k: np.zeros(0, np.float64 if k in ("peak", "vsum", "vcount") else np.int64)
                         for k in _OBJECT}
-
-    def copy(self) -> "Tracker":
-        return copy.deepcopy(self)
 
     def _count(self, uid: np.ndarray) -> np.ndarray:
         """Distinct core points of the live tracks ``uid``."""
