@@ -143,6 +143,24 @@ def volume_at(points, origin, voxel, a_directory, a_keys, a_blocks, ha, b_blocks
             out[p] = acc
             continue
         acc = 0.0
+        if ix >= 0 and iy >= 0 and iz >= 0 and ix + 1 < d0 * B and iy + 1 < d1 * B and iz + 1 < d2 * B:
+            # the cell lies across blocks inside the grid (a third of a scan's points): per axis, the
+            # blocks and offsets of its two nodes once, then the corners in the order below, no checks
+            bx0, bx1, ox0, ox1 = ix >> 3, (ix + 1) >> 3, (ix & 7) * B2, ((ix + 1) & 7) * B2
+            by0, by1, oy0, oy1 = iy >> 3, (iy + 1) >> 3, (iy & 7) * B, ((iy + 1) & 7) * B
+            bz0, bz1, oz0, oz1 = iz >> 3, (iz + 1) >> 3, iz & 7, (iz + 1) & 7
+            for a in range(2):
+                bx, ox, wx = (bx1, ox1, fx) if a else (bx0, ox0, gx)
+                for b in range(2):
+                    by, oy, wy = (by1, oy1, fy) if b else (by0, oy0, gy)
+                    for c in range(2):
+                        bz, oz, wz = (bz1, oz1, fz) if c else (bz0, oz0, gz)
+                        blk = a_directory[bx, by, bz]
+                        if blk >= 0:
+                            acc += wx * wy * wz * _volume_value(a_blocks, fa_h, b_blocks, partner[blk], fb_h, blk,
+                                                                ox + oy + oz)
+            out[p] = acc
+            continue
         for a in range(2):
             nx = ix + a
             if nx < 0 or nx >= d0 * B:
