@@ -307,6 +307,7 @@ def corner_labels(u, directory, slot, labels, a_keys, a_blocks, ha, b_blocks, b_
     point's cell carries a label.
     """
     fa_h, fb_h = np.float32(ha), np.float32(hb)
+    partner = _partners(a_keys, b_directory, shift)
     d0, d1, d2 = directory.shape
     out = np.full(u.shape[0], -1, np.int64)
     for p in nb.prange(u.shape[0]):
@@ -314,23 +315,27 @@ def corner_labels(u, directory, slot, labels, a_keys, a_blocks, ha, b_blocks, b_
         ix, iy, iz = int(math.floor(u[p, 0])), int(math.floor(u[p, 1])), int(math.floor(u[p, 2]))
         for a in range(2):
             nx = ix + a
+            if nx < 0 or nx >= d0 * B:
+                continue
             for b in range(2):
                 ny = iy + b
+                if ny < 0 or ny >= d1 * B:
+                    continue
                 for c in range(2):
                     nz = iz + c
-                    if nx < 0 or ny < 0 or nz < 0 or nx >= d0 * B or ny >= d1 * B or nz >= d2 * B:
+                    if nz < 0 or nz >= d2 * B:
                         continue
                     blk = directory[nx >> 3, ny >> 3, nz >> 3]
                     if blk < 0 or slot[blk] < 0:
                         continue
                     i = (nx & 7) * B2 + (ny & 7) * B + (nz & 7)
-                    if labels[slot[blk], i] < 0:
+                    label = labels[slot[blk], i]
+                    if label < 0:
                         continue
-                    v = _volume_value(a_blocks, fa_h, b_blocks, _partner(a_keys, blk, b_directory, shift), fb_h,
-                                      blk, i)
+                    v = _volume_value(a_blocks, fa_h, b_blocks, partner[blk], fb_h, blk, i)
                     if v < best:
                         best = v
-                        out[p] = labels[slot[blk], i]
+                        out[p] = label
     return out
 
 
