@@ -185,19 +185,6 @@ def volume_at(points, origin, voxel, a_directory, a_keys, a_blocks, ha, b_blocks
         out[p] = acc
 
 
-@nb.njit(cache=True, inline="always")
-def _runs_of(mk, out):
-    """The runs of consecutive set bits of ``mk``, as masks, into ``out`` (low bits first); returns
-    their number."""
-    n = 0
-    while mk:
-        run = ((mk + (mk & -mk)) ^ mk) & mk  # adding the lowest set bit clears the lowest run
-        out[n] = run
-        n += 1
-        mk &= ~run
-    return n
-
-
 @nb.njit(cache=True, nogil=True)
 def _neighbour_block(directory, keys, blk, axis):
     k0, k1, k2 = keys[blk, 0], keys[blk, 1], keys[blk, 2]
@@ -248,14 +235,20 @@ def label_nodes(masks, directory, keys):
             active[slot[blk]] = blk
     # the runs of line j of slot s are first[s*64 + j] … first[s*64 + j + 1] - 1
     first = np.zeros(n_active * B2 + 1, np.int64)
-    scratch = np.empty(B, np.int64)
     for s in range(n_active):
         for j in range(B2):
-            first[s * B2 + j + 1] = first[s * B2 + j] + _runs_of(np.int64(masks[active[s], j]), scratch)
+            mk = np.int64(masks[active[s], j])
+            first[s * B2 + j + 1] = first[s * B2 + j] + _popcount8(mk & ~(mk << 1))  # a run starts at each
     run_mask = np.empty(first[-1], np.int64)
     for s in range(n_active):
         for j in range(B2):
-            _runs_of(np.int64(masks[active[s], j]), run_mask[first[s * B2 + j]:])
+            mk = np.int64(masks[active[s], j])
+            i = first[s * B2 + j]
+            while mk:
+                run = ((mk + (mk & -mk)) ^ mk) & mk  # adding the lowest set bit clears the lowest run
+                run_mask[i] = run
+                i += 1
+                mk &= ~run
     parent = np.arange(run_mask.shape[0])
     below = np.empty(3, np.int64)  # slot of the block before along x, y, z (-1: none)
     for s in range(n_active):
@@ -281,22 +274,36 @@ def label_nodes(masks, directory, keys):
                     for q in range(first[t * B2 + jj], first[t * B2 + jj + 1]):
                         if run_mask[r] & run_mask[q]:
                             _union(parent, r, q)
-    labels = np.full((n_active, B3), -1, np.int32)
+    labels = np.empty((n_active, B3), np.int32)  # each line written whole below, while it is in cache
     root_label = np.full(run_mask.shape[0], -1, np.int64)
     node_counts = np.zeros(run_mask.shape[0], np.int64)
     count = 0
     for s in range(n_active):
+        row = labels[s]
         for j in range(B2):
+            for z in range(B):
+                row[j * B + z] = -1
             for r in range(first[s * B2 + j], first[s * B2 + j + 1]):
                 root = _find(parent, r)
                 if root_label[root] < 0:
                     root_label[root] = count
                     count += 1
+                g = root_label[root]
+                mk = run_mask[r]
                 for z in range(B):
-                    if run_mask[r] >> z & 1:
-                        labels[s, j * B + z] = root_label[root]
-                        node_counts[root_label[root]] += 1
+                    if mk >> z & 1:
+                        row[j * B + z] = g
+                node_counts[g] += _popcount8(mk)
     return slot, labels, node_counts[:count]
+
+
+@nb.njit(cache=True, inline="always")
+def _popcount8(mk):
+    """Set bits of the low byte of ``mk``."""
+    n = 0
+    for z in range(B):
+        n += mk >> z & 1
+    return n
 
 
 @nb.njit(parallel=True, cache=True)
