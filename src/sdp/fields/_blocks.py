@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._kernels import add_blocks, blur_pass, gather_box, node_values, nonzero_blocks
+from ._kernels import SHORT_TAPS, add_blocks, blur_pass, blur_pass_short, gather_box, node_values, nonzero_blocks
 from ._lattice import BLOCK
 
 __all__ = ["Blocks"]
@@ -113,8 +113,9 @@ class Blocks:
         blocks not allocated read as 0). ``nonzero``: flags of the blocks that may hold a nonzero
         value (default: :meth:`nonzero`)."""
         nonzero = self.nonzero() if nonzero is None else nonzero
+        kernel = blur_pass_short if len(taps) <= SHORT_TAPS else blur_pass  # the same sums; the first unrolled
         for axis in range(3):
-            blur_pass(self.values, nonzero, self.directory, axis, taps)
+            kernel(self.values, nonzero, self.directory, axis, taps)
 
     def move(self, offset: np.ndarray, shape: tuple[int, int, int]) -> None:
         """Put the blocks into a new box of ``shape`` blocks, at their positions + ``offset``."""

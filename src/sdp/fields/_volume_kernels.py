@@ -143,6 +143,24 @@ def volume_at(points, origin, voxel, a_directory, a_keys, a_blocks, ha, b_blocks
             out[p] = acc
             continue
         acc = 0.0
+        if ix >= 0 and iy >= 0 and iz >= 0 and ix + 1 < d0 * B and iy + 1 < d1 * B and iz + 1 < d2 * B:
+            # the cell lies across blocks inside the grid (a third of a scan's points): per axis, the
+            # blocks and offsets of its two nodes once, then the corners in the order below, no checks
+            bx0, bx1, ox0, ox1 = ix >> 3, (ix + 1) >> 3, (ix & 7) * B2, ((ix + 1) & 7) * B2
+            by0, by1, oy0, oy1 = iy >> 3, (iy + 1) >> 3, (iy & 7) * B, ((iy + 1) & 7) * B
+            bz0, bz1, oz0, oz1 = iz >> 3, (iz + 1) >> 3, iz & 7, (iz + 1) & 7
+            for a in range(2):
+                bx, ox, wx = (bx1, ox1, fx) if a else (bx0, ox0, gx)
+                for b in range(2):
+                    by, oy, wy = (by1, oy1, fy) if b else (by0, oy0, gy)
+                    for c in range(2):
+                        bz, oz, wz = (bz1, oz1, fz) if c else (bz0, oz0, gz)
+                        blk = a_directory[bx, by, bz]
+                        if blk >= 0:
+                            acc += wx * wy * wz * _volume_value(a_blocks, fa_h, b_blocks, partner[blk], fb_h, blk,
+                                                                ox + oy + oz)
+            out[p] = acc
+            continue
         for a in range(2):
             nx = ix + a
             if nx < 0 or nx >= d0 * B:
@@ -165,19 +183,6 @@ def volume_at(points, origin, voxel, a_directory, a_keys, a_blocks, ha, b_blocks
                                       (nx & 7) * B2 + (ny & 7) * B + (nz & 7))
                     acc += wx * wy * wz * v
         out[p] = acc
-
-
-@nb.njit(cache=True, inline="always")
-def _runs_of(mk, out):
-    """The runs of consecutive set bits of ``mk``, as masks, into ``out`` (low bits first); returns
-    their number."""
-    n = 0
-    while mk:
-        run = ((mk + (mk & -mk)) ^ mk) & mk  # adding the lowest set bit clears the lowest run
-        out[n] = run
-        n += 1
-        mk &= ~run
-    return n
 
 
 @nb.njit(cache=True, nogil=True)
@@ -230,14 +235,20 @@ def label_nodes(masks, directory, keys):
             active[slot[blk]] = blk
     # the runs of line j of slot s are first[s*64 + j] … first[s*64 + j + 1] - 1
     first = np.zeros(n_active * B2 + 1, np.int64)
-    scratch = np.empty(B, np.int64)
     for s in range(n_active):
         for j in range(B2):
-            first[s * B2 + j + 1] = first[s * B2 + j] + _runs_of(np.int64(masks[active[s], j]), scratch)
+            mk = np.int64(masks[active[s], j])
+            first[s * B2 + j + 1] = first[s * B2 + j] + _popcount8(mk & ~(mk << 1))  # a run starts at each
     run_mask = np.empty(first[-1], np.int64)
     for s in range(n_active):
         for j in range(B2):
-            _runs_of(np.int64(masks[active[s], j]), run_mask[first[s * B2 + j]:])
+            mk = np.int64(masks[active[s], j])
+            i = first[s * B2 + j]
+            while mk:
+                run = ((mk + (mk & -mk)) ^ mk) & mk  # adding the lowest set bit clears the lowest run
+                run_mask[i] = run
+                i += 1
+                mk &= ~run
     parent = np.arange(run_mask.shape[0])
     below = np.empty(3, np.int64)  # slot of the block before along x, y, z (-1: none)
     for s in range(n_active):
@@ -263,22 +274,36 @@ def label_nodes(masks, directory, keys):
                     for q in range(first[t * B2 + jj], first[t * B2 + jj + 1]):
                         if run_mask[r] & run_mask[q]:
                             _union(parent, r, q)
-    labels = np.full((n_active, B3), -1, np.int32)
+    labels = np.empty((n_active, B3), np.int32)  # each line written whole below, while it is in cache
     root_label = np.full(run_mask.shape[0], -1, np.int64)
     node_counts = np.zeros(run_mask.shape[0], np.int64)
     count = 0
     for s in range(n_active):
+        row = labels[s]
         for j in range(B2):
+            for z in range(B):
+                row[j * B + z] = -1
             for r in range(first[s * B2 + j], first[s * B2 + j + 1]):
                 root = _find(parent, r)
                 if root_label[root] < 0:
                     root_label[root] = count
                     count += 1
+                g = root_label[root]
+                mk = run_mask[r]
                 for z in range(B):
-                    if run_mask[r] >> z & 1:
-                        labels[s, j * B + z] = root_label[root]
-                        node_counts[root_label[root]] += 1
+                    if mk >> z & 1:
+                        row[j * B + z] = g
+                node_counts[g] += _popcount8(mk)
     return slot, labels, node_counts[:count]
+
+
+@nb.njit(cache=True, inline="always")
+def _popcount8(mk):
+    """Set bits of the low byte of ``mk``."""
+    n = 0
+    for z in range(B):
+        n += mk >> z & 1
+    return n
 
 
 @nb.njit(parallel=True, cache=True)
@@ -289,6 +314,7 @@ def corner_labels(u, directory, slot, labels, a_keys, a_blocks, ha, b_blocks, b_
     point's cell carries a label.
     """
     fa_h, fb_h = np.float32(ha), np.float32(hb)
+    partner = _partners(a_keys, b_directory, shift)
     d0, d1, d2 = directory.shape
     out = np.full(u.shape[0], -1, np.int64)
     for p in nb.prange(u.shape[0]):
@@ -296,23 +322,27 @@ def corner_labels(u, directory, slot, labels, a_keys, a_blocks, ha, b_blocks, b_
         ix, iy, iz = int(math.floor(u[p, 0])), int(math.floor(u[p, 1])), int(math.floor(u[p, 2]))
         for a in range(2):
             nx = ix + a
+            if nx < 0 or nx >= d0 * B:
+                continue
             for b in range(2):
                 ny = iy + b
+                if ny < 0 or ny >= d1 * B:
+                    continue
                 for c in range(2):
                     nz = iz + c
-                    if nx < 0 or ny < 0 or nz < 0 or nx >= d0 * B or ny >= d1 * B or nz >= d2 * B:
+                    if nz < 0 or nz >= d2 * B:
                         continue
                     blk = directory[nx >> 3, ny >> 3, nz >> 3]
                     if blk < 0 or slot[blk] < 0:
                         continue
                     i = (nx & 7) * B2 + (ny & 7) * B + (nz & 7)
-                    if labels[slot[blk], i] < 0:
+                    label = labels[slot[blk], i]
+                    if label < 0:
                         continue
-                    v = _volume_value(a_blocks, fa_h, b_blocks, _partner(a_keys, blk, b_directory, shift), fb_h,
-                                      blk, i)
+                    v = _volume_value(a_blocks, fa_h, b_blocks, partner[blk], fb_h, blk, i)
                     if v < best:
                         best = v
-                        out[p] = labels[slot[blk], i]
+                        out[p] = label
     return out
 
 
