@@ -235,6 +235,6 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
         if importlib.util.find_spec("xarray") and importlib.util.find_spec("zarr"):
             from ..timeseries._compute import series
 
-            # five epochs: the smoother's step scan needs them
+            # five epochs: the smoother estimates its noise from second differences of them
             step("series", lambda: series([s.reference, s.current] * 2 + [s.reference], output=d / "s.zarr"))
     return times

@@ -168,6 +168,13 @@ def _along(directory, axis, k, i1, i2):
     return directory[i1, i2, k]
 
 
+@nb.njit(cache=True, inline="always")
+def _lines(directory, axis):
+    """(blocks along ``axis``, and the directory's other two sizes in order): the lines of a pass."""
+    d0, d1, d2 = directory.shape
+    return directory.shape[axis], (d1 if axis == 0 else d0), (d1 if axis == 2 else d2)
+
+
 @nb.njit(parallel=True, cache=True)
 def blur_pass(blocks, nonzero, directory, axis, taps):
     """One separable pass, in place: ``taps`` (odd length) along ``axis``, rotating the block layout.
@@ -187,10 +194,7 @@ def blur_pass(blocks, nonzero, directory, axis, taps):
     r = (taps.shape[0] - 1) // 2
     nbr = (r + B - 1) // B
     ring_len = nbr + 1
-    d0, d1, d2 = directory.shape
-    dlen = directory.shape[axis]
-    n1 = d1 if axis == 0 else d0  # the other two axes, in order
-    n2 = d1 if axis == 2 else d2
+    dlen, n1, n2 = _lines(directory, axis)
     for line in nb.prange(n1 * n2):
         i1, i2 = line // n2, line % n2
         ring = np.empty((ring_len, B3), np.float32)  # originals of the blocks k - nbr … k
@@ -279,10 +283,7 @@ def blur_pass_short(blocks, nonzero, directory, axis, taps):
     off = r - (taps.shape[0] - 1) // 2
     for t in range(taps.shape[0]):
         w[off + t] = taps[t]
-    d0, d1, d2 = directory.shape
-    dlen = directory.shape[axis]
-    n1 = d1 if axis == 0 else d0  # the other two axes, in order
-    n2 = d1 if axis == 2 else d2
+    dlen, n1, n2 = _lines(directory, axis)
     for line in nb.prange(n1 * n2):
         i1, i2 = line // n2, line % n2
         ring = np.empty((2, B3), np.float32)  # originals of the blocks k - 1 and k

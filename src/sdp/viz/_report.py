@@ -643,9 +643,10 @@ def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, p
                ("registration error", str(used["registration_error"]), "added to each epoch's level of detection"),
                ("core points", p["core_points"], "where every epoch is measured"),
                ("process noise q", f"{p['smoother']['process_noise']:.3g}", p["smoother"]["process_noise_reason"]),
-               ("observation noise", p["smoother"]["observation_noise"], "each epoch's own level of detection"),
-               ("steps", f"k = {p['smoother']['step_k']}", "an innovation beyond k σ confirmed by the next epoch, or "
-                "a step scan over all epochs beyond 4σ"),
+               ("observation noise", p["smoother"]["observation_noise"],
+                "each epoch's own level of detection; the reference's share is one error for every epoch"),
+               ("smoothing lag", f"{p['smoother']['lag']} epochs", p["smoother"]["lag_reason"]),
+               ("steps", f"k = {p['smoother']['step_k']}", "an innovation beyond k σ confirmed by the next epoch"),
                ("objects", f"radius {p['objects']['neighbour_radius']:.4g}, ≥ {p['min_object_points']} core points",
                 p["objects"]["rule"])]
     from ..cli._text import series_text
