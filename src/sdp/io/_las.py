@@ -35,7 +35,7 @@ def read_las(path):
         h = reader.header
         records = np.concatenate(chunks) if chunks else np.zeros(0, h.point_format.dtype())
         las = laspy.LasData(h, points=laspy.ScaleAwarePointRecord(records, h.point_format, h.scales, h.offsets))
-    # scaled and offset, float64: large coordinates stay exact (np.c_ takes 12 ms for 100,000 points)
+    # scaled and offset, float64: large coordinates stay exact; filled in place (np.c_ copies twice)
     xyz = np.empty((len(records), 3))
     for a, (name, scale, offset) in enumerate(zip("XYZ", h.scales, h.offsets)):
         np.multiply(records[name], scale, out=xyz[:, a])

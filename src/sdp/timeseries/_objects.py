@@ -62,7 +62,7 @@ def neighbour_pairs(xyz: np.ndarray, radius: float | None = None) -> tuple[np.nd
     (default 1.5 × the 90th percentile of the nearest-neighbour spacing: core points subsampled
     on a grid lie up to a cell and a half apart and must still touch); the area is the median
     spacing squared."""
-    from scipy.spatial import cKDTree  # imported here: an append reads the pairs it saved (0.2–1 s of imports)
+    from scipy.spatial import cKDTree  # imported here: an append reads the pairs it saved, and skips the import
 
     tree = cKDTree(xyz)
     if len(xyz) > 1:
