@@ -542,8 +542,11 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
     if frozen is None:
         # q from a sample of core points spread over the first epochs (the median needs no more)
         sample = np.arange(0, m, max(1, m // max(1, 200_000 // first_epochs)))
-        zs = dist.get_orthogonal_selection((slice(0, first_epochs), sample))
-        ls = lod.get_orthogonal_selection((slice(0, first_epochs), sample))
+        if whole is not None and a0 == 0:  # the first epochs are in memory
+            zs, ls = whole[0][:first_epochs, sample], whole[1][:first_epochs, sample]
+        else:
+            zs = dist.get_orthogonal_selection((slice(0, first_epochs), sample))
+            ls = lod.get_orthogonal_selection((slice(0, first_epochs), sample))
         vs = observation_variance(ls, reg[:first_epochs], ref_var[sample])
         q = process_noise(zs.astype(np.float64), vs, times[:first_epochs])
         good = np.isfinite(vs) & (vs > 0)
