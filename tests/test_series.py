@@ -128,6 +128,25 @@ def test_appends_one_by_one_equal_the_full_run_with_a_short_lag(slope, tmp_path,
     assert full.sizes["object_id"] >= 2 and (full.onset.values >= 0).any()
 
 
+def test_a_corrupt_or_missing_state_refuses_the_append_in_one_line(slope, tmp_path, capsys):
+    out = tmp_path / "s.zarr"
+    sdp.series(slope.epochs[:5], output=out, cylinder=CYL, times=range(5))
+    for bad in (b"garbage", b"PK\x03\x04" + b"x" * 50, None):
+        if bad is None:
+            (out / "state.npz").unlink()
+        else:
+            (out / "state.npz").write_bytes(bad)
+        before = _digest(out)
+        with pytest.raises(sdp.SDPError, match="state.npz"):
+            sdp.series(slope.epochs[5:6], output=out, append=True, times=[5])
+        assert _digest(out) == before and sorted(os.listdir(tmp_path)) == ["s.zarr"]
+    f = tmp_path / "e5.ply"
+    sdp.write_points(f, slope.epochs[5])
+    assert main(["series", str(f), "--append", "-o", str(out), "--times", "5", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "state.npz" in err
+
+
 def test_interrupted_append_leaves_the_archive_as_it_was(slope, tmp_path, monkeypatch):
     out = tmp_path / "s.zarr"
     sdp.series(slope.epochs[:3], output=out, cylinder=CYL)

@@ -313,19 +313,22 @@ def write_state(folder, filt, tracker: dict, recent) -> None:
 def read_state(path):
     """(:class:`~sdp.timeseries._kalman.FilterState`, the tracker's arrays, the recent distances
     and levels) :func:`write_state` saved in the archive ``path``."""
+    import zipfile
+
     from ._kalman import FilterState
 
     try:
-        with np.load(Path(path) / _STATE) as z:
+        with np.load(Path(path) / _STATE, allow_pickle=False) as z:
             arrays = dict(z)
-    except (OSError, ValueError) as exc:
-        raise SeriesArchiveError(f"{path}: its state ({_STATE}) can't be read ({type(exc).__name__}): the archive "
-                                 "can't be appended to") from None
-    f = arrays["filter"]
-    filt = FilterState(int(arrays["filter_epoch"][0]), np.ascontiguousarray(f[:, :5]), f[:, 5].astype(np.int64),
-                       f[:, 6].astype(np.int32))
+        f = arrays["filter"]
+        filt = FilterState(int(arrays["filter_epoch"][0]), np.ascontiguousarray(f[:, :5]), f[:, 5].astype(np.int64),
+                           f[:, 6].astype(np.int32))
+        recent = arrays["recent_distance"], arrays["recent_lod"]
+    except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as exc:
+        raise SeriesArchiveError(f"{path}: its state ({_STATE}) can't be read ({type(exc).__name__}): it can't be "
+                                 "appended to; run the series again over all its epochs") from None
     tracked = {name[len("tracker_"):]: v for name, v in arrays.items() if name.startswith("tracker_")}
-    return filt, tracked, (arrays["recent_distance"], arrays["recent_lod"])
+    return filt, tracked, recent
 
 
 def _plain(v):
