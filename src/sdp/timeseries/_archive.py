@@ -183,8 +183,7 @@ class Writer:
         self.group = zarr.open_group(str(folder), mode="w" if create else "r+")
         self._arrays: dict = {}  # opened once: each lookup reads the array's metadata again
 
-    def array(self, name, shape, dtype, dims, *, fill=None, attrs=None, epochs_per_chunk: int = 1,
-              rewritten: bool = False):
+    def array(self, name, shape, dtype, dims, *, epochs_per_chunk: int = 1, rewritten: bool = False):
         """A new array (replacing one of that name); chunks: ``epochs_per_chunk`` epoch rows ×
         :data:`POINT_CHUNK` points; chunk files ``c.i.j`` side by side (no folder per row: an
         append links, and a swap removes, files rather than folders). ``rewritten``: rows every
@@ -193,89 +192,50 @@ class Writer:
         self._arrays.pop(name, None)
         if name in self.group:
             del self.group[name]
-        chunks = tuple(max(1, epochs_per_chunk) if d == "epoch" and len(dims) > 1 else
-                       max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s) for d, s in zip(dims, shape))
-        if fill is None:
-            fill = np.nan if np.dtype(dtype).kind == "f" else 0
-        # write_empty_chunks: Zarr otherwise compares every chunk with the fill value before writing it, which
-        # costs more than the write (a series' chunks are seldom empty)
-        arr = self.group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill,
-                                      dimension_names=list(dims), config={"write_empty_chunks": True},
-                                      chunk_key_encoding={"name": "default", "separator": "."},
+        arr = self.group.create_array(name, shape=shape, dtype=dtype, **_layout(dims, shape, dtype, epochs_per_chunk),
                                       **({"compressors": _quick_codec()} if rewritten else {}))
-        if attrs:
-            arr.attrs.update(attrs)
         self._arrays[name] = arr
-        return arr
-
-    def write(self, name, values, dims, *, attrs=None):
-        """A whole array at once."""
-        values = np.asarray(values)
-        arr = self.array(name, values.shape, values.dtype, dims, attrs=attrs)
-        if values.size:
-            arr[...] = values
         return arr
 
     def write_all(self, items: dict) -> None:
         """Whole arrays, ``{name: (values, dims, attrs or None)}``, created and written together:
         one round of Zarr's event loop for all of them instead of two per array (a series' small
         arrays cost more in those rounds than in their bytes)."""
-        import asyncio
-
         from zarr.api.asynchronous import open_group
-        from zarr.core.sync import sync
 
         for name in items:
             self._arrays.pop(name, None)
             if (self.folder / name).exists():
                 del self.group[name]
 
-        async def one(group, name, values, dims, attrs):
+        (group,) = _at_once([open_group(store=str(self.folder), mode="r+")])
+
+        async def one(name, values, dims, attrs):
             values = np.ascontiguousarray(values)
-            chunks = tuple(max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s)
-                           for d, s in zip(dims, values.shape))
-            fill = np.nan if values.dtype.kind == "f" else 0
-            await group.create_array(name, data=values, chunks=chunks, fill_value=fill, dimension_names=list(dims),
-                                     attributes=attrs or {}, config={"write_empty_chunks": True},
-                                     chunk_key_encoding={"name": "default", "separator": "."})
+            await group.create_array(name, data=values, attributes=attrs or {},
+                                     **_layout(dims, values.shape, values.dtype))
 
-        async def every():
-            group = await open_group(store=str(self.folder), mode="r+")
-            await asyncio.gather(*(one(group, name, *item) for name, item in items.items()))
-
-        sync(every())
+        _at_once([one(name, *item) for name, item in items.items()])
 
     def set_all(self, items: dict) -> None:
         """``{name: (selection, values)}`` written together (one round of Zarr's event loop)."""
-        import asyncio
-
         from zarr.api.asynchronous import open_array
-        from zarr.core.sync import sync
 
         async def one(name, sel, values):
             arr = await open_array(store=str(self.folder), path=name, mode="r+")
             await arr.setitem(sel, values)
 
-        async def every():
-            await asyncio.gather(*(one(name, sel, values) for name, (sel, values) in items.items()))
-
-        sync(every())
+        _at_once([one(name, sel, values) for name, (sel, values) in items.items()])
 
     def read_all(self, names) -> dict:
         """Whole arrays read together (one round of Zarr's event loop)."""
-        import asyncio
-
         from zarr.api.asynchronous import open_array
-        from zarr.core.sync import sync
 
         async def one(name):
             arr = await open_array(store=str(self.folder), path=name, mode="r")
             return await arr.getitem(...)
 
-        async def every():
-            return await asyncio.gather(*(one(name) for name in names))
-
-        return dict(zip(names, sync(every())))
+        return dict(zip(names, _at_once([one(name) for name in names])))
 
     def __getitem__(self, name):
         if name not in self._arrays:
@@ -289,6 +249,29 @@ class Writer:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # consolidated metadata: "not part of the v3 spec" (xarray reads it)
             self.zarr.consolidate_metadata(str(self.folder))
+
+
+def _layout(dims, shape, dtype, epochs_per_chunk: int = 1) -> dict:
+    """The chunks, fill value and names every array of an archive is made with. write_empty_chunks:
+    Zarr otherwise compares every chunk with the fill value before writing it, which costs more
+    than the write (a series' chunks are seldom empty)."""
+    chunks = tuple(max(1, epochs_per_chunk) if d == "epoch" and len(dims) > 1 else
+                   max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s) for d, s in zip(dims, shape))
+    return {"chunks": chunks, "fill_value": np.nan if np.dtype(dtype).kind == "f" else 0,
+            "dimension_names": list(dims), "config": {"write_empty_chunks": True},
+            "chunk_key_encoding": {"name": "default", "separator": "."}}
+
+
+def _at_once(coroutines: list) -> list:
+    """Zarr's asynchronous calls run together in one round of its event loop; their results in order."""
+    import asyncio
+
+    from zarr.core.sync import sync
+
+    async def every():
+        return await asyncio.gather(*coroutines)
+
+    return sync(every())
 
 
 def _quick_codec():
