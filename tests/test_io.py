@@ -72,6 +72,9 @@ def test_las_output_keeps_input_dimensions(tmp_path, rng, monkeypatch):
     np.testing.assert_array_equal(chunked.xyz, back.xyz)
     np.testing.assert_array_equal(chunked.fields["change"], back.fields["change"])
     np.testing.assert_array_equal(back.fields["change"], 1)
+    lean = read_points(tmp_path / "out.las", fields=False)  # the coordinates alone, in chunks too
+    assert lean.fields == {} and lean.las is None
+    np.testing.assert_array_equal(lean.xyz, back.xyz)
 
 
 def test_mesh_writers(tmp_path, rng):

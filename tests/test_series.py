@@ -479,3 +479,18 @@ def test_the_reference_noise_shared_by_every_epoch_is_not_averaged_away(tmp_path
     assert share < 0.1, share
     ref = ds.ref_spread.values**2 / ds.ref_count.values
     assert np.all(sd[-1] ** 2 >= ref * (1 - 1e-5))  # never below the reference's own variance
+
+
+def test_process_noise_recovers_the_acceleration_density_it_is_simulated_with():
+    from sdp.timeseries._kalman import _root, process_noise
+
+    rng = np.random.default_rng(5)
+    epochs, m, q, noise = 16, 20_000, 4e-6, 0.002
+    cov = np.linalg.cholesky(q * np.array([[1 / 3, 1 / 2], [1 / 2, 1.0]]))  # white-noise acceleration, unit steps
+    x, z = np.zeros((m, 2)), []
+    for _ in range(epochs):
+        x = x @ np.array([[1.0, 0.0], [1.0, 1.0]]) + rng.standard_normal((m, 2)) @ cov.T
+        z.append(x[:, 0] + noise * rng.standard_normal(m))
+    z = np.array(z)
+    assert process_noise(z, np.full_like(z, noise**2), np.arange(float(epochs))) == pytest.approx(q, rel=0.1)
+    assert _root(lambda v: np.cbrt(1e-3 - v), 0.0, 1.0) == pytest.approx(1e-3, rel=1e-9)

@@ -45,7 +45,7 @@ def _field_or_points(path, format):
     """A field file loaded, or a cloud file's points (n, 3)."""
     from ..fields._density import DensityField
 
-    return DensityField.load(path) if is_field(path) else read_points(path, format=format).xyz
+    return DensityField.load(path) if is_field(path) else read_points(path, format=format, fields=False).xyz
 
 
 def _field(path, format, lattice: Lattice, memory_limit):

@@ -20,9 +20,11 @@ __all__ = ["LAS_CHUNK", "read_las", "check_las_counts", "check_las_points", "las
 LAS_CHUNK = 2_000_000  # points per chunk read (a progress step)
 
 
-def read_las(path):
+def read_las(path, *, fields: bool = True):
     """``(xyz, fields, las)`` of a LAS/LAZ file: world coordinates, every other dimension as a
-    field, and the ``laspy.LasData`` (so outputs can keep every dimension)."""
+    field, and the ``laspy.LasData`` (so outputs can keep every dimension). ``fields=False``:
+    ``(xyz, {}, None)``, without unpacking the other dimensions (they cost as much as the
+    decompression)."""
     import laspy
 
     check_las_counts(path)
@@ -33,15 +35,16 @@ def read_las(path):
             chunks.append(chunk.array)
             pb.update(len(chunk))
         h = reader.header
-        records = np.concatenate(chunks) if chunks else np.zeros(0, h.point_format.dtype())
-        las = laspy.LasData(h, points=laspy.ScaleAwarePointRecord(records, h.point_format, h.scales, h.offsets))
+        records = np.concatenate(chunks) if len(chunks) > 1 else chunks[0] if chunks else np.zeros(0, h.point_format.dtype())
     # scaled and offset, float64: large coordinates stay exact; filled in place (np.c_ copies twice)
     xyz = np.empty((len(records), 3))
     for a, (name, scale, offset) in enumerate(zip("XYZ", h.scales, h.offsets)):
         np.multiply(records[name], scale, out=xyz[:, a])
         xyz[:, a] += offset
-    fields = {d: np.asarray(las[d]) for d in las.point_format.dimension_names if d not in ("X", "Y", "Z")}
-    return xyz, fields, las
+    if not fields:
+        return xyz, {}, None
+    las = laspy.LasData(h, points=laspy.ScaleAwarePointRecord(records, h.point_format, h.scales, h.offsets))
+    return xyz, {d: np.asarray(las[d]) for d in las.point_format.dimension_names if d not in ("X", "Y", "Z")}, las
 
 
 def check_las_counts(path) -> None:

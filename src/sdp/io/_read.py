@@ -18,6 +18,7 @@ readers and to ``sdp change``.
 from __future__ import annotations
 
 import os
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +38,7 @@ _READERS = {"pcd": read_pcd, "ply": read_ply, "las": read_las, "text": read_text
             "npz": read_npz, "e57": read_e57}
 
 
-def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
+def read_points(path: str | os.PathLike, *, format: str | None = None, fields: bool = True) -> Cloud:
     """Read a point cloud; the format comes from the extension unless ``format`` is given.
 
     Parameters
@@ -49,6 +50,9 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
         ``scans`` extra).
     format : {"pcd", "ply", "las", "text", "npy", "npz", "e57"}, optional
         Override the extension.
+    fields : bool
+        False: the coordinates only (``Cloud.fields`` empty), for callers that need no other
+        dimension (a LAS/LAZ file then skips unpacking them).
 
     Raises
     ------
@@ -72,7 +76,10 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
     path = Path(path)
     fmt = input_format(path, format)
     try:
-        xyz, fields, las, *pose = _READERS[fmt](path)  # PCD adds its VIEWPOINT and whether organized, E57 its scanners
+        reader = partial(read_las, fields=False) if fmt == "las" and not fields else _READERS[fmt]
+        xyz, values, las, *pose = reader(path)  # PCD adds its VIEWPOINT and whether organized, E57 its scanners
+        if not fields:
+            values = {}
         xyz = np.asarray(xyz)
         if xyz.dtype.kind not in "iuf":  # complex, text, structured: no coordinates to cast
             raise CloudFileError(f"{path}: coordinates of type {xyz.dtype} (expected real numbers)")
@@ -91,8 +98,8 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Cloud:
     dropped = int((~finite).sum())
     if dropped:
         xyz = xyz[finite]
-        fields = {k: v[finite] for k, v in fields.items()}
+        values = {k: v[finite] for k, v in values.items()}
     if len(xyz) == 0:
         raise CloudFileError(f"{path}: holds no point with finite x, y, z")
     viewpoint, organized, sensors = (list(pose) + [None, False, None][len(pose):])[:3]
-    return Cloud(np.ascontiguousarray(xyz), fields, path, dropped, las, viewpoint, organized, sensors)
+    return Cloud(np.ascontiguousarray(xyz), values, path, dropped, las, viewpoint, organized, sensors)

@@ -88,7 +88,7 @@ class PointSource:
                                          "binary PLY (or, in Python, give spill_dir=)")
                 fd, tmp = tempfile.mkstemp(suffix=".npy", dir=spill_dir)
                 os.close(fd)
-                np.save(tmp, read_points(path, format=fmt).xyz)
+                np.save(tmp, read_points(path, format=fmt, fields=False).xyz)
                 return cls.open(tmp, format="npy", chunk_size=chunk_size)
         except CloudFileError:
             raise

@@ -165,11 +165,13 @@ def transaction(path, *, base: bool = False):
 
 
 @contextmanager
-def many_chunks_at_once(n: int = 64):
-    """Zarr reading and writing up to ``n`` chunks at once: a series reads columns of many small
-    chunks (an epoch row each), and Zarr's default of 10 leaves it waiting on each file in turn."""
+def many_chunks_at_once(n: int = 64, batch: int = 128):
+    """Zarr reading and writing up to ``n`` chunks at once, and encoding or decoding ``batch``
+    chunks per call of its codecs: a series reads and writes rows and columns of many small chunks
+    (an epoch row each), and Zarr's defaults (10 at once, one per call) leave it waiting on each
+    chunk in turn."""
     _, zarr = require_series()
-    with zarr.config.set({"async.concurrency": n}):
+    with zarr.config.set({"async.concurrency": n, "codec_pipeline.batch_size": batch}):
         yield
 
 
@@ -193,7 +195,9 @@ class Writer:
         if name in self.group:
             del self.group[name]
         arr = self.group.create_array(name, shape=shape, dtype=dtype, **_layout(dims, shape, dtype, epochs_per_chunk),
-                                      **({"compressors": _quick_codec()} if rewritten else {}))
+                                      **({"compressors": _quick_codec()} if rewritten else {}),
+                                      attributes={"coordinates": "time x y z"} if tuple(dims) == ("epoch", "point")
+                                      else {})
         self._arrays[name] = arr
         return arr
 

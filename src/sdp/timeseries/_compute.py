@@ -124,7 +124,7 @@ def _name(epoch, k: int) -> str:
 
 def _load(epoch, fmt):
     if isinstance(epoch, (str, os.PathLike)):
-        return read_points(epoch, format=fmt)
+        return read_points(epoch, format=fmt, fields=False)
     return epoch
 
 
@@ -368,13 +368,17 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         # rows are written a few epochs at a time (one call writes their chunks together)
         flush = int(max(1, min(len(epochs), 64, (limit / 16.0) // max(9.0 * m, 1.0))))
         buffered: list = []
+        # the new rows of distance and lod also kept for the smoother when they take little memory
+        fresh: list | None = [] if 8.0 * len(epochs) * m <= limit / 16.0 else None
 
         def write_rows():
             if buffered:
                 a = n_old + buffered[0][0]
-                w["distance"][a:a + len(buffered)] = np.stack([r[1] for r in buffered])
-                w["lod"][a:a + len(buffered)] = np.stack([r[2] for r in buffered])
-                w["significant"][a:a + len(buffered)] = np.stack([r[3] for r in buffered])
+                rows = (slice(a, a + len(buffered)), slice(None))
+                w.set_all({name: (rows, np.stack([r[c] for r in buffered]))
+                           for c, name in enumerate(("distance", "lod", "significant"), start=1)})
+                if fresh is not None:
+                    fresh.extend(r[1:3] for r in buffered)
                 buffered.clear()
 
         for k, epoch in enumerate(epochs):
@@ -419,7 +423,9 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         filt, tracked, recent = A.read_state(out) if go_on else (None, None, None)
         q, info, held, filt, step, recent = _smooth_all(w, E, m, times, limit, lag=lag, first_epochs=first_epochs,
                                                         frozen=params["smoother"] if go_on else None, state=filt,
-                                                        recent=recent)
+                                                        recent=recent,
+                                                        fresh=None if fresh is None else (np.stack([r[0] for r in fresh]),
+                                                                                          np.stack([r[1] for r in fresh])))
         timings["smoother"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         xyz = prepared.core_points
@@ -463,9 +469,6 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                       for name in OBJECT_FIELDS})
         w.write_all(small)
         timings["objects"] = time.perf_counter() - t0
-        for name in SERIES_FIELDS:
-            if w[name].attrs.get("coordinates") != "time x y z":  # an append's kept arrays have it
-                w[name].attrs.update({"coordinates": "time x y z"})
         rate_unit = "per day" if kind == "date" else "per time unit"
         attrs["parameters"]["smoother"] = {
             "model": "constant velocity, white-noise acceleration", "process_noise": q,
@@ -493,12 +496,13 @@ _COLUMN_BYTES = 24
 
 
 def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int, first_epochs: int,
-                frozen: dict | None, state: FilterState | None, recent=None):
+                frozen: dict | None, state: FilterState | None, recent=None, fresh=None):
     """The smoother over blocks of core points (their number from the memory limit), from the
     saved filter ``state`` (an append) or the first epoch; the noise ``frozen`` (an append's) or
     estimated from the first ``first_epochs`` epochs. Returns (q, info, the rows written of
     (smoothed, smoothed_sigma, velocity) if one block held them, else None, the filter state to
-    save, each point's first step)."""
+    save, each point's first step). ``fresh``: this run's rows of distance and lod, if kept
+    (else read from the archive)."""
     names = ("smoothed", "velocity", "smoothed_sigma", "velocity_sigma")
     f = -1 if state is None else state.epoch
     r0, a0 = max(f, 0), f + 1  # the first row written, the first epoch read
@@ -514,12 +518,14 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
     # the inputs from epoch a0 on: an append's older ones kept with the state, the new ones read
     recent = (np.zeros((0, m), np.float32),) * 2 if recent is None else recent
     a1 = a0 + len(recent[0])
+    if fresh is not None and a1 != E - len(fresh[0]):  # a run over the whole series reads the older rows too
+        fresh = None
 
     def inputs(a, b):
+        new = (dist[a1:, a:b], lod[a1:, a:b]) if fresh is None else (fresh[0][:, a:b], fresh[1][:, a:b])
         if not len(recent[0]):
-            return dist[a0:, a:b], lod[a0:, a:b]
-        return (np.concatenate([recent[0][:, a:b], dist[a1:, a:b]]),
-                np.concatenate([recent[1][:, a:b], lod[a1:, a:b]]))
+            return new
+        return np.concatenate([recent[0][:, a:b], new[0]]), np.concatenate([recent[1][:, a:b], new[1]])
 
     got = w.read_all(["registration_error", "ref_spread", "ref_count"])
     reg = got["registration_error"]

@@ -104,13 +104,34 @@ def process_noise(z: np.ndarray, var: np.ndarray, t: np.ndarray, *, max_samples:
 
     if spread(0.0) <= 1.0:
         return floor
-    lo, hi = 0.0, float(np.median(u**2 / span)) + floor
+    hi = float(np.median(u**2 / span)) + floor
     while spread(hi) > 1.0:
         hi *= 4.0
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if spread(mid) > 1.0 else (lo, mid)
-    return max(hi, floor)
+    return max(_root(lambda q: spread(q) - 1.0, 0.0, hi), floor)
+
+
+def _root(f, lo: float, hi: float, *, rtol: float = 1e-12, most: int = 100) -> float:
+    """The root of a continuous ``f`` with ``f(lo) > 0 >= f(hi)``, by the Illinois variant of
+    false position (M. Dowell, P. Jarratt, BIT 11 (1971) 168–174): a dozen evaluations where
+    bisection needs 60 (each one here a median over up to 200,000 values)."""
+    f_lo, f_hi = f(lo), f(hi)
+    side = 0
+    for _ in range(most):
+        if f_hi == 0.0 or hi - lo <= rtol * hi:
+            break
+        mid = (lo * f_hi - hi * f_lo) / (f_hi - f_lo)
+        if not lo < mid < hi:
+            mid = 0.5 * (lo + hi)
+        f_mid = f(mid)
+        if f_mid > 0.0:
+            lo, f_lo = mid, f_mid
+            f_hi = f_hi * 0.5 if side == 1 else f_hi
+            side = 1
+        else:
+            hi, f_hi = mid, f_mid
+            f_lo = f_lo * 0.5 if side == -1 else f_lo
+            side = -1
+    return hi
 
 
 class FilterState:

@@ -130,6 +130,13 @@ def _epoch_labels(sign, i, j, out):
     return n
 
 
+def _distinct(a: np.ndarray) -> np.ndarray:
+    """The sorted distinct values of ``a``, by sorting (NumPy's hash-based ``unique`` is
+    several times slower on these integer keys)."""
+    a = np.sort(a)
+    return a[np.r_[True, a[1:] != a[:-1]]] if len(a) else a
+
+
 def _first_per_group(group: np.ndarray, key: np.ndarray) -> np.ndarray:
     """Indices of the row of smallest ``key`` in each group (groups sorted ascending)."""
     order = np.lexsort((key, group))
@@ -199,7 +206,7 @@ class Tracker:
         width = max(n_live, 1)
         # links: a point changed the same way at this epoch and the last, in a live track
         linked = at[(sign[at] == self.sign[at]) & (self.track[at] >= 0)]
-        pairs = np.unique(comp[linked] * width + self.track[linked])
+        pairs = _distinct(comp[linked] * width + self.track[linked])
         pc, pt = pairs // width, pairs % width
         prio = np.where(live["obj"] > 0, live["obj"], 2**61 + live["uid"])  # objects first, oldest first
         best = np.full(n, -1, np.int64)
@@ -207,7 +214,7 @@ class Tracker:
             won = _first_per_group(pc, prio[pt])
             best[pc[won]] = pt[won]
         # the tracks of this epoch: continued ones (in the order of their priority), then new ones
-        cont = np.unique(best[best >= 0])
+        cont = _distinct(best[best >= 0])
         cont = cont[np.argsort(prio[cont], kind="stable")]
         new_comps = np.flatnonzero(best < 0)
         anchor = np.full(n, m, np.int64)
@@ -223,12 +230,14 @@ class Tracker:
         nxt["first"][len(cont):] = k
         # live tracks not continued: objects end the epoch before; others are taken in whole by a
         # set they touch, or are noise that ends
-        ended = np.setdiff1d(np.arange(n_live), cont)
+        continued = np.zeros(n_live, bool)
+        continued[cont] = True
+        ended = np.flatnonzero(~continued)
         gone = np.zeros(0, np.int64)
         if ended.size:
             into = np.full(n_live, -1, np.int64)
             if pairs.size:
-                lost = np.isin(pt, ended)
+                lost = ~continued[pt]
                 first = _first_per_group(pt[lost], pc[lost])
                 into[pt[lost][first]] = track_of_comp[pc[lost][first]]
             done = ended[live["obj"][ended] > 0]
@@ -244,13 +253,16 @@ class Tracker:
             for t, v in zip(taken, u):  # the larger change, its sign kept
                 if abs(live["peak"][t]) > abs(nxt["peak"][v]):
                     nxt["peak"][v] = live["peak"][t]
-            gone = live["uid"][np.setdiff1d(ended, taken)]
+            kept = continued.copy()
+            kept[taken] = True
+            gone = live["uid"][~kept]
             if taken.size:  # their points now count for the track that took them
                 uids = self.keys // m
                 moved = np.isin(uids, live["uid"][taken])
-                remap = dict(zip(live["uid"][taken].tolist(), nxt["uid"][u].tolist()))
-                again = np.array([remap[x] for x in uids[moved].tolist()], np.int64) * m + self.keys[moved] % m
-                self.keys = np.union1d(self.keys[~moved], again)
+                src = live["uid"][taken]
+                by = np.argsort(src)
+                again = nxt["uid"][u][by][np.searchsorted(src[by], uids[moved])] * m + self.keys[moved] % m
+                self.keys = _distinct(np.concatenate([self.keys[~moved], again]))
         if gone.size:
             self.keys = self.keys[~np.isin(self.keys // m, gone)]
         # this epoch's points into their tracks
@@ -266,7 +278,7 @@ class Tracker:
         nxt["vsum"] += np.bincount(tr[fv], v[fv], minlength=n_next)
         nxt["vcount"] += np.bincount(tr[fv], minlength=n_next)
         nxt["end"][:] = k
-        self.keys = np.union1d(self.keys, nxt["uid"][tr] * m + at)
+        self.keys = _distinct(np.concatenate([self.keys, nxt["uid"][tr] * m + at]))
         # tracks with min_points changed together become objects, in the order of their priority
         size = np.bincount(tr, minlength=n_next)
         born = np.flatnonzero((nxt["obj"] == 0) & (size >= self.min_points))
