@@ -130,6 +130,24 @@ def _epoch_labels(sign, i, j, out):
     return n
 
 
+@nb.njit(cache=True)
+def _raise_peaks(peak, track, d):
+    """``peak[t]``: the change of largest magnitude, its sign kept, among its own and the ``d``
+    of track ``t`` (``track``), the first of equal magnitudes."""
+    for i in range(len(d)):
+        if abs(d[i]) > abs(peak[track[i]]):
+            peak[track[i]] = d[i]
+
+
+def _of_tracks(keys: np.ndarray, m: int, uids: np.ndarray) -> np.ndarray:
+    """Which of the sorted ``keys`` (uid·m + point) belong to tracks ``uids``: each track's keys
+    are one run, found by bisection."""
+    inside = np.zeros(len(keys) + 1, np.int64)
+    np.add.at(inside, np.searchsorted(keys, uids * m), 1)
+    np.add.at(inside, np.searchsorted(keys, (uids + 1) * m), -1)
+    return np.cumsum(inside[:-1]) > 0
+
+
 def _distinct(a: np.ndarray) -> np.ndarray:
     """The sorted distinct values of ``a``, by sorting (NumPy's hash-based ``unique`` is
     several times slower on these integer keys)."""
@@ -250,30 +268,22 @@ class Tracker:
             np.minimum.at(nxt["first"], u, live["first"][taken])
             np.add.at(nxt["vsum"], u, live["vsum"][taken])
             np.add.at(nxt["vcount"], u, live["vcount"][taken])
-            for t, v in zip(taken, u):  # the larger change, its sign kept
-                if abs(live["peak"][t]) > abs(nxt["peak"][v]):
-                    nxt["peak"][v] = live["peak"][t]
+            _raise_peaks(nxt["peak"], u, live["peak"][taken])
             kept = continued.copy()
             kept[taken] = True
             gone = live["uid"][~kept]
             if taken.size:  # their points now count for the track that took them
-                uids = self.keys // m
-                moved = np.isin(uids, live["uid"][taken])
                 src = live["uid"][taken]
+                moved = _of_tracks(self.keys, m, src)
                 by = np.argsort(src)
-                again = nxt["uid"][u][by][np.searchsorted(src[by], uids[moved])] * m + self.keys[moved] % m
+                again = nxt["uid"][u][by][np.searchsorted(src[by], self.keys[moved] // m)] * m + self.keys[moved] % m
                 self.keys = _distinct(np.concatenate([self.keys[~moved], again]))
         if gone.size:
-            self.keys = self.keys[~np.isin(self.keys // m, gone)]
+            self.keys = self.keys[~_of_tracks(self.keys, m, gone)]
         # this epoch's points into their tracks
         tr = track_of_comp[c]
         d, v = smoothed[at], velocity[at]
-        order = np.lexsort((-np.abs(d), tr))
-        head = np.ones(len(order), bool)
-        head[1:] = tr[order[1:]] != tr[order[:-1]]
-        cand = order[head]
-        better = np.abs(d[cand]) > np.abs(nxt["peak"][tr[cand]])
-        nxt["peak"][tr[cand][better]] = d[cand][better]
+        _raise_peaks(nxt["peak"], tr, d)
         fv = np.isfinite(v)
         nxt["vsum"] += np.bincount(tr[fv], v[fv], minlength=n_next)
         nxt["vcount"] += np.bincount(tr[fv], minlength=n_next)
