@@ -248,8 +248,7 @@ class Writer:
 
     def finish(self, attrs: dict) -> None:
         """Group attributes (JSON), then consolidated metadata (one read opens the archive)."""
-        self.group.attrs.clear()
-        self.group.attrs.update(json.loads(json.dumps(attrs, default=_plain)))
+        self.group.attrs.put(json.loads(json.dumps(attrs, default=_plain)))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # consolidated metadata: "not part of the v3 spec" (xarray reads it)
             self.zarr.consolidate_metadata(str(self.folder))
