@@ -332,8 +332,6 @@ def _show_time(value: float, kind: str) -> str:
 
 def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt, limit, fmt, t_start,
          prepared=None, state=None, ref_cloud=None):
-    from ..registration._align import align as align_clouds
-
     append = prepared is None
     timings = {}
     with A.transaction(out, base=append) as folder, A.many_chunks_at_once():
@@ -389,6 +387,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
             record = {"file": _name(epoch, row), "time": float(t_new[k]), "time_source": source}
             reg = reg_opt
             if registration is not None and not is_ref:
+                from ..registration._align import align as align_clouds  # SciPy's spatial module: only to align
+
                 al = align_clouds(ref_xyz, xyz, method=registration.method, fix_horizontal=registration.fix_horizontal)
                 xyz = xyz @ al.matrix[:3, :3].T + al.matrix[:3, 3]
                 record["alignment"] = {"matrix": al.matrix.tolist(), "rmse": float(al.rmse)}
