@@ -176,7 +176,8 @@ def cmd_series(a):
     if isinstance(options["orientation"], str):
         raise SDPError(f"--orientation must be X,Y,Z, got {a.orientation!r}")
     r = S.series_files(a.epochs, output=a.output, append=a.append, times=a.times, options=options,
-                       execution=Execution(memory_limit=a.memory_limit), outputs=Outputs(report=a.report),
+                       execution=Execution(memory_limit=a.memory_limit),
+                       outputs=Outputs(report=a.report, field_names=a.field_names),
                        exports={"epochs": [_epoch_output(e) for e in a.epoch_output or []],
                                 "points": None if a.points_output is None else (a.points_output, a.points)})
     return _show(r.summary_text(), r.summary, a.json)
@@ -366,6 +367,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="epoch K's distances, smoothed change, velocity and object per core point (.las, .laz, "
                          ".ply, .npz); repeatable")
     se.add_argument("--points-output", metavar="FILE", help="per-point series (.csv or .parquet)")
+    se.add_argument("--field-names", choices=("sdp", "cloudcompare", "pdal"), default=DEFAULTS.field_names,
+                    help="name the exports' distance, uncertainty, significance and normal as sdp (default), "
+                         "CloudCompare's M3C2 or PDAL's filters.m3c2 do")
     se.add_argument("--points", metavar="I,J,...", help="core points of --points-output (default: the peak of "
                     "each of the five largest objects)")
     se.add_argument("--json", action="store_true", help="print the summary as JSON")

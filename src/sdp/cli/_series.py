@@ -75,7 +75,9 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
         ``cylinder``, ``registration_error``, ``align``, ``orientation``, ``format``.
     outputs : Outputs, optional
         ``report``: one HTML page (maps of total change and velocity, the largest objects' series,
-        the object table, the parameters with their reasons).
+        the object table, the parameters with their reasons); ``field_names``: the exports' names
+        of the fields CloudCompare's M3C2 or PDAL's ``filters.m3c2`` also write (distance, level
+        of detection, significance, normal), as ``sdp distance`` names them.
     exports : dict, optional
         ``epochs``: list of (epoch index, file): that epoch's distances, smoothed change, velocity
         and object per core point (.las, .laz, .ply, .npz, as ``sdp distance`` writes them);
@@ -127,10 +129,10 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     with all_or_none():
         n = ds.sizes["epoch"]
         for k_text, f in epoch_files:
-            _write_epoch(ds, _epoch_index(str(k_text), n), f, inputs)
+            _write_epoch(ds, _epoch_index(str(k_text), n), f, inputs, outputs.field_names)
             written.append(str(f))
         if points is not None:
-            _write_points(ds, points[0], _point_list(points[1]), inputs)
+            _write_points(ds, points[0], _point_list(points[1]), inputs, outputs.field_names)
             written.append(str(points[0]))
         if report:
             from ..viz._report import series_report
@@ -143,7 +145,8 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     return SeriesRun(str(output), ds, summary, written)
 
 
-def _write_epoch(ds, k: int, path, inputs) -> None:
+def _write_epoch(ds, k: int, path, inputs, field_names: str) -> None:
+    from ..distance._names import rename_fields
     from ..io._output import write_points
 
     xyz = np.c_[ds.x.values, ds.y.values, ds.z.values]
@@ -153,7 +156,7 @@ def _write_epoch(ds, k: int, path, inputs) -> None:
     fields["significant"] = np.asarray(row["significant"].values).astype(np.uint8)
     for axis in "xyz":
         fields[f"normal_{axis}"] = ds[f"normal_{axis}"].values
-    write_points(path, xyz, fields, inputs=inputs)
+    write_points(path, xyz, rename_fields(fields, field_names, path=path), inputs=inputs)
 
 
 def default_points(ds, count: int = 5) -> list[int]:
@@ -189,8 +192,11 @@ def point_table(ds, points: list[int]):
     return pd.DataFrame(cols)
 
 
-def _write_points(ds, path, points, inputs) -> None:
+def _write_points(ds, path, points, inputs, field_names: str) -> None:
+    from ..distance._names import rename_fields
+
     table = point_table(ds, default_points(ds) if points is None else points)
+    table.columns = list(rename_fields(dict.fromkeys(table.columns), field_names))  # the names, in order
     with atomic_path(path, inputs=inputs) as tmp:
         if Path(path).suffix.lower() == ".parquet":
             try:

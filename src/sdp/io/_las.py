@@ -35,7 +35,9 @@ def read_las(path, *, fields: bool = True):
             chunks.append(chunk.array)
             pb.update(len(chunk))
         h = reader.header
-        records = np.concatenate(chunks) if len(chunks) > 1 else chunks[0] if chunks else np.zeros(0, h.point_format.dtype())
+        if not chunks:
+            chunks = [np.zeros(0, h.point_format.dtype())]
+        records = np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
     # scaled and offset, float64: large coordinates stay exact; filled in place (np.c_ copies twice)
     xyz = np.empty((len(records), 3))
     for a, (name, scale, offset) in enumerate(zip("XYZ", h.scales, h.offsets)):

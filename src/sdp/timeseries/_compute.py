@@ -424,8 +424,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         q, info, held, filt, step, recent = _smooth_all(w, E, m, times, limit, lag=lag, first_epochs=first_epochs,
                                                         frozen=params["smoother"] if go_on else None, state=filt,
                                                         recent=recent,
-                                                        fresh=None if fresh is None else (np.stack([r[0] for r in fresh]),
-                                                                                          np.stack([r[1] for r in fresh])))
+                                                        fresh=None if fresh is None else tuple(map(np.stack, zip(*fresh))))
         timings["smoother"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         xyz = prepared.core_points
