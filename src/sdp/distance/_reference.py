@@ -85,11 +85,14 @@ class PreparedReference:
 
     @classmethod
     def prepare(cls, reference, core_points=None, *, cylinder: Cylinder | None = None, orientation=None,
-                memory_limit=None) -> "PreparedReference":
+                memory_limit=None, corner=None) -> "PreparedReference":
         """Cells, normals and the reference's cylinders at the core points (default: every reference point).
 
         ``cylinder`` as in :func:`sdp.distances`, except that ``"auto"`` scales come from the
-        reference alone (they must not depend on epochs not seen yet)."""
+        reference alone (they must not depend on epochs not seen yet). ``corner``: where the
+        cells start (default just below the reference and core points), as in
+        :func:`sdp.distances`: the tiles of one reference (:mod:`sdp.scale._series`) give the
+        whole reference's, so their cells, and numbers, are those of the whole."""
         ref = as_points(reference, name="reference")
         if len(ref.xyz) < 3:
             raise InvalidPointsError(f"the reference has {len(ref.xyz)} point(s): a surface normal and a spread "
@@ -110,6 +113,12 @@ class PreparedReference:
             sigma_p = d_opt / 4.0
         max_half = search_reach(L_opt, 4.0 * sigma_p)
         lo = np.minimum(ref.lo, core.min(axis=0)) - 1e-9
+        if corner is not None:
+            corner = np.asarray(corner, np.float64).reshape(3)
+            if not (np.isfinite(corner).all() and (corner <= lo).all()):
+                raise InvalidOptionError(f"corner {corner} must be finite and below every reference and core point "
+                                         f"(lowest {lo})")
+            lo = corner
         hi = np.maximum(ref.hi, core.max(axis=0))
         check_memory(200.0 * len(ref.xyz) + 240.0 * len(core),
                      f"the reference's {len(ref.xyz):,} points at {len(core):,} core points", memory_limit,
@@ -165,18 +174,26 @@ class PreparedReference:
         reg = nonnegative_finite("registration_error", registration_error)
         check_memory(self.memory_per_epoch(len(cur.xyz)), f"an epoch of {len(cur.xyz):,} points", memory_limit,
                      advice="measure at fewer core points")
+        return self._measure(cur.xyz, self.epoch_corner(cur.lo), reg, t0)
+
+    def epoch_corner(self, lowest) -> np.ndarray:
+        """Where an epoch's cells start: the reference's corner, whole cells lower where the epoch's
+        ``lowest`` point reaches lower."""
+        return cells_below(self.corner, np.asarray(lowest, np.float64), _CELL * self.projection_scale / 4.0)
+
+    def _measure(self, xyz: np.ndarray, lo: np.ndarray, reg: float, t0: float) -> Distances:
+        """:meth:`measure` of finite points ``xyz`` (any number from 1) on cells from ``lo``."""
         sigma_p = self.projection_scale / 4.0
         cell = _CELL * sigma_p
         core = self.core_points
-        lo = cells_below(self.corner, cur.lo, cell)  # whole cells lower where the epoch reaches lower
-        hi = np.maximum(np.maximum(cur.hi, core.max(axis=0)), lo + cell)
+        hi = np.maximum(np.maximum(xyz.max(axis=0), core.max(axis=0)), lo + cell)
         lists = _CellLists(lo, hi)
         order, _ = lists.order(core, cell)
         queries = lists.get(core, cell)[0]
         normal = np.ascontiguousarray(self.normal[order])
         ref = tuple(np.ascontiguousarray(a[order]) for a in (self.ref_mean, self.ref_spread, self.ref_count,
                                                              self.ref_level.astype(np.int64)))
-        cur_stats = lists.cylinder(cur.xyz, queries, normal, sigma_p, self.max_distance)
+        cur_stats = lists.cylinder(xyz, queries, normal, sigma_p, self.max_distance)
         reach = max(self.max_distance, _RADIUS * sigma_p)
         m = len(order)
         dist, lod, n1, n2, s1, s2 = (np.empty(m) for _ in range(6))
@@ -189,12 +206,15 @@ class PreparedReference:
                          registration_error=reg, orientation=how, timings={"total": time.perf_counter() - t0})
 
 
-def subsample(xyz: np.ndarray, spacing: float) -> np.ndarray:
+def subsample(xyz: np.ndarray, spacing: float, *, origin=None) -> np.ndarray:
     """Rows of ``xyz``, one per occupied cube of ``spacing`` (the point nearest its cell's
-    centroid, the first in input order on ties), in input order: core points at a given spacing."""
+    centroid, the first in input order on ties), in input order: core points at a given spacing.
+    The cubes start at ``origin`` (default the lowest corner of ``xyz``; a tile gives the whole
+    cloud's, so that its whole cubes choose as the whole cloud does)."""
     if not (math.isfinite(spacing) and spacing > 0):
         raise InvalidOptionError(f"core point spacing must be positive, got {spacing!r}")
-    cells = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
+    origin = xyz.min(axis=0) if origin is None else np.asarray(origin, np.float64)
+    cells = np.floor((xyz - origin) / spacing).astype(np.int64)
     _, inverse = np.unique(cells, axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
     k = inverse.max() + 1
