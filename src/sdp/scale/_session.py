@@ -172,27 +172,48 @@ class Session:
                              method=method, memory_limit=share)
             chunk_rows = int(min(2_000_000, max(10_000, share // (4 * BYTES_PER_ROW_READ))))
             _check_tile_directory(self.tiling, lo, hi, reach, share, budget)
-            for e in self.sources:
-                Path(self.root, e).mkdir()
+            self._chunk_rows = chunk_rows
             if self.executor is None:
                 self.executor, self.cluster = _connect(scheduler, workers, self.root)
-            jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
-                    for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
-            done = self.tasks("bucket", _bucket_part, jobs, (), unit="slice")
+            self.budget = plan
+            self.dropped: dict[str, int] = {}
+            self.tiles = self._bucket(list(self.sources))
         except BaseException:
             self.__exit__(*sys.exc_info())
             raise
-        self.budget = plan
-        self.timings["read"] = sum(d[2] for d in done)
-        self.dropped = {e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in self.sources}
-        self.tiles = sorted({key for d in done for key in d[0]})
+
+    def _bucket(self, names: list) -> list:
+        """Bucket the sources ``names`` by tile (their rows dropped counted); their tiles, sorted."""
+        for e in names:
+            Path(self.root, e).mkdir()
+        jobs = [(self.sources[e], e, s, s + _PART_ROWS, i, self.tiling, self.root, self._chunk_rows)
+                for e in names for i, s in enumerate(range(0, self.sources[e].n_rows, _PART_ROWS))]
+        done = self.tasks("bucket", _bucket_part, jobs, (), unit="slice")
+        self.timings["read"] = self.timings.get("read", 0.0) + sum(d[2] for d in done)
+        self.dropped.update({e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in names})
+        return sorted({key for d in done for key in d[0]})
+
+    def add(self, name: str, cloud, *, format: str | None = None) -> list:
+        """Bucket one more cloud on this session's tiling and cluster (a series' next epoch): its
+        tiles, sorted. Its points need not lie in the first clouds' box; its density sets no tile
+        size (a denser cloud's tiles hold more points)."""
+        if format is not None and isinstance(cloud, (str, os.PathLike)):
+            cloud = PointSource.open(cloud, format=format, spill_dir=self.root)
+        self.sources[name] = _source(cloud, self.root, name)
+        return self._bucket([name])
+
+    def drop(self, name: str) -> None:
+        """Remove the buckets (and a spilled copy) of cloud ``name``: its disk space back."""
+        self.sources.pop(name, None)
+        shutil.rmtree(Path(self.root, name), ignore_errors=True)
+        Path(self.root, f"{name}.npy").unlink(missing_ok=True)
 
     def tasks(self, step: str, func, jobs: list, summed: tuple, unit: str = "tile") -> list:
         """Run the jobs; time the step (wall) and sum the tasks' own timings named ``summed``;
         the progress bar counts ``unit`` (a tile, a slice of a file)."""
         t = time.perf_counter()
         results = _run(self.executor, func, jobs, {"bucket": "reading and tiling"}.get(step, f"{step} tiles"), unit)
-        self.timings[step] = time.perf_counter() - t
+        self.timings[step] = self.timings.get(step, 0.0) + time.perf_counter() - t  # a step run again adds up
         for name in summed:
             self.timings[name] = self.timings.get(name, 0.0) + sum(r[name] for r in results)
         return results
