@@ -48,6 +48,7 @@ from ..distance._distances import (
     Distances,
     _CellLists,
     _cell_moments,
+    bounds,
     normal_sigma,
     search_reach,
     tile_halo,
@@ -368,7 +369,8 @@ def _measure_tile(key, root: str, name: str, lo: np.ndarray, reg: float, scalars
         values[:, 2], values[:, 3], values[:, 4] = 0.0, prepared.ref_count, 0.0
         values[:, 5], values[:, 7:10], values[:, 10] = prepared.ref_spread, prepared.normal, -1.0
         return rows, values
-    d = prepared._measure(np.ascontiguousarray(rec[:, :3]), lo, reg, t0)
+    xyz = np.ascontiguousarray(rec[:, :3])
+    d = prepared._measure(xyz, lo, bounds(xyz)[1], reg, t0)
     f = d.fields()
     values = np.column_stack([f[n] for n in _PACKED[:10]] + [d.level]).astype(np.float64)
     return rows, values
