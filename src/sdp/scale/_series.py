@@ -84,6 +84,11 @@ def _open(epoch, fmt: str | None):
     return np.asarray(xyz, dtype=np.float64)
 
 
+#: Bytes a task holds per point of its tile and halo, one cloud at a time: the bucket read (64),
+#: PreparedReference's sorted copy, cells and moments (200), the subsample's keys, sort and
+#: distances (about 130), the core points' share; sizes the tiles (a compare task's is 2,400).
+_TILE_POINT_BYTES = 500
+
 #: Bytes the in-memory run needs per point of an epoch (:meth:`PreparedReference.memory_per_epoch`:
 #: its sorted copy, cells and moments), and per core point when measuring and when preparing.
 _POINT_BYTES, _CORE_BYTES, _PREPARE_CORE_BYTES = 200.0, 160.0, 240.0
@@ -180,7 +185,7 @@ class TiledSeries:
         # the voxel only sets the tiles' granularity (blocks of 8 voxels), as sdp.distances_tiled
         self.run = Session(clouds, projection_scale / 8.0, sigma_voxels=2.0, k=DEFAULTS.k, h=None,
                            truncate=DEFAULTS.truncate, method=DEFAULTS.method, halo=halo,
-                           **self.execution.tile_keywords())
+                           point_bytes=_TILE_POINT_BYTES, **self.execution.tile_keywords())
 
     def record(self) -> dict:
         """What the run record says of the tiles: their number and edge, the reason, the seconds per step."""

@@ -102,10 +102,12 @@ def load_bucket(root: str, epoch: str, key) -> np.ndarray:
     return np.concatenate([np.fromfile(p, np.float64).reshape(-1, 4) for p in sorted(folder.iterdir())])
 
 
-def _check_tile_points(tiling: Tiling, sources: dict, plan: JobBudget, *, given: bool) -> None:
+def _check_tile_points(tiling: Tiling, sources: dict, plan: JobBudget, *, given: bool,
+                       point_bytes: float = 2 * BYTES_PER_TILE_POINT) -> None:
     """Refuse, before any task runs, tiles whose points (with their halo, at the clouds' mean
-    density) would need more than a task's share of the memory limit."""
-    need = 2 * _tile_points(tiling, sources) * BYTES_PER_TILE_POINT
+    density) would need more than a task's share of the memory limit (``point_bytes`` per point
+    of the denser cloud: a compare task holds two epochs)."""
+    need = _tile_points(tiling, sources) * point_bytes
     if need <= plan.task:
         return
     points = f"about {_tile_points(tiling, sources):,} points per epoch with their halo"
@@ -132,10 +134,14 @@ def _density(sources: dict) -> float:
 
 
 class Session:
-    """Workdir, Dask cluster and bucketed clouds of one tiled run; ``with`` closes them."""
+    """Workdir, Dask cluster and bucketed clouds of one tiled run; ``with`` closes them.
+
+    ``point_bytes``: what a task holds per point of the denser cloud in its tile and halo (two
+    epochs' fields by default), which sizes the tiles from a task's share of the memory limit."""
 
     def __init__(self, clouds: dict, voxel_size, *, sigma_voxels, k, h, truncate, method, tile_size, tile_points,
-                 memory_limit, scheduler, workers, workdir, halo: float | None = None):
+                 memory_limit, scheduler, workers, workdir, halo: float | None = None,
+                 point_bytes: float = 2 * BYTES_PER_TILE_POINT):
         check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                            memory_limit=memory_limit)
         check_tile_options(tile_size=tile_size, tile_points=tile_points, workers=workers, workdir=workdir,
@@ -158,7 +164,7 @@ class Session:
                              separate=not in_process)
             share, budget = plan.task, plan.task_budget
             if tile_points is None:  # what a task's share holds (none: the smallest tiles, refused below)
-                tile_points = max(0, share // (2 * BYTES_PER_TILE_POINT))
+                tile_points = int(max(0, share // point_bytes))
             self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
             lo = np.min([src.lo for src in self.sources.values()], axis=0)
             hi = np.max([src.hi for src in self.sources.values()], axis=0)
@@ -167,7 +173,7 @@ class Session:
             check_lattice(lo, hi, self.voxel_size, reach)
             self.lo = lo
             self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo)
-            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None)
+            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None, point_bytes=point_bytes)
             self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                              method=method, memory_limit=share)
             chunk_rows = int(min(2_000_000, max(10_000, share // (4 * BYTES_PER_ROW_READ))))
