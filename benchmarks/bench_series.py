@@ -31,8 +31,7 @@ Prints markdown (docs/benchmarks.md §12 quotes it; ``results/series.md`` keeps 
    (``results/series-tiled.md``).
 
 Usage: ``python benchmarks/bench_series.py [--quick] [--scale] [--only-tiled] [--rounds N] [--workdir DIR]``.
-Needs py4dgeo
-(``pip install 'sdp[m3c2]'``) for 2.
+Needs py4dgeo (``pip install 'sdp[m3c2]'``) for 2.
 """
 
 from __future__ import annotations
