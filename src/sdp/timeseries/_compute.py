@@ -358,7 +358,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
 
     append = prepared is None
     timings = {}
-    with A.transaction(out, base=append) as folder, A.many_chunks_at_once(), tiles or contextlib.nullcontext():
+    with tiles or contextlib.nullcontext(), A.transaction(out, base=append) as folder, A.many_chunks_at_once():
         w = A.Writer(folder, create=not append)
         if append:
             g = w.group
