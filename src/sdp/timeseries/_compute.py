@@ -51,7 +51,7 @@ from ..io._output import check_outputs
 from ..io._read import read_points
 from ..io._time import file_time
 from ..options import Cylinder, Execution, Registration
-from ..scale._series import plan_series
+from ..scale._series import count_points, plan_series
 from . import _archive as A
 from ._kalman import BYTES_PER_VALUE, FilterState, kalman, observation_variance, process_noise
 from ._objects import OBJECT_FIELDS, Tracker, min_object_points
@@ -298,7 +298,7 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     if reg_opt == "auto" and registration is None:
         reg_opt = 0.0
 
-    core_count = 0 if core_points is None else len(_xyz(_load(core_points, format)))
+    core_count = 0 if core_points is None else count_points(core_points, format) or 0  # not read twice
     tiles = plan_series(epochs, reference=reference, core_count=core_count, execution=execution, format=format,
                         align=registration is not None)
     if tiles is not None:  # the reference prepared tile by tile, its state assembled as in memory
