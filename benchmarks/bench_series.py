@@ -144,6 +144,9 @@ def main() -> None:
     ap.add_argument("--only-real", action="store_true", help="only the real epochs against sdp distance per pair")
     ap.add_argument("--only-tiled", action="store_true", help="only epochs of 2,000,000 points in tiles on Dask "
                     "against in memory")
+    ap.add_argument("--tiled-points", type=int, default=2_000_000, help="points per epoch of --only-tiled")
+    ap.add_argument("--tiled-limit", type=int, default=1500, help="--memory-limit (MB) of --only-tiled's tiles: "
+                    "below 200 bytes per point the command takes tiles by itself")
     ap.add_argument("--rounds", type=int, default=3, help="interleaved runs of each job, the fastest kept (3)")
     ap.add_argument("--workdir", default=None, help="folder for the epochs and archives (default: a temporary one)")
     a = ap.parse_args()
@@ -159,11 +162,12 @@ def main() -> None:
         return
     if a.only_tiled:
         try:
-            out = tiled_run(work, a.rounds)
+            out = tiled_run(work, a.rounds, a.tiled_points, a.tiled_limit)
         finally:
             shutil.rmtree(work, ignore_errors=True)
         print("\n".join(out))
-        (ROOT / "benchmarks" / "results" / "series-tiled.md").write_text("\n".join(out) + "\n")
+        name = "series-tiled.md" if a.tiled_points == 2_000_000 else f"series-tiled-{a.tiled_points}.md"
+        (ROOT / "benchmarks" / "results" / name).write_text("\n".join(out) + "\n")
         return
     if a.only_scale:
         try:
@@ -383,12 +387,17 @@ def tree_job(args: list[str]) -> dict:
     return {"seconds": seconds, "peak_mb": peak / 2**20}
 
 
-def tiled_run(work: Path, rounds: int) -> list[str]:
-    """Epochs of 2,000,000 points (.npy) in tiles on Dask (``--tiled``, ``--memory-limit 1500MB``) against
-    in memory, whole jobs of 2 and 5 epochs interleaved: time per epoch (t₅ − t₂)/3, peak memory of all
-    the processes, and whether the two archives are equal."""
-    n, E = 2_000_000, 5
-    s = slope_series(E, n, size=100.0, seed=7)
+def tiled_run(work: Path, rounds: int, n: int = 2_000_000, limit_mb: int = 1500) -> list[str]:
+    """Epochs of ``n`` points (.npy, 200 per m²) in tiles on Dask against in memory, whole jobs of 2
+    and 5 epochs interleaved: time per epoch (t₅ − t₂)/3, peak memory of all the processes, and
+    whether the two archives are equal. Tiles: ``--memory-limit limit_mb``, with ``--tiled`` when
+    the epochs would fit in memory under it, else taken by the command itself; the in-memory jobs
+    run under the same limit, or 4 GB when the epochs need more."""
+    E = 5
+    need_mb = 200 * n / 2**20
+    forced = need_mb <= limit_mb
+    size = float(np.sqrt(n / 200.0))
+    s = slope_series(E, n, size=size, seed=7)
     files = []
     for k, e in enumerate(s.epochs):
         files.append(work / f"big{k}.npy")
@@ -396,10 +405,11 @@ def tiled_run(work: Path, rounds: int) -> list[str]:
     del s
 
     def args(k, out, tiled):
+        limit = f"{limit_mb}MB" if tiled or forced else "4GB"
         return [sys.executable, "-m", "sdp.cli", "series", *map(str, files[:k]), "-o", str(out),
                 "--projection-scale", str(D), "--normal-scale", str(DN), "--max-distance", "0.5",
-                "--registration-error", str(REG), "--times", ",".join(map(str, range(k))), "--memory-limit", "1500MB",
-                "--quiet", *(["--tiled", "--workers", "2"] if tiled else [])]
+                "--registration-error", str(REG), "--times", ",".join(map(str, range(k))), "--memory-limit", limit,
+                "--quiet", *(["--workers", "2"] if tiled else []), *(["--tiled"] if tiled and forced else [])]
 
     load0 = os.getloadavg()
     tree_job(args(2, work / "warm.zarr", True))  # the kernels compiled once (Numba's cache on disk)
@@ -418,10 +428,12 @@ def tiled_run(work: Path, rounds: int) -> list[str]:
     rec = t.attrs["runs"][-1]["tiled"]
     inside = {w: ds.attrs["runs"][-1]["timings"]["epochs"] / E for w, ds in (("memory", m), ("tiles", t))}
     return ["### Epochs beyond memory: tiles on Dask", "",
-            f"{E} epochs of {n:,} points (.npy, a 100 m slope), {m.sizes['point']:,} core points (the default "
-            f"subsample), d = {D}, D = {DN}, max distance 0.5, `--memory-limit 1500MB`; tiles: `--tiled --workers "
-            f"2`, {rec['tiles']} tiles of {rec['tile_size']:.1f} m. Whole jobs of 2 and {E} epochs, interleaved, "
-            f"fastest of {rounds}; load {load0[0]:.1f} before, {load1[0]:.1f} after, {os.cpu_count()} cores.", "",
+            f"{E} epochs of {n:,} points (.npy, a {size:.0f} m slope), {m.sizes['point']:,} core points (the "
+            f"default subsample), d = {D}, D = {DN}, max distance 0.5; tiles: `--memory-limit {limit_mb}MB --workers "
+            f"2`{' --tiled' if forced else ''} ({rec['reason']}), {rec['tiles']} tiles of {rec['tile_size']:.1f} m; "
+            f"in memory: `--memory-limit {f'{limit_mb}MB' if forced else '4GB'}`. Whole jobs of 2 and {E} epochs, "
+            f"interleaved, fastest of {rounds}; load {load0[0]:.1f} before, {load1[0]:.1f} after, "
+            f"{os.cpu_count()} cores.", "",
             "| | in memory | tiles on Dask | ratio |", "|---|---|---|---|",
             f"| time per epoch, (t{E} − t2)/{E - 2} | {per[False]:.2f} s | {per[True]:.2f} s | "
             f"{per[True] / per[False]:.1f}× |",
