@@ -25,9 +25,13 @@ Prints markdown (docs/benchmarks.md §12 quotes it; ``results/series.md`` keeps 
    points as .npy files, a 40 m square with a subsiding disk), one job at ``--memory-limit 2GB``,
    niced: time and peak memory of the job, then of appending a 1,001st epoch
    (``results/series-scale.md``).
+5. ``--only-tiled``: 5 epochs of 2,000,000 points (.npy) with ``--tiled --memory-limit 1500MB`` on a
+   local Dask cluster of 2 workers against in memory, whole jobs of 2 and 5 epochs interleaved:
+   time per epoch (t₅ − t₂)/3, peak memory of all the processes, the archives compared
+   (``results/series-tiled.md``).
 
-Usage: ``python benchmarks/bench_series.py [--quick] [--scale] [--rounds N] [--workdir DIR]``. Needs py4dgeo
-(``pip install 'sdp[m3c2]'``) for 2.
+Usage: ``python benchmarks/bench_series.py [--quick] [--scale] [--only-tiled] [--rounds N] [--workdir DIR]``.
+Needs py4dgeo (``pip install 'sdp[m3c2]'``) for 2.
 """
 
 from __future__ import annotations
@@ -138,6 +142,11 @@ def main() -> None:
     ap.add_argument("--scale", action="store_true", help="also 1,000 epochs × 100,000 core points")
     ap.add_argument("--only-scale", action="store_true", help="only 1,000 epochs × 100,000 core points")
     ap.add_argument("--only-real", action="store_true", help="only the real epochs against sdp distance per pair")
+    ap.add_argument("--only-tiled", action="store_true", help="only epochs of 2,000,000 points in tiles on Dask "
+                    "against in memory")
+    ap.add_argument("--tiled-points", type=int, default=2_000_000, help="points per epoch of --only-tiled")
+    ap.add_argument("--tiled-limit", type=int, default=1500, help="--memory-limit (MB) of --only-tiled's tiles: "
+                    "below 200 bytes per point the command takes tiles by itself")
     ap.add_argument("--rounds", type=int, default=3, help="interleaved runs of each job, the fastest kept (3)")
     ap.add_argument("--workdir", default=None, help="folder for the epochs and archives (default: a temporary one)")
     a = ap.parse_args()
@@ -150,6 +159,15 @@ def main() -> None:
             shutil.rmtree(work, ignore_errors=True)
         print("\n".join(out))
         (ROOT / "benchmarks" / "results" / "series-real.md").write_text("\n".join(out) + "\n")
+        return
+    if a.only_tiled:
+        try:
+            out = tiled_run(work, a.rounds, a.tiled_points, a.tiled_limit)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+        print("\n".join(out))
+        name = "series-tiled.md" if a.tiled_points == 2_000_000 else f"series-tiled-{a.tiled_points}.md"
+        (ROOT / "benchmarks" / "results" / name).write_text("\n".join(out) + "\n")
         return
     if a.only_scale:
         try:
@@ -339,6 +357,95 @@ def scale_run(work: Path) -> list[str]:
             f"Appending a 1,001st epoch: the job {ra['seconds']:.0f} s, peak memory {ra['peak_mb']:.0f} MB; inside: "
             f"the epoch {ta['epochs']:.1f} s, smoother {ta['smoother']:.0f} s, objects {ta['objects']:.0f} s, "
             f"total {ta['total']:.0f} s.", ""]
+
+
+def tree_job(args: list[str]) -> dict:
+    """A whole job: wall time and the peak of the summed resident memory of it and all its
+    descendants (the Dask scheduler and workers), sampled every 0.1 s."""
+    import psutil
+
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    parent, peak = psutil.Process(proc.pid), 0
+    while proc.poll() is None:
+        total = 0
+        try:
+            for q in [parent, *parent.children(recursive=True)]:
+                try:
+                    total += q.memory_info().rss
+                except psutil.Error:
+                    pass
+        except psutil.Error:
+            pass
+        peak = max(peak, total)
+        time.sleep(0.1)
+    seconds = time.perf_counter() - t0
+    err = proc.stderr.read().decode()
+    proc.stderr.close()
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(args[:4])}…: status {proc.returncode}: {err[-2000:]}")
+    return {"seconds": seconds, "peak_mb": peak / 2**20}
+
+
+def tiled_run(work: Path, rounds: int, n: int = 2_000_000, limit_mb: int = 1500) -> list[str]:
+    """Epochs of ``n`` points (.npy, 200 per m²) in tiles on Dask against in memory, whole jobs of 2
+    and 5 epochs interleaved: time per epoch (t₅ − t₂)/3, peak memory of all the processes, and
+    whether the two archives are equal. Tiles: ``--memory-limit limit_mb``, with ``--tiled`` when
+    the epochs would fit in memory under it, else taken by the command itself; the in-memory jobs
+    run under the same limit, or 4 GB when the epochs need more."""
+    E = 5
+    need_mb = 200 * n / 2**20
+    forced = need_mb <= limit_mb
+    size = float(np.sqrt(n / 200.0))
+    s = slope_series(E, n, size=size, seed=7)
+    files = []
+    for k, e in enumerate(s.epochs):
+        files.append(work / f"big{k}.npy")
+        np.save(files[-1], e)
+    del s
+
+    def args(k, out, tiled):
+        limit = f"{limit_mb}MB" if tiled or forced else "4GB"
+        return [sys.executable, "-m", "sdp.cli", "series", *map(str, files[:k]), "-o", str(out),
+                "--projection-scale", str(D), "--normal-scale", str(DN), "--max-distance", "0.5",
+                "--registration-error", str(REG), "--times", ",".join(map(str, range(k))), "--memory-limit", limit,
+                "--quiet", *(["--workers", "2"] if tiled else []), *(["--tiled"] if tiled and forced else [])]
+
+    load0 = os.getloadavg()
+    tree_job(args(2, work / "warm.zarr", True))  # the kernels compiled once (Numba's cache on disk)
+    runs: dict = {}
+    for _ in range(rounds):
+        for k in (2, E):
+            for tiled in (False, True):
+                r = tree_job(args(k, work / f"{'t' if tiled else 'm'}{k}.zarr", tiled))
+                key = (tiled, k)
+                if key not in runs or r["seconds"] < runs[key]["seconds"]:
+                    runs[key] = r
+    load1 = os.getloadavg()
+    per = {t: (runs[(t, E)]["seconds"] - runs[(t, 2)]["seconds"]) / (E - 2) for t in (False, True)}
+    m, t = sdp.open_series(work / f"m{E}.zarr"), sdp.open_series(work / f"t{E}.zarr")
+    same = all(np.array_equal(m[v].values, t[v].values, equal_nan=m[v].dtype.kind == "f") for v in m.variables)
+    rec = t.attrs["runs"][-1]["tiled"]
+    inside = {w: ds.attrs["runs"][-1]["timings"]["epochs"] / E for w, ds in (("memory", m), ("tiles", t))}
+    return ["### Epochs beyond memory: tiles on Dask", "",
+            f"{E} epochs of {n:,} points (.npy, a {size:.0f} m slope), {m.sizes['point']:,} core points (the "
+            f"default subsample), d = {D}, D = {DN}, max distance 0.5; tiles: `--memory-limit {limit_mb}MB --workers "
+            f"2`{' --tiled' if forced else ''} ({rec['reason']}), {rec['tiles']} tiles of {rec['tile_size']:.1f} m; "
+            f"in memory: `--memory-limit {f'{limit_mb}MB' if forced else '4GB'}`. Whole jobs of 2 and {E} epochs, "
+            f"interleaved, fastest of {rounds}; load {load0[0]:.1f} before, {load1[0]:.1f} after, "
+            f"{os.cpu_count()} cores.", "",
+            "| | in memory | tiles on Dask | ratio |", "|---|---|---|---|",
+            f"| time per epoch, (t{E} − t2)/{E - 2} | {per[False]:.2f} s | {per[True]:.2f} s | "
+            f"{per[True] / per[False]:.1f}× |",
+            f"| inside the job: the epochs' loop per epoch | {inside['memory']:.2f} s | {inside['tiles']:.2f} s | "
+            f"{inside['tiles'] / inside['memory']:.1f}× |",
+            f"| whole job, {E} epochs | {runs[(False, E)]['seconds']:.1f} s | {runs[(True, E)]['seconds']:.1f} s | "
+            f"{runs[(True, E)]['seconds'] / runs[(False, E)]['seconds']:.1f}× |",
+            f"| peak memory, all processes, {E} epochs | {runs[(False, E)]['peak_mb']:.0f} MB | "
+            f"{runs[(True, E)]['peak_mb']:.0f} MB | |",
+            f"| archives equal (every array) | | {'yes' if same else 'NO'} | |", "",
+            f"Tiled run's steps (s, summed over the run): "
+            + ", ".join(f"{k} {v:.1f}" for k, v in rec["timings"].items()), ""]
 
 
 if __name__ == "__main__":

@@ -176,7 +176,7 @@ def cmd_series(a):
     if isinstance(options["orientation"], str):
         raise SDPError(f"--orientation must be X,Y,Z, got {a.orientation!r}")
     r = S.series_files(a.epochs, output=a.output, append=a.append, times=a.times, options=options,
-                       execution=Execution(memory_limit=a.memory_limit),
+                       execution=_execution(a, None if a.json else _say),
                        outputs=Outputs(report=a.report, field_names=a.field_names),
                        exports={"epochs": [_epoch_output(e) for e in a.epoch_output or []],
                                 "points": None if a.points_output is None else (a.points_output, a.points)})
@@ -361,6 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
     _align_options(se)
     se.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
                     help="memory of the job (default $SDP_MEMORY_LIMIT or 4GiB): epochs are read one at a time")
+    _tile_options(se, "epochs beyond memory: tiles on Dask (taken by themselves beyond --memory-limit)")
     se.add_argument("--report", help="one HTML page: maps of change and velocity, the largest objects' series, "
                     "the object table, the parameters (needs the plots extra)")
     se.add_argument("--epoch-output", action="append", metavar="K:FILE",

@@ -171,6 +171,8 @@ def series_text(s: dict) -> str:
         lines.append(f"    #{o['id']}: epochs {o['start']}..{o['end']}, {o['core_points']} core points, "
                      f"peak {o['peak_change']:+.4g}, mean velocity {o['mean_velocity']:+.4g}")
     if last:
-        lines.append(f"  this run: {last['added']} epoch(s) {'appended' if last['append'] else 'measured'} in "
+        tiled = last.get("tiled")
+        where = f" in {tiled['tiles']} tiles on Dask" if tiled else ""
+        lines.append(f"  this run: {last['added']} epoch(s) {'appended' if last['append'] else 'measured'}{where} in "
                      f"{last['timings'].get('total', 0):.2f} s")
     return "\n".join(lines)

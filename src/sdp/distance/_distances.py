@@ -422,18 +422,25 @@ class _CellLists:
 
     def get(self, xyz: np.ndarray, cell: float):
         """(points sorted by cell, start of each occupied cell's run, cell table, its box of
-        cells or zeros for a hash table, cell size, the sorting permutation)."""
+        cells (the first cell's index, then the box's size) or zeros for a hash table, cell
+        size, the sorting permutation).
+
+        A cell's index is floor((p − lo) / cell) in both tables, so the cells do not depend on
+        which table holds them; the dense box spans the points' own cells only (a tile of a
+        large cloud, whose cells start at the whole cloud's corner, gets a small box)."""
         key = (id(xyz), cell)
         if key not in self._cache:
             if np.max(self.extent) / cell >= MAX_INDEX - 4:
                 raise InvalidOptionError(f"the clouds span {np.max(self.extent):g} units, more than 2**{BITS} cells "
                                          f"of {cell:g}: give a larger projection_scale, or compare in tiles")
-            dims = (self.extent // cell).astype(np.int64) + 1
-            if np.prod(dims.astype(float)) <= _DENSE_CELLS:  # a counting sort over the box of cells
+            first, last = _index_box(xyz, self.lo, cell)
+            size = last - first + 1
+            if np.prod(size.astype(float)) <= _DENSE_CELLS:  # a counting sort over the box of cells
+                dims = np.r_[size, first]
                 order, starts, table = _counting_sort(xyz, self.lo, cell, dims)
             else:
                 order, starts, table = sorted_cells(cell_keys(np.floor((xyz - self.lo) / cell).astype(np.int64)))
-                dims = np.zeros(3, np.int64)
+                dims = np.zeros(6, np.int64)
             self._cache[key] = (_gather(xyz, order), starts, table, dims, cell, order)
         return self._cache[key]
 
@@ -492,18 +499,42 @@ class _CellLists:
 
 
 @nb.njit(cache=True)
+def _index_box(xyz, lo, cell):
+    """(first, last) cell index per axis of the points, as the kernels index them."""
+    first = np.full(3, np.iinfo(np.int64).max, np.int64)
+    last = np.full(3, np.iinfo(np.int64).min, np.int64)
+    for i in range(xyz.shape[0]):
+        for a in range(3):
+            k = int(math.floor((xyz[i, a] - lo[a]) / cell))
+            first[a] = min(first[a], k)
+            last[a] = max(last[a], k)
+    return first, last
+
+
+@nb.njit(cache=True)
+def bounds(xyz):
+    """(lowest, highest) corner of the points, in one pass."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for i in range(xyz.shape[0]):
+        for a in range(3):
+            lo[a] = min(lo[a], xyz[i, a])
+            hi[a] = max(hi[a], xyz[i, a])
+    return lo, hi
+
+
+@nb.njit(cache=True)
 def _counting_sort(xyz, lo, cell, dims):
     """Points sorted by cell in O(n + cells): (permutation, start of each occupied cell's run,
-    dense table cell → run (-1: empty)) over the box of ``dims`` cells."""
+    dense table cell → run (-1: empty)) over the box of ``dims[:3]`` cells from cell ``dims[3:]``."""
     n = xyz.shape[0]
-    inv = 1.0 / cell
     total = dims[0] * dims[1] * dims[2]
     linear = np.empty(n, np.int64)
     table = np.zeros(total, np.int32)
     for i in range(n):
-        ix = min(max(int((xyz[i, 0] - lo[0]) * inv), 0), dims[0] - 1)
-        iy = min(max(int((xyz[i, 1] - lo[1]) * inv), 0), dims[1] - 1)
-        iz = min(max(int((xyz[i, 2] - lo[2]) * inv), 0), dims[2] - 1)
+        ix = min(max(int(math.floor((xyz[i, 0] - lo[0]) / cell)) - dims[3], 0), dims[0] - 1)
+        iy = min(max(int(math.floor((xyz[i, 1] - lo[1]) / cell)) - dims[4], 0), dims[1] - 1)
+        iz = min(max(int(math.floor((xyz[i, 2] - lo[2]) / cell)) - dims[5], 0), dims[2] - 1)
         linear[i] = (ix * dims[1] + iy) * dims[2] + iz
         table[linear[i]] += 1
     starts = np.empty(n + 1, np.int64)
@@ -561,9 +592,10 @@ def _gather(values, index):
 
 @nb.njit(cache=True, inline="always")
 def _row(table, dims, shift, ix, iy, iz):
-    """Row of cell (ix, iy, iz) in a dense table (``dims`` the box of cells) or a hash table
-    (``dims`` zeros: :func:`sdp._core._cells.key_table`), -1 if empty."""
+    """Row of cell (ix, iy, iz) in a dense table (``dims``: the box's size, then its first cell)
+    or a hash table (``dims`` zeros: :func:`sdp._core._cells.key_table`), -1 if empty."""
     if dims[0] > 0:
+        ix, iy, iz = ix - dims[3], iy - dims[4], iz - dims[5]
         if ix < 0 or iy < 0 or iz < 0 or ix >= dims[0] or iy >= dims[1] or iz >= dims[2]:
             return -1
         return table[(ix * dims[1] + iy) * dims[2] + iz]

@@ -85,11 +85,14 @@ class PreparedReference:
 
     @classmethod
     def prepare(cls, reference, core_points=None, *, cylinder: Cylinder | None = None, orientation=None,
-                memory_limit=None) -> "PreparedReference":
+                memory_limit=None, corner=None) -> "PreparedReference":
         """Cells, normals and the reference's cylinders at the core points (default: every reference point).
 
         ``cylinder`` as in :func:`sdp.distances`, except that ``"auto"`` scales come from the
-        reference alone (they must not depend on epochs not seen yet)."""
+        reference alone (they must not depend on epochs not seen yet). ``corner``: where the
+        cells start (default just below the reference and core points), as in
+        :func:`sdp.distances`: the tiles of one reference (:mod:`sdp.scale._series`) give the
+        whole reference's, so their cells, and numbers, are those of the whole."""
         ref = as_points(reference, name="reference")
         if len(ref.xyz) < 3:
             raise InvalidPointsError(f"the reference has {len(ref.xyz)} point(s): a surface normal and a spread "
@@ -110,6 +113,12 @@ class PreparedReference:
             sigma_p = d_opt / 4.0
         max_half = search_reach(L_opt, 4.0 * sigma_p)
         lo = np.minimum(ref.lo, core.min(axis=0)) - 1e-9
+        if corner is not None:
+            corner = np.asarray(corner, np.float64).reshape(3)
+            if not (np.isfinite(corner).all() and (corner <= lo).all()):
+                raise InvalidOptionError(f"corner {corner} must be finite and below every reference and core point "
+                                         f"(lowest {lo})")
+            lo = corner
         hi = np.maximum(ref.hi, core.max(axis=0))
         check_memory(200.0 * len(ref.xyz) + 240.0 * len(core),
                      f"the reference's {len(ref.xyz):,} points at {len(core):,} core points", memory_limit,
@@ -165,18 +174,27 @@ class PreparedReference:
         reg = nonnegative_finite("registration_error", registration_error)
         check_memory(self.memory_per_epoch(len(cur.xyz)), f"an epoch of {len(cur.xyz):,} points", memory_limit,
                      advice="measure at fewer core points")
+        return self._measure(cur.xyz, self.epoch_corner(cur.lo), cur.hi, reg, t0)
+
+    def epoch_corner(self, lowest) -> np.ndarray:
+        """Where an epoch's cells start: the reference's corner, whole cells lower where the epoch's
+        ``lowest`` point reaches lower."""
+        return cells_below(self.corner, np.asarray(lowest, np.float64), _CELL * self.projection_scale / 4.0)
+
+    def _measure(self, xyz: np.ndarray, lo: np.ndarray, highest: np.ndarray, reg: float, t0: float) -> Distances:
+        """:meth:`measure` of finite points ``xyz`` (any number from 1; ``highest`` their upper
+        corner) on cells from ``lo``."""
         sigma_p = self.projection_scale / 4.0
         cell = _CELL * sigma_p
         core = self.core_points
-        lo = cells_below(self.corner, cur.lo, cell)  # whole cells lower where the epoch reaches lower
-        hi = np.maximum(np.maximum(cur.hi, core.max(axis=0)), lo + cell)
+        hi = np.maximum(np.maximum(highest, core.max(axis=0)), lo + cell)
         lists = _CellLists(lo, hi)
         order, _ = lists.order(core, cell)
         queries = lists.get(core, cell)[0]
         normal = np.ascontiguousarray(self.normal[order])
         ref = tuple(np.ascontiguousarray(a[order]) for a in (self.ref_mean, self.ref_spread, self.ref_count,
                                                              self.ref_level.astype(np.int64)))
-        cur_stats = lists.cylinder(cur.xyz, queries, normal, sigma_p, self.max_distance)
+        cur_stats = lists.cylinder(xyz, queries, normal, sigma_p, self.max_distance)
         reach = max(self.max_distance, _RADIUS * sigma_p)
         m = len(order)
         dist, lod, n1, n2, s1, s2 = (np.empty(m) for _ in range(6))
@@ -189,19 +207,29 @@ class PreparedReference:
                          registration_error=reg, orientation=how, timings={"total": time.perf_counter() - t0})
 
 
-def subsample(xyz: np.ndarray, spacing: float) -> np.ndarray:
+def subsample(xyz: np.ndarray, spacing: float, *, origin=None) -> np.ndarray:
     """Rows of ``xyz``, one per occupied cube of ``spacing`` (the point nearest its cell's
-    centroid, the first in input order on ties), in input order: core points at a given spacing."""
+    centroid, the first in input order on ties), in input order: core points at a given spacing.
+    The cubes start at ``origin`` (default the lowest corner of ``xyz``; a tile gives the whole
+    cloud's, so that its whole cubes choose as the whole cloud does)."""
     if not (math.isfinite(spacing) and spacing > 0):
         raise InvalidOptionError(f"core point spacing must be positive, got {spacing!r}")
-    cells = np.floor((xyz - xyz.min(axis=0)) / spacing).astype(np.int64)
-    _, inverse = np.unique(cells, axis=0, return_inverse=True)
+    origin = xyz.min(axis=0) if origin is None else np.asarray(origin, np.float64)
+    cells = np.floor((xyz - origin) / spacing).astype(np.int64)
+    low, span = cells.min(axis=0), np.ptp(cells, axis=0).astype(np.float64) + 1
+    if float(np.prod(span)) < 2.0**62:  # one int64 key per cube: a 1-D sort, several times faster than rows'
+        cells -= low
+        key = (cells[:, 0] * int(span[1]) + cells[:, 1]) * int(span[2]) + cells[:, 2]
+        _, inverse = np.unique(key, return_inverse=True)
+    else:
+        _, inverse = np.unique(cells, axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
+    # the cubes' numbering does not matter: each cube's sums and its nearest point are the same
     k = inverse.max() + 1
     counts = np.bincount(inverse, minlength=k).astype(np.float64)
     mean = np.stack([np.bincount(inverse, xyz[:, a], minlength=k) for a in range(3)], axis=1) / counts[:, None]
     d2 = ((xyz - mean[inverse]) ** 2).sum(axis=1)
-    order = np.lexsort((np.arange(len(xyz)), d2, inverse))
+    order = np.lexsort((d2, inverse))  # stable: ties in input order
     first = np.ones(len(order), bool)
     first[1:] = inverse[order[1:]] != inverse[order[:-1]]
     return np.sort(order[first])

@@ -102,10 +102,12 @@ def load_bucket(root: str, epoch: str, key) -> np.ndarray:
     return np.concatenate([np.fromfile(p, np.float64).reshape(-1, 4) for p in sorted(folder.iterdir())])
 
 
-def _check_tile_points(tiling: Tiling, sources: dict, plan: JobBudget, *, given: bool) -> None:
+def _check_tile_points(tiling: Tiling, sources: dict, plan: JobBudget, *, given: bool,
+                       point_bytes: float = 2 * BYTES_PER_TILE_POINT) -> None:
     """Refuse, before any task runs, tiles whose points (with their halo, at the clouds' mean
-    density) would need more than a task's share of the memory limit."""
-    need = 2 * _tile_points(tiling, sources) * BYTES_PER_TILE_POINT
+    density) would need more than a task's share of the memory limit (``point_bytes`` per point
+    of the denser cloud: a compare task holds two epochs)."""
+    need = _tile_points(tiling, sources) * point_bytes
     if need <= plan.task:
         return
     points = f"about {_tile_points(tiling, sources):,} points per epoch with their halo"
@@ -132,10 +134,14 @@ def _density(sources: dict) -> float:
 
 
 class Session:
-    """Workdir, Dask cluster and bucketed clouds of one tiled run; ``with`` closes them."""
+    """Workdir, Dask cluster and bucketed clouds of one tiled run; ``with`` closes them.
+
+    ``point_bytes``: what a task holds per point of the denser cloud in its tile and halo (two
+    epochs' fields by default), which sizes the tiles from a task's share of the memory limit."""
 
     def __init__(self, clouds: dict, voxel_size, *, sigma_voxels, k, h, truncate, method, tile_size, tile_points,
-                 memory_limit, scheduler, workers, workdir, halo: float | None = None):
+                 memory_limit, scheduler, workers, workdir, halo: float | None = None,
+                 point_bytes: float = 2 * BYTES_PER_TILE_POINT):
         check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                            memory_limit=memory_limit)
         check_tile_options(tile_size=tile_size, tile_points=tile_points, workers=workers, workdir=workdir,
@@ -158,7 +164,7 @@ class Session:
                              separate=not in_process)
             share, budget = plan.task, plan.task_budget
             if tile_points is None:  # what a task's share holds (none: the smallest tiles, refused below)
-                tile_points = max(0, share // (2 * BYTES_PER_TILE_POINT))
+                tile_points = int(max(0, share // point_bytes))
             self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
             lo = np.min([src.lo for src in self.sources.values()], axis=0)
             hi = np.max([src.hi for src in self.sources.values()], axis=0)
@@ -167,32 +173,53 @@ class Session:
             check_lattice(lo, hi, self.voxel_size, reach)
             self.lo = lo
             self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo)
-            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None)
+            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None, point_bytes=point_bytes)
             self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                              method=method, memory_limit=share)
             chunk_rows = int(min(2_000_000, max(10_000, share // (4 * BYTES_PER_ROW_READ))))
             _check_tile_directory(self.tiling, lo, hi, reach, share, budget)
-            for e in self.sources:
-                Path(self.root, e).mkdir()
+            self._chunk_rows = chunk_rows
             if self.executor is None:
                 self.executor, self.cluster = _connect(scheduler, workers, self.root)
-            jobs = [(src, e, s, s + _PART_ROWS, i, self.tiling, self.root, chunk_rows)
-                    for e, src in self.sources.items() for i, s in enumerate(range(0, src.n_rows, _PART_ROWS))]
-            done = self.tasks("bucket", _bucket_part, jobs, (), unit="slice")
+            self.budget = plan
+            self.dropped: dict[str, int] = {}
+            self.tiles = self._bucket(list(self.sources))
         except BaseException:
             self.__exit__(*sys.exc_info())
             raise
-        self.budget = plan
-        self.timings["read"] = sum(d[2] for d in done)
-        self.dropped = {e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in self.sources}
-        self.tiles = sorted({key for d in done for key in d[0]})
+
+    def _bucket(self, names: list) -> list:
+        """Bucket the sources ``names`` by tile (their rows dropped counted); their tiles, sorted."""
+        for e in names:
+            Path(self.root, e).mkdir()
+        jobs = [(self.sources[e], e, s, s + _PART_ROWS, i, self.tiling, self.root, self._chunk_rows)
+                for e in names for i, s in enumerate(range(0, self.sources[e].n_rows, _PART_ROWS))]
+        done = self.tasks("bucket", _bucket_part, jobs, (), unit="slice")
+        self.timings["read"] = self.timings.get("read", 0.0) + sum(d[2] for d in done)
+        self.dropped.update({e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in names})
+        return sorted({key for d in done for key in d[0]})
+
+    def add(self, name: str, cloud, *, format: str | None = None) -> list:
+        """Bucket one more cloud on this session's tiling and cluster (a series' next epoch): its
+        tiles, sorted. Its points need not lie in the first clouds' box; its density sets no tile
+        size (a denser cloud's tiles hold more points)."""
+        if format is not None and isinstance(cloud, (str, os.PathLike)):
+            cloud = PointSource.open(cloud, format=format, spill_dir=self.root)
+        self.sources[name] = _source(cloud, self.root, name)
+        return self._bucket([name])
+
+    def drop(self, name: str) -> None:
+        """Remove the buckets (and a spilled copy) of cloud ``name``: its disk space back."""
+        self.sources.pop(name, None)
+        shutil.rmtree(Path(self.root, name), ignore_errors=True)
+        Path(self.root, f"{name}.npy").unlink(missing_ok=True)
 
     def tasks(self, step: str, func, jobs: list, summed: tuple, unit: str = "tile") -> list:
         """Run the jobs; time the step (wall) and sum the tasks' own timings named ``summed``;
         the progress bar counts ``unit`` (a tile, a slice of a file)."""
         t = time.perf_counter()
         results = _run(self.executor, func, jobs, {"bucket": "reading and tiling"}.get(step, f"{step} tiles"), unit)
-        self.timings[step] = time.perf_counter() - t
+        self.timings[step] = self.timings.get(step, 0.0) + time.perf_counter() - t  # a step run again adds up
         for name in summed:
             self.timings[name] = self.timings.get(name, 0.0) + sum(r[name] for r in results)
         return results

@@ -30,6 +30,7 @@ References
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import math
 import os
@@ -50,6 +51,7 @@ from ..io._output import check_outputs
 from ..io._read import read_points
 from ..io._time import file_time
 from ..options import Cylinder, Execution, Registration
+from ..scale._series import count_points, plan_series
 from . import _archive as A
 from ._kalman import BYTES_PER_VALUE, FilterState, kalman, observation_variance, process_noise
 from ._objects import OBJECT_FIELDS, Tracker, min_object_points
@@ -186,7 +188,11 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     orientation : array_like (3,), optional
         Direction the normals point to (default +z).
     execution : Execution, optional
-        The memory limit (an epoch, the reference side and the smoother's blocks are sized from it).
+        The memory limit (an epoch, the reference side and the smoother's blocks are sized from it)
+        and the tiles: with ``tiled`` True, or when an epoch or the reference would not fit the
+        limit, the reference is prepared and every epoch measured in tiles on Dask
+        (:mod:`sdp.scale._series`: the same numbers; ``"auto"`` scales from the reference's first
+        slice; not with ``align``).
     format : str, optional
         Input format overriding the files' extensions.
 
@@ -223,9 +229,6 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     if not epochs:
         raise InvalidOptionError("no epochs given")
     execution = Execution() if execution is None else execution
-    if execution.tiled:
-        raise InvalidOptionError("a series runs epoch by epoch in memory bounded by --memory-limit; tiles on Dask "
-                                 "are not available for series")
     limit = resolve_memory_limit(execution.memory_limit)
     out = Path(output)
     files = [e for e in epochs if isinstance(e, (str, os.PathLike))]
@@ -272,8 +275,13 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
                 raise InvalidOptionError(f"--core-points differs from the archive's core points ({out})")
         reg_opt = params["given"]["registration_error"]
         registration = Registration.of(params["given"]["align"])
+        import zarr
+
+        core_count = zarr.open_group(str(out), mode="r")["x"].shape[0]
+        tiles = plan_series(epochs, reference=None, core_count=core_count, execution=execution, format=format,
+                            align=registration is not None)
         return _run(epochs, out, t_new, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt,
-                    limit=limit, fmt=format, t_start=t_start)
+                    limit=limit, fmt=format, t_start=t_start, tiles=tiles)
     if reference is None:
         reference = 0
     reference = integer_at_least("reference", reference, 0)
@@ -290,22 +298,35 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     if reg_opt == "auto" and registration is None:
         reg_opt = 0.0
 
-    ref_cloud = _load(epochs[reference], format)
-    ref_xyz = _xyz(ref_cloud)
-    d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
-    if d_opt == "auto":
-        voxel, sigma_voxels = resolve_lattice([as_points(ref_xyz)], k=DEFAULTS.k)
-        d_opt = 4.0 * sigma_voxels * voxel
-    if core_points is None:
-        core = ref_xyz[subsample(ref_xyz, d_opt)]
-        core_source = f"the reference subsampled at the projection scale ({d_opt:.6g})"
+    core_count = 0 if core_points is None else count_points(core_points, format) or 0  # not read twice
+    tiles = plan_series(epochs, reference=reference, core_count=core_count, execution=execution, format=format,
+                        align=registration is not None)
+    if tiles is not None:  # the reference prepared tile by tile, its state assembled as in memory
+        try:
+            prepared = tiles.prepare(epochs[reference], core_points, cylinder=cylinder, orientation=orientation)
+        except BaseException:
+            tiles.close()
+            raise
+        ref_cloud = epochs[reference]
+        core_source = (f"the reference subsampled at the projection scale ({prepared.projection_scale:.6g})"
+                       if core_points is None else _name(core_points, -1))
     else:
-        core = _xyz(_load(core_points, format))
-        core_source = _name(core_points, -1)
-    prepared = PreparedReference.prepare(
-        ref_xyz, core, cylinder=Cylinder(projection_scale=d_opt, normal_scale=cylinder.normal_scale,
-                                         max_distance=cylinder.max_distance),
-        orientation=orientation, memory_limit=limit)
+        ref_cloud = _load(epochs[reference], format)
+        ref_xyz = _xyz(ref_cloud)
+        d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
+        if d_opt == "auto":
+            voxel, sigma_voxels = resolve_lattice([as_points(ref_xyz)], k=DEFAULTS.k)
+            d_opt = 4.0 * sigma_voxels * voxel
+        if core_points is None:
+            core = ref_xyz[subsample(ref_xyz, d_opt)]
+            core_source = f"the reference subsampled at the projection scale ({d_opt:.6g})"
+        else:
+            core = _xyz(_load(core_points, format))
+            core_source = _name(core_points, -1)
+        prepared = PreparedReference.prepare(
+            ref_xyz, core, cylinder=Cylinder(projection_scale=d_opt, normal_scale=cylinder.normal_scale,
+                                             max_distance=cylinder.max_distance),
+            orientation=orientation, memory_limit=limit)
     arrays, scalars = prepared.state()
     used = {"projection_scale": prepared.projection_scale, "normal_scale": prepared.normal_scale,
             "max_distance": prepared.max_distance, "registration_error": reg_opt,
@@ -321,7 +342,8 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
                             "min_object_points": min_object_points(prepared.core_points,
                                                                    prepared.projection_scale)}}
     return _run(epochs, out, t, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
-                fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud))
+                fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud),
+                tiles=tiles)
 
 
 def _show_time(value: float, kind: str) -> str:
@@ -331,10 +353,10 @@ def _show_time(value: float, kind: str) -> str:
 
 
 def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt, limit, fmt, t_start,
-         prepared=None, state=None, ref_cloud=None):
+         prepared=None, state=None, ref_cloud=None, tiles=None):
     append = prepared is None
     timings = {}
-    with A.transaction(out, base=append) as folder, A.many_chunks_at_once():
+    with tiles or contextlib.nullcontext(), A.transaction(out, base=append) as folder, A.many_chunks_at_once():
         w = A.Writer(folder, create=not append)
         if append:
             g = w.group
@@ -382,8 +404,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         for k, epoch in enumerate(epochs):
             row = n_old + k
             is_ref = ref_cloud is not None and k == ref_cloud[0]
-            cloud = ref_cloud[1] if is_ref else _load(epoch, fmt)
-            xyz = _xyz(cloud)
+            cloud = ref_cloud[1] if is_ref else (epoch if tiles else _load(epoch, fmt))
+            xyz = None if tiles else _xyz(cloud)  # in tiles the epoch is read slice by slice
             record = {"file": _name(epoch, row), "time": float(t_new[k]), "time_source": source}
             reg = reg_opt
             if registration is not None and not is_ref:
@@ -396,15 +418,20 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                     reg = float(al.rmse) if np.isfinite(al.rmse) else 0.0
             if reg == "auto":
                 reg = 0.0
-            d = prepared.measure(xyz, registration_error=reg, memory_limit=limit)
+            if tiles:
+                d, n_points = tiles.measure(prepared, cloud, registration_error=reg, reference=is_ref)
+            else:
+                d, n_points = prepared.measure(xyz, registration_error=reg, memory_limit=limit), len(xyz)
             buffered.append((k, d.distance.astype(np.float32), d.lod.astype(np.float32), d.significant))
             if len(buffered) >= flush:
                 write_rows()
-            record.update(registration_error=float(reg), points=int(len(xyz)), comparable=int(d.comparable.sum()),
+            record.update(registration_error=float(reg), points=int(n_points), comparable=int(d.comparable.sum()),
                           significant=int(d.significant.sum()))
             attrs["epochs"].append(record)
             del cloud, xyz, d
         write_rows()
+        if tiles:
+            tiles.close()  # the cluster's workers are not needed by the smoother
         timings["epochs"] = time.perf_counter() - t0
         E = len(attrs["epochs"])
         times = np.array([e["time"] for e in attrs["epochs"]])
@@ -485,7 +512,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         timings["total"] = time.perf_counter() - t_start
         attrs["runs"].append({"when": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                               "sdp_version": _version(), "added": len(epochs), "append": append,
-                              "timings": {k: round(v, 4) for k, v in timings.items()}})
+                              "timings": {k: round(v, 4) for k, v in timings.items()},
+                              **({"tiled": tiles.record()} if tiles else {})})
         w.finish(attrs)
     return A.open_series(out)
 
