@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -82,6 +82,10 @@ class PreparedReference:
     max_distance: float
     corner: np.ndarray
     orientation: np.ndarray
+    #: The core points sorted by cell and their arrays in that order, made at the first epoch: each
+    #: core point's numbers do not depend on the order, which only keeps the cylinders' reads of
+    #: neighbouring cells close in memory, so a series sorts them once, not once per epoch.
+    _sorted: tuple | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def prepare(cls, reference, core_points=None, *, cylinder: Cylinder | None = None, orientation=None,
@@ -189,11 +193,13 @@ class PreparedReference:
         core = self.core_points
         hi = np.maximum(np.maximum(highest, core.max(axis=0)), lo + cell)
         lists = _CellLists(lo, hi)
-        order, _ = lists.order(core, cell)
-        queries = lists.get(core, cell)[0]
-        normal = np.ascontiguousarray(self.normal[order])
-        ref = tuple(np.ascontiguousarray(a[order]) for a in (self.ref_mean, self.ref_spread, self.ref_count,
-                                                             self.ref_level.astype(np.int64)))
+        if self._sorted is None:
+            order, _ = lists.order(core, cell)
+            self._sorted = (order, lists.get(core, cell)[0], np.ascontiguousarray(self.normal[order]),
+                            tuple(np.ascontiguousarray(a[order]) for a in (self.ref_mean, self.ref_spread,
+                                                                           self.ref_count,
+                                                                           self.ref_level.astype(np.int64))))
+        order, queries, normal, ref = self._sorted
         cur_stats = lists.cylinder(xyz, queries, normal, sigma_p, self.max_distance)
         reach = max(self.max_distance, _RADIUS * sigma_p)
         m = len(order)

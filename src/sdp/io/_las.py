@@ -15,7 +15,8 @@ import numpy as np
 from .._core._progress import bar
 from ._cloud import Cloud, CloudFileError
 
-__all__ = ["LAS_CHUNK", "read_las", "check_las_counts", "check_las_points", "las_scale_offset", "write_las"]
+__all__ = ["LAS_CHUNK", "read_las", "las_point_count", "check_las_counts", "check_las_points", "las_scale_offset",
+           "write_las"]
 
 LAS_CHUNK = 2_000_000  # points per chunk read (a progress step)
 
@@ -88,6 +89,21 @@ def check_las_counts(path) -> None:
         if n_evlrs and (start > size or 60 * n_evlrs > size):
             raise CloudFileError(f"{path}: corrupt LAS header: {n_evlrs:,} extended records do not fit in a file "
                                  f"of {size:,} bytes")
+
+
+def las_point_count(path) -> int | None:
+    """The point count a LAS/LAZ header records (its fixed fields alone, a few microseconds), or
+    None if ``path`` is not a LAS/LAZ file."""
+    import struct
+
+    with open(path, "rb") as f:
+        head = f.read(255)
+    if head[:4] != b"LASF" or len(head) < 111:
+        return None
+    (legacy,) = struct.unpack_from("<I", head, 107)
+    if head[24:26] >= b"\x01\x04" and len(head) >= 255 and not legacy:  # LAS 1.4: the 64-bit count
+        (legacy,) = struct.unpack_from("<Q", head, 247)
+    return int(legacy)
 
 
 def check_las_points(path, header) -> None:

@@ -61,6 +61,7 @@ from ..distance._reference import PreparedReference, subsample
 from ..errors import InvalidOptionError, SDPError
 from ..fields._lattice import BLOCK
 from ..io._cloud import Cloud, input_format
+from ..io._las import las_point_count
 from ..io._ply import ply_is_binary, ply_vertices
 from ..io._source import PointSource
 from ..options import Cylinder, Execution
@@ -105,11 +106,8 @@ def count_points(epoch, fmt: str | None) -> int | None:
         return len(epoch.xyz if isinstance(epoch, Cloud) else epoch)
     try:
         kind = input_format(Path(epoch), fmt)
-        if kind == "las":  # the header alone (PointSource.open also decodes a LAZ point: 25 ms)
-            import laspy
-
-            with laspy.open(str(epoch)) as r:
-                return int(r.header.point_count)
+        if kind == "las":  # the header's fixed fields alone (PointSource.open also decodes a LAZ point: 25 ms)
+            return las_point_count(epoch)
         if kind == "npy":
             shape = np.load(epoch, mmap_mode="r", allow_pickle=False).shape
             return int(shape[0]) if len(shape) == 2 else None
