@@ -45,12 +45,14 @@ def test_tiled_archive_equals_the_in_memory_one(slope, tmp_path):
     assert np.isfinite(tiled.distance.values).mean() > 0.9 and tiled.sizes["point"] > 1000
 
 
+@pytest.mark.slow
 def test_given_core_points_auto_normal_scale_and_another_reference(slope, tmp_path):
     kw = dict(core_points=slope[1][::5], reference=1, cylinder=sdp.Cylinder(projection_scale=0.5, max_distance=0.3))
     _same(sdp.series(slope, output=tmp_path / "m.zarr", **kw),
           sdp.series(slope, output=tmp_path / "t.zarr", execution=TILES, **kw))
 
 
+@pytest.mark.slow
 def test_append_in_tiles_equals_the_full_run(slope, tmp_path):
     full = sdp.series(slope, output=tmp_path / "full.zarr", cylinder=CYL)
     sdp.series(slope[:2], output=tmp_path / "a.zarr", cylinder=CYL, execution=TILES)
