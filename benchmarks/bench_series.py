@@ -444,7 +444,7 @@ def tiled_run(work: Path, rounds: int, n: int = 2_000_000, limit_mb: int = 1500)
             f"| peak memory, all processes, {E} epochs | {runs[(False, E)]['peak_mb']:.0f} MB | "
             f"{runs[(True, E)]['peak_mb']:.0f} MB | |",
             f"| archives equal (every array) | | {'yes' if same else 'NO'} | |", "",
-            f"Tiled run's steps (s, summed over the run): "
+            "Tiled run's steps (s, summed over the run): "
             + ", ".join(f"{k} {v:.1f}" for k, v in rec["timings"].items()), ""]
 
 

@@ -300,13 +300,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     max_half = search_reach(L_opt, 4.0 * sigma_p)
     # the reference's cells start at its corner, the current's whole cells lower where it reaches lower:
     # every epoch measured against one reference is cut into the same cells (sdp.series equals this)
-    lo = np.minimum(ref.lo, core.min(axis=0)) - 1e-9
-    if corner is not None:
-        corner = np.asarray(corner, np.float64).reshape(3)
-        if not (np.isfinite(corner).all() and (corner <= lo).all()):
-            raise InvalidOptionError(f"corner {corner} must be finite and below every reference and core point "
-                                     f"(lowest {lo})")
-        lo = corner
+    lo = cell_corner(np.minimum(ref.lo, core.min(axis=0)), corner)
     cur_lo = cells_below(lo, cur.lo, _CELL * sigma_p)
     hi = np.maximum(np.maximum(ref.hi, cur.hi), core.max(axis=0))
     # per cloud point: a sorted copy, its permutation and cell (8 × 5 B) and its cell's moments
@@ -371,6 +365,19 @@ def cells_below(corner: np.ndarray, lowest: np.ndarray, cell: float) -> np.ndarr
     cells, reaching lower."""
     shift = np.ceil(np.maximum(np.asarray(corner) - np.asarray(lowest) + 1e-9, 0.0) / cell)
     return corner - shift * cell
+
+
+def cell_corner(lowest: np.ndarray, corner=None) -> np.ndarray:
+    """Where the cells start: just below ``lowest`` (the reference's and the core points' lowest
+    corner), or at ``corner`` if given (finite and below it: a tile gives the whole cloud's)."""
+    lo = np.asarray(lowest, np.float64) - 1e-9
+    if corner is None:
+        return lo
+    corner = np.asarray(corner, np.float64).reshape(3)
+    if not (np.isfinite(corner).all() and (corner <= lo).all()):
+        raise InvalidOptionError(f"corner {corner} must be finite and below every reference and core point "
+                                 f"(lowest {lo})")
+    return corner
 
 
 def search_reach(max_distance: float | str, projection_scale: float) -> float:

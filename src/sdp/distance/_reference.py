@@ -39,6 +39,7 @@ from ._distances import (
     _CellLists,
     _cell_moments,
     _results,
+    cell_corner,
     cells_below,
     normal_sigma,
     search_reach,
@@ -116,13 +117,7 @@ class PreparedReference:
         else:
             sigma_p = d_opt / 4.0
         max_half = search_reach(L_opt, 4.0 * sigma_p)
-        lo = np.minimum(ref.lo, core.min(axis=0)) - 1e-9
-        if corner is not None:
-            corner = np.asarray(corner, np.float64).reshape(3)
-            if not (np.isfinite(corner).all() and (corner <= lo).all()):
-                raise InvalidOptionError(f"corner {corner} must be finite and below every reference and core point "
-                                         f"(lowest {lo})")
-            lo = corner
+        lo = cell_corner(np.minimum(ref.lo, core.min(axis=0)), corner)
         hi = np.maximum(ref.hi, core.max(axis=0))
         check_memory(200.0 * len(ref.xyz) + 240.0 * len(core),
                      f"the reference's {len(ref.xyz):,} points at {len(core):,} core points", memory_limit,
