@@ -30,9 +30,11 @@ PYTEST := env -u PYTHONDONTWRITEBYTECODE $(PY) -m pytest
 test: $(STAMP)
 	$(PYTEST) -q $(XDIST) --durations=20
 
-# the quick tier while working: every module, no test marked slow (41 s on 2 cores at a load of 1.7)
+# the quick tier while working: every module, no test marked slow (48-50 s on 2 cores, otherwise idle,
+# 2026-12-03). Whole files per worker: a worker then loads only its files' kernels from Numba's cache
+# (loadgroup, which spreads a file's tests over both, took 51-53 s in the same hour)
 check: $(STAMP)
-	$(PYTEST) -q -m "not slow" $(XDIST) --durations=20
+	$(PYTEST) -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile --durations=20
 
 # headless Chromium and its driver for the HTML report's browser test (tests/test_htmlreport.py), from
 # the distribution's packages (Debian: chromium, chromium-driver); nothing to do when already there

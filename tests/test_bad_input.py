@@ -452,6 +452,7 @@ def test_a_full_stdout_writes_nothing_and_a_closed_one_writes_all(pre):
     assert shell.stdout == "{" and (pre / "o.ply").exists()
 
 
+@pytest.mark.slow  # the quick tier keeps lighter tests of the same module
 def test_json_is_strict_and_eval_compares_the_same_points(pre):
     import json
 

@@ -163,6 +163,7 @@ def test_sdp_distance_writes_every_field_in_each_format(rng, tmp_path):
     assert s["comparable"] == 8_000 and s["significant"] == int(expected.significant.sum())
 
 
+@pytest.mark.slow  # the quick tier keeps lighter tests of the same module
 def test_distance_files_core_points_png_and_refusals(rng, tmp_path, capsys):
     from sdp.cli._main import main
 

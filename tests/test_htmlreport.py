@@ -41,6 +41,7 @@ def drawn_note(page: str):
     return int(m[1].replace(",", "")), int(m[2].replace(",", "")), int(f[1]) if f else 1
 
 
+@pytest.mark.slow  # the quick tier keeps lighter tests of the same module
 def test_change_report_is_one_self_contained_page(tmp_path, rng):
     ref, cur = landscape(rng)
     np.save(tmp_path / "ref.npy", ref)

@@ -72,6 +72,13 @@ def test_las_output_keeps_input_dimensions(tmp_path, rng, monkeypatch):
     np.testing.assert_array_equal(chunked.xyz, back.xyz)
     np.testing.assert_array_equal(chunked.fields["change"], back.fields["change"])
     np.testing.assert_array_equal(back.fields["change"], 1)
+    from sdp.io._las import las_point_count
+
+    six = laspy.LasData(laspy.LasHeader(point_format=6, version="1.4"))  # its legacy count is 0: the 64-bit one
+    six.x, six.y, six.z = xyz[:150].T
+    six.write(str(tmp_path / "six.laz"))
+    (tmp_path / "not.las").write_bytes(b"PLY and more")
+    assert [las_point_count(tmp_path / f) for f in ("in.las", "six.laz", "not.las")] == [200, 150, None]
     lean = read_points(tmp_path / "out.las", fields=False)  # the coordinates alone, in chunks too
     assert lean.fields == {} and lean.las is None
     np.testing.assert_array_equal(lean.xyz, back.xyz)

@@ -61,6 +61,7 @@ def test_append_in_tiles_equals_the_full_run(slope, tmp_path):
     assert [r["added"] for r in grown.attrs["runs"]] == [2, 2] and grown.attrs["runs"][-1]["tiled"]["tiles"] >= 4
 
 
+@pytest.mark.slow  # the quick tier keeps lighter tests of the same module
 def test_epochs_beyond_the_memory_limit_switch_to_tiles(slope, tmp_path, monkeypatch):
     from sdp.scale import _series
 

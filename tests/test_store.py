@@ -33,6 +33,7 @@ def test_store_round_trip_queries_and_mesh(tmp_path, clouds):
     assert a.area == pytest.approx(b.area, rel=1e-9)
 
 
+@pytest.mark.slow  # the quick tier keeps lighter tests of the same module
 def test_tiled_build_equals_the_whole_field(tmp_path, clouds):
     ref, _ = clouds
     f = sdp.DensityField.from_points(ref, voxel_size=0.1)
