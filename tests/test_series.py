@@ -381,8 +381,10 @@ def test_blocks_beyond_memory_give_the_in_memory_numbers(slope, tmp_path, monkey
     differ = [name for name in a if not np.array_equal(a[name], b[name], equal_nan=True)]
     assert differ in ([], ["object_mean_velocity"]), differ  # a sum in another order
     np.testing.assert_allclose(a["object_mean_velocity"], b["object_mean_velocity"], rtol=1e-9)
-    # columns of two chunks of 64 core points (three columns here), each read once and written once
+    # columns of two chunks of 64 core points (three columns here), each written once; the measured
+    # rows' chunks of 96 points straddle the columns
     monkeypatch.setattr(_archive, "POINT_CHUNK", 64)
+    monkeypatch.setattr(_archive, "ROW_CHUNK", 96)
     monkeypatch.setattr(_compute, "_COLUMN_BYTES", int(64e6 // (len(slope.epochs) * 150)))
     cols = _arrays(sdp.series(slope.epochs, output=tmp_path / "c.zarr", cylinder=CYL, registration_error=0.002,
                               execution=sdp.Execution(memory_limit="256MB")))  # a budget of 64 MB: 128 points

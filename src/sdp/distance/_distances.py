@@ -746,6 +746,25 @@ def _nearest_along(table, dims, cell, lo, queries, normals, reach, out):
             s += step
 
 
+@nb.njit(cache=True, inline="always")
+def _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2, w, w2, st, stt):
+    """The sums of a cylinder (weight, squared weight, weighted offset and its square) with cell
+    row ``r`` added if its centroid lies in the cylinder."""
+    dx, dy, dz = cells[r, 1] - qx, cells[r, 2] - qy, cells[r, 3] - qz
+    t = dx * nx + dy * ny + dz * nz
+    if t > half or t < -half:
+        return w, w2, st, stt
+    r2 = dx * dx + dy * dy + dz * dz - t * t
+    if r2 > r2max:
+        return w, w2, st, stt
+    g = math.exp(-r2 * inv2s2)
+    n = cells[r, 0]
+    along = (nx * (cells[r, 4] * nx + cells[r, 5] * ny + cells[r, 6] * nz)
+             + ny * (cells[r, 5] * nx + cells[r, 7] * ny + cells[r, 8] * nz)
+             + nz * (cells[r, 6] * nx + cells[r, 8] * ny + cells[r, 9] * nz))
+    return w + g * n, w2 + g * g * n, st + g * n * t, stt + g * (n * t * t + along)
+
+
 @nb.njit(cache=True, parallel=True)
 def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, half, out):
     """Per query: kernel-weighted mean offset along its normal, spread and effective count of the
@@ -767,28 +786,28 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
         ey = half * abs(ny) + radius * math.sqrt(max(0.0, 1.0 - ny * ny))
         ez = half * abs(nz) + radius * math.sqrt(max(0.0, 1.0 - nz * nz))
         x0, x1, y0, y1, z0, z1 = _cell_box(qx, qy, qz, ex, ey, ez, lo, cell)
-        for ix in range(x0, x1 + 1):
-            for iy in range(y0, y1 + 1):
-                for iz in range(z0, z1 + 1):
-                    r = _row(table, dims, shift, ix, iy, iz)
-                    if r < 0:
-                        continue
-                    dx, dy, dz = cells[r, 1] - qx, cells[r, 2] - qy, cells[r, 3] - qz
-                    t = dx * nx + dy * ny + dz * nz
-                    if t > half or t < -half:
-                        continue
-                    r2 = dx * dx + dy * dy + dz * dz - t * t
-                    if r2 > r2max:
-                        continue
-                    g = math.exp(-r2 * inv2s2)
-                    n = cells[r, 0]
-                    along = (nx * (cells[r, 4] * nx + cells[r, 5] * ny + cells[r, 6] * nz)
-                             + ny * (cells[r, 5] * nx + cells[r, 7] * ny + cells[r, 8] * nz)
-                             + nz * (cells[r, 6] * nx + cells[r, 8] * ny + cells[r, 9] * nz))
-                    w += g * n
-                    w2 += g * g * n
-                    st += g * n * t
-                    stt += g * (n * t * t + along)
+        if dims[0] > 0:
+            # a dense table: the box clipped to it once, each column's cells read in a row (most
+            # of a box's cells are empty, so the per-cell index arithmetic was most of the time)
+            x0, x1 = max(x0 - dims[3], 0), min(x1 - dims[3], dims[0] - 1)
+            y0, y1 = max(y0 - dims[4], 0), min(y1 - dims[4], dims[1] - 1)
+            z0, z1 = max(z0 - dims[5], 0), min(z1 - dims[5], dims[2] - 1)
+            for ix in range(x0, x1 + 1):
+                for iy in range(y0, y1 + 1):
+                    column = (ix * dims[1] + iy) * dims[2]
+                    for c in range(column + z0, column + z1 + 1):
+                        r = table[c]
+                        if r >= 0:
+                            w, w2, st, stt = _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2,
+                                                            w, w2, st, stt)
+        else:
+            for ix in range(x0, x1 + 1):
+                for iy in range(y0, y1 + 1):
+                    for iz in range(z0, z1 + 1):
+                        r = table_row(table, ix, iy, iz, shift)
+                        if r >= 0:
+                            w, w2, st, stt = _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2,
+                                                            w, w2, st, stt)
         if w <= 0.0:
             out[i, 0] = out[i, 1] = np.nan
             out[i, 2] = 0.0

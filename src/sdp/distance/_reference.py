@@ -186,15 +186,17 @@ class PreparedReference:
         sigma_p = self.projection_scale / 4.0
         cell = _CELL * sigma_p
         core = self.core_points
-        hi = np.maximum(np.maximum(highest, core.max(axis=0)), lo + cell)
+        core_hi = core.max(axis=0) if self._sorted is None else self._sorted[4]
+        hi = np.maximum(np.maximum(highest, core_hi), lo + cell)
         lists = _CellLists(lo, hi)
         if self._sorted is None:
             order, _ = lists.order(core, cell)
             self._sorted = (order, lists.get(core, cell)[0], np.ascontiguousarray(self.normal[order]),
                             tuple(np.ascontiguousarray(a[order]) for a in (self.ref_mean, self.ref_spread,
                                                                            self.ref_count,
-                                                                           self.ref_level.astype(np.int64))))
-        order, queries, normal, ref = self._sorted
+                                                                           self.ref_level.astype(np.int64))),
+                            core_hi)
+        order, queries, normal, ref, _ = self._sorted
         cur_stats = lists.cylinder(xyz, queries, normal, sigma_p, self.max_distance)
         reach = max(self.max_distance, _RADIUS * sigma_p)
         m = len(order)

@@ -94,8 +94,8 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
         raise unreadable(path, fmt, exc) from None
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise CloudFileError(f"{path}: expected x, y, z columns, got an array of shape {xyz.shape}")
-    finite = np.isfinite(xyz).all(axis=1)
-    dropped = int((~finite).sum())
+    finite = None if np.isfinite(xyz).all() else np.isfinite(xyz).all(axis=1)  # rows: 10× the time of the whole
+    dropped = 0 if finite is None else int((~finite).sum())
     if dropped:
         xyz = xyz[finite]
         values = {k: v[finite] for k, v in values.items()}

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._las import las_point_count
+
 __all__ = ["file_time", "gps_to_days"]
 
 _GPS_EPOCH_DAYS = 3657.0  # 1980-01-06 in days since 1970-01-01
@@ -42,19 +44,30 @@ def gps_to_days(seconds):
     return _GPS_EPOCH_DAYS + (seconds - leap) / 86400.0
 
 
-def _las_time(path) -> tuple[float, str] | None:
-    import laspy
+_GPS_FORMATS = frozenset({1, 3, 4, 5, 6, 7, 8, 9, 10})  # LAS point formats with a GPS time
 
-    with laspy.open(str(path)) as f:
-        header = f.header
-        standard = int(header.global_encoding.value) & 1
-        if standard and "gps_time" in header.point_format.dimension_names and header.point_count:
+
+def _las_time(path) -> tuple[float, str] | None:
+    import datetime
+    import struct
+
+    with open(path, "rb") as f:  # the header's fixed fields: laspy only when the points are needed
+        head = f.read(111)
+    if head[:4] != b"LASF" or len(head) < 111:
+        return None
+    (encoding,) = struct.unpack_from("<H", head, 6)
+    day, year = struct.unpack_from("<HH", head, 90)
+    if encoding & 1 and head[104] & 0x3F in _GPS_FORMATS and las_point_count(path):
+        import laspy
+
+        with laspy.open(str(path)) as f:
             gps = np.asarray(next(iter(f.chunk_iterator(100_000))).gps_time, np.float64)
-            gps = gps[np.isfinite(gps)]
-            if gps.size:
-                return float(gps_to_days(np.median(gps) + 1e9)), "LAS GPS time"
-        date = header.creation_date
-    if date is None:
+        gps = gps[np.isfinite(gps)]
+        if gps.size:
+            return float(gps_to_days(np.median(gps) + 1e9)), "LAS GPS time"
+    try:  # as laspy reads it: day 0 is the last of the year before, year 0 no date
+        date = datetime.date(year, 1, 1) + datetime.timedelta(day - 1)
+    except (ValueError, OverflowError):
         return None
     return float((np.datetime64(date, "D") - np.datetime64("1970-01-01", "D")).astype(np.int64)), "LAS creation date"
 

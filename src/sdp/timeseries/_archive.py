@@ -6,12 +6,12 @@ Layout (a Zarr v3 group, ``*.zarr``, readable with ``xarray.open_zarr``)::
                    given and as used), epochs (file, time, time source, registration error,
                    alignment), time_units, runs (what each run added)
     distance, lod, significant       (epoch, point)  float32, float32, bool: chunks of one epoch
-                                                     row and 16,384 points, written once
+                                                     row and 65,536 points, written once
     smoothed, velocity, smoothed_sigma, velocity_sigma, object   (epoch, point): float32 (LZ4)
                                      and int32, in chunks of 16 epochs × 16,384 points; an
                                      append rewrites the rows from the saved epoch on
     time, registration_error         (epoch,)
-    x, y, z, onset, onset_kind       (point,)
+    x, y, z, onset, onset_kind       (point,): chunks of 65,536 points
     normal_x/y/z, ref_mean, ref_spread, ref_count, ref_level     (point,): the reference side
                                      (:class:`sdp.distance.PreparedReference`) that appending reuses
     object_id, object_start, object_end, object_start_time, object_end_time, object_points,
@@ -52,7 +52,13 @@ __all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "trans
 
 ARCHIVE_FORMAT = "sdp-series"
 ARCHIVE_VERSION = 2  # 2: the state an append goes on from (fixed-lag smoother, tracked objects)
-POINT_CHUNK = 16384  # points per chunk: an epoch row of 100,000 core points is 7 chunk files
+#: Points per chunk of the arrays the smoother and the tracker write in columns (16 epochs per
+#: chunk): a column of whole chunks fits a small memory limit at 1,000 epochs.
+POINT_CHUNK = 16384
+#: Points per chunk of the measured rows (one epoch per chunk) and of the per-point arrays: Zarr
+#: spends about a millisecond per chunk file, more than its bytes cost, so an epoch of 100,000
+#: core points is 2 files per array rather than 7; the smoother reads them in columns.
+ROW_CHUNK = 65536
 #: Arrays an append keeps: its chunks hard-linked into the new version (the measured ones are
 #: never written again, the smoothed ones and the objects only in their last rows).
 KEPT = ("distance", "lod", "significant", "x", "y", "z", "normal_x", "normal_y", "normal_z",
@@ -187,7 +193,7 @@ class Writer:
 
     def array(self, name, shape, dtype, dims, *, epochs_per_chunk: int = 1, rewritten: bool = False):
         """A new array (replacing one of that name); chunks: ``epochs_per_chunk`` epoch rows ×
-        :data:`POINT_CHUNK` points; chunk files ``c.i.j`` side by side (no folder per row: an
+        :data:`ROW_CHUNK` points (one row) or :data:`POINT_CHUNK` (several); chunk files ``c.i.j`` side by side (no folder per row: an
         append links, and a swap removes, files rather than folders). ``rewritten``: rows every
         append writes again (the smoothed ones), compressed by LZ4 over shuffled bytes, nearly
         as small as Zarr's Zstd and written in half its time."""
@@ -258,8 +264,9 @@ def _layout(dims, shape, dtype, epochs_per_chunk: int = 1) -> dict:
     """The chunks, fill value and names every array of an archive is made with. write_empty_chunks:
     Zarr otherwise compares every chunk with the fill value before writing it, which costs more
     than the write (a series' chunks are seldom empty)."""
+    points = POINT_CHUNK if epochs_per_chunk > 1 else ROW_CHUNK
     chunks = tuple(max(1, epochs_per_chunk) if d == "epoch" and len(dims) > 1 else
-                   max(1, min(POINT_CHUNK, s)) if d == "point" else max(1, s) for d, s in zip(dims, shape))
+                   max(1, min(points, s)) if d == "point" else max(1, s) for d, s in zip(dims, shape))
     return {"chunks": chunks, "fill_value": np.nan if np.dtype(dtype).kind == "f" else 0,
             "dimension_names": list(dims), "config": {"write_empty_chunks": True},
             "chunk_key_encoding": {"name": "default", "separator": "."}}

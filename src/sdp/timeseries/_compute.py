@@ -564,9 +564,10 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
     if block >= m:  # the rows fit: read them once
         whole = inputs(0, m)
     else:
-        # columns of whole chunks, read once and written once (a block narrower than a chunk would read and
-        # rewrite each chunk once per block), its inputs and results in float32 (_COLUMN_BYTES) in another
-        # quarter of the limit; else blocks of whole chunks, or narrower ones read again per block
+        # columns of whole chunks of the results, written once (a block narrower than a chunk would read and
+        # rewrite each chunk once per block; the inputs' wider row chunks are only read again), its inputs and
+        # results in float32 (_COLUMN_BYTES) in another quarter of the limit; else blocks of whole chunks, or
+        # narrower ones read again per block
         col = int(budget // (R * _COLUMN_BYTES)) // A.POINT_CHUNK * A.POINT_CHUNK
         if col < A.POINT_CHUNK:
             if block >= A.POINT_CHUNK:
