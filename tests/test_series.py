@@ -224,6 +224,10 @@ def test_dates_give_velocities_per_day_and_open_with_xarray(slope, tmp_path):
     sdp.series(slope.epochs[:4], output=out, cylinder=CYL, times="2024-05-01,2024-05-03,2024-05-05,2024-05-07")
     ds = xr.open_zarr(out)
     assert np.issubdtype(ds.time.dtype, np.datetime64) and str(ds.time.values[1])[:10] == "2024-05-03"
+    # sdp.open_series: Dask's chunks by default, none with chunks=None (the command's), the same values
+    lazy, plain = sdp.open_series(out), sdp.open_series(out, chunks=None)
+    assert lazy.distance.chunks is not None and plain.distance.chunks is None
+    assert all(np.array_equal(lazy[v].values, plain[v].values, equal_nan=True) for v in lazy.variables)
     assert ds.attrs["parameters"]["smoother"]["velocity"] == "per day"
     with pytest.raises(sdp.InvalidOptionError, match="are numbers, the archive's are dates"):
         sdp.series(slope.epochs[4:5], output=out, append=True, times=[5])

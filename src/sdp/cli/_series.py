@@ -123,7 +123,9 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
 
         require_extras()
     t0 = time.perf_counter()
-    ds = series(epochs, output=output, append=append, times=times, execution=execution, **options)
+    # without Dask's arrays: the command reads rows and columns it indexes, and importing them costs
+    # more than that (about 0.7 s of a job's start-up)
+    ds = series(epochs, output=output, append=append, times=times, execution=execution, chunks=None, **options)
     summary = describe_series(output, ds)
     written = [str(output)]
     with all_or_none():
@@ -211,7 +213,7 @@ def describe_series(path, ds=None) -> dict:
     """What ``sdp info ARCHIVE.zarr`` prints: epochs, times, core points, objects, every parameter."""
     from ..timeseries._archive import objects_by_size, open_series
 
-    ds = open_series(path) if ds is None else ds
+    ds = open_series(path, chunks=None) if ds is None else ds
     attrs = ds.attrs
     epochs = attrs["epochs"]
     cells = len(epochs) * ds.sizes["point"]  # from each epoch's record: no pass over the archive

@@ -365,7 +365,7 @@ def objects_by_size(ds) -> np.ndarray:
     return np.lexsort((ds.object_id.values, -ds.object_points.values))
 
 
-def open_series(path):
+def open_series(path, *, chunks="auto"):
     """The series archive at ``path`` as an :class:`xarray.Dataset` (lazy, Dask-backed arrays).
 
     An archive left by an interrupted run is completed or cleaned first (:func:`recover`).
@@ -374,6 +374,10 @@ def open_series(path):
     ----------
     path : path-like
         A folder written by :func:`sdp.series`.
+    chunks : "auto", dict or None
+        Dask chunks, as :func:`xarray.open_zarr` takes them (default: the archive's own);
+        None: no Dask, each variable read when it is indexed (what the command does: importing
+        Dask's arrays costs more than its summary reads).
 
     Returns
     -------
@@ -400,6 +404,6 @@ def open_series(path):
     read_attrs(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ds = xr.open_zarr(str(path), consolidated=True)
+        ds = xr.open_zarr(str(path), consolidated=True, chunks=chunks)
     coords = [c for c in ("time", "x", "y", "z") if c in ds.variables]
     return ds.set_coords(coords)

@@ -156,7 +156,7 @@ def _check_append(archive: dict, given: dict, core_points, path: Path) -> None:
 def series(epochs, *, output, append: bool = False, times=None, core_points=None, reference: int | None = None,
            cylinder: Cylinder | None = None, registration_error: float | str | None = None,
            align: Registration | str | None = None, orientation=None, execution: Execution | None = None,
-           format: str | None = None):
+           format: str | None = None, chunks="auto"):
     """Signed distances of many epochs against one reference at fixed core points, in one Zarr
     archive, with their smoothed change, velocity, onsets and 4D objects of change.
 
@@ -195,6 +195,8 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
         slice; not with ``align``).
     format : str, optional
         Input format overriding the files' extensions.
+    chunks : "auto", dict or None
+        The returned Dataset's Dask chunks (:func:`sdp.open_series`); None: no Dask.
 
     Returns
     -------
@@ -280,8 +282,9 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
         core_count = zarr.open_group(str(out), mode="r")["x"].shape[0]
         tiles = plan_series(epochs, reference=None, core_count=core_count, execution=execution, format=format,
                             align=registration is not None)
-        return _run(epochs, out, t_new, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt,
-                    limit=limit, fmt=format, t_start=t_start, tiles=tiles)
+        _run(epochs, out, t_new, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt,
+             limit=limit, fmt=format, t_start=t_start, tiles=tiles)
+        return A.open_series(out, chunks=chunks)
     if reference is None:
         reference = 0
     reference = integer_at_least("reference", reference, 0)
@@ -341,9 +344,9 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
                             "reference_file": _name(epochs[reference], reference), "core_points": core_source,
                             "min_object_points": min_object_points(prepared.core_points,
                                                                    prepared.projection_scale)}}
-    return _run(epochs, out, t, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
-                fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud),
-                tiles=tiles)
+    _run(epochs, out, t, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
+         fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud), tiles=tiles)
+    return A.open_series(out, chunks=chunks)
 
 
 def _show_time(value: float, kind: str) -> str:
@@ -515,7 +518,6 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                               "timings": {k: round(v, 4) for k, v in timings.items()},
                               **({"tiled": tiles.record()} if tiles else {})})
         w.finish(attrs)
-    return A.open_series(out)
 
 
 #: A column's float32 inputs (distance, lod) and results (four arrays) per epoch and core point.
