@@ -92,7 +92,8 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     ----------
     .. [1] Lague et al. 2013 (M3C2); Winiwarter et al. 2023 (Kalman smoothing).
     """
-    from ..timeseries._compute import series
+    from ..timeseries._archive import open_series
+    from ..timeseries._compute import write_series
 
     outputs = Outputs() if outputs is None else outputs
     exports = {} if exports is None else exports
@@ -125,7 +126,8 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     t0 = time.perf_counter()
     # without Dask's arrays: the command reads rows and columns it indexes, and importing them costs
     # more than that (about 0.7 s of a job's start-up)
-    ds = series(epochs, output=output, append=append, times=times, execution=execution, chunks=None, **options)
+    ds = open_series(write_series(epochs, output=output, append=append, times=times, execution=execution, **options),
+                     chunks=None)
     summary = describe_series(output, ds)
     written = [str(output)]
     with all_or_none():

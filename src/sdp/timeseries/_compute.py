@@ -156,7 +156,7 @@ def _check_append(archive: dict, given: dict, core_points, path: Path) -> None:
 def series(epochs, *, output, append: bool = False, times=None, core_points=None, reference: int | None = None,
            cylinder: Cylinder | None = None, registration_error: float | str | None = None,
            align: Registration | str | None = None, orientation=None, execution: Execution | None = None,
-           format: str | None = None, chunks="auto"):
+           format: str | None = None):
     """Signed distances of many epochs against one reference at fixed core points, in one Zarr
     archive, with their smoothed change, velocity, onsets and 4D objects of change.
 
@@ -195,8 +195,6 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
         slice; not with ``align``).
     format : str, optional
         Input format overriding the files' extensions.
-    chunks : "auto", dict or None
-        The returned Dataset's Dask chunks (:func:`sdp.open_series`); None: no Dask.
 
     Returns
     -------
@@ -225,6 +223,16 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     >>> print(ds.sizes["epoch"], round(float(np.median(ds.distance[2])), 3))
     3 0.05
     """
+    return A.open_series(write_series(epochs, output=output, append=append, times=times, core_points=core_points,
+                                      reference=reference, cylinder=cylinder, registration_error=registration_error,
+                                      align=align, orientation=orientation, execution=execution, format=format))
+
+
+def write_series(epochs, *, output, append: bool = False, times=None, core_points=None, reference: int | None = None,
+                 cylinder: Cylinder | None = None, registration_error: float | str | None = None,
+                 align: Registration | str | None = None, orientation=None, execution: Execution | None = None,
+                 format: str | None = None) -> Path:
+    """:func:`series` without opening the archive: its path (the command opens it without Dask)."""
     A.require_series()
     t_start = time.perf_counter()  # after the imports (xarray, zarr, dask: about a second), start-up like Python's
     epochs = list(epochs)
@@ -284,7 +292,7 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
                             align=registration is not None)
         _run(epochs, out, t_new, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt,
              limit=limit, fmt=format, t_start=t_start, tiles=tiles)
-        return A.open_series(out, chunks=chunks)
+        return out
     if reference is None:
         reference = 0
     reference = integer_at_least("reference", reference, 0)
@@ -346,7 +354,7 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
                                                                    prepared.projection_scale)}}
     _run(epochs, out, t, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
          fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud), tiles=tiles)
-    return A.open_series(out, chunks=chunks)
+    return out
 
 
 def _show_time(value: float, kind: str) -> str:
