@@ -131,3 +131,26 @@ def test_tiles_refuse_the_combined_decision_and_take_density():
     check_tiled_options(decision="density")
     with pytest.raises(InvalidOptionError, match="--decision combined is not available with --tiled"):
         check_tiled_options(decision="combined")
+
+
+def test_only_what_the_density_keeps_lets_the_distance_complete_a_component():
+    """Rule 4: a patch raised 15 mm (below the density's reach, beyond the level) is kept only if
+    it holds a point the density's own decision keeps; a stray density point (its region below
+    min_region_points, dropped by that decision) does not keep it."""
+    from sdp.change._combined import combine_decision
+    from sdp.change._coverage import CHANGED, UNCHANGED
+
+    rng = np.random.default_rng(3)
+    ref, cur = _floor(rng, n=40000), _floor(rng, n=40000)
+    patch = (np.abs(cur[:, 0] - 1.5) < 0.2) & (np.abs(cur[:, 1] - 1.5) < 0.2)
+    cur[patch, 2] += 0.015
+    states = np.full(len(cur), UNCHANGED, np.int8)
+    stray = np.flatnonzero(patch)[0]
+    states[stray] = CHANGED  # the density marked one point of the patch
+    kw = dict(sigma=2 * VOXEL, voxel_size=VOXEL, min_region_points=50)
+    as_before = combine_decision(cur, ref, states, **kw)[0]
+    dropped = combine_decision(cur, ref, states, **kw, found=np.zeros(len(cur), bool))[0]
+    kept = combine_decision(cur, ref, states, **kw, found=states == CHANGED)[0]
+    assert as_before[patch].mean() > 0.8 and kept[patch].mean() > 0.8  # the distance completes the patch
+    assert not dropped.any()  # seeded by a stray only: nothing
+    assert kept[~patch].mean() < 0.005

@@ -22,9 +22,9 @@ The rule, per point of one direction:
    own cluster volume (F < 0). A depth camera's "flying pixels" between a foreground edge and the
    background lie in front of the old surface but alone, below h;
 4. regions on the combined decision: 26-connected components of the cells of 1.5σ holding a
-   changed point. A component is kept only if the density found part of it: the distance
-   completes an object down to the old surface it stands on, it does not raise changes of its
-   own. On the static Kinect pairs whole patches of a table come back several millimetres off
+   changed point. A component is kept only if the density found part of it, as its own decision
+   does (in one of its regions, not a stray): the distance completes an object down to the old
+   surface it stands on, it does not raise changes of its own, nor grow them from a stray. On the static Kinect pairs whole patches of a table come back several millimetres off
    (a depth camera's correlated errors between frames: the heavy tail the level of detection
    is calibrated to, 5 % beyond it), as far from the old surface as the lower part of a cup
    standing on it; what tells the cup is that its top stands out of the table's kernel. An
@@ -56,12 +56,14 @@ DECISION_FACTOR = 3.2905 / 1.96
 
 def combine_decision(points: np.ndarray, other: np.ndarray, states: np.ndarray, *, sigma: float,
                      voxel_size: float, own_origin=None, other_origin=None, min_region_points: int = 50,
-                     regions: bool = True, present: np.ndarray | None = None):
+                     regions: bool = True, present: np.ndarray | None = None, found: np.ndarray | None = None):
     """(changed mask, regions, region label per point, distance, lod) of one direction.
 
     ``points``/``other``: the finite points of this epoch and of the other; ``states``: their
     states after the density test and coverage (:mod:`sdp.change._coverage`); ``present``: the
-    points inside their own epoch's cluster volume (F < 0), the only ones the distance may mark."""
+    points inside their own epoch's cluster volume (F < 0), the only ones the distance may mark;
+    ``found``: the points the density's own decision keeps (its regions of ``min_region_points``,
+    default every point it marks), the only ones that keep a component (rule 4)."""
     from ..distance._noise import point_distances  # the distances load only for this decision
 
     pd = point_distances(points, other, sigma=sigma, own_origin=own_origin, other_origin=other_origin,
@@ -75,7 +77,7 @@ def combine_decision(points: np.ndarray, other: np.ndarray, states: np.ndarray, 
     labels, counts = _cell_components(pd.cells, pd.cell_index, changed)
     if len(counts):  # the distance completes what the density found (rule 4)
         seeded = np.zeros(len(counts), bool)
-        seeded[labels[states == CHANGED]] = True
+        seeded[labels[(states == CHANGED) if found is None else found]] = True
         changed &= seeded[np.maximum(labels, 0)]
         if min_region_points > 1:
             changed &= counts[np.maximum(labels, 0)] >= min_region_points

@@ -407,11 +407,15 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         unseen = states == NOT_COMPARABLE
         extra = {}
         if decision == "combined":
+            # what the density finds by itself (its regions, strays dropped): the components the
+            # distance may complete
+            found = region_rules(fld, d, pts.xyz, states == CHANGED, regions=True, decision="point",
+                                 min_region_points=min_region_points, cluster_fraction=cluster_fraction)[0]
             mask, regs, region_of, dist, lod = combine_decision(
                 # one sensor per cloud: the noise model's range law and normals (several: neither yet)
                 pts.xyz, other.xyz, states, sigma=fld.sigma, voxel_size=fld.voxel_size, own_origin=_single(own_origin),
                 other_origin=_single(other_origin), min_region_points=min_region_points, regions=regions,
-                present=fld.inside(pts.xyz))
+                present=fld.inside(pts.xyz), found=found)
             extra = {"distance": to_rows(dist, pts, np.nan), "lod": to_rows(lod, pts, np.nan)}
         else:
             mask, regs, region_of = region_rules(fld, d, pts.xyz, states == CHANGED, regions=regions,
