@@ -62,7 +62,8 @@ def kinect(ablation: bool = False):
     ks = {dec: np.nanmean([r[dec] for r in rows]) for dec in decisions}
     times = {dec: np.median([r[f"{dec}_s"] for r in rows]) for dec in decisions}
     static = [r for r in rows if r["static"]]
-    print("\n| decision | kappa (27 pairs) | FP on the static pairs (scored points) | significant, static pairs | s per pair (median) |")
+    print("\n| decision | kappa (27 pairs) | FP on the static pairs (scored points) | significant, static pairs "
+          "| s per pair (median) |")
     print("|---|---:|---|---|---:|")
     for dec in decisions:
         sig = ", ".join(f"{100 * r[f'{dec}_significant']:.1f} %" for r in static) if dec != "point" else "—"

@@ -24,8 +24,9 @@ The rule, per point of one direction:
 4. regions on the combined decision: 26-connected components of the cells of 1.5σ holding a
    changed point. A component is kept only if the density found part of it, as its own decision
    does (in one of its regions, not a stray): the distance completes an object down to the old
-   surface it stands on, it does not raise changes of its own, nor grow them from a stray. On the static Kinect pairs whole patches of a table come back several millimetres off
-   (a depth camera's correlated errors between frames: the heavy tail the level of detection
+   surface it stands on, it does not raise changes of its own, nor grow them from a stray. On
+   the static Kinect pairs whole patches of a table come back several millimetres off (a depth
+   camera's correlated errors between frames: the heavy tail the level of detection
    is calibrated to, 5 % beyond it), as far from the old surface as the lower part of a cup
    standing on it; what tells the cup is that its top stands out of the table's kernel. An
    object thinner than about 2σ lying flat stays unfound, as with the density alone.

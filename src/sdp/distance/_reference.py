@@ -83,9 +83,10 @@ class PreparedReference:
     max_distance: float
     corner: np.ndarray
     orientation: np.ndarray
-    #: The core points sorted by cell and their arrays in that order, made at the first epoch: each
-    #: core point's numbers do not depend on the order, which only keeps the cylinders' reads of
-    #: neighbouring cells close in memory, so a series sorts them once, not once per epoch.
+    #: The core points sorted by cell, their arrays in that order and their upper corner, made at
+    #: the first epoch: each core point's numbers do not depend on the order, which only keeps the
+    #: cylinders' reads of neighbouring cells close in memory, so a series sorts them once, not
+    #: once per epoch.
     _sorted: tuple | None = field(default=None, repr=False, compare=False)
 
     @classmethod

@@ -193,8 +193,9 @@ class Writer:
 
     def array(self, name, shape, dtype, dims, *, epochs_per_chunk: int = 1, rewritten: bool = False):
         """A new array (replacing one of that name); chunks: ``epochs_per_chunk`` epoch rows ×
-        :data:`ROW_CHUNK` points (one row) or :data:`POINT_CHUNK` (several); chunk files ``c.i.j`` side by side (no folder per row: an
-        append links, and a swap removes, files rather than folders). ``rewritten``: rows every
+        :data:`ROW_CHUNK` points (one row) or :data:`POINT_CHUNK` (several); chunk files ``c.i.j``
+        side by side (no folder per row: an append links, and a swap removes, files rather than
+        folders). ``rewritten``: rows every
         append writes again (the smoothed ones), compressed by LZ4 over shuffled bytes, nearly
         as small as Zarr's Zstd and written in half its time."""
         self._arrays.pop(name, None)
@@ -375,7 +376,8 @@ def open_series(path, *, chunks="auto"):
     path : path-like
         A folder written by :func:`sdp.series`.
     chunks : "auto", dict or None
-        Dask chunks, as :func:`xarray.open_zarr` takes them (default: the archive's own);
+        Dask chunks, as :func:`xarray.open_zarr` takes them (default ``"auto"``: multiples of
+        the archive's own);
         None: no Dask, each variable read when it is indexed (what the command does: importing
         Dask's arrays costs more than its summary reads).
 
