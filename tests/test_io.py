@@ -159,3 +159,43 @@ def test_io_modules_import_one_way():
     for name in graph:
         visit(name, [])
     assert {"_cloud", "_read", "_output", "_source", "_las", "_ply"} <= done
+
+
+def test_a_las_files_time_read_from_its_header_agrees_with_laspy(tmp_path):
+    """file_time reads the LAS header's fixed fields itself (laspy only for the points' GPS time):
+    the creation date laspy reads (year 0: none), or the GPS time where the encoding says
+    standard and the point format has one; formats 0, 3 and 6, both encodings."""
+    import datetime as dt
+
+    import laspy
+
+    from sdp.io._time import file_time, gps_to_days
+
+    checked = 0
+    for fmt in (0, 3, 6):
+        for standard in (False, True):
+            for date in (dt.date(2023, 3, 4), dt.date(2020, 12, 31), None):
+                header = laspy.LasHeader(point_format=fmt, version="1.4" if fmt >= 6 else "1.2")
+                header.global_encoding.value = (1 if standard else 0) | (16 if fmt >= 6 else 0)
+                las = laspy.LasData(header)
+                las.x = las.y = las.z = np.arange(5.0)
+                if "gps_time" in las.point_format.dimension_names:
+                    las.gps_time = 3e8 + np.arange(5.0)
+                path = tmp_path / f"f{fmt}{int(standard)}{date}.laz"
+                las.header.creation_date = date or dt.date(2000, 1, 1)
+                las.write(path)
+                if date is None:  # year 0: laspy reads no date
+                    raw = bytearray(path.read_bytes())
+                    raw[90:94] = bytes(4)
+                    path.write_bytes(raw)
+                with laspy.open(str(path)) as f:
+                    read = f.header
+                if standard and fmt != 0:
+                    want = (float(gps_to_days(3e8 + 2.0 + 1e9)), "LAS GPS time")
+                elif read.creation_date is None:
+                    want = None
+                else:
+                    want = ((read.creation_date - dt.date(1970, 1, 1)).days, "LAS creation date")
+                assert file_time(path) == want, (fmt, standard, date)
+                checked += 1
+    assert checked == 18

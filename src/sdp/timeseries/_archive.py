@@ -195,9 +195,8 @@ class Writer:
         """A new array (replacing one of that name); chunks: ``epochs_per_chunk`` epoch rows ×
         :data:`ROW_CHUNK` points (one row) or :data:`POINT_CHUNK` (several); chunk files ``c.i.j``
         side by side (no folder per row: an append links, and a swap removes, files rather than
-        folders). ``rewritten``: rows every
-        append writes again (the smoothed ones), compressed by LZ4 over shuffled bytes, nearly
-        as small as Zarr's Zstd and written in half its time."""
+        folders). ``rewritten``: rows every append writes again (the smoothed ones), compressed by
+        LZ4 over shuffled bytes, nearly as small as Zarr's Zstd and written in half its time."""
         self._arrays.pop(name, None)
         if name in self.group:
             del self.group[name]
