@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pytest
 
 from sdp._core import _cells as C
 
@@ -114,18 +115,24 @@ def test_a_half_full_table_stops_the_build():
     assert len(nxt) == len(points) and n_cells == 100 and done == len(points)
 
 
-def test_sorted_cells_match_numpy(rng):
-    cells = rng.integers(0, 6, (2000, 3)).astype(np.int64)
+@pytest.mark.parametrize("n, spread", [(2000, 6), (3000, 1000)])  # few cells; a cell per point (the table grows)
+def test_hashed_sort_groups_every_cell_in_input_order(rng, n, spread):
+    cells = rng.integers(0, spread, (n, 3)).astype(np.int64)
     cells[::7] = [TOP, 0, TOP]
-    order, starts, table = C.sorted_cells(C.cell_keys(cells))
-    unique, first = np.unique(cells, axis=0, return_index=True)
-    assert np.array_equal(order, np.lexsort(cells.T[::-1]))  # stable: ties in input order
-    assert np.array_equal(starts, np.r_[np.searchsorted(C.cell_keys(cells)[order], C.cell_keys(unique)),
-                                       len(cells)])
+    points = cells + rng.uniform(0.01, 0.99, cells.shape)
+    order, starts, table = C.hashed_sort(points, np.zeros(3), 1.0)
+    assert sorted(order) == list(range(n))
+    unique = np.unique(cells, axis=0)
+    assert len(starts) == len(unique) + 1 and starts[0] == 0 and starts[-1] == n
     shift = 64 - int(math.log2(len(table) // 2))
-    for row, cell in enumerate(unique):
-        assert C.table_row(table, *cell, shift) == row
-        assert (cells[order[starts[row]:starts[row + 1]]] == cell).all()
-    assert C.table_row(table, 7, 7, 7, shift) == -1
-    order, starts, table = C.sorted_cells(np.zeros(0, np.int64))
+    seen = set()
+    for row in range(len(starts) - 1):
+        members = order[starts[row]:starts[row + 1]]
+        assert (np.diff(members) > 0).all()  # stable: a cell's points in input order
+        cell = cells[members[0]]
+        assert (cells[members] == cell).all() and C.table_row(table, *cell, shift) == row
+        seen.add(tuple(cell))
+    assert len(seen) == len(unique)
+    assert C.table_row(table, TOP, TOP, TOP, shift) == -1
+    order, starts, table = C.hashed_sort(np.zeros((0, 3)), np.zeros(3), 1.0)
     assert len(order) == 0 and list(starts) == [0] and (table == -1).all()

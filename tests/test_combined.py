@@ -56,8 +56,8 @@ def test_the_combined_decision_finds_an_object_down_to_the_old_surface(scene):
     assert len(combined.appeared_regions) >= 1
     assert combined.appeared_regions[0].n_points >= 0.8 * box.sum()
     s = combined.summary()
-    assert s["decision"] == "combined" and s["current"]["significant"] > 0
-    assert density.current_distance is None and "significant" not in density.summary()["current"]
+    assert s["decision"] == "combined" and s["current"]["level"]["systematic"] >= 0
+    assert density.current_distance is None and "level" not in density.summary()["current"]
 
 
 def test_density_is_the_point_decision(scene):
@@ -151,11 +151,22 @@ def test_tiles_refuse_the_combined_decision_and_take_density():
         check_tiled_options(decision="combined")
 
 
+def _decide(cur, ref, states, found, present=None):
+    from sdp.change._combined import combine_decision
+    from sdp.change._coverage import UNCHANGED
+    from sdp.distance._noise import SurfaceDistances
+
+    sd = SurfaceDistances(cur, ref, sigma=2 * VOXEL, stable=states == UNCHANGED)
+    present = (lambda p: np.ones(len(p), bool)) if present is None else present
+    changed = combine_decision(sd, states, voxel_size=VOXEL, directed=False, present=present,
+                               found=np.flatnonzero(found), min_region_points=50)[0]
+    return changed, sd
+
+
 def test_only_what_the_density_keeps_lets_the_distance_complete_a_component():
     """Rule 4: a patch raised 15 mm (below the density's reach, beyond the level) is kept only if
     it holds a point the density's own decision keeps; a stray density point (its region below
     min_region_points, dropped by that decision) does not keep it."""
-    from sdp.change._combined import combine_decision
     from sdp.change._coverage import CHANGED, UNCHANGED
 
     rng = np.random.default_rng(3)
@@ -165,10 +176,78 @@ def test_only_what_the_density_keeps_lets_the_distance_complete_a_component():
     states = np.full(len(cur), UNCHANGED, np.int8)
     stray = np.flatnonzero(patch)[0]
     states[stray] = CHANGED  # the density marked one point of the patch
-    kw = dict(sigma=2 * VOXEL, voxel_size=VOXEL, min_region_points=50)
-    as_before = combine_decision(cur, ref, states, **kw)[0]
-    dropped = combine_decision(cur, ref, states, **kw, found=np.zeros(len(cur), bool))[0]
-    kept = combine_decision(cur, ref, states, **kw, found=states == CHANGED)[0]
-    assert as_before[patch].mean() > 0.8 and kept[patch].mean() > 0.8  # the distance completes the patch
+    dropped, _ = _decide(cur, ref, states, found=np.zeros(len(cur), bool))
+    kept, _ = _decide(cur, ref, states, found=states == CHANGED)
+    assert kept[patch].mean() > 0.8  # the distance completes the patch
     assert not dropped.any()  # seeded by a stray only: nothing
     assert kept[~patch].mean() < 0.005
+
+
+def test_growing_from_the_seeds_decides_as_measuring_everywhere_does():
+    """The components grown cell ring by cell ring from what the density keeps are the rule's:
+    every point changed by density, or by distance (beyond 3.29/1.96 × its level, inside its own
+    volume), in a 26-connected component of changed cells that holds a kept point and at least
+    min_region_points changed points (rules 2–4, written out here over distances measured
+    everywhere)."""
+    from sdp.change._combined import DECISION_FACTOR
+    from sdp.change._coverage import CHANGED, UNCHANGED
+
+    rng = np.random.default_rng(5)
+    ref, cur = _floor(rng, n=60000), _floor(rng, n=60000)
+    for x, y, dz in ((0.6, 0.6, 0.015), (1.6, 1.5, 0.02), (2.4, 2.3, 0.012), (1.0, 2.4, 0.03)):
+        cur[(np.abs(cur[:, 0] - x) < 0.15) & (np.abs(cur[:, 1] - y) < 0.15), 2] += dz
+    states = np.full(len(cur), UNCHANGED, np.int8)
+    states[(np.abs(cur[:, 0] - 1.6) < 0.03) & (np.abs(cur[:, 1] - 1.5) < 0.03)] = CHANGED  # a kept seed
+    states[(np.abs(cur[:, 0] - 2.4) < 0.01) & (np.abs(cur[:, 1] - 2.3) < 0.01)] = CHANGED  # a stray
+    states[rng.choice(len(cur), 20, replace=False)] = CHANGED  # strays on the floor
+    found = (states == CHANGED) & (np.abs(cur[:, 0] - 1.6) < 0.03)
+    found |= (states == CHANGED) & (np.abs(cur[:, 0] - 1.0) < 0.5) & (cur[:, 1] > 2.3)  # none there: no seed
+    present = cur[:, 0] < 2.0  # the patch at x = 2.4 is not matter of its own epoch
+    grown, sd = _decide(cur, ref, states, found, present=lambda p: p[:, 0] < 2.0)
+
+    pd = sd.everywhere()
+    with np.errstate(invalid="ignore"):
+        far = np.abs(pd.distance) > DECISION_FACTOR * pd.lod
+    changed = (states == CHANGED) | ((states == UNCHANGED) & far & present)
+    labels, counts = _cell_components(pd.cells, pd.cell_index, changed)
+    seeded = np.zeros(len(counts), bool)
+    seeded[labels[found]] = True
+    rule = changed & seeded[np.maximum(labels, 0)] & (counts[np.maximum(labels, 0)] >= 50)
+    assert rule.sum() > 1000 and np.array_equal(grown, rule)
+
+
+def _cell_components(cells, cell_index, changed):
+    """(label per point, -1 if not changed; points per component) of the 26-connected cells
+    that hold a changed point, by SciPy (pairs of cells less than 2 apart, then a graph's
+    components)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    labels = np.full(len(cells), -1, np.int64)
+    hit = np.unique(cells[changed])
+    pairs = cKDTree(cell_index[hit]).query_pairs(1.8, output_type="ndarray")  # √3 < 1.8 < 2
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(hit.size, hit.size))
+    n, comp = connected_components(graph, directed=False)
+    of_cell = np.full(len(cell_index), -1, np.int64)
+    of_cell[hit] = comp
+    labels[changed] = of_cell[cells[changed]]
+    return labels, np.bincount(labels[changed], minlength=n)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_systematic_part_is_the_smallest_that_keeps_5_percent_beyond(seed):
+    from sdp.distance._noise import LEVEL_Z, _systematic
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(50, 3000))
+    absd = np.abs(rng.standard_t(3, n)) * 0.003
+    random = (0.001 * rng.random(n)) ** 2
+    g = rng.uniform(0.5, 2.0, n)
+
+    def share(s):
+        return np.count_nonzero(absd > LEVEL_Z * np.sqrt(random + (s * g) ** 2)) / n
+
+    s = _systematic(absd, random, g)
+    assert s > 0 and share(s) <= 0.05 < share(s * (1 - 1e-9))
+    assert _systematic(absd * 1e-3, random, g) == 0.0  # fewer than 5 % beyond the random part alone

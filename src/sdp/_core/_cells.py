@@ -9,8 +9,8 @@ full (:func:`table_bits`); a key's first slot is its Fibonacci hash (:func:`slot
 ``⌊2⁶⁴/φ⌋`` (wrapping), top ``bits`` bits. The multiplication mixes all three packed axes
 into the top bits, so that neighbouring cells along any axis spread over the table, and a
 lookup costs one multiply and a shift [1]_. What a slot points to is the caller's: the last point of a cell's
-linked list (:func:`linked_cells`), a cell's row in a CSR layout (:func:`sorted_cells`), a
-group's number (the cube grouping of :mod:`sdp.change._visibility`).
+linked list (:func:`linked_cells`), a cell's run in a counting sort (:func:`hashed_sort`),
+a group's number (the cube grouping of :mod:`sdp.change._visibility`).
 
 Each caller keeps its own cell coordinates (how it rounds a point into a cell) and its own use
 of the table; only the packing, the hash, the probing and the table builders live here.
@@ -33,7 +33,7 @@ import numba as nb
 import numpy as np
 
 __all__ = ["BITS", "MAX_INDEX", "cell_key", "cell_keys", "table_bits", "slot", "probe", "find", "find_cell",
-           "linked_cells", "key_table", "table_row", "sorted_cells"]
+           "linked_cells", "key_table", "table_row", "hashed_sort"]
 
 BITS = 21  # bits per axis in a key: three of them fill an int64 but its sign bit
 MAX_INDEX = 1 << BITS  # cell indices per axis: 0 … MAX_INDEX − 1
@@ -163,12 +163,52 @@ def table_row(table, ix, iy, iz, shift):
     return table[cap + s] if s >= 0 else -1
 
 
-def sorted_cells(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points sorted by the key of their cell (CSR): (stable sorting permutation, start of each
-    cell's run in that order and the end (cells + 1,), :func:`key_table` of the cells in the
-    order of their runs)."""
-    order = np.argsort(keys, kind="stable")
-    keys = keys[order]
-    first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]) if len(keys) else np.zeros(0, np.int64)
-    starts = np.r_[first, len(keys)].astype(np.int64)
-    return order, starts, key_table(keys[first])
+@nb.njit(cache=True, nogil=True)
+def hashed_sort(points, lo, c):
+    """Points sorted by cell (``⌊(p − lo)/c⌋``, within ``[0, MAX_INDEX)`` on each axis) in O(n):
+    a counting sort over a hash table of the occupied cells, the runs in the order their cells
+    are first met (a scan's order keeps neighbouring cells near).
+
+    Returns the stable sorting permutation, the start of each cell's run and the end
+    (cells + 1,), and the :func:`key_table` of the cells in the order of their runs. The table
+    starts for n/8 cells and is built again, four times larger, when it gets half full."""
+    n = points.shape[0]
+    bits = table_bits(max(n // 4, 1))
+    run = np.empty(n, np.int64)
+    while True:
+        cap = 1 << bits
+        mask, shift = cap - 1, 64 - bits
+        table = np.full(2 * cap, -1, np.int64)
+        runs = 0
+        last_key = -1
+        r = -1
+        full = False
+        for i in range(n):
+            key = cell_key(int(math.floor((points[i, 0] - lo[0]) / c)), int(math.floor((points[i, 1] - lo[1]) / c)),
+                           int(math.floor((points[i, 2] - lo[2]) / c)))
+            if key != last_key:  # scans are ordered: consecutive points often share a cell
+                s = probe(table, key, shift, mask)
+                if table[s] < 0:
+                    if 2 * (runs + 1) > cap:
+                        full = True
+                        break
+                    table[s] = key
+                    table[cap + s] = runs
+                    runs += 1
+                r = table[cap + s]
+                last_key = key
+            run[i] = r
+        if not full:
+            break
+        bits += 2
+    starts = np.zeros(runs + 1, np.int64)
+    for i in range(n):
+        starts[run[i] + 1] += 1
+    for k in range(runs):
+        starts[k + 1] += starts[k]
+    fill = starts[:runs].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[run[i]]] = i
+        fill[run[i]] += 1
+    return order, starts, table

@@ -32,7 +32,12 @@ The rule, per point of one direction:
    object thinner than about 2σ lying flat stays unfound, as with the density alone.
    Components with fewer than ``min_region_points`` points are strays.
 
-The distance and its level are kept per point (the ``distance`` and ``lod`` output fields).
+Because of rule 4 the distance matters only in components that hold what the density found:
+they are grown from its cells outwards, ring by ring, and the distance is measured at those
+cells and at the sample that calibrates the level (:class:`sdp.distance._noise.SurfaceDistances`),
+not across the scene: a pair where the density finds nothing costs no distance at all. The
+distance and its level are kept per point (the ``distance`` and ``lod`` output fields), measured
+over the whole cloud when first read.
 
 References
 ----------
@@ -41,13 +46,15 @@ References
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from ._coverage import CHANGED, UNCHANGED
 from ._regions import describe_regions
+
+if TYPE_CHECKING:
+    from ..distance._noise import SurfaceDistances
 
 __all__ = ["combine_decision", "DECISION_FACTOR"]
 
@@ -55,52 +62,62 @@ __all__ = ["combine_decision", "DECISION_FACTOR"]
 DECISION_FACTOR = 3.2905 / 1.96
 
 
-def combine_decision(points: np.ndarray, other: np.ndarray, states: np.ndarray, *, sigma: float,
-                     voxel_size: float, own_origin=None, other_origin=None, min_region_points: int = 50,
-                     regions: bool = True, present: np.ndarray | None = None, found: np.ndarray | None = None):
-    """(changed mask, regions, region label per point, distance, lod) of one direction.
+def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: float, directed: bool,
+                     present, found: np.ndarray, min_region_points: int = 50, regions: bool = True):
+    """(changed mask, regions, region label per point) of one direction.
 
-    ``points``/``other``: the finite points of this epoch and of the other; ``states``: their
-    states after the density test and coverage (:mod:`sdp.change._coverage`); ``present``: the
-    points inside their own epoch's cluster volume (F < 0), the only ones the distance may mark;
-    ``found``: the points the density's own decision keeps (its regions of ``min_region_points``,
-    default every point it marks), the only ones that keep a component (rule 4)."""
-    from ..distance._noise import point_distances  # the distances load only for this decision
+    ``sd``: the distances of this epoch's finite points to the other epoch
+    (:class:`sdp.distance._noise.SurfaceDistances`); ``states``: their states after the density
+    test and coverage (:mod:`sdp.change._coverage`); ``directed``: the other scan's sensor is
+    known, so only a point in front of the other surface counts by distance; ``present(points)``:
+    which points lie inside their own epoch's cluster volume (F < 0), the only ones the distance
+    may mark; ``found``: the points the density's own decision keeps (its regions of
+    ``min_region_points``), the only ones that keep a component (rule 4).
 
-    pd = point_distances(points, other, sigma=sigma, own_origin=own_origin, other_origin=other_origin,
-                         stable=states == UNCHANGED)
-    beyond = DECISION_FACTOR * pd.lod
-    with np.errstate(invalid="ignore"):
-        far = pd.distance > beyond if other_origin is not None else np.abs(pd.distance) > beyond
-    if present is not None:  # matter of its own epoch (F < 0), as Algorithm 1 asks of a change
-        far &= present
-    changed = (states == CHANGED) | ((states == UNCHANGED) & far)
-    labels, counts = _cell_components(pd.cells, pd.cell_index, changed)
-    if len(counts):  # the distance completes what the density found (rule 4)
-        seeded = np.zeros(len(counts), bool)
-        seeded[labels[(states == CHANGED) if found is None else found]] = True
-        changed &= seeded[np.maximum(labels, 0)]
-        if min_region_points > 1:
-            changed &= counts[np.maximum(labels, 0)] >= min_region_points
-        labels = np.where(changed, labels, -1)
+    The components are grown from the cells of ``found`` outwards, cell ring by cell ring, so
+    that the distance is measured only at the cells next to what the density found (and at the
+    sample that calibrates the level), not across the whole scene."""
+    n = len(states)
+    density = states == CHANGED
+    marked = np.zeros(n, bool)  # unchanged by density, changed by distance (rules 2 and 3)
+    in_component = np.zeros(len(sd.cell_index), bool)
+
+    def grow(rows):
+        """Mark the points of cells ``rows`` that the distance changes; the cells holding a change."""
+        idx = sd.points_of(rows)
+        idx = idx[states[idx] == UNCHANGED]
+        if idx.size:
+            d, lod = sd.at(idx)
+            beyond = DECISION_FACTOR * lod
+            with np.errstate(invalid="ignore"):
+                far = d > beyond if directed else np.abs(d) > beyond
+            far_idx = idx[far]
+            if far_idx.size:  # matter of its own epoch (F < 0), as Algorithm 1 asks of a change
+                marked[far_idx[present(sd.points[far_idx])]] = True
+        idx = sd.points_of(rows)
+        return np.unique(sd.cells[idx[density[idx] | marked[idx]]])
+
+    frontier = np.unique(sd.cells[found])
+    visited = np.zeros(len(sd.cell_index), bool)
+    visited[frontier] = True
+    grow(frontier)
+    while frontier.size:
+        in_component[frontier] = True
+        frontier = grow(sd.neighbours(frontier, visited))
+    changed = (density | marked) & in_component[sd.cells]
+    idx = np.flatnonzero(changed)
+    hit = np.zeros(len(sd.cell_index), bool)
+    hit[sd.cells[idx]] = True
+    of_cell, n_components = sd.components(hit)
+    labels = np.full(n, -1, np.int64)
+    labels[idx] = of_cell[sd.cells[idx]]
+    counts = np.bincount(labels[idx], minlength=n_components)
+    if min_region_points > 1 and len(counts):  # strays
+        stray = idx[counts[labels[idx]] < min_region_points]
+        changed[stray] = False
+        labels[stray] = -1
     if regions:
-        regs, region_of = describe_regions(points, labels, counts, voxel_size)
+        regs, region_of = describe_regions(sd.points, labels, counts, voxel_size)
     else:
         regs, region_of = [], np.where(changed, 0, -1)
-    return changed, regs, region_of, pd.distance, pd.lod
-
-
-def _cell_components(cells: np.ndarray, cell_index: np.ndarray, changed: np.ndarray):
-    """(label per point, -1 if not changed; points per component) of the 26-connected cells that
-    hold a changed point."""
-    labels = np.full(len(cells), -1, np.int64)
-    hit = np.unique(cells[changed])
-    if hit.size == 0:
-        return labels, np.zeros(0, np.int64)
-    pairs = cKDTree(cell_index[hit]).query_pairs(1.8, output_type="ndarray")  # √3 < 1.8 < 2
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(hit.size, hit.size))
-    n, comp = connected_components(graph, directed=False)
-    of_cell = np.full(len(cell_index), -1, np.int64)
-    of_cell[hit] = comp
-    labels[changed] = of_cell[cells[changed]]
-    return labels, np.bincount(labels[changed], minlength=n)
+    return changed, regs, region_of

@@ -161,8 +161,10 @@ class ChangeResult:
         ``"point"``, ``"cluster"`` or ``"combined"`` (see :func:`detect_changes`; tiles: ``"point"``).
     current_distance, current_lod, reference_distance, reference_lod : ndarray of float64 or None
         With ``decision="combined"``: each point's signed distance to the other epoch's surface
-        and its level of detection at 95 % (:func:`sdp.distance._noise.point_distances`; NaN:
-        nothing to measure against); else None.
+        and its level of detection at 95 % (:class:`sdp.distance._noise.SurfaceDistances`; NaN:
+        nothing to measure against), measured over the whole cloud on first use (the decision
+        itself measures them only next to what the density found); else None. ``summary()``
+        gives the level's calibration per direction (``"level"``: σ_s, the range exponent p).
     sensor_origins : tuple of (ndarray (3,) or None)
         The reference's and the current's sensor position used (None: not known).
     coverage : dict of str to str
@@ -173,7 +175,8 @@ class ChangeResult:
     timings : dict of str to float
         Seconds per step. In memory: ``build_reference``, ``build_current``, ``detect`` (as the
         paper's Table I), then ``coverage`` (the visibility test with a sensor, else the
-        footprint) and ``regions``; with ``voxel_size="auto"``, also ``voxel_size``. The two
+        footprint) and ``regions``; with ``voxel_size="auto"``, also ``voxel_size``; with
+        ``decision="combined"``, also ``distance`` (both directions' completion by the distance). The two
         builds bin their clouds at once, and ``coverage`` and ``regions`` add up both
         directions, which run at once: on two threads when there are two cores, so these steps
         may add up to more than the wall time they took. In tiles: wall seconds of ``bucket``
@@ -199,10 +202,23 @@ class ChangeResult:
     n_tiles: int = 0
     tile_size: float | None = None
     timings: dict[str, float] = dc_field(default_factory=dict)
-    current_distance: np.ndarray | None = dc_field(default=None, repr=False)
-    current_lod: np.ndarray | None = dc_field(default=None, repr=False)
-    reference_distance: np.ndarray | None = dc_field(default=None, repr=False)
-    reference_lod: np.ndarray | None = dc_field(default=None, repr=False)
+    _distances: tuple = dc_field(default=(None, None), repr=False)
+
+    @property
+    def current_distance(self) -> np.ndarray | None:
+        return None if self._distances[1] is None else self._distances[1].rows[0]
+
+    @property
+    def current_lod(self) -> np.ndarray | None:
+        return None if self._distances[1] is None else self._distances[1].rows[1]
+
+    @property
+    def reference_distance(self) -> np.ndarray | None:
+        return None if self._distances[0] is None else self._distances[0].rows[0]
+
+    @property
+    def reference_lod(self) -> np.ndarray | None:
+        return None if self._distances[0] is None else self._distances[0].rows[1]
 
     @property
     def current_state(self) -> np.ndarray:
@@ -267,13 +283,11 @@ class ChangeResult:
         def origin(o):
             return None if o is None else np.asarray(o, np.float64).tolist()  # (3,), or (k, 3) scanners
 
-        def counts(points, dropped, kind, dist=None, lod=None):
+        def counts(points, dropped, kind, distances=None):
             out = {"points": points.n, "dropped": int(dropped), kind: points.count(CHANGED),
                    "not_comparable": points.count(NOT_COMPARABLE)}
-            if dist is not None:
-                ok = np.isfinite(dist)
-                out["with_distance"] = int(ok.sum())
-                out["significant"] = int((np.abs(dist[ok]) > lod[ok]).sum())
+            if distances is not None:
+                out["level"] = distances.level()
             return out
 
         tiles = {"tiles": self.n_tiles, "tile_size": self.tile_size} if self.tiled else {}
@@ -281,10 +295,8 @@ class ChangeResult:
                 "sensor_origin": {"reference": origin(self.sensor_origins[0]),
                                   "current": origin(self.sensor_origins[1])},
                 "coverage": dict(self.coverage),
-                "reference": counts(self._reference, self.n_dropped_reference, "disappeared",
-                                    self.reference_distance, self.reference_lod),
-                "current": counts(self._current, self.n_dropped_current, "appeared",
-                                  self.current_distance, self.current_lod),
+                "reference": counts(self._reference, self.n_dropped_reference, "disappeared", self._distances[0]),
+                "current": counts(self._current, self.n_dropped_current, "appeared", self._distances[1]),
                 "timings": dict(self.timings),
                 "appeared_regions": [r.to_dict() for r in self.appeared_regions],
                 "disappeared_regions": [r.to_dict() for r in self.disappeared_regions]}
@@ -405,41 +417,101 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         steps = {"coverage": time.perf_counter() - t}
         t = time.perf_counter()
         unseen = states == NOT_COMPARABLE
-        extra = {}
         if decision == "combined":
             # what the density finds by itself (its regions, strays dropped): the components the
-            # distance may complete
-            found = region_rules(fld, d, pts.xyz, states == CHANGED, regions=True, decision="point",
-                                 min_region_points=min_region_points, cluster_fraction=cluster_fraction)[0]
-            mask, regs, region_of, dist, lod = combine_decision(
-                # one sensor per cloud: the noise model's range law and normals (several: neither yet)
-                pts.xyz, other.xyz, states, sigma=fld.sigma, voxel_size=fld.voxel_size, own_origin=_single(own_origin),
-                other_origin=_single(other_origin), min_region_points=min_region_points, regions=regions,
-                present=fld.inside(pts.xyz), found=found)
-            extra = {"distance": to_rows(dist, pts, np.nan), "lod": to_rows(lod, pts, np.nan)}
+            # distance may complete (:func:`complete`)
+            mask = region_rules(fld, d, pts.xyz, states == CHANGED, regions=True, decision="point",
+                                min_region_points=min_region_points, cluster_fraction=cluster_fraction)[0]
+            regs, region_of = [], None
         else:
             mask, regs, region_of = region_rules(fld, d, pts.xyz, states == CHANGED, regions=regions,
                                                  decision=decision, min_region_points=min_region_points,
                                                  cluster_fraction=cluster_fraction, blocked=unseen)
         steps["regions"] = time.perf_counter() - t
-        state = to_rows(states_of(mask, unseen), pts, UNCHANGED)
-        labels = to_rows(region_of.astype(np.int32), pts, -1)
-        return (PointChanges(len(state), state=state, labels=labels), regs, extra), steps
+        return (states, mask, regs, region_of), steps
 
+    jobs = [(f_cur, cur, app, d_app, ref, f_ref, o_ref, s_ref, o_cur),
+            (f_ref, ref, dis, d_dis, cur, f_cur, o_cur, s_cur, o_ref)]
     # the two directions are independent: on two threads when there are two cores
-    (appeared, steps_a), (disappeared, steps_d) = map_concurrently(
-        finish, [(f_cur, cur, app, d_app, ref, f_ref, o_ref, s_ref, o_cur),
-                 (f_ref, ref, dis, d_dis, cur, f_cur, o_cur, s_cur, o_ref)],
-        parallel_kernels=True)
+    (appeared, steps_a), (disappeared, steps_d) = map_concurrently(finish, jobs, parallel_kernels=True)
+    distances = (None, None)
+    if decision == "combined":
+        from ..distance._noise import pair_cells  # the distances load only for this decision
+
+        t = time.perf_counter()
+        # the distance completes what the density found (:mod:`sdp.change._combined`): both clouds
+        # sorted once into the cells of 1.5σ both directions read, if either found anything
+        lists = pair_cells((ref, cur), f_cur.sigma, sort=appeared[1].any() or disappeared[1].any())
+        distances = (_Distances(jobs[1], disappeared[0], lists), _Distances(jobs[0], appeared[0], lists))
+
+        def complete(k):
+            fld, (states, found, *_) = jobs[k][0], (appeared, disappeared)[k]
+            if not found.any():  # nothing to complete: no component is kept (rule 4)
+                return states, found, [], np.full(len(found), -1)
+            changed, regs, region_of = combine_decision(
+                distances[1 - k].surface, states, voxel_size=fld.voxel_size, directed=distances[1 - k].directed,
+                present=fld.inside, found=np.flatnonzero(found), min_region_points=min_region_points,
+                regions=regions)
+            return states, changed, regs, region_of
+
+        appeared, disappeared = map_concurrently(complete, [0, 1], parallel_kernels=True)
+        timings["distance"] = time.perf_counter() - t
     timings.update({step: steps_a[step] + steps_d[step] for step in steps_a})
+    appeared, disappeared = (_point_changes(out, pts) for out, pts in ((appeared, cur), (disappeared, ref)))
     how = {"appeared": _coverage_kind(o_ref, coverage.enabled), "disappeared": _coverage_kind(o_cur, coverage.enabled)}
     return ChangeResult(_reference=disappeared[0], _current=appeared[0], appeared_regions=appeared[1],
                         disappeared_regions=disappeared[1], voxel_size=float(f_cur.voxel_size), sigma=f_cur.sigma,
                         h=f_cur.h, decision=decision, reference_field=f_ref, current_field=f_cur,
                         n_dropped_reference=f_ref.n_dropped, n_dropped_current=f_cur.n_dropped,
-                        sensor_origins=(o_ref, o_cur), coverage=how, timings=timings,
-                        current_distance=appeared[2].get("distance"), current_lod=appeared[2].get("lod"),
-                        reference_distance=disappeared[2].get("distance"), reference_lod=disappeared[2].get("lod"))
+                        sensor_origins=(o_ref, o_cur), coverage=how, timings=timings, _distances=distances)
+
+
+def _point_changes(out, pts):
+    """(PointChanges over the input rows, regions) of one direction's (states, changed mask,
+    regions, region label per point)."""
+    states, mask, regs, region_of = out
+    state = to_rows(states_of(mask, states == NOT_COMPARABLE), pts, UNCHANGED)
+    labels = to_rows(np.asarray(region_of).astype(np.int32), pts, -1)
+    return PointChanges(len(state), state=state, labels=labels), regs
+
+
+class _Distances:
+    """One direction's distances to the other epoch (``decision="combined"``): the
+    :class:`sdp.distance._noise.SurfaceDistances` its decision reads, made when first needed,
+    and every point's distance and level over the input rows, measured on first use."""
+
+    def __init__(self, job, states, lists):
+        self._job, self._states, self._lists = job, states, lists
+        self._surface = self._rows = None
+        _, _, _, _, _, _, other_origin, _, own_origin = job
+        # one sensor per cloud: the noise model's range law and normals (several: neither yet)
+        self.own_origin, self.other_origin = _single(own_origin), _single(other_origin)
+        self.directed = self.other_origin is not None
+
+    @property
+    def surface(self):
+        if self._surface is None:
+            from ..distance._noise import SurfaceDistances
+
+            fld, pts, _, _, other, *_ = self._job
+            self._surface = SurfaceDistances(pts.xyz, other.xyz, sigma=fld.sigma, own_origin=self.own_origin,
+                                             other_origin=self.other_origin, stable=self._states == UNCHANGED,
+                                             lists=self._lists)
+        return self._surface
+
+    @property
+    def rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """(distance, lod) per input row (NaN: a dropped row, or nothing to measure against)."""
+        if self._rows is None:
+            pd = self.surface.everywhere()
+            pts = self._job[1]
+            self._rows = (to_rows(pd.distance, pts, np.nan), to_rows(pd.lod, pts, np.nan))
+        return self._rows
+
+    def level(self) -> dict:
+        """The level's calibration: its systematic part σ_s (95 %: 1.96·σ_s) and range exponent p."""
+        p, r_med, scale, s = self.surface.level
+        return {"systematic": s, "range_exponent": p, "median_range": r_med, "random_scale": scale}
 
 
 def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | None, other_field: DensityField,

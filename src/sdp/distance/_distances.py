@@ -76,7 +76,7 @@ import numba as nb
 import numpy as np
 import numpy.typing as npt
 
-from .._core._cells import BITS, MAX_INDEX, cell_keys, sorted_cells, table_row
+from .._core._cells import BITS, MAX_INDEX, hashed_sort, table_row
 from .._core._kdtree import k_nearest
 from .._core._memory import check_memory
 from .._core._memory import memory_limit as grid_memory_limit
@@ -444,22 +444,27 @@ class _CellLists:
             size = last - first + 1
             if np.prod(size.astype(float)) <= _DENSE_CELLS:  # a counting sort over the box of cells
                 dims = np.r_[size, first]
-                order, starts, table = _counting_sort(xyz, self.lo, cell, dims)
+                linear = np.empty(len(xyz), np.int64)
+                _box_cells(xyz, self.lo, cell, dims, linear)
+                order, starts, table, ordered = _counting_sort(xyz, linear, int(np.prod(size)))
             else:
-                order, starts, table = sorted_cells(cell_keys(np.floor((xyz - self.lo) / cell).astype(np.int64)))
+                order, starts, table = hashed_sort(xyz, self.lo, cell)
                 dims = np.zeros(6, np.int64)
-            self._cache[key] = (_gather(xyz, order), starts, table, dims, cell, order)
+                ordered = _gather(xyz, order)
+            self._cache[key] = (ordered, starts, table, dims, cell, order)
         return self._cache[key]
 
-    def normals(self, xyz, queries, sigma):
+    def normals(self, xyz, queries, sigma, cell=None):
         """(unit normals (m, 3), NaN where fewer than 3 points; roughness = √λ_min).
 
         From the moments of cells of σ (count, centroid, scatter), each cell weighted by the
         Gaussian at its centroid: a few dozen cells per query instead of hundreds of points,
-        and the direction of a covariance does not need each point's own weight."""
+        and the direction of a covariance does not need each point's own weight. ``cell``:
+        cells of another size instead (those of the cylinders, already sorted: no second sort
+        where few queries are made)."""
         normal = np.empty((len(queries), 3))
         rough = np.empty(len(queries))
-        _normals(*self.moments(xyz, sigma), self.lo, np.ascontiguousarray(queries), sigma,
+        _normals(*self.moments(xyz, sigma if cell is None else cell), self.lo, np.ascontiguousarray(queries), sigma,
                  _NORMAL_REACH * sigma, normal, rough)
         return normal, rough
 
@@ -505,20 +510,26 @@ class _CellLists:
         return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _index_box(xyz, lo, cell):
     """(first, last) cell index per axis of the points, as the kernels index them."""
-    first = np.full(3, np.iinfo(np.int64).max, np.int64)
-    last = np.full(3, np.iinfo(np.int64).min, np.int64)
-    for i in range(xyz.shape[0]):
-        for a in range(3):
-            k = int(math.floor((xyz[i, a] - lo[a]) / cell))
-            first[a] = min(first[a], k)
-            last[a] = max(last[a], k)
-    return first, last
+    big = np.iinfo(np.int64).max
+    x0 = y0 = z0 = big
+    x1 = y1 = z1 = -big
+    for i in nb.prange(xyz.shape[0]):
+        kx = int(math.floor((xyz[i, 0] - lo[0]) / cell))
+        ky = int(math.floor((xyz[i, 1] - lo[1]) / cell))
+        kz = int(math.floor((xyz[i, 2] - lo[2]) / cell))
+        x0 = min(x0, kx)
+        y0 = min(y0, ky)
+        z0 = min(z0, kz)
+        x1 = max(x1, kx)
+        y1 = max(y1, ky)
+        z1 = max(z1, kz)
+    return np.array([x0, y0, z0]), np.array([x1, y1, z1])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def bounds(xyz):
     """(lowest, highest) corner of the points, in one pass."""
     lo = np.full(3, np.inf)
@@ -530,19 +541,24 @@ def bounds(xyz):
     return lo, hi
 
 
-@nb.njit(cache=True)
-def _counting_sort(xyz, lo, cell, dims):
-    """Points sorted by cell in O(n + cells): (permutation, start of each occupied cell's run,
-    dense table cell → run (-1: empty)) over the box of ``dims[:3]`` cells from cell ``dims[3:]``."""
-    n = xyz.shape[0]
-    total = dims[0] * dims[1] * dims[2]
-    linear = np.empty(n, np.int64)
-    table = np.zeros(total, np.int32)
-    for i in range(n):
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _box_cells(xyz, lo, cell, dims, linear):
+    """Each point's cell as a row of the box of ``dims[:3]`` cells from cell ``dims[3:]``."""
+    for i in nb.prange(xyz.shape[0]):
         ix = min(max(int(math.floor((xyz[i, 0] - lo[0]) / cell)) - dims[3], 0), dims[0] - 1)
         iy = min(max(int(math.floor((xyz[i, 1] - lo[1]) / cell)) - dims[4], 0), dims[1] - 1)
         iz = min(max(int(math.floor((xyz[i, 2] - lo[2]) / cell)) - dims[5], 0), dims[2] - 1)
         linear[i] = (ix * dims[1] + iy) * dims[2] + iz
+
+
+@nb.njit(cache=True, nogil=True)
+def _counting_sort(xyz, linear, total):
+    """Points sorted by cell in O(n + cells): (permutation, start of each occupied cell's run,
+    dense table cell → run (-1: empty), the points in that order), ``linear``: each point's
+    cell in a box of ``total`` cells (:func:`_box_cells`)."""
+    n = xyz.shape[0]
+    table = np.zeros(total, np.int32)
+    for i in range(n):
         table[linear[i]] += 1
     starts = np.empty(n + 1, np.int64)
     runs = 0
@@ -559,14 +575,18 @@ def _counting_sort(xyz, lo, cell, dims):
     starts[runs] = n
     fill = starts[:runs].copy()
     order = np.empty(n, np.int64)
+    ordered = np.empty_like(xyz)
     for i in range(n):
         r = table[linear[i]]
-        order[fill[r]] = i
-        fill[r] += 1
-    return order, starts[: runs + 1].copy(), table
+        j = fill[r]
+        order[j] = i
+        for a in range(3):
+            ordered[j, a] = xyz[i, a]
+        fill[r] = j + 1
+    return order, starts[: runs + 1].copy(), table, ordered
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _results(order, ref, cur, normal, reg, reach, dist, lod, n1, n2, s1, s2, out_normal, level):
     """The outputs, back in the core points' input order (``order``: sorted row → input row), in
     one pass: distance = mean₂ − mean₁ and M3C2's level of detection; NaN (level -1) where an
@@ -588,7 +608,7 @@ def _results(order, ref, cur, normal, reg, reach, dist, lod, n1, n2, s1, s2, out
             level[j] = -1
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _gather(values, index):
     """``values[index]`` on all threads (a permutation of a scan touches memory at random)."""
     out = np.empty((index.shape[0],) + values.shape[1:], values.dtype)
@@ -648,7 +668,7 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     return bx / s, by / s, bz / s, lam
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _cell_moments(pts, starts):
     """Per cell of a sorted cloud, one row: point count, centroid (3), scatter about the centroid
     (xx, xy, xz, yy, yz, zz); one row per cell keeps a query's reads to a cache line or two."""
@@ -673,7 +693,7 @@ def _cell_moments(pts, starts):
     return m
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _normals(cells, table, dims, cell, lo, queries, sigma, reach, normal, rough):
     inv2s2 = 0.5 / (sigma * sigma)
     r2max = reach * reach
@@ -718,7 +738,7 @@ def _normals(cells, table, dims, cell, lo, queries, sigma, reach, normal, rough)
         rough[i] = math.sqrt(max(lam, 0.0))
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _nearest_along(table, dims, cell, lo, queries, normals, reach, out):
     """Per query: the signed offset t, nearest to 0 with |t| ≤ ``reach``, at which the line
     ``q + t·n`` passes an occupied cell or one of its 26 neighbours (steps of half a cell, both
@@ -765,7 +785,7 @@ def _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2, w, w2,
     return w + g * n, w2 + g * g * n, st + g * n * t, stt + g * (n * t * t + along)
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, half, out):
     """Per query: kernel-weighted mean offset along its normal, spread and effective count of the
     cells whose centroid lies within ``radius`` of its axis and ``half`` along it; each cell's

@@ -9,10 +9,11 @@ about as z² (the disparity step is fixed, depth ∝ 1/disparity). On the static
 the mOSD set, the distances of the unchanged majority have a median of 0.15 mm but a 95th
 percentile of 1–2 mm: about 14 % of them are "significant" where the level promises 5 %.
 
-:func:`point_distances` measures, for each point, its own signed offset from the other epoch's
-surface (the other epoch's kernel-weighted mean along the normal, in the cylinder of
-:func:`sdp.distances` at the centroid of the point's cell of 1.5σ_p: one query per cell, about
-20 times fewer than per point on a Kinect frame), and models its variance in three parts:
+:class:`SurfaceDistances` (:func:`point_distances` for every point at once) measures, for each
+point, its own signed offset from the other epoch's surface (the other epoch's kernel-weighted
+mean along the normal, in the cylinder of :func:`sdp.distances` at the centroid of the point's
+cell of 1.5σ_p: one query per cell, about 20 times fewer than per point on a Kinect frame), and
+models its variance in three parts:
 
 - **random**: one point of an unchanged surface scatters about the other epoch's mean as that
   epoch's own points do, ``s₁²(1 + 1/n₁')``, s₁ the other epoch's spread along the normal in
@@ -25,8 +26,8 @@ surface (the other epoch's kernel-weighted mean along the normal, in the cylinde
 - **range-dependent**: ``(σ_s·g(r))²`` with ``g(r) = (r/r̃)^p`` along the sensor's ray, r̃
   the median range; ``p`` (``range_exponent``) is 2 for a structured-light camera and 0 for a
   laser scanner; ``"auto"`` fits it (clipped to [0, 2]) as the slope of log median |distance|
-  against log range over ten range bins of the stable majority, where the sensor is known,
-  else 0;
+  against log range over ten range bins (of equal counts) of the stable majority, where the
+  sensor is known, else 0;
 - **systematic** (registration, calibration, correlated errors): σ_s is what the data say when
   ``registration_error="auto"``: the smallest σ_s for which no more than 5 % of the stable
   majority (the points the density test left unchanged) lies beyond the level. This is the
@@ -48,6 +49,11 @@ surface (the other epoch's kernel-weighted mean along the normal, in the cylinde
 only if it *is* the majority; a whole scene offset by a registration error is then
 (rightly) within the level.
 
+The stable majority is read at a regular sample of the cells (at most 2,048 cells, at most
+20,000 of their stable points: a 5 % share to about ±0.5 %), so the level is known before
+any other cell is measured; a decision that needs the distance near a few objects only
+(:mod:`sdp.change._combined`) measures those cells and the sample, not the whole scene.
+
 References
 ----------
 .. [1] D. Lague, N. Brodu, J. Leroux, "Accurate 3D comparison of complex topography with
@@ -60,22 +66,25 @@ References
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
+import numba as nb
 import numpy as np
 
+from .._core._parallel import map_concurrently
 from ..errors import InvalidOptionError
-from ..options import Cylinder
-from ._distances import distances
+from ._distances import _CellLists, _row, bounds
 
-__all__ = ["PointDistances", "point_distances", "LEVEL_Z"]
+__all__ = ["PointDistances", "SurfaceDistances", "point_distances", "pair_cells", "LEVEL_Z"]
 
 LEVEL_Z = 1.96  # two-sided 95 %: the level of detection's promise
 _SHARE = 0.05  # share of the stable majority beyond the level
 _CELL = 1.5  # points share the distance of their cell of 1.5σ_p
 _MAX_EXPONENT = 2.0  # a structured-light camera's σ_z ∝ z²; nothing grows faster
 _CALIBRATION_POINTS = 20_000  # the 5 % quantile to about ±0.3 %
+_CALIBRATION_CELLS = 2048  # the cells they are taken from: a regular sample of the scene
 
 
 @dataclass
@@ -143,119 +152,340 @@ def point_distances(points: np.ndarray, other: np.ndarray, *, sigma: float, own_
     -------
     PointDistances
     """
-    if registration_error != "auto" and not (np.isscalar(registration_error)
-                                             and np.isfinite(registration_error) and registration_error >= 0):
-        raise InvalidOptionError(f"registration_error must be 'auto' or a number >= 0, got {registration_error!r}")
-    if range_exponent != "auto" and not (np.isscalar(range_exponent) and 0 <= range_exponent <= _MAX_EXPONENT):
-        raise InvalidOptionError(f"range_exponent must be 'auto' or in [0, 2], got {range_exponent!r}")
-    if correlation_length is not None and not (np.isscalar(correlation_length) and correlation_length > 0):
-        raise InvalidOptionError(f"correlation_length must be a length > 0, got {correlation_length!r}")
-    t0 = time.perf_counter()
-    points = np.asarray(points, np.float64)
-    n = len(points)
-    c = _CELL * sigma
-    lo = points.min(axis=0) if n else np.zeros(3)
-    ijk = np.floor((points - lo) / c).astype(np.int64)
-    dims = ijk.max(axis=0) + 1 if n else np.ones(3, np.int64)
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    uniq, inv, count = np.unique(key, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    m = len(uniq)
-    cell_index = np.stack([uniq // (dims[1] * dims[2]), (uniq // dims[2]) % dims[1], uniq % dims[2]], axis=1)
-    centroid = np.empty((m, 3))
-    for a in range(3):
-        centroid[:, a] = np.bincount(inv, points[:, a], m) / count
-    timings = {"cells": time.perf_counter() - t0}
-    nan = np.full(n, np.nan)
-    if n < 3 or len(other) < 3:
-        return PointDistances(nan, nan.copy(), inv, cell_index, c, 0.0, float("nan"), timings)
+    return SurfaceDistances(points, other, sigma=sigma, own_origin=own_origin, other_origin=other_origin,
+                            stable=stable, registration_error=registration_error, range_exponent=range_exponent,
+                            correlation_length=correlation_length).everywhere()
 
-    t = time.perf_counter()
-    origins = None if other_origin is None else np.stack([np.asarray(other_origin, np.float64)] * 2)
-    # only the other epoch's cylinder is read (its mean, spread and count): the cells' centroids
-    # stand in for this epoch's points, which saves sorting them; D = 2d, the automatic normal
-    # scale before its roughness check (a sampled pass of its own); the other surface is looked
-    # for within the cylinder's own half-length 3σ, no farther: beyond about 2σ the density
-    # decides (:mod:`sdp.change._combined`)
-    d = distances(other, centroid, core_points=centroid,
-                  cylinder=Cylinder(projection_scale=4.0 * sigma, normal_scale=8.0 * sigma, max_distance=3.0 * sigma),
-                  sensor_origin=origins)
-    timings["distances"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    n_corr = np.inf if correlation_length is None else (2.0 * sigma / float(correlation_length)) ** 2
-    normal = d.normal[inv]
-    # each point's own offset from the other surface (the kernel mean of the other epoch in the
-    # cylinder of its cell's centroid): an object's points against an old surface are not
-    # averaged with that surface's, as the cylinder's own mean would
-    dist = np.einsum("ij,ij->i", points - centroid[inv], normal) - d.mean1[inv]
-    # one point of an unchanged surface scatters about the other epoch's mean as that epoch's own
-    # points do: s₁²(1 + 1/n₁'); the other epoch's cylinder holds no new object, so an object
-    # next to the point does not widen its level
-    with np.errstate(invalid="ignore", divide="ignore"):
-        random = (d.spread1**2 * (1.0 + 1.0 / np.minimum(d.n1, n_corr)))[inv]
-    ok = np.isfinite(dist) & np.isfinite(random)
-    calib = ok & (np.ones(n, bool) if stable is None else np.asarray(stable, bool))
-    # a quantile and a slope: a regular sample of the stable points tells them as well as all do
-    idx = np.flatnonzero(calib)
-    if idx.size > _CALIBRATION_POINTS:
-        calib = np.zeros(n, bool)
-        calib[idx[:: idx.size // _CALIBRATION_POINTS]] = True
-    if own_origin is not None:
-        r = np.maximum(np.linalg.norm(points - np.asarray(own_origin, np.float64), axis=1), 1e-9)
-    else:
-        r = np.ones(n)
-    if range_exponent == "auto":
-        p = _fit_exponent(dist[calib], r[calib]) if own_origin is not None else 0.0
-    else:
-        p = float(range_exponent)
-    r_med = float(np.median(r[calib])) if calib.any() else 1.0
-    g = (r / r_med) ** p
-    scale = 1.0
-    if registration_error == "auto":
-        s = _systematic(np.abs(dist[calib]), random[calib], g[calib])
-        if s == 0.0 and calib.any():  # fewer than 5 % beyond the random part alone: scaled down to 5 %
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.abs(dist[calib]) / (LEVEL_Z * np.sqrt(random[calib]))
-            scale = min(1.0, float(np.quantile(ratio, 1.0 - _SHARE))) ** 2
-    else:
-        s = float(registration_error) / LEVEL_Z
-    lod = LEVEL_Z * np.sqrt(scale * random + (s * g) ** 2)
-    timings["level"] = time.perf_counter() - t
-    return PointDistances(np.where(ok, dist, np.nan), np.where(ok, lod, np.nan), inv, cell_index, c,
-                          float(p), float(s), timings)
+def pair_cells(clouds, sigma: float, *, sort: bool = False) -> _CellLists:
+    """The cells of 1.5σ that both epochs of a pair share (:class:`SurfaceDistances` ``lists``):
+    ``clouds``, the two epochs' :class:`sdp._core._points.Points`; each cloud is sorted into
+    them once, for both directions (``sort``: now, both at once, rather than when first read)."""
+    lists = _CellLists(np.minimum(clouds[0].lo, clouds[1].lo) - 1e-9, np.maximum(clouds[0].hi, clouds[1].hi))
+    if sort:
+        map_concurrently(lambda c: lists.moments(c.xyz, _CELL * sigma), clouds, parallel_kernels=True)
+    return lists
+
+
+class SurfaceDistances:
+    """Each point's signed distance to the other epoch's surface and its level of detection
+    (module docstring), measured cell by cell when asked: :meth:`at` for some points,
+    :meth:`everywhere` for all. A decision that needs the distance near a few objects only
+    (:mod:`sdp.change._combined`) reads the other epoch's cylinders at those cells and at the
+    sample of the stable majority that calibrates the level, not at every cell.
+
+    Parameters are those of :func:`point_distances`; ``lists``: the cells the two epochs are
+    sorted into (:func:`pair_cells`; default their own).
+
+    Attributes
+    ----------
+    cells : ndarray (n,) int64
+        Each point's cell (row of ``cell_index``).
+    cell_index : ndarray (m, 3) int64
+        Integer coordinates of each cell of ``cell_size`` (1.5σ).
+    """
+
+    def __init__(self, points: np.ndarray, other: np.ndarray, *, sigma: float, own_origin=None, other_origin=None,
+                 stable: np.ndarray | None = None, registration_error: float | str = "auto",
+                 range_exponent: float | str = "auto", correlation_length: float | None = None,
+                 lists: _CellLists | None = None):
+        if registration_error != "auto" and not (np.isscalar(registration_error)
+                                                 and np.isfinite(registration_error) and registration_error >= 0):
+            raise InvalidOptionError(f"registration_error must be 'auto' or a number >= 0, got {registration_error!r}")
+        if range_exponent != "auto" and not (np.isscalar(range_exponent) and 0 <= range_exponent <= _MAX_EXPONENT):
+            raise InvalidOptionError(f"range_exponent must be 'auto' or in [0, 2], got {range_exponent!r}")
+        if correlation_length is not None and not (np.isscalar(correlation_length) and correlation_length > 0):
+            raise InvalidOptionError(f"correlation_length must be a length > 0, got {correlation_length!r}")
+        t0 = time.perf_counter()
+        self.points = np.ascontiguousarray(points, np.float64)
+        self.other = np.ascontiguousarray(other, np.float64)
+        self.sigma = float(sigma)
+        self.cell_size = c = _CELL * sigma
+        self._own_origin = None if own_origin is None else np.asarray(own_origin, np.float64)
+        self._other_origin = None if other_origin is None else np.asarray(other_origin, np.float64)
+        self._stable = None if stable is None else np.asarray(stable, bool)
+        self._options = (registration_error, range_exponent, correlation_length)
+        n = len(self.points)
+        if lists is None:
+            lo, hi = bounds(self.points) if n else (np.zeros(3), np.zeros(3))
+            if len(self.other):
+                lo_o, hi_o = bounds(self.other)
+                lo, hi = np.minimum(lo, lo_o), np.maximum(hi, hi_o)
+            lists = _CellLists(lo - 1e-9, hi)
+        self._lists = lists
+        # the cylinders' own cells of 1.5σ: this epoch's points grouped by counting, the centroids
+        # read off the cells' moments
+        if n:
+            ordered, self._starts, self._table, self._dims, _, self._order = lists.get(self.points, c)
+            m = len(self._starts) - 1
+            self._centroid, self.cells, self.cell_index = np.empty((m, 3)), np.empty(n, np.int64), np.empty((m, 3), np.int64)
+            _cells_of(ordered, self._order, self._starts, lists.moments(self.points, c)[0], lists.lo, c,
+                      self._centroid, self.cells, self.cell_index)
+        else:
+            self._starts, self._order = np.zeros(1, np.int64), np.zeros(0, np.int64)
+            self._centroid, self.cells, self.cell_index = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 3), np.int64)
+            self._table, self._dims = np.full(128, -1, np.int64), np.zeros(6, np.int64)
+        m = len(self._starts) - 1
+        self._measured = np.zeros(m, bool)
+        self._dist, self._random, self._r = np.full(n, np.nan), np.full(n, np.nan), np.ones(n)
+        self._comparable = n >= 3 and len(self.other) >= 3
+        self._level = None  # (p, r̃, c, σ_s) once calibrated
+        self._everywhere = None
+        self.timings = {"cells": time.perf_counter() - t0}
+
+    def points_of(self, rows: np.ndarray) -> np.ndarray:
+        """The points (indices) of the cells ``rows``."""
+        return _points_of(self._order, self._starts, np.asarray(rows, np.int64))
+
+    def neighbours(self, rows: np.ndarray, visited: np.ndarray) -> np.ndarray:
+        """The occupied cells among the 26 neighbours of the cells ``rows`` that are not
+        ``visited`` (m,) bool, which they then are."""
+        return _neighbours(self._table, self._dims, self.cell_index, np.asarray(rows, np.int64), visited)
+
+    def components(self, hit: np.ndarray) -> tuple[np.ndarray, int]:
+        """(label of each cell, -1 where not ``hit``; the number of components) of the
+        26-connected components of the cells ``hit`` (m,) bool."""
+        return _components(self._table, self._dims, self.cell_index, np.asarray(hit, bool))
+
+    def at(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(distance, lod) of the points ``idx``, their cells measured if not yet (NaN: nothing
+        to measure against)."""
+        idx = np.asarray(idx, np.int64)
+        self._measure(np.unique(self.cells[idx]))
+        lod = np.empty(len(idx))
+        _level(self._random, self._r, idx, *self.level, lod)
+        return self._dist[idx], lod
+
+    @property
+    def level(self) -> tuple[float, float, float, float]:
+        """(p, r̃, c, σ_s) of ``lod = 1.96·√(c·random + (σ_s·(r/r̃)^p)²)``, calibrated on a sample
+        of the stable majority on first use."""
+        if self._level is None:
+            self._level = self._calibrate()
+        return self._level
+
+    def everywhere(self) -> PointDistances:
+        """Every point's distance and level."""
+        if self._everywhere is None:
+            self._measure(np.arange(len(self._measured)))
+            idx = np.arange(len(self.points))
+            p, _, _, s = self.level
+            lod = np.empty(len(idx))
+            _level(self._random, self._r, idx, *self.level, lod)
+            self._everywhere = PointDistances(self._dist.copy(), lod, self.cells, self.cell_index, self.cell_size,
+                                              float(p), float(s), dict(self.timings))
+        return self._everywhere
+
+    def _measure(self, rows: np.ndarray) -> None:
+        """The other epoch's normal and cylinder at the centroid of each cell ``rows`` not yet
+        measured, and the offsets, random variances and ranges of their points."""
+        rows = rows[~self._measured[rows]]
+        if rows.size == 0 or not self._comparable:
+            return
+        t = time.perf_counter()
+        self._measured[rows] = True
+        lists, sigma, other = self._lists, self.sigma, self.other
+        centroid = np.ascontiguousarray(self._centroid[rows])
+        # D = 2d, the automatic normal scale before its roughness check, from the cylinders' own
+        # cells; the other surface is looked for within the cylinder's half-length 3σ, no
+        # farther: beyond about 2σ the density decides (:mod:`sdp.change._combined`)
+        sigma_n = 2.0 * sigma
+        normal, _ = lists.normals(other, centroid, sigma_n, cell=self.cell_size)
+        missing = ~np.isfinite(normal[:, 0])
+        if missing.any():  # none of the other epoch near: this epoch's surface gives the direction
+            normal[missing] = lists.normals(self.points, np.ascontiguousarray(centroid[missing]), sigma_n,
+                                            cell=self.cell_size)[0]
+        if self._other_origin is not None:
+            flip = np.einsum("ij,ij->i", normal, self._other_origin - centroid) < 0
+        else:
+            flip = normal[:, 2] < 0
+        normal[flip] *= -1.0
+        mean1, spread1, n1, _ = lists.cylinder(other, centroid, normal, sigma, 3.0 * sigma)
+        corr = self._options[2]
+        n_corr = np.inf if corr is None else (2.0 * sigma / float(corr)) ** 2
+        # one point of an unchanged surface scatters about the other epoch's mean as that epoch's
+        # own points do: s₁²(1 + 1/n₁'); the other epoch's cylinder holds no new object, so an
+        # object next to the point does not widen its level
+        with np.errstate(invalid="ignore", divide="ignore"):
+            random = spread1**2 * (1.0 + 1.0 / np.minimum(n1, n_corr))
+        # each point's own offset from the other surface (the kernel mean of the other epoch in the
+        # cylinder of its cell's centroid): an object's points against an old surface are not
+        # averaged with that surface's, as the cylinder's own mean would
+        origin = np.zeros(3) if self._own_origin is None else self._own_origin
+        _per_point(self.points, self._order, self._starts, rows, centroid, normal, mean1, random, origin,
+                   self._own_origin is not None, self._dist, self._random, self._r)
+        self.timings["distances"] = self.timings.get("distances", 0.0) + time.perf_counter() - t
+
+    def _calibrate(self) -> tuple[float, float, float, float]:
+        """(p, r̃, c, σ_s) from a regular sample of the cells, their stable points."""
+        t = time.perf_counter()
+        registration_error, range_exponent, _ = self._options
+        m = len(self._measured)
+        sample = np.arange(0, m, max(1, m // _CALIBRATION_CELLS))
+        self._measure(sample)
+        idx = self.points_of(sample)
+        calib = idx[np.isfinite(self._dist[idx]) & (True if self._stable is None else self._stable[idx])]
+        # a quantile and a slope: a regular sample of the stable points tells them as well as all do
+        calib = np.sort(calib)
+        if calib.size > _CALIBRATION_POINTS:
+            calib = calib[:: calib.size // _CALIBRATION_POINTS]
+        dist, random, r = self._dist[calib], self._random[calib], self._r[calib]
+        if range_exponent == "auto":
+            p = _fit_exponent(dist, r) if self._own_origin is not None else 0.0
+        else:
+            p = float(range_exponent)
+        r_med = float(np.median(r)) if calib.size else 1.0
+        scale = 1.0
+        if registration_error == "auto":
+            s = _systematic(np.abs(dist), random, (r / r_med) ** p)
+            if s == 0.0 and calib.size:  # fewer than 5 % beyond the random part alone: scaled down to 5 %
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    ratio = np.abs(dist) / (LEVEL_Z * np.sqrt(random))
+                scale = min(1.0, float(np.quantile(ratio, 1.0 - _SHARE))) ** 2
+        else:
+            s = float(registration_error) / LEVEL_Z
+        self.timings["level"] = time.perf_counter() - t
+        return float(p), r_med, scale, float(s)
+
+
+@nb.njit(cache=True, nogil=True)
+def _cells_of(ordered, order, starts, moments, lo, c, centroid, cells, cell_index):
+    """From a counting sort into cells of ``c`` (points ``ordered``, permutation ``order``,
+    runs ``starts``) and the cells' ``moments``: each cell's centroid and integer index, each
+    point's cell."""
+    for k in range(starts.shape[0] - 1):
+        for a in range(3):
+            centroid[k, a] = moments[k, 1 + a]
+            cell_index[k, a] = int(math.floor((ordered[starts[k], a] - lo[a]) / c))
+        for j in range(starts[k], starts[k + 1]):
+            cells[order[j]] = k
+
+
+@nb.njit(cache=True, nogil=True)
+def _points_of(order, starts, rows):
+    """The points of the cells ``rows`` (a counting sort's permutation and runs)."""
+    total = 0
+    for k in rows:
+        total += starts[k + 1] - starts[k]
+    out = np.empty(total, np.int64)
+    at = 0
+    for k in rows:
+        for j in range(starts[k], starts[k + 1]):
+            out[at] = order[j]
+            at += 1
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _neighbours(table, dims, cell_index, rows, visited):
+    """Occupied, not yet ``visited`` cells among the 26 neighbours of ``rows`` (marked visited)."""
+    shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
+    out = np.empty(26 * rows.shape[0], np.int64)
+    found = 0
+    for k in rows:
+        x, y, z = cell_index[k, 0], cell_index[k, 1], cell_index[k, 2]
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    r = _row(table, dims, shift, x + dx, y + dy, z + dz)
+                    if r >= 0 and not visited[r]:
+                        visited[r] = True
+                        out[found] = r
+                        found += 1
+    return out[:found]
+
+
+@nb.njit(cache=True, nogil=True)
+def _components(table, dims, cell_index, hit):
+    """26-connected components of the ``hit`` cells, by depth-first search over the table."""
+    shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
+    label = np.full(hit.shape[0], -1, np.int64)
+    stack = np.empty(hit.shape[0], np.int64)
+    n = 0
+    for start in range(hit.shape[0]):
+        if not hit[start] or label[start] >= 0:
+            continue
+        label[start] = n
+        stack[0] = start
+        top = 1
+        while top:
+            top -= 1
+            k = stack[top]
+            x, y, z = cell_index[k, 0], cell_index[k, 1], cell_index[k, 2]
+            for dx in range(-1, 2):
+                for dy in range(-1, 2):
+                    for dz in range(-1, 2):
+                        r = _row(table, dims, shift, x + dx, y + dy, z + dz)
+                        if r >= 0 and hit[r] and label[r] < 0:
+                            label[r] = n
+                            stack[top] = r
+                            top += 1
+        n += 1
+    return label, n
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _per_point(points, order, starts, rows, centroid, normal, mean1, random_of_cell, origin, ranged,
+               dist, random, r):
+    """For the points of cells ``rows`` (``centroid``, ``normal``, ``mean1``, ``random_of_cell``:
+    one row per cell of ``rows``): each point's offset along its cell's normal from the other
+    epoch's mean, its random variance, its range from ``origin`` (if ``ranged``); NaN offset and
+    variance where either is unknown."""
+    for q in nb.prange(rows.shape[0]):
+        k = rows[q]
+        v = random_of_cell[q]
+        for j in range(starts[k], starts[k + 1]):
+            i = order[j]
+            d = -mean1[q]
+            for a in range(3):
+                d += (points[i, a] - centroid[q, a]) * normal[q, a]
+            if np.isfinite(d) and np.isfinite(v):
+                dist[i], random[i] = d, v
+            else:
+                dist[i] = random[i] = np.nan
+            if ranged:
+                s = 0.0
+                for a in range(3):
+                    s += (points[i, a] - origin[a]) ** 2
+                r[i] = max(math.sqrt(s), 1e-9)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _level(random, r, idx, p, r_med, scale, s, lod):
+    """``lod = 1.96·√(c·random + (σ_s·(r/r̃)^p)²)`` at the points ``idx`` (NaN where ``random`` is)."""
+    for q in nb.prange(idx.shape[0]):
+        i = idx[q]
+        g = (r[i] / r_med) ** p if p != 0.0 else 1.0
+        lod[q] = LEVEL_Z * math.sqrt(scale * random[i] + (s * g) ** 2)
 
 
 def _fit_exponent(dist: np.ndarray, r: np.ndarray) -> float:
-    """Slope of log median |distance| against log median range over ten range bins (clipped to
-    [0, 2]); 0 when the ranges hardly vary."""
+    """Slope of log median |distance| against log median range over ten range bins of equal
+    counts (clipped to [0, 2]); 0 when the ranges hardly vary."""
     a = np.abs(dist)
     keep = a > 0
     a, r = a[keep], r[keep]
-    if a.size < 100 or np.quantile(r, 0.9) < 1.2 * np.quantile(r, 0.1):
+    if a.size < 100:
         return 0.0
-    edges = np.quantile(r, np.linspace(0, 1, 11))
-    b = np.clip(np.searchsorted(edges, r, side="right") - 1, 0, 9)
-    x = np.array([np.log(np.median(r[b == i])) for i in range(10) if np.any(b == i)])
-    y = np.array([np.log(np.median(a[b == i])) for i in range(10) if np.any(b == i)])
-    if x.size < 3:
+    by_range = np.argsort(r, kind="stable")
+    r, a = r[by_range], a[by_range]
+    if r[int(0.9 * (r.size - 1))] < 1.2 * r[int(0.1 * (r.size - 1))]:
         return 0.0
+    bins = np.array_split(np.arange(r.size), 10)
+    x = np.log([np.median(r[b]) for b in bins])
+    y = np.log([np.median(a[b]) for b in bins])
     return float(np.clip(np.polyfit(x, y, 1)[0], 0.0, _MAX_EXPONENT))
 
 
 def _systematic(absd: np.ndarray, random: np.ndarray, g: np.ndarray) -> float:
     """Smallest σ_s ≥ 0 for which at most 5 % of the stable points lie beyond
-    1.96·√(random + (σ_s·g)²) (bisection: the share falls as σ_s grows)."""
+    1.96·√(random + (σ_s·g)²). A point lies beyond it while σ_s < s_i =
+    √((|d|/1.96)² − random)/g, so σ_s is the (k+1)-th largest s_i, k = ⌊5 % of the points⌋."""
     if absd.size == 0:
         return 0.0
-
-    def share(s):
-        return np.count_nonzero(absd > LEVEL_Z * np.sqrt(random + (s * g) ** 2)) / absd.size
-
-    if share(0.0) <= _SHARE:
+    with np.errstate(invalid="ignore"):
+        s_i = np.sqrt(np.maximum((absd / LEVEL_Z) ** 2 - random, 0.0)) / g
+    k = int(_SHARE * absd.size)
+    if k >= absd.size:
         return 0.0
-    lo, hi = 0.0, float(np.max(absd / g)) / LEVEL_Z + 1e-12
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if share(mid) > _SHARE else (lo, mid)
-    return hi
+    return float(np.partition(s_i, absd.size - 1 - k)[absd.size - 1 - k])
