@@ -251,3 +251,20 @@ def test_the_systematic_part_is_the_smallest_that_keeps_5_percent_beyond(seed):
     s = _systematic(absd, random, g)
     assert s > 0 and share(s) <= 0.05 < share(s * (1 - 1e-9))
     assert _systematic(absd * 1e-3, random, g) == 0.0  # fewer than 5 % beyond the random part alone
+
+
+def test_a_stream_decides_as_the_pair_does(scene):
+    """``sdp.watch(decision="combined")`` against a fixed model (``update="none"``) marks the
+    frame's points as ``detect_changes`` marks the current's: the box down to the floor."""
+    ref, cur, box = scene
+    lattice = sdp.Lattice(voxel_size=VOXEL)
+    pair = sdp.detect_changes(ref, cur, lattice=lattice, decision="combined")
+    density, combined = (next(sdp.watch(ref, [cur], lattice=lattice, update="none", decision=dec))
+                         for dec in ("point", "combined"))
+    assert np.array_equal(combined.appeared, pair.appeared)
+    assert combined.appeared[box].mean() > density.appeared[box].mean() + 0.1
+    assert [r.n_points for r in combined.regions] == [r.n_points for r in pair.appeared_regions]
+    with pytest.raises(InvalidOptionError, match="decision"):
+        next(sdp.watch(ref, [cur], decision="cluster"))
+    with pytest.raises(InvalidOptionError, match="combined"):
+        next(sdp.watch(pair.reference_field, [cur], decision="combined"))

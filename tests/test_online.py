@@ -166,6 +166,24 @@ def test_watch_sensor_origin_applies_the_visibility_test_of_detect_changes(share
 
 @pytest.mark.slow
 @pytest.mark.shared_data
+def test_sdp_watch_decision_combined(tmp_path, shared_data):
+    """``sdp watch --decision combined`` completes what the density finds on a real Kinect pair,
+    as ``sdp.watch`` does."""
+    import subprocess
+    import sys
+
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "frames" / "learn21.pcd").symlink_to(shared_data / "mosd/learn/learn21.pcd")
+    ref = shared_data / "mosd/learn/learn20.pcd"
+    runs = [subprocess.run([sys.executable, "-m", "sdp.cli", "watch", str(ref), str(tmp_path / "frames"), "--json",
+                            "--decision", dec], capture_output=True, text=True) for dec in ("point", "combined")]
+    assert all(p.returncode == 0 for p in runs), runs[1].stderr
+    density, combined = (json.loads(p.stdout)[0]["appeared"] for p in runs)
+    frame = next(sdp.watch(sdp.read_points(ref), [sdp.read_points(tmp_path / "frames" / "learn21.pcd")],
+                           decision="combined"))
+    assert 0 < density < combined == frame.n_appeared
+
+
 def test_sdp_watch_sensor_origin_viewpoint(tmp_path, shared_data):
     import subprocess
     import sys

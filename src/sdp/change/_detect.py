@@ -485,7 +485,7 @@ class _Distances:
         self._surface = self._rows = None
         _, _, _, _, _, _, other_origin, _, own_origin = job
         # one sensor per cloud: the noise model's range law and normals (several: neither yet)
-        self.own_origin, self.other_origin = _single(own_origin), _single(other_origin)
+        self.own_origin, self.other_origin = single_origin(own_origin), single_origin(other_origin)
         self.directed = self.other_origin is not None
 
     @property
@@ -600,6 +600,6 @@ def _cluster_decision(fld: DensityField, pts: np.ndarray, changed: np.ndarray, l
     return changed | promoted, labels, np.concatenate([counts, cluster_nodes])
 
 
-def _single(origin):
+def single_origin(origin):
     """``origin`` if it is one sensor's position (3,) or None; None for several scanners (k, 3)."""
     return origin if origin is None or np.ndim(origin) == 1 else None

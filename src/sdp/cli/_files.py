@@ -203,7 +203,7 @@ def align_files(reference, current, *, output, method: str = DEFAULTS.align_meth
 def watch_folder(reference, frames, *, format: str | None = None, lattice: Lattice | None = None,
                  update: str = DEFAULTS.update, window: int | None = None, decay: float | None = None,
                  min_region_points: int = DEFAULTS.min_region_points, align: Registration | str | None = None,
-                 coverage: Coverage | None = None, topic: str | None = None) -> Iterator:
+                 coverage: Coverage | None = None, topic: str | None = None, decision: str = DEFAULTS.decision) -> Iterator:
     """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order, or over
     the ``sensor_msgs/PointCloud2`` messages of a ROS bag's ``topic`` (:func:`sdp.io._bag.bag_frames`,
     the ``scans`` extra), in the order recorded (``sdp watch``).
@@ -248,7 +248,8 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
         origin = origin[0] if isinstance(origin, np.ndarray) else origin
     stream = bag_frames(folder, topic) if bag else ((p.name, read_points(p, format=format)) for p in paths)
     return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
-                 min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin))
+                 min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin),
+                 decision=decision)
 
 
 @dataclass

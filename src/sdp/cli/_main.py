@@ -204,7 +204,7 @@ def cmd_align(a):
 def cmd_watch(a):
     frames = F.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
                             update=a.update, window=a.window, decay=a.decay, min_region_points=a.min_region_points,
-                            align=a.align, coverage=_coverage(a), topic=a.topic)
+                            align=a.align, coverage=_coverage(a), topic=a.topic, decision=a.decision)
     if a.json:
         return _show("", [r.summary() for r in frames], as_json=True)
     for r in frames:  # a line per frame, as it comes (the frames are compared as they are iterated)
@@ -425,6 +425,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "records the sensor (organized PCD), viewpoint the same but required, none, or X,Y,Z")
     w.add_argument("--range-noise", type=V.cli_type(V.nonnegative_finite), default=DEFAULTS.range_noise,
                    help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
+    w.add_argument("--decision", choices=("point", "density", "combined"), default=DEFAULTS.decision,
+                   help="point / density (the density alone, default) or combined (also the distance to the "
+                        "reference's surface beyond its level of detection, completing what the density found)")
     w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
 
     act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)", X.ACTION)

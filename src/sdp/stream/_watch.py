@@ -44,8 +44,8 @@ import numpy as np
 
 from .._core._points import as_points, to_rows
 from .._core._validate import integer_at_least
-from ..change._coverage import CHANGED, NOT_COMPARABLE, states_of
-from ..change._detect import inside_difference, judge_coverage, region_rules
+from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, states_of
+from ..change._detect import inside_difference, judge_coverage, region_rules, single_origin
 from ..change._regions import Region
 from ..change._visibility import RangeImage, resolve_sensor_origins, scanner_of_points
 from ..defaults import DEFAULTS
@@ -121,7 +121,8 @@ class FrameChange:
 def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update: str = DEFAULTS.update,
           window: int | None = None, decay: float | None = None,
           min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
-          align: Registration | str | None = None, coverage: Coverage | None = None) -> Iterator[FrameChange]:
+          align: Registration | str | None = None, coverage: Coverage | None = None,
+          decision: str = DEFAULTS.decision) -> Iterator[FrameChange]:
     """Compare each frame of a stream with a model of the scene, in order; yield as they come.
 
     Every default is :data:`sdp.DEFAULTS`, as for :func:`sdp.detect_changes` and ``sdp watch``.
@@ -184,11 +185,14 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         raise InvalidOptionError("a stream aligns its frames by the method alone: no fix_horizontal or align_class")
     align = None if registration is None else registration.method
     integer_at_least("min_region_points", min_region_points, 0)
+    if decision not in ("point", "density", "combined"):
+        raise InvalidOptionError(f"decision must be 'point', 'density' or 'combined' in a stream, got {decision!r}")
     is_field = isinstance(reference, DensityField)
-    origin = None
+    origin = pts = None
     if is_field:
-        if align == "gicp" or coverage.given:
-            raise InvalidOptionError("align='gicp' and a sensor position need the reference points, not a field")
+        if align == "gicp" or coverage.given or decision == "combined":
+            raise InvalidOptionError("align='gicp', a sensor position and decision='combined' need the reference "
+                                     "points, not a field")
         base, ref = reference, None
     else:
         origin = resolve_sensor_origins(coverage.sensor_origin, reference, None)[0]
@@ -207,10 +211,10 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     image = None if origin is None or np.ndim(origin) == 2 else RangeImage.from_points(ref, origin)
     matrix = None if align is None else np.eye(4)
     for index, item in enumerate(frames):
-        name, pts = item if isinstance(item, tuple) else (str(index), item)
+        name, given = item if isinstance(item, tuple) else (str(index), item)
         t0 = time.perf_counter()
         timings = {}
-        cur = as_points(pts, name=f"frame {name}")
+        cur = as_points(given, name=f"frame {name}")
         if align is not None:  # from the previous frame's pose: the sensor moved little since
             t = time.perf_counter()
             matrix = (target.register(cur.xyz, matrix) if target is not None else
@@ -227,7 +231,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
         labels = np.full(len(mask), -1, np.int32)
-        if regions:  # point-wise decision: only the appeared points need a region
+        if regions or decision == "combined":  # point-wise decision: only the appeared points need a region
             idx = np.flatnonzero(mask)
             kept, regs, labels[idx] = region_rules(frame, d, cur.xyz[idx], np.ones(len(idx), bool), regions=True,
                                                    decision="point", min_region_points=min_region_points,
@@ -235,6 +239,16 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
             mask[idx] = kept
         else:
             regs = []
+        if decision == "combined" and mask.any():  # the distance completes what the density kept
+            choice = coverage.sensor_origin  # the frame's own sensor: its range law
+            choice = "auto" if isinstance(choice, str) and choice == "viewpoint" else choice
+            own = single_origin(resolve_sensor_origins(choice, None, given)[1])
+            if own is not None and matrix is not None:
+                own = transform_points(matrix, own[None, :])[0]
+            mask, regs, region_of = _complete(cur, pts, states, mask, frame, own_origin=own,
+                                              other_origin=single_origin(origin), min_region_points=min_region_points,
+                                              regions=regions)
+            labels = region_of.astype(np.int32)
         t3 = time.perf_counter()
         if update == "decay":
             model.scale(decay).accumulate(frame)
@@ -251,3 +265,20 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
                           not_comparable=to_rows(unseen, cur, False), regions=regs,
                           appeared_labels=to_rows(labels, cur, -1), latency=t4 - t0, timings=timings,
                           transform=matrix)
+
+
+def _complete(cur, ref, states, found, frame: DensityField, *, own_origin, other_origin, min_region_points: int,
+              regions: bool):
+    """:func:`sdp.change._combined.combine_decision` of a frame's points (``cur``) against the
+    reference points (``ref``), from the density's ``states`` and the points it keeps (``found``)."""
+    from ..change._combined import combine_decision
+    from ..distance._noise import SurfaceDistances, pair_cells
+
+    # the frame's cells change with every frame, so both are sorted again (the reference too)
+    lists = pair_cells((ref, cur), frame.sigma, sort=True)
+    sd = SurfaceDistances(cur.xyz, ref.xyz, sigma=frame.sigma, own_origin=own_origin, other_origin=other_origin,
+                          stable=states == UNCHANGED, lists=lists)
+    return combine_decision(sd, states, voxel_size=frame.voxel_size, directed=other_origin is not None,
+                            present=frame.inside, found=np.flatnonzero(found), min_region_points=min_region_points,
+                            regions=regions)
+
