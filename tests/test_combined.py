@@ -268,3 +268,23 @@ def test_a_stream_decides_as_the_pair_does(scene):
         next(sdp.watch(ref, [cur], decision="cluster"))
     with pytest.raises(InvalidOptionError, match="combined"):
         next(sdp.watch(pair.reference_field, [cur], decision="combined"))
+
+
+def test_distances_measured_in_parts_equal_those_measured_at_once(scene):
+    """A cell's distance does not depend on which cells were measured before it: some points
+    first (as the decision does), then every point, equals every point at once."""
+    from sdp.distance._noise import SurfaceDistances
+
+    ref, cur, box = scene
+    kw = dict(sigma=2 * VOXEL, own_origin=np.array([1.5, 1.5, 3.0]), other_origin=np.array([1.5, 1.5, 3.0]),
+              stable=~box)
+    parts = SurfaceDistances(cur, ref, **kw)
+    some = np.flatnonzero(box)[::3]
+    d_some, lod_some = parts.at(some)
+    whole = SurfaceDistances(cur, ref, **kw).everywhere()
+    later = parts.everywhere()
+    assert np.array_equal(later.distance, whole.distance, equal_nan=True)
+    assert np.array_equal(later.lod, whole.lod, equal_nan=True)
+    assert np.array_equal(d_some, whole.distance[some], equal_nan=True)
+    assert np.array_equal(lod_some, whole.lod[some], equal_nan=True)
+    assert np.isfinite(whole.distance).mean() > 0.95 and whole.range_exponent >= 0

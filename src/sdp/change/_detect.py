@@ -202,23 +202,18 @@ class ChangeResult:
     n_tiles: int = 0
     tile_size: float | None = None
     timings: dict[str, float] = dc_field(default_factory=dict)
-    _distances: tuple = dc_field(default=(None, None), repr=False)
+    _distances: tuple = dc_field(default=(None, None), repr=False)  # (reference's, current's) _Distances
 
-    @property
-    def current_distance(self) -> np.ndarray | None:
-        return None if self._distances[1] is None else self._distances[1].rows[0]
+    current_distance = property(lambda self: self._distance_rows(1, 0))
+    current_lod = property(lambda self: self._distance_rows(1, 1))
+    reference_distance = property(lambda self: self._distance_rows(0, 0))
+    reference_lod = property(lambda self: self._distance_rows(0, 1))
 
-    @property
-    def current_lod(self) -> np.ndarray | None:
-        return None if self._distances[1] is None else self._distances[1].rows[1]
-
-    @property
-    def reference_distance(self) -> np.ndarray | None:
-        return None if self._distances[0] is None else self._distances[0].rows[0]
-
-    @property
-    def reference_lod(self) -> np.ndarray | None:
-        return None if self._distances[0] is None else self._distances[0].rows[1]
+    def _distance_rows(self, cloud: int, which: int) -> np.ndarray | None:
+        """The distance (``which`` 0) or lod (1) of the reference's (``cloud`` 0) or current's (1)
+        rows, measured on first use; None without ``decision="combined"``."""
+        d = self._distances[cloud]
+        return None if d is None else d.rows[which]
 
     @property
     def current_state(self) -> np.ndarray:
