@@ -225,3 +225,15 @@ def test_real_scan_reports_open_in_headless_chromium(tmp_path, shared_data, chro
         assert "Where it changed" in page and re.search(r"relative to \(63\d,\d\d0, 4,83\d,\d\d0\)", page)
     assert r.summary["current"]["appeared"] > 0
     assert_drawn(chromium.visit(tmp_path / "r.html"))
+
+
+def test_the_combined_decisions_level_is_in_the_summary_table(tmp_path, rng):
+    ref, cur = landscape(rng, building=False)
+    cur[:, 2] += 0.01 * rng.standard_normal(len(cur))
+    for decision, shown in (("combined", True), ("point", False)):
+        r = sdp.detect_changes(ref, cur, decision=decision)
+        page = sdp.change_report(tmp_path / f"{decision}.html", r, ref, cur, thumbnails=0).read_text()
+        assert ("level of detection: systematic part" in page) == shown
+        if shown:
+            s = r.summary()["current"]["level"]
+            assert f"1.96·σ_s = {1.96 * s['systematic']:.3g} m, p = {s['range_exponent']:.2f}" in page

@@ -172,11 +172,17 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
 
 def _change_summary(s: dict, names) -> str:
     rows = []
+    level = all("level" in s[role] for role in ("reference", "current"))  # decision="combined"
     for role, name, kind in (("reference", names[0], "disappeared"), ("current", names[1], "appeared")):
         c = s[role]
         rows.append((role, name, f"{c['points']:,}", f"{c['dropped']:,}", f"{c[kind]:,} {kind}",
-                     f"{c['not_comparable']:,}", f"{len(s[f'{kind}_regions']):,}"))
-    return _table(("epoch", "file", "points", "dropped (NaN)", "changed", "not comparable", "regions"), rows)
+                     f"{c['not_comparable']:,}", f"{len(s[f'{kind}_regions']):,}")
+                    + ((f"1.96·σ_s = {1.96 * c['level']['systematic']:.3g} {UNIT}, "
+                        f"p = {c['level']['range_exponent']:.2f}",) if level else ()))
+    head = ("epoch", "file", "points", "dropped (NaN)", "changed", "not comparable", "regions")
+    # the distance's level of detection against the other epoch: its systematic part at the median
+    # range, and how it grows with range, r^p (sdp.distance._noise)
+    return _table(head + (("level of detection: systematic part, range exponent",) if level else ()), rows)
 
 
 def _region_table(kind: str, name: str, regions: list, thumbs: list[str]) -> str:
