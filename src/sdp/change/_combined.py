@@ -95,9 +95,9 @@ def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: fl
             if far_idx.size:  # matter of its own epoch (F < 0), as Algorithm 1 asks of a change
                 marked[far_idx[present(sd.points[far_idx])]] = True
         idx = sd.points_of(rows)
-        return np.unique(sd.cells[idx[density[idx] | marked[idx]]])
+        return sd.cells_of(idx[density[idx] | marked[idx]])
 
-    frontier = np.unique(sd.cells[found])
+    frontier = sd.cells_of(found)
     visited = np.zeros(len(sd.cell_index), bool)
     visited[frontier] = True
     grow(frontier)

@@ -75,7 +75,7 @@ import numpy as np
 
 from .._core._parallel import map_concurrently
 from ..errors import InvalidOptionError
-from ._distances import _CellLists, _row, bounds
+from ._distances import _CellLists, bounds, rows_around
 
 __all__ = ["PointDistances", "SurfaceDistances", "point_distances", "pair_cells", "LEVEL_Z"]
 
@@ -227,6 +227,7 @@ class SurfaceDistances:
             self._table, self._dims = np.full(128, -1, np.int64), np.zeros(6, np.int64)
         m = len(self._starts) - 1
         self._measured = np.zeros(m, bool)
+        self._scratch = np.zeros(m, bool)  # all False between calls of _distinct
         self._dist, self._random, self._r = np.full(n, np.nan), np.full(n, np.nan), np.ones(n)
         self._comparable = n >= 3 and len(self.other) >= 3
         self._level = None  # (p, r̃, c, σ_s) once calibrated
@@ -247,11 +248,15 @@ class SurfaceDistances:
         26-connected components of the cells ``hit`` (m,) bool."""
         return _components(self._table, self._dims, self.cell_index, np.asarray(hit, bool))
 
+    def cells_of(self, idx: np.ndarray) -> np.ndarray:
+        """The distinct cells of the points ``idx``, in the order first met."""
+        return _distinct(self.cells, np.asarray(idx, np.int64), self._scratch)
+
     def at(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(distance, lod) of the points ``idx``, their cells measured if not yet (NaN: nothing
         to measure against)."""
         idx = np.asarray(idx, np.int64)
-        self._measure(np.unique(self.cells[idx]))
+        self._measure(self.cells_of(idx))
         lod = np.empty(len(idx))
         _level(self._random, self._r, idx, *self.level, lod)
         return self._dist[idx], lod
@@ -362,6 +367,22 @@ def _cells_of(ordered, order, starts, moments, lo, c, centroid, cells, cell_inde
 
 
 @nb.njit(cache=True, nogil=True)
+def _distinct(cells, idx, seen):
+    """The distinct ``cells[idx]`` in the order first met (``seen``: all False, left so)."""
+    out = np.empty(idx.shape[0], np.int64)
+    m = 0
+    for i in idx:
+        c = cells[i]
+        if not seen[c]:
+            seen[c] = True
+            out[m] = c
+            m += 1
+    for k in range(m):
+        seen[out[k]] = False
+    return out[:m]
+
+
+@nb.njit(cache=True, nogil=True)
 def _points_of(order, starts, rows):
     """The points of the cells ``rows`` (a counting sort's permutation and runs)."""
     total = 0
@@ -381,17 +402,15 @@ def _neighbours(table, dims, cell_index, rows, visited):
     """Occupied, not yet ``visited`` cells among the 26 neighbours of ``rows`` (marked visited)."""
     shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
     out = np.empty(26 * rows.shape[0], np.int64)
+    around = np.empty(27, np.int64)
     found = 0
     for k in rows:
-        x, y, z = cell_index[k, 0], cell_index[k, 1], cell_index[k, 2]
-        for dx in range(-1, 2):
-            for dy in range(-1, 2):
-                for dz in range(-1, 2):
-                    r = _row(table, dims, shift, x + dx, y + dy, z + dz)
-                    if r >= 0 and not visited[r]:
-                        visited[r] = True
-                        out[found] = r
-                        found += 1
+        rows_around(table, dims, shift, cell_index[k, 0], cell_index[k, 1], cell_index[k, 2], around)
+        for r in around:
+            if r >= 0 and not visited[r]:
+                visited[r] = True
+                out[found] = r
+                found += 1
     return out[:found]
 
 
@@ -401,6 +420,7 @@ def _components(table, dims, cell_index, hit):
     shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
     label = np.full(hit.shape[0], -1, np.int64)
     stack = np.empty(hit.shape[0], np.int64)
+    around = np.empty(27, np.int64)
     n = 0
     for start in range(hit.shape[0]):
         if not hit[start] or label[start] >= 0:
@@ -411,15 +431,12 @@ def _components(table, dims, cell_index, hit):
         while top:
             top -= 1
             k = stack[top]
-            x, y, z = cell_index[k, 0], cell_index[k, 1], cell_index[k, 2]
-            for dx in range(-1, 2):
-                for dy in range(-1, 2):
-                    for dz in range(-1, 2):
-                        r = _row(table, dims, shift, x + dx, y + dy, z + dz)
-                        if r >= 0 and hit[r] and label[r] < 0:
-                            label[r] = n
-                            stack[top] = r
-                            top += 1
+            rows_around(table, dims, shift, cell_index[k, 0], cell_index[k, 1], cell_index[k, 2], around)
+            for r in around:
+                if r >= 0 and hit[r] and label[r] < 0:
+                    label[r] = n
+                    stack[top] = r
+                    top += 1
         n += 1
     return label, n
 
@@ -471,9 +488,9 @@ def _fit_exponent(dist: np.ndarray, r: np.ndarray) -> float:
     r, a = r[by_range], a[by_range]
     if r[int(0.9 * (r.size - 1))] < 1.2 * r[int(0.1 * (r.size - 1))]:
         return 0.0
-    bins = np.array_split(np.arange(r.size), 10)
-    x = np.log([np.median(r[b]) for b in bins])
-    y = np.log([np.median(a[b]) for b in bins])
+    q = r.size // 10  # ten bins of q points (the at most 9 farthest left out)
+    x = np.log(np.median(r[: 10 * q].reshape(10, q), axis=1))
+    y = np.log(np.median(a[: 10 * q].reshape(10, q), axis=1))
     return float(np.clip(np.polyfit(x, y, 1)[0], 0.0, _MAX_EXPONENT))
 
 
