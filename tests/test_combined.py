@@ -292,3 +292,14 @@ def test_distances_measured_in_parts_equal_those_measured_at_once(scene):
     assert np.array_equal(d_some, whole.distance[some], equal_nan=True)
     assert np.array_equal(lod_some, whole.lod[some], equal_nan=True)
     assert np.isfinite(whole.distance).mean() > 0.95 and whole.range_exponent >= 0
+
+
+def test_the_distances_memory_is_checked_before_any_work():
+    """The combined decision's cells and arrays count against the memory limit, before the
+    fields are built: refused in one line where the density alone fits."""
+    rng = np.random.default_rng(6)
+    ref, cur = _floor(rng), _floor(rng)
+    lattice = sdp.Lattice(voxel_size=VOXEL)
+    sdp.detect_changes(ref, cur, lattice=lattice, decision="point", memory_limit="20MB")
+    with pytest.raises(sdp.GridTooLargeError, match="combined decision's distances .* decision='point'"):
+        sdp.detect_changes(ref, cur, lattice=lattice, decision="combined", memory_limit="20MB")

@@ -49,6 +49,7 @@ from dataclasses import field as dc_field
 
 import numpy as np
 
+from .._core._memory import check_memory
 from .._core._memory import memory_limit as memory_limit_bytes
 from .._core._parallel import map_concurrently
 from .._core._points import as_points, to_rows
@@ -395,6 +396,12 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
                                                k=lattice.k, sigma_voxels=lattice.sigma_voxels)
     if lattice.automatic:
         timings["voxel_size"] = time.perf_counter() - t
+    if decision == "combined":  # the distances' cells and arrays too, before any work
+        from ..distance._noise import distance_bytes
+
+        check_memory(distance_bytes((ref, cur), sigma_voxels * voxel_size),
+                     f"the combined decision's distances between {len(ref.xyz):,} and {len(cur.xyz):,} points",
+                     memory_limit, advice="use decision='point' (the density alone, also in tiles)")
     opts = dict(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=lattice.k, h=lattice.h,
                 truncate=lattice.truncate, method=lattice.method, memory_limit=memory_limit)
     (f_ref, f_cur), (timings["build_reference"], timings["build_current"]) = build_fields([ref, cur], **opts)

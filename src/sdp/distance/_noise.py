@@ -75,9 +75,9 @@ import numpy as np
 
 from .._core._parallel import map_concurrently
 from ..errors import InvalidOptionError
-from ._distances import _CellLists, bounds, rows_around
+from ._distances import _DENSE_CELLS, _CellLists, bounds, rows_around
 
-__all__ = ["PointDistances", "SurfaceDistances", "point_distances", "pair_cells", "LEVEL_Z"]
+__all__ = ["PointDistances", "SurfaceDistances", "point_distances", "pair_cells", "distance_bytes", "LEVEL_Z"]
 
 LEVEL_Z = 1.96  # two-sided 95 %: the level of detection's promise
 _SHARE = 0.05  # share of the stable majority beyond the level
@@ -155,6 +155,18 @@ def point_distances(points: np.ndarray, other: np.ndarray, *, sigma: float, own_
     return SurfaceDistances(points, other, sigma=sigma, own_origin=own_origin, other_origin=other_origin,
                             stable=stable, registration_error=registration_error, range_exponent=range_exponent,
                             correlation_length=correlation_length).everywhere()
+
+
+def distance_bytes(clouds, sigma: float) -> float:
+    """Memory the distances of a pair need (:class:`SurfaceDistances` both ways; ``clouds``: the
+    two epochs' :class:`sdp._core._points.Points`): per point, its sorted copy, permutation and cell
+    (40 B), its cell's moments (at most 80 B), its distance, variance and range (24 B) and the
+    decision's masks (16 B); per cloud, the dense table of cells (4 B per cell of the box, at
+    most 2**25 cells)."""
+    lo = np.minimum(clouds[0].lo, clouds[1].lo)
+    hi = np.maximum(clouds[0].hi, clouds[1].hi)
+    box = float(np.prod((hi - lo) // (_CELL * sigma) + 1))
+    return 160.0 * (len(clouds[0].xyz) + len(clouds[1].xyz)) + 2 * 4.0 * min(box, _DENSE_CELLS)
 
 
 def pair_cells(clouds, sigma: float, *, sort: bool = False) -> _CellLists:

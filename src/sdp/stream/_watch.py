@@ -42,6 +42,7 @@ from dataclasses import field as dc_field
 
 import numpy as np
 
+from .._core._memory import check_memory
 from .._core._points import as_points, to_rows
 from .._core._validate import integer_at_least
 from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, states_of
@@ -272,8 +273,10 @@ def _complete(cur, ref, states, found, frame: DensityField, *, own_origin, other
     """:func:`sdp.change._combined.combine_decision` of a frame's points (``cur``) against the
     reference points (``ref``), from the density's ``states`` and the points it keeps (``found``)."""
     from ..change._combined import combine_decision
-    from ..distance._noise import SurfaceDistances, pair_cells
+    from ..distance._noise import SurfaceDistances, distance_bytes, pair_cells
 
+    check_memory(distance_bytes((ref, cur), frame.sigma), f"the combined decision's distances for a frame of "
+                 f"{len(cur.xyz):,} points", None, advice="use decision='point'")
     # the frame's cells change with every frame, so both are sorted again (the reference too)
     lists = pair_cells((ref, cur), frame.sigma, sort=True)
     sd = SurfaceDistances(cur.xyz, ref.xyz, sigma=frame.sigma, own_origin=own_origin, other_origin=other_origin,
