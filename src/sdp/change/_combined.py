@@ -84,8 +84,8 @@ def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: fl
 
     def grow(rows):
         """Mark the points of cells ``rows`` that the distance changes; the cells holding a change."""
-        idx = sd.points_of(rows)
-        idx = idx[states[idx] == UNCHANGED]
+        every = sd.points_of(rows)
+        idx = every[states[every] == UNCHANGED]
         if idx.size:
             d, lod = sd.at(idx)
             beyond = DECISION_FACTOR * lod
@@ -94,8 +94,7 @@ def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: fl
             far_idx = idx[far]
             if far_idx.size:  # matter of its own epoch (F < 0), as Algorithm 1 asks of a change
                 marked[far_idx[present(sd.points[far_idx])]] = True
-        idx = sd.points_of(rows)
-        return sd.cells_of(idx[density[idx] | marked[idx]])
+        return sd.cells_of(every[density[every] | marked[every]])
 
     frontier = sd.cells_of(found)
     visited = np.zeros(len(sd.cell_index), bool)
@@ -106,9 +105,9 @@ def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: fl
         frontier = grow(sd.neighbours(frontier, visited))
     changed = (density | marked) & in_component[sd.cells]
     idx = np.flatnonzero(changed)
-    hit = np.zeros(len(sd.cell_index), bool)
-    hit[sd.cells[idx]] = True
-    of_cell, n_components = sd.components(hit)
+    # every cell of the components holds a change (a seed's cell holds a kept point, a cell
+    # joins only holding a change): the components of the changed cells are theirs
+    of_cell, n_components = sd.components(in_component)
     labels = np.full(n, -1, np.int64)
     labels[idx] = of_cell[sd.cells[idx]]
     counts = np.bincount(labels[idx], minlength=n_components)
