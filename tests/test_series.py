@@ -167,24 +167,62 @@ def test_interrupted_append_leaves_the_archive_as_it_was(slope, tmp_path, monkey
     assert sdp.open_series(out).sizes["epoch"] == 3
 
 
-@pytest.mark.slow  # the quick tier keeps lighter tests of the same module
-def test_append_interrupted_after_it_completed_is_finished_by_the_next_open(slope, tmp_path, monkeypatch):
+@pytest.mark.parametrize("epochs, lag", [(3, None), (19, 2)], ids=["estimating-again", "going-on"])
+def test_append_killed_while_writing_is_undone_by_the_next_open(slope, tmp_path, monkeypatch, epochs, lag):
+    """An append writes in place behind its journal: killed after some of its writes (no chance to
+    roll back), the next open puts the archive back as it was, byte for byte. Going on from a
+    saved state 16 epochs on, the journal holds only what the append rewrites."""
+    import dataclasses
+
+    from sdp.timeseries import _compute
+
+    if lag:
+        monkeypatch.setattr(_compute, "DEFAULTS", dataclasses.replace(_compute.DEFAULTS, smoothing_lag=lag))
     out = tmp_path / "s.zarr"
-    sdp.series(slope.epochs[:3], output=out, cylinder=CYL)
+    sdp.series([slope.epochs[k % 8] for k in range(epochs)], output=out, cylinder=CYL, times=range(epochs))
+    before = _digest(out)
+    journal = tmp_path / ".s.zarr.journal"
+
+    def killed(*args, **kwargs):  # the rows, time and smoothed arrays are written by now
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_archive, "write_state", killed)
+    monkeypatch.setattr(_archive, "_roll_back", lambda *a: None)  # a kill runs no handler
+    with pytest.raises(KeyboardInterrupt):
+        sdp.series(slope.epochs[:2], output=out, append=True, times=[epochs, epochs + 1])
+    monkeypatch.undo()
+    assert _digest(out) != before and journal.is_dir()
+    saved = {str(p.relative_to(journal / "saved")) for p in (journal / "saved").rglob("*") if p.is_file()}
+    assert not any(p.startswith(("x/", "normal_x/", "ref_mean/")) for p in saved)  # never written by an append
+    assert "distance/c.0.0" not in saved and "distance/zarr.json" in saved
+    if lag:  # its first chunk row (epochs 0-15) is final
+        assert "smoothed/c.0.0" not in saved and "smoothed/c.1.0" in saved and "object/c.0.0" not in saved
+    else:  # the smoother estimated again, over every row
+        assert "smoothed/c.0.0" in saved
+    assert sdp.open_series(out).sizes["epoch"] == epochs
+    assert _digest(out) == before and sorted(os.listdir(tmp_path)) == ["s.zarr"]
+
+
+def test_append_killed_after_its_commit_is_complete(slope, tmp_path, monkeypatch):
+    out = tmp_path / "s.zarr"
+    sdp.series(slope.epochs[:3], output=out, cylinder=CYL, times=range(3))
     real = os.rename
 
     def cut(src, dst):
-        if Path(dst) == out:  # the new version is complete; the swap is cut between its two renames
+        real(src, dst)
+        if str(dst).endswith(".committed"):  # committed; the journal not removed yet
             raise KeyboardInterrupt
-        return real(src, dst)
 
     monkeypatch.setattr(_archive.os, "rename", cut)
     with pytest.raises(KeyboardInterrupt):
-        sdp.series(slope.epochs[3:4], output=out, append=True)
-    monkeypatch.setattr(_archive.os, "rename", real)
-    assert not out.exists()
+        sdp.series(slope.epochs[3:4], output=out, append=True, times=[3])
+    monkeypatch.undo()
+    assert (tmp_path / ".s.zarr.committed").is_dir()
     ds = sdp.open_series(out)
     assert ds.sizes["epoch"] == 4 and sorted(os.listdir(tmp_path)) == ["s.zarr"]
+    full = sdp.series(slope.epochs[:4], output=tmp_path / "full.zarr", cylinder=CYL, times=range(4))
+    for name, values in _arrays(full).items():
+        np.testing.assert_array_equal(values, _arrays(ds)[name], err_msg=name)
 
 
 def test_append_refuses_other_options_and_repeated_times(slope, tmp_path):

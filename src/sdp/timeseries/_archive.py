@@ -19,13 +19,17 @@ Layout (a Zarr v3 group, ``*.zarr``, readable with ``xarray.open_zarr``)::
     state.npz                        what an append goes on from (:func:`write_state`), not a
                                      dataset variable
 
-Atomicity: a run writes the new archive under a temporary name beside it (for an append, the
-kept arrays' chunk files are hard links to the archive's: Zarr writes a chunk through a new file
-renamed over the old, so a link is never written through), marks it complete, renames it to
-``.NAME.pending`` and swaps it in (``NAME`` to ``.NAME.old``, ``.NAME.pending`` to ``NAME``, then
-the old one removed). A run interrupted before the mark leaves the archive as it was (its
-temporary folder is removed by the next run); one interrupted after it is completed by the next
-run or :func:`open_series` (:func:`recover`).
+Atomicity: a new archive is written under a temporary name beside it, marked complete, renamed
+to ``.NAME.pending`` and swapped in (``NAME`` to ``.NAME.old``, ``.NAME.pending`` to ``NAME``,
+then the old one removed); a run interrupted before the mark leaves what was there (its temporary
+folder is removed by the next run), one interrupted after it is completed by the next run or
+:func:`open_series` (:func:`recover`). An append writes in place behind an undo journal
+(``.NAME.journal``): first hard links to every file it may replace (Zarr writes a chunk through a
+new file renamed over the old one, so a link keeps the old bytes) and the names each folder held,
+then the writes, then the journal renamed away (the commit) and removed. A run interrupted before
+the commit is rolled back by the next run or :func:`open_series` (what it added removed, what it
+replaced put back); so an append costs the files it writes, not a copy of the archive's thousands
+of chunk files.
 
 References
 ----------
@@ -47,7 +51,7 @@ import numpy as np
 
 from ..errors import SDPError, require
 
-__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "transaction", "Writer",
+__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "transaction", "untouched_by_append", "Writer",
            "many_chunks_at_once", "write_state", "read_state", "objects_by_size"]
 
 ARCHIVE_FORMAT = "sdp-series"
@@ -59,11 +63,16 @@ POINT_CHUNK = 16384
 #: spends about a millisecond per chunk file, more than its bytes cost, so an epoch of 100,000
 #: core points is 2 files per array rather than 7; the smoother reads them in columns.
 ROW_CHUNK = 65536
-#: Arrays an append keeps: its chunks hard-linked into the new version (the measured ones are
-#: never written again, the smoothed ones and the objects only in their last rows).
-KEPT = ("distance", "lod", "significant", "x", "y", "z", "normal_x", "normal_y", "normal_z",
-        "ref_mean", "ref_spread", "ref_count", "ref_level", "smoothed", "velocity", "smoothed_sigma",
-        "velocity_sigma", "object")
+#: The per-point arrays of the reference side, which appending reads and never writes.
+REFERENCE_SIDE = ("x", "y", "z", "normal_x", "normal_y", "normal_z", "ref_mean", "ref_spread", "ref_count",
+                  "ref_level")
+#: The (epoch, point) arrays measured once per epoch (one epoch per chunk row, written once).
+MEASURED = ("distance", "lod", "significant")
+#: The (epoch, point) arrays an append writes again from the saved epoch on (16 epochs per chunk row).
+REWRITTEN = ("smoothed", "velocity", "smoothed_sigma", "velocity_sigma", "object")
+#: Values per chunk of the arrays of one dimension that appends lengthen (time, the object table):
+#: written over in place, their chunks do not depend on their first length.
+_GROWING_CHUNK = 4096
 _STATE = "state.npz"  # what an append goes on from (not a dataset variable)
 _COMPLETE = ".sdp-complete"
 
@@ -81,6 +90,11 @@ def _siblings(path: Path) -> tuple[Path, Path]:
     return path.parent / f".{path.name}.pending", path.parent / f".{path.name}.old"
 
 
+def _journal(path: Path) -> tuple[Path, Path]:
+    """(the undo journal of an append in progress, the same once committed)."""
+    return path.parent / f".{path.name}.journal", path.parent / f".{path.name}.committed"
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -91,13 +105,42 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p)
+    else:
+        p.unlink(missing_ok=True)
+
+
+def _roll_back(path: Path, journal: Path) -> None:
+    """Undo an append that did not commit: remove what it added, put back what it replaced."""
+    listing = json.loads((journal / "names.json").read_text())
+    for entry in os.scandir(path):
+        before = listing.get(entry.name, False)
+        if before is False:
+            _remove(Path(entry.path))
+        elif before is not None and entry.is_dir():
+            kept = set(before)
+            for f in os.scandir(entry.path):
+                if f.name not in kept:
+                    _remove(Path(f.path))
+    saved = journal / "saved"
+    for root, _, files in os.walk(saved):
+        rel = Path(root).relative_to(saved)
+        (path / rel).mkdir(parents=True, exist_ok=True)
+        for f in files:
+            os.replace(Path(root) / f, path / rel / f)
+    shutil.rmtree(journal)
+
+
 def recover(path) -> str | None:
     """Finish or undo what an interrupted run left beside the archive ``path``; what was done, or None.
 
-    A complete new version (``.NAME.pending``) is swapped in; a stale old one (``.NAME.old``)
-    and temporary folders of runs that are no longer alive are removed."""
+    A complete new version (``.NAME.pending``) is swapped in, an append that did not commit rolled
+    back (``.NAME.journal``); what is left of runs that are no longer alive is removed."""
     path = Path(path)
     pending, old = _siblings(path)
+    journal, committed = _journal(path)
     done = None
     if pending.is_dir() and (pending / _COMPLETE).exists():
         if path.exists():
@@ -108,7 +151,12 @@ def recover(path) -> str | None:
         done = "completed an interrupted run"
     if old.exists() and path.exists():
         shutil.rmtree(old, ignore_errors=True)
-    for tmp in path.parent.glob(f".{path.name}.tmp-*"):
+    if journal.is_dir() and path.is_dir():
+        _roll_back(path, journal)
+        done = "undid an interrupted append"
+    if committed.exists():
+        shutil.rmtree(committed, ignore_errors=True)
+    for tmp in [*path.parent.glob(f".{path.name}.tmp-*"), *path.parent.glob(f".{path.name}.journal-*")]:
         try:
             pid = int(tmp.name.rsplit("-", 1)[1])
         except ValueError:
@@ -119,43 +167,89 @@ def recover(path) -> str | None:
     return done
 
 
-def _snapshot(src: Path, dst: Path) -> None:
-    """``dst``: the arrays of ``src`` an append keeps (chunks hard-linked, metadata copied) and its group metadata."""
-    dst.mkdir()
-    meta = json.loads((src / "zarr.json").read_text())
-    meta.pop("consolidated_metadata", None)  # lists arrays the new version rewrites: made again at its end
-    (dst / "zarr.json").write_text(json.dumps(meta))
-    for name in KEPT:
-        if not (src / name).is_dir():
+def _save(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:  # a file system without hard links: copy
+        shutil.copy2(src, dst)
+
+
+def _begin(path: Path, untouched) -> Path:
+    """The undo journal of an append to ``path``: each folder's names, and hard links to every file
+    but those ``untouched(folder, name)`` says the run leaves alone; made under a temporary name,
+    then renamed (it is valid from then on)."""
+    journal, _ = _journal(path)
+    tmp = path.parent / f".{path.name}.journal-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    saved = tmp / "saved"
+    saved.mkdir(parents=True)
+    listing: dict = {}
+    for entry in os.scandir(path):
+        if not entry.is_dir():
+            listing[entry.name] = None
+            _save(Path(entry.path), saved / entry.name)
             continue
-        for root, _, files in os.walk(src / name):
-            rel = Path(root).relative_to(src)
-            (dst / rel).mkdir(parents=True, exist_ok=True)
-            for f in files:
-                if f == "zarr.json":
-                    shutil.copy2(Path(root) / f, dst / rel / f)
-                    continue
-                try:
-                    os.link(Path(root) / f, dst / rel / f)
-                except OSError:  # a file system without hard links: copy
-                    shutil.copy2(Path(root) / f, dst / rel / f)
+        names = os.listdir(entry.path)
+        listing[entry.name] = names
+        keep = [f for f in names if not untouched(entry.name, f)]
+        if keep:
+            (saved / entry.name).mkdir()
+        for f in keep:
+            src = Path(entry.path) / f
+            if src.is_dir():
+                shutil.copytree(src, saved / entry.name / f, copy_function=_save)
+            else:
+                _save(src, saved / entry.name / f)
+    (tmp / "names.json").write_text(json.dumps(listing))
+    os.rename(tmp, journal)
+    return journal
+
+
+def untouched_by_append(*, rows: int, rewritten_from: int, epochs_per_chunk: int):
+    """The files an append leaves alone, as ``untouched(folder, name)`` for :func:`transaction`:
+    the reference side, the measured arrays' first ``rows`` epoch rows, and the chunk rows of the
+    rewritten arrays (``epochs_per_chunk`` epochs each) wholly before the epoch ``rewritten_from``."""
+    def untouched(folder: str, name: str) -> bool:
+        if folder in REFERENCE_SIDE:
+            return True
+        parts = name.split(".")
+        if len(parts) < 2 or parts[0] != "c" or not parts[1].isdigit():
+            return False
+        if folder in MEASURED:
+            return int(parts[1]) < rows
+        if folder in REWRITTEN:
+            return (int(parts[1]) + 1) * epochs_per_chunk <= rewritten_from
+        return False
+
+    return untouched
 
 
 @contextmanager
-def transaction(path, *, base: bool = False):
-    """Yield a temporary folder to write the archive's new version in; on success swap it in as
-    ``path``, else remove it (see the module docstring). ``base``: start from ``path``'s measured arrays."""
+def transaction(path, *, untouched=None):
+    """Yield the folder to write the archive's new version in (see the module docstring).
+
+    ``untouched``: None for a new archive (a temporary folder, swapped in as ``path`` on success,
+    else removed); for an append, ``untouched(folder, name)`` tells the files of ``path`` the run
+    will not change, and the folder yielded is ``path`` itself, behind an undo journal."""
     path = Path(path)
     recover(path)
+    if untouched is not None:
+        journal, committed = _journal(path)
+        _begin(path, untouched)
+        try:
+            yield path
+        except BaseException:
+            _roll_back(path, journal)
+            raise
+        os.rename(journal, committed)  # the commit
+        shutil.rmtree(committed, ignore_errors=True)
+        return
     tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
     pending, old = _siblings(path)
     try:
-        if base:
-            _snapshot(path, tmp)
-        else:
-            tmp.mkdir()
+        tmp.mkdir()
         yield tmp
         (tmp / _COMPLETE).write_text("complete\n")
         os.rename(tmp, pending)
@@ -182,21 +276,25 @@ def many_chunks_at_once(n: int = 64, batch: int = 128):
 
 
 class Writer:
-    """Arrays of one archive version being written (in a :func:`transaction` folder)."""
+    """Arrays of one archive version being written (in a :func:`transaction` folder).
+
+    Each array is opened once (an opening reads its metadata) and read, resized and written through
+    the same handle; the ``*_all`` methods do their arrays in one round of Zarr's event loop (a
+    series' arrays cost more in those rounds than in their bytes)."""
 
     def __init__(self, folder: Path, *, create: bool):
         _, zarr = require_series()
         self.folder = Path(folder)
         self.zarr = zarr
         self.group = zarr.open_group(str(folder), mode="w" if create else "r+")
-        self._arrays: dict = {}  # opened once: each lookup reads the array's metadata again
+        self._arrays: dict = {}  # name → zarr's AsyncArray
 
     def array(self, name, shape, dtype, dims, *, epochs_per_chunk: int = 1, rewritten: bool = False):
         """A new array (replacing one of that name); chunks: ``epochs_per_chunk`` epoch rows ×
         :data:`ROW_CHUNK` points (one row) or :data:`POINT_CHUNK` (several); chunk files ``c.i.j``
-        side by side (no folder per row: an append links, and a swap removes, files rather than
-        folders). ``rewritten``: rows every append writes again (the smoothed ones), compressed by
-        LZ4 over shuffled bytes, nearly as small as Zarr's Zstd and written in half its time."""
+        side by side (no folder per row: an append's journal links files, not folders).
+        ``rewritten``: rows every append writes again (the smoothed ones), compressed by LZ4 over
+        shuffled bytes, nearly as small as Zarr's Zstd and written in half its time."""
         self._arrays.pop(name, None)
         if name in self.group:
             del self.group[name]
@@ -204,53 +302,73 @@ class Writer:
                                       **({"compressors": _quick_codec()} if rewritten else {}),
                                       attributes={"coordinates": "time x y z"} if tuple(dims) == ("epoch", "point")
                                       else {})
-        self._arrays[name] = arr
+        self._arrays[name] = arr._async_array
         return arr
 
     def write_all(self, items: dict) -> None:
-        """Whole arrays, ``{name: (values, dims, attrs or None)}``, created and written together:
-        one round of Zarr's event loop for all of them instead of two per array (a series' small
-        arrays cost more in those rounds than in their bytes)."""
+        """Whole arrays, ``{name: (values, dims, attrs or None)}``, created (replacing any of that
+        name) and written together."""
         from zarr.api.asynchronous import open_group
 
         for name in items:
             self._arrays.pop(name, None)
             if (self.folder / name).exists():
                 del self.group[name]
-
         (group,) = _at_once([open_group(store=str(self.folder), mode="r+")])
 
         async def one(name, values, dims, attrs):
             values = np.ascontiguousarray(values)
-            await group.create_array(name, data=values, attributes=attrs or {},
-                                     **_layout(dims, values.shape, values.dtype))
+            self._arrays[name] = await group.create_array(name, data=values, attributes=attrs or {},
+                                                          **_layout(dims, values.shape, values.dtype))
 
         _at_once([one(name, *item) for name, item in items.items()])
 
-    def set_all(self, items: dict) -> None:
-        """``{name: (selection, values)}`` written together (one round of Zarr's event loop)."""
+    def update_all(self, items: dict) -> None:
+        """As :meth:`write_all`, but an array that exists with that dtype is resized if need be
+        and written over (no new metadata unless its shape changes)."""
+        self.open_all(name for name in items if (self.folder / name).is_dir())
+        same = {name: item for name, item in items.items() if name in self._arrays
+                and self._arrays[name].dtype == np.asarray(item[0]).dtype
+                and self._arrays[name].ndim == np.ndim(item[0])}
+        if len(same) < len(items):
+            self.write_all({name: item for name, item in items.items() if name not in same})
+
+        async def one(name, values):
+            arr = self._arrays[name]
+            if arr.shape != values.shape:
+                await arr.resize(values.shape)
+            await arr.setitem(..., values)
+
+        _at_once([one(name, np.asarray(item[0])) for name, item in same.items()])
+
+    def open_all(self, names) -> None:
+        """The arrays ``names`` not opened yet, opened together."""
         from zarr.api.asynchronous import open_array
 
-        async def one(name, sel, values):
-            arr = await open_array(store=str(self.folder), path=name, mode="r+")
-            await arr.setitem(sel, values)
+        todo = [name for name in names if name not in self._arrays]
+        found = _at_once([open_array(store=str(self.folder), path=name, mode="r+") for name in todo])
+        self._arrays.update(zip(todo, found))
 
-        _at_once([one(name, sel, values) for name, (sel, values) in items.items()])
+    def resize_all(self, shapes: dict) -> None:
+        """``{name: shape}`` together (those of another shape)."""
+        self.open_all(shapes)
+        _at_once([self._arrays[name].resize(shape) for name, shape in shapes.items()
+                  if self._arrays[name].shape != tuple(shape)])
+
+    def set_all(self, items: dict) -> None:
+        """``{name: (selection, values)}`` written together."""
+        self.open_all(items)
+        _at_once([self._arrays[name].setitem(sel, values) for name, (sel, values) in items.items()])
 
     def read_all(self, names) -> dict:
-        """Whole arrays read together (one round of Zarr's event loop)."""
-        from zarr.api.asynchronous import open_array
-
-        async def one(name):
-            arr = await open_array(store=str(self.folder), path=name, mode="r")
-            return await arr.getitem(...)
-
-        return dict(zip(names, _at_once([one(name) for name in names])))
+        """Whole arrays read together."""
+        names = list(names)
+        self.open_all(names)
+        return dict(zip(names, _at_once([self._arrays[name].getitem(...) for name in names])))
 
     def __getitem__(self, name):
-        if name not in self._arrays:
-            self._arrays[name] = self.group[name]
-        return self._arrays[name]
+        self.open_all([name])
+        return self.zarr.Array(self._arrays[name])
 
     def finish(self, attrs: dict) -> None:
         """Group attributes (JSON), then consolidated metadata (one read opens the archive)."""
@@ -266,7 +384,7 @@ def _layout(dims, shape, dtype, epochs_per_chunk: int = 1) -> dict:
     than the write (a series' chunks are seldom empty)."""
     points = POINT_CHUNK if epochs_per_chunk > 1 else ROW_CHUNK
     chunks = tuple(max(1, epochs_per_chunk) if d == "epoch" and len(dims) > 1 else
-                   max(1, min(points, s)) if d == "point" else max(1, s) for d, s in zip(dims, shape))
+                   max(1, min(points, s)) if d == "point" else _GROWING_CHUNK for d, s in zip(dims, shape))
     return {"chunks": chunks, "fill_value": np.nan if np.dtype(dtype).kind == "f" else 0,
             "dimension_names": list(dims), "config": {"write_empty_chunks": True},
             "chunk_key_encoding": {"name": "default", "separator": "."}}
@@ -299,8 +417,11 @@ def write_state(folder, filt, tracker: dict, recent) -> None:
     arrays = {"filter": np.c_[filt.x, filt.seen.astype(np.float64), filt.step.astype(np.float64)],
               "filter_epoch": np.array([filt.epoch]), "recent_distance": recent[0], "recent_lod": recent[1],
               **{f"tracker_{k}": v for k, v in tracker.items()}}
-    with open(Path(folder) / _STATE, "wb") as f:
+    target = Path(folder) / _STATE
+    part = target.with_name(f".{_STATE}.{os.getpid()}.partial")
+    with open(part, "wb") as f:  # then renamed over the old one: an append's journal holds a link to it
         np.savez(f, **arrays)
+    os.replace(part, target)
 
 
 def read_state(path):

@@ -367,21 +367,30 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
          prepared=None, state=None, ref_cloud=None, tiles=None):
     append = prepared is None
     timings = {}
-    with tiles or contextlib.nullcontext(), A.transaction(out, base=append) as folder, A.many_chunks_at_once():
+    params = attrs["parameters"]
+    n_old = len(attrs["epochs"])
+    E = n_old + len(epochs)
+    # the smoother's noise is estimated from the first 2^n epochs (n as large as there are):
+    # an append between two powers of two filters on from the saved state and rewrites lag + 1
+    # rows; one reaching the next power estimates again and runs over the whole series
+    first_epochs = 2 ** int(math.floor(math.log2(E)))
+    go_on = append and params.get("smoother", {}).get("estimated_from_epochs") == first_epochs
+    filt, tracked, recent = A.read_state(out) if go_on else (None, None, None)
+    untouched = None
+    if append:
+        untouched = A.untouched_by_append(rows=n_old, rewritten_from=max(filt.epoch, 0) if go_on else 0,
+                                          epochs_per_chunk=_DERIVED_EPOCHS)
+    with tiles or contextlib.nullcontext(), A.transaction(out, untouched=untouched) as folder, A.many_chunks_at_once():
         w = A.Writer(folder, create=not append)
         if append:
-            g = w.group
-            got = w.read_all(["x", "y", "z", "normal_x", "normal_y", "normal_z", "ref_mean", "ref_spread", "ref_count",
-                              "ref_level"])
-            arrays = {"core_points": np.c_[got["x"], got["y"], got["z"]],
-                      "normal": np.c_[got["normal_x"], got["normal_y"], got["normal_z"]],
-                      **{k: got[k] for k in ("ref_mean", "ref_spread", "ref_count", "ref_level")}}
-            prepared = PreparedReference.from_state(arrays, attrs["parameters"]["reference_state"])
-            n_old = len(attrs["epochs"])
-            for name in ("distance", "lod", "significant"):
-                g[name].resize((n_old + len(epochs), len(prepared.core_points)))
+            state = w.read_all(A.REFERENCE_SIDE)
+            arrays = {"core_points": np.c_[state["x"], state["y"], state["z"]],
+                      "normal": np.c_[state["normal_x"], state["normal_y"], state["normal_z"]],
+                      **{k: state[k] for k in ("ref_mean", "ref_spread", "ref_count", "ref_level")}}
+            prepared = PreparedReference.from_state(arrays, params["reference_state"])
+            w.resize_all({name: (E, len(prepared.core_points))
+                          for name in ("distance", "lod", "significant") + (A.REWRITTEN if go_on else ())})
         else:
-            n_old = 0
             m = len(prepared.core_points)
             w.write_all({**{axis: (state["core_points"][:, a], ("point",), None) for a, axis in enumerate("xyz")},
                          **{f"normal_{axis}": (state["normal"][:, a], ("point",), None)
@@ -391,6 +400,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
             for name, dtype in (("distance", "f4"), ("lod", "f4"), ("significant", "bool")):
                 w.array(name, (len(epochs), m), dtype, _EPOCH_DIMS)
         m = len(prepared.core_points)
+        ref_var = state["ref_spread"] ** 2 / state["ref_count"]  # the reference's part of each level
         ref_xyz = None
         if registration is not None:
             ref_xyz = _xyz(ref_cloud[1]) if ref_cloud is not None else _xyz(_load(attrs["parameters"]["reference_file"],
@@ -444,22 +454,14 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         if tiles:
             tiles.close()  # the cluster's workers are not needed by the smoother
         timings["epochs"] = time.perf_counter() - t0
-        E = len(attrs["epochs"])
         times = np.array([e["time"] for e in attrs["epochs"]])
+        reg = np.array([e["registration_error"] for e in attrs["epochs"]])
         time_attrs = {"units": "days since 1970-01-01"} if kind == "date" else {}
-        w.write_all({"time": (times, ("epoch",), time_attrs),
-                     "registration_error": (np.array([e["registration_error"] for e in attrs["epochs"]]), ("epoch",),
-                                            None)})
-        params = attrs["parameters"]
+        w.update_all({"time": (times, ("epoch",), time_attrs), "registration_error": (reg, ("epoch",), None)})
         lag = int(params["used"]["lag"])
         t0 = time.perf_counter()
-        # the smoother's noise is estimated from the first 2^n epochs (n as large as there are):
-        # an append between two powers of two filters on from the saved state and rewrites lag + 1
-        # rows; one reaching the next power estimates again and runs over the whole series
-        first_epochs = 2 ** int(math.floor(math.log2(E)))
-        go_on = append and params.get("smoother", {}).get("estimated_from_epochs") == first_epochs
-        filt, tracked, recent = A.read_state(out) if go_on else (None, None, None)
-        q, info, held, filt, step, recent = _smooth_all(w, E, m, times, limit, lag=lag, first_epochs=first_epochs,
+        q, info, held, filt, step, recent = _smooth_all(w, E, m, times, reg, ref_var, limit, lag=lag,
+                                                        first_epochs=first_epochs,
                                                         frozen=params["smoother"] if go_on else None, state=filt,
                                                         recent=recent,
                                                         fresh=None if fresh is None else tuple(map(np.stack, zip(*fresh))))
@@ -470,11 +472,9 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         min_points = params["min_object_points"]
         if go_on:
             tracker = Tracker.from_state(xyz, tracked, min_points=min_points)
-            obj = w["object"]
-            obj.resize((E, m))
         else:
             tracker = Tracker(xyz, min_points=min_points)
-            obj = w.array("object", (E, m), "i4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS)
+            w.array("object", (E, m), "i4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS)
         rows: dict = {}  # epochs read a chunk row at a time
 
         def read(k):
@@ -493,7 +493,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                 saved = tracker.state()
             labels.append(tracker.add(k, *read(k), step))
             if len(labels) == _DERIVED_EPOCHS or k == E - 1:
-                obj[k + 1 - len(labels):k + 1] = np.stack(labels)
+                w.set_all({"object": ((slice(k + 1 - len(labels), k + 1), slice(None)), np.stack(labels))})
                 labels.clear()
         table = tracker.table(times)
         A.write_state(folder, filt, saved, recent)
@@ -504,7 +504,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                  "object_id": (np.arange(1, len(table["object_start"]) + 1, dtype=np.int32), ("object_id",), None)}
         small.update({name: (np.asarray(table[name]), ("object_id",), time_attrs if name.endswith("_time") else None)
                       for name in OBJECT_FIELDS})
-        w.write_all(small)
+        w.update_all(small)
         timings["objects"] = time.perf_counter() - t0
         rate_unit = "per day" if kind == "date" else "per time unit"
         attrs["parameters"]["smoother"] = {
@@ -532,14 +532,15 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
 _COLUMN_BYTES = 24
 
 
-def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int, first_epochs: int,
-                frozen: dict | None, state: FilterState | None, recent=None, fresh=None):
+def _smooth_all(w, E: int, m: int, times: np.ndarray, reg: np.ndarray, ref_var: np.ndarray, limit: float, *,
+                lag: int, first_epochs: int, frozen: dict | None, state: FilterState | None, recent=None, fresh=None):
     """The smoother over blocks of core points (their number from the memory limit), from the
     saved filter ``state`` (an append) or the first epoch; the noise ``frozen`` (an append's) or
     estimated from the first ``first_epochs`` epochs. Returns (q, info, the rows written of
     (smoothed, smoothed_sigma, velocity) if one block held them, else None, the filter state to
-    save, each point's first step). ``fresh``: this run's rows of distance and lod, if kept
-    (else read from the archive)."""
+    save, each point's first step). ``reg``: each epoch's registration error; ``ref_var``: each
+    core point's reference variance (ref_spread² / ref_count). ``fresh``: this run's rows of
+    distance and lod, if kept (else read from the archive)."""
     names = ("smoothed", "velocity", "smoothed_sigma", "velocity_sigma")
     f = -1 if state is None else state.epoch
     r0, a0 = max(f, 0), f + 1  # the first row written, the first epoch read
@@ -548,8 +549,7 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
             w.array(name, (E, m), "f4", _EPOCH_DIMS, epochs_per_chunk=_DERIVED_EPOCHS, rewritten=True)
         state = FilterState.start(m)
     else:
-        for name in names:
-            w[name].resize((E, m))
+        w.resize_all({name: (E, m) for name in names})
     R = E - r0
     dist, lod = w["distance"], w["lod"]
     # the inputs from epoch a0 on: an append's older ones kept with the state, the new ones read
@@ -564,9 +564,6 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, limit: float, *, lag: int,
             return new
         return np.concatenate([recent[0][:, a:b], new[0]]), np.concatenate([recent[1][:, a:b], new[1]])
 
-    got = w.read_all(["registration_error", "ref_spread", "ref_count"])
-    reg = got["registration_error"]
-    ref_var = got["ref_spread"] ** 2 / got["ref_count"]
     budget = max(limit / 4.0, 64e6)
     block = int(max(256, min(m, budget // (R * BYTES_PER_VALUE))))
     whole = None

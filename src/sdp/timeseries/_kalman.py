@@ -67,11 +67,29 @@ def observation_variance(lod: np.ndarray, registration_error: np.ndarray, ref_va
     reference's part ``ref_var``, which every epoch shares. Treated as independent, that part would
     average away over many epochs and a stable place would read as changed by its reference's
     noise; it is added once to the smoothed variance instead."""
-    reg = np.asarray(registration_error, np.float64)[:, None]
-    sd = np.maximum(lod.astype(np.float64) / 1.96 - reg, 0.0)
-    # float32 levels: where the epoch's part is below their rounding, keep a thousandth of the whole
-    own = np.maximum(sd**2 - ref_var, 1e-3 * sd**2)
-    return (np.sqrt(own) + reg) ** 2
+    lod = np.asarray(lod)
+    out = np.empty(lod.shape, np.float64)
+    _own_variance(lod.reshape(len(lod), -1), np.asarray(registration_error, np.float64),
+                  np.broadcast_to(np.asarray(ref_var, np.float64), lod.shape[1:]).reshape(-1),
+                  out.reshape(len(lod), -1))
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _own_variance(lod, reg, ref_var, out):
+    """:func:`observation_variance`'s kernel (one pass: the epochs' rows are large)."""
+    for e in range(lod.shape[0]):
+        r = reg[e]
+        for p in range(lod.shape[1]):
+            sd = lod[e, p] / 1.96 - r
+            if sd < 0.0:  # NaN stays NaN: a missing level
+                sd = 0.0
+            # float32 levels: where the epoch's part is below their rounding, keep a thousandth of the whole
+            own, floor = sd * sd - ref_var[p], 1e-3 * sd * sd
+            if own < floor:  # NaN stays NaN, as with np.maximum
+                own = floor
+            v = np.sqrt(own) + r
+            out[e, p] = v * v
 
 
 def _second_differences(z, var, t):

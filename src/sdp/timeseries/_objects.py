@@ -85,11 +85,15 @@ def min_object_points(xyz: np.ndarray, projection_scale: float, *, footprints: f
     return int(max(floor, math.ceil(footprints * math.pi * projection_scale**2 / 4.0 / area)))
 
 
-def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, int]:
-    """Per core point, its component among the changed points of one epoch (-1: unchanged), numbered
-    in the order of their first point; ``i, j``: the neighbour pairs whose changes are of one kind."""
+def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray, step: np.ndarray | None = None,
+                k: int = 0) -> tuple[np.ndarray, int]:
+    """Per core point, its component among the changed points of one epoch ``k`` (-1: unchanged),
+    numbered in the order of their first point; ``i, j``: the neighbour pairs; ``step``: each
+    point's first step epoch (-1: none): a pair joins only changes of one kind (both gradual, or
+    both steps by then, at epochs at most one apart)."""
     out = np.full(len(sign), -1, np.int64)
-    return out, _epoch_labels(np.ascontiguousarray(sign, np.int8), i, j, out)
+    step = np.full(len(sign), -1, np.int32) if step is None else step
+    return out, _epoch_labels(np.ascontiguousarray(sign, np.int8), i, j, step, k, out)
 
 
 @nb.njit(cache=True, inline="always")
@@ -110,14 +114,19 @@ def _union(parent, a, b):
 
 
 @nb.njit(cache=True)
-def _epoch_labels(sign, i, j, out):
+def _epoch_labels(sign, i, j, step, k, out):
     """:func:`_components`' kernel: ``out`` filled, the number of components returned."""
     m = len(sign)
     parent = np.arange(m)
     for e in range(len(i)):
-        sa = sign[i[e]]
-        if sa != 0 and sa == sign[j[e]]:
-            _union(parent, i[e], j[e])
+        a, b = i[e], j[e]
+        sa = sign[a]
+        if sa != 0 and sa == sign[b]:
+            sta, stb = step[a], step[b]
+            da, db = 0 <= sta <= k, 0 <= stb <= k
+            if da != db or (da and abs(sta - stb) > 1):  # a step beside a creep, or steps apart
+                continue
+            _union(parent, a, b)
     ids = np.full(m, -1, np.int64)  # root → component
     n = 0
     for p in range(m):
@@ -153,6 +162,17 @@ def _distinct(a: np.ndarray) -> np.ndarray:
     several times slower on these integer keys)."""
     a = np.sort(a)
     return a[np.r_[True, a[1:] != a[:-1]]] if len(a) else a
+
+
+def _merged(keys: np.ndarray, more: np.ndarray) -> np.ndarray:
+    """The sorted distinct ``keys`` with ``more`` added: most of an epoch's keys are there already,
+    and a stable sort of the two sorted runs is one merge."""
+    more = _distinct(more)
+    if not len(keys):
+        return more
+    at = np.minimum(np.searchsorted(keys, more), len(keys) - 1)
+    more = more[keys[at] != more]
+    return np.sort(np.concatenate([keys, more]), kind="stable") if len(more) else keys
 
 
 def _first_per_group(group: np.ndarray, key: np.ndarray) -> np.ndarray:
@@ -210,13 +230,7 @@ class Tracker:
         m = self.m
         sig = np.isfinite(smoothed) & np.isfinite(sigma) & (np.abs(smoothed) > 1.96 * sigma)
         sign = np.where(sig, np.sign(smoothed), 0).astype(np.int8)
-        stepped = (step >= 0) & (step <= k)
-        i, j = self.i, self.j
-        if stepped.any():
-            si, sj = stepped[i], stepped[j]
-            together = ~si & ~sj | si & sj & (np.abs(step[i] - step[j]) <= 1)
-            i, j = i[together], j[together]
-        comp, n = _components(sign, i, j)
+        comp, n = _components(sign, self.i, self.j, step, k)
         at = np.flatnonzero(comp >= 0)
         c = comp[at]
         live = self.live
@@ -288,7 +302,7 @@ class Tracker:
         nxt["vsum"] += np.bincount(tr[fv], v[fv], minlength=n_next)
         nxt["vcount"] += np.bincount(tr[fv], minlength=n_next)
         nxt["end"][:] = k
-        self.keys = _distinct(np.concatenate([self.keys, nxt["uid"][tr] * m + at]))
+        self.keys = _merged(self.keys, nxt["uid"][tr] * m + at)
         # tracks with min_points changed together become objects, in the order of their priority
         size = np.bincount(tr, minlength=n_next)
         born = np.flatnonzero((nxt["obj"] == 0) & (size >= self.min_points))
