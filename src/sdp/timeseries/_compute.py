@@ -492,7 +492,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
             if k == E - 1 - lag:  # the rows from here are not final yet: the next run goes on from here
                 saved = tracker.state()
             labels.append(tracker.add(k, *read(k), step))
-            if len(labels) == _DERIVED_EPOCHS or k == E - 1:
+            if (k + 1) % _DERIVED_EPOCHS == 0 or k == E - 1:  # whole chunk rows: each written once
                 w.set_all({"object": ((slice(k + 1 - len(labels), k + 1), slice(None)), np.stack(labels))})
                 labels.clear()
         table = tracker.table(times)
