@@ -29,7 +29,7 @@ class SeriesRun:
     """What :func:`series_files` measured and wrote."""
 
     archive: str
-    dataset: object  # xarray.Dataset
+    dataset: object  # xarray.Dataset, opened for the exports; None when there were none
     summary: dict
     outputs: list = field(default_factory=list)
 
@@ -124,16 +124,15 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
 
         require_extras()
     t0 = time.perf_counter()
-    # without Dask's arrays: the command reads rows and columns it indexes, and importing them costs
-    # more than that (about 0.7 s of a job's start-up)
-    ds = open_series(write_series(epochs, output=output, append=append, times=times, execution=execution, **options),
-                     chunks=None)
-    summary = describe_series(output, ds)
+    archive = write_series(epochs, output=output, append=append, times=times, execution=execution, **options)
+    summary = describe_series(archive)
+    # the dataset only for exports (xarray and pandas: a third of a second of a job's start-up); without
+    # Dask's arrays: the command reads the rows and columns it indexes, and importing them costs more
+    ds = open_series(archive, chunks=None) if epoch_files or points is not None or report else None
     written = [str(output)]
     with all_or_none():
-        n = ds.sizes["epoch"]
         for k_text, f in epoch_files:
-            _write_epoch(ds, _epoch_index(str(k_text), n), f, inputs, outputs.field_names)
+            _write_epoch(ds, _epoch_index(str(k_text), summary["epochs"]), f, inputs, outputs.field_names)
             written.append(str(f))
         if points is not None:
             _write_points(ds, points[0], _point_list(points[1]), inputs, outputs.field_names)
@@ -211,29 +210,32 @@ def _write_points(ds, path, points, inputs, field_names: str) -> None:
             table.to_csv(tmp, index=False)
 
 
-def describe_series(path, ds=None) -> dict:
-    """What ``sdp info ARCHIVE.zarr`` prints: epochs, times, core points, objects, every parameter."""
-    from ..timeseries._archive import objects_by_size, open_series
+def describe_series(path) -> dict:
+    """What ``sdp info ARCHIVE.zarr`` prints: epochs, times, core points, objects, every parameter
+    (read with zarr: no dataset is opened)."""
+    from ..timeseries._archive import objects_by_size, read_group
 
-    ds = open_series(path, chunks=None) if ds is None else ds
-    attrs = ds.attrs
+    g = read_group(path)
+    attrs = g.attrs.asdict()
     epochs = attrs["epochs"]
-    cells = len(epochs) * ds.sizes["point"]  # from each epoch's record: no pass over the archive
+    n_points = g["x"].shape[0]
+    cells = len(epochs) * n_points  # from each epoch's record: no pass over the archive
     sig_fraction = sum(e["significant"] for e in epochs) / cells if cells else 0.0
     kind = attrs["time_kind"]
     times = [e["time"] for e in epochs]
     if kind == "date":
         times = [str(np.datetime64("1970-01-01T00:00:00", "s") + np.timedelta64(int(round(t * 86400)), "s"))
                  for t in times]
-    last = np.asarray(ds.smoothed.isel(epoch=-1).values) if ds.sizes["epoch"] else np.empty(0)  # one row read
-    vel = np.asarray(ds.velocity.isel(epoch=-1).values) if ds.sizes["epoch"] else np.empty(0)
+    last = np.asarray(g["smoothed"][-1]) if epochs else np.empty(0)  # one row read
+    vel = np.asarray(g["velocity"][-1]) if epochs else np.empty(0)
+    order = objects_by_size(g)
     table = [{"id": int(i), "start": int(s), "end": int(e), "core_points": int(n), "area": float(a),
               "peak_change": float(p), "mean_velocity": float(v)}
-             for i, s, e, n, a, p, v in zip(*(ds[name].values[objects_by_size(ds)] for name in (
+             for i, s, e, n, a, p, v in zip(*(np.asarray(g[name][...])[order] for name in (
                  "object_id", "object_start", "object_end", "object_points", "object_area", "object_peak_change",
                  "object_mean_velocity")))]
     return {"kind": "series archive", "path": str(path), "format_version": attrs["format_version"],
-            "sdp_version": attrs["sdp_version"], "epochs": len(epochs), "core_points": int(ds.sizes["point"]),
+            "sdp_version": attrs["sdp_version"], "epochs": len(epochs), "core_points": int(n_points),
             "time_kind": kind, "time_source": sorted({e["time_source"] for e in epochs}),
             "first_time": times[0] if times else None, "last_time": times[-1] if times else None,
             "reference": attrs["parameters"]["reference_file"],

@@ -52,7 +52,7 @@ import numpy as np
 from ..errors import SDPError, require
 
 __all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "transaction", "untouched_by_append", "Writer",
-           "many_chunks_at_once", "write_state", "read_state", "objects_by_size"]
+           "many_chunks_at_once", "write_state", "read_state", "objects_by_size", "read_group"]
 
 ARCHIVE_FORMAT = "sdp-series"
 ARCHIVE_VERSION = 2  # 2: the state an append goes on from (fixed-lag smoother, tracked objects)
@@ -83,7 +83,18 @@ class SeriesArchiveError(SDPError, OSError):
 
 def require_series():
     """(xarray, zarr), or a one-line :class:`~sdp.MissingDependencyError` naming the extra."""
-    return (require("xarray", "series", "a series archive"), require("zarr", "series", "a series archive"))
+    return (require("xarray", "series", "a series archive"), require_zarr())
+
+
+def require_zarr():
+    """zarr, having checked that xarray is installed too (the ``series`` extra), without importing
+    it: writing and summarising an archive need only zarr, and xarray with pandas is about a third
+    of a second of a command's start-up."""
+    import importlib.util
+
+    if importlib.util.find_spec("xarray") is None:
+        require("xarray", "series", "a series archive")  # the one-line error naming the extra
+    return require("zarr", "series", "a series archive")
 
 
 def _siblings(path: Path) -> tuple[Path, Path]:
@@ -270,7 +281,7 @@ def many_chunks_at_once(n: int = 64, batch: int = 128):
     chunks per call of its codecs: a series reads and writes rows and columns of many small chunks
     (an epoch row each), and Zarr's defaults (10 at once, one per call) leave it waiting on each
     chunk in turn."""
-    _, zarr = require_series()
+    zarr = require_zarr()
     with zarr.config.set({"async.concurrency": n, "codec_pipeline.batch_size": batch}):
         yield
 
@@ -283,7 +294,7 @@ class Writer:
     series' arrays cost more in those rounds than in their bytes)."""
 
     def __init__(self, folder: Path, *, create: bool):
-        _, zarr = require_series()
+        zarr = require_zarr()
         self.folder = Path(folder)
         self.zarr = zarr
         self.group = zarr.open_group(str(folder), mode="w" if create else "r+")
@@ -455,19 +466,29 @@ def _plain(v):
     raise TypeError(f"{type(v).__name__} is not JSON")
 
 
-def read_attrs(path) -> dict:
-    """The group attributes of an archive, checked to be an sdp series."""
+def read_group(path):
+    """The archive ``path`` as a zarr group (read only), checked to be an sdp series; what an
+    interrupted run left is completed or undone first (:func:`recover`)."""
     path = Path(path)
-    _, zarr = require_series()
+    zarr = require_zarr()
+    try:
+        recover(path)
+    except OSError:  # read-only: read what is there
+        pass
     try:
         group = zarr.open_group(str(path), mode="r")
     except Exception as exc:  # zarr raises several types for missing or foreign folders
         raise SeriesArchiveError(f"{path}: not a readable series archive ({type(exc).__name__})") from None
-    attrs = dict(group.attrs)
+    attrs = group.attrs
     if attrs.get("format") != ARCHIVE_FORMAT or attrs.get("format_version") != ARCHIVE_VERSION:
         raise SeriesArchiveError(f"{path}: format {attrs.get('format')!r} version {attrs.get('format_version')!r}; "
                                  f"this sdp reads {ARCHIVE_FORMAT} version {ARCHIVE_VERSION}")
-    return attrs
+    return group
+
+
+def read_attrs(path) -> dict:
+    """The group attributes of an archive, checked to be an sdp series."""
+    return dict(read_group(path).attrs)
 
 
 def is_series(path) -> bool:
@@ -482,8 +503,8 @@ def is_series(path) -> bool:
 
 def objects_by_size(ds) -> np.ndarray:
     """Positions along ``object_id`` of an archive's objects, the most core points first (ids
-    count in the order objects were found)."""
-    return np.lexsort((ds.object_id.values, -ds.object_points.values))
+    count in the order objects were found); ``ds``: the dataset or its zarr group."""
+    return np.lexsort((np.asarray(ds["object_id"][...]), -np.asarray(ds["object_points"][...])))
 
 
 def open_series(path, *, chunks="auto"):
@@ -519,11 +540,7 @@ def open_series(path, *, chunks="auto"):
     """
     xr, _ = require_series()
     path = Path(path)
-    try:
-        recover(path)
-    except OSError:  # read-only: read what is there
-        pass
-    read_attrs(path)
+    read_group(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ds = xr.open_zarr(str(path), consolidated=True, chunks=chunks)
