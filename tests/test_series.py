@@ -203,6 +203,33 @@ def test_append_killed_while_writing_is_undone_by_the_next_open(slope, tmp_path,
     assert _digest(out) == before and sorted(os.listdir(tmp_path)) == ["s.zarr"]
 
 
+@pytest.mark.slow
+def test_an_append_on_a_full_disk_is_one_line_and_leaves_the_archive(slope, tmp_path):
+    """A file-size limit stands for a full disk: the append's writes fail part way, in place; the
+    journal puts the archive back and the command says so in one line (exit 2)."""
+    import subprocess
+    import sys
+
+    files = _write_epochs(slope, tmp_path, 4)
+    out = tmp_path / "s.zarr"
+    assert main(["series", *files[:3], "-o", str(out), "--projection-scale", "0.8", "--quiet"]) == 0
+    before = _digest(out)
+    limit = ("import resource, signal; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+             "resource.setrlimit(resource.RLIMIT_FSIZE, (4_000, 4_000)); ")
+    done = subprocess.run([sys.executable, "-c", limit + "import runpy; runpy.run_module('sdp.cli', run_name="
+                           "'__main__', alter_sys=True)", "series", files[3], "--append", "-o", str(out), "--quiet"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr.startswith("sdp: error: "), done.stderr[-2000:]
+    assert len(done.stderr.strip().splitlines()) == 1 and "as it was before this append" in done.stderr, done.stderr
+    assert _digest(out) == before and sorted(os.listdir(tmp_path)) == sorted(["s.zarr", *map(os.path.basename, files)])
+    done = subprocess.run([sys.executable, "-c", limit + "import runpy; runpy.run_module('sdp.cli', run_name="
+                           "'__main__', alter_sys=True)", "series", *files, "-o", str(tmp_path / "new.zarr"),
+                           "--projection-scale", "0.8", "--quiet"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "new.zarr: can't write the series archive" in done.stderr, done.stderr[-2000:]
+    assert "nothing was written" in done.stderr and not (tmp_path / "new.zarr").exists()
+    assert sorted(os.listdir(tmp_path)) == sorted(["s.zarr", *map(os.path.basename, files)])
+
+
 def test_append_killed_after_its_commit_is_complete(slope, tmp_path, monkeypatch):
     out = tmp_path / "s.zarr"
     sdp.series(slope.epochs[:3], output=out, cylinder=CYL, times=range(3))

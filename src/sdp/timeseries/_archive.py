@@ -235,6 +235,14 @@ def untouched_by_append(*, rows: int, rewritten_from: int, epochs_per_chunk: int
     return untouched
 
 
+def _say_written(exc: BaseException, path: Path, state: str) -> None:
+    """A write that failed in the file system (a full disk, a file-size limit, permissions) as one
+    line naming the archive and what is left of it."""
+    if isinstance(exc, OSError) and not isinstance(exc, SDPError):
+        raise SeriesArchiveError(f"{path}: can't write the series archive ({exc.strerror or exc}; disk full?): "
+                                 f"{state}") from None
+
+
 @contextmanager
 def transaction(path, *, untouched=None):
     """Yield the folder to write the archive's new version in (see the module docstring).
@@ -249,8 +257,9 @@ def transaction(path, *, untouched=None):
         _begin(path, untouched)
         try:
             yield path
-        except BaseException:
+        except BaseException as exc:
             _roll_back(path, journal)
+            _say_written(exc, path, "it is as it was before this append")
             raise
         os.rename(journal, committed)  # the commit
         shutil.rmtree(committed, ignore_errors=True)
@@ -264,8 +273,9 @@ def transaction(path, *, untouched=None):
         yield tmp
         (tmp / _COMPLETE).write_text("complete\n")
         os.rename(tmp, pending)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
+        _say_written(exc, path, "nothing was written")
         raise
     # from here the new version is complete: a crash leaves it for recover() to swap in
     if path.exists():
