@@ -230,6 +230,36 @@ def test_an_append_on_a_full_disk_is_one_line_and_leaves_the_archive(slope, tmp_
     assert sorted(os.listdir(tmp_path)) == sorted(["s.zarr", *map(os.path.basename, files)])
 
 
+def test_an_append_running_elsewhere_is_neither_rolled_back_nor_joined(slope, tmp_path):
+    """While another process appends (its lock held, its journal there, a file replaced), opening
+    the archive leaves that journal alone and a second append is refused in one line; once that
+    process is killed, the next open rolls its append back."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "s.zarr"
+    sdp.series(slope.epochs[:3], output=out, cylinder=CYL, times=range(3))
+    before = _digest(out)
+    code = ("import os, sys, time; from pathlib import Path; from sdp.timeseries import _archive as A\n"
+            "out = Path(sys.argv[1])\n"
+            "with A.appending(out):\n"
+            "    A._begin(out, A.untouched_by_append(rows=3, rewritten_from=0, epochs_per_chunk=16))\n"
+            "    (out / 'part').write_bytes(b'half'); os.replace(out / 'part', out / 'state.npz')\n"
+            "    print('ready', flush=True); time.sleep(60)\n")
+    other = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout.readline().strip() == "ready"
+        assert sdp.open_series(out).sizes["epoch"] == 3
+        assert (tmp_path / ".s.zarr.journal").is_dir() and (out / "state.npz").read_bytes() == b"half"
+        with pytest.raises(_archive.SeriesArchiveError, match="another sdp run is appending"):
+            sdp.series(slope.epochs[3:4], output=out, append=True, times=[3])
+    finally:
+        other.kill()
+        other.wait()
+    assert sdp.open_series(out).sizes["epoch"] == 3
+    assert _digest(out) == before and sorted(os.listdir(tmp_path)) == ["s.zarr"]
+
+
 def test_append_killed_after_its_commit_is_complete(slope, tmp_path, monkeypatch):
     out = tmp_path / "s.zarr"
     sdp.series(slope.epochs[:3], output=out, cylinder=CYL, times=range(3))

@@ -51,7 +51,8 @@ import numpy as np
 
 from ..errors import SDPError, require
 
-__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "transaction", "untouched_by_append", "Writer",
+__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "appending", "transaction",
+           "untouched_by_append", "Writer",
            "many_chunks_at_once", "write_state", "read_state", "objects_by_size", "read_group"]
 
 ARCHIVE_FORMAT = "sdp-series"
@@ -74,6 +75,8 @@ REWRITTEN = ("smoothed", "velocity", "smoothed_sigma", "velocity_sigma", "object
 #: written over in place, their chunks do not depend on their first length.
 _GROWING_CHUNK = 4096
 _STATE = "state.npz"  # what an append goes on from (not a dataset variable)
+_LOCK = ".sdp-lock"  # inside the archive: an append holds an exclusive flock on it
+_HELD: set = set()  # the archives whose append lock this process holds
 _COMPLETE = ".sdp-complete"
 
 
@@ -163,8 +166,10 @@ def recover(path) -> str | None:
     if old.exists() and path.exists():
         shutil.rmtree(old, ignore_errors=True)
     if journal.is_dir() and path.is_dir():
-        _roll_back(path, journal)
-        done = "undid an interrupted append"
+        with _writer_gone(path) as gone:
+            if gone:  # else an append is running: its journal is not left over
+                _roll_back(path, journal)
+                done = "undid an interrupted append"
     if committed.exists():
         shutil.rmtree(committed, ignore_errors=True)
     for tmp in [*path.parent.glob(f".{path.name}.tmp-*"), *path.parent.glob(f".{path.name}.journal-*")]:
@@ -176,6 +181,65 @@ def recover(path) -> str | None:
             shutil.rmtree(tmp, ignore_errors=True)
             done = done or "removed what an interrupted run left"
     return done
+
+
+def _try_lock(path: Path):
+    """An open file holding the append lock of the archive ``path``, or None if another run holds
+    it. Where the system has no flock (Windows), every caller gets it."""
+    try:
+        import fcntl
+    except ImportError:
+        return open(path / _LOCK, "a")
+    f = open(path / _LOCK, "a")
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.close()
+        return None
+    return f
+
+
+@contextmanager
+def _writer_gone(path: Path):
+    """Whether no live run is appending to ``path`` (this process holds its lock, or it is free:
+    then held for the block)."""
+    if path.resolve() in _HELD:
+        yield True
+        return
+    f = _try_lock(path)
+    try:
+        yield f is not None
+    finally:
+        if f is not None:
+            f.close()
+
+
+@contextmanager
+def appending(path):
+    """Hold the append lock of the archive ``path`` for the block, then finish or undo what an
+    interrupted run left (:func:`recover`). The lock is a flock on a file inside the archive: the
+    system releases it when the process ends, however it ends, so a killed run leaves no stale
+    lock, and a run or :func:`open_series` never rolls back the journal of an append still running.
+
+    Raises
+    ------
+    SeriesArchiveError
+        Another run is appending to this archive.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        recover(path)  # a new version left pending by an interrupted run
+    f = _try_lock(path)
+    if f is None:
+        raise SeriesArchiveError(f"{path}: another sdp run is appending to this archive; run again when it has ended")
+    key = path.resolve()
+    _HELD.add(key)
+    try:
+        recover(path)
+        yield
+    finally:
+        _HELD.discard(key)
+        f.close()
 
 
 def _save(src: Path, dst: Path) -> None:
@@ -253,6 +317,8 @@ def transaction(path, *, untouched=None):
     path = Path(path)
     recover(path)
     if untouched is not None:
+        if path.resolve() not in _HELD:
+            raise RuntimeError("an append's transaction runs inside appending(path)")
         journal, committed = _journal(path)
         _begin(path, untouched)
         try:
@@ -271,6 +337,7 @@ def transaction(path, *, untouched=None):
     try:
         tmp.mkdir()
         yield tmp
+        (tmp / _LOCK).touch()  # after the writer: zarr's mode "w" empties the folder
         (tmp / _COMPLETE).write_text("complete\n")
         os.rename(tmp, pending)
     except BaseException as exc:

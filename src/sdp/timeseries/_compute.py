@@ -259,39 +259,35 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     if append:
         if not out.exists() and not A._siblings(out)[0].exists():
             raise SDPError(f"{out}: no archive to append to; run without --append first")
-        A.recover(out)
-        attrs = A.read_attrs(out)
-        params = attrs["parameters"]
-        _check_append(params, given, core_points, out)
-        old_times = np.asarray([e["time"] for e in attrs["epochs"]], np.float64)
-        t_new, kind, source = _resolve_times(epochs, times, start_index=len(old_times))
-        if kind != attrs["time_kind"]:
-            raise InvalidOptionError(f"the new epochs' times are {kind}s, the archive's are {attrs['time_kind']}s")
-        dup = np.intersect1d(t_new, old_times)
-        if dup.size:
-            raise InvalidOptionError(f"epoch time {_show_time(dup[0], kind)} is already in the archive {out}")
-        if t_new.min() <= old_times.max():
-            raise InvalidOptionError(f"appended epochs must come after the archive's last time "
-                                     f"{_show_time(old_times.max(), kind)}")
-        if np.any(np.diff(t_new) <= 0):
-            raise InvalidOptionError("the times of the epochs must increase (and differ), in the order given")
-        if core_points is not None:
-            core = np.asarray(_xyz(_load(core_points, format)), np.float64)
-            import zarr
-
-            g = zarr.open_group(str(out), mode="r")
-            stored = np.c_[g["x"][:], g["y"][:], g["z"][:]]
-            if core.shape != stored.shape or not np.array_equal(core, stored):
-                raise InvalidOptionError(f"--core-points differs from the archive's core points ({out})")
-        reg_opt = params["given"]["registration_error"]
-        registration = Registration.of(params["given"]["align"])
-        import zarr
-
-        core_count = zarr.open_group(str(out), mode="r")["x"].shape[0]
-        tiles = plan_series(epochs, reference=None, core_count=core_count, execution=execution, format=format,
-                            align=registration is not None)
-        _run(epochs, out, t_new, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt,
-             limit=limit, fmt=format, t_start=t_start, tiles=tiles)
+        with A.appending(out):  # held to the end: no other run appends meanwhile
+            g = A.read_group(out)
+            attrs = g.attrs.asdict()
+            params = attrs["parameters"]
+            _check_append(params, given, core_points, out)
+            old_times = np.asarray([e["time"] for e in attrs["epochs"]], np.float64)
+            t_new, kind, source = _resolve_times(epochs, times, start_index=len(old_times))
+            if kind != attrs["time_kind"]:
+                raise InvalidOptionError(f"the new epochs' times are {kind}s, the archive's are "
+                                         f"{attrs['time_kind']}s")
+            dup = np.intersect1d(t_new, old_times)
+            if dup.size:
+                raise InvalidOptionError(f"epoch time {_show_time(dup[0], kind)} is already in the archive {out}")
+            if t_new.min() <= old_times.max():
+                raise InvalidOptionError(f"appended epochs must come after the archive's last time "
+                                         f"{_show_time(old_times.max(), kind)}")
+            if np.any(np.diff(t_new) <= 0):
+                raise InvalidOptionError("the times of the epochs must increase (and differ), in the order given")
+            if core_points is not None:
+                core = np.asarray(_xyz(_load(core_points, format)), np.float64)
+                stored = np.c_[g["x"][:], g["y"][:], g["z"][:]]
+                if core.shape != stored.shape or not np.array_equal(core, stored):
+                    raise InvalidOptionError(f"--core-points differs from the archive's core points ({out})")
+            reg_opt = params["given"]["registration_error"]
+            registration = Registration.of(params["given"]["align"])
+            tiles = plan_series(epochs, reference=None, core_count=g["x"].shape[0], execution=execution,
+                                format=format, align=registration is not None)
+            _run(epochs, out, t_new, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt,
+                 limit=limit, fmt=format, t_start=t_start, tiles=tiles)
         return out
     if reference is None:
         reference = 0
@@ -460,11 +456,11 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         w.update_all({"time": (times, ("epoch",), time_attrs), "registration_error": (reg, ("epoch",), None)})
         lag = int(params["used"]["lag"])
         t0 = time.perf_counter()
+        fresh = None if fresh is None else tuple(map(np.stack, zip(*fresh)))
         q, info, held, filt, step, recent = _smooth_all(w, E, m, times, reg, ref_var, limit, lag=lag,
                                                         first_epochs=first_epochs,
                                                         frozen=params["smoother"] if go_on else None, state=filt,
-                                                        recent=recent,
-                                                        fresh=None if fresh is None else tuple(map(np.stack, zip(*fresh))))
+                                                        recent=recent, fresh=fresh)
         timings["smoother"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         xyz = prepared.core_points
