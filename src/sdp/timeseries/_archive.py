@@ -18,6 +18,7 @@ Layout (a Zarr v3 group, ``*.zarr``, readable with ``xarray.open_zarr``)::
     object_area, object_peak_change, object_mean_velocity        (object_id,): the object table
     state.npz                        what an append goes on from (:func:`write_state`), not a
                                      dataset variable
+    .sdp-lock                        an empty file an append holds a lock on (:func:`appending`)
 
 Atomicity: a new archive is written under a temporary name beside it, marked complete, renamed
 to ``.NAME.pending`` and swapped in (``NAME`` to ``.NAME.old``, ``.NAME.pending`` to ``NAME``,
