@@ -460,11 +460,20 @@ class Writer:
         return self.zarr.Array(self._arrays[name])
 
     def finish(self, attrs: dict) -> None:
-        """Group attributes (JSON), then consolidated metadata (one read opens the archive)."""
-        self.group.attrs.put(json.loads(json.dumps(attrs, default=_plain)))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # consolidated metadata: "not part of the v3 spec" (xarray reads it)
-            self.zarr.consolidate_metadata(str(self.folder))
+        """The group's attributes (JSON) and consolidated metadata (one read opens the archive, as
+        :func:`zarr.consolidate_metadata` makes it), in one write of the group's metadata: the
+        arrays' metadata from the handles they were resized and written through (zarr's own
+        consolidation reads every array's metadata file again)."""
+        from zarr.core.group import ConsolidatedMetadata, GroupMetadata
+        from zarr.core.metadata.io import save_metadata
+
+        members = sorted(e.name for e in os.scandir(self.folder) if e.is_dir() and
+                         os.path.isfile(os.path.join(e.path, "zarr.json")))
+        self.open_all(members)
+        meta = GroupMetadata(attributes=json.loads(json.dumps(attrs, default=_plain)),
+                             consolidated_metadata=ConsolidatedMetadata(
+                                 metadata={name: self._arrays[name].metadata for name in members}))
+        _at_once([save_metadata(self.group._async_group.store_path, meta)])
 
 
 def _layout(dims, shape, dtype, epochs_per_chunk: int = 1) -> dict:
