@@ -85,14 +85,12 @@ def min_object_points(xyz: np.ndarray, projection_scale: float, *, footprints: f
     return int(max(floor, math.ceil(footprints * math.pi * projection_scale**2 / 4.0 / area)))
 
 
-def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray, step: np.ndarray | None = None,
-                k: int = 0) -> tuple[np.ndarray, int]:
+def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray, step: np.ndarray, k: int) -> tuple[np.ndarray, int]:
     """Per core point, its component among the changed points of one epoch ``k`` (-1: unchanged),
     numbered in the order of their first point; ``i, j``: the neighbour pairs; ``step``: each
     point's first step epoch (-1: none): a pair joins only changes of one kind (both gradual, or
     both steps by then, at epochs at most one apart)."""
     out = np.full(len(sign), -1, np.int64)
-    step = np.full(len(sign), -1, np.int32) if step is None else step
     return out, _epoch_labels(np.ascontiguousarray(sign, np.int8), i, j, step, k, out)
 
 
