@@ -396,6 +396,28 @@ def test_tracked_objects_split_merge_and_start_when_large():
     np.testing.assert_array_equal(again.add(6, d, sigma, vel, step), tr.add(6, d, sigma, vel, step))
 
 
+def test_a_track_of_noise_taken_in_whole_counts_for_the_object_that_takes_it():
+    """A track too small to be an object, met by an object's set, is taken in whole: its points
+    count for the object and its velocities for the object's mean, from its own first epoch."""
+    xyz = np.c_[np.arange(40.0), np.zeros(40), np.zeros(40)]
+    tr = Tracker(xyz, min_points=5, radius=1.5)
+    sigma, step = np.ones(40), np.full(40, -1, np.int32)
+    vel = np.where(np.arange(40) < 4, 1.0, 3.0)
+    labels = []
+    for k, parts in enumerate([[(0, 4)], [(0, 4), (10, 21)], [(0, 21)]]):
+        d = np.zeros(40)
+        for a, b in parts:
+            d[a:b] = 5.0
+        labels.append(tr.add(k, d, sigma, vel, step))
+    assert labels[0].max() == 0 and set(labels[1][10:21]) == {1} and labels[1][:4].max() == 0
+    assert set(labels[2][:21]) == {1}
+    table = tr.table(np.arange(3.0))
+    np.testing.assert_array_equal(table["object_points"], [21])
+    np.testing.assert_array_equal(table["object_start"], [1])
+    # (epoch, point) of the track: 2 × 4 of noise at 1, then 11 and 17 at 3, and 4 more at 1
+    assert table["object_mean_velocity"][0] == pytest.approx((8 * 1 + 11 * 3 + 4 * 1 + 17 * 3) / 40)
+
+
 def _write_epochs(slope, folder: Path, n: int) -> list[str]:
     files = []
     for k in range(n):

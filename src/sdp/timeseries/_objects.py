@@ -137,15 +137,6 @@ def _epoch_labels(sign, i, j, step, k, out):
     return n
 
 
-@nb.njit(cache=True)
-def _raise_peaks(peak, track, d):
-    """``peak[t]``: the change of largest magnitude, its sign kept, among its own and the ``d``
-    of track ``t`` (``track``), the first of equal magnitudes."""
-    for i in range(len(d)):
-        if abs(d[i]) > abs(peak[track[i]]):
-            peak[track[i]] = d[i]
-
-
 def _of_tracks(keys: np.ndarray, m: int, uids: np.ndarray) -> np.ndarray:
     """Which of the sorted ``keys`` (uid·m + point) belong to tracks ``uids``: each track's keys
     are one run, found by bisection."""
@@ -173,12 +164,136 @@ def _merged(keys: np.ndarray, more: np.ndarray) -> np.ndarray:
     return np.sort(np.concatenate([keys, more]), kind="stable") if len(more) else keys
 
 
-def _first_per_group(group: np.ndarray, key: np.ndarray) -> np.ndarray:
-    """Indices of the row of smallest ``key`` in each group (groups sorted ascending)."""
-    order = np.lexsort((key, group))
-    head = np.ones(len(order), bool)
-    head[1:] = group[order[1:]] != group[order[:-1]]
-    return order[head]
+@nb.njit(cache=True, nogil=True)
+def _signs(smoothed, sigma):
+    """Per core point, the sign of its smoothed change where significant (|d| > 1.96 σ), else 0."""
+    out = np.zeros(len(smoothed), np.int8)
+    for p in range(len(smoothed)):
+        d, s = smoothed[p], sigma[p]
+        if np.isfinite(d) and np.isfinite(s) and abs(d) > 1.96 * s:
+            out[p] = 1 if d > 0 else (-1 if d < 0 else 0)
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _epoch(k, min_points, n_objects, comp, n, sign, prev_sign, prev_track, smoothed, velocity, step, onset,
+           onset_kind, uid, obj, first, end, peak, vsum, vcount):
+    """:meth:`Tracker.add`'s kernel: epoch ``k``'s components (``comp``, ``n`` of them) into tracks.
+
+    Returns the next live tracks' arrays (:data:`_TRACK`: the continued ones in the order of their
+    priority, then the new ones in the order of their components), each point's track (-1: none),
+    its object id (int32, 0: none), and, among the live tracks that end, those that were objects
+    (``done``), those taken in whole by a continued track (``taken``, and the track ``into``
+    which), and the rest (``gone``). ``onset``, ``onset_kind`` are updated in place."""
+    m, n_live = len(comp), len(uid)
+    prio = np.empty(n_live, np.int64)  # objects first (by id), then tracks by age (uid)
+    for t in range(n_live):
+        prio[t] = obj[t] if obj[t] > 0 else 2**61 + uid[t]
+    # links: a point changed the same way at this epoch and the last, in a live track
+    best = np.full(n, -1, np.int64)  # each component's track of highest priority among its links
+    lowest = np.full(n_live, -1, np.int64)  # each live track's first component among its links
+    anchor = np.full(n, -1, np.int64)  # each component's first point
+    for p in range(m):
+        c = comp[p]
+        if c < 0:
+            continue
+        if anchor[c] < 0:
+            anchor[c] = p
+        t = prev_track[p]
+        if t >= 0 and sign[p] == prev_sign[p]:
+            if best[c] < 0 or prio[t] < prio[best[c]]:
+                best[c] = t
+            if lowest[t] < 0 or c < lowest[t]:
+                lowest[t] = c
+    continued = np.zeros(n_live, np.bool_)
+    for c in range(n):
+        if best[c] >= 0:
+            continued[best[c]] = True
+    cont = np.flatnonzero(continued)
+    cont = cont[np.argsort(prio[cont], kind="mergesort")]
+    n_cont = len(cont)
+    slot = np.full(n_live, -1, np.int64)
+    for i in range(n_cont):
+        slot[cont[i]] = i
+    of_comp = np.empty(n, np.int64)
+    n_next = n_cont
+    for c in range(n):
+        if best[c] >= 0:
+            of_comp[c] = slot[best[c]]
+        else:
+            of_comp[c] = n_next
+            n_next += 1
+    u_, o_, f_, e_ = np.zeros(n_next, np.int64), np.zeros(n_next, np.int64), np.zeros(n_next, np.int64), \
+        np.zeros(n_next, np.int64)
+    pk, vs, vc = np.zeros(n_next), np.zeros(n_next), np.zeros(n_next)
+    for i in range(n_cont):
+        t = cont[i]
+        u_[i], o_[i], f_[i], e_[i], pk[i], vs[i], vc[i] = uid[t], obj[t], first[t], end[t], peak[t], vsum[t], vcount[t]
+    for c in range(n):
+        if best[c] < 0:
+            u_[of_comp[c]] = k * m + anchor[c]
+            f_[of_comp[c]] = k
+    # live tracks not continued: objects end; others are taken in whole by the track of the first
+    # component they touch, or are noise that ends
+    n_done = n_taken = n_gone = 0
+    done, taken, into, gone = np.empty(n_live, np.int64), np.empty(n_live, np.int64), np.empty(n_live, np.int64), \
+        np.empty(n_live, np.int64)
+    for t in range(n_live):
+        if continued[t]:
+            continue
+        if obj[t] > 0:
+            done[n_done] = t
+            n_done += 1
+        if obj[t] == 0 and lowest[t] >= 0:
+            i = of_comp[lowest[t]]
+            taken[n_taken], into[n_taken] = t, i
+            n_taken += 1
+            f_[i] = min(f_[i], first[t])
+            vs[i] += vsum[t]
+            vc[i] += vcount[t]
+            if abs(peak[t]) > abs(pk[i]):
+                pk[i] = peak[t]
+        else:
+            gone[n_gone] = t
+            n_gone += 1
+    # this epoch's points into their tracks
+    track = np.full(m, -1, np.int64)
+    size = np.zeros(n_next, np.int64)
+    vsum_now, vcount_now = np.zeros(n_next), np.zeros(n_next)
+    for p in range(m):
+        c = comp[p]
+        if c < 0:
+            continue
+        i = of_comp[c]
+        track[p] = i
+        size[i] += 1
+        if abs(smoothed[p]) > abs(pk[i]):
+            pk[i] = smoothed[p]
+        if np.isfinite(velocity[p]):
+            vsum_now[i] += velocity[p]
+            vcount_now[i] += 1.0
+    for i in range(n_next):
+        vs[i] += vsum_now[i]
+        vc[i] += vcount_now[i]
+        e_[i] = k
+    # tracks with min_points changed together become objects, in the order of their priority
+    for i in range(n_next):
+        if o_[i] == 0 and size[i] >= min_points:
+            n_objects += 1
+            o_[i] = n_objects
+    labels = np.zeros(m, np.int32)
+    for p in range(m):
+        if track[p] >= 0:
+            labels[p] = o_[track[p]]
+    # onsets: the first of two epochs running with significant change, or the step before it
+    for p in range(m):
+        if onset[p] < 0 and sign[p] != 0 and prev_sign[p] != 0:
+            if 0 <= step[p] <= k - 1:
+                onset[p], onset_kind[p] = step[p], 1
+            else:
+                onset[p], onset_kind[p] = k - 1, 2
+    return (u_, o_, f_, e_, pk, vs, vc, track, labels, done[:n_done], taken[:n_taken], into[:n_taken],
+            gone[:n_gone])
 
 
 class Tracker:
@@ -226,102 +341,36 @@ class Tracker:
         if k != self.epoch + 1:
             raise ValueError(f"epoch {k} after {self.epoch}")
         m = self.m
-        sig = np.isfinite(smoothed) & np.isfinite(sigma) & (np.abs(smoothed) > 1.96 * sigma)
-        sign = np.where(sig, np.sign(smoothed), 0).astype(np.int8)
+        sign = _signs(smoothed, sigma)
         comp, n = _components(sign, self.i, self.j, step, k)
-        at = np.flatnonzero(comp >= 0)
-        c = comp[at]
         live = self.live
-        n_live = len(live["uid"])
-        width = max(n_live, 1)
-        # links: a point changed the same way at this epoch and the last, in a live track
-        linked = at[(sign[at] == self.sign[at]) & (self.track[at] >= 0)]
-        pairs = _distinct(comp[linked] * width + self.track[linked])
-        pc, pt = pairs // width, pairs % width
-        prio = np.where(live["obj"] > 0, live["obj"], 2**61 + live["uid"])  # objects first, oldest first
-        best = np.full(n, -1, np.int64)
-        if pairs.size:
-            won = _first_per_group(pc, prio[pt])
-            best[pc[won]] = pt[won]
-        # the tracks of this epoch: continued ones (in the order of their priority), then new ones
-        cont = _distinct(best[best >= 0])
-        cont = cont[np.argsort(prio[cont], kind="stable")]
-        new_comps = np.flatnonzero(best < 0)
-        anchor = np.full(n, m, np.int64)
-        np.minimum.at(anchor, c, at)
-        slot = np.full(n_live, -1, np.int64)
-        slot[cont] = np.arange(len(cont))
-        track_of_comp = np.zeros(n, np.int64)
-        track_of_comp[best >= 0] = slot[best[best >= 0]]
-        track_of_comp[new_comps] = len(cont) + np.arange(len(new_comps))
-        n_next = len(cont) + len(new_comps)
-        nxt = {key: np.concatenate([live[key][cont], np.zeros(len(new_comps), live[key].dtype)]) for key in _TRACK}
-        nxt["uid"][len(cont):] = k * m + anchor[new_comps]
-        nxt["first"][len(cont):] = k
+        onset, onset_kind = self.onset.copy(), self.onset_kind.copy()  # kept as they were if this raises
+        (uid, obj, first, end, peak, vsum, vcount, track, labels, done, taken, into, gone) = _epoch(
+            k, self.min_points, len(self.objects["start"]), comp, n, sign, self.sign, self.track, smoothed, velocity,
+            step, onset, onset_kind, *(live[key] for key in _TRACK))
+        nxt = dict(zip(_TRACK, (uid, obj, first, end, peak, vsum, vcount)))
         # live tracks not continued: objects end the epoch before; others are taken in whole by a
-        # set they touch, or are noise that ends
-        continued = np.zeros(n_live, bool)
-        continued[cont] = True
-        ended = np.flatnonzero(~continued)
-        gone = np.zeros(0, np.int64)
-        if ended.size:
-            into = np.full(n_live, -1, np.int64)
-            if pairs.size:
-                lost = ~continued[pt]
-                first = _first_per_group(pt[lost], pc[lost])
-                into[pt[lost][first]] = track_of_comp[pc[lost][first]]
-            done = ended[live["obj"][ended] > 0]
-            o = live["obj"][done] - 1
-            for key in ("end", "peak", "vsum", "vcount"):
-                self.objects[key][o] = live[key][done]
-            self.objects["points"][o] = self._count(live["uid"][done])
-            taken = ended[(live["obj"][ended] == 0) & (into[ended] >= 0)]
-            u = into[taken]
-            np.minimum.at(nxt["first"], u, live["first"][taken])
-            np.add.at(nxt["vsum"], u, live["vsum"][taken])
-            np.add.at(nxt["vcount"], u, live["vcount"][taken])
-            _raise_peaks(nxt["peak"], u, live["peak"][taken])
-            kept = continued.copy()
-            kept[taken] = True
-            gone = live["uid"][~kept]
-            if taken.size:  # their points now count for the track that took them
-                src = live["uid"][taken]
-                moved = _of_tracks(self.keys, m, src)
-                by = np.argsort(src)
-                again = nxt["uid"][u][by][np.searchsorted(src[by], self.keys[moved] // m)] * m + self.keys[moved] % m
-                self.keys = _distinct(np.concatenate([self.keys[~moved], again]))
+        # set they touch (their points then count for it), or are noise that ends
+        o = live["obj"][done] - 1
+        for key in ("end", "peak", "vsum", "vcount"):
+            self.objects[key][o] = live[key][done]
+        self.objects["points"][o] = self._count(live["uid"][done])
+        if taken.size:
+            src = live["uid"][taken]
+            moved = _of_tracks(self.keys, m, src)
+            by = np.argsort(src)
+            again = uid[into][by][np.searchsorted(src[by], self.keys[moved] // m)] * m + self.keys[moved] % m
+            self.keys = _distinct(np.concatenate([self.keys[~moved], again]))
         if gone.size:
-            self.keys = self.keys[~_of_tracks(self.keys, m, gone)]
-        # this epoch's points into their tracks
-        tr = track_of_comp[c]
-        d, v = smoothed[at], velocity[at]
-        _raise_peaks(nxt["peak"], tr, d)
-        fv = np.isfinite(v)
-        nxt["vsum"] += np.bincount(tr[fv], v[fv], minlength=n_next)
-        nxt["vcount"] += np.bincount(tr[fv], minlength=n_next)
-        nxt["end"][:] = k
-        self.keys = _merged(self.keys, nxt["uid"][tr] * m + at)
-        # tracks with min_points changed together become objects, in the order of their priority
-        size = np.bincount(tr, minlength=n_next)
-        born = np.flatnonzero((nxt["obj"] == 0) & (size >= self.min_points))
-        if born.size:
-            first_id = len(self.objects["start"]) + 1
-            nxt["obj"][born] = first_id + np.arange(born.size)
+            self.keys = self.keys[~_of_tracks(self.keys, m, live["uid"][gone])]
+        at = np.flatnonzero(track >= 0)
+        self.keys = _merged(self.keys, uid[track[at]] * m + at)
+        born = int(obj.max(initial=0)) - len(self.objects["start"])  # objects born this epoch: ids go on
+        if born > 0:
             for key in _OBJECT:
-                self.objects[key] = np.concatenate([self.objects[key], np.zeros(born.size, self.objects[key].dtype)])
-            self.objects["start"][first_id - 1:] = k
-        labels = np.zeros(m, np.int32)
-        labels[at] = nxt["obj"][tr]
-        # onsets: the first of two epochs running with significant change, or the step before it
-        run = (self.onset < 0) & sig & (self.sign != 0)
-        if run.any():
-            first = k - 1
-            st = (step >= 0) & (step <= first)
-            self.onset[run] = np.where(st[run], step[run], first)
-            self.onset_kind[run] = np.where(st[run], 1, 2)
-        self.live = nxt
-        self.track = np.full(m, -1, np.int64)
-        self.track[at] = tr
+                self.objects[key] = np.concatenate([self.objects[key], np.zeros(born, self.objects[key].dtype)])
+            self.objects["start"][-born:] = k
+        self.live, self.track, self.onset, self.onset_kind = nxt, track, onset, onset_kind
         self.sign, self.epoch = sign, k
         return labels
 
