@@ -71,13 +71,13 @@ def test_epochs_beyond_the_memory_limit_switch_to_tiles(slope, tmp_path, monkeyp
         np.save(files[-1], e)
     said = []
     # an epoch of 9,000 points counted as 900 MB: above the limit of 600 MB, which a tile's task holds
-    monkeypatch.setattr(_series, "_POINT_BYTES", 1e5)
+    monkeypatch.setattr(_series, "POINT_BYTES", 1e5)
     low = sdp.Execution(memory_limit="600MB", tile_size=4.0, scheduler="synchronous", notify=said.append)
     tiled = sdp.series(files, output=tmp_path / "t.zarr", cylinder=CYL, execution=low)
     assert len(said) == 1 and "in tiles on Dask" in said[0] and "600" in said[0]
     assert tiled.attrs["runs"][-1]["tiled"]["reason"] == said[0]
     _same(sdp.series(slope, output=tmp_path / "m.zarr", cylinder=CYL), tiled)
-    monkeypatch.setattr(_series, "_POINT_BYTES", 200.0)  # they fit: in memory
+    monkeypatch.setattr(_series, "POINT_BYTES", 200.0)  # they fit: in memory
     assert "tiled" not in sdp.series(files, output=tmp_path / "m2.zarr", cylinder=CYL, execution=low).attrs["runs"][-1]
     with pytest.raises(sdp.SDPError, match="--align registers whole epochs"):
         sdp.series(files, output=tmp_path / "x.zarr", align="density", execution=TILES)

@@ -67,7 +67,7 @@ from ..io._source import PointSource
 from ..options import Cylinder, Execution
 from ._session import Session, Tiling, first_slices, load_bucket
 
-__all__ = ["TiledSeries", "plan_series", "count_points"]
+__all__ = ["TiledSeries", "plan_series", "count_points", "POINT_BYTES", "CORE_BYTES", "PREPARE_CORE_BYTES"]
 
 #: The values a measuring task returns per core point (as :func:`sdp.distances_tiled` packs them).
 _PACKED = ("distance", "lod", "significant", "n1", "n2", "spread1", "spread2", "normal_x", "normal_y", "normal_z",
@@ -96,7 +96,7 @@ _TILE_POINT_BYTES = 500
 
 #: Bytes the in-memory run needs per point of an epoch (:meth:`PreparedReference.memory_per_epoch`:
 #: its sorted copy, cells and moments), and per core point when measuring and when preparing.
-_POINT_BYTES, _CORE_BYTES, _PREPARE_CORE_BYTES = 200.0, 160.0, 240.0
+POINT_BYTES, CORE_BYTES, PREPARE_CORE_BYTES = 200.0, 160.0, 240.0
 
 
 def count_points(epoch, fmt: str | None) -> int | None:
@@ -146,8 +146,8 @@ def plan_series(epochs: list, *, reference: int | None, core_count: int, executi
         return None  # a file the tiles can't slice: the in-memory run reads it (or says why it can't)
     n_max = max(sizes)
     n_ref = sizes[reference] if reference is not None else 0
-    need = max(_POINT_BYTES * n_max + _CORE_BYTES * core_count,
-               _POINT_BYTES * n_ref + _PREPARE_CORE_BYTES * core_count)
+    need = max(POINT_BYTES * n_max + CORE_BYTES * core_count,
+               POINT_BYTES * n_ref + PREPARE_CORE_BYTES * core_count)
     if need <= limit:
         return None
     if align:

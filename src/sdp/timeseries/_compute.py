@@ -51,7 +51,7 @@ from ..io._output import check_outputs
 from ..io._read import read_points
 from ..io._time import file_time
 from ..options import Cylinder, Execution, Registration
-from ..scale._series import count_points, plan_series
+from ..scale._series import CORE_BYTES, POINT_BYTES, count_points, plan_series
 from . import _archive as A
 from ._kalman import BYTES_PER_VALUE, FilterState, kalman, observation_variance, process_noise
 from ._objects import OBJECT_FIELDS, Tracker, min_object_points
@@ -62,6 +62,9 @@ __all__ = ["series", "SERIES_FIELDS"]
 SERIES_FIELDS = ("distance", "lod", "significant", "smoothed", "velocity", "smoothed_sigma", "velocity_sigma",
                  "object")
 _EPOCH_DIMS = ("epoch", "point")
+#: Memory per point of an epoch measured while the next is read (:data:`sdp.scale._series.POINT_BYTES`)
+#: and the next one's reading (its coordinates and the reader's buffers).
+_AHEAD_BYTES = POINT_BYTES + 64.0
 _DERIVED_EPOCHS = 16  # epochs per chunk of the smoothed arrays: an append rewrites lag + 1 rows (16 by default)
 
 
@@ -150,6 +153,35 @@ def _check_append(archive: dict, given: dict, core_points, path: Path) -> None:
             flag = "--" + name.replace("_", "-")
             raise InvalidOptionError(f"{flag} {value} differs from the archive's {kept} ({path}): an append keeps "
                                      "the archive's options")
+
+
+def _read_ahead(epochs, fmt, *, skip: int, fits, tiled: bool):
+    """Each epoch's points in turn (None for the epoch ``skip``, which the caller holds, and for
+    every epoch with ``tiled``), the next file read on a thread while the caller measures this one
+    when ``fits(its point count)``: decompressing a LAZ file and the cylinders' kernels both release
+    the GIL, so the two cores share an epoch's two halves. Two epochs are then in memory at once."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def read(k):
+        return None if tiled or k == skip else _load(epochs[k], fmt)
+
+    def ahead(k):
+        if tiled or k >= len(epochs) or k == skip or not isinstance(epochs[k], (str, os.PathLike)):
+            return False
+        n = count_points(epochs[k], fmt)
+        return n is not None and fits(n)
+
+    with ThreadPoolExecutor(1, thread_name_prefix="sdp-read") as pool:
+        pending = None
+        try:
+            for k in range(len(epochs)):
+                cloud = pending.result() if pending is not None else read(k)
+                pending = pool.submit(read, k + 1) if ahead(k + 1) else None
+                yield cloud
+                del cloud
+        finally:
+            if pending is not None:
+                pending.cancel()
 
 
 # ------------------------------------------------------------------ the run
@@ -418,34 +450,38 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                     fresh.extend(r[1:3] for r in buffered)
                 buffered.clear()
 
-        for k, epoch in enumerate(epochs):
-            row = n_old + k
-            is_ref = ref_cloud is not None and k == ref_cloud[0]
-            cloud = ref_cloud[1] if is_ref else (epoch if tiles else _load(epoch, fmt))
-            xyz = None if tiles else _xyz(cloud)  # in tiles the epoch is read slice by slice
-            record = {"file": _name(epoch, row), "time": float(t_new[k]), "time_source": source}
-            reg = reg_opt
-            if registration is not None and not is_ref:
-                from ..registration._align import align as align_clouds  # SciPy's spatial module: only to align
+        ref_k = ref_cloud[0] if ref_cloud is not None else -1
+        with contextlib.closing(_read_ahead(epochs, fmt, skip=ref_k, tiled=bool(tiles),
+                                            fits=lambda n: _AHEAD_BYTES * n + CORE_BYTES * m <= limit)) as loaded:
+            for k, (epoch, cloud) in enumerate(zip(epochs, loaded)):
+                row = n_old + k
+                is_ref = k == ref_k
+                cloud = ref_cloud[1] if is_ref else (epoch if tiles else cloud)
+                xyz = None if tiles else _xyz(cloud)  # in tiles the epoch is read slice by slice
+                record = {"file": _name(epoch, row), "time": float(t_new[k]), "time_source": source}
+                reg = reg_opt
+                if registration is not None and not is_ref:
+                    from ..registration._align import align as align_clouds  # SciPy's spatial module: only to align
 
-                al = align_clouds(ref_xyz, xyz, method=registration.method, fix_horizontal=registration.fix_horizontal)
-                xyz = xyz @ al.matrix[:3, :3].T + al.matrix[:3, 3]
-                record["alignment"] = {"matrix": al.matrix.tolist(), "rmse": float(al.rmse)}
-                if reg_opt == "auto":
-                    reg = float(al.rmse) if np.isfinite(al.rmse) else 0.0
-            if reg == "auto":
-                reg = 0.0
-            if tiles:
-                d, n_points = tiles.measure(prepared, cloud, registration_error=reg, reference=is_ref)
-            else:
-                d, n_points = prepared.measure(xyz, registration_error=reg, memory_limit=limit), len(xyz)
-            buffered.append((k, d.distance.astype(np.float32), d.lod.astype(np.float32), d.significant))
-            if len(buffered) >= flush:
-                write_rows()
-            record.update(registration_error=float(reg), points=int(n_points), comparable=int(d.comparable.sum()),
-                          significant=int(d.significant.sum()))
-            attrs["epochs"].append(record)
-            del cloud, xyz, d
+                    al = align_clouds(ref_xyz, xyz, method=registration.method,
+                                      fix_horizontal=registration.fix_horizontal)
+                    xyz = xyz @ al.matrix[:3, :3].T + al.matrix[:3, 3]
+                    record["alignment"] = {"matrix": al.matrix.tolist(), "rmse": float(al.rmse)}
+                    if reg_opt == "auto":
+                        reg = float(al.rmse) if np.isfinite(al.rmse) else 0.0
+                if reg == "auto":
+                    reg = 0.0
+                if tiles:
+                    d, n_points = tiles.measure(prepared, cloud, registration_error=reg, reference=is_ref)
+                else:
+                    d, n_points = prepared.measure(xyz, registration_error=reg, memory_limit=limit), len(xyz)
+                buffered.append((k, d.distance.astype(np.float32), d.lod.astype(np.float32), d.significant))
+                if len(buffered) >= flush:
+                    write_rows()
+                record.update(registration_error=float(reg), points=int(n_points), comparable=int(d.comparable.sum()),
+                              significant=int(d.significant.sum()))
+                attrs["epochs"].append(record)
+                del cloud, xyz, d
         write_rows()
         if tiles:
             tiles.close()  # the cluster's workers are not needed by the smoother

@@ -344,10 +344,9 @@ class Tracker:
         sign = _signs(smoothed, sigma)
         comp, n = _components(sign, self.i, self.j, step, k)
         live = self.live
-        onset, onset_kind = self.onset.copy(), self.onset_kind.copy()  # kept as they were if this raises
         (uid, obj, first, end, peak, vsum, vcount, track, labels, done, taken, into, gone) = _epoch(
             k, self.min_points, len(self.objects["start"]), comp, n, sign, self.sign, self.track, smoothed, velocity,
-            step, onset, onset_kind, *(live[key] for key in _TRACK))
+            step, self.onset, self.onset_kind, *(live[key] for key in _TRACK))
         nxt = dict(zip(_TRACK, (uid, obj, first, end, peak, vsum, vcount)))
         # live tracks not continued: objects end the epoch before; others are taken in whole by a
         # set they touch (their points then count for it), or are noise that ends
@@ -370,7 +369,7 @@ class Tracker:
             for key in _OBJECT:
                 self.objects[key] = np.concatenate([self.objects[key], np.zeros(born, self.objects[key].dtype)])
             self.objects["start"][-born:] = k
-        self.live, self.track, self.onset, self.onset_kind = nxt, track, onset, onset_kind
+        self.live, self.track = nxt, track
         self.sign, self.epoch = sign, k
         return labels
 
