@@ -479,17 +479,19 @@ def test_command_append_and_info_import_no_xarray(slope, tmp_path):
     (["{e0}", "{e1}", "--reference", "5"], "reference 5"),
     (["{e0}", "{e1}", "--epoch-output", "nope"], "K:FILE"),
     (["{e0}", "{e1}", "--points-output", "p.txt"], ".csv or .parquet"),
+    (["{e0}", "{e1}", "{bad}"], "bad.laz: can't read as las"),  # read ahead, on a thread
 ])
 def test_command_bad_input_exits_2(slope, tmp_path, capsys, args, message):
     files = _write_epochs(slope, tmp_path, 2)
-    args = [a.format(e0=files[0], e1=files[1]) for a in args]
+    sdp.write_points(tmp_path / "whole.laz", slope.epochs[2])  # cut short: its header counts the points
+    (tmp_path / "bad.laz").write_bytes((tmp_path / "whole.laz").read_bytes()[:5000])
+    args = [a.format(e0=files[0], e1=files[1], bad=tmp_path / "bad.laz") for a in args]
     assert main(["series", *args, "-o", str(tmp_path / "x.zarr")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("sdp: error:") and message in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.zarr").exists()
 
 
-@pytest.mark.slow
 @pytest.mark.slow
 def test_real_epochs_equal_sdp_distance_on_each_pair(shared_data, tmp_path):
     folder = shared_data / "pheno4d_tomato"
