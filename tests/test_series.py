@@ -232,8 +232,8 @@ def test_an_append_on_a_full_disk_is_one_line_and_leaves_the_archive(slope, tmp_
 
 def test_an_append_running_elsewhere_is_neither_rolled_back_nor_joined(slope, tmp_path):
     """While another process appends (its lock held, its journal there, a file replaced), opening
-    the archive leaves that journal alone and a second append is refused in one line; once that
-    process is killed, the next open rolls its append back."""
+    the archive leaves that journal alone and a second append, or a run replacing the archive, is
+    refused in one line; once that process is killed, the next open rolls its append back."""
     import subprocess
     import sys
 
@@ -242,7 +242,7 @@ def test_an_append_running_elsewhere_is_neither_rolled_back_nor_joined(slope, tm
     before = _digest(out)
     code = ("import os, sys, time; from pathlib import Path; from sdp.timeseries import _archive as A\n"
             "out = Path(sys.argv[1])\n"
-            "with A.appending(out):\n"
+            "with A.writing(out):\n"
             "    A._begin(out, A.untouched_by_append(rows=3, rewritten_from=0, epochs_per_chunk=16))\n"
             "    (out / 'part').write_bytes(b'half'); os.replace(out / 'part', out / 'state.npz')\n"
             "    print('ready', flush=True); time.sleep(60)\n")
@@ -251,8 +251,10 @@ def test_an_append_running_elsewhere_is_neither_rolled_back_nor_joined(slope, tm
         assert other.stdout.readline().strip() == "ready"
         assert sdp.open_series(out).sizes["epoch"] == 3
         assert (tmp_path / ".s.zarr.journal").is_dir() and (out / "state.npz").read_bytes() == b"half"
-        with pytest.raises(_archive.SeriesArchiveError, match="another sdp run is appending"):
+        with pytest.raises(_archive.SeriesArchiveError, match="another sdp run is writing"):
             sdp.series(slope.epochs[3:4], output=out, append=True, times=[3])
+        with pytest.raises(_archive.SeriesArchiveError, match="another sdp run is writing"):  # nor replaced
+            sdp.series(slope.epochs[:2], output=out, cylinder=CYL)
     finally:
         other.kill()
         other.wait()

@@ -18,7 +18,7 @@ Layout (a Zarr v3 group, ``*.zarr``, readable with ``xarray.open_zarr``)::
     object_area, object_peak_change, object_mean_velocity        (object_id,): the object table
     state.npz                        what an append goes on from (:func:`write_state`), not a
                                      dataset variable
-    .sdp-lock                        an empty file an append holds a lock on (:func:`appending`)
+    .sdp-lock                        an empty file a run writing the archive holds a lock on (:func:`writing`)
 
 Atomicity: a new archive is written under a temporary name beside it, marked complete, renamed
 to ``.NAME.pending`` and swapped in (``NAME`` to ``.NAME.old``, ``.NAME.pending`` to ``NAME``,
@@ -52,7 +52,7 @@ import numpy as np
 
 from ..errors import SDPError, require
 
-__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "appending", "transaction",
+__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "writing", "transaction",
            "untouched_by_append", "Writer",
            "many_chunks_at_once", "write_state", "read_state", "objects_by_size", "read_group"]
 
@@ -202,8 +202,8 @@ def _try_lock(path: Path):
 
 @contextmanager
 def _writer_gone(path: Path):
-    """Whether no live run is appending to ``path`` (this process holds its lock, or it is free:
-    then held for the block)."""
+    """Whether no live run is writing ``path`` (this process holds its lock, or it is free: then
+    held for the block)."""
     if path.resolve() in _HELD:
         yield True
         return
@@ -216,23 +216,24 @@ def _writer_gone(path: Path):
 
 
 @contextmanager
-def appending(path):
-    """Hold the append lock of the archive ``path`` for the block, then finish or undo what an
-    interrupted run left (:func:`recover`). The lock is a flock on a file inside the archive: the
-    system releases it when the process ends, however it ends, so a killed run leaves no stale
-    lock, and a run or :func:`open_series` never rolls back the journal of an append still running.
+def writing(path):
+    """Hold the write lock of the archive ``path`` for the block (an append, or a run replacing
+    it), then finish or undo what an interrupted run left (:func:`recover`). The lock is a flock on
+    a file inside the archive: the system releases it when the process ends, however it ends, so a
+    killed run leaves no stale lock, and a run or :func:`open_series` never rolls back the journal
+    of an append still running.
 
     Raises
     ------
     SeriesArchiveError
-        Another run is appending to this archive.
+        Another run is writing this archive.
     """
     path = Path(path)
     if not path.is_dir():
         recover(path)  # a new version left pending by an interrupted run
     f = _try_lock(path)
     if f is None:
-        raise SeriesArchiveError(f"{path}: another sdp run is appending to this archive; run again when it has ended")
+        raise SeriesArchiveError(f"{path}: another sdp run is writing this archive; run again when it has ended")
     key = path.resolve()
     _HELD.add(key)
     try:
@@ -319,7 +320,7 @@ def transaction(path, *, untouched=None):
     recover(path)
     if untouched is not None:
         if path.resolve() not in _HELD:
-            raise RuntimeError("an append's transaction runs inside appending(path)")
+            raise RuntimeError("an append's transaction runs inside writing(path)")
         journal, committed = _journal(path)
         _begin(path, untouched)
         try:

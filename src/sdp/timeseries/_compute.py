@@ -291,7 +291,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     if append:
         if not out.exists() and not A._siblings(out)[0].exists():
             raise SDPError(f"{out}: no archive to append to; run without --append first")
-        with A.appending(out):  # held to the end: no other run appends meanwhile
+        with A.writing(out):  # held to the end: no other run writes the archive meanwhile
             g = A.read_group(out)
             attrs = g.attrs.asdict()
             params = attrs["parameters"]
@@ -380,8 +380,10 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                             "reference_file": _name(epochs[reference], reference), "core_points": core_source,
                             "min_object_points": min_object_points(prepared.core_points,
                                                                    prepared.projection_scale)}}
-    _run(epochs, out, t, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
-         fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud), tiles=tiles)
+    with A.writing(out) if out.is_dir() else contextlib.nullcontext():  # an archive replaced: not while appended to
+        _run(epochs, out, t, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
+             fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud),
+             tiles=tiles)
     return out
 
 
