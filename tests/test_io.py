@@ -161,6 +161,27 @@ def test_io_modules_import_one_way():
     assert {"_cloud", "_read", "_output", "_source", "_las", "_ply"} <= done
 
 
+@pytest.mark.parametrize("point_format", [3, 7])
+def test_xyz_alone_from_a_layered_laz_equal_the_whole_read(tmp_path, rng, point_format):
+    """Read without its other dimensions (a series' epochs), a LAZ of point format 6-10 skips their
+    layers: the same coordinates as a whole read, which keeps its colours and intensities."""
+    import laspy
+
+    header = laspy.LasHeader(point_format=point_format, version="1.4")
+    header.scales, header.offsets = [0.001] * 3, [600_000.0, 4_800_000.0, 0.0]
+    las = laspy.LasData(header)
+    xyz = rng.random((3000, 3)) * 50 + [600_000.0, 4_800_000.0, 10.0]
+    las.x, las.y, las.z = xyz.T
+    las.intensity = rng.integers(1, 60_000, 3000).astype(np.uint16)
+    las.red = rng.integers(1, 60_000, 3000).astype(np.uint16)
+    las.write(str(tmp_path / "in.laz"))
+    whole, bare = read_points(tmp_path / "in.laz"), read_points(tmp_path / "in.laz", fields=False)
+    np.testing.assert_array_equal(bare.xyz, whole.xyz)
+    np.testing.assert_array_equal(whole.fields["intensity"], las.intensity)
+    np.testing.assert_array_equal(whole.fields["red"], las.red)
+    assert bare.fields == {} and np.abs(whole.xyz - xyz).max() < 1e-3
+
+
 def test_a_las_files_time_read_from_its_header_agrees_with_laspy(tmp_path):
     """file_time reads the LAS header's fixed fields itself (laspy only for the points' GPS time):
     the creation date laspy reads (year 0: none), or the GPS time where the encoding says

@@ -29,7 +29,13 @@ def read_las(path, *, fields: bool = True):
     import laspy
 
     check_las_counts(path)
-    with laspy.open(str(path)) as reader, bar(reader.header.point_count, f"reading {Path(path).name}") as pb:
+    # x, y, z alone: LAZ point formats 6-10 store the other dimensions in layers of their own,
+    # which lazrs then skips (a third of the time on a format-7 file with colour, intensity and
+    # GPS time); other formats decompress whole, as before
+    keep = (laspy.DecompressionSelection.all() if fields else
+            laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z)
+    with laspy.open(str(path), decompression_selection=keep) as reader, \
+            bar(reader.header.point_count, f"reading {Path(path).name}") as pb:
         check_las_points(path, reader.header)
         chunks = []
         for chunk in reader.chunk_iterator(LAS_CHUNK):
