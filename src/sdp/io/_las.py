@@ -16,7 +16,7 @@ from .._core._progress import bar
 from ._cloud import Cloud, CloudFileError
 
 __all__ = ["LAS_CHUNK", "read_las", "las_point_count", "check_las_counts", "check_las_points", "las_scale_offset",
-           "write_las"]
+           "write_las", "xyz_only"]
 
 LAS_CHUNK = 2_000_000  # points per chunk read (a progress step)
 
@@ -29,11 +29,7 @@ def read_las(path, *, fields: bool = True):
     import laspy
 
     check_las_counts(path)
-    # x, y, z alone: LAZ point formats 6-10 store the other dimensions in layers of their own,
-    # which lazrs then skips (a third of the time on a format-7 file with colour, intensity and
-    # GPS time); other formats decompress whole, as before
-    keep = (laspy.DecompressionSelection.all() if fields else
-            laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z)
+    keep = laspy.DecompressionSelection.all() if fields else xyz_only()
     with laspy.open(str(path), decompression_selection=keep) as reader, \
             bar(reader.header.point_count, f"reading {Path(path).name}") as pb:
         check_las_points(path, reader.header)
@@ -54,6 +50,15 @@ def read_las(path, *, fields: bool = True):
         return xyz, {}, None
     las = laspy.LasData(h, points=laspy.ScaleAwarePointRecord(records, h.point_format, h.scales, h.offsets))
     return xyz, {d: np.asarray(las[d]) for d in las.point_format.dimension_names if d not in ("X", "Y", "Z")}, las
+
+
+def xyz_only():
+    """laspy's decompression selection of x, y, z alone: LAZ point formats 6-10 store the other
+    dimensions in layers of their own, which lazrs then skips (a third of the time on a format-7
+    file with colour, intensity and GPS time); other formats decompress whole."""
+    import laspy
+
+    return laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
 
 
 def check_las_counts(path) -> None:

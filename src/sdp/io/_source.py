@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ._cloud import CloudFileError, input_format, library_error, unreadable
-from ._las import LAS_CHUNK, check_las_counts, check_las_points, las_scale_offset
+from ._las import LAS_CHUNK, check_las_counts, check_las_points, las_scale_offset, xyz_only
 from ._output import atomic_path
 from ._ply import ply_is_binary, ply_vertices
 from ._read import read_points
@@ -147,7 +147,7 @@ class PointSource:
 
             from ._kernels import scaled_xyz
 
-            with laspy.open(str(self.path)) as r:
+            with laspy.open(str(self.path), decompression_selection=xyz_only()) as r:
                 scale, offset = np.asarray(r.header.scales, float), np.asarray(r.header.offsets, float)
                 r.seek(start)
                 for s in range(start, stop, size):
