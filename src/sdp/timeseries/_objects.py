@@ -406,7 +406,9 @@ class Tracker:
         tr = cls(xyz, min_points=min_points, pairs=(arrays["pair_i"], arrays["pair_j"], radius, area))
         tr.epoch = int(arrays["epoch"][0])
         pts = np.asarray(arrays["points"], np.int64)
-        tr.track, tr.sign, tr.onset, tr.onset_kind = pts[:, 0], pts[:, 1].astype(np.int8), pts[:, 2], pts[:, 3]
+        # contiguous columns: the kernels are compiled (and warmed up) for contiguous arrays
+        tr.track, tr.sign, tr.onset, tr.onset_kind = (np.ascontiguousarray(pts[:, a], t) for a, t in
+                                                      enumerate((np.int64, np.int8, np.int64, np.int64)))
         for name, into, keys in (("live", tr.live, _TRACK), ("objects", tr.objects, _OBJECT)):
             a = np.asarray(arrays[name], np.float64).reshape(-1, len(keys))
             for n, key in enumerate(keys):
