@@ -128,6 +128,27 @@ def test_appends_one_by_one_equal_the_full_run_with_a_short_lag(slope, tmp_path,
     assert full.sizes["object_id"] >= 2 and (full.onset.values >= 0).any()
 
 
+def test_an_append_needs_no_kernel_a_full_run_did_not_compile(slope, tmp_path):
+    """``sdp warmup`` runs a full series: an append must find every kernel it calls compiled for
+    its argument types (the saved state's arrays contiguous, as a run's), or a fresh install's first
+    append would wait for the compiler."""
+    import sys
+
+    import numba
+
+    def signatures():
+        return {f"{name}.{k}": len(v.signatures) for name, mod in list(sys.modules.items())
+                if name.startswith("sdp.") and mod is not None
+                for k, v in vars(mod).items() if isinstance(v, numba.core.registry.CPUDispatcher)}
+
+    out = tmp_path / "s.zarr"
+    sdp.series(slope.epochs[:5], output=out, cylinder=CYL, times=range(5))
+    before = signatures()
+    sdp.series(slope.epochs[5:6], output=out, append=True, times=[5])
+    after = signatures()
+    assert {k: (before.get(k), n) for k, n in after.items() if before.get(k, 0) < n} == {}
+
+
 def test_a_corrupt_or_missing_state_refuses_the_append_in_one_line(slope, tmp_path, capsys):
     out = tmp_path / "s.zarr"
     sdp.series(slope.epochs[:5], output=out, cylinder=CYL, times=range(5))
