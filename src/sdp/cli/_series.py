@@ -126,7 +126,7 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     t0 = time.perf_counter()
     archive = write_series(epochs, output=output, append=append, times=times, execution=execution, **options)
     summary = describe_series(archive)
-    # the dataset only for exports (xarray and pandas: a third of a second of a job's start-up); without
+    # the dataset only for exports (importing xarray and pandas is much of a job's start-up); without
     # Dask's arrays: the command reads the rows and columns it indexes, and importing them costs more
     ds = open_series(archive, chunks=None) if epoch_files or points is not None or report else None
     written = [str(output)]

@@ -54,8 +54,8 @@ def read_las(path, *, fields: bool = True):
 
 def xyz_only():
     """laspy's decompression selection of x, y, z alone: LAZ point formats 6-10 store the other
-    dimensions in layers of their own, which lazrs then skips (a third of the time on a format-7
-    file with colour, intensity and GPS time); other formats decompress whole."""
+    dimensions in layers of their own, which lazrs then skips (most of the decoding where a file
+    carries colour, intensity or GPS time); other formats decompress whole."""
     import laspy
 
     return laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z

@@ -92,8 +92,8 @@ def require_series():
 
 def require_zarr():
     """zarr, having checked that xarray is installed too (the ``series`` extra), without importing
-    it: writing and summarising an archive need only zarr, and xarray with pandas is about a third
-    of a second of a command's start-up."""
+    it: writing and summarising an archive need only zarr, and importing xarray and pandas is much
+    of a short command's start-up."""
     import importlib.util
 
     if importlib.util.find_spec("xarray") is None:

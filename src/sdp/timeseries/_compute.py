@@ -159,8 +159,8 @@ def _read_ahead(epochs, fmt, *, skip: int, fits, tiled: bool):
     """Each epoch's points in turn (None for the epoch ``skip``, which the caller holds, and for
     every epoch with ``tiled``), the next file read on a thread while the caller measures this one
     when ``fits(its point count)``: the cylinders' kernels release the GIL and a file's decoding
-    does for much of its time, so the reading overlaps the measuring (LAZ decompression keeps both
-    cores busy by itself: 8 % less per epoch there). Two epochs are then in memory at once."""
+    does for much of its time, so the reading overlaps the measuring (less so for LAZ, whose
+    decompression keeps both cores busy by itself). Two epochs are then in memory at once."""
     from concurrent.futures import ThreadPoolExecutor
 
     def read(k):
