@@ -211,8 +211,8 @@ def test_growing_from_the_seeds_decides_as_measuring_everywhere_does(far):
 
     pd = sd.everywhere()
     with np.errstate(invalid="ignore"):
-        far = np.abs(pd.distance) > DECISION_FACTOR * pd.lod
-    changed = (states == CHANGED) | ((states == UNCHANGED) & far & present)
+        beyond = np.abs(pd.distance) > DECISION_FACTOR * pd.lod
+    changed = (states == CHANGED) | ((states == UNCHANGED) & beyond & present)
     labels, counts = _cell_components(pd.cells, pd.cell_index, changed)
     seeded = np.zeros(len(counts), bool)
     seeded[labels[found]] = True

@@ -128,6 +128,26 @@ def test_appends_one_by_one_equal_the_full_run_with_a_short_lag(slope, tmp_path,
     assert full.sizes["object_id"] >= 2 and (full.onset.values >= 0).any()
 
 
+def test_the_metadata_written_is_zarrs_own_consolidation(slope, tmp_path):
+    """The group's metadata, written once from the arrays' handles after an append, is the one
+    ``zarr.consolidate_metadata`` makes from the files (zarr's metadata classes are used directly:
+    a zarr that changes them fails here)."""
+    import shutil
+    import warnings
+
+    import zarr
+
+    out = tmp_path / "s.zarr"
+    sdp.series(slope.epochs[:3], output=out, cylinder=CYL, times=range(3))
+    sdp.series(slope.epochs[3:4], output=out, append=True, times=[3])
+    shutil.copytree(out, tmp_path / "c.zarr")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        zarr.consolidate_metadata(str(tmp_path / "c.zarr"))
+    ours, theirs = (json.loads((f / "zarr.json").read_text()) for f in (out, tmp_path / "c.zarr"))
+    assert ours == theirs and len(ours["consolidated_metadata"]["metadata"]) > 20
+
+
 def test_an_append_needs_no_kernel_a_full_run_did_not_compile(slope, tmp_path):
     """``sdp warmup`` runs a full series: an append must find every kernel it calls compiled for
     its argument types (the saved state's arrays contiguous, as a run's), or a fresh install's first

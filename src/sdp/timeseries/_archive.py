@@ -574,11 +574,6 @@ def read_group(path):
     return group
 
 
-def read_attrs(path) -> dict:
-    """The group attributes of an archive, checked to be an sdp series."""
-    return dict(read_group(path).attrs)
-
-
 def is_series(path) -> bool:
     """Whether ``path`` is a folder holding an sdp series archive."""
     path = Path(path)

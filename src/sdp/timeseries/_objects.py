@@ -177,7 +177,7 @@ def _signs(smoothed, sigma):
 
 @nb.njit(cache=True, nogil=True)
 def _epoch(k, min_points, n_objects, comp, n, sign, prev_sign, prev_track, smoothed, velocity, step, onset,
-           onset_kind, uid, obj, first, end, peak, vsum, vcount):
+           onset_kind, uid, obj, first, peak, vsum, vcount):
     """:meth:`Tracker.add`'s kernel: epoch ``k``'s components (``comp``, ``n`` of them) into tracks.
 
     Returns the next live tracks' arrays (:data:`_TRACK`: the continued ones in the order of their
@@ -223,12 +223,12 @@ def _epoch(k, min_points, n_objects, comp, n, sign, prev_sign, prev_track, smoot
         else:
             of_comp[c] = n_next
             n_next += 1
-    u_, o_, f_, e_ = np.zeros(n_next, np.int64), np.zeros(n_next, np.int64), np.zeros(n_next, np.int64), \
-        np.zeros(n_next, np.int64)
+    u_, o_, f_ = np.zeros(n_next, np.int64), np.zeros(n_next, np.int64), np.zeros(n_next, np.int64)
+    e_ = np.full(n_next, k, np.int64)  # every track of this epoch ends at it so far
     pk, vs, vc = np.zeros(n_next), np.zeros(n_next), np.zeros(n_next)
     for i in range(n_cont):
         t = cont[i]
-        u_[i], o_[i], f_[i], e_[i], pk[i], vs[i], vc[i] = uid[t], obj[t], first[t], end[t], peak[t], vsum[t], vcount[t]
+        u_[i], o_[i], f_[i], pk[i], vs[i], vc[i] = uid[t], obj[t], first[t], peak[t], vsum[t], vcount[t]
     for c in range(n):
         if best[c] < 0:
             u_[of_comp[c]] = k * m + anchor[c]
@@ -275,7 +275,6 @@ def _epoch(k, min_points, n_objects, comp, n, sign, prev_sign, prev_track, smoot
     for i in range(n_next):
         vs[i] += vsum_now[i]
         vc[i] += vcount_now[i]
-        e_[i] = k
     # tracks with min_points changed together become objects, in the order of their priority
     for i in range(n_next):
         if o_[i] == 0 and size[i] >= min_points:
@@ -346,7 +345,7 @@ class Tracker:
         live = self.live
         (uid, obj, first, end, peak, vsum, vcount, track, labels, done, taken, into, gone) = _epoch(
             k, self.min_points, len(self.objects["start"]), comp, n, sign, self.sign, self.track, smoothed, velocity,
-            step, self.onset, self.onset_kind, *(live[key] for key in _TRACK))
+            step, self.onset, self.onset_kind, *(live[key] for key in _TRACK if key != "end"))
         nxt = dict(zip(_TRACK, (uid, obj, first, end, peak, vsum, vcount)))
         # live tracks not continued: objects end the epoch before; others are taken in whole by a
         # set they touch (their points then count for it), or are noise that ends
