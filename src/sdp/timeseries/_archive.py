@@ -326,6 +326,7 @@ def transaction(path, *, untouched=None):
         try:
             yield path
         except BaseException as exc:
+            _settle()
             _roll_back(path, journal)
             _say_written(exc, path, "it is as it was before this append")
             raise
@@ -343,6 +344,7 @@ def transaction(path, *, untouched=None):
         (tmp / _COMPLETE).write_text("complete\n")
         os.rename(tmp, pending)
     except BaseException as exc:
+        _settle()
         shutil.rmtree(tmp, ignore_errors=True)
         _say_written(exc, path, "nothing was written")
         raise
@@ -487,6 +489,26 @@ def _layout(dims, shape, dtype, epochs_per_chunk: int = 1) -> dict:
     return {"chunks": chunks, "fill_value": np.nan if np.dtype(dtype).kind == "f" else 0,
             "dimension_names": list(dims), "config": {"write_empty_chunks": True},
             "chunk_key_encoding": {"name": "default", "separator": "."}}
+
+
+def _settle(timeout: float = 30.0) -> None:
+    """Wait for zarr's writes still running after one of them failed: ``asyncio.gather`` (in
+    :func:`_at_once` and in zarr's own calls) raises the first error and leaves the others running,
+    and a write landing after the rollback or the removal would undo it."""
+    import sys
+
+    if "zarr.core.sync" not in sys.modules:
+        return
+    import asyncio
+
+    from zarr.core.sync import sync
+
+    async def rest():
+        others = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        if others:
+            await asyncio.wait(others, timeout=timeout)
+
+    sync(rest())
 
 
 def _at_once(coroutines: list) -> list:
