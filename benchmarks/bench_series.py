@@ -285,8 +285,7 @@ def real_epochs(work: Path) -> list[str]:
         if not all(f.exists() for f in files):
             out.append(f"| {name} | skipped: data not found | | | |")
             continue
-        ds = sdp.series(files, output=work / "real.zarr", times=times, align=align,
-                        registration_error="auto" if align else None)
+        ds = sdp.series(files, output=work / "real.zarr", times=times, align=align)  # the registration error: auto
         u = ds.attrs["parameters"]["used"]
         cyl = sdp.Cylinder(projection_scale=u["projection_scale"], normal_scale=u["normal_scale"],
                            max_distance=u["max_distance"])
@@ -294,12 +293,10 @@ def real_epochs(work: Path) -> list[str]:
         ref = sdp.read_points(files[0])
         for k in range(1, len(files)):
             cur = sdp.read_points(files[k]).xyz
-            reg = 0.0
             if align:
                 al = sdp.align(ref.xyz, cur, method=align)
                 cur = cur @ al.matrix[:3, :3].T + al.matrix[:3, 3]
-                reg = float(al.rmse)
-            pair = sdp.distances(ref, cur, core_points=core, cylinder=cyl, registration_error=reg, sensor_origin=None)
+            pair = sdp.distances(ref, cur, core_points=core, cylinder=cyl, sensor_origin=None)
             a = ds.distance.values[k]
             same_nan = np.array_equal(np.isfinite(a), np.isfinite(pair.distance))
             both = np.isfinite(a) & np.isfinite(pair.distance)

@@ -239,24 +239,6 @@ def _cell_components(cells, cell_index, changed):
     return labels, np.bincount(labels[changed], minlength=n)
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_the_systematic_part_is_the_smallest_that_keeps_5_percent_beyond(seed):
-    from sdp.distance._noise import LEVEL_Z, _systematic
-
-    rng = np.random.default_rng(seed)
-    n = int(rng.integers(50, 3000))
-    absd = np.abs(rng.standard_t(3, n)) * 0.003
-    random = (0.001 * rng.random(n)) ** 2
-    g = rng.uniform(0.5, 2.0, n)
-
-    def share(s):
-        return np.count_nonzero(absd > LEVEL_Z * np.sqrt(random + (s * g) ** 2)) / n
-
-    s = _systematic(absd, random, g)
-    assert s > 0 and share(s) <= 0.05 < share(s * (1 - 1e-9))
-    assert _systematic(absd * 1e-3, random, g) == 0.0  # fewer than 5 % beyond the random part alone
-
-
 def test_a_stream_decides_as_the_pair_does(scene):
     """``sdp.watch(decision="combined")`` against a fixed model (``update="none"``) marks the
     frame's points as ``detect_changes`` marks the current's: the box down to the floor."""

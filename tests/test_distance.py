@@ -79,7 +79,7 @@ def test_no_data_is_not_comparable(rng):
 def test_core_points_and_registration_error(rng):
     a, b = plane(rng, 20_000, 0.002), plane(rng, 20_000, 0.002, z=0.004)
     core = np.c_[rng.uniform(0.5, 3.5, (50, 2)), np.zeros(50)]
-    d = sdp.distances(a, b, core_points=core)
+    d = sdp.distances(a, b, core_points=core, registration_error=0)  # M3C2's level: the whole plane moved
     assert d.core_points.shape == (50, 3) and d.distance.shape == (50,)
     assert abs(np.median(d.distance) - 0.004) < 0.001
     wide = sdp.distances(a, b, core_points=core, registration_error=0.01)
@@ -89,7 +89,7 @@ def test_core_points_and_registration_error(rng):
 
 
 def test_fields_and_summary(rng):
-    d = sdp.distances(plane(rng, 5_000, 0.002), plane(rng, 5_000, 0.002, z=0.05))
+    d = sdp.distances(plane(rng, 5_000, 0.002), plane(rng, 5_000, 0.002, z=0.05), registration_error=0)
     f = d.fields()
     assert list(f) == list(sdp.distance._distances.DISTANCE_FIELDS)
     assert all(len(v) == 5_000 for v in f.values()) and f["significant"].dtype == np.uint8
@@ -173,7 +173,8 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path, capsys):
     core = np.c_[rng.uniform(1, 3, (30, 2)), np.zeros(30)]
     sdp.write_points(tmp_path / "core.npz", core)
     r = sdp.distance_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "d.npz",
-                           core_points=tmp_path / "core.npz", outputs=sdp.Outputs(png=tmp_path / "d.png"))
+                           core_points=tmp_path / "core.npz", outputs=sdp.Outputs(png=tmp_path / "d.png"),
+                           registration_error=0)  # M3C2's level: the whole plane moved
     assert len(r.result.distance) == 30 and r.result.significant.any()
     # the significant distances are drawn: the histogram's bars of them in orange (as sdp.viz draws them)
     assert drawn_pixels(picture(tmp_path / "d.png"), "#E69F00") > 0

@@ -89,8 +89,12 @@ class Defaults:
         ``"auto"``: an epoch is looked for up to 12d (48σ) along the normal, so that
         displacements well beyond the kernel's reach are still measured (a 2 m move of a plane
         whose d is 18 cm, in ``benchmarks/bench_distance.py``).
-    registration_error : float
-        0: M3C2's default; give the alignment's residual when the epochs were registered.
+    registration_error : str
+        ``"auto"``: M3C2's ``reg`` measured on the data, the smallest for which at most 5 % of
+        the stable part (distances within 2σ_p, which the density test leaves unchanged) lies
+        beyond the level (:mod:`sdp.distance._level`). M3C2's own default, 0, leaves 69–83 % of
+        a static Kinect pair and 56 % of the aligned Toronto ALS ground "significant"
+        (``benchmarks/bench_level.py``).
     smoothing_lag : int
         16 epochs: a series' epoch is smoothed with the 16 after it (the last 16 with all that
         follow), then final, so an appended epoch rewrites 17 rows whatever the series' length.
@@ -125,7 +129,7 @@ class Defaults:
     projection_scale: str = "auto"
     normal_scale: str = "auto"
     max_distance: str = "auto"
-    registration_error: float = 0.0
+    registration_error: str = "auto"
     smoothing_lag: int = 16
     align_method: str = "density"
     action_window: int = 40

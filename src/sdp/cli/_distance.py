@@ -12,7 +12,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 
 from .._core import _validate as V
 from .._core._memory import format_bytes
@@ -75,7 +74,8 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
         As in :func:`sdp.distances` (``sensor_origin`` also takes ``"viewpoint"`` and ``"X,Y,Z"``,
         as :func:`compare_files`).
     registration_error : float or "auto"
-        M3C2's registration error; ``"auto"``: the alignment's RMS residual with ``align``, else 0.
+        M3C2's registration error; ``"auto"``: measured on the stable part of the core points
+        (after the alignment with ``align``; :mod:`sdp.distance._level`).
     align : Registration, "density" or "gicp", optional
         Register the current onto the reference first, as :func:`compare_files`; the distances are
         between the aligned epochs.
@@ -129,8 +129,6 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
             alignment = align_clouds(ref, cur, (reference, current), align)
             moved = cur.transformed(alignment.matrix)
         reg = V.auto_or_nonnegative("--registration-error", registration_error)
-        if reg == "auto":
-            reg = float(alignment.rmse) if alignment is not None and np.isfinite(alignment.rmse) else 0.0
         origin = sensor_origins(sensor, (reference, ref), (current, moved), alignment)
         d = distances(ref, moved, core_points=core, cylinder=cylinder, registration_error=reg,
                       orientation=orientation, sensor_origin=origin, memory_limit=memory_limit)
@@ -202,7 +200,7 @@ def _distance_tiled(reference, current, out: Path, *, format, registration_error
 
     reg = V.auto_or_nonnegative("--registration-error", registration_error)
     with all_or_none():
-        d = distances_tiled(reference, current, cylinder=cylinder, registration_error=0.0 if reg == "auto" else reg,
+        d = distances_tiled(reference, current, cylinder=cylinder, registration_error=reg,
                             orientation=orientation, execution=execution)
         fields = rename_fields(d.fields(), field_names, path=out)
         write_points_streamed(out, PointSource.open(reference, format=format),

@@ -145,7 +145,8 @@ def distance_text(s: dict, reference, current) -> str:
              f"{s['significant_negative']:,} −; |distance| > level of detection at 95 %)",
              f"  median distance  {s['median_distance']:>12.4g}  (5–95 %: {s['distance_p05']:.4g} … "
              f"{s['distance_p95']:.4g})",
-             f"  median LoD95     {s['median_lod']:>12.4g}  (registration error {s['registration_error']:.4g})",
+             f"  median LoD95     {s['median_lod']:>12.4g}  (registration error {s['registration_error']:.4g}"
+             + (", measured on the stable part)" if s.get("registration_source", "given") != "given" else ")"),
              f"  scales           projection d = {s['projection_scale']:.4g}, normal D = {s['normal_scale']:.4g}, "
              f"searched ±{s['max_distance']:.4g} along the normal",
              f"  time             {s['timings'].get('total', 0):.2f} s"]
@@ -163,7 +164,9 @@ def series_text(s: dict) -> str:
     lines = [f"{s['path']}: {s['epochs']} epochs ({', '.join(s['time_source'])} times, {s['first_time']} .. "
              f"{s['last_time']}) at {s['core_points']:,} core points against {s['reference']}",
              f"  scales: projection {p['projection_scale']:.4g}, normal {p['normal_scale']:.4g}, search "
-             f"{p['max_distance']:.4g}; registration error {p['registration_error']}",
+             f"{p['max_distance']:.4g}; registration error "
+             + ("measured on each epoch's stable part" if p["registration_error"] == "auto"
+                else str(p["registration_error"])),
              f"  significant: {100 * s['significant_fraction']:.1f} % of (epoch, core point); smoother: process "
              f"noise {sm.get('process_noise', float('nan')):.3g}, velocity {sm.get('velocity', '')}",
              f"  objects of change: {s['objects']}"]

@@ -76,11 +76,10 @@ import numpy as np
 from .._core._parallel import map_concurrently
 from ..errors import InvalidOptionError
 from ._distances import _DENSE_CELLS, _CellLists, bounds, rows_around
+from ._level import LEVEL_Z, SHARE, systematic
 
 __all__ = ["PointDistances", "SurfaceDistances", "point_distances", "pair_cells", "distance_bytes", "LEVEL_Z"]
 
-LEVEL_Z = 1.96  # two-sided 95 %: the level of detection's promise
-_SHARE = 0.05  # share of the stable majority beyond the level
 _CELL = 1.5  # points share the distance of their cell of 1.5σ_p
 _MAX_EXPONENT = 2.0  # a structured-light camera's σ_z ∝ z²; nothing grows faster
 _CALIBRATION_POINTS = 20_000  # the 5 % quantile to about ±0.3 %
@@ -354,11 +353,11 @@ class SurfaceDistances:
         r_med = float(np.median(r)) if calib.size else 1.0
         scale = 1.0
         if registration_error == "auto":
-            s = _systematic(np.abs(dist), random, (r / r_med) ** p)
+            s = systematic(np.abs(dist), random, (r / r_med) ** p)
             if s == 0.0 and calib.size:  # fewer than 5 % beyond the random part alone: scaled down to 5 %
                 with np.errstate(divide="ignore", invalid="ignore"):
                     ratio = np.abs(dist) / (LEVEL_Z * np.sqrt(random))
-                scale = min(1.0, float(np.quantile(ratio, 1.0 - _SHARE))) ** 2
+                scale = min(1.0, float(np.quantile(ratio, 1.0 - SHARE))) ** 2
         else:
             s = float(registration_error) / LEVEL_Z
         self.timings["level"] = time.perf_counter() - t
@@ -504,17 +503,3 @@ def _fit_exponent(dist: np.ndarray, r: np.ndarray) -> float:
     x = np.log(np.median(r[: 10 * q].reshape(10, q), axis=1))
     y = np.log(np.median(a[: 10 * q].reshape(10, q), axis=1))
     return float(np.clip(np.polyfit(x, y, 1)[0], 0.0, _MAX_EXPONENT))
-
-
-def _systematic(absd: np.ndarray, random: np.ndarray, g: np.ndarray) -> float:
-    """Smallest σ_s ≥ 0 for which at most 5 % of the stable points lie beyond
-    1.96·√(random + (σ_s·g)²). A point lies beyond it while σ_s < s_i =
-    √((|d|/1.96)² − random)/g, so σ_s is the (k+1)-th largest s_i, k = ⌊5 % of the points⌋."""
-    if absd.size == 0:
-        return 0.0
-    with np.errstate(invalid="ignore"):
-        s_i = np.sqrt(np.maximum((absd / LEVEL_Z) ** 2 - random, 0.0)) / g
-    k = int(_SHARE * absd.size)
-    if k >= absd.size:
-        return 0.0
-    return float(np.partition(s_i, absd.size - 1 - k)[absd.size - 1 - k])

@@ -28,10 +28,11 @@ import numpy as np
 
 from .._core._memory import check_memory
 from .._core._points import as_points
-from .._core._validate import auto_or_positive, nonnegative_finite
+from .._core._validate import auto_or_nonnegative, auto_or_positive
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
 from ..options import Cylinder
+from ._level import with_level
 from ._distances import (
     _CELL,
     _RADIUS,
@@ -165,16 +166,18 @@ class PreparedReference:
         return 200.0 * n_points + 160.0 * len(self.core_points)
 
     # ------------------------------------------------------------------ one epoch
-    def measure(self, current, *, registration_error: float = 0.0, memory_limit=None) -> Distances:
-        """Distances from the reference to ``current`` at the core points, as :func:`sdp.distances`."""
+    def measure(self, current, *, registration_error: float | str = "auto", memory_limit=None) -> Distances:
+        """Distances from the reference to ``current`` at the core points, as :func:`sdp.distances`
+        (``registration_error``: a number, or ``"auto"``: measured on the stable part)."""
         t0 = time.perf_counter()
         cur = as_points(current, name="epoch")
         if len(cur.xyz) < 3:
             raise InvalidPointsError(f"an epoch has {len(cur.xyz)} point(s): a spread needs at least 3")
-        reg = nonnegative_finite("registration_error", registration_error)
+        reg = auto_or_nonnegative("registration_error", registration_error)
         check_memory(self.memory_per_epoch(len(cur.xyz)), f"an epoch of {len(cur.xyz):,} points", memory_limit,
                      advice="measure at fewer core points")
-        return self._measure(cur.xyz, self.epoch_corner(cur.lo), cur.hi, reg, t0)
+        return with_level(self._measure(cur.xyz, self.epoch_corner(cur.lo), cur.hi, 0.0 if reg == "auto" else reg,
+                                        t0), reg)
 
     def epoch_corner(self, lowest) -> np.ndarray:
         """Where an epoch's cells start: the reference's corner, whole cells lower where the epoch's

@@ -57,6 +57,7 @@ from ..distance._distances import (
     search_reach,
     tile_halo,
 )
+from ..distance._level import with_level
 from ..distance._reference import PreparedReference, subsample
 from ..errors import InvalidOptionError, SDPError
 from ..fields._lattice import BLOCK
@@ -243,10 +244,11 @@ class TiledSeries:
         return self.prepared
 
     # ------------------------------------------------------------------ the epochs
-    def measure(self, prepared: PreparedReference, epoch, *, registration_error: float,
+    def measure(self, prepared: PreparedReference, epoch, *, registration_error: float | str,
                 reference: bool = False) -> tuple[Distances, int]:
         """(distances of ``epoch`` at ``prepared``'s core points, the epoch's points), tile by tile:
-        equal to :meth:`PreparedReference.measure` on the whole epoch. ``reference``: the epoch is
+        equal to :meth:`PreparedReference.measure` on the whole epoch (an ``"auto"`` registration
+        error measured over the whole epoch, once its tiles are in). ``reference``: the epoch is
         the reference :meth:`prepare` bucketed (not read again)."""
         t0 = time.perf_counter()
         if self.run is None:  # an append: the tiles from the first new epoch
@@ -263,7 +265,8 @@ class TiledSeries:
             self._keys = _write_state(prepared, run.root, run.tiling)
         scalars = prepared.state()[1]
         lo = prepared.epoch_corner(run.sources[name].lo)  # where the whole epoch's cells start
-        jobs = [(key, run.root, name, lo, float(registration_error), scalars, run.opts["memory_limit"])
+        reg = 0.0 if registration_error == "auto" else float(registration_error)
+        jobs = [(key, run.root, name, lo, reg, scalars, run.opts["memory_limit"])
                 for key in self._keys]
         results = run.tasks("measure", _measure_tile, jobs, ())
         m = len(prepared.core_points)
@@ -278,10 +281,10 @@ class TiledSeries:
                       spread2=packed[:, 6], normal=np.ascontiguousarray(packed[:, 7:10]), level=level,
                       projection_scale=prepared.projection_scale, normal_scale=prepared.normal_scale,
                       max_distance=max(prepared.max_distance, 3.0 * prepared.projection_scale / 4.0),
-                      registration_error=float(registration_error),
+                      registration_error=reg,
                       orientation="towards ({:g}, {:g}, {:g})".format(*prepared.orientation),
                       timings={"total": time.perf_counter() - t0}, tiles=len(self._keys))
-        return d, int(n_points)
+        return with_level(d, registration_error), int(n_points)
 
 
 def _scales(ref, core, cylinder: Cylinder, execution: Execution) -> tuple[float, float, float]:

@@ -70,7 +70,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._core._validate import integer_at_least, nonnegative_finite
+from .._core._validate import auto_or_nonnegative, integer_at_least
 from ..change._coverage import footprint_covered
 from ..change._detect import ChangeResult, PointChanges
 from ..change._regions import Volume, describe_regions, join_parts, label_part
@@ -234,7 +234,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None,
 
 
 def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
-                    registration_error: float = DEFAULTS.registration_error, orientation=None,
+                    registration_error: float | str = DEFAULTS.registration_error, orientation=None,
                     execution: Execution | None = None):
     """:func:`sdp.distances` in tiles, for clouds of any size: every reference row a core point.
 
@@ -243,7 +243,8 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
     the cells start at the reference's corner, as in memory, so with the same scales each distance equals
     :func:`sdp.distances`' (tested). ``"auto"`` scales come from the first slice of each cloud
     (the tiles need them before the points); normals point along ``orientation`` (+z: the tiles
-    follow no sensor). Parameters as in :func:`sdp.distances` and :func:`detect_changes_tiled`.
+    follow no sensor); an ``"auto"`` registration error is measured over the whole cloud once the
+    tiles are in. Parameters as in :func:`sdp.distances` and :func:`detect_changes_tiled`.
 
     Returns
     -------
@@ -251,10 +252,12 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
         One row per reference row, in row order (rows that held NaN/Inf: NaN, not comparable).
     """
     from ..distance._distances import Distances, distances, search_reach, tile_halo
+    from ..distance._level import with_level
 
     cylinder = Cylinder() if cylinder is None else cylinder
     execution = Execution() if execution is None else execution
-    reg = nonnegative_finite("registration_error", registration_error)
+    reg_opt = auto_or_nonnegative("registration_error", registration_error)
+    reg = 0.0 if reg_opt == "auto" else reg_opt
     t0 = time.perf_counter()
     d, D = cylinder.projection_scale, cylinder.normal_scale
     if d == "auto" or D == "auto":  # from the first slice of each cloud, as the tiled change detection
@@ -281,12 +284,12 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
         xyz[rows], packed[rows] = pts, values
     level = np.where(np.isnan(packed[:, 10]), -1, packed[:, 10]).astype(np.int8)
     timings = dict(run.timings, total=time.perf_counter() - t0)
-    return Distances(core_points=xyz, distance=packed[:, 0], lod=packed[:, 1], significant=packed[:, 2] == 1,
+    return with_level(Distances(core_points=xyz, distance=packed[:, 0], lod=packed[:, 1], significant=packed[:, 2] == 1,
                      n1=packed[:, 3], n2=packed[:, 4], spread1=packed[:, 5], spread2=packed[:, 6],
                      normal=np.ascontiguousarray(packed[:, 7:10]), level=level, projection_scale=d, normal_scale=D,
                      max_distance=max(reach, 3.0 * sigma_p), registration_error=reg,
                      orientation="towards (0, 0, 1)" if orientation is None else f"towards {tuple(orientation)}",
-                     timings=timings, tiles=len(run.tiles))
+                     timings=timings, tiles=len(run.tiles)), reg_opt)
 
 
 def _distance_tile(key, root: str, tiling: Tiling, opts: dict):

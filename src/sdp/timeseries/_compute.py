@@ -214,8 +214,9 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     cylinder : Cylinder, optional
         M3C2's scales as in :func:`sdp.distances` (``"auto"`` from the reference alone).
     registration_error : float or "auto", optional
-        Added to each epoch's level of detection (default 0; ``"auto"``: each epoch's alignment
-        RMS with ``align``).
+        Added to each epoch's level of detection (M3C2's ``reg``). ``"auto"`` (default): measured
+        on each epoch's stable part, after the alignment with ``align``
+        (:mod:`sdp.distance._level`); the archive's ``registration_error`` (``epoch``) holds it.
     align : Registration, "density" or "gicp", optional
         Register each epoch onto the reference first.
     orientation : array_like (3,), optional
@@ -335,8 +336,6 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     if np.any(np.diff(t) <= 0):
         raise InvalidOptionError("the times of the epochs must increase, in the order given")
     reg_opt = DEFAULTS.registration_error if registration_error is None else registration_error
-    if reg_opt == "auto" and registration is None:
-        reg_opt = 0.0
 
     core_count = 0 if core_points is None else count_points(core_points, format) or 0  # not read twice
     tiles = plan_series(epochs, reference=reference, core_count=core_count, execution=execution, format=format,
@@ -470,10 +469,6 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                                       fix_horizontal=registration.fix_horizontal)
                     xyz = xyz @ al.matrix[:3, :3].T + al.matrix[:3, 3]
                     record["alignment"] = {"matrix": al.matrix.tolist(), "rmse": float(al.rmse)}
-                    if reg_opt == "auto":
-                        reg = float(al.rmse) if np.isfinite(al.rmse) else 0.0
-                if reg == "auto":
-                    reg = 0.0
                 if tiles:
                     d, n_points = tiles.measure(prepared, cloud, registration_error=reg, reference=is_ref)
                 else:
@@ -481,8 +476,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                 buffered.append((k, d.distance.astype(np.float32), d.lod.astype(np.float32), d.significant))
                 if len(buffered) >= flush:
                     write_rows()
-                record.update(registration_error=float(reg), points=int(n_points), comparable=int(d.comparable.sum()),
-                              significant=int(d.significant.sum()))
+                record.update(registration_error=float(d.registration_error), points=int(n_points),
+                              comparable=int(d.comparable.sum()), significant=int(d.significant.sum()))
                 attrs["epochs"].append(record)
                 del cloud, xyz, d
         write_rows()

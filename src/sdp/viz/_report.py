@@ -441,8 +441,8 @@ def _parameters(s: dict, options: dict | None, kind: str) -> str:
                 ("normal scale D", f"{s['normal_scale']:.4g}", why("normal_scale")),
                 ("searched along the normal", f"±{s['max_distance']:.4g}", why("max_distance")),
                 ("registration error", f"{s['registration_error']:.4g}",
-                 "the alignment's RMS residual" if "alignment" in s and options.get("registration_error") == "auto"
-                 else why("registration_error")),
+                 "measured: the smallest that keeps at most 5 % of the stable part beyond the level"
+                 if s.get("registration_source", "given") != "given" else why("registration_error")),
                 ("normals", str(s["orientation"]), "given (--orientation)" if options.get("orientation") is not None
                  else why("sensor_origin"))]
     if "alignment" in s:
@@ -646,7 +646,9 @@ def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, p
                ("normal scale D", f"{used['normal_scale']:.4g}", "given" if p["given"]["normal_scale"] != "auto"
                 else "auto: 2d, raised to 20× the roughness (Lague et al.), at most 4d"),
                ("search along the normal", f"{used['max_distance']:.4g}", "12d unless given"),
-               ("registration error", str(used["registration_error"]), "added to each epoch's level of detection"),
+               ("registration error", str(used["registration_error"]),
+                "added to each epoch's level of detection; auto: measured on each epoch's stable part (the "
+                "archive's registration_error per epoch)"),
                ("core points", p["core_points"], "where every epoch is measured"),
                ("process noise q", f"{p['smoother']['process_noise']:.3g}", p["smoother"]["process_noise_reason"]),
                ("observation noise", p["smoother"]["observation_noise"],
