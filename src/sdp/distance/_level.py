@@ -70,14 +70,10 @@ def stable_part(distance: np.ndarray, random_sd: np.ndarray, sigma_p: float) -> 
     """The places within the density test's reach, ``|distance| ≤ 2σ_p``, whose distance in units
     of its own random part is within five robust standard deviations of the median there
     (module docstring)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        near = (np.abs(distance) <= STABLE_REACH * sigma_p) & (random_sd > 0)
-        z = np.where(near, distance / np.where(near, random_sd, 1.0), 0.0)
-    if not near.any():
-        return near
-    med = float(np.median(z[near]))
-    bound = ROBUST_BOUND * 1.4826 * float(np.median(np.abs(z[near] - med)))
-    return near & (np.abs(z - med) <= bound)
+    out = np.zeros(distance.shape, bool)
+    near = np.flatnonzero(_near(distance, random_sd, sigma_p))
+    out[near[_inliers(distance[near] / random_sd[near])]] = True
+    return out
 
 
 def measured_registration_error(distance: np.ndarray, random_sd: np.ndarray, sigma_p: float) -> float:
@@ -85,12 +81,28 @@ def measured_registration_error(distance: np.ndarray, random_sd: np.ndarray, sig
     ``1.96·(random_sd + reg)`` (``random_sd``: each place's √(s₁²/n₁ + s₂²/n₂))."""
     step = max(1, distance.size // _SAMPLE)  # a regular sample: the places are in no particular order
     distance, random_sd = distance[::step], random_sd[::step]
-    keep = stable_part(distance, random_sd, sigma_p)
-    excess = np.abs(distance[keep]) / LEVEL_Z - random_sd[keep]
+    near = _near(distance, random_sd, sigma_p)
+    d, sd = distance[near], random_sd[near]
+    keep = _inliers(d / sd)
+    excess = np.abs(d[keep]) / LEVEL_Z - sd[keep]
     k = int(SHARE * excess.size)
     if k >= excess.size:
         return 0.0
     return max(0.0, float(np.partition(excess, excess.size - 1 - k)[excess.size - 1 - k]))
+
+
+def _near(distance, random_sd, sigma_p) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return (np.abs(distance) <= STABLE_REACH * sigma_p) & (random_sd > 0)
+
+
+def _inliers(z: np.ndarray) -> np.ndarray:
+    """``z`` within five robust standard deviations of its median."""
+    if z.size == 0:
+        return np.zeros(0, bool)
+    med = float(np.median(z))
+    dev = np.abs(z - med)
+    return dev <= ROBUST_BOUND * 1.4826 * float(np.median(dev))
 
 
 def with_level(d, registration_error):
