@@ -91,7 +91,12 @@ def test_auto_keeps_the_levels_promise_where_m3c2s_random_part_does_not():
 def test_a_series_measures_each_epochs_registration_error(tmp_path):
     rng = np.random.default_rng(6)
     a, b = wavy_pair(rng, n=30_000)
-    ds = sdp.series([a, b, wavy_pair(rng, n=30_000)[0]], output=tmp_path / "s.zarr")
+    epochs = [a, b, wavy_pair(rng, n=30_000)[0]]
+    ds = sdp.series(epochs, output=tmp_path / "s.zarr")
+    sdp.series(epochs[:2], output=tmp_path / "a.zarr")
+    grown = sdp.series(epochs[2:], output=tmp_path / "a.zarr", append=True)  # each epoch's own: as the full run
+    for name in ("distance", "lod", "significant", "registration_error", "smoothed", "smoothed_sigma"):
+        assert np.array_equal(ds[name].values, grown[name].values, equal_nan=True), name
     reg = ds["registration_error"].values
     assert reg[0] == 0.0 and (reg[1:] > 0).all()  # the reference against itself: nothing to add
     p = sdp.distance.PreparedReference.prepare(a, np.c_[ds["x"].values, ds["y"].values, ds["z"].values],
