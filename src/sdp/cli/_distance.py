@@ -12,7 +12,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-
 from .._core import _validate as V
 from .._core._memory import format_bytes
 from ..defaults import DEFAULTS

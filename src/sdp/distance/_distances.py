@@ -135,7 +135,7 @@ class Distances:
         The parameters used (M3C2's terms: diameters d and D, the cylinder's half-length, ``reg``).
     registration_source : str
         Where ``registration_error`` came from: ``"given"``, or ``"measured on the stable
-        majority"`` (``registration_error="auto"``).
+        part"`` (``registration_error="auto"``).
     orientation : str
         How the normals were oriented.
     timings : dict of str to float

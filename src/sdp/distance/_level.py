@@ -4,9 +4,9 @@ M3C2's level of detection ``lod = 1.96·(√(s₁²/n₁ + s₂²/n₂) + reg)``
 surface that did not move lies beyond it in 5 % of the places. Its random part assumes the n
 points of a cylinder carry independent errors, and ``reg`` (registration, calibration) is left to
 the user. Real sensors break the first assumption and users rarely know the second: on static
-real pairs with ``reg = 0`` the random part alone gives levels of 0.3 mm on a Kinect (69–82 % of
+real pairs with ``reg = 0`` the random part alone gives levels of 0.3 mm on a Kinect (69–83 % of
 the core points "significant" after GICP, where errors are correlated over the matcher's window
-and common to whole frames [2]_) and 4 cm on the Toronto ALS ground (59 %, after alignment: strip
+and common to whole frames [2]_) and 4 cm on the Toronto ALS ground (56 %, after alignment: strip
 adjustment and GNSS errors are common to whole swaths).
 
 ``registration_error="auto"`` therefore measures ``reg`` where it shows: the smallest ``reg ≥ 0``
@@ -38,8 +38,8 @@ a real subsidence of every place by less than the kernel) reads as a registratio
 matters. Where a sensor's noise exceeds 2σ_p (a depth camera far from its subject, seen with a
 kernel set by the nearer points' spacing) the stable part is cut at 2σ_p and the level is too low
 there. A depth camera's tail is heavier than five robust standard deviations allow (4–7 % of a
-static Kinect pair's places beyond it, most within a metre of the camera): the level promises 5 % and gives
-9–13 % there (``benchmarks/bench_level.py``), against 18–83 % with ``reg = 0``.
+static Kinect pair's places beyond it, most within a metre of the camera): the level promises 5 %
+and gives 8.8–13.1 % there (``benchmarks/bench_level.py``), against 18–32 % with ``reg = 0``.
 
 References
 ----------
@@ -57,7 +57,8 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["LEVEL_Z", "SHARE", "STABLE_REACH", "stable_part", "measured_registration_error", "with_level", "systematic"]
+__all__ = ["LEVEL_Z", "SHARE", "STABLE_REACH", "stable_part", "measured_registration_error", "with_level",
+           "systematic"]
 
 LEVEL_Z = 1.96  # two-sided 95 %: the level of detection's promise
 SHARE = 0.05  # share of the stable part beyond the level

@@ -32,7 +32,6 @@ from .._core._validate import auto_or_nonnegative, auto_or_positive
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
 from ..options import Cylinder
-from ._level import with_level
 from ._distances import (
     _CELL,
     _RADIUS,
@@ -45,6 +44,7 @@ from ._distances import (
     normal_sigma,
     search_reach,
 )
+from ._level import with_level
 
 __all__ = ["PreparedReference"]
 

@@ -284,12 +284,13 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
         xyz[rows], packed[rows] = pts, values
     level = np.where(np.isnan(packed[:, 10]), -1, packed[:, 10]).astype(np.int8)
     timings = dict(run.timings, total=time.perf_counter() - t0)
-    return with_level(Distances(core_points=xyz, distance=packed[:, 0], lod=packed[:, 1], significant=packed[:, 2] == 1,
-                     n1=packed[:, 3], n2=packed[:, 4], spread1=packed[:, 5], spread2=packed[:, 6],
-                     normal=np.ascontiguousarray(packed[:, 7:10]), level=level, projection_scale=d, normal_scale=D,
-                     max_distance=max(reach, 3.0 * sigma_p), registration_error=reg,
-                     orientation="towards (0, 0, 1)" if orientation is None else f"towards {tuple(orientation)}",
-                     timings=timings, tiles=len(run.tiles)), reg_opt)
+    measured = Distances(core_points=xyz, distance=packed[:, 0], lod=packed[:, 1], significant=packed[:, 2] == 1,
+                         n1=packed[:, 3], n2=packed[:, 4], spread1=packed[:, 5], spread2=packed[:, 6],
+                         normal=np.ascontiguousarray(packed[:, 7:10]), level=level, projection_scale=d,
+                         normal_scale=D, max_distance=max(reach, 3.0 * sigma_p), registration_error=reg,
+                         orientation="towards (0, 0, 1)" if orientation is None else f"towards {tuple(orientation)}",
+                         timings=timings, tiles=len(run.tiles))
+    return with_level(measured, reg_opt)
 
 
 def _distance_tile(key, root: str, tiling: Tiling, opts: dict):
