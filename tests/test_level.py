@@ -50,7 +50,8 @@ def test_the_registration_error_is_the_smallest_that_keeps_5_percent_of_the_stab
     assert (np.abs(d[step]) > LEVEL_Z * (random_sd[step] + reg)).mean() > 0.95
     quiet = random_sd * rng.standard_normal(n) * 0.5  # within the random part alone: never lowered
     assert measured_registration_error(quiet, random_sd, sigma_p) == 0.0
-    assert measured_registration_error(np.full(n, 1.0), random_sd, sigma_p) == 0.0  # nothing stable: M3C2's
+    assert measured_registration_error(np.full(n, 1.0), random_sd, sigma_p) is None  # nothing stable
+    assert measured_registration_error(d[:99], random_sd[:99], sigma_p) is None  # too few to read 5 % from
 
 
 def wavy_pair(rng, n=60_000, size=6.0):
@@ -86,6 +87,9 @@ def test_auto_keeps_the_levels_promise_where_m3c2s_random_part_does_not():
     assert auto.summary()["registration_source"] == "measured on the stable part"
     given = sdp.distances(a, b, core_points=core, registration_error=0.001)
     assert given.registration_source == "given" and given.registration_error == 0.001
+    few = sdp.distances(a, b, core_points=core[:60])  # too few places to read a 5 % share from: M3C2's level
+    assert few.registration_error == 0.0 and few.registration_source.startswith("M3C2's 0")
+    assert np.array_equal(few.lod, sdp.distances(a, b, core_points=core[:60], registration_error=0).lod, equal_nan=True)
 
 
 def test_a_series_measures_each_epochs_registration_error(tmp_path):

@@ -146,7 +146,7 @@ def distance_text(s: dict, reference, current) -> str:
              f"  median distance  {s['median_distance']:>12.4g}  (5–95 %: {s['distance_p05']:.4g} … "
              f"{s['distance_p95']:.4g})",
              f"  median LoD95     {s['median_lod']:>12.4g}  (registration error {s['registration_error']:.4g}"
-             + (", measured on the stable part)" if s.get("registration_source", "given") != "given" else ")"),
+             + (f", {s['registration_source']})" if s.get("registration_source", "given") != "given" else ")"),
              f"  scales           projection d = {s['projection_scale']:.4g}, normal D = {s['normal_scale']:.4g}, "
              f"searched ±{s['max_distance']:.4g} along the normal",
              f"  time             {s['timings'].get('total', 0):.2f} s"]

@@ -30,7 +30,9 @@ neither the density test nor the noise would call a change:
   each place has its own random part (a laser's spread grows with range and incidence).
 
 Where the random part alone already keeps 5 % of the stable part within the level, ``reg = 0``:
-the level is never lowered below M3C2's; where nothing is stable, ``reg = 0`` too.
+the level is never lowered below M3C2's. Where the stable part holds fewer than 100 places (a
+handful of chosen core points, or a scene that all moved), ``reg = 0`` too: a 5 % share read from
+n places has a standard error of √(0.05·0.95/n), 2.2 % at 100, the level's own tolerance.
 
 What this cannot tell: a shift smaller than 2σ_p of the whole scene (a registration error, or
 a real subsidence of every place by less than the kernel) reads as a registration error. Give
@@ -57,13 +59,14 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["LEVEL_Z", "SHARE", "STABLE_REACH", "stable_part", "measured_registration_error", "with_level",
+__all__ = ["LEVEL_Z", "SHARE", "STABLE_REACH", "MIN_STABLE", "stable_part", "measured_registration_error", "with_level",
            "systematic"]
 
 LEVEL_Z = 1.96  # two-sided 95 %: the level of detection's promise
 SHARE = 0.05  # share of the stable part beyond the level
 STABLE_REACH = 2.0  # σ_p: a surface nearer the other epoch's is unchanged for the density test
 ROBUST_BOUND = 5.0  # robust standard deviations of the standardised distances: what moved within reach
+MIN_STABLE = 100  # places the 5 % quantile is read from: its standard error √(0.05·0.95/n) is 2.2 % at 100
 _SAMPLE = 200_000  # places read for the quantile: a 5 % share to about ±0.05 %
 
 
@@ -77,18 +80,19 @@ def stable_part(distance: np.ndarray, random_sd: np.ndarray, sigma_p: float) -> 
     return out
 
 
-def measured_registration_error(distance: np.ndarray, random_sd: np.ndarray, sigma_p: float) -> float:
+def measured_registration_error(distance: np.ndarray, random_sd: np.ndarray, sigma_p: float) -> float | None:
     """The smallest ``reg ≥ 0`` with at most 5 % of the stable part (:func:`stable_part`) beyond
-    ``1.96·(random_sd + reg)`` (``random_sd``: each place's √(s₁²/n₁ + s₂²/n₂))."""
+    ``1.96·(random_sd + reg)`` (``random_sd``: each place's √(s₁²/n₁ + s₂²/n₂)); None where the
+    stable part holds fewer than 100 places, too few to tell a 5 % share within ±2 %."""
     step = max(1, distance.size // _SAMPLE)  # a regular sample: the places are in no particular order
     distance, random_sd = distance[::step], random_sd[::step]
     near = _near(distance, random_sd, sigma_p)
     d, sd = distance[near], random_sd[near]
     keep = _inliers(d / sd)
     excess = np.abs(d[keep]) / LEVEL_Z - sd[keep]
+    if excess.size < MIN_STABLE:  # too few to read a 5 % share from
+        return None
     k = int(SHARE * excess.size)
-    if k >= excess.size:
-        return 0.0
     return max(0.0, float(np.partition(excess, excess.size - 1 - k)[excess.size - 1 - k]))
 
 
@@ -112,6 +116,8 @@ def with_level(d, registration_error):
     if registration_error != "auto":
         return d
     reg = measured_registration_error(d.distance, d.lod / LEVEL_Z, d.projection_scale / 4.0)
+    if reg is None:
+        return dataclasses.replace(d, registration_source=f"M3C2's 0: fewer than {MIN_STABLE} stable places")
     lod = d.lod + LEVEL_Z * reg
     return dataclasses.replace(d, lod=lod, significant=np.abs(d.distance) > lod, registration_error=reg,
                                registration_source="measured on the stable part")

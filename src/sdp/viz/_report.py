@@ -442,7 +442,9 @@ def _parameters(s: dict, options: dict | None, kind: str) -> str:
                 ("searched along the normal", f"±{s['max_distance']:.4g}", why("max_distance")),
                 ("registration error", f"{s['registration_error']:.4g}",
                  "measured: the smallest that keeps at most 5 % of the stable part beyond the level"
-                 if s.get("registration_source", "given") != "given" else why("registration_error")),
+                 if s.get("registration_source") == "measured on the stable part" else
+                 s["registration_source"] if s.get("registration_source", "given") != "given"
+                 else why("registration_error")),
                 ("normals", str(s["orientation"]), "given (--orientation)" if options.get("orientation") is not None
                  else why("sensor_origin"))]
     if "alignment" in s:
