@@ -103,6 +103,7 @@ def test_a_series_measures_each_epochs_registration_error(tmp_path):
         assert np.array_equal(ds[name].values, grown[name].values, equal_nan=True), name
     reg = ds["registration_error"].values
     assert reg[0] == 0.0 and (reg[1:] > 0).all()  # the reference against itself: nothing to add
+    assert [e["registration_source"] for e in ds.attrs["epochs"][1:]] == ["measured on the stable part"] * 2
     p = sdp.distance.PreparedReference.prepare(a, np.c_[ds["x"].values, ds["y"].values, ds["z"].values],
                                       cylinder=sdp.Cylinder(projection_scale=float(ds.attrs["parameters"]["used"]
                                                                                    ["projection_scale"])))

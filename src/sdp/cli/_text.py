@@ -165,7 +165,7 @@ def series_text(s: dict) -> str:
              f"{s['last_time']}) at {s['core_points']:,} core points against {s['reference']}",
              f"  scales: projection {p['projection_scale']:.4g}, normal {p['normal_scale']:.4g}, search "
              f"{p['max_distance']:.4g}; registration error "
-             + ("measured on each epoch's stable part" if p["registration_error"] == "auto"
+             + ("measured on each epoch's stable part (0 below 100 stable places)" if p["registration_error"] == "auto"
                 else str(p["registration_error"])),
              f"  significant: {100 * s['significant_fraction']:.1f} % of (epoch, core point); smoother: process "
              f"noise {sm.get('process_noise', float('nan')):.3g}, velocity {sm.get('velocity', '')}",

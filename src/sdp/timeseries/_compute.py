@@ -476,7 +476,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                 buffered.append((k, d.distance.astype(np.float32), d.lod.astype(np.float32), d.significant))
                 if len(buffered) >= flush:
                     write_rows()
-                record.update(registration_error=float(d.registration_error), points=int(n_points),
+                record.update(registration_error=float(d.registration_error),
+                              registration_source=d.registration_source, points=int(n_points),
                               comparable=int(d.comparable.sum()), significant=int(d.significant.sum()))
                 attrs["epochs"].append(record)
                 del cloud, xyz, d
