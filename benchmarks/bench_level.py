@@ -42,20 +42,26 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 
 
-def shares(ref, cur, rmse, within=None) -> str:
+def shares(ref, cur, rmse, within=None, **kwargs) -> str:
     """'| M3C2 (0) | alignment's residual | auto (reg) |' cells: % significant over ``within``."""
     cells = []
     for reg in (0.0, rmse, "auto"):
         if reg is None:
             cells.append("—")
             continue
-        d = sdp.distances(ref, cur, registration_error=reg)
+        d = sdp.distances(ref, cur, registration_error=reg, **kwargs)
         ok = d.comparable if within is None else d.comparable & within
         cell = f"{100 * d.significant[ok].mean():.1f} %"
         if reg == "auto":
             cell += f" (reg {d.registration_error:.3g})"
         cells.append(cell)
     return " | ".join(cells)
+
+
+def origins(ref, cur, alignment) -> np.ndarray:
+    """Both scans' sensor positions, the current's moved by the alignment."""
+    m = alignment.matrix
+    return np.stack([ref.sensor_origin, m[:3, :3] @ cur.sensor_origin + m[:3, 3]])
 
 
 def static_rows() -> list[str]:
@@ -67,7 +73,7 @@ def static_rows() -> list[str]:
             if i != j:
                 ref, cur = sdp.read_points(seq[i]), sdp.read_points(seq[j])
                 a = sdp.align(ref, cur, method="gicp")
-                cells = shares(ref, a.apply(cur.xyz), a.rmse)
+                cells = shares(ref, a.apply(cur.xyz), a.rmse, sensor_origin=origins(ref, cur, a))
                 out.append(f"| grabber, GICP | {i}→{j} | all {len(ref.xyz):,} | {cells} |")
                 print(out[-1], flush=True)
     for t, _, _, truth, _ in labelled_pairs():
@@ -84,10 +90,10 @@ def static_rows() -> list[str]:
         cur = sdp.read_points(dl / f"A603_rescan{k}.pcd")
         a = sdp.align(ref, cur, method="gicp")
         moved = a.apply(cur.xyz)
-        o = np.stack([ref.sensor_origin, a.matrix[:3, :3] @ cur.sensor_origin + a.matrix[:3, 3]])
+        o = origins(ref, cur, a)
         stable = sdp.detect_changes(ref, moved, coverage=sdp.Coverage(sensor_origin=o)).reference_state == 0
         out.append(f"| DLUT, GICP | reference→rescan{k} | outside the people {stable.sum():,} | "
-                   f"{shares(ref, moved, a.rmse, stable)} |")
+                   f"{shares(ref, moved, a.rmse, stable, sensor_origin=o)} |")
         print(out[-1], flush=True)
     t15, t23 = (sdp.read_points(DATA / "als_toronto" / f"TTP_{y}.laz") for y in (2015, 2023))
     g15, g23 = (t.xyz[t.fields["classification"] == 2] for t in (t15, t23))

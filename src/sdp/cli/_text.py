@@ -140,7 +140,8 @@ def distance_text(s: dict, reference, current) -> str:
     lines = [f"{reference} → {current}: signed distance along the normal ({s['orientation']})",
              f"  core points      {s['core_points']:>12,}",
              f"  with a distance  {s['comparable']:>12,}  ({s['comparable'] / n:.1%}; the others: an epoch has no "
-             "points near, not comparable)",
+             "points near" + (f", or its sensor could not see the place ({s['not_seen']:,})" if s.get("not_seen")
+                              else "") + ", not comparable)",
              f"  significant      {s['significant']:>12,}  ({s['significant_positive']:,} +, "
              f"{s['significant_negative']:,} −; |distance| > level of detection at 95 %)",
              f"  median distance  {s['median_distance']:>12.4g}  (5–95 %: {s['distance_p05']:.4g} … "

@@ -90,6 +90,7 @@ from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
 from ..options import Cylinder
 from ._level import with_level
+from ._seen import not_seen
 
 __all__ = ["Distances", "distances", "search_reach", "cells_below", "normal_sigma", "tile_halo", "DISTANCE_FIELDS"]
 
@@ -136,6 +137,9 @@ class Distances:
     registration_source : str
         Where ``registration_error`` came from: ``"given"``, or ``"measured on the stable
         part"`` (``registration_error="auto"``).
+    not_seen : int
+        Core points without a distance because an epoch was found only farther along the normal
+        and its sensor could not see the core point (:mod:`sdp.distance._seen`).
     orientation : str
         How the normals were oriented.
     timings : dict of str to float
@@ -167,6 +171,7 @@ class Distances:
     tiles: int = 0
     mean1: np.ndarray | None = field(default=None, repr=False)
     registration_source: str = "given"
+    not_seen: int = 0
 
     @property
     def comparable(self) -> np.ndarray:
@@ -193,6 +198,7 @@ class Distances:
             "core_points": int(len(self.distance)),
             "comparable": int(ok.sum()),
             "not_comparable": int((~ok).sum()),
+            "not_seen": self.not_seen,
             "significant": int(sig.sum()),
             "significant_positive": int((sig & (d > 0)).sum()),
             "significant_negative": int((sig & (d < 0)).sum()),
@@ -362,6 +368,18 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     out_normal, level = np.empty((m, 3)), np.empty(m, np.int8)
     _results(order, stats[0], stats[1], normal, 0.0 if reg == "auto" else reg, reach, dist, lod, n1, n2, s1, s2,
              out_normal, level)
+    t = time.perf_counter()
+    hidden = np.zeros(m, bool)
+    for side, (cloud, pts) in enumerate(((reference, ref), (current, cur))):
+        # a place an epoch was found only farther along the normal from, where its sensor could not see
+        # the place itself, is not measured (sdp.distance._seen)
+        far = np.flatnonzero(stats[side][3] == 1)
+        if origins[side] is not None and far.size:
+            scan = scanner_of_points(cloud, origins[side], len(pts.xyz))
+            hidden[order[far[not_seen(core_sorted[far], pts.xyz, origins[side], scan, sigma=sigma_p)]]] = True
+    dist[hidden] = lod[hidden] = np.nan
+    level[hidden] = -1
+    timings["not_seen"] = time.perf_counter() - t
     normal = out_normal
     mean1 = np.full(m, np.nan)
     mean1[order] = stats[0][0]
@@ -369,7 +387,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
                              n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
                              projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
                              registration_error=0.0 if reg == "auto" else reg, orientation=how, timings=timings,
-                             mean1=mean1), reg)
+                             mean1=mean1, not_seen=int(hidden.sum())), reg)
     timings["total"] = time.perf_counter() - t0
     return d
 

@@ -41,7 +41,7 @@ matters. Where a sensor's noise exceeds 2σ_p (a depth camera far from its subje
 kernel set by the nearer points' spacing) the stable part is cut at 2σ_p and the level is too low
 there. A depth camera's tail is heavier than five robust standard deviations allow (4–7 % of a
 static Kinect pair's places beyond it, most within a metre of the camera): the level promises 5 %
-and gives 8.8–13.1 % there (``benchmarks/bench_level.py``), against 18–32 % with ``reg = 0``.
+and gives 7.9–13.1 % there (``benchmarks/bench_level.py``), against 17–30 % with ``reg = 0``.
 
 References
 ----------
