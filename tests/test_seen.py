@@ -30,6 +30,8 @@ def test_a_hidden_floor_is_not_comparable_where_m3c2_measures_the_plate(tmp_path
     assert d.not_seen == int((~d.comparable & blind.comparable).sum()) >= inner.sum()
     assert d.comparable[~shadow].mean() > 0.99 and d.significant[~shadow].mean() < 0.07
     assert d.summary()["not_seen"] == d.not_seen
+    given = sdp.distances(first.xyz, second.xyz, sensor_origin=[2.0, 2.0, 3.0])  # arrays, the sensor given
+    assert np.array_equal(given.distance, d.distance, equal_nan=True) and given.not_seen == d.not_seen
     from sdp.cli._main import main
 
     sdp.write_points(tmp_path / "a.ply", first.xyz)
@@ -37,3 +39,17 @@ def test_a_hidden_floor_is_not_comparable_where_m3c2_measures_the_plate(tmp_path
     assert main(["distance", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "-o", str(tmp_path / "d.ply"),
                  "--sensor-origin", "2,2,3"]) == 0
     assert "its sensor could not see the place" in capsys.readouterr().out
+
+
+def test_a_series_epoch_knows_what_its_sensor_did_not_see(tmp_path):
+    rng = np.random.default_rng(4)
+    first, second, shadow = shadowed_floor(rng, n=30_000)
+    ds = sdp.series([first, second], output=tmp_path / "s.zarr")
+    core = np.c_[ds["x"].values, ds["y"].values, ds["z"].values]
+    u = ds.attrs["parameters"]["used"]
+    pair = sdp.distances(first, second, core_points=core, cylinder=sdp.Cylinder(
+        projection_scale=u["projection_scale"], normal_scale=u["normal_scale"], max_distance=u["max_distance"]))
+    under = np.all(np.abs(core[:, :2] - 2.0) < 0.3, axis=1)
+    assert under.sum() > 10 and np.isnan(ds["distance"].values[1, under]).all()
+    assert np.array_equal(np.isnan(ds["distance"].values[1]), np.isnan(pair.distance))
+    assert np.allclose(ds["distance"].values[1], pair.distance, atol=1e-6, equal_nan=True)

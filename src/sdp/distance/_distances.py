@@ -90,7 +90,7 @@ from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
 from ..options import Cylinder
 from ._level import with_level
-from ._seen import not_seen
+from ._seen import without_unseen
 
 __all__ = ["Distances", "distances", "search_reach", "cells_below", "normal_sigma", "tile_halo", "DISTANCE_FIELDS"]
 
@@ -368,26 +368,21 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     out_normal, level = np.empty((m, 3)), np.empty(m, np.int8)
     _results(order, stats[0], stats[1], normal, 0.0 if reg == "auto" else reg, reach, dist, lod, n1, n2, s1, s2,
              out_normal, level)
-    t = time.perf_counter()
-    hidden = np.zeros(m, bool)
-    for side, (cloud, pts) in enumerate(((reference, ref), (current, cur))):
-        # a place an epoch was found only farther along the normal from, where its sensor could not see
-        # the place itself, is not measured (sdp.distance._seen)
-        far = np.flatnonzero(stats[side][3] == 1)
-        if origins[side] is not None and far.size:
-            scan = scanner_of_points(cloud, origins[side], len(pts.xyz))
-            hidden[order[far[not_seen(core_sorted[far], pts.xyz, origins[side], scan, sigma=sigma_p)]]] = True
-    dist[hidden] = lod[hidden] = np.nan
-    level[hidden] = -1
-    timings["not_seen"] = time.perf_counter() - t
     normal = out_normal
     mean1 = np.full(m, np.nan)
     mean1[order] = stats[0][0]
-    d = with_level(Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
-                             n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
-                             projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
-                             registration_error=0.0 if reg == "auto" else reg, orientation=how, timings=timings,
-                             mean1=mean1, not_seen=int(hidden.sum())), reg)
+    d = Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
+                  n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
+                  projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
+                  registration_error=0.0 if reg == "auto" else reg, orientation=how, timings=timings, mean1=mean1)
+    t = time.perf_counter()
+    # where an epoch was found only farther along the normal, and its sensor could not see the core
+    # point, there is no distance (sdp.distance._seen); the reference saw its own points
+    d = without_unseen(d, current, cur.xyz, origins[1], sigma=sigma_p)
+    if core is not ref.xyz:
+        d = without_unseen(d, reference, ref.xyz, origins[0], sigma=sigma_p)
+    timings["not_seen"] = time.perf_counter() - t
+    d = with_level(d, reg)
     timings["total"] = time.perf_counter() - t0
     return d
 

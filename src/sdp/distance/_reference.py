@@ -29,6 +29,7 @@ import numpy as np
 from .._core._memory import check_memory
 from .._core._points import as_points
 from .._core._validate import auto_or_nonnegative, auto_or_positive
+from ..change._visibility import resolve_sensor_origins
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
 from ..options import Cylinder
@@ -45,6 +46,7 @@ from ._distances import (
     search_reach,
 )
 from ._level import with_level
+from ._seen import without_unseen
 
 __all__ = ["PreparedReference"]
 
@@ -168,7 +170,9 @@ class PreparedReference:
     # ------------------------------------------------------------------ one epoch
     def measure(self, current, *, registration_error: float | str = "auto", memory_limit=None) -> Distances:
         """Distances from the reference to ``current`` at the core points, as :func:`sdp.distances`
-        (``registration_error``: a number, or ``"auto"``: measured on the stable part)."""
+        (``registration_error``: a number, or ``"auto"``: measured on the stable part; a
+        :class:`sdp.Cloud` that knows its sensors: no distance where they could not see the core
+        point, :mod:`sdp.distance._seen`)."""
         t0 = time.perf_counter()
         cur = as_points(current, name="epoch")
         if len(cur.xyz) < 3:
@@ -176,8 +180,10 @@ class PreparedReference:
         reg = auto_or_nonnegative("registration_error", registration_error)
         check_memory(self.memory_per_epoch(len(cur.xyz)), f"an epoch of {len(cur.xyz):,} points", memory_limit,
                      advice="measure at fewer core points")
-        return with_level(self._measure(cur.xyz, self.epoch_corner(cur.lo), cur.hi, 0.0 if reg == "auto" else reg,
-                                        t0), reg)
+        d = self._measure(cur.xyz, self.epoch_corner(cur.lo), cur.hi, 0.0 if reg == "auto" else reg, t0)
+        origins = resolve_sensor_origins("auto", None, current)[1]  # what the epoch's file says, else None
+        d = without_unseen(d, current, cur.xyz, origins, sigma=self.projection_scale / 4.0)
+        return with_level(d, reg)
 
     def epoch_corner(self, lowest) -> np.ndarray:
         """Where an epoch's cells start: the reference's corner, whole cells lower where the epoch's

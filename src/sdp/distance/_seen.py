@@ -14,18 +14,43 @@ the sensor's reach. With several scanners (a multi-scan E57), a place is seen wh
 that epoch saw it. Places not seen get no distance (NaN: not comparable, as M3C2's places without
 points), so they are neither significant nor counted in the level's calibration.
 
-On the three static mOSD pairs this leaves 2,831, 3,443 and 0 of the 2,831, 5,648 and 6,358 places
+On the three static mOSD pairs this leaves 2,831, 3,440 and 0 of the 2,831, 5,648 and 6,358 places
 found farther along the normal without a distance (``benchmarks/bench_level.py``).
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from ..change._visibility import HIDDEN, UNOBSERVED, RangeImage
+from ..change._visibility import HIDDEN, UNOBSERVED, RangeImage, scanner_of_points
 from ..defaults import DEFAULTS
 
-__all__ = ["not_seen"]
+__all__ = ["not_seen", "without_unseen"]
+
+
+def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sigma: float):
+    """``d`` (:class:`sdp.Distances`) with no distance at the core points found only farther
+    along the normal (level 1) that the scan ``cloud`` (an array or a :class:`sdp.Cloud`; its
+    finite points ``xyz``; its sensors ``origins``: (3,), or (k, 3) with the Cloud's
+    :attr:`~sdp.Cloud.scan`, or None) could not see; ``d`` itself when nothing changes."""
+    far = np.flatnonzero(d.level == 1)
+    if origins is None or far.size == 0:
+        return d
+    scan = None
+    if np.ndim(origins) == 2:  # several scanners: the cloud says which saw each point
+        scan = scanner_of_points(cloud, origins, len(cloud.xyz))
+        if len(scan) != len(xyz):  # rows with NaN were dropped from xyz
+            scan = scan[np.isfinite(cloud.xyz).all(axis=1)]
+    hidden = far[not_seen(d.core_points[far], xyz, origins, scan, sigma=sigma)]
+    if hidden.size == 0:
+        return d
+    distance, lod, level = d.distance.copy(), d.lod.copy(), d.level.copy()
+    distance[hidden] = lod[hidden] = np.nan
+    level[hidden] = -1
+    return dataclasses.replace(d, distance=distance, lod=lod, significant=np.abs(distance) > lod, level=level,
+                               not_seen=d.not_seen + int(hidden.size))
 
 
 def not_seen(points: np.ndarray, cloud: np.ndarray, origins: np.ndarray, scan: np.ndarray | None, *,

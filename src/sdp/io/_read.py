@@ -78,8 +78,8 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
     try:
         reader = partial(read_las, fields=False) if fmt == "las" and not fields else _READERS[fmt]
         xyz, values, las, *pose = reader(path)  # PCD adds its VIEWPOINT and whether organized, E57 its scanners
-        if not fields:
-            values = {}
+        if not fields:  # which scanner saw each point stays: it is where the point was seen from
+            values = {"scan": values["scan"]} if "scan" in values else {}
         xyz = np.asarray(xyz)
         if xyz.dtype.kind not in "iuf":  # complex, text, structured: no coordinates to cast
             raise CloudFileError(f"{path}: coordinates of type {xyz.dtype} (expected real numbers)")

@@ -469,10 +469,15 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                                       fix_horizontal=registration.fix_horizontal)
                     xyz = xyz @ al.matrix[:3, :3].T + al.matrix[:3, 3]
                     record["alignment"] = {"matrix": al.matrix.tolist(), "rmse": float(al.rmse)}
+                    if isinstance(cloud, Cloud):  # its sensors moved with it
+                        cloud = cloud.transformed(al.matrix)
                 if tiles:
                     d, n_points = tiles.measure(prepared, cloud, registration_error=reg, reference=is_ref)
                 else:
-                    d, n_points = prepared.measure(xyz, registration_error=reg, memory_limit=limit), len(xyz)
+                    # a cloud that knows its sensors: no distance where they could not see the core point
+                    epoch_points = cloud if isinstance(cloud, Cloud) else xyz
+                    d = prepared.measure(epoch_points, registration_error=reg, memory_limit=limit)
+                    n_points = len(xyz)
                 buffered.append((k, d.distance.astype(np.float32), d.lod.astype(np.float32), d.significant))
                 if len(buffered) >= flush:
                     write_rows()
