@@ -107,6 +107,21 @@ def test_multi_scan_e57_reads_every_scan_with_its_pose(two_epochs):
     assert np.allclose(moved.sensors, ref.sensors + [1, 2, 3])
 
 
+def test_a_series_of_multi_scan_epochs_measures_what_some_scanner_saw(two_epochs, tmp_path):
+    """A series reads its epochs' x, y, z alone, but keeps which scanner saw each point: each epoch's
+    distances equal the pair's with the epoch's scanners (tests/test_seen.py: what they did not see)."""
+    lean = sdp.read_points(two_epochs[1], fields=False)
+    assert np.array_equal(lean.scan, sdp.read_points(two_epochs[1]).scan) and lean.scan.max() == 1
+    ds = sdp.series(list(two_epochs), output=tmp_path / "s.zarr")
+    core = np.c_[ds["x"].values, ds["y"].values, ds["z"].values]
+    u = ds.attrs["parameters"]["used"]
+    pair = sdp.distances(sdp.read_points(two_epochs[0]), lean, core_points=core, orientation=[0, 0, 1],
+                         sensor_origin=[None, lean.sensor_origins], cylinder=sdp.Cylinder(
+                             projection_scale=u["projection_scale"], normal_scale=u["normal_scale"],
+                             max_distance=u["max_distance"]))
+    assert np.allclose(ds["distance"].values[1], pair.distance, atol=1e-5, equal_nan=True)
+
+
 def test_every_scanner_of_the_other_epoch_is_asked(two_epochs):
     ref, cur = (sdp.read_points(p) for p in two_epochs)
     res = sdp.detect_changes(ref, cur, coverage=sdp.Coverage(range_noise=0.001))  # a laser scanner's noise
