@@ -51,8 +51,9 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
     format : {"pcd", "ply", "las", "text", "npy", "npz", "e57"}, optional
         Override the extension.
     fields : bool
-        False: the coordinates only (``Cloud.fields`` empty), for callers that need no other
-        dimension (a LAS/LAZ file then skips unpacking them).
+        False: the coordinates only (``Cloud.fields`` empty but for a multi-scan E57's ``scan``,
+        which says where each point was seen from), for callers that need no other dimension (a
+        LAS/LAZ file then skips unpacking them).
 
     Raises
     ------
