@@ -135,8 +135,8 @@ class Distances:
     projection_scale, normal_scale, max_distance, registration_error : float
         The parameters used (M3C2's terms: diameters d and D, the cylinder's half-length, ``reg``).
     registration_source : str
-        Where ``registration_error`` came from: ``"given"``, or ``"measured on the stable
-        part"`` (``registration_error="auto"``).
+        Where ``registration_error`` came from: ``"given"``; with ``registration_error="auto"``,
+        ``"measured on the stable part"``, or ``"M3C2's 0: fewer than 100 stable places"``.
     not_seen : int
         Core points without a distance because an epoch was found only farther along the normal
         and its sensor could not see the core point (:mod:`sdp.distance._seen`).

@@ -74,9 +74,13 @@ def stable_part(distance: np.ndarray, random_sd: np.ndarray, sigma_p: float) -> 
     """The places within the density test's reach, ``|distance| ≤ 2σ_p``, whose distance in units
     of its own random part is within five robust standard deviations of the median there
     (module docstring)."""
+    with np.errstate(invalid="ignore"):
+        near = np.flatnonzero((np.abs(distance) <= STABLE_REACH * sigma_p) & (random_sd > 0))
     out = np.zeros(distance.shape, bool)
-    near = np.flatnonzero(_near(distance, random_sd, sigma_p))
-    out[near[_inliers(distance[near] / random_sd[near])]] = True
+    if near.size:
+        z = distance[near] / random_sd[near]
+        dev = np.abs(z - np.median(z))
+        out[near[dev <= ROBUST_BOUND * 1.4826 * np.median(dev)]] = True
     return out
 
 
@@ -86,28 +90,12 @@ def measured_registration_error(distance: np.ndarray, random_sd: np.ndarray, sig
     stable part holds fewer than 100 places, too few to tell a 5 % share within ±2 %."""
     step = max(1, distance.size // _SAMPLE)  # a regular sample: the places are in no particular order
     distance, random_sd = distance[::step], random_sd[::step]
-    near = _near(distance, random_sd, sigma_p)
-    d, sd = distance[near], random_sd[near]
-    keep = _inliers(d / sd)
-    excess = np.abs(d[keep]) / LEVEL_Z - sd[keep]
+    keep = stable_part(distance, random_sd, sigma_p)
+    excess = np.abs(distance[keep]) / LEVEL_Z - random_sd[keep]
     if excess.size < MIN_STABLE:  # too few to read a 5 % share from
         return None
     k = int(SHARE * excess.size)
     return max(0.0, float(np.partition(excess, excess.size - 1 - k)[excess.size - 1 - k]))
-
-
-def _near(distance, random_sd, sigma_p) -> np.ndarray:
-    with np.errstate(invalid="ignore"):
-        return (np.abs(distance) <= STABLE_REACH * sigma_p) & (random_sd > 0)
-
-
-def _inliers(z: np.ndarray) -> np.ndarray:
-    """``z`` within five robust standard deviations of its median."""
-    if z.size == 0:
-        return np.zeros(0, bool)
-    med = float(np.median(z))
-    dev = np.abs(z - med)
-    return dev <= ROBUST_BOUND * 1.4826 * float(np.median(dev))
 
 
 def with_level(d, registration_error):

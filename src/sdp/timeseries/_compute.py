@@ -467,10 +467,12 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
 
                     al = align_clouds(ref_xyz, xyz, method=registration.method,
                                       fix_horizontal=registration.fix_horizontal)
-                    xyz = xyz @ al.matrix[:3, :3].T + al.matrix[:3, 3]
-                    record["alignment"] = {"matrix": al.matrix.tolist(), "rmse": float(al.rmse)}
                     if isinstance(cloud, Cloud):  # its sensors moved with it
                         cloud = cloud.transformed(al.matrix)
+                        xyz = cloud.xyz
+                    else:
+                        xyz = xyz @ al.matrix[:3, :3].T + al.matrix[:3, 3]
+                    record["alignment"] = {"matrix": al.matrix.tolist(), "rmse": float(al.rmse)}
                 if tiles:
                     d, n_points = tiles.measure(prepared, cloud, registration_error=reg, reference=is_ref)
                 else:
