@@ -14,7 +14,7 @@ from sdp.data import slope_series
 from sdp.distance import PreparedReference
 from sdp.timeseries import _archive
 from sdp.timeseries._kalman import FilterState, kalman
-from sdp.timeseries._objects import Tracker
+from sdp.timeseries._objects import Tracker, neighbour_pairs
 
 pytest.importorskip("xarray")
 pytest.importorskip("zarr")
@@ -389,6 +389,27 @@ def test_smoother_recovers_velocity_and_steps():
     np.testing.assert_array_equal(one[:, 0], sm[:, 0])
 
 
+def test_a_step_after_the_first_epoch_an_outlier_and_a_step_at_the_newest_epoch():
+    """A step right after the reference is a step, not a rate; an epoch alone off the series is
+    not carried into the smoothed change; the newest epoch's step is taken at once."""
+    rng = np.random.default_rng(2)
+    t = np.arange(25.0)
+    truth = np.zeros((25, 400))
+    truth[1:, :100] = 20.0  # a step at epoch 1
+    truth[24, 300:] = 20.0  # a step at the newest epoch
+    z = truth + rng.standard_normal(truth.shape)
+    z[7, 100:200] += 20.0  # one epoch off: an outlier, not a change
+    z[0] = 0.0  # the reference against itself
+    var = np.ones_like(z)
+    var[0] = 1e-6
+    sm, vel, ssd, vsd, step, _ = kalman(z, var, t, 1e-6, lag=8, scale=1.0, dt=1.0)
+    assert np.all(step[:100] == 1) and np.all(step[100:300] == -1) and np.all(step[300:] == 24)
+    assert np.median(np.abs(vel[:, :100])) < 0.1  # no rate made of the step
+    assert np.median(np.abs(sm - truth)[:, :100] / ssd[:, :100]) < 1.0
+    assert np.max(np.abs(sm[:, 100:200])) < 3.0  # the outlier is not carried into the series
+    assert np.median(np.abs(sm[24, 300:] - 20.0)) < 2.0
+
+
 def test_the_fixed_lag_smoother_goes_on_from_its_saved_state():
     """Rows older than the lag are final; filtering on from the state saved with 20 epochs gives
     the run over 23 epochs bit for bit, with a step confirmed by the appended epochs."""
@@ -410,6 +431,23 @@ def test_the_fixed_lag_smoother_goes_on_from_its_saved_state():
     assert np.all(full[4][:10] == 20) and np.all(part[4][:10] == -1)
     start = FilterState.start(50)
     np.testing.assert_array_equal(kalman(z, var, t, 1e-3, state=start, **kw)[0], full[0])
+
+
+def test_core_points_drawn_at_random_keep_a_change_in_one_piece():
+    """Every third point of a scan as core points (as py4dgeo's users pick them): a changed disk's
+    core points are joined in one piece by the default neighbour radius."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(5)
+    xyz = np.c_[rng.uniform(0, 20, (20_000, 2)), np.zeros(20_000)][::3]
+    i, j, _, _ = neighbour_pairs(xyz)
+    disk = np.flatnonzero(np.hypot(xyz[:, 0] - 10, xyz[:, 1] - 10) < 2.4)
+    pos = np.full(len(xyz), -1)
+    pos[disk] = np.arange(len(disk))
+    inside = (pos[i] >= 0) & (pos[j] >= 0)
+    graph = coo_matrix((np.ones(inside.sum()), (pos[i[inside]], pos[j[inside]])), shape=(len(disk),) * 2)
+    assert connected_components(graph, directed=False)[0] == 1
 
 
 def test_tracked_objects_split_merge_and_start_when_large():

@@ -22,6 +22,13 @@ Not-comparable epochs are skipped (prediction only).
   the position's variance is raised by the innovation's square before the update, so the filter
   takes the new level at once and the smoother does not carry the step back into the epochs
   before it (an intervention, as in structural time-series models [2]_). Its epoch is recorded.
+  Not confirmed, it is an outlier (a person, a parked car, a splash of rain): its variance is
+  raised by the innovation's square, so it hardly moves the series. The newest epoch has no next
+  one: beyond ``k`` deviations it counts as a step, which the next epoch confirms or revises.
+- **The rate starts at 0 ± one of the point's noise deviations per time step** at its first
+  observation (the change starts diffuse), not diffuse: with a diffuse rate
+  the second epoch sets it, so a step right after the reference became a rate, and the third
+  epoch, predicted twice as far, was then taken for another step.
 - **Fixed lag** [3]_ [4]_: epoch ``k`` is smoothed with the epochs up to ``k + lag`` (all of
   them for the last ``lag``). A smoother over the whole series would change every epoch when one
   is added; with a lag, an epoch is final once ``lag`` more have come, so appending an epoch
@@ -59,6 +66,11 @@ __all__ = ["observation_variance", "process_noise", "kalman", "FilterState", "BY
 #: scratch (80 B), the float32 reads and results (24 B); 320 leaves room for NumPy's temporaries.
 BYTES_PER_VALUE = 320
 _STEP_K = 4.0
+#: The rate's standard deviation at a point's first observation, in the point's noise deviations
+#: per time step. A diffuse rate would take a step right after the first epoch for a rate (two
+#: epochs cannot tell them apart, and the third is then predicted twice as far); one deviation
+#: per step is what one epoch can resolve, and a few epochs outweigh it.
+_RATE_PRIOR = 1.0
 
 
 def observation_variance(lod: np.ndarray, registration_error: np.ndarray, ref_var: np.ndarray) -> np.ndarray:
@@ -184,8 +196,9 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, lag: int,
     lag : int
         Epochs smoothed with those up to ``lag`` after them; the last ``lag`` with all that follow.
     scale, dt : float
-        The noise's typical standard deviation and the typical time step, which set the width of
-        the diffuse start (a run and its appends give the same values for every block).
+        The noise's typical standard deviation, which sets the width of the diffuse start, and the
+        typical time step (the rate's start at a point observed last at the newest epoch); a run
+        and its appends give the same values for every block.
     state : FilterState, optional
         The filter after epoch ``state.epoch`` (default: before the first epoch).
     step_k : float
@@ -209,8 +222,9 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, lag: int,
     E = state.epoch + 1 + W
     if len(t) != E:
         raise ValueError(f"{len(t)} times for {E} epochs")
-    # a diffuse start, 1000 noise deviations wide: wider, and the smoother's 2×2 inverse loses its digits
-    big_d, big_v = (1e3 * scale) ** 2, (1e3 * scale / dt) ** 2
+    # the change starts diffuse, 1000 noise deviations wide: wider, and the smoother's 2×2 inverse
+    # loses its digits (the rate's start is set at each point's first observation, _one_point)
+    big_d = (1e3 * scale) ** 2
     r0 = max(state.epoch, 0)
     out = np.empty((4, E - r0, m))
     keep = E - 1 - lag
@@ -218,7 +232,7 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, lag: int,
     seen = state.seen.copy()
     step = state.step.copy()
     # the inputs with each point's epochs side by side, as the kernel reads them
-    _fixed_lag(np.ascontiguousarray(z.T), np.ascontiguousarray(var.T), t, float(q), float(step_k), big_d, big_v,
+    _fixed_lag(np.ascontiguousarray(z.T), np.ascontiguousarray(var.T), t, float(q), float(step_k), big_d, float(dt),
                int(lag), state.epoch, np.ascontiguousarray(state.x), keep, x_out, seen, step, out)
     if keep > state.epoch:
         saved = FilterState(keep, x_out, np.where(seen <= keep, seen, 2**62), np.where(step <= keep, step, -1)
@@ -229,7 +243,7 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, lag: int,
 
 
 @nb.njit(cache=True, parallel=True)
-def _fixed_lag(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, seen, step, out):
+def _fixed_lag(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen, step, out):
     """:func:`kalman`'s kernel on (points, epochs) arrays, one core point per iteration (its epochs
     in a scratch of ten values per epoch): filtered on from epoch ``f`` (state ``x_in``), the state
     after epoch ``keep`` written to ``x_out``, rows from ``max(f, 0)`` smoothed into ``out``."""
@@ -244,12 +258,12 @@ def _fixed_lag(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, se
         xf = np.empty((R, 2))
         Pf = np.empty((R, 3))
         for j in range(block * per, min(m, block * per + per)):
-            _one_point(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
+            _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
                        xp, Pp, xf, Pf)
 
 
 @nb.njit(cache=True, inline="always")
-def _one_point(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
+def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
                xp, Pp, xf, Pf):
     """:func:`_fixed_lag` for core point ``j`` in the scratch ``xp, Pp, xf, Pf``."""
     if f >= 0:
@@ -259,7 +273,7 @@ def _one_point(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, se
         Pf[0, 0], Pf[0, 1], Pf[0, 2] = p00, p01, p11
     else:
         x0, x1 = 0.0, 0.0
-        p00, p01, p11 = big_d, 0.0, big_v
+        p00, p01, p11 = big_d, 0.0, 0.0
     for k in range(f + 1, E):
         w = k - f - 1  # column of the inputs
         r = k - base  # row of the scratch
@@ -271,20 +285,36 @@ def _one_point(z, var, t, q, step_k, big_d, big_v, lag, f, x_in, keep, x_out, se
         ok = np.isfinite(z[j, w]) and np.isfinite(var[j, w]) and var[j, w] > 0
         if ok and seen[j] > k:
             seen[j] = k
+            # the first observation: the change diffuse, its rate 0 ± _RATE_PRIOR of the point's
+            # noise deviations (this epoch's or the next one's, the larger) per time step
+            h, v = dt, var[j, w]
+            if k < E - 1:
+                h = t[k + 1] - t[k]
+                if np.isfinite(var[j, w + 1]) and var[j, w + 1] > v:
+                    v = var[j, w + 1]
+            x0, x1 = 0.0, 0.0
+            p00, p01, p11 = big_d, 0.0, _RATE_PRIOR * _RATE_PRIOR * v / (h * h)
         nu = z[j, w] - x0 if ok else 0.0
         s = p00 + var[j, w] if ok else np.inf
-        if ok and 0 < k < E - 1:
-            ok2 = np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1]) and var[j, w + 1] > 0
-            if ok2:
-                h = t[k + 1] - t[k]
-                nu2 = z[j, w + 1] - (x0 + h * x1)
-                s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, w + 1]
-                if (abs(nu) > step_k * np.sqrt(s) and abs(nu2) > step_k * np.sqrt(s2)
-                        and np.sign(nu) == np.sign(nu2)):
-                    p00 = p00 + nu * nu
-                    s = s + nu * nu
-                    if step[j] < 0:
-                        step[j] = k
+        if ok and k > 0 and abs(nu) > step_k * np.sqrt(s):
+            # beyond step_k deviations: a step if the next epoch lies as far on the same side, an
+            # outlier if it does not (the observation weighs as if its variance held the
+            # innovation); the newest epoch has no next one yet and counts as a step until it comes
+            is_step = k == E - 1
+            if k < E - 1:
+                is_step = False
+                if np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1]) and var[j, w + 1] > 0:
+                    h = t[k + 1] - t[k]
+                    nu2 = z[j, w + 1] - (x0 + h * x1)
+                    s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, w + 1]
+                    is_step = abs(nu2) > step_k * np.sqrt(s2) and np.sign(nu) == np.sign(nu2)
+                    if not is_step:
+                        s = s + nu * nu
+            if is_step:
+                p00 = p00 + nu * nu
+                s = s + nu * nu
+                if step[j] < 0:
+                    step[j] = k
         xp[r, 0], xp[r, 1] = x0, x1
         Pp[r, 0], Pp[r, 1], Pp[r, 2] = p00, p01, p11
         g0, g1 = p00 / s, p01 / s  # gain (0 where there is no observation: s = inf)

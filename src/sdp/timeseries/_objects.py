@@ -3,8 +3,8 @@
 A core point at an epoch is *changed* when its smoothed change is significant: ``|smoothed| >
 1.96·smoothed_sigma`` (the smoother's own 95 % bound). Changed core points of the same sign are
 joined to their spatial neighbours at the same epoch (core points closer than ``radius``, by
-default 1.5 × the 90th percentile of the core points' spacing) where both changed in one way:
-gradually, or by steps at the same epoch (± 1; the steps of :mod:`sdp.timeseries._kalman`),
+default the 90th percentile of each core point's distance to its 6th nearest) where both changed
+in one way: gradually, or by steps at the same epoch (± 1; the steps of :mod:`sdp.timeseries._kalman`),
 since a step and a creep beside it, or two steps at different epochs, are different events.
 Each epoch's connected sets continue the tracks of the epoch before that share a core point
 changed the same way in both, as the objects-by-change of Anders et al. [1]_ grow in space and
@@ -53,24 +53,28 @@ __all__ = ["neighbour_pairs", "min_object_points", "Tracker", "OBJECT_FIELDS"]
 OBJECT_FIELDS = ("object_start", "object_end", "object_start_time", "object_end_time", "object_points",
                  "object_area", "object_peak_change", "object_mean_velocity")
 #: The per-track numbers of :class:`Tracker` (live tracks, and the objects' table): one array each.
+#: Neighbours each core point reaches (at the 90th percentile): a triangulation's mean degree. Core
+#: points drawn at random (every n-th point of a scan) joined only to their nearest reach about
+#: five on average, at the edge of percolation: one change fell apart into many small pieces.
+_RING = 6
 _TRACK = ("uid", "obj", "first", "end", "peak", "vsum", "vcount")
 _OBJECT = ("start", "end", "points", "peak", "vsum", "vcount")
 
 
 def neighbour_pairs(xyz: np.ndarray, radius: float | None = None) -> tuple[np.ndarray, np.ndarray, float, float]:
     """(i, j, radius, area per core point): the core points' neighbour pairs within ``radius``
-    (default 1.5 × the 90th percentile of the nearest-neighbour spacing: core points subsampled
-    on a grid lie up to a cell and a half apart and must still touch); the area is the median
-    spacing squared."""
+    (default the 90th percentile of the distance to the :data:`_RING`-th nearest: core points on a
+    grid reach their eight around, core points drawn at random their six or more, well past the
+    edge of percolation); the area is the median nearest-neighbour spacing squared."""
     from scipy.spatial import cKDTree  # imported here: an append reads the pairs it saved, and skips the import
 
     tree = cKDTree(xyz)
     if len(xyz) > 1:
-        d, _ = tree.query(xyz[:: max(1, len(xyz) // 5000)], k=2)
-        spacing, far = float(np.median(d[:, 1])), float(np.quantile(d[:, 1], 0.9))
+        d, _ = tree.query(xyz[:: max(1, len(xyz) // 5000)], k=min(len(xyz), _RING + 1))
+        spacing, far = float(np.median(d[:, 1])), float(np.quantile(d[:, -1], 0.9))
     else:
         spacing = far = 1.0
-    radius = 1.5 * far if radius is None else float(radius)
+    radius = far if radius is None else float(radius)
     pairs = tree.query_pairs(radius, output_type="ndarray")
     return pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64), radius, spacing * spacing
 
