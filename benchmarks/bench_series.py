@@ -11,7 +11,9 @@ Prints markdown (docs/benchmarks.md §12 quotes it; ``results/series.md`` keeps 
    against σ/2; stable core points' significant share of epochs (≤ 6 %); median smoothed
    velocity on the creeping disk against the truth (within 10 %); the step's core points in an
    object starting at the step's epoch (≥ 90 %); stable core points in any object (≤ 2 %).
-   Core points closer than d to a disk's rim are left out of the zones.
+   Core points closer than d to a disk's rim are left out of the zones. 1b: a step right after
+   the reference (10 epochs of 20,000 points, the step disk moving at epoch 1), in this process:
+   the smoothed change against the truth, the velocity (truth 0), the onset and the object.
 2. Side by side with py4dgeo 1.2's SpatiotemporalAnalysis (M3C2 of each epoch against the
    reference at the same core points: cylinder radius d/2, normal radius D/2, half-length
    0.75 d as sdp's cylinder, the same registration error), each tool as a whole job in its own
