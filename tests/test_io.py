@@ -162,10 +162,19 @@ def test_io_modules_import_one_way():
 
 
 @pytest.mark.parametrize("point_format", [3, 7])
-def test_xyz_alone_from_a_layered_laz_equal_the_whole_read(tmp_path, rng, point_format):
+def test_xyz_alone_from_a_layered_laz_equal_the_whole_read(tmp_path, rng, point_format, monkeypatch):
     """Read without its other dimensions (a series' epochs), a LAZ of point format 6-10 skips their
     layers: the same coordinates as a whole read, which keeps its colours and intensities."""
     import laspy
+
+    asked = []
+    real_open = laspy.open
+
+    def spy(*args, **kwargs):
+        asked.append(kwargs.get("decompression_selection"))
+        return real_open(*args, **kwargs)
+
+    monkeypatch.setattr(laspy, "open", spy)
 
     header = laspy.LasHeader(point_format=point_format, version="1.4")
     header.scales, header.offsets = [0.001] * 3, [600_000.0, 4_800_000.0, 0.0]
@@ -180,6 +189,13 @@ def test_xyz_alone_from_a_layered_laz_equal_the_whole_read(tmp_path, rng, point_
     np.testing.assert_array_equal(whole.fields["intensity"], las.intensity)
     np.testing.assert_array_equal(whole.fields["red"], las.red)
     assert bare.fields == {} and np.abs(whole.xyz - xyz).max() < 1e-3
+    # the coordinates' read asked lazrs for their layers alone: in a layered format (6-10) the
+    # others are left undecoded (only their first point's value comes back), format 3 decodes whole
+    skipped = laspy.read(str(tmp_path / "in.laz"), decompression_selection=asked[-1])
+    layered = point_format >= 6
+    assert np.array_equal(skipped.intensity, las.intensity) != layered
+    assert np.array_equal(skipped.red, las.red) != layered
+    np.testing.assert_array_equal(skipped.X, las.X)
 
 
 def test_a_las_files_time_read_from_its_header_agrees_with_laspy(tmp_path):

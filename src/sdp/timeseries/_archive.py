@@ -52,7 +52,7 @@ import numpy as np
 
 from ..errors import SDPError, require
 
-__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "open_series", "recover", "writing", "transaction",
+__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "archive_exists", "open_series", "recover", "writing", "transaction",
            "untouched_by_append", "Writer",
            "many_chunks_at_once", "write_state", "read_state", "objects_by_size", "read_group"]
 
@@ -103,6 +103,13 @@ def require_zarr():
 
 def _siblings(path: Path) -> tuple[Path, Path]:
     return path.parent / f".{path.name}.pending", path.parent / f".{path.name}.old"
+
+
+def archive_exists(path) -> bool:
+    """An archive at ``path``, or a new version of it that an interrupted run left beside it
+    (:func:`recover` swaps it in)."""
+    path = Path(path)
+    return path.exists() or _siblings(path)[0].exists()
 
 
 def _journal(path: Path) -> tuple[Path, Path]:

@@ -291,7 +291,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
              "orientation": None if orientation is None else [float(v) for v in np.asarray(orientation).reshape(-1)],
              "reference": reference}
     if append:
-        if not out.exists() and not A._siblings(out)[0].exists():
+        if not A.archive_exists(out):
             raise SDPError(f"{out}: no archive to append to; run without --append first")
         with A.writing(out):  # held to the end: no other run writes the archive meanwhile
             g = A.read_group(out)
