@@ -8,9 +8,14 @@ fixed-camera mOSD pairs (``bench_decision.labelled_pairs``) both run ``detect_ch
 defaults, alternately, ``REPEAT`` times each, the fastest of each counted (wall and CPU time). Also
 checks that both give the same ``change`` fields.
 
-    python benchmarks/bench_versions.py /tmp/before/src/sdp [LABEL]
+    python benchmarks/bench_versions.py /tmp/before/src/sdp [LABEL] [--decision combined]
 
-Prints markdown and writes benchmarks/results/versions.md. Needs ../shared/data (about 2 minutes;
+``--decision D`` runs this checkout with ``decision=D`` (the other version with its defaults):
+issue 34's "time per Kinect pair no more than 1.3× today's in the same run", today's being the
+code the issue was filed against (``git worktree add /tmp/before34 f6002a7``). Each version reads
+the pairs with its own ``read_points``.
+
+Prints markdown and writes benchmarks/results/versions.md (``versions-D.md`` with ``--decision D``). Needs ../shared/data (about 2 minutes;
 the other version's kernels compile on the first pair).
 """
 
@@ -43,28 +48,36 @@ def load_other(package: Path, into: Path):
 
 
 def main():
-    if len(sys.argv) < 2 or not LEARN.is_dir():
-        print(__doc__ if len(sys.argv) < 2 else f"skipped: {LEARN} not found")
+    args = sys.argv[1:]
+    decision = None
+    if "--decision" in args:
+        at = args.index("--decision")
+        decision = args[at + 1]
+        del args[at:at + 2]
+    if not args or not LEARN.is_dir():
+        print(__doc__ if not args else f"skipped: {LEARN} not found")
         return
-    label = sys.argv[2] if len(sys.argv) > 2 else sys.argv[1]
+    label = args[1] if len(args) > 1 else args[0]
+    options = {"other": {}, "this": {} if decision is None else {"decision": decision}}
     with tempfile.TemporaryDirectory() as tmp:
-        versions = {"other": load_other(Path(sys.argv[1]), Path(tmp)), "this": sdp}
-        pairs = [(sdp.read_points(LEARN / f"learn{t - 1}.pcd"), sdp.read_points(LEARN / f"learn{t}.pcd"))
-                 for t, *_ in labelled_pairs()]
-        for v in versions.values():  # kernels loaded (or compiled) before timing
-            v.detect_changes(*pairs[0])
+        versions = {"other": load_other(Path(args[0]), Path(tmp)), "this": sdp}
+        cases = [(LEARN / f"learn{t - 1}.pcd", LEARN / f"learn{t}.pcd") for t, *_ in labelled_pairs()]
+        # each version's own clouds: the other's checks its own Cloud class
+        pairs = {k: [(v.read_points(a), v.read_points(b)) for a, b in cases] for k, v in versions.items()}
+        for k, v in versions.items():  # kernels loaded (or compiled) before timing
+            v.detect_changes(*pairs[k][0], **options[k])
         wall = {k: [] for k in versions}
         cpu = {k: [] for k in versions}
         same = True
         load = [os.getloadavg()[0]]
-        for ref, cur in pairs:
+        for i in range(len(cases)):
             w = {k: [] for k in versions}
             c = {k: [] for k in versions}
             fields = {}
             for _ in range(REPEAT):
                 for k, v in versions.items():
                     t, p = time.perf_counter(), time.process_time()
-                    r = v.detect_changes(ref, cur)
+                    r = v.detect_changes(*pairs[k][i], **options[k])
                     w[k].append(time.perf_counter() - t)
                     c[k].append(time.process_time() - p)
                     fields[k] = (r.current_state, r.reference_state)
@@ -76,18 +89,18 @@ def main():
     ratio = np.array(wall["this"]) / np.array(wall["other"])
     lines = ["# Two versions of sdp, interleaved (`benchmarks/bench_versions.py`)\n",
              f"{time.strftime('%Y-%m-%d %H:%M')}, {os.cpu_count()} cores, load average (1 min) "
-             f"{min(load):.1f}–{max(load):.1f}. {len(pairs)} mOSD pairs, `detect_changes` with the defaults "
+             f"{min(load):.1f}–{max(load):.1f}. {len(cases)} mOSD pairs, `detect_changes` with the defaults "
              f"(sensor origin from the files), each version {REPEAT}× per pair in turn, the fastest counted; "
              f"medians over the pairs.\n",
              "| version | wall (ms) | CPU (ms) |", "|---|---:|---:|",
              f"| other: `{label}` | {1e3 * np.median(wall['other']):.1f} | {1e3 * np.median(cpu['other']):.1f} |",
-             f"| this checkout | {1e3 * np.median(wall['this']):.1f} | {1e3 * np.median(cpu['this']):.1f} |",
+             f"| this checkout{'' if decision is None else f', decision={decision!r}'} | {1e3 * np.median(wall['this']):.1f} | {1e3 * np.median(cpu['this']):.1f} |",
              "",
              f"This ÷ other, per pair: median {np.median(ratio):.3f} (range {ratio.min():.3f}–{ratio.max():.3f}). "
              f"Same `change` fields on every pair: {same}.", ""]
     print("\n".join(lines))
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "versions.md").write_text("\n".join(lines))
+    (RESULTS / ("versions.md" if decision is None else f"versions-{decision}.md")).write_text("\n".join(lines))
 
 
 if __name__ == "__main__":
