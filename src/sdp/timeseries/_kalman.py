@@ -26,9 +26,9 @@ Not-comparable epochs are skipped (prediction only).
   raised by the innovation's square, so it hardly moves the series. The newest epoch has no next
   one: beyond ``k`` deviations it counts as a step, which the next epoch confirms or revises.
 - **The rate starts at 0 ± one of the point's noise deviations per time step** at its first
-  observation (the change starts diffuse), not diffuse: with a diffuse rate
-  the second epoch sets it, so a step right after the reference became a rate, and the third
-  epoch, predicted twice as far, was then taken for another step.
+  observation (the change itself starts diffuse). A diffuse rate is set by the second epoch, so a
+  step right after the reference would read as a rate, and the third epoch, predicted twice as
+  far, as another step.
 - **Fixed lag** [3]_ [4]_: epoch ``k`` is smoothed with the epochs up to ``k + lag`` (all of
   them for the last ``lag``). A smoother over the whole series would change every epoch when one
   is added; with a lag, an epoch is final once ``lag`` more have come, so appending an epoch
@@ -197,7 +197,7 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, lag: int,
         Epochs smoothed with those up to ``lag`` after them; the last ``lag`` with all that follow.
     scale, dt : float
         The noise's typical standard deviation, which sets the width of the diffuse start, and the
-        typical time step (the rate's start at a point observed last at the newest epoch); a run
+        typical time step (the rate's start at a point first observed at the newest epoch); a run
         and its appends give the same values for every block.
     state : FilterState, optional
         The filter after epoch ``state.epoch`` (default: before the first epoch).
@@ -301,15 +301,13 @@ def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen,
             # outlier if it does not (the observation weighs as if its variance held the
             # innovation); the newest epoch has no next one yet and counts as a step until it comes
             is_step = k == E - 1
-            if k < E - 1:
-                is_step = False
-                if np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1]) and var[j, w + 1] > 0:
-                    h = t[k + 1] - t[k]
-                    nu2 = z[j, w + 1] - (x0 + h * x1)
-                    s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, w + 1]
-                    is_step = abs(nu2) > step_k * np.sqrt(s2) and np.sign(nu) == np.sign(nu2)
-                    if not is_step:
-                        s = s + nu * nu
+            if not is_step and np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1]) and var[j, w + 1] > 0:
+                h = t[k + 1] - t[k]
+                nu2 = z[j, w + 1] - (x0 + h * x1)
+                s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, w + 1]
+                is_step = abs(nu2) > step_k * np.sqrt(s2) and np.sign(nu) == np.sign(nu2)
+                if not is_step:
+                    s = s + nu * nu
             if is_step:
                 p00 = p00 + nu * nu
                 s = s + nu * nu
