@@ -138,16 +138,23 @@ def truth_table(s, ds) -> list[str]:
     return out
 
 
+def write_epochs(s, work: Path, prefix: str) -> tuple[list[Path], Path]:
+    """The series' epochs as LAZ files ``PREFIXkk.laz`` and its core points (every third point of
+    the reference) as ``PREFIX_core.laz``."""
+    files = []
+    for k, e in enumerate(s.epochs):
+        files.append(work / f"{prefix}{k:02d}.laz")
+        sdp.write_points(files[-1], e)
+    core = work / f"{prefix}_core.laz"
+    sdp.write_points(core, s.epochs[0][::3])
+    return files, core
+
+
 def first_step_table(work: Path) -> list[str]:
     """A step right after the reference: 10 epochs of 20,000 points, the step disk moving at
     epoch 1 (in this process, the defaults). Truth after the step: the step's height, rate 0."""
     s = slope_series(10, 20_000, step_epoch=1, seed=11)
-    files = []
-    for k, e in enumerate(s.epochs):
-        files.append(work / f"first{k:02d}.laz")
-        sdp.write_points(files[-1], e)
-    core = work / "first_core.laz"
-    sdp.write_points(core, s.epochs[0][::3])
+    files, core = write_epochs(s, work, "first")
     ds = sdp.series(files, output=work / "first.zarr", core_points=core,
                     cylinder=sdp.Cylinder(projection_scale=D, normal_scale=DN))
     xyz = np.c_[ds.x.values, ds.y.values, ds.z.values]
@@ -211,12 +218,7 @@ def main() -> None:
     try:
         n = 20_000 if a.quick else 100_000
         s = slope_series(25, n, seed=7)
-        files = []
-        for k, e in enumerate(s.epochs):
-            files.append(work / f"epoch{k:02d}.laz")
-            sdp.write_points(files[-1], e)
-        core = work / "core.laz"
-        sdp.write_points(core, s.epochs[0][::3])
+        files, core = write_epochs(s, work, "epoch")
         m = len(s.epochs[0][::3])
         load = os.getloadavg()
         out += [f"## Series: {n:,} points per epoch, {m:,} core points (load {load[0]:.1f} {load[1]:.1f} "
