@@ -322,7 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
             ("--max-distance", DEFAULTS.max_distance, "how far along the normal an epoch is looked for (12d)")):
         ds.add_argument(flag, type=V.cli_type(V.auto_or_positive), default=default, help=f"{what}; default auto")
     ds.add_argument("--registration-error", default="auto", type=V.cli_type(V.auto_or_nonnegative),
-                    help="added to the level of detection (default auto: the alignment's RMS with --align, else 0)")
+                    help="added to the level of detection (default auto: measured on the stable part, after "
+                         "--align if given; 0 below 100 stable places)")
     ds.add_argument("--orientation", metavar="X,Y,Z", help="normals point this way without a sensor (default 0,0,1)")
     ds.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
                     help="normals point towards the sensor (auto: where a file records it)")
@@ -355,7 +356,8 @@ def build_parser() -> argparse.ArgumentParser:
             ("--max-distance", DEFAULTS.max_distance, "how far along the normal an epoch is looked for (12d)")):
         se.add_argument(flag, type=V.cli_type(V.auto_or_positive), default=default, help=f"{what}; default auto")
     se.add_argument("--registration-error", type=V.cli_type(V.auto_or_nonnegative),
-                    help="added to each epoch's level of detection (default 0; auto: each alignment's RMS)")
+                    help="added to each epoch's level of detection (default auto: measured on each epoch's "
+                         "stable part, after --align if given; an append keeps the archive's)")
     se.add_argument("--orientation", metavar="X,Y,Z", help="normals point this way (default 0,0,1)")
     se.add_argument("--align", choices=("density", "gicp"), help="register each epoch onto the reference first")
     _align_options(se)
