@@ -190,30 +190,21 @@ def main() -> None:
     a = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bench_series_", dir=a.workdir))
     out = []
+    alone = None  # (the part run alone, its results file)
     if a.only_real:
+        alone = (lambda: real_epochs(work)), "series-real.md"
+    elif a.only_tiled:
+        alone = ((lambda: tiled_run(work, a.rounds, a.tiled_points, a.tiled_limit)),
+                 "series-tiled.md" if a.tiled_points == 2_000_000 else f"series-tiled-{a.tiled_points}.md")
+    elif a.only_scale:
+        alone = (lambda: scale_run(work)), "series-scale.md"
+    if alone:
         try:
-            out = real_epochs(work)
+            out = alone[0]()
         finally:
             shutil.rmtree(work, ignore_errors=True)
         print("\n".join(out))
-        (ROOT / "benchmarks" / "results" / "series-real.md").write_text("\n".join(out) + "\n")
-        return
-    if a.only_tiled:
-        try:
-            out = tiled_run(work, a.rounds, a.tiled_points, a.tiled_limit)
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
-        print("\n".join(out))
-        name = "series-tiled.md" if a.tiled_points == 2_000_000 else f"series-tiled-{a.tiled_points}.md"
-        (ROOT / "benchmarks" / "results" / name).write_text("\n".join(out) + "\n")
-        return
-    if a.only_scale:
-        try:
-            out = scale_run(work)
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
-        print("\n".join(out))
-        (ROOT / "benchmarks" / "results" / "series-scale.md").write_text("\n".join(out) + "\n")
+        (ROOT / "benchmarks" / "results" / alone[1]).write_text("\n".join(out) + "\n")
         return
     try:
         n = 20_000 if a.quick else 100_000
