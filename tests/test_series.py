@@ -390,24 +390,29 @@ def test_smoother_recovers_velocity_and_steps():
 
 
 def test_a_step_after_the_first_epoch_an_outlier_and_a_step_at_the_newest_epoch():
-    """A step right after the reference is a step, not a rate; an epoch alone off the series is
-    not carried into the smoothed change; the newest epoch's step is taken at once."""
+    """A step right after the reference is a step, not a rate, also where the epoch after it saw
+    nothing; an epoch alone off the series is not carried into the smoothed change; the newest
+    epoch's step is taken at once."""
     rng = np.random.default_rng(2)
     t = np.arange(25.0)
-    truth = np.zeros((25, 400))
+    truth = np.zeros((25, 500))
     truth[1:, :100] = 20.0  # a step at epoch 1
-    truth[24, 300:] = 20.0  # a step at the newest epoch
+    truth[1:, 400:] = 20.0  # the same, epoch 2 not comparable
+    truth[24, 300:400] = 20.0  # a step at the newest epoch
     z = truth + rng.standard_normal(truth.shape)
     z[7, 100:200] += 20.0  # one epoch off: an outlier, not a change
     z[0] = 0.0  # the reference against itself
+    z[2, 400:] = np.nan
     var = np.ones_like(z)
     var[0] = 1e-6
     sm, vel, ssd, vsd, step, _ = kalman(z, var, t, 1e-6, lag=8, scale=1.0, dt=1.0)
-    assert np.all(step[:100] == 1) and np.all(step[100:300] == -1) and np.all(step[300:] == 24)
-    assert np.median(np.abs(vel[:, :100])) < 0.1  # no rate made of the step
-    assert np.median(np.abs(sm - truth)[:, :100] / ssd[:, :100]) < 1.0
+    assert np.all(step[:100] == 1) and np.all(step[100:300] == -1) and np.all(step[300:400] == 24)
+    assert np.all(step[400:] == 1)
+    for cols in (slice(0, 100), slice(400, 500)):
+        assert np.median(np.abs(vel[:, cols])) < 0.1  # no rate made of the step
+        assert np.median(np.abs(sm - truth)[:, cols] / ssd[:, cols]) < 1.0
     assert np.max(np.abs(sm[:, 100:200])) < 3.0  # the outlier is not carried into the series
-    assert np.median(np.abs(sm[24, 300:] - 20.0)) < 2.0
+    assert np.median(np.abs(sm[24, 300:400] - 20.0)) < 2.0
 
 
 def test_the_fixed_lag_smoother_goes_on_from_its_saved_state():

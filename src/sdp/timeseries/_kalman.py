@@ -23,8 +23,9 @@ Not-comparable epochs are skipped (prediction only).
   takes the new level at once and the smoother does not carry the step back into the epochs
   before it (an intervention, as in structural time-series models [2]_). Its epoch is recorded.
   Not confirmed, it is an outlier (a person, a parked car, a splash of rain): its variance is
-  raised by the innovation's square, so it hardly moves the series. The newest epoch has no next
-  one: beyond ``k`` deviations it counts as a step, which the next epoch confirms or revises.
+  raised by the innovation's square, so it hardly moves the series. Without a next observation
+  (the newest epoch, or the next one not comparable) it counts as a step, which a later epoch
+  confirms or revises.
 - **The rate starts at 0 ± one of the point's noise deviations per time step** at its first
   observation (the change itself starts diffuse). A diffuse rate is set by the second epoch, so a
   step right after the reference would read as a rate, and the third epoch, predicted twice as
@@ -299,9 +300,11 @@ def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen,
         if ok and k > 0 and abs(nu) > step_k * np.sqrt(s):
             # beyond step_k deviations: a step if the next epoch lies as far on the same side, an
             # outlier if it does not (the observation weighs as if its variance held the
-            # innovation); the newest epoch has no next one yet and counts as a step until it comes
-            is_step = k == E - 1
-            if not is_step and np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1]) and var[j, w + 1] > 0:
+            # innovation); without a next observation (the newest epoch, or the next one not
+            # comparable) it counts as a step until one comes
+            is_step = k == E - 1 or not (np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1])
+                                         and var[j, w + 1] > 0)
+            if not is_step:
                 h = t[k + 1] - t[k]
                 nu2 = z[j, w + 1] - (x0 + h * x1)
                 s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, w + 1]
