@@ -15,8 +15,8 @@ issue 34's "time per Kinect pair no more than 1.3× today's in the same run", to
 code the issue was filed against (``git worktree add /tmp/before34 f6002a7``). Each version reads
 the pairs with its own ``read_points``.
 
-Prints markdown and writes benchmarks/results/versions.md (``versions-D.md`` with ``--decision D``). Needs ../shared/data (about 2 minutes;
-the other version's kernels compile on the first pair).
+Prints markdown and writes benchmarks/results/versions.md (``versions-D.md`` with ``--decision D``).
+Needs ../shared/data (about 2 minutes; the other version's kernels compile on the first pair).
 """
 
 from __future__ import annotations
@@ -94,7 +94,8 @@ def main():
              f"medians over the pairs.\n",
              "| version | wall (ms) | CPU (ms) |", "|---|---:|---:|",
              f"| other: `{label}` | {1e3 * np.median(wall['other']):.1f} | {1e3 * np.median(cpu['other']):.1f} |",
-             f"| this checkout{'' if decision is None else f', decision={decision!r}'} | {1e3 * np.median(wall['this']):.1f} | {1e3 * np.median(cpu['this']):.1f} |",
+             f"| this checkout{'' if decision is None else f', decision={decision!r}'} "
+             f"| {1e3 * np.median(wall['this']):.1f} | {1e3 * np.median(cpu['this']):.1f} |",
              "",
              f"This ÷ other, per pair: median {np.median(ratio):.3f} (range {ratio.min():.3f}–{ratio.max():.3f}). "
              f"Same `change` fields on every pair: {same}.", ""]
