@@ -52,20 +52,20 @@ __all__ = ["neighbour_pairs", "min_object_points", "Tracker", "OBJECT_FIELDS"]
 
 OBJECT_FIELDS = ("object_start", "object_end", "object_start_time", "object_end_time", "object_points",
                  "object_area", "object_peak_change", "object_mean_velocity")
-#: The per-track numbers of :class:`Tracker` (live tracks, and the objects' table): one array each.
 #: Neighbours each core point reaches (at the 90th percentile): a triangulation's mean degree. Core
 #: points drawn at random (every n-th point of a scan) joined only to their nearest reach about
 #: five on average, at the edge of percolation: one change fell apart into many small pieces.
 _RING = 6
+#: The per-track numbers of :class:`Tracker` (live tracks, and the objects' table): one array each.
 _TRACK = ("uid", "obj", "first", "end", "peak", "vsum", "vcount")
 _OBJECT = ("start", "end", "points", "peak", "vsum", "vcount")
 
 
 def neighbour_pairs(xyz: np.ndarray, radius: float | None = None) -> tuple[np.ndarray, np.ndarray, float, float]:
     """(i, j, radius, area per core point): the core points' neighbour pairs within ``radius``
-    (default the 90th percentile of the distance to the :data:`_RING`-th nearest: core points on a
-    grid reach their eight around, core points drawn at random their six or more, well past the
-    edge of percolation); the area is the median nearest-neighbour spacing squared."""
+    (default the 90th percentile of the distance to the :data:`_RING`-th nearest: core points
+    subsampled on a grid reach about seven on average, core points drawn at random about nine,
+    well past the edge of percolation); the area is the median nearest-neighbour spacing squared."""
     from scipy.spatial import cKDTree  # imported here: an append reads the pairs it saved, and skips the import
 
     tree = cKDTree(xyz)
