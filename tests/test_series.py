@@ -128,6 +128,22 @@ def test_appends_one_by_one_equal_the_full_run_with_a_short_lag(slope, tmp_path,
     assert full.sizes["object_id"] >= 2 and (full.onset.values >= 0).any()
 
 
+def test_three_epochs_estimate_the_noise_from_all_three_and_an_append_to_three_equals_the_full_run(slope, tmp_path):
+    """Two epochs hold no second difference: three estimate the process noise from all three
+    (not from the first two, 2ⁿ), and an append from two to three runs over the whole series."""
+    kw = dict(cylinder=CYL, registration_error=0.002)
+    full = sdp.series(slope.epochs[:3], output=tmp_path / "full.zarr", **kw)
+    smoother = full.attrs["parameters"]["smoother"]
+    assert smoother["estimated_from_epochs"] == 3 and smoother["process_noise"] > 0
+    out = tmp_path / "a.zarr"
+    sdp.series(slope.epochs[:2], output=out, times=range(2), **kw)
+    assert sdp.open_series(out).attrs["parameters"]["smoother"]["process_noise"] == 0  # no second difference yet
+    grown = sdp.series(slope.epochs[2:3], output=out, append=True, times=[2])
+    a, b = _arrays(full), _arrays(grown)
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
 def test_the_metadata_written_is_zarrs_own_consolidation(slope, tmp_path):
     """The group's metadata, written once from the arrays' handles after an append, is the one
     ``zarr.consolidate_metadata`` makes from the files (zarr's metadata classes are used directly:

@@ -11,8 +11,9 @@ points sized from the memory limit, the fixed-lag Kalman smoother (:mod:`sdp.tim
 and epoch by epoch the onsets and the 4D objects (:mod:`sdp.timeseries._objects`): a full run
 from the first epoch, an append from the state the archive saved ``lag`` epochs back (the
 filter, the tracked objects, the inputs since), so that it rewrites ``lag + 1`` rows and the
-result is that of a full run. The process noise comes from the first 2ⁿ epochs: an append that
-reaches the next power of two estimates it again and runs over the whole series.
+result is that of a full run. The process noise comes from the first 2ⁿ epochs (all three of
+three; :func:`_noise_epochs`): an append that reaches the next power of two estimates it again and
+runs over the whole series.
 
 Times: ``times`` (numbers, or ISO dates: velocities are then per day), else each file's own
 (:func:`sdp.io._time.file_time`: LAS GPS time or creation date, E57 acquisition start), else the
@@ -400,10 +401,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
     params = attrs["parameters"]
     n_old = len(attrs["epochs"])
     E = n_old + len(epochs)
-    # the smoother's noise is estimated from the first 2^n epochs (n as large as there are):
-    # an append between two powers of two filters on from the saved state and rewrites lag + 1
-    # rows; one reaching the next power estimates again and runs over the whole series
-    first_epochs = 2 ** int(math.floor(math.log2(E)))
+    first_epochs = _noise_epochs(E)
     go_on = append and params.get("smoother", {}).get("estimated_from_epochs") == first_epochs
     filt, tracked, recent = A.read_state(out) if go_on else (None, None, None)
     untouched = None
@@ -568,6 +566,15 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
 
 #: A column's float32 inputs (distance, lod) and results (four arrays) per epoch and core point.
 _COLUMN_BYTES = 24
+
+
+def _noise_epochs(E: int) -> int:
+    """How many of a series' ``E`` first epochs the smoother's noise is estimated from: the first
+    2ⁿ (n as large as there are), so that an append between two powers of two filters on from the
+    saved state and rewrites ``lag + 1`` rows, and one reaching the next power estimates again and
+    runs over the whole series; three of three, as two epochs hold no second difference (an
+    append to three epochs runs over all of them anyway)."""
+    return E if E == 3 else 2 ** int(math.floor(math.log2(E)))
 
 
 def _smooth_all(w, E: int, m: int, times: np.ndarray, reg: np.ndarray, ref_var: np.ndarray, limit: float, *,
