@@ -128,6 +128,7 @@ def test_appends_one_by_one_equal_the_full_run_with_a_short_lag(slope, tmp_path,
     assert full.sizes["object_id"] >= 2 and (full.onset.values >= 0).any()
 
 
+@pytest.mark.slow
 def test_three_epochs_estimate_the_noise_from_all_three_and_an_append_to_three_equals_the_full_run(slope, tmp_path):
     """Two epochs hold no second difference: three estimate the process noise from all three
     (not from the first two, 2ⁿ), and an append from two to three runs over the whole series."""
