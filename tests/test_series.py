@@ -583,12 +583,15 @@ def test_command_append_and_info_import_no_xarray(slope, tmp_path):
     (["{e0}", "{e1}", "--epoch-output", "nope"], "K:FILE"),
     (["{e0}", "{e1}", "--points-output", "p.txt"], ".csv or .parquet"),
     (["{e0}", "{e1}", "{bad}"], "bad.laz: can't read as las"),  # read ahead, on a thread
+    (["{e0}", "{one}"], "one.xyz: an epoch has 1 point(s)"),  # the epoch named
+    (["{one}", "{e0}"], "one.xyz: can't measure point spacing"),  # the reference named
 ])
 def test_command_bad_input_exits_2(slope, tmp_path, capsys, args, message):
     files = _write_epochs(slope, tmp_path, 2)
     sdp.write_points(tmp_path / "whole.laz", slope.epochs[2])  # cut short: its header counts the points
     (tmp_path / "bad.laz").write_bytes((tmp_path / "whole.laz").read_bytes()[:5000])
-    args = [a.format(e0=files[0], e1=files[1], bad=tmp_path / "bad.laz") for a in args]
+    (tmp_path / "one.xyz").write_text("1 2 3\n")
+    args = [a.format(e0=files[0], e1=files[1], bad=tmp_path / "bad.laz", one=tmp_path / "one.xyz") for a in args]
     assert main(["series", *args, "-o", str(tmp_path / "x.zarr")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("sdp: error:") and message in err and len(err.strip().splitlines()) == 1

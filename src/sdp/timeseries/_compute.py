@@ -45,7 +45,7 @@ from .._core._points import as_points
 from .._core._validate import auto_or_nonnegative, auto_or_positive, integer_at_least
 from ..defaults import DEFAULTS
 from ..distance._reference import PreparedReference, subsample
-from ..errors import InvalidOptionError, SDPError
+from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 from ..fields._spacing import resolve_lattice
 from ..io._cloud import Cloud
 from ..io._output import check_outputs
@@ -126,6 +126,15 @@ def _resolve_times(epochs, times, *, start_index: int = 0):
 # ------------------------------------------------------------------ inputs
 def _name(epoch, k: int) -> str:
     return str(epoch) if isinstance(epoch, (str, os.PathLike)) else f"array {k}"
+
+
+@contextlib.contextmanager
+def _naming(name: str):
+    """A point error raised inside (too few points, none finite) says which epoch it is about."""
+    try:
+        yield
+    except InvalidPointsError as e:
+        raise InvalidPointsError(f"{name}: {e}") from None
 
 
 def _load(epoch, fmt):
@@ -352,11 +361,12 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                        if core_points is None else _name(core_points, -1))
     else:
         ref_cloud = _load(epochs[reference], format)
-        ref_xyz = _xyz(ref_cloud)
         d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
-        if d_opt == "auto":
-            voxel, sigma_voxels = resolve_lattice([as_points(ref_xyz)], k=DEFAULTS.k)
-            d_opt = 4.0 * sigma_voxels * voxel
+        with _naming(_name(epochs[reference], reference)):
+            ref_xyz = _xyz(ref_cloud)
+            if d_opt == "auto":
+                voxel, sigma_voxels = resolve_lattice([as_points(ref_xyz)], k=DEFAULTS.k)
+                d_opt = 4.0 * sigma_voxels * voxel
         if core_points is None:
             core = ref_xyz[subsample(ref_xyz, d_opt)]
             core_source = f"the reference subsampled at the projection scale ({d_opt:.6g})"
@@ -457,8 +467,9 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                 row = n_old + k
                 is_ref = k == ref_k
                 cloud = ref_cloud[1] if is_ref else (epoch if tiles else cloud)
-                xyz = None if tiles else _xyz(cloud)  # in tiles the epoch is read slice by slice
                 record = {"file": _name(epoch, row), "time": float(t_new[k]), "time_source": source}
+                with _naming(record["file"]):
+                    xyz = None if tiles else _xyz(cloud)  # in tiles the epoch is read slice by slice
                 reg = reg_opt
                 if registration is not None and not is_ref:
                     from ..registration._align import align as align_clouds  # SciPy's spatial module: only to align
@@ -476,7 +487,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
                 else:
                     # a cloud that knows its sensors: no distance where they could not see the core point
                     epoch_points = cloud if isinstance(cloud, Cloud) else xyz
-                    d = prepared.measure(epoch_points, registration_error=reg, memory_limit=limit)
+                    with _naming(record["file"]):
+                        d = prepared.measure(epoch_points, registration_error=reg, memory_limit=limit)
                     n_points = len(xyz)
                 buffered.append((k, d.distance.astype(np.float32), d.lod.astype(np.float32), d.significant))
                 if len(buffered) >= flush:
