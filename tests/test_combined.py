@@ -143,12 +143,38 @@ def test_the_command_writes_distance_and_lod(tmp_path, scene):
     assert res.summary["decision"] == "combined"
 
 
-def test_tiles_refuse_the_combined_decision_and_take_density():
+def test_tiles_take_the_combined_decision_and_density_not_the_cluster_rule():
     from sdp._core._validate import check_tiled_options
 
     check_tiled_options(decision="density")
-    with pytest.raises(InvalidOptionError, match="--decision combined is not available with --tiled"):
-        check_tiled_options(decision="combined")
+    check_tiled_options(decision="combined")
+    with pytest.raises(InvalidOptionError, match="--decision cluster is not available with --tiled"):
+        check_tiled_options(decision="cluster")
+
+
+@pytest.mark.parametrize("tile_size", [10.0, 0.7])
+def test_the_combined_decision_in_tiles_equals_memory(scene, monkeypatch, tile_size):
+    """Tiles wider than the scene: the same calibration sample, the same states. Tiles of 0.7 m (the
+    box across four of them): every tile's sample calibrates one level, so with that level fixed
+    the components joined across the tiles are memory's."""
+    from sdp.distance import _noise
+    from sdp.scale._tiles import detect_changes_tiled
+
+    ref, cur, box = scene
+    if tile_size < 1:
+        level = _noise.fit_level(np.zeros(100), np.full(100, 1e-6), np.ones(100))  # σ_s 0: the random part alone
+        monkeypatch.setattr(_noise, "fit_level", lambda *a, **k: level)
+    lattice = sdp.Lattice(voxel_size=VOXEL)
+    memory = sdp.detect_changes(ref, cur, lattice=lattice, decision="combined")
+    tiled = detect_changes_tiled(ref, cur, lattice=lattice, decision="combined",
+                                 execution=sdp.Execution(scheduler="synchronous", tile_size=tile_size))
+    assert tile_size > 1 or tiled.n_tiles >= 16
+    density = sdp.detect_changes(ref, cur, lattice=lattice, decision="density")
+    assert memory.appeared[box].sum() > density.appeared[box].sum() + 100  # the distance completed the box
+    np.testing.assert_array_equal(tiled.appeared, memory.appeared)
+    np.testing.assert_array_equal(tiled.disappeared, memory.disappeared)
+    assert [r.n_points for r in tiled.appeared_regions] == [r.n_points for r in memory.appeared_regions]
+    assert tiled.summary()["decision"] == "combined"
 
 
 def _decide(cur, ref, states, found, present=None):

@@ -315,7 +315,7 @@ def check_tiled_options(*, grid_size=None, align=None, sensor_origin="auto", dec
     """Refuse the options of ``sdp change`` that a comparison in tiles does not have (``--tiled``)."""
     given_sensor = not (isinstance(sensor_origin, str) and sensor_origin in ("auto", "none"))
     for flag, bad in (("--grid-size", grid_size is not None), ("--align", align), ("--sensor-origin", given_sensor),
-                      (f"--decision {decision}", decision not in ("point", "density")),
+                      (f"--decision {decision}", decision == "cluster"),
                       ("--png/--html/--report", pictures)):
         if bad:
             raise InvalidOptionError(f"{flag} is not available with --tiled")

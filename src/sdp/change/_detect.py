@@ -159,7 +159,8 @@ class ChangeResult:
     voxel_size, sigma, h : float
         Parameters used.
     decision : str
-        ``"point"``, ``"cluster"`` or ``"combined"`` (see :func:`detect_changes`; tiles: ``"point"``).
+        ``"point"``, ``"cluster"`` or ``"combined"`` (see :func:`detect_changes`; tiles: ``"point"`` or
+        ``"combined"``).
     current_distance, current_lod, reference_distance, reference_lod : ndarray of float64 or None
         With ``decision="combined"``: each point's signed distance to the other epoch's surface
         and its level of detection at 95 % (:class:`sdp.distance._noise.SurfaceDistances`; NaN:

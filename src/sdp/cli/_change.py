@@ -106,8 +106,8 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
     when two dense float32 grids over the clouds' box (:func:`sdp.scale._budget.dense_grid_bytes`), or
     the points themselves (:func:`sdp.scale._budget.untiled_point_bytes`), would exceed the memory
     limit (:func:`sdp._core._memory.memory_limit`). Only LAS/LAZ, NPY and binary PLY files can be read
-    in slices, and only the point decision with footprint coverage runs in tiles: other
-    files, ``grid_size``, ``align``, ``decision="cluster"`` or a given sensor position keep
+    in slices, and only the point and combined decisions with footprint coverage run in tiles:
+    other files, ``grid_size``, ``align``, ``decision="cluster"`` or a given sensor position keep
     the comparison in memory (and are refused with ``tiled=True``). With ``voxel_size="auto"``
     the voxel is measured on the first slice of each file.
 
@@ -153,7 +153,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
                    for f in (reference, current))
     # tiles follow no rays: a given sensor keeps the comparison in memory
     given_sensor = not (isinstance(coverage.sensor_origin, str) and coverage.sensor_origin in ("auto", "none"))
-    if not tiled and (not streamed or lattice.grid_size is not None or align or decision not in ("point", "density") or given_sensor):
+    if not tiled and (not streamed or lattice.grid_size is not None or align or decision == "cluster" or given_sensor):
         return ChangePlan(tiled=False)
     if tiled:
         V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
@@ -287,7 +287,8 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     with all_or_none():
         if plan.tiled:
             return _compare_tiled(plan, reference, current, out, both=outputs.both,
-                                  min_region_points=min_region_points, lattice=lattice, execution=execution)
+                                  min_region_points=min_region_points, lattice=lattice, execution=execution,
+                                  decision=decision)
         return _compare_in_memory(reference, current, out, outputs=outputs, format=format, lattice=lattice,
                                   coverage=coverage, align=align, memory_limit=execution.memory_limit,
                                   detect=dict(decision=decision, min_region_points=min_region_points), topic=topic)
@@ -375,12 +376,13 @@ def _write_labelled(jobs, inputs) -> list[str]:
 
 
 def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min_region_points,
-                   lattice: Lattice, execution: Execution) -> FileComparison:
+                   lattice: Lattice, execution: Execution, decision: str = DEFAULTS.decision) -> FileComparison:
     from ..io._source import write_points_streamed
     from ..scale._tiles import detect_changes_tiled
 
     lattice = replace(lattice, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels)  # as sampled
-    r = detect_changes_tiled(*plan.sources, lattice=lattice, min_region_points=min_region_points, execution=execution)
+    r = detect_changes_tiled(*plan.sources, lattice=lattice, decision=decision, min_region_points=min_region_points,
+                             execution=execution)
     jobs = [(out, plan.sources[1], "current")]
     if both:
         jobs.append((disappeared_path(out), plan.sources[0], "reference"))

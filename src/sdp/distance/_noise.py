@@ -188,7 +188,8 @@ class SurfaceDistances:
     sample of the stable majority that calibrates the level, not at every cell.
 
     Parameters are those of :func:`point_distances`; ``lists``: the cells the two epochs are
-    sorted into (:func:`pair_cells`; default their own).
+    sorted into (:func:`pair_cells`; default their own); ``level``: (p, r̃, c, σ_s) calibrated
+    elsewhere (:func:`fit_level`: the tiles' samples together), else on this sample.
 
     Attributes
     ----------
@@ -201,7 +202,7 @@ class SurfaceDistances:
     def __init__(self, points: np.ndarray, other: np.ndarray, *, sigma: float, own_origin=None, other_origin=None,
                  stable: np.ndarray | None = None, registration_error: float | str = "auto",
                  range_exponent: float | str = "auto", correlation_length: float | None = None,
-                 lists: _CellLists | None = None):
+                 lists: _CellLists | None = None, level: tuple | None = None):
         if registration_error != "auto" and not (np.isscalar(registration_error)
                                                  and np.isfinite(registration_error) and registration_error >= 0):
             raise InvalidOptionError(f"registration_error must be 'auto' or a number >= 0, got {registration_error!r}")
@@ -243,7 +244,7 @@ class SurfaceDistances:
         self._scratch = np.zeros(m, bool)  # all False between calls of _distinct
         self._dist, self._random, self._r = np.full(n, np.nan), np.full(n, np.nan), np.ones(n)
         self._comparable = n >= 3 and len(self.other) >= 3
-        self._level = None  # (p, r̃, c, σ_s) once calibrated
+        self._level = level  # (p, r̃, c, σ_s) given, or once calibrated
         self._everywhere = None
         self.timings = {"cells": time.perf_counter() - t0}
 
@@ -334,36 +335,53 @@ class SurfaceDistances:
                    self._own_origin is not None, self._dist, self._random, self._r)
         self.timings["distances"] = self.timings.get("distances", 0.0) + time.perf_counter() - t
 
-    def _calibrate(self) -> tuple[float, float, float, float]:
-        """(p, r̃, c, σ_s) from a regular sample of the cells, their stable points."""
-        t = time.perf_counter()
-        registration_error, range_exponent, _ = self._options
+    def calibration_sample(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(distance, random variance, range) of the stable points of a regular sample of the
+        cells (at most ``_CALIBRATION_CELLS`` cells, ``_CALIBRATION_POINTS`` points), which
+        :func:`fit_level` calibrates the level on."""
         m = len(self._measured)
         sample = np.arange(0, m, max(1, m // _CALIBRATION_CELLS))
         self._measure(sample)
         idx = self.points_of(sample)
         calib = idx[np.isfinite(self._dist[idx]) & (True if self._stable is None else self._stable[idx])]
         # a quantile and a slope: a regular sample of the stable points tells them as well as all do
-        calib = np.sort(calib)
-        if calib.size > _CALIBRATION_POINTS:
-            calib = calib[:: calib.size // _CALIBRATION_POINTS]
-        dist, random, r = self._dist[calib], self._random[calib], self._r[calib]
-        if range_exponent == "auto":
-            p = _fit_exponent(dist, r) if self._own_origin is not None else 0.0
-        else:
-            p = float(range_exponent)
-        r_med = float(np.median(r)) if calib.size else 1.0
-        scale = 1.0
-        if registration_error == "auto":
-            s = systematic(np.abs(dist), random, (r / r_med) ** p)
-            if s == 0.0 and calib.size:  # fewer than 5 % beyond the random part alone: scaled down to 5 %
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    ratio = np.abs(dist) / (LEVEL_Z * np.sqrt(random))
-                scale = min(1.0, float(np.quantile(ratio, 1.0 - SHARE))) ** 2
-        else:
-            s = float(registration_error) / LEVEL_Z
+        calib = thinned(np.sort(calib))
+        return self._dist[calib], self._random[calib], self._r[calib]
+
+    def _calibrate(self) -> tuple[float, float, float, float]:
+        """(p, r̃, c, σ_s) from a regular sample of the cells, their stable points."""
+        t = time.perf_counter()
+        registration_error, range_exponent, _ = self._options
+        level = fit_level(*self.calibration_sample(), registration_error=registration_error,
+                          range_exponent=range_exponent, ranged=self._own_origin is not None)
         self.timings["level"] = time.perf_counter() - t
-        return float(p), r_med, scale, float(s)
+        return level
+
+
+def thinned(values: np.ndarray) -> np.ndarray:
+    """A regular sample of at most about ``_CALIBRATION_POINTS`` of ``values``."""
+    return values[:: values.size // _CALIBRATION_POINTS] if values.size > _CALIBRATION_POINTS else values
+
+
+def fit_level(dist: np.ndarray, random: np.ndarray, r: np.ndarray, *, registration_error="auto",
+              range_exponent="auto", ranged: bool = False) -> tuple[float, float, float, float]:
+    """(p, r̃, c, σ_s) of the level (module docstring) from stable points' distances, random
+    variances and ranges (``ranged``: the ranges are along a known sensor's rays)."""
+    if range_exponent == "auto":
+        p = _fit_exponent(dist, r) if ranged else 0.0
+    else:
+        p = float(range_exponent)
+    r_med = float(np.median(r)) if r.size else 1.0
+    scale = 1.0
+    if registration_error == "auto":
+        s = systematic(np.abs(dist), random, (r / r_med) ** p)
+        if s == 0.0 and dist.size:  # fewer than 5 % beyond the random part alone: scaled down to 5 %
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.abs(dist) / (LEVEL_Z * np.sqrt(random))
+            scale = min(1.0, float(np.quantile(ratio, 1.0 - SHARE))) ** 2
+    else:
+        s = float(registration_error) / LEVEL_Z
+    return float(p), r_med, scale, float(s)
 
 
 @nb.njit(cache=True, nogil=True)

@@ -137,10 +137,12 @@ class Session:
     """Workdir, Dask cluster and bucketed clouds of one tiled run; ``with`` closes them.
 
     ``point_bytes``: what a task holds per point of the denser cloud in its tile and halo (two
-    epochs' fields by default), which sizes the tiles from a task's share of the memory limit."""
+    epochs' fields by default), which sizes the tiles from a task's share of the memory limit.
+    ``halo_sigmas``: the halo at least this many σ (the combined decision's distances read the
+    other epoch farther than the kernel reaches)."""
 
     def __init__(self, clouds: dict, voxel_size, *, sigma_voxels, k, h, truncate, method, tile_size, tile_points,
-                 memory_limit, scheduler, workers, workdir, halo: float | None = None,
+                 memory_limit, scheduler, workers, workdir, halo: float | None = None, halo_sigmas: float = 0.0,
                  point_bytes: float = 2 * BYTES_PER_TILE_POINT):
         check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                            memory_limit=memory_limit)
@@ -171,8 +173,9 @@ class Session:
             # with no share left, the reach alone is checked here and the tiles are refused below
             reach = check_kernel(sigma_voxels, truncate, share if share > 0 else 2**62, budget=budget)
             check_lattice(lo, hi, self.voxel_size, reach)
-            self.lo = lo
-            self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo)
+            self.lo, self.hi = lo, hi
+            self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo,
+                                  halo_sigmas)
             _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None, point_bytes=point_bytes)
             self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                              method=method, memory_limit=share)
@@ -301,9 +304,10 @@ def _source(s, root: str, epoch: str) -> PointSource:
 
 
 def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_points: int, sigma_voxels: float,
-            truncate: float, halo: float | None = None) -> Tiling:
+            truncate: float, halo: float | None = None, halo_sigmas: float = 0.0) -> Tiling:
     if halo is None:
         halo = (math.ceil(truncate * sigma_voxels) + 3) * voxel_size  # kernel reach + binning + interpolation + margin
+    halo = max(halo, halo_sigmas * sigma_voxels * voxel_size)
     cell = BLOCK * voxel_size
     if tile_size is None:  # tile_points in the tile and its halo at the mean density: whole blocks, rounded down
         blocks = math.floor((math.sqrt(tile_points / max(_density(sources), 1e-12)) - 2 * halo) / cell)

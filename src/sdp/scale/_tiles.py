@@ -79,6 +79,7 @@ from ..errors import InvalidOptionError
 from ..fields._density import DensityField, threshold
 from ..fields._lattice import BLOCK
 from ..options import Cylinder, Execution, Lattice
+from ._budget import BYTES_PER_TILE_POINT
 from ._session import Session, Tiling, first_slices, load_bucket
 from ._store import FieldStore, require_zarr
 
@@ -91,15 +92,15 @@ def _empty_field(like: DensityField) -> DensityField:
                         sigma=like.sigma, truncate=like.truncate)
 
 
-def _compare_tile(key, root: str, tiling: Tiling, opts: dict, store: str | None, regions: bool = True) -> dict:
-    """Fields of both epochs in one tile, its own changed rows and its own not comparable rows
-    (outside the other field's footprint; see the module docstring), and with ``regions`` the
-    components of the difference volume in the tile (:func:`sdp.change._regions.label_part`: what the
-    regions across tiles are joined from). With ``store`` (a :class:`FieldStore` path) the
-    reference field is read from it."""
+def _tile_changes(key, root: str, tiling: Tiling, opts: dict, store: str | None, every: bool, out: dict):
+    """Fields of both epochs in one tile and, per direction, its own points' density decision
+    (footprint coverage): ``{kind: (field, own points, their rows, changed mask, not comparable
+    indices, the difference volume, the other epoch's records in the tile)}``, a direction
+    without points of its own left out unless ``every`` (the regions need the halo's part of a
+    difference volume). Times go to ``out``."""
     t0 = time.perf_counter()
     recs = {e: load_bucket(root, e, key) for e in ("reference", "current")}
-    out = {"read": time.perf_counter() - t0, "build_reference": 0.0, "build_current": 0.0, "label": 0.0}
+    out["read"] = out.get("read", 0.0) + time.perf_counter() - t0
     fields = {}
     for e, rec in recs.items():
         t = time.perf_counter()
@@ -107,29 +108,101 @@ def _compare_tile(key, root: str, tiling: Tiling, opts: dict, store: str | None,
             fields[e] = FieldStore.open(store).tile_field(key)
         else:
             fields[e] = DensityField.from_points(rec[:, :3], **opts) if len(rec) else None
-        out[f"build_{e}"] = time.perf_counter() - t
+        out[f"build_{e}"] = out.get(f"build_{e}", 0.0) + time.perf_counter() - t
     t = time.perf_counter()
-    blocks_lo = np.asarray(key, np.int64) * tiling.blocks
+    found = {}
     for e, other, kind in (("current", "reference", "appeared"), ("reference", "current", "disappeared")):
         fld, rec = fields[e], recs[e]
         own = np.zeros(len(rec), bool) if fld is None else tiling.owns(key, rec)
-        out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), None, np.zeros(0, np.int64))
-        if fld is None or len(rec) == 0 or (not own.any() and not regions):
+        if fld is None or len(rec) == 0 or (not own.any() and not every):
             continue  # no points of this epoch here (a stored reference has none): no difference volume
         pts = np.ascontiguousarray(rec[own, :3])
         d = Volume.difference(fld, fields[other] or _empty_field(fld))  # evaluated where needed, never stored
         mask = d.negative_at(fld, pts) if len(pts) else np.zeros(0, bool)
-        rows = rec[own, 3].astype(np.int64)
         cand = np.flatnonzero(mask)
         unseen = cand if fields[other] is None else cand[~footprint_covered(pts[cand], fields[other])]
         mask[unseen] = False
+        found[kind] = (fld, pts, rec[own, 3].astype(np.int64), mask, unseen, d, recs[other])
+    out["detect"] = out.get("detect", 0.0) + time.perf_counter() - t
+    return found
+
+
+def _compare_tile(key, root: str, tiling: Tiling, opts: dict, store: str | None, regions: bool = True,
+                  cells: tuple | None = None) -> dict:
+    """Fields of both epochs in one tile, its own changed rows and its own not comparable rows
+    (outside the other field's footprint; see the module docstring), and with ``regions`` the
+    components of the difference volume in the tile (:func:`sdp.change._regions.label_part`: what the
+    regions across tiles are joined from). With ``store`` (a :class:`FieldStore` path) the
+    reference field is read from it. With ``cells`` (the corners of the combined decision's
+    cells), also each direction's calibration sample (``"<kind> sample"``:
+    :meth:`sdp.distance._noise.SurfaceDistances.calibration_sample`)."""
+    out = {"read": 0.0, "build_reference": 0.0, "build_current": 0.0, "label": 0.0, "detect": 0.0, "distance": 0.0}
+    blocks_lo = np.asarray(key, np.int64) * tiling.blocks
+    states = _tile_changes(key, root, tiling, opts, store, regions, out)
+    for kind in ("appeared", "disappeared"):
+        out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)), None, np.zeros(0, np.int64))
+        out[f"{kind} sample"] = (np.zeros(0),) * 3
+        if kind not in states:
+            continue
+        fld, pts, rows, mask, unseen, d, other = states[kind]
+        if cells is not None:
+            t1 = time.perf_counter()
+            surface = _surface(states[kind], cells)
+            if surface is not None:
+                out[f"{kind} sample"] = surface[0].calibration_sample()
+            out["distance"] += time.perf_counter() - t1
         part = None
         if regions:
             t1 = time.perf_counter()
             part = label_part(fld, d, pts[mask], blocks_lo, blocks_lo + tiling.blocks)  # the regions span tiles
             out["label"] += time.perf_counter() - t1
         out[kind] = (rows[mask], pts[mask], part, rows[unseen])
-    out["detect"] = time.perf_counter() - t - out["label"]
+    return out
+
+
+def _surface(state: tuple, cells: tuple, level: tuple | None = None):
+    """(:class:`sdp.distance._noise.SurfaceDistances` of one direction's own points in a tile,
+    the points' stable mask): ``state`` is :func:`_tile_changes`' entry, stable where the density
+    left the points unchanged; the cells from ``cells[0]`` (the clouds' corner, as in memory: one
+    cell lattice for every tile). None if nothing is stable or the other epoch has too few
+    points here."""
+    from ..distance._distances import _CellLists
+    from ..distance._noise import SurfaceDistances
+
+    fld, pts, _, mask, unseen, _, other = state
+    stable = ~mask
+    stable[unseen] = False
+    if not stable.any() or len(other) < 3:
+        return None
+    return SurfaceDistances(pts, np.ascontiguousarray(other[:, :3]), sigma=fld.sigma, stable=stable,
+                            lists=_CellLists(*cells), level=level), stable
+
+
+def _distance_marks(key, root: str, tiling: Tiling, opts: dict, cells: tuple, levels: dict) -> dict:
+    """The combined decision's distance in one tile (:mod:`sdp.change._combined`, rules 2 and 3):
+    per direction, the rows and points of its own points that the density left unchanged, that
+    lie inside their own cluster volume and whose distance to the other epoch's surface is
+    beyond the level of detection at 99.9 % (either side: tiles follow no sensor), the level
+    ``levels[kind]`` calibrated on every tile's sample."""
+    from ..change._combined import DECISION_FACTOR
+
+    out = {"distance": 0.0}
+    states = _tile_changes(key, root, tiling, opts, None, False, out)
+    t = time.perf_counter()
+    for kind in ("appeared", "disappeared"):
+        out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)))
+        surface = _surface(states[kind], cells, levels[kind]) if kind in states else None
+        if surface is None:
+            continue
+        sd, stable = surface
+        fld, pts, rows = states[kind][:3]
+        idx = np.flatnonzero(stable)
+        dist, lod = sd.at(idx)
+        with np.errstate(invalid="ignore"):
+            far = idx[np.abs(dist) > DECISION_FACTOR * lod]
+        far = far[fld.inside(pts[far])]  # matter of its own epoch (F < 0), as Algorithm 1 asks of a change
+        out[kind] = (rows[far], pts[far])
+    out["distance"] = time.perf_counter() - t
     return out
 
 
@@ -152,14 +225,80 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
     return rows, region_of, regs
 
 
-def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None,
+#: The halo of the combined decision's tiles, in σ: the other epoch's normals reach 4σ from a
+#: cell's centroid (2σ_n, σ_n = 2σ), the centroid lies up to a cell (1.5σ) from the point, and the
+#: cells read around them add up to a cell on each side.
+_COMBINED_HALO = 9.0
+_CELL = 1.5  # the combined decision's cells, in σ (:mod:`sdp.distance._noise`)
+
+
+def _combined_regions(density, marked, found, corner, cell: float, voxel_size: float, min_region_points: int,
+                      regions: bool):
+    """Rows, region labels and regions of one kind of change under the combined decision
+    (:func:`sdp.change._combined.combine_decision`'s rule 4) from the tiles' pieces: ``density``
+    (rows, points) the density changed (comparable), ``marked`` (rows, points) the distance
+    changed, ``found`` the rows of the density's own regions. The 26-connected components of the
+    cells of ``cell`` (from ``corner``) holding a changed point are kept where they hold a found
+    row; smaller than ``min_region_points`` points, they are strays."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rows = np.concatenate([p[0] for p in density] + [p[0] for p in marked])
+    xyz = np.concatenate([p[1] for p in density] + [p[1] for p in marked]).reshape(-1, 3)
+    order = np.argsort(rows, kind="stable")
+    rows, xyz = rows[order], xyz[order]
+    if len(rows) == 0 or len(found) == 0:
+        return rows[:0], np.zeros(0, np.int64), []
+    ijk = np.floor((xyz - corner) / cell).astype(np.int64)
+    cells, of_point = np.unique(ijk, axis=0, return_inverse=True)
+    of_point = of_point.ravel()
+    span = cells.max(axis=0) - cells.min(axis=0) + 3  # keys with a margin of one cell on each side
+    base = cells - cells.min(axis=0) + 1
+    keys = (base[:, 0] * span[1] + base[:, 1]) * span[2] + base[:, 2]  # sorted as the cells are
+    a, b = [], []
+    for dx, dy, dz in [(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) > (0, 0, 0)]:
+        nb = keys + (dx * span[1] + dy) * span[2] + dz
+        at = np.minimum(np.searchsorted(keys, nb), len(keys) - 1)
+        hit = keys[at] == nb
+        a.append(np.flatnonzero(hit))
+        b.append(at[hit])
+    a, b = np.concatenate(a), np.concatenate(b)
+    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(len(cells), len(cells)))
+    _, component = connected_components(graph, directed=False)
+    kept = np.zeros(component.max() + 1, bool)
+    kept[component[of_point[np.isin(rows, found)]]] = True
+    keep = kept[component[of_point]]
+    rows, xyz, labels = rows[keep], xyz[keep], np.unique(component[of_point[keep]], return_inverse=True)[1].ravel()
+    counts = np.bincount(labels)
+    if min_region_points > 1 and len(counts):
+        big = counts[labels] >= min_region_points
+        rows, xyz, labels = rows[big], xyz[big], labels[big]
+        labels = np.unique(labels, return_inverse=True)[1].ravel()
+        counts = np.bincount(labels)
+    if not regions:
+        return rows, np.zeros(len(rows), np.int64), []
+    regs, region_of = describe_regions(xyz, labels, counts, voxel_size)
+    return rows, region_of, regs
+
+
+def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, decision: str = DEFAULTS.decision,
                          min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
                          execution: Execution | None = None) -> ChangeResult:
-    """:func:`sdp.detect_changes` (point decision, footprint coverage) in tiles, for clouds of any size.
+    """:func:`sdp.detect_changes` (footprint coverage) in tiles, for clouds of any size.
 
     Every default is :data:`sdp.DEFAULTS`, as for :func:`sdp.detect_changes`. Points outside the
     other epoch's footprint (:func:`sdp.change._coverage.footprint_covered`) are not comparable; the
     tiles follow no sensor rays.
+
+    ``decision="combined"`` (:mod:`sdp.change._combined`) takes a second pass over the tiles: each
+    marks its own points that the density left unchanged whose distance to the other epoch's
+    surface lies beyond the level of detection at 99.9 % (either side of it: no sensor tells the
+    front), inside their own cluster volume; here the components of the changed cells of 1.5σ
+    are joined across the tiles and kept where they hold a point of the density's own regions,
+    as in memory. The level is calibrated on each tile's own stable majority (a survey's noise
+    and registration vary over its extent; one tile holding the whole scene gives the in-memory
+    level), and the tiles' halo grows to 9σ, the reach of the other epoch's normals and
+    cylinders. The result holds no per-point distance: ``sdp change`` writes none in tiles.
 
     Parameters
     ----------
@@ -202,6 +341,12 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None,
     """
     lattice, execution = _tiled_options(lattice, execution)
     integer_at_least("min_region_points", min_region_points, 0)
+    if decision not in ("point", "density", "combined"):
+        raise InvalidOptionError(f"decision={decision!r} is not available in tiles: 'point' or 'combined'")
+    combined = decision == "combined"
+    if combined and isinstance(reference, FieldStore):
+        raise InvalidOptionError("decision='combined' measures distances to the reference's points: a field store "
+                                 "has none")
     k, h = lattice.k, lattice.h
     voxel_size, sigma_voxels, truncate = lattice.voxel_size, lattice.sigma_voxels, lattice.truncate
     tiles = execution.tile_keywords()
@@ -211,23 +356,43 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None,
         sigma_voxels = store.sigma / store.voxel_size
         tiles["tile_size"] = store.tile_blocks * BLOCK * store.voxel_size
     clouds = {"current": current} if store is not None else {"reference": reference, "current": current}
+    extra = dict(halo_sigmas=_COMBINED_HALO, point_bytes=2 * BYTES_PER_TILE_POINT + 320) if combined else {}
     with Session(clouds, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=lattice.method,
-                  **tiles) as run:
-        jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path), regions) for key in run.tiles]
-        results = run.tasks("compare", _compare_tile, jobs,
-                            ("read", "build_reference", "build_current", "detect", "label"))
+                  **tiles, **extra) as run:
+        # the combined decision's cells of 1.5σ from the clouds' corner, as pair_cells places them in memory
+        cells = (run.lo - 1e-9, run.hi) if combined else None
+        jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path), regions or combined, cells)
+                for key in run.tiles]
+        steps = ("read", "build_reference", "build_current", "detect", "distance")
+        results = run.tasks("compare", _compare_tile, jobs, steps + ("label",))
         t = time.perf_counter()
-        out = {kind: _regions([r[kind] for r in results], run.voxel_size, min_region_points, regions)
+        out = {kind: _regions([r[kind] for r in results], run.voxel_size, min_region_points, regions or combined)
                for kind in ("appeared", "disappeared")}
         unseen = {kind: np.sort(np.concatenate([r[kind][3] for r in results])) for kind in ("appeared", "disappeared")}
         run.timings["regions"] = time.perf_counter() - t
+        if combined:
+            from ..distance._noise import fit_level, thinned
+
+            # one level per direction, from every tile's sample in tile order (one tile: the in-memory sample)
+            levels = {kind: fit_level(*(thinned(np.concatenate([r[f"{kind} sample"][a] for r in results]))
+                                        for a in range(3)))
+                      for kind in ("appeared", "disappeared")}
+            marks = run.tasks("combine", _distance_marks,
+                              [(key, run.root, run.tiling, run.opts, cells, levels) for key in run.tiles], steps)
+            t = time.perf_counter()
+            sigma = run.sigma_voxels * run.voxel_size
+            out = {kind: _combined_regions([r[kind][:2] for r in results], [m[kind] for m in marks], out[kind][0],
+                                           cells[0], _CELL * sigma, run.voxel_size, min_region_points, regions)
+                   for kind in ("appeared", "disappeared")}
+            run.timings["regions"] += time.perf_counter() - t
     n_ref = run.sources["reference"].n_rows if store is None else store.n_points
     points = {kind: PointChanges.of_rows(n, *out[kind][:2], unseen[kind])
               for kind, n in (("appeared", run.sources["current"].n_rows), ("disappeared", n_ref))}
     return ChangeResult(_reference=points["disappeared"], _current=points["appeared"],
                         appeared_regions=out["appeared"][2], disappeared_regions=out["disappeared"][2],
                         voxel_size=run.voxel_size, sigma=run.sigma_voxels * run.voxel_size,
-                        h=threshold(k) if h is None else float(h), decision="point", tiled=True,
+                        h=threshold(k) if h is None else float(h), decision="combined" if combined else "point",
+                        tiled=True,
                         n_dropped_reference=run.dropped.get("reference", 0), n_dropped_current=run.dropped["current"],
                         coverage={"appeared": "footprint", "disappeared": "footprint"}, n_tiles=len(run.tiles),
                         tile_size=run.tiling.edge, timings=run.timings)
