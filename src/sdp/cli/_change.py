@@ -355,7 +355,7 @@ def _check_in_memory(n_points: int, memory_limit) -> None:
         raise GridTooLargeError(
             f"comparing {n_points:,} points in memory needs about {format_bytes(need)}, above the memory limit "
             f"of {format_bytes(cap)}: give --memory-limit {math.ceil(need / 2**20)}MB or more (LAS/LAZ, NPY or "
-            "binary PLY files with the point decision are compared in tiles instead)")
+            "binary PLY files with the point or combined decision are compared in tiles instead)")
 
 
 def _write_labelled(jobs, inputs) -> list[str]:

@@ -9,7 +9,10 @@ The data path of :func:`sdp.detect_changes`, cut into square columns of the glob
    difference volumes and flag the tile's own points, as :func:`sdp.detect_changes` does, and
    label the tile's own change regions (:func:`sdp.change._regions.label_part`); return the changed rows
    and the labels of the tile's face nodes;
-3. **regions** (here): join the tiles' labels across their faces (:func:`sdp.change._regions.join_parts`).
+3. **regions** (here): join the tiles' labels across their faces (:func:`sdp.change._regions.join_parts`);
+4. with ``decision="combined"``, **combine** (one task per tile): mark the tile's own points by
+   their distance to the other epoch (the level fitted here on every tile's calibration sample,
+   which the compare tasks return), then join the components of the changed cells here.
 
 Tiles are square columns of ``T × T`` blocks (all z) of the global lattice. A tile's points plus
 its halo of ``ceil(truncate·σ) + 3`` voxels (kernel reach, binning, interpolation, margin) hold
