@@ -232,7 +232,6 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
 #: cell's centroid (2σ_n, σ_n = 2σ), the centroid lies up to a cell (1.5σ) from the point, and the
 #: cells read around them add up to a cell on each side.
 _COMBINED_HALO = 9.0
-_CELL = 1.5  # the combined decision's cells, in σ (:mod:`sdp.distance._noise`)
 
 
 def _combined_regions(density, marked, found, corner, cell: float, voxel_size: float, min_region_points: int,
@@ -298,10 +297,11 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
     surface lies beyond the level of detection at 99.9 % (either side of it: no sensor tells the
     front), inside their own cluster volume; here the components of the changed cells of 1.5σ
     are joined across the tiles and kept where they hold a point of the density's own regions,
-    as in memory. The level is calibrated on each tile's own stable majority (a survey's noise
-    and registration vary over its extent; one tile holding the whole scene gives the in-memory
-    level), and the tiles' halo grows to 9σ, the reach of the other epoch's normals and
-    cylinders. The result holds no per-point distance: ``sdp change`` writes none in tiles.
+    as in memory. One level per direction is fitted on every tile's calibration sample together
+    (:func:`sdp.distance._noise.fit_level`; one tile holding the whole scene gives the in-memory
+    sample, so memory's states; several tiles, a larger sample of the same scene), and the
+    tiles' halo grows to 9σ, the reach of the other epoch's normals and cylinders. The result
+    holds no per-point distance: ``sdp change`` writes none in tiles.
 
     Parameters
     ----------
@@ -374,7 +374,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
         unseen = {kind: np.sort(np.concatenate([r[kind][3] for r in results])) for kind in ("appeared", "disappeared")}
         run.timings["regions"] = time.perf_counter() - t
         if combined:
-            from ..distance._noise import fit_level, thinned
+            from ..distance._noise import _CELL, fit_level, thinned
 
             # one level per direction, from every tile's sample in tile order (one tile: the in-memory sample)
             levels = {kind: fit_level(*(thinned(np.concatenate([r[f"{kind} sample"][a] for r in results]))
