@@ -177,6 +177,23 @@ def test_the_combined_decision_in_tiles_equals_memory(scene, monkeypatch, tile_s
     assert tiled.summary()["decision"] == "combined"
 
 
+@pytest.mark.slow
+def test_the_command_takes_the_combined_decision_to_tiles(scene, tmp_path):
+    from sdp.cli import main
+
+    ref, cur, box = scene
+    a, b = tmp_path / "a.npy", tmp_path / "b.npy"
+    np.save(a, ref)
+    np.save(b, cur)
+    common = ["--voxel-size", str(VOXEL), "--decision", "combined", "--quiet"]
+    assert main(["change", str(a), str(b), "-o", str(tmp_path / "m.laz"), *common]) == 0
+    assert main(["change", str(a), str(b), "-o", str(tmp_path / "t.laz"), *common, "--tiled", "--tile-size", "10",
+                 "--scheduler", "synchronous"]) == 0
+    memory, tiled = (sdp.read_points(tmp_path / f"{k}.laz").fields for k in ("m", "t"))
+    np.testing.assert_array_equal(tiled["change"], memory["change"])
+    assert (tiled["change"][box] == 1).mean() > 0.8 and "distance" not in tiled and "distance" in memory
+
+
 def _decide(cur, ref, states, found, present=None):
     from sdp.change._combined import combine_decision
     from sdp.change._coverage import UNCHANGED
