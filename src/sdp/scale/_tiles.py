@@ -366,7 +366,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
         cells = (run.lo - 1e-9, run.hi) if combined else None
         jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path), regions or combined, cells)
                 for key in run.tiles]
-        steps = ("read", "build_reference", "build_current", "detect", "distance")
+        steps = ("read", "build_reference", "build_current", "detect") + (("distance",) if combined else ())
         results = run.tasks("compare", _compare_tile, jobs, steps + ("label",))
         t = time.perf_counter()
         out = {kind: _regions([r[kind] for r in results], run.voxel_size, min_region_points, regions or combined)
