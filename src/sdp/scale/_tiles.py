@@ -317,6 +317,9 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
         As in :func:`sdp.detect_changes` (no ``grid_size``: the tiles need the voxel before
         reading the points). ``voxel_size="auto"`` is measured on the first slice of each
         cloud; the lattice is the store's when ``reference`` is one.
+    decision : {"point", "density", "combined"}
+        As in :func:`sdp.detect_changes` (``"cluster"`` is refused: memory only); ``"combined"``
+        as above, refused with a stored reference (no points to measure distances to).
     min_region_points, regions
         As in :func:`sdp.detect_changes`; regions span tiles.
     execution : Execution, optional
