@@ -145,8 +145,9 @@ def static():
 def tiles():
     """The combined decision in tiles against memory on the Toronto pair (whole scene, 2023 aligned
     to 2015 with ``fix_horizontal``): the states, and the time, with Dask's synchronous scheduler
-    (this process) and a local cluster; then memory's own spread, the level's 1,024-cell sample
-    shifted by one to five cells (what differs between tilings is that sample)."""
+    (this process) and a local cluster; then with memory's level given (what remains is the
+    tiles' own doing); then memory's own spread, the level's 1,024-cell sample shifted by one to
+    five cells (what differs between tilings is that sample)."""
     from sdp.distance import _noise
     from sdp.scale._tiles import detect_changes_tiled
 
@@ -171,6 +172,18 @@ def tiles():
             print(f"| tiles of {size or 'the memory limit'} m, {scheduler or 'local cluster'} | {r.n_tiles} | "
                   f"{r.appeared.sum():,} | {r.disappeared.sum():,} | {same[0]:.2f} / {same[1]:.2f} % | {seconds:.2f} |",
                   flush=True)
+    levels = [tuple(memory._distances[k].surface.level) for k in (1, 0)]  # appeared's, disappeared's
+    fit = _noise.fit_level
+    for size in (600.0, 300.0, 150.0):  # memory's level given: what remains is the tiles' own doing
+        calls = iter(levels)  # the tiles fit the appeared direction's level first
+        _noise.fit_level = lambda *a, **k: next(calls)
+        r = detect_changes_tiled(ref, cur, lattice=lattice, decision="combined",
+                                 execution=sdp.Execution(scheduler="synchronous", tile_size=size))
+        same = [100 * float((a == b).mean()) for a, b in ((r.appeared, memory.appeared),
+                                                           (r.disappeared, memory.disappeared))]
+        print(f"| tiles of {size} m, memory's level | {r.n_tiles} | {r.appeared.sum():,} | {r.disappeared.sum():,} | "
+              f"{same[0]:.2f} / {same[1]:.2f} % | — |", flush=True)
+    _noise.fit_level = fit
     sample = _noise.SurfaceDistances.calibration_sample
     for shift in range(1, 6):  # memory with the regular sample of cells started `shift` cells later
         def shifted(self, shift=shift):

@@ -161,9 +161,8 @@ def test_the_combined_decision_in_tiles_equals_memory(scene, monkeypatch, tile_s
     from sdp.scale._tiles import detect_changes_tiled
 
     ref, cur, box = scene
-    if tile_size < 1:
-        level = _noise.fit_level(np.zeros(100), np.full(100, 1e-6), np.ones(100))  # σ_s 0: the random part alone
-        monkeypatch.setattr(_noise, "fit_level", lambda *a, **k: level)
+    if tile_size < 1:  # (p, r̃, c, σ_s): the random part alone
+        monkeypatch.setattr(_noise, "fit_level", lambda *a, **k: (0.0, 1.0, 1.0, 0.0))
     lattice = sdp.Lattice(voxel_size=VOXEL)
     memory = sdp.detect_changes(ref, cur, lattice=lattice, decision="combined")
     tiled = detect_changes_tiled(ref, cur, lattice=lattice, decision="combined",
@@ -171,6 +170,7 @@ def test_the_combined_decision_in_tiles_equals_memory(scene, monkeypatch, tile_s
     assert tile_size > 1 or tiled.n_tiles >= 16
     density = sdp.detect_changes(ref, cur, lattice=lattice, decision="density")
     assert memory.appeared[box].sum() > density.appeared[box].sum() + 100  # the distance completed the box
+    assert memory.appeared[~box].mean() < 0.005  # and left the floor
     np.testing.assert_array_equal(tiled.appeared, memory.appeared)
     np.testing.assert_array_equal(tiled.disappeared, memory.disappeared)
     assert [r.n_points for r in tiled.appeared_regions] == [r.n_points for r in memory.appeared_regions]

@@ -70,6 +70,7 @@ import os
 import shutil
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -95,12 +96,28 @@ def _empty_field(like: DensityField) -> DensityField:
                         sigma=like.sigma, truncate=like.truncate)
 
 
+class _Side(NamedTuple):
+    """One direction of a tile (:func:`_tile_changes`): this epoch's field, its own points and
+    their rows, which of them the density changed, the indices of those not comparable, the
+    difference volume, the other epoch's records in the tile, this epoch's records in the tile
+    (its halo's too) and which of them are its own."""
+
+    field: DensityField
+    points: np.ndarray
+    rows: np.ndarray
+    changed: np.ndarray
+    unseen: np.ndarray
+    volume: Volume
+    other: np.ndarray
+    records: np.ndarray
+    own: np.ndarray
+
+
 def _tile_changes(key, root: str, tiling: Tiling, opts: dict, store: str | None, every: bool, out: dict):
     """Fields of both epochs in one tile and, per direction, its own points' density decision
-    (footprint coverage): ``{kind: (field, own points, their rows, changed mask, not comparable
-    indices, the difference volume, the other epoch's records in the tile)}``, a direction
-    without points of its own left out unless ``every`` (the regions need the halo's part of a
-    difference volume). Times go to ``out``."""
+    (footprint coverage): ``{kind: _Side}``, a direction without points of its own left out
+    unless ``every`` (the regions need the halo's part of a difference volume). Times go to
+    ``out``."""
     t0 = time.perf_counter()
     recs = {e: load_bucket(root, e, key) for e in ("reference", "current")}
     out["read"] = out.get("read", 0.0) + time.perf_counter() - t0
@@ -125,7 +142,7 @@ def _tile_changes(key, root: str, tiling: Tiling, opts: dict, store: str | None,
         cand = np.flatnonzero(mask)
         unseen = cand if fields[other] is None else cand[~footprint_covered(pts[cand], fields[other])]
         mask[unseen] = False
-        found[kind] = (fld, pts, rec[own, 3].astype(np.int64), mask, unseen, d, recs[other])
+        found[kind] = _Side(fld, pts, rec[own, 3].astype(np.int64), mask, unseen, d, recs[other], rec, own)
     out["detect"] = out.get("detect", 0.0) + time.perf_counter() - t
     return found
 
@@ -147,38 +164,43 @@ def _compare_tile(key, root: str, tiling: Tiling, opts: dict, store: str | None,
         out[f"{kind} sample"] = (np.zeros(0),) * 3
         if kind not in states:
             continue
-        fld, pts, rows, mask, unseen, d, other = states[kind]
+        side = states[kind]
         if cells is not None:
             t1 = time.perf_counter()
-            surface = _surface(states[kind], cells)
+            surface = _surface(side, cells)
             if surface is not None:
                 out[f"{kind} sample"] = surface[0].calibration_sample()
             out["distance"] += time.perf_counter() - t1
+        changed = side.changed
         part = None
         if regions:
             t1 = time.perf_counter()
-            part = label_part(fld, d, pts[mask], blocks_lo, blocks_lo + tiling.blocks)  # the regions span tiles
+            part = label_part(side.field, side.volume, side.points[changed], blocks_lo,
+                              blocks_lo + tiling.blocks)  # the regions span tiles
             out["label"] += time.perf_counter() - t1
-        out[kind] = (rows[mask], pts[mask], part, rows[unseen])
+        out[kind] = (side.rows[changed], side.points[changed], part, side.rows[side.unseen])
     return out
 
 
-def _surface(state: tuple, cells: tuple, level: tuple | None = None):
-    """(:class:`sdp.distance._noise.SurfaceDistances` of one direction's own points in a tile,
-    the points' stable mask): ``state`` is :func:`_tile_changes`' entry, stable where the density
-    left the points unchanged; the cells from ``cells[0]`` (the clouds' corner, as in memory: one
-    cell lattice for every tile). None if nothing is stable or the other epoch has too few
+def _surface(side: _Side, cells: tuple, level: tuple | None = None):
+    """(:class:`sdp.distance._noise.SurfaceDistances` of one direction's points in a tile, the
+    stable mask): ``side`` is :func:`_tile_changes`' entry. Its points are all of this epoch's
+    in the tile, the halo's too, so that a cell across the tile's edge has the centroid it has
+    in memory (a point's distance is read at its cell's); stable are the tile's own points the
+    density left unchanged. The cells start at ``cells[0]`` (the clouds' corner, as in memory:
+    one cell lattice for every tile). None if nothing is stable or the other epoch has too few
     points here."""
     from ..distance._distances import _CellLists
     from ..distance._noise import SurfaceDistances
 
-    fld, pts, _, mask, unseen, _, other = state
-    stable = ~mask
-    stable[unseen] = False
-    if not stable.any() or len(other) < 3:
+    unchanged = ~side.changed
+    unchanged[side.unseen] = False
+    if not unchanged.any() or len(side.other) < 3:
         return None
-    return SurfaceDistances(pts, np.ascontiguousarray(other[:, :3]), sigma=fld.sigma, stable=stable,
-                            lists=_CellLists(*cells), level=level), stable
+    stable = np.zeros(len(side.records), bool)
+    stable[np.flatnonzero(side.own)[unchanged]] = True
+    return SurfaceDistances(np.ascontiguousarray(side.records[:, :3]), np.ascontiguousarray(side.other[:, :3]),
+                            sigma=side.field.sigma, stable=stable, lists=_CellLists(*cells), level=level), stable
 
 
 def _distance_marks(key, root: str, tiling: Tiling, opts: dict, cells: tuple, levels: dict) -> dict:
@@ -198,13 +220,13 @@ def _distance_marks(key, root: str, tiling: Tiling, opts: dict, cells: tuple, le
         if surface is None:
             continue
         sd, stable = surface
-        fld, pts, rows = states[kind][:3]
+        fld, rec = states[kind].field, states[kind].records
         idx = np.flatnonzero(stable)
         dist, lod = sd.at(idx)
         with np.errstate(invalid="ignore"):
             far = idx[np.abs(dist) > DECISION_FACTOR * lod]
-        far = far[fld.inside(pts[far])]  # matter of its own epoch (F < 0), as Algorithm 1 asks of a change
-        out[kind] = (rows[far], pts[far])
+        far = far[fld.inside(rec[far, :3])]  # matter of its own epoch (F < 0), as Algorithm 1 asks of a change
+        out[kind] = (rec[far, 3].astype(np.int64), np.ascontiguousarray(rec[far, :3]))
     out["distance"] = time.perf_counter() - t
     return out
 
@@ -234,39 +256,30 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
 _COMBINED_HALO = 9.0
 
 
-def _combined_regions(density, marked, found, corner, cell: float, voxel_size: float, min_region_points: int,
+def _combined_regions(density, marked, found, cells: tuple, cell: float, voxel_size: float, min_region_points: int,
                       regions: bool):
     """Rows, region labels and regions of one kind of change under the combined decision
     (:func:`sdp.change._combined.combine_decision`'s rule 4) from the tiles' pieces: ``density``
     (rows, points) the density changed (comparable), ``marked`` (rows, points) the distance
     changed, ``found`` the rows of the density's own regions. The 26-connected components of the
-    cells of ``cell`` (from ``corner``) holding a changed point are kept where they hold a found
-    row; smaller than ``min_region_points`` points, they are strays."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    cells of ``cell`` (from ``cells[0]``, the clouds' corner; ``cells[1]`` their far corner)
+    holding a changed point, found as in memory (:func:`sdp.distance._noise._components`), are
+    kept where they hold a found row; smaller than ``min_region_points`` points, they are strays."""
+    from ..distance._distances import _CellLists
+    from ..distance._noise import _components
 
     rows = np.concatenate([p[0] for p in density] + [p[0] for p in marked])
     xyz = np.concatenate([p[1] for p in density] + [p[1] for p in marked]).reshape(-1, 3)
     order = np.argsort(rows, kind="stable")
-    rows, xyz = rows[order], xyz[order]
+    rows, xyz = rows[order], np.ascontiguousarray(xyz[order])
     if len(rows) == 0 or len(found) == 0:
         return rows[:0], np.zeros(0, np.int64), []
-    ijk = np.floor((xyz - corner) / cell).astype(np.int64)
-    cells, of_point = np.unique(ijk, axis=0, return_inverse=True)
-    of_point = of_point.ravel()
-    span = cells.max(axis=0) - cells.min(axis=0) + 3  # keys with a margin of one cell on each side
-    base = cells - cells.min(axis=0) + 1
-    keys = (base[:, 0] * span[1] + base[:, 1]) * span[2] + base[:, 2]  # sorted as the cells are
-    a, b = [], []
-    for dx, dy, dz in [(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) > (0, 0, 0)]:
-        nb = keys + (dx * span[1] + dy) * span[2] + dz
-        at = np.minimum(np.searchsorted(keys, nb), len(keys) - 1)
-        hit = keys[at] == nb
-        a.append(np.flatnonzero(hit))
-        b.append(at[hit])
-    a, b = np.concatenate(a), np.concatenate(b)
-    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(len(cells), len(cells)))
-    _, component = connected_components(graph, directed=False)
+    ordered, starts, table, dims, _, by_cell = _CellLists(*cells).get(xyz, cell)
+    n_cells = len(starts) - 1
+    index = np.floor((ordered[starts[:-1]] - cells[0]) / cell).astype(np.int64)  # as the table's keys
+    component = _components(table, dims, index, np.ones(n_cells, bool))[0]
+    of_point = np.empty(len(rows), np.int64)
+    of_point[by_cell] = np.repeat(np.arange(n_cells), np.diff(starts))
     kept = np.zeros(component.max() + 1, bool)
     kept[component[of_point[np.isin(rows, found)]]] = True
     keep = kept[component[of_point]]
@@ -362,7 +375,9 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
         sigma_voxels = store.sigma / store.voxel_size
         tiles["tile_size"] = store.tile_blocks * BLOCK * store.voxel_size
     clouds = {"current": current} if store is not None else {"reference": reference, "current": current}
-    extra = dict(halo_sigmas=_COMBINED_HALO, point_bytes=2 * BYTES_PER_TILE_POINT + 320) if combined else {}
+    # the combined decision's tasks also hold each epoch's distances: 160 B per point
+    # (sdp.distance._noise.distance_bytes)
+    extra = dict(halo_sigmas=_COMBINED_HALO, point_bytes=2 * BYTES_PER_TILE_POINT + 2 * 160) if combined else {}
     with Session(clouds, voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate, method=lattice.method,
                   **tiles, **extra) as run:
         # the combined decision's cells of 1.5σ from the clouds' corner, as pair_cells places them in memory
@@ -388,7 +403,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
             t = time.perf_counter()
             sigma = run.sigma_voxels * run.voxel_size
             out = {kind: _combined_regions([r[kind][:2] for r in results], [m[kind] for m in marks], out[kind][0],
-                                           cells[0], _CELL * sigma, run.voxel_size, min_region_points, regions)
+                                           cells, _CELL * sigma, run.voxel_size, min_region_points, regions)
                    for kind in ("appeared", "disappeared")}
             run.timings["regions"] += time.perf_counter() - t
     n_ref = run.sources["reference"].n_rows if store is None else store.n_points
