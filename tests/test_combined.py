@@ -201,8 +201,9 @@ def _decide(cur, ref, states, found, present=None):
 
     sd = SurfaceDistances(cur, ref, sigma=2 * VOXEL, stable=states == UNCHANGED)
     present = (lambda p: np.ones(len(p), bool)) if present is None else present
-    changed = combine_decision(sd, states, voxel_size=VOXEL, directed=False, present=present,
-                               found=np.flatnonzero(found), min_region_points=50)[0]
+    idx = np.flatnonzero(found)
+    changed = combine_decision(sd, states, voxel_size=VOXEL, directed=False, present=present, found=idx,
+                               found_regions=np.zeros(len(idx), np.int64))[0]
     return changed, sd
 
 
@@ -226,13 +227,38 @@ def test_only_what_the_density_keeps_lets_the_distance_complete_a_component():
     assert kept[~patch].mean() < 0.005
 
 
+def test_a_density_region_in_cells_that_do_not_touch_is_kept_whole():
+    """The density's volume joins points farther apart than two cells of 1.5σ (a sparse scan):
+    its region of 60 points in three groups of 20, three cells apart, is one region of the
+    combined decision, not three strays below min_region_points (on the Toronto pair the
+    combined decision had lost the density's 61 appeared points so)."""
+    from sdp.change._combined import combine_decision
+    from sdp.change._coverage import CHANGED, UNCHANGED
+    from sdp.distance._noise import SurfaceDistances
+
+    rng = np.random.default_rng(4)
+    ref, floor = _floor(rng, n=40000), _floor(rng, n=40000)
+    cell = 1.5 * 2 * VOXEL
+    groups = [np.c_[rng.uniform(0, 0.3 * cell, (20, 2)) + [1.0 + 3 * cell * g, 1.0], np.full(20, 0.5)] for g in range(3)]
+    cur = np.concatenate([floor, *groups])
+    states = np.full(len(cur), UNCHANGED, np.int8)
+    states[len(floor):] = CHANGED
+    found = np.arange(len(floor), len(cur))
+    sd = SurfaceDistances(cur, ref, sigma=2 * VOXEL, stable=states == UNCHANGED)
+    changed, regions, labels = combine_decision(sd, states, voxel_size=VOXEL, directed=False,
+                                                present=lambda p: np.ones(len(p), bool), found=found,
+                                                found_regions=np.zeros(len(found), np.int64))
+    assert changed[found].all() and len(regions) == 1 and regions[0].n_points == changed.sum()
+    assert (labels[found] == 0).all() and changed.sum() < len(found) + 100
+
+
 @pytest.mark.parametrize("far", [False, True])  # True: a patch 100 km away, so the cells are in a hash table
 def test_growing_from_the_seeds_decides_as_measuring_everywhere_does(far):
     """The components grown cell ring by cell ring from what the density keeps are the rule's:
     every point changed by density, or by distance (beyond 3.29/1.96 × its level, inside its own
-    volume), in a 26-connected component of changed cells that holds a kept point and at least
-    min_region_points changed points (rules 2–4, written out here over distances measured
-    everywhere), with the cells in a dense table or in a hash table."""
+    volume), in a 26-connected component of changed cells that holds a kept point (rules 2–4,
+    written out here over distances measured everywhere), with the cells in a dense table or in
+    a hash table."""
     from sdp.change._combined import DECISION_FACTOR
     from sdp.change._coverage import CHANGED, UNCHANGED
 
@@ -259,7 +285,7 @@ def test_growing_from_the_seeds_decides_as_measuring_everywhere_does(far):
     labels, counts = _cell_components(pd.cells, pd.cell_index, changed)
     seeded = np.zeros(len(counts), bool)
     seeded[labels[found]] = True
-    rule = changed & seeded[np.maximum(labels, 0)] & (counts[np.maximum(labels, 0)] >= 50)
+    rule = changed & seeded[np.maximum(labels, 0)]
     assert rule.sum() > 300 and np.array_equal(grown, rule)
 
 

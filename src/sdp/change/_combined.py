@@ -30,7 +30,10 @@ The rule, per point of one direction:
    is calibrated to, 5 % beyond it), as far from the old surface as the lower part of a cup
    standing on it; what tells the cup is that its top stands out of the table's kernel. An
    object thinner than about 2σ lying flat stays unfound, as with the density alone.
-   Components with fewer than ``min_region_points`` points are strays.
+   Every component holds part of one of the density's regions, so none is a stray, and
+   components holding parts of one density region are one region: the density's volume joins
+   points farther apart than two cells (a sparse scan's edge of a roof), which the cells'
+   components do not, and the combined decision keeps every point the density's keeps.
 
 Because of rule 4 the distance matters only in components that hold what the density found:
 they are grown from its cells outwards, ring by ring, and the distance is measured at those
@@ -56,14 +59,14 @@ from ._regions import describe_regions
 if TYPE_CHECKING:
     from ..distance._noise import SurfaceDistances
 
-__all__ = ["combine_decision", "DECISION_FACTOR"]
+__all__ = ["combine_decision", "joined_by_regions", "DECISION_FACTOR"]
 
 #: The decision's level against the 95 % level of detection: z(99.9 %) / z(95 %).
 DECISION_FACTOR = 3.2905 / 1.96
 
 
 def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: float, directed: bool,
-                     present, found: np.ndarray, min_region_points: int = 50, regions: bool = True):
+                     present, found: np.ndarray, found_regions: np.ndarray, regions: bool = True):
     """(changed mask, regions, region label per point) of one direction.
 
     ``sd``: the distances of this epoch's finite points to the other epoch
@@ -72,7 +75,8 @@ def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: fl
     known, so only a point in front of the other surface counts by distance; ``present(points)``:
     which points lie inside their own epoch's cluster volume (F < 0), the only ones the distance
     may mark; ``found``: the points the density's own decision keeps (its regions of
-    ``min_region_points``), the only ones that keep a component (rule 4).
+    ``min_region_points``), the only ones that keep a component (rule 4), and ``found_regions``
+    their regions there.
 
     The components are grown from the cells of ``found`` outwards, cell ring by cell ring, so
     that the distance is measured only at the cells next to what the density found (and at the
@@ -108,15 +112,26 @@ def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: fl
     # every cell of the components holds a change (a seed's cell holds a kept point, a cell
     # joins only holding a change): the components of the changed cells are theirs
     of_cell, n_components = sd.components(in_component)
+    component = of_cell[sd.cells[idx]]
+    joined = joined_by_regions(of_cell[sd.cells[found]], found_regions, n_components)
     labels = np.full(n, -1, np.int64)
-    labels[idx] = of_cell[sd.cells[idx]]
-    counts = np.bincount(labels[idx], minlength=n_components)
-    if min_region_points > 1 and len(counts):  # strays
-        stray = idx[counts[labels[idx]] < min_region_points]
-        changed[stray] = False
-        labels[stray] = -1
+    labels[idx] = joined[component]
+    counts = np.bincount(labels[idx], minlength=joined.max() + 1 if n_components else 0)
     if regions:
         regs, region_of = describe_regions(sd.points, labels, counts, voxel_size)
     else:
         regs, region_of = [], np.where(changed, 0, -1)
     return changed, regs, region_of
+
+
+def joined_by_regions(components: np.ndarray, regions: np.ndarray, n: int) -> np.ndarray:
+    """The region (0, 1, … in the order of the components) of each of ``n`` components, from
+    the component and the density's region of each point the density's decision keeps: the
+    components holding points of one density region are one region (rule 4)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    m = int(regions.max()) + 1 if regions.size else 0
+    graph = coo_matrix((np.ones(len(components)), (components, n + regions)), shape=(n + m, n + m))
+    label = connected_components(graph, directed=False)[1][:n]
+    return np.unique(label, return_inverse=True)[1].ravel()

@@ -423,9 +423,9 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         if decision == "combined":
             # what the density finds by itself (its regions, strays dropped): the components the
             # distance may complete (:func:`complete`)
-            mask = region_rules(fld, d, pts.xyz, states == CHANGED, regions=True, decision="point",
-                                min_region_points=min_region_points, cluster_fraction=cluster_fraction)[0]
-            regs, region_of = [], None
+            mask, _, region_of = region_rules(fld, d, pts.xyz, states == CHANGED, regions=True, decision="point",
+                                              min_region_points=min_region_points, cluster_fraction=cluster_fraction)
+            regs = []
         else:
             mask, regs, region_of = region_rules(fld, d, pts.xyz, states == CHANGED, regions=regions,
                                                  decision=decision, min_region_points=min_region_points,
@@ -448,13 +448,13 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         distances = (_Distances(jobs[1], disappeared[0], lists), _Distances(jobs[0], appeared[0], lists))
 
         def complete(k):
-            fld, (states, found, *_) = jobs[k][0], (appeared, disappeared)[k]
+            fld, (states, found, _, found_regions) = jobs[k][0], (appeared, disappeared)[k]
             if not found.any():  # nothing to complete: no component is kept (rule 4)
                 return states, found, [], np.full(len(found), -1)
+            idx = np.flatnonzero(found)
             changed, regs, region_of = combine_decision(
                 distances[1 - k].surface, states, voxel_size=fld.voxel_size, directed=distances[1 - k].directed,
-                present=fld.inside, found=np.flatnonzero(found), min_region_points=min_region_points,
-                regions=regions)
+                present=fld.inside, found=idx, found_regions=found_regions[idx], regions=regions)
             return states, changed, regs, region_of
 
         appeared, disappeared = map_concurrently(complete, [0, 1], parallel_kernels=True)

@@ -75,6 +75,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .._core._validate import auto_or_nonnegative, integer_at_least
+from ..change._combined import joined_by_regions
 from ..change._coverage import footprint_covered
 from ..change._detect import ChangeResult, PointChanges
 from ..change._regions import Volume, describe_regions, join_parts, label_part
@@ -256,15 +257,15 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
 _COMBINED_HALO = 9.0
 
 
-def _combined_regions(density, marked, found, cells: tuple, cell: float, voxel_size: float, min_region_points: int,
-                      regions: bool):
+def _combined_regions(density, marked, found, cells: tuple, cell: float, voxel_size: float, regions: bool):
     """Rows, region labels and regions of one kind of change under the combined decision
     (:func:`sdp.change._combined.combine_decision`'s rule 4) from the tiles' pieces: ``density``
     (rows, points) the density changed (comparable), ``marked`` (rows, points) the distance
-    changed, ``found`` the rows of the density's own regions. The 26-connected components of the
-    cells of ``cell`` (from ``cells[0]``, the clouds' corner; ``cells[1]`` their far corner)
-    holding a changed point, found as in memory (:func:`sdp.distance._noise._components`), are
-    kept where they hold a found row; smaller than ``min_region_points`` points, they are strays."""
+    changed, ``found`` (rows, region labels) of the density's own regions. The 26-connected
+    components of the cells of ``cell`` (from ``cells[0]``, the clouds' corner; ``cells[1]`` their
+    far corner) holding a changed point, found as in memory (:func:`sdp.distance._noise._components`),
+    are kept where they hold a found row, those holding one density region joined
+    (:func:`sdp.change._combined.joined_by_regions`)."""
     from ..distance._distances import _CellLists
     from ..distance._noise import _components
 
@@ -272,7 +273,8 @@ def _combined_regions(density, marked, found, cells: tuple, cell: float, voxel_s
     xyz = np.concatenate([p[1] for p in density] + [p[1] for p in marked]).reshape(-1, 3)
     order = np.argsort(rows, kind="stable")
     rows, xyz = rows[order], np.ascontiguousarray(xyz[order])
-    if len(rows) == 0 or len(found) == 0:
+    found_rows, found_regions = found
+    if len(rows) == 0 or len(found_rows) == 0:
         return rows[:0], np.zeros(0, np.int64), []
     ordered, starts, table, dims, _, by_cell = _CellLists(*cells).get(xyz, cell)
     n_cells = len(starts) - 1
@@ -280,16 +282,15 @@ def _combined_regions(density, marked, found, cells: tuple, cell: float, voxel_s
     component = _components(table, dims, index, np.ones(n_cells, bool))[0]
     of_point = np.empty(len(rows), np.int64)
     of_point[by_cell] = np.repeat(np.arange(n_cells), np.diff(starts))
-    kept = np.zeros(component.max() + 1, bool)
-    kept[component[of_point[np.isin(rows, found)]]] = True
-    keep = kept[component[of_point]]
-    rows, xyz, labels = rows[keep], xyz[keep], np.unique(component[of_point[keep]], return_inverse=True)[1].ravel()
+    at = np.searchsorted(rows, found_rows)  # every found row is a density row
+    kept, found_components = np.unique(component[of_point[at]], return_inverse=True)
+    joined = joined_by_regions(found_components.ravel(), found_regions, len(kept))
+    of_kept = np.full(component.max() + 1, -1, np.int64)
+    of_kept[kept] = joined
+    labels = of_kept[component[of_point]]
+    keep = labels >= 0
+    rows, xyz, labels = rows[keep], xyz[keep], labels[keep]
     counts = np.bincount(labels)
-    if min_region_points > 1 and len(counts):
-        big = counts[labels] >= min_region_points
-        rows, xyz, labels = rows[big], xyz[big], labels[big]
-        labels = np.unique(labels, return_inverse=True)[1].ravel()
-        counts = np.bincount(labels)
     if not regions:
         return rows, np.zeros(len(rows), np.int64), []
     regs, region_of = describe_regions(xyz, labels, counts, voxel_size)
@@ -402,8 +403,8 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
                               [(key, run.root, run.tiling, run.opts, cells, levels) for key in run.tiles], steps)
             t = time.perf_counter()
             sigma = run.sigma_voxels * run.voxel_size
-            out = {kind: _combined_regions([r[kind][:2] for r in results], [m[kind] for m in marks], out[kind][0],
-                                           cells, _CELL * sigma, run.voxel_size, min_region_points, regions)
+            out = {kind: _combined_regions([r[kind][:2] for r in results], [m[kind] for m in marks], out[kind][:2],
+                                           cells, _CELL * sigma, run.voxel_size, regions)
                    for kind in ("appeared", "disappeared")}
             run.timings["regions"] += time.perf_counter() - t
     n_ref = run.sources["reference"].n_rows if store is None else store.n_points

@@ -246,9 +246,8 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
             own = single_origin(resolve_sensor_origins(choice, None, given)[1])
             if own is not None and matrix is not None:
                 own = transform_points(matrix, own[None, :])[0]
-            mask, regs, region_of = _complete(cur, pts, states, mask, frame, own_origin=own,
-                                              other_origin=single_origin(origin), min_region_points=min_region_points,
-                                              regions=regions)
+            mask, regs, region_of = _complete(cur, pts, states, mask, labels, frame, own_origin=own,
+                                              other_origin=single_origin(origin), regions=regions)
             labels = region_of.astype(np.int32)
         t3 = time.perf_counter()
         if update == "decay":
@@ -268,10 +267,11 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
                           transform=matrix)
 
 
-def _complete(cur, ref, states, found, frame: DensityField, *, own_origin, other_origin, min_region_points: int,
+def _complete(cur, ref, states, found, found_labels, frame: DensityField, *, own_origin, other_origin,
               regions: bool):
     """:func:`sdp.change._combined.combine_decision` of a frame's points (``cur``) against the
-    reference points (``ref``), from the density's ``states`` and the points it keeps (``found``)."""
+    reference points (``ref``), from the density's ``states``, the points it keeps (``found``) and
+    their regions (``found_labels``)."""
     from ..change._combined import combine_decision
     from ..distance._noise import SurfaceDistances, distance_bytes, pair_cells
 
@@ -281,7 +281,7 @@ def _complete(cur, ref, states, found, frame: DensityField, *, own_origin, other
     lists = pair_cells((ref, cur), frame.sigma, sort=True)
     sd = SurfaceDistances(cur.xyz, ref.xyz, sigma=frame.sigma, own_origin=own_origin, other_origin=other_origin,
                           stable=states == UNCHANGED, lists=lists)
+    idx = np.flatnonzero(found)
     return combine_decision(sd, states, voxel_size=frame.voxel_size, directed=other_origin is not None,
-                            present=frame.inside, found=np.flatnonzero(found), min_region_points=min_region_points,
-                            regions=regions)
+                            present=frame.inside, found=idx, found_regions=found_labels[idx], regions=regions)
 
