@@ -174,7 +174,20 @@ def test_the_combined_decision_in_tiles_equals_memory(scene, monkeypatch, tile_s
     np.testing.assert_array_equal(tiled.appeared, memory.appeared)
     np.testing.assert_array_equal(tiled.disappeared, memory.disappeared)
     assert [r.n_points for r in tiled.appeared_regions] == [r.n_points for r in memory.appeared_regions]
+    assert [r.volume for r in tiled.appeared_regions] == pytest.approx([r.volume for r in memory.appeared_regions])
     assert tiled.summary()["decision"] == "combined"
+
+
+def test_a_combined_regions_volume_is_the_space_it_fills_not_its_point_count(scene):
+    """The box sampled four times as densely fills the same space: its region's volume (its cells
+    of 1.5σ) stays within 25 %, and within a factor of two of the box's own 0.3 × 0.3 × 0.12 m."""
+    ref, cur, box = scene
+    dense = np.concatenate([cur[~box], _box(np.random.default_rng(7), per_cm2=4.0)])
+    lattice = sdp.Lattice(voxel_size=VOXEL)
+    volumes = [sdp.detect_changes(ref, c, lattice=lattice, decision="combined").appeared_regions[0].volume
+               for c in (cur, dense)]
+    assert volumes[1] == pytest.approx(volumes[0], rel=0.25)
+    assert 0.5 < volumes[0] / (0.3 * 0.3 * 0.12) < 2.0
 
 
 @pytest.mark.slow

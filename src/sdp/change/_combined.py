@@ -116,9 +116,10 @@ def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: fl
     joined = joined_by_regions(of_cell[sd.cells[found]], found_regions, n_components)
     labels = np.full(n, -1, np.int64)
     labels[idx] = joined[component]
-    counts = np.bincount(labels[idx], minlength=joined.max() + 1 if n_components else 0)
     if regions:
-        regs, region_of = describe_regions(sd.points, labels, counts, voxel_size)
+        # a region's volume: its cells of 1.5σ (the density's nodes do not hold what the distance adds)
+        cells = np.bincount(joined[of_cell[in_component]], minlength=joined.max() + 1 if n_components else 0)
+        regs, region_of = describe_regions(sd.points, labels, cells * (sd.cell_size / voxel_size) ** 3, voxel_size)
     else:
         regs, region_of = [], np.where(changed, 0, -1)
     return changed, regs, region_of

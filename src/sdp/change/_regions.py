@@ -60,7 +60,8 @@ class Region:
     bbox_min, bbox_max : ndarray (3,)
         Axis-aligned bounds of those points (world units).
     volume : float
-        Volume of the region's grid cells: its negative nodes × l³ (world units cubed).
+        Volume of the region's grid cells: its negative nodes × l³ (world units cubed); with
+        ``decision="combined"``, its cells of 1.5σ, which the distance's points fill too.
     """
 
     label: int

@@ -290,10 +290,11 @@ def _combined_regions(density, marked, found, cells: tuple, cell: float, voxel_s
     labels = of_kept[component[of_point]]
     keep = labels >= 0
     rows, xyz, labels = rows[keep], xyz[keep], labels[keep]
-    counts = np.bincount(labels)
     if not regions:
         return rows, np.zeros(len(rows), np.int64), []
-    regs, region_of = describe_regions(xyz, labels, counts, voxel_size)
+    of_cell = of_kept[component]
+    cells_of = np.bincount(of_cell[of_cell >= 0], minlength=joined.max() + 1)  # a region's volume, as in memory
+    regs, region_of = describe_regions(xyz, labels, cells_of * (cell / voxel_size) ** 3, voxel_size)
     return rows, region_of, regs
 
 
