@@ -41,10 +41,11 @@ def message(records: np.ndarray, height: int, width: int, *, pad: int = 0, stamp
                point_step=step, row_step=step * width + pad, data=np.frombuffer(data, np.uint8), is_dense=False)
 
 
-def write_ros2(path: Path, messages, topic="/points"):
-    from rosbags.rosbag2 import Writer
+def write_ros2(path: Path, messages, topic="/points", mcap=False):
+    """A ROS 2 bag in SQLite (the default before ROS 2 Iron) or MCAP (since)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
 
-    with Writer(path, version=9) as w:
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3) as w:
         conn = w.add_connection(topic, MSGTYPE, typestore=TS)
         for stamp, msg in messages:
             w.write(conn, stamp, TS.serialize_cdr(msg, MSGTYPE))
@@ -83,12 +84,13 @@ def small_frames():
     return out
 
 
-@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("version", [1, 2, "2 mcap"])
 def test_bag_frames_read_pointcloud2_as_pcd_files_are_read(tmp_path, version):
     frames = small_frames()
     ts = TS1 if version == 1 else TS
     msgs = [(10**9 * (k + 1), message(r, 4, 5, pad=3, stamp=10**9 * (k + 1), ts=ts)) for k, r in enumerate(frames)]
-    path = (write_ros1(tmp_path / "b.bag", msgs) if version == 1 else write_ros2(tmp_path / "b2", msgs))
+    path = (write_ros1(tmp_path / "b.bag", msgs) if version == 1
+            else write_ros2(tmp_path / "b2", msgs, mcap=version == "2 mcap"))
     assert bag_topics(path) == {"/points": 2}
     got = list(bag_frames(path, "/points"))
     assert [name for name, _ in got] == ["000000@1000000000", "000001@2000000000"]
