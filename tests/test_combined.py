@@ -252,7 +252,8 @@ def test_a_density_region_in_cells_that_do_not_touch_is_kept_whole():
     rng = np.random.default_rng(4)
     ref, floor = _floor(rng, n=40000), _floor(rng, n=40000)
     cell = 1.5 * 2 * VOXEL
-    groups = [np.c_[rng.uniform(0, 0.3 * cell, (20, 2)) + [1.0 + 3 * cell * g, 1.0], np.full(20, 0.5)] for g in range(3)]
+    groups = [np.c_[rng.uniform(0, 0.3 * cell, (20, 2)) + [1.0 + 3 * cell * g, 1.0], np.full(20, 0.5)]
+              for g in range(3)]
     cur = np.concatenate([floor, *groups])
     states = np.full(len(cur), UNCHANGED, np.int8)
     states[len(floor):] = CHANGED
@@ -336,6 +337,77 @@ def test_a_stream_decides_as_the_pair_does(scene):
         next(sdp.watch(ref, [cur], decision="cluster"))
     with pytest.raises(InvalidOptionError, match="combined"):
         next(sdp.watch(pair.reference_field, [cur], decision="combined"))
+
+
+def test_a_given_noise_model_sets_the_level_in_memory_streams_and_tiles(scene):
+    """``noise=sdp.NoiseModel(...)``: a given systematic part is the level's (σ_s = reg/1.96), and
+    one far above the box's height leaves the distance nothing to mark, so the combined decision
+    is the density's, in memory, in a stream and in tiles; errors correlated over a length widen
+    the random part; the model is refused where no level takes it."""
+    from sdp.scale._tiles import detect_changes_tiled
+
+    ref, cur, box = scene
+    lattice = sdp.Lattice(voxel_size=VOXEL)
+    density = sdp.detect_changes(ref, cur, lattice=lattice)
+    huge = sdp.NoiseModel(registration_error=0.5, range_exponent=0)
+    r = sdp.detect_changes(ref, cur, lattice=lattice, decision="combined", noise=huge)
+    level = r.summary()["current"]["level"]
+    assert level["systematic"] == pytest.approx(0.5 / 1.96) and level["range_exponent"] == 0
+    assert level["given"] == {"registration_error": 0.5, "range_exponent": 0.0}
+    assert np.array_equal(r.appeared, density.appeared) and np.nanmin(r.current_lod) >= 0.5
+    stream = next(sdp.watch(ref, [cur], lattice=lattice, update="none", decision="combined", noise=huge))
+    tiled = detect_changes_tiled(ref, cur, lattice=lattice, decision="combined", noise=huge,
+                                 execution=sdp.Execution(scheduler="synchronous", tile_size=10.0))
+    assert np.array_equal(stream.appeared, density.appeared) and np.array_equal(tiled.appeared, density.appeared)
+    measured = sdp.detect_changes(ref, cur, lattice=lattice, decision="combined")
+    assert measured.appeared[box].sum() > density.appeared[box].sum() + 100 and "given" not in \
+        measured.summary()["current"]["level"]
+    corr = sdp.NoiseModel(correlation_length=4 * VOXEL, registration_error=0, range_exponent=0)
+    plain = sdp.NoiseModel(registration_error=0, range_exponent=0)
+    lods = [sdp.detect_changes(ref, cur, lattice=lattice, decision="combined", noise=n).current_lod
+            for n in (plain, corr)]
+    ok = np.isfinite(lods[0])
+    assert (lods[1][ok] >= lods[0][ok]).all() and np.median(lods[1][ok] / lods[0][ok]) > 1.05
+    for call in (lambda: sdp.detect_changes(ref, cur, noise=huge), lambda: next(sdp.watch(ref, [cur], noise=huge)),
+                 lambda: detect_changes_tiled(ref, cur, noise=huge)):
+        with pytest.raises(InvalidOptionError, match="give --decision combined"):
+            call()
+    for bad, match in ((dict(range_exponent=2.5), "range_exponent"), (dict(range_exponent="x"), "range_exponent"),
+                       (dict(registration_error=-1), "registration_error"),
+                       (dict(correlation_length=0), "correlation_length")):
+        with pytest.raises(InvalidOptionError, match=match):
+            sdp.NoiseModel(**bad)
+
+
+def test_the_commands_take_the_noise_model(tmp_path, scene, capsys):
+    """``sdp change`` and ``sdp watch`` take ``--registration-error``, ``--range-exponent`` and
+    ``--correlation-length`` with ``--decision combined`` (the summary's level says what was
+    given), and refuse them in one line, exit 2, with another decision, before writing anything."""
+    from sdp.cli import main
+
+    ref, cur, _ = scene
+    a, b, frames = tmp_path / "a.npy", tmp_path / "b.npy", tmp_path / "frames"
+    np.save(a, ref)
+    np.save(b, cur)
+    frames.mkdir()
+    np.save(frames / "f0.npy", cur)
+    given = ["--registration-error", "0.5", "--range-exponent", "0", "--correlation-length", "0.08"]
+    assert main(["change", str(a), str(b), "-o", str(tmp_path / "c.npz"), "--voxel-size", str(VOXEL),
+                 "--decision", "combined", *given, "--json"]) == 0
+    import json
+    level = json.loads(capsys.readouterr().out)["current"]["level"]
+    assert level["given"] == {"registration_error": 0.5, "range_exponent": 0.0, "correlation_length": 0.08}
+    assert main(["watch", str(a), str(frames), "--voxel-size", str(VOXEL), "--decision", "combined", *given]) == 0
+    capsys.readouterr()
+    for cmd in (["change", str(a), str(b), "-o", str(tmp_path / "d.npz")], ["watch", str(a), str(frames)]):
+        assert main([*cmd, "--range-exponent", "2"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "give --decision combined" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "d.npz").exists()
+    with pytest.raises(SystemExit) as exit_:  # argparse's own check
+        main(["change", str(a), str(b), "-o", str(tmp_path / "d.npz"), "--decision", "combined",
+              "--range-exponent", "3"])
+    assert exit_.value.code == 2 and "--range-exponent" in capsys.readouterr().err
 
 
 def test_distances_measured_in_parts_equal_those_measured_at_once(scene):

@@ -48,7 +48,7 @@ from .io import (
     write_points,
     write_points_streamed,
 )
-from .options import Coverage, Cylinder, Execution, Lattice, Outputs, Registration
+from .options import Coverage, Cylinder, Execution, Lattice, NoiseModel, Outputs, Registration
 from .registration import Alignment, align, transform_points
 from .scale import FieldStore, build_field_tiled, detect_changes_tiled, distances_tiled
 from .stream import FrameChange, watch

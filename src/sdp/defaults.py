@@ -95,6 +95,15 @@ class Defaults:
         beyond the level (:mod:`sdp.distance._level`). M3C2's own default, 0, leaves 69–83 % of
         a static Kinect pair and 56 % of the aligned Toronto ALS ground "significant"
         (``benchmarks/bench_level.py``).
+    range_exponent : str
+        ``"auto"``: how the combined decision's level grows with range along the sensor's ray
+        is fitted on each pair's stable majority (:mod:`sdp.distance._noise`), because the law
+        differs between sensors (2 for a structured-light camera, 0 for a laser scanner) and a
+        file rarely says which sensor wrote it.
+    correlation_length : None
+        Points' errors are taken as independent in the random part; what correlated errors
+        add is measured in the systematic part (a depth camera's window of correlated pixels
+        depends on its matcher, which no file records).
     smoothing_lag : int
         16 epochs: a series' epoch is smoothed with the 16 after it (the last 16 with all that
         follow), then final, so an appended epoch rewrites 17 rows whatever the series' length.
@@ -130,6 +139,8 @@ class Defaults:
     normal_scale: str = "auto"
     max_distance: str = "auto"
     registration_error: str = "auto"
+    range_exponent: str = "auto"
+    correlation_length: float | None = None
     smoothing_lag: int = 16
     align_method: str = "density"
     action_window: int = 40

@@ -7,6 +7,8 @@ Each object groups one concern and is checked once, when it is made, with the sa
 - :class:`Coverage`: where the other scan could see (its sensor, the range noise);
 - :class:`Registration`: how the current scan is moved onto the reference first;
 - :class:`Cylinder`: the neighbourhoods of the distances (M3C2's projection and normal scales);
+- :class:`NoiseModel`: the sensor's noise, which the combined decision's level of detection
+  is made of (the systematic part, its growth with range, correlated errors);
 - :class:`Execution`: how and where the work runs (memory limit, tiles on Dask, work folder);
 - :class:`Outputs`: what a command writes besides its main output (pictures, report, the
   reference's points).
@@ -38,7 +40,7 @@ from ._core import _validate as V
 from .defaults import DEFAULTS
 from .errors import InvalidOptionError
 
-__all__ = ["Lattice", "Coverage", "Registration", "Cylinder", "Execution", "Outputs"]
+__all__ = ["Lattice", "Coverage", "Registration", "Cylinder", "NoiseModel", "Execution", "Outputs"]
 
 PathLike = str | os.PathLike
 
@@ -218,6 +220,65 @@ class Cylinder:
     def __post_init__(self):
         for name in ("projection_scale", "normal_scale", "max_distance"):
             V.auto_or_positive(name, getattr(self, name))
+
+
+@dataclass(frozen=True, kw_only=True)
+class NoiseModel:
+    """The sensor's noise, which the level of detection of ``decision="combined"`` is made of
+    (:mod:`sdp.distance._noise`): ``lod = 1.96·√(random + (σ_s·(r/r̃)^p)²)`` at range r along
+    the point's own sensor's ray (r̃ the median range). What is not given is measured on the
+    stable majority of the pair (the points the density left unchanged).
+
+    Attributes
+    ----------
+    registration_error : float or "auto"
+        The systematic part as M3C2's ``reg`` (σ_s = reg/1.96, world units): registration,
+        calibration and errors shared by many points; ``"auto"``: the smallest for which at most
+        5 % of the stable majority lie beyond the level.
+    range_exponent : float or "auto"
+        p in [0, 2]: how the systematic part grows along the ray, 2 for a structured-light depth
+        camera (σ_z ∝ z²), 0 for a laser scanner; ``"auto"``: fitted on the stable majority where
+        the sensor is known (else 0).
+    correlation_length : float, optional
+        Errors correlated over this length (world units, e.g. a depth camera's matching window
+        at its range): a cylinder of diameter d then counts at most (d/ℓ)² independent points;
+        None: every point independent, what correlation adds shows in the measured systematic
+        part.
+
+    References
+    ----------
+    .. [1] D. Lague, N. Brodu, J. Leroux (2013), M3C2's level of detection; K. Khoshelham,
+       S. O. Elberink (2012), a Kinect's σ_z ∝ z²; C. S. Bretherton et al. (1999), effective
+       counts of correlated data.
+    """
+
+    registration_error: float | str = DEFAULTS.registration_error
+    range_exponent: float | str = DEFAULTS.range_exponent
+    correlation_length: float | None = DEFAULTS.correlation_length
+
+    def __post_init__(self):
+        object.__setattr__(self, "registration_error",
+                           V.auto_or_nonnegative("registration_error", self.registration_error))
+        object.__setattr__(self, "range_exponent", V.auto_or_exponent("range_exponent", self.range_exponent))
+        if self.correlation_length is not None:
+            V.positive_finite("correlation_length", self.correlation_length)
+
+    @property
+    def given(self) -> dict:
+        """The parts given rather than measured (name → value)."""
+        return {k: v for k, v in self.arguments().items() if v != getattr(DEFAULTS, k)}
+
+    def for_decision(self, decision: str) -> NoiseModel:
+        """Itself; refused where ``decision`` has no level of detection to give it to."""
+        if self.given and decision != "combined":
+            raise InvalidOptionError("the noise model (--registration-error, --range-exponent, --correlation-length) "
+                                     "is the combined decision's level of detection: give --decision combined")
+        return self
+
+    def arguments(self) -> dict:
+        """The keywords of :class:`sdp.distance._noise.SurfaceDistances`."""
+        return {"registration_error": self.registration_error, "range_exponent": self.range_exponent,
+                "correlation_length": self.correlation_length}
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -41,7 +41,7 @@ import numpy as np
 from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 
 __all__ = ["positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
-           "auto_or_nonnegative", "memory_size", "existing_folder", "check_threshold", "check_grid_options",
+           "auto_or_exponent", "auto_or_nonnegative", "memory_size", "existing_folder", "check_threshold", "check_grid_options",
            "check_tile_options", "check_workdir", "cli_type", "sensor_origin_option", "class_numbers",
            "check_alignment_options", "check_tiled_options", "direction", "as_sensor_origins"]
 
@@ -204,6 +204,19 @@ def auto_or_nonnegative(name: str, value) -> float | str:
         return nonnegative_finite(name, value)
     except InvalidOptionError:
         raise InvalidOptionError(f"{name} must be 'auto' or a finite number ≥ 0, got {value!r}") from None
+
+
+def auto_or_exponent(name: str, value) -> float | str:
+    """``"auto"``, or ``value`` as a float in [0, 2] (how a sensor's noise grows with range)."""
+    if isinstance(value, str) and value.strip().lower() == "auto":
+        return "auto"
+    try:
+        p = finite(name, value)
+    except InvalidOptionError:
+        p = -1.0
+    if not 0 <= p <= 2:
+        raise InvalidOptionError(f"{name} must be 'auto' or in [0, 2], got {value!r}")
+    return p
 
 
 def auto_or_positive(name: str, value) -> float | str:

@@ -58,7 +58,7 @@ from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError
 from ..fields._density import DensityField, build_fields
 from ..fields._spacing import resolve_lattice
-from ..options import Coverage, Lattice
+from ..options import Coverage, Lattice, NoiseModel
 from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
@@ -302,7 +302,7 @@ class ChangeResult:
 def detect_changes(reference, current, *, lattice: Lattice | None = None, coverage: Coverage | None = None,
                    decision: str = DEFAULTS.decision, cluster_fraction: float = DEFAULTS.cluster_fraction,
                    min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
-                   memory_limit: int | str | None = None) -> ChangeResult:
+                   memory_limit: int | str | None = None, noise: NoiseModel | None = None) -> ChangeResult:
     """Points that appeared in ``current`` and disappeared from ``reference``.
 
     Builds F_ref and F_cur on one lattice (same voxel size), forms the difference volumes
@@ -357,6 +357,11 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         are reported unchanged. Default 50; 1 keeps everything. Needs ``regions=True``.
     regions : bool
         Group changed points into connected regions (skip to save time).
+    noise : NoiseModel, optional
+        With ``decision="combined"``: the parts of the level of detection that are known
+        (:class:`sdp.NoiseModel`: the systematic part, its growth with range, correlated
+        errors); what is not given is measured on the pair's stable majority. Refused with
+        the other decisions, which have no level.
 
     Returns
     -------
@@ -382,6 +387,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     decision = "point" if decision == "density" else decision
     lattice = Lattice() if lattice is None else lattice
     coverage = Coverage() if coverage is None else coverage
+    noise = (NoiseModel() if noise is None else noise).for_decision(decision)
     memory_limit_bytes(memory_limit)
     integer_at_least("min_region_points", min_region_points, 0)
     if not 0 <= finite("cluster_fraction", cluster_fraction) < 1:
@@ -445,7 +451,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         # the distance completes what the density found (:mod:`sdp.change._combined`): both clouds
         # sorted once into the cells of 1.5σ both directions read, if either found anything
         lists = pair_cells((ref, cur), f_cur.sigma, sort=appeared[1].any() or disappeared[1].any())
-        distances = (_Distances(jobs[1], disappeared[0], lists), _Distances(jobs[0], appeared[0], lists))
+        distances = (_Distances(jobs[1], disappeared[0], lists, noise), _Distances(jobs[0], appeared[0], lists, noise))
 
         def complete(k):
             fld, (states, found, _, found_regions) = jobs[k][0], (appeared, disappeared)[k]
@@ -483,8 +489,8 @@ class _Distances:
     :class:`sdp.distance._noise.SurfaceDistances` its decision reads, made when first needed,
     and every point's distance and level over the input rows, measured on first use."""
 
-    def __init__(self, job, states, lists):
-        self._job, self._states, self._lists = job, states, lists
+    def __init__(self, job, states, lists, noise: NoiseModel):
+        self._job, self._states, self._lists, self._noise = job, states, lists, noise
         self._surface = self._rows = None
         _, _, _, _, _, _, other_origin, _, own_origin = job
         # one sensor per cloud: the noise model's range law and normals (several: neither yet)
@@ -499,7 +505,7 @@ class _Distances:
             fld, pts, _, _, other, *_ = self._job
             self._surface = SurfaceDistances(pts.xyz, other.xyz, sigma=fld.sigma, own_origin=self.own_origin,
                                              other_origin=self.other_origin, stable=self._states == UNCHANGED,
-                                             lists=self._lists)
+                                             lists=self._lists, **self._noise.arguments())
         return self._surface
 
     @property
@@ -514,7 +520,8 @@ class _Distances:
     def level(self) -> dict:
         """The level's calibration: its systematic part σ_s (95 %: 1.96·σ_s) and range exponent p."""
         p, r_med, scale, s = self.surface.level
-        return {"systematic": s, "range_exponent": p, "median_range": r_med, "random_scale": scale}
+        given = {"given": self._noise.given} if self._noise.given else {}
+        return {"systematic": s, "range_exponent": p, "median_range": r_med, "random_scale": scale, **given}
 
 
 def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | None, other_field: DensityField,

@@ -27,7 +27,7 @@ from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
-from ..options import Coverage, Execution, Lattice, Outputs, Registration
+from ..options import Coverage, Execution, Lattice, NoiseModel, Outputs, Registration
 from . import _text as report
 from ..io._bag import is_bag
 from ._common import (align_clouds, check_picture_extras, disappeared_path, is_store, pictures, read_input,
@@ -194,8 +194,8 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
 def compare_files(reference, current, *, output, outputs: Outputs | None = None, format: str | None = None,
                   lattice: Lattice | None = None, coverage: Coverage | None = None,
                   align: Registration | str | None = None, execution: Execution | None = None,
-                  decision: str = DEFAULTS.decision,
-                  min_region_points: int = DEFAULTS.min_region_points, topic: str | None = None) -> FileComparison:
+                  decision: str = DEFAULTS.decision, min_region_points: int = DEFAULTS.min_region_points,
+                  topic: str | None = None, noise: NoiseModel | None = None) -> FileComparison:
     """Compare two point-cloud files and write the labelled clouds: ``sdp change`` as a function.
 
     The clouds are compared in memory (:func:`sdp.detect_changes`) or, when they need more
@@ -222,7 +222,7 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
         parameters and why, maps of both directions, region sizes, the region table with
         thumbnails, a 3-D view; in memory only, refused with tiles); ``aligned``, the current's
         points where the alignment moved them (default: its own coordinates).
-    lattice, decision, min_region_points
+    lattice, decision, min_region_points, noise
         As in :func:`sdp.detect_changes`.
     coverage : Coverage, optional
         As in :func:`sdp.detect_changes`; ``sensor_origin="viewpoint"`` is ``"auto"`` refusing
@@ -264,6 +264,7 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     lattice = Lattice() if lattice is None else lattice
     coverage = Coverage() if coverage is None else coverage
     execution = Execution() if execution is None else execution
+    noise = (NoiseModel() if noise is None else noise).for_decision(decision)
     align = Registration.of(align)
     if outputs.aligned and align is None:  # nothing moved: the option would be ignored
         raise SDPError("--aligned-output (outputs.aligned) writes the aligned coordinates: give --align too")
@@ -288,10 +289,11 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
         if plan.tiled:
             return _compare_tiled(plan, reference, current, out, both=outputs.both,
                                   min_region_points=min_region_points, lattice=lattice, execution=execution,
-                                  decision=decision)
+                                  decision=decision, noise=noise)
         return _compare_in_memory(reference, current, out, outputs=outputs, format=format, lattice=lattice,
                                   coverage=coverage, align=align, memory_limit=execution.memory_limit,
-                                  detect=dict(decision=decision, min_region_points=min_region_points), topic=topic)
+                                  detect=dict(decision=decision, min_region_points=min_region_points, noise=noise),
+                                  topic=topic)
 
 
 def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, format, lattice: Lattice,
@@ -336,6 +338,7 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
         options = dict(voxel_size=lattice.voxel_size, grid_size=lattice.grid_size, sigma_voxels=lattice.sigma_voxels,
                        k=lattice.k, h=lattice.h, decision=detect["decision"],
                        min_region_points=detect["min_region_points"], range_noise=coverage.range_noise,
+                       **detect["noise"].given,
                        sensor_origin=given if isinstance(given, str) else given.tolist())
         change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options,
                       names=(Path(reference).name, Path(current).name))
@@ -376,13 +379,14 @@ def _write_labelled(jobs, inputs) -> list[str]:
 
 
 def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min_region_points,
-                   lattice: Lattice, execution: Execution, decision: str = DEFAULTS.decision) -> FileComparison:
+                   lattice: Lattice, execution: Execution, decision: str = DEFAULTS.decision,
+                   noise: NoiseModel | None = None) -> FileComparison:
     from ..io._source import write_points_streamed
     from ..scale._tiles import detect_changes_tiled
 
     lattice = replace(lattice, voxel_size=plan.voxel_size, sigma_voxels=plan.sigma_voxels)  # as sampled
     r = detect_changes_tiled(*plan.sources, lattice=lattice, decision=decision, min_region_points=min_region_points,
-                             execution=execution)
+                             execution=execution, noise=noise)
     jobs = [(out, plan.sources[1], "current")]
     if both:
         jobs.append((disappeared_path(out), plan.sources[0], "reference"))

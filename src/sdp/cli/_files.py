@@ -14,7 +14,7 @@ from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
 from ..io._cloud import input_format
 from ..io._read import read_points
-from ..options import Coverage, Execution, Lattice, Registration
+from ..options import Coverage, Execution, Lattice, NoiseModel, Registration
 from . import _text as report
 from ._common import align_clouds, is_field, is_store, pictures, sensor_origins
 
@@ -203,13 +203,15 @@ def align_files(reference, current, *, output, method: str = DEFAULTS.align_meth
 def watch_folder(reference, frames, *, format: str | None = None, lattice: Lattice | None = None,
                  update: str = DEFAULTS.update, window: int | None = None, decay: float | None = None,
                  min_region_points: int = DEFAULTS.min_region_points, align: Registration | str | None = None,
-                 coverage: Coverage | None = None, topic: str | None = None, decision: str = DEFAULTS.decision) -> Iterator:
+                 coverage: Coverage | None = None, topic: str | None = None, decision: str = DEFAULTS.decision,
+                 noise: NoiseModel | None = None) -> Iterator:
     """:func:`sdp.watch` over the point-cloud files of a folder, in natural name order, or over
     the ``sensor_msgs/PointCloud2`` messages of a ROS bag's ``topic`` (:func:`sdp.io._bag.bag_frames`,
     the ``scans`` extra), in the order recorded (``sdp watch``).
 
     ``reference`` is a cloud file or a field (``.sdpf``); ``coverage`` as in
-    :func:`compare_files` (its ``sensor_origin`` is the reference's). The folder and the reference are checked and read
+    :func:`compare_files` (its ``sensor_origin`` is the reference's); ``decision`` and ``noise`` as in
+    :func:`sdp.watch`. The folder and the reference are checked and read
     now; the frames are read one by one as the returned iterator of :class:`~sdp.FrameChange`
     (named after their files) advances.
     """
@@ -220,6 +222,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
 
     from ..io._bag import bag_frames, bag_topics, is_bag
 
+    noise = (NoiseModel() if noise is None else noise).for_decision(decision)
     folder = Path(frames)
     bag = is_bag(folder)
     if bag and topic is None:
@@ -249,7 +252,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     stream = bag_frames(folder, topic) if bag else ((p.name, read_points(p, format=format)) for p in paths)
     return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
                  min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin),
-                 decision=decision)
+                 decision=decision, noise=noise)
 
 
 @dataclass

@@ -24,7 +24,7 @@ from .._core._json import dumps
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none
-from ..options import Coverage, Cylinder, Execution, Lattice, Outputs, Registration
+from ..options import Coverage, Cylinder, Execution, Lattice, NoiseModel, Outputs, Registration
 from . import _actions as A
 from . import _change as C
 from . import _distance as D
@@ -79,6 +79,27 @@ def _coverage(a) -> Coverage:
     return Coverage(sensor_origin=V.sensor_origin_option("--sensor-origin", a.sensor_origin), range_noise=a.range_noise)
 
 
+def _noise(a) -> NoiseModel:
+    return NoiseModel(registration_error=a.registration_error, range_exponent=a.range_exponent,
+                      correlation_length=a.correlation_length)
+
+
+def _noise_options(p) -> None:
+    """The combined decision's noise model (:class:`sdp.NoiseModel`)."""
+    p.add_argument("--registration-error", metavar="E|auto", default=DEFAULTS.registration_error,
+                   type=V.cli_type(V.auto_or_nonnegative),
+                   help="with --decision combined: the level's systematic part as M3C2's reg (default auto: "
+                        "measured on the points the density left unchanged)")
+    p.add_argument("--range-exponent", metavar="P|auto", default=DEFAULTS.range_exponent,
+                   type=V.cli_type(V.auto_or_exponent),
+                   help="with --decision combined: the systematic part grows as range^P along the sensor's ray, "
+                        "P in [0, 2] (2: a structured-light camera, 0: a laser scanner; default auto: fitted)")
+    p.add_argument("--correlation-length", metavar="L", type=V.cli_type(V.positive_finite),
+                   default=DEFAULTS.correlation_length,
+                   help="with --decision combined: errors correlated over L (world units): a cylinder counts at "
+                        "most (d/L)^2 independent points (default: independent)")
+
+
 def _registration(a) -> Registration | None:
     V.check_alignment_options(a.align, fix_horizontal=a.fix_horizontal, align_class=a.align_class)
     return None if a.align is None else Registration(method=a.align, fix_horizontal=a.fix_horizontal,
@@ -130,7 +151,7 @@ def cmd_change(a):
                         outputs=Outputs(both=a.both, png=a.png, html=a.html, report=a.report, aligned=a.aligned_output),
                         lattice=_lattice(a), coverage=_coverage(a),
                         align=_registration(a), execution=_execution(a, None if a.json else _say),
-                        decision=a.decision, min_region_points=a.min_region_points, topic=a.topic)
+                        decision=a.decision, min_region_points=a.min_region_points, topic=a.topic, noise=_noise(a))
     return _show(r.summary_text(), r.summary, a.json)
 
 
@@ -204,7 +225,8 @@ def cmd_align(a):
 def cmd_watch(a):
     frames = F.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
                             update=a.update, window=a.window, decay=a.decay, min_region_points=a.min_region_points,
-                            align=a.align, coverage=_coverage(a), topic=a.topic, decision=a.decision)
+                            align=a.align, coverage=_coverage(a), topic=a.topic, decision=a.decision,
+                            noise=_noise(a))
     if a.json:
         return _show("", [r.summary() for r in frames], as_json=True)
     for r in frames:  # a line per frame, as it comes (the frames are compared as they are iterated)
@@ -291,6 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "writes the distance and lod fields)")
     c.add_argument("--min-region-points", type=V.cli_type(V.integer_at_least, 0), default=DEFAULTS.min_region_points,
                    help="drop change regions with fewer points (default 50: smaller ones are noise and depth edges)")
+    _noise_options(c)
     c.add_argument("--png", help="write a picture of the appeared points")
     c.add_argument("--html", help="write an interactive 3D view (needs the html extra: plotly)")
     c.add_argument("--report", help=X.REPORT_HELP)
@@ -430,6 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--decision", choices=("point", "density", "combined"), default=DEFAULTS.decision,
                    help="point / density (the density alone, default) or combined (also the distance to the "
                         "reference's surface beyond its level of detection, completing what the density found)")
+    _noise_options(w)
     w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
 
     act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)", X.ACTION)

@@ -83,7 +83,7 @@ from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError
 from ..fields._density import DensityField, threshold
 from ..fields._lattice import BLOCK
-from ..options import Cylinder, Execution, Lattice
+from ..options import Cylinder, Execution, Lattice, NoiseModel
 from ._budget import BYTES_PER_TILE_POINT
 from ._session import Session, Tiling, first_slices, load_bucket
 from ._store import FieldStore, require_zarr
@@ -149,14 +149,15 @@ def _tile_changes(key, root: str, tiling: Tiling, opts: dict, store: str | None,
 
 
 def _compare_tile(key, root: str, tiling: Tiling, opts: dict, store: str | None, regions: bool = True,
-                  cells: tuple | None = None) -> dict:
+                  cells: tuple | None = None, correlation: float | None = None) -> dict:
     """Fields of both epochs in one tile, its own changed rows and its own not comparable rows
     (outside the other field's footprint; see the module docstring), and with ``regions`` the
     components of the difference volume in the tile (:func:`sdp.change._regions.label_part`: what the
     regions across tiles are joined from). With ``store`` (a :class:`FieldStore` path) the
     reference field is read from it. With ``cells`` (the corners of the combined decision's
     cells), also each direction's calibration sample (``"<kind> sample"``:
-    :meth:`sdp.distance._noise.SurfaceDistances.calibration_sample`)."""
+    :meth:`sdp.distance._noise.SurfaceDistances.calibration_sample`; ``correlation``: the noise
+    model's correlation length)."""
     out = {"read": 0.0, "build_reference": 0.0, "build_current": 0.0, "label": 0.0, "detect": 0.0, "distance": 0.0}
     blocks_lo = np.asarray(key, np.int64) * tiling.blocks
     states = _tile_changes(key, root, tiling, opts, store, regions, out)
@@ -168,7 +169,7 @@ def _compare_tile(key, root: str, tiling: Tiling, opts: dict, store: str | None,
         side = states[kind]
         if cells is not None:
             t1 = time.perf_counter()
-            surface = _surface(side, cells)
+            surface = _surface(side, cells, correlation=correlation)
             if surface is not None:
                 out[f"{kind} sample"] = surface[0].calibration_sample()
             out["distance"] += time.perf_counter() - t1
@@ -183,7 +184,7 @@ def _compare_tile(key, root: str, tiling: Tiling, opts: dict, store: str | None,
     return out
 
 
-def _surface(side: _Side, cells: tuple, level: tuple | None = None):
+def _surface(side: _Side, cells: tuple, level: tuple | None = None, correlation: float | None = None):
     """(:class:`sdp.distance._noise.SurfaceDistances` of one direction's points in a tile, the
     stable mask): ``side`` is :func:`_tile_changes`' entry. Its points are all of this epoch's
     in the tile, the halo's too, so that a cell across the tile's edge has the centroid it has
@@ -201,10 +202,12 @@ def _surface(side: _Side, cells: tuple, level: tuple | None = None):
     stable = np.zeros(len(side.records), bool)
     stable[np.flatnonzero(side.own)[unchanged]] = True
     return SurfaceDistances(np.ascontiguousarray(side.records[:, :3]), np.ascontiguousarray(side.other[:, :3]),
-                            sigma=side.field.sigma, stable=stable, lists=_CellLists(*cells), level=level), stable
+                            sigma=side.field.sigma, stable=stable, lists=_CellLists(*cells), level=level,
+                            correlation_length=correlation), stable
 
 
-def _distance_marks(key, root: str, tiling: Tiling, opts: dict, cells: tuple, levels: dict) -> dict:
+def _distance_marks(key, root: str, tiling: Tiling, opts: dict, cells: tuple, levels: dict,
+                    correlation: float | None = None) -> dict:
     """The combined decision's distance in one tile (:mod:`sdp.change._combined`, rules 2 and 3):
     per direction, the rows and points of its own points that the density left unchanged, that
     lie inside their own cluster volume and whose distance to the other epoch's surface is
@@ -217,7 +220,7 @@ def _distance_marks(key, root: str, tiling: Tiling, opts: dict, cells: tuple, le
     t = time.perf_counter()
     for kind in ("appeared", "disappeared"):
         out[kind] = (np.zeros(0, np.int64), np.zeros((0, 3)))
-        surface = _surface(states[kind], cells, levels[kind]) if kind in states else None
+        surface = _surface(states[kind], cells, levels[kind], correlation) if kind in states else None
         if surface is None:
             continue
         sd, stable = surface
@@ -300,7 +303,7 @@ def _combined_regions(density, marked, found, cells: tuple, cell: float, voxel_s
 
 def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, decision: str = DEFAULTS.decision,
                          min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
-                         execution: Execution | None = None) -> ChangeResult:
+                         execution: Execution | None = None, noise: NoiseModel | None = None) -> ChangeResult:
     """:func:`sdp.detect_changes` (footprint coverage) in tiles, for clouds of any size.
 
     Every default is :data:`sdp.DEFAULTS`, as for :func:`sdp.detect_changes`. Points outside the
@@ -335,8 +338,9 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
     decision : {"point", "density", "combined"}
         As in :func:`sdp.detect_changes` (``"cluster"`` is refused: memory only); ``"combined"``
         as above, refused with a stored reference (no points to measure distances to).
-    min_region_points, regions
-        As in :func:`sdp.detect_changes`; regions span tiles.
+    min_region_points, regions, noise
+        As in :func:`sdp.detect_changes`; regions span tiles. No sensor: the level does not
+        grow with range.
     execution : Execution, optional
         The tiles (:class:`sdp.Execution`): ``tile_size`` in world units (rounded up to whole
         blocks of 8 voxels; default about ``tile_points`` points of the larger cloud per tile,
@@ -364,6 +368,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
     integer_at_least("min_region_points", min_region_points, 0)
     if decision not in ("point", "density", "combined"):
         raise InvalidOptionError(f"decision={decision!r} is not available in tiles: 'point' or 'combined'")
+    noise = (NoiseModel() if noise is None else noise).for_decision(decision)
     combined = decision == "combined"
     if combined and isinstance(reference, FieldStore):
         raise InvalidOptionError("decision='combined' measures distances to the reference's points: a field store "
@@ -384,8 +389,8 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
                   **tiles, **extra) as run:
         # the combined decision's cells of 1.5σ from the clouds' corner, as pair_cells places them in memory
         cells = (run.lo - 1e-9, run.hi) if combined else None
-        jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path), regions or combined, cells)
-                for key in run.tiles]
+        jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path), regions or combined, cells,
+                 noise.correlation_length) for key in run.tiles]
         steps = ("read", "build_reference", "build_current", "detect") + (("distance",) if combined else ())
         results = run.tasks("compare", _compare_tile, jobs, steps + ("label",))
         t = time.perf_counter()
@@ -398,10 +403,12 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
 
             # one level per direction, from every tile's sample in tile order (one tile: the in-memory sample)
             levels = {kind: fit_level(*(thinned(np.concatenate([r[f"{kind} sample"][a] for r in results]))
-                                        for a in range(3)))
+                                        for a in range(3)), registration_error=noise.registration_error,
+                                      range_exponent=noise.range_exponent)
                       for kind in ("appeared", "disappeared")}
             marks = run.tasks("combine", _distance_marks,
-                              [(key, run.root, run.tiling, run.opts, cells, levels) for key in run.tiles], steps)
+                              [(key, run.root, run.tiling, run.opts, cells, levels, noise.correlation_length)
+                               for key in run.tiles], steps)
             t = time.perf_counter()
             sigma = run.sigma_voxels * run.voxel_size
             out = {kind: _combined_regions([r[kind][:2] for r in results], [m[kind] for m in marks], out[kind][:2],

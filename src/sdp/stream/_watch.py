@@ -53,7 +53,7 @@ from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError
 from ..fields._density import DensityField
 from ..fields._spacing import resolve_lattice
-from ..options import Coverage, Lattice, Registration
+from ..options import Coverage, Lattice, NoiseModel, Registration
 from ..registration._align import GicpTarget
 from ..registration._align import align as align_density
 from ..registration._align import transform_points
@@ -123,7 +123,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
           window: int | None = None, decay: float | None = None,
           min_region_points: int = DEFAULTS.min_region_points, regions: bool = True,
           align: Registration | str | None = None, coverage: Coverage | None = None,
-          decision: str = DEFAULTS.decision) -> Iterator[FrameChange]:
+          decision: str = DEFAULTS.decision, noise: NoiseModel | None = None) -> Iterator[FrameChange]:
     """Compare each frame of a stream with a model of the scene, in order; yield as they come.
 
     Every default is :data:`sdp.DEFAULTS`, as for :func:`sdp.detect_changes` and ``sdp watch``.
@@ -163,6 +163,11 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         against the reference's rays: an appeared point the reference saw at the same range is
         not a change, one it could not see is not comparable; without one, a frame point whose
         column the model did not sample densely enough is not comparable (its footprint).
+    decision : {"point", "density", "combined"}
+        As in :func:`sdp.detect_changes`: ``"combined"`` completes what the density finds in a
+        frame with the distance to the reference's surface (reference points only).
+    noise : NoiseModel, optional
+        With ``decision="combined"``, as in :func:`sdp.detect_changes`.
 
     Yields
     ------
@@ -188,6 +193,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     integer_at_least("min_region_points", min_region_points, 0)
     if decision not in ("point", "density", "combined"):
         raise InvalidOptionError(f"decision must be 'point', 'density' or 'combined' in a stream, got {decision!r}")
+    noise = (NoiseModel() if noise is None else noise).for_decision(decision)
     is_field = isinstance(reference, DensityField)
     origin = pts = None
     if is_field:
@@ -247,7 +253,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
             if own is not None and matrix is not None:
                 own = transform_points(matrix, own[None, :])[0]
             mask, regs, region_of = _complete(cur, pts, states, mask, labels, frame, own_origin=own,
-                                              other_origin=single_origin(origin), regions=regions)
+                                              other_origin=single_origin(origin), regions=regions, noise=noise)
             labels = region_of.astype(np.int32)
         t3 = time.perf_counter()
         if update == "decay":
@@ -268,7 +274,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
 
 
 def _complete(cur, ref, states, found, found_labels, frame: DensityField, *, own_origin, other_origin,
-              regions: bool):
+              regions: bool, noise: NoiseModel):
     """:func:`sdp.change._combined.combine_decision` of a frame's points (``cur``) against the
     reference points (``ref``), from the density's ``states``, the points it keeps (``found``) and
     their regions (``found_labels``)."""
@@ -280,7 +286,7 @@ def _complete(cur, ref, states, found, found_labels, frame: DensityField, *, own
     # the frame's cells change with every frame, so both are sorted again (the reference too)
     lists = pair_cells((ref, cur), frame.sigma, sort=True)
     sd = SurfaceDistances(cur.xyz, ref.xyz, sigma=frame.sigma, own_origin=own_origin, other_origin=other_origin,
-                          stable=states == UNCHANGED, lists=lists)
+                          stable=states == UNCHANGED, lists=lists, **noise.arguments())
     idx = np.flatnonzero(found)
     return combine_decision(sd, states, voxel_size=frame.voxel_size, directed=other_origin is not None,
                             present=frame.inside, found=idx, found_regions=found_labels[idx], regions=regions)
