@@ -397,6 +397,10 @@ def test_the_commands_take_the_noise_model(tmp_path, scene, capsys):
     import json
     level = json.loads(capsys.readouterr().out)["current"]["level"]
     assert level["given"] == {"registration_error": 0.5, "range_exponent": 0.0, "correlation_length": 0.08}
+    assert main(["change", str(a), str(b), "-o", str(tmp_path / "e.npz"), "--voxel-size", str(VOXEL),
+                 "--decision", "combined", "--range-exponent", "0"]) == 0
+    text = capsys.readouterr().out
+    assert "range exponent 0.00 (given)" in text and "at 95 % (measured)" in text
     assert main(["watch", str(a), str(frames), "--voxel-size", str(VOXEL), "--decision", "combined", *given]) == 0
     capsys.readouterr()
     for cmd in (["change", str(a), str(b), "-o", str(tmp_path / "d.npz")], ["watch", str(a), str(frames)]):

@@ -22,6 +22,8 @@ def change_text(s: dict, reference, current) -> str:
     lines.append(f"voxel {s['voxel_size']:.4g}, sigma {s['sigma']:.4g}, h {s['h']:.4f}, decision {s['decision']}"
                  + (f", {s['tiles']} tiles of {s['tile_size']:.4g}" if "tiles" in s else ""))
     lines.append(coverage_text(s))
+    lines += [level_text(kind, s[role]["level"])
+              for role, kind in (("current", "appeared"), ("reference", "disappeared")) if "level" in s[role]]
     for kind in ("appeared", "disappeared"):
         regs = s[f"{kind}_regions"]
         if regs:
@@ -34,6 +36,17 @@ def change_text(s: dict, reference, current) -> str:
     lines.append("\ntime (ms): " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in s["timings"].items()))
     lines += [f"wrote {o}" for o in s.get("outputs", [])]
     return "\n".join(lines)
+
+
+def level_text(kind: str, level: dict) -> str:
+    """One line: the combined decision's level of detection of one direction, what was given."""
+    given = level.get("given", {})
+
+    def how(name):
+        return "given" if name in given else "measured"
+    return (f"level ({kind}): systematic {1.96 * level['systematic']:.4g} at 95 % ({how('registration_error')}), "
+            f"range exponent {level['range_exponent']:.2f} ({how('range_exponent')})"
+            + (f", correlation length {given['correlation_length']:g}" if "correlation_length" in given else ""))
 
 
 def coverage_text(s: dict) -> str:
