@@ -241,7 +241,7 @@ class NoiseModel:
         the sensor is known (else 0).
     correlation_length : float, optional
         Errors correlated over this length (world units, e.g. a depth camera's matching window
-        at its range): a cylinder of diameter d then counts at most (d/ℓ)² independent points;
+        at its range): a cylinder of diameter d (4σ) then counts at most (d/2ℓ)² independent points;
         None: every point independent, what correlation adds shows in the measured systematic
         part.
 

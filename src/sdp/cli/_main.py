@@ -97,7 +97,7 @@ def _noise_options(p) -> None:
     p.add_argument("--correlation-length", metavar="L", type=V.cli_type(V.positive_finite),
                    default=DEFAULTS.correlation_length,
                    help="with --decision combined: errors correlated over L (world units): a cylinder counts at "
-                        "most (d/L)^2 independent points (default: independent)")
+                        "most (d/2L)^2 independent points, d = 4 sigma its diameter (default: independent)")
 
 
 def _registration(a) -> Registration | None:
