@@ -268,12 +268,17 @@ class NoiseModel:
         """The parts given rather than measured (name → value)."""
         return {k: v for k, v in self.arguments().items() if v != getattr(DEFAULTS, k)}
 
-    def for_decision(self, decision: str) -> NoiseModel:
-        """Itself; refused where ``decision`` has no level of detection to give it to."""
-        if self.given and decision != "combined":
+    @classmethod
+    def of(cls, value: NoiseModel | None, decision: str) -> NoiseModel:
+        """``value`` (None: every part measured) for ``decision``; a model that gives some part is
+        refused with a decision that has no level of detection to give it to."""
+        value = cls() if value is None else value
+        if not isinstance(value, NoiseModel):
+            raise InvalidOptionError(f"noise must be a NoiseModel or None, got {value!r}")
+        if value.given and decision != "combined":
             raise InvalidOptionError("the noise model (--registration-error, --range-exponent, --correlation-length) "
                                      "is the combined decision's level of detection: give --decision combined")
-        return self
+        return value
 
     def arguments(self) -> dict:
         """The keywords of :class:`sdp.distance._noise.SurfaceDistances`."""

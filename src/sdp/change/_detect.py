@@ -387,7 +387,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     decision = "point" if decision == "density" else decision
     lattice = Lattice() if lattice is None else lattice
     coverage = Coverage() if coverage is None else coverage
-    noise = (NoiseModel() if noise is None else noise).for_decision(decision)
+    noise = NoiseModel.of(noise, decision)
     memory_limit_bytes(memory_limit)
     integer_at_least("min_region_points", min_region_points, 0)
     if not 0 <= finite("cluster_fraction", cluster_fraction) < 1:

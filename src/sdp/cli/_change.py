@@ -264,7 +264,7 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     lattice = Lattice() if lattice is None else lattice
     coverage = Coverage() if coverage is None else coverage
     execution = Execution() if execution is None else execution
-    noise = (NoiseModel() if noise is None else noise).for_decision(decision)
+    noise = NoiseModel.of(noise, decision)
     align = Registration.of(align)
     if outputs.aligned and align is None:  # nothing moved: the option would be ignored
         raise SDPError("--aligned-output (outputs.aligned) writes the aligned coordinates: give --align too")

@@ -222,7 +222,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
 
     from ..io._bag import bag_frames, bag_topics, is_bag
 
-    noise = (NoiseModel() if noise is None else noise).for_decision(decision)
+    noise = NoiseModel.of(noise, decision)
     folder = Path(frames)
     bag = is_bag(folder)
     if bag and topic is None:

@@ -368,7 +368,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
     integer_at_least("min_region_points", min_region_points, 0)
     if decision not in ("point", "density", "combined"):
         raise InvalidOptionError(f"decision={decision!r} is not available in tiles: 'point' or 'combined'")
-    noise = (NoiseModel() if noise is None else noise).for_decision(decision)
+    noise = NoiseModel.of(noise, decision)
     combined = decision == "combined"
     if combined and isinstance(reference, FieldStore):
         raise InvalidOptionError("decision='combined' measures distances to the reference's points: a field store "

@@ -193,7 +193,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     integer_at_least("min_region_points", min_region_points, 0)
     if decision not in ("point", "density", "combined"):
         raise InvalidOptionError(f"decision must be 'point', 'density' or 'combined' in a stream, got {decision!r}")
-    noise = (NoiseModel() if noise is None else noise).for_decision(decision)
+    noise = NoiseModel.of(noise, decision)
     is_field = isinstance(reference, DensityField)
     origin = pts = None
     if is_field:
