@@ -108,20 +108,18 @@ def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: fl
         in_component[frontier] = True
         frontier = grow(sd.neighbours(frontier, visited))
     changed = (density | marked) & in_component[sd.cells]
+    if not regions:
+        return changed, [], np.where(changed, 0, -1)
     idx = np.flatnonzero(changed)
     # every cell of the components holds a change (a seed's cell holds a kept point, a cell
     # joins only holding a change): the components of the changed cells are theirs
     of_cell, n_components = sd.components(in_component)
-    component = of_cell[sd.cells[idx]]
     joined = joined_by_regions(of_cell[sd.cells[found]], found_regions, n_components)
     labels = np.full(n, -1, np.int64)
-    labels[idx] = joined[component]
-    if regions:
-        # a region's volume: its cells of 1.5σ (the density's nodes do not hold what the distance adds)
-        cells = np.bincount(joined[of_cell[in_component]], minlength=joined.max() + 1 if n_components else 0)
-        regs, region_of = describe_regions(sd.points, labels, cells * (sd.cell_size / voxel_size) ** 3, voxel_size)
-    else:
-        regs, region_of = [], np.where(changed, 0, -1)
+    labels[idx] = joined[of_cell[sd.cells[idx]]]
+    # a region's volume: its cells of 1.5σ (the density's nodes do not hold what the distance adds)
+    cells = np.bincount(joined[of_cell[in_component]], minlength=joined.max() + 1 if joined.size else 0)
+    regs, region_of = describe_regions(sd.points, labels, cells * (sd.cell_size / voxel_size) ** 3, voxel_size)
     return changed, regs, region_of
 
 
