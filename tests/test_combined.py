@@ -215,7 +215,7 @@ def _decide(cur, ref, states, found, present=None):
     sd = SurfaceDistances(cur, ref, sigma=2 * VOXEL, stable=states == UNCHANGED)
     present = (lambda p: np.ones(len(p), bool)) if present is None else present
     idx = np.flatnonzero(found)
-    changed = combine_decision(sd, states, voxel_size=VOXEL, directed=False, present=present, found=idx,
+    changed = combine_decision(sd, states, directed=False, present=present, found=idx,
                                found_regions=np.zeros(len(idx), np.int64))[0]
     return changed, sd
 
@@ -259,7 +259,7 @@ def test_a_density_region_in_cells_that_do_not_touch_is_kept_whole():
     states[len(floor):] = CHANGED
     found = np.arange(len(floor), len(cur))
     sd = SurfaceDistances(cur, ref, sigma=2 * VOXEL, stable=states == UNCHANGED)
-    changed, regions, labels = combine_decision(sd, states, voxel_size=VOXEL, directed=False,
+    changed, regions, labels = combine_decision(sd, states, directed=False,
                                                 present=lambda p: np.ones(len(p), bool), found=found,
                                                 found_regions=np.zeros(len(found), np.int64))
     assert changed[found].all() and len(regions) == 1 and regions[0].n_points == changed.sum()

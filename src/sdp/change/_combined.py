@@ -65,7 +65,7 @@ __all__ = ["combine_decision", "joined_by_regions", "DECISION_FACTOR"]
 DECISION_FACTOR = 3.2905 / 1.96
 
 
-def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: float, directed: bool,
+def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, directed: bool,
                      present, found: np.ndarray, found_regions: np.ndarray, regions: bool = True):
     """(changed mask, regions, region label per point) of one direction.
 
@@ -119,7 +119,7 @@ def combine_decision(sd: SurfaceDistances, states: np.ndarray, *, voxel_size: fl
     labels[idx] = joined[of_cell[sd.cells[idx]]]
     # a region's volume: its cells of 1.5σ (the density's nodes do not hold what the distance adds)
     cells = np.bincount(joined[of_cell[in_component]], minlength=joined.max() + 1 if joined.size else 0)
-    regs, region_of = describe_regions(sd.points, labels, cells * (sd.cell_size / voxel_size) ** 3, voxel_size)
+    regs, region_of = describe_regions(sd.points, labels, cells * sd.cell_size**3)
     return changed, regs, region_of
 
 

@@ -459,7 +459,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
                 return states, found, [], np.full(len(found), -1)
             idx = np.flatnonzero(found)
             changed, regs, region_of = combine_decision(
-                distances[1 - k].surface, states, voxel_size=fld.voxel_size, directed=distances[1 - k].directed,
+                distances[1 - k].surface, states, directed=distances[1 - k].directed,
                 present=fld.inside, found=idx, found_regions=found_regions[idx], regions=regions)
             return states, changed, regs, region_of
 
@@ -577,8 +577,8 @@ def region_rules(fld: DensityField, d: Volume, pts: np.ndarray, mask: np.ndarray
     if decision != "cluster":
         # the regions of the changed points alone (the others hold no label): the same sums in
         # the same order as over every point, at a tenth of the passes over the cloud
-        regs, changed_region = describe_regions(changed_pts, np.where(kept, changed_labels, -1), counts,
-                                                fld.voxel_size)
+        regs, changed_region = describe_regions(changed_pts, np.where(kept, changed_labels, -1),
+                                                counts * fld.voxel_size**3)
         mask = np.zeros(len(pts), bool)
         mask[changed[kept]] = True
         region_of = np.full(len(pts), -1, np.int64)
@@ -589,7 +589,7 @@ def region_rules(fld: DensityField, d: Volume, pts: np.ndarray, mask: np.ndarray
     mask = mask.copy()
     mask[changed[~kept]] = False
     mask, labels, counts = _cluster_decision(fld, pts, mask, labels, counts, cluster_fraction, blocked)
-    regs, region_of = describe_regions(pts, np.where(mask, labels, -1), counts, fld.voxel_size)
+    regs, region_of = describe_regions(pts, np.where(mask, labels, -1), counts * fld.voxel_size**3)
     return mask, regs, region_of
 
 

@@ -173,20 +173,21 @@ def label_volume(field: DensityField, volume: Volume, points: np.ndarray) -> tup
     return point_labels, node_counts
 
 
-def describe_regions(points: np.ndarray, point_labels: np.ndarray, node_counts: np.ndarray,
-                     voxel_size: float) -> tuple[list[Region], np.ndarray]:
-    """Summaries of the components holding labelled points, largest first.
+def describe_regions(points: np.ndarray, point_labels: np.ndarray,
+                     volumes: np.ndarray) -> tuple[list[Region], np.ndarray]:
+    """Summaries of the components holding labelled points, largest first; ``volumes``: each
+    component's (world units cubed: its nodes, or a combined region's cells).
 
     Returns the regions and each point's region label (-1 for unlabelled points); regions
     are renumbered 0 … n−1 by decreasing point count.
     """
-    counts, sums, mins, maxs = group_stats(points, point_labels, len(node_counts))
+    counts, sums, mins, maxs = group_stats(points, point_labels, len(volumes))
     used = np.flatnonzero(counts)
     order = used[np.argsort(-counts[used], kind="stable")]
-    rank = np.full(len(node_counts) + 1, -1, np.int64)  # the last slot maps label -1 to -1
+    rank = np.full(len(volumes) + 1, -1, np.int64)  # the last slot maps label -1 to -1
     rank[order] = np.arange(len(order))
     regions = [Region(label=i, n_points=int(counts[j]), centroid=sums[j] / counts[j], bbox_min=mins[j],
-                      bbox_max=maxs[j], volume=float(node_counts[j]) * voxel_size**3)
+                      bbox_max=maxs[j], volume=float(volumes[j]))
                for i, j in enumerate(order)]
     return regions, rank[point_labels]
 

@@ -250,7 +250,7 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
     if min_region_points > 1 and len(counts):
         big = (np.bincount(labels, minlength=len(counts)) >= min_region_points)[labels]
         rows, xyz, labels = rows[big], xyz[big], labels[big]
-    regs, region_of = describe_regions(xyz, labels, counts, voxel_size)
+    regs, region_of = describe_regions(xyz, labels, counts * voxel_size**3)
     return rows, region_of, regs
 
 
@@ -260,7 +260,7 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
 _COMBINED_HALO = 9.0
 
 
-def _combined_regions(density, marked, found, cells: tuple, cell: float, voxel_size: float, regions: bool):
+def _combined_regions(density, marked, found, cells: tuple, cell: float, regions: bool):
     """Rows, region labels and regions of one kind of change under the combined decision
     (:func:`sdp.change._combined.combine_decision`'s rule 4) from the tiles' pieces: ``density``
     (rows, points) the density changed (comparable), ``marked`` (rows, points) the distance
@@ -297,7 +297,7 @@ def _combined_regions(density, marked, found, cells: tuple, cell: float, voxel_s
         return rows, np.zeros(len(rows), np.int64), []
     of_cell = of_kept[component]
     cells_of = np.bincount(of_cell[of_cell >= 0], minlength=joined.max() + 1)  # a region's volume, as in memory
-    regs, region_of = describe_regions(xyz, labels, cells_of * (cell / voxel_size) ** 3, voxel_size)
+    regs, region_of = describe_regions(xyz, labels, cells_of * cell**3)
     return rows, region_of, regs
 
 
@@ -412,7 +412,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
             t = time.perf_counter()
             sigma = run.sigma_voxels * run.voxel_size
             out = {kind: _combined_regions([r[kind][:2] for r in results], [m[kind] for m in marks], out[kind][:2],
-                                           cells, _CELL * sigma, run.voxel_size, regions)
+                                           cells, _CELL * sigma, regions)
                    for kind in ("appeared", "disappeared")}
             run.timings["regions"] += time.perf_counter() - t
     n_ref = run.sources["reference"].n_rows if store is None else store.n_points

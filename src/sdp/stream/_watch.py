@@ -288,6 +288,6 @@ def _complete(cur, ref, states, found, found_labels, frame: DensityField, *, own
     sd = SurfaceDistances(cur.xyz, ref.xyz, sigma=frame.sigma, own_origin=own_origin, other_origin=other_origin,
                           stable=states == UNCHANGED, lists=lists, **noise.arguments())
     idx = np.flatnonzero(found)
-    return combine_decision(sd, states, voxel_size=frame.voxel_size, directed=other_origin is not None,
+    return combine_decision(sd, states, directed=other_origin is not None,
                             present=frame.inside, found=idx, found_regions=found_labels[idx], regions=regions)
 
