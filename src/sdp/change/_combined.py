@@ -33,7 +33,7 @@ The rule, per point of one direction:
    Every component holds part of one of the density's regions, so none is a stray, and
    components holding parts of one density region are one region: the density's volume joins
    points farther apart than two cells (a sparse scan's edge of a roof), which the cells'
-   components do not, and the combined decision keeps every point the density's keeps.
+   components do not, and the combined decision keeps every point the density's decision keeps.
 
 Because of rule 4 the distance matters only in components that hold what the density found:
 they are grown from its cells outwards, ring by ring, and the distance is measured at those
