@@ -266,6 +266,23 @@ def test_a_density_region_in_cells_that_do_not_touch_is_kept_whole():
     assert (labels[found] == 0).all() and changed.sum() < len(found) + 100
 
 
+@pytest.mark.slow
+def test_on_airborne_lidar_the_combined_decision_keeps_what_the_density_finds(shared_data):
+    """Toronto 2015 → 2023, the ground aligned: the density alone finds 61 appeared points in
+    regions whose points lie more than two cells of 1.5σ apart; the combined decision keeps every
+    point the density marks, in both directions (it had dropped them all as strays)."""
+    a, b = (sdp.read_points(shared_data / "als_toronto" / f"TTP_{y}.laz") for y in (2015, 2023))
+    ground = [c.xyz[c.fields["classification"] == 2] for c in (a, b)]
+    m = sdp.align(*ground, fix_horizontal=True).matrix
+    moved = b.xyz @ m[:3, :3].T + m[:3, 3]
+    density = sdp.detect_changes(a.xyz, moved)
+    combined = sdp.detect_changes(a.xyz, moved, decision="combined")
+    assert density.appeared.sum() > 50
+    for kind in ("appeared", "disappeared"):
+        assert not (getattr(density, kind) & ~getattr(combined, kind)).any()
+    assert combined.disappeared.sum() > density.disappeared.sum()
+
+
 @pytest.mark.parametrize("far", [False, True])  # True: a patch 100 km away, so the cells are in a hash table
 def test_growing_from_the_seeds_decides_as_measuring_everywhere_does(far):
     """The components grown cell ring by cell ring from what the density keeps are the rule's:
