@@ -175,7 +175,9 @@ def test_the_combined_decision_in_tiles_equals_memory(scene, monkeypatch, tile_s
     np.testing.assert_array_equal(tiled.disappeared, memory.disappeared)
     assert [r.n_points for r in tiled.appeared_regions] == [r.n_points for r in memory.appeared_regions]
     assert [r.volume for r in tiled.appeared_regions] == pytest.approx([r.volume for r in memory.appeared_regions])
-    assert tiled.summary()["decision"] == "combined"
+    assert tiled.summary()["decision"] == "combined" and tiled.current_distance is None
+    if tile_size > 1:  # one tile: memory's sample, memory's level, in the summary
+        assert tiled.summary()["current"]["level"] == memory.summary()["current"]["level"]
 
 
 def test_a_combined_regions_volume_is_the_space_it_fills_not_its_point_count(scene):
@@ -376,6 +378,7 @@ def test_a_given_noise_model_sets_the_level_in_memory_streams_and_tiles(scene):
     tiled = detect_changes_tiled(ref, cur, lattice=lattice, decision="combined", noise=huge,
                                  execution=sdp.Execution(scheduler="synchronous", tile_size=10.0))
     assert np.array_equal(stream.appeared, density.appeared) and np.array_equal(tiled.appeared, density.appeared)
+    assert tiled.summary()["reference"]["level"]["given"] == level["given"]
     measured = sdp.detect_changes(ref, cur, lattice=lattice, decision="combined")
     assert measured.appeared[box].sum() > density.appeared[box].sum() + 100 and "given" not in \
         measured.summary()["current"]["level"]

@@ -215,7 +215,7 @@ class ChangeResult:
         """The distance (``which`` 0) or lod (1) of the reference's (``cloud`` 0) or current's (1)
         rows, measured on first use; None without ``decision="combined"``."""
         d = self._distances[cloud]
-        return None if d is None else d.rows[which]
+        return None if d is None or d.rows is None else d.rows[which]
 
     @property
     def current_state(self) -> np.ndarray:
@@ -518,10 +518,16 @@ class _Distances:
         return self._rows
 
     def level(self) -> dict:
-        """The level's calibration: its systematic part σ_s (95 %: 1.96·σ_s) and range exponent p."""
-        p, r_med, scale, s = self.surface.level
-        given = {"given": self._noise.given} if self._noise.given else {}
-        return {"systematic": s, "range_exponent": p, "median_range": r_med, "random_scale": scale, **given}
+        """The level's calibration (:func:`level_summary`)."""
+        return level_summary(self.surface.level, self._noise)
+
+
+def level_summary(level: tuple, noise: NoiseModel) -> dict:
+    """The summary's ``level`` of one direction from its calibration (p, r̃, c, σ_s): the systematic
+    part σ_s (95 %: 1.96·σ_s), the range exponent p, and what of them ``noise`` gave."""
+    p, r_med, scale, s = level
+    given = {"given": noise.given} if noise.given else {}
+    return {"systematic": s, "range_exponent": p, "median_range": r_med, "random_scale": scale, **given}
 
 
 def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | None, other_field: DensityField,

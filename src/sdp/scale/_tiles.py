@@ -254,6 +254,20 @@ def _regions(parts, voxel_size: float, min_region_points: int, regions: bool):
     return rows, region_of, regs
 
 
+class _Level(NamedTuple):
+    """One direction's level of the combined decision in tiles, for the summary: the tiles keep no
+    per-point distance (``rows`` None)."""
+
+    calibration: tuple
+    noise: NoiseModel
+    rows: None = None
+
+    def level(self) -> dict:
+        from ..change._detect import level_summary
+
+        return level_summary(self.calibration, self.noise)
+
+
 #: The halo of the combined decision's tiles, in σ: the other epoch's normals reach 4σ from a
 #: cell's centroid (2σ_n, σ_n = 2σ), the centroid lies up to a cell (1.5σ) from the point, and the
 #: cells read around them add up to a cell on each side.
@@ -415,6 +429,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
                                            cells, _CELL * sigma, regions)
                    for kind in ("appeared", "disappeared")}
             run.timings["regions"] += time.perf_counter() - t
+    levels = (_Level(levels["disappeared"], noise), _Level(levels["appeared"], noise)) if combined else (None, None)
     n_ref = run.sources["reference"].n_rows if store is None else store.n_points
     points = {kind: PointChanges.of_rows(n, *out[kind][:2], unseen[kind])
               for kind, n in (("appeared", run.sources["current"].n_rows), ("disappeared", n_ref))}
@@ -425,7 +440,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
                         tiled=True,
                         n_dropped_reference=run.dropped.get("reference", 0), n_dropped_current=run.dropped["current"],
                         coverage={"appeared": "footprint", "disappeared": "footprint"}, n_tiles=len(run.tiles),
-                        tile_size=run.tiling.edge, timings=run.timings)
+                        tile_size=run.tiling.edge, timings=run.timings, _distances=levels)
 
 
 def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
