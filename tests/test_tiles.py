@@ -254,3 +254,21 @@ def test_face_nodes_are_grouped_whatever_their_range():
         nodes[10_000:] = nodes[rng.permutation(10_000)]
         key = np.sort(_node_key(nodes))
         assert np.count_nonzero(key[1:] == key[:-1]) == len(nodes) - len(np.unique(nodes, axis=0))
+
+
+def test_cells_beyond_their_keys_reach_are_refused_before_any_tile_with_advice_for_tiles():
+    """The combined decision and the distances place their cells from the clouds' corner, so that
+    every tile's are memory's; two patches 100 km apart at σ = 2 cm are more than 2**21 cells
+    apart: refused before a tile is read, saying what works in tiles (not "compare in tiles")."""
+    from sdp.scale._tiles import distances_tiled
+
+    rng = np.random.default_rng(0)
+    patch = np.c_[rng.random((2000, 2)), np.zeros(2000)]
+    ref = np.concatenate([patch, patch + [1e5, 0, 0]])
+    cur = ref + 0.001 * rng.standard_normal(ref.shape)
+    execution = sdp.Execution(scheduler="synchronous", tile_size=10.0)
+    with pytest.raises(sdp.InvalidOptionError, match="use decision='point'"):
+        detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.01), decision="combined", execution=execution)
+    with pytest.raises(sdp.InvalidOptionError, match="larger projection scale"):
+        distances_tiled(ref, cur, cylinder=sdp.Cylinder(projection_scale=0.05, normal_scale=0.1), execution=execution)
+    assert detect_changes_tiled(ref, cur, lattice=sdp.Lattice(voxel_size=0.01), execution=execution).n_tiles >= 2

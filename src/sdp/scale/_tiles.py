@@ -268,6 +268,18 @@ class _Level(NamedTuple):
         return level_summary(self.calibration, self.noise)
 
 
+def _check_cell_span(lo, hi, cell: float, what: str, advice: str) -> None:
+    """Refuse, before any tile is read, cells of ``cell`` placed from the clouds' corner ``lo``
+    (so that every tile's cells are memory's) that ``hi`` puts more than 2**21 cells away: the
+    cells' keys hold 21 bits per axis (:mod:`sdp._core._cells`)."""
+    from .._core._cells import BITS, MAX_INDEX
+
+    span = float(np.max(np.asarray(hi, np.float64) - np.asarray(lo, np.float64)))
+    if span / cell >= MAX_INDEX - 4:
+        raise InvalidOptionError(f"{what} places cells of {cell:g} from the clouds' corner, and the clouds span "
+                                 f"{span:g} units, more than 2**{BITS} such cells: {advice}")
+
+
 #: The halo of the combined decision's tiles, in σ: the other epoch's normals reach 4σ from a
 #: cell's centroid (2σ_n, σ_n = 2σ), the centroid lies up to a cell (1.5σ) from the point, and the
 #: cells read around them add up to a cell on each side.
@@ -403,6 +415,9 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
                   **tiles, **extra) as run:
         # the combined decision's cells of 1.5σ from the clouds' corner, as pair_cells places them in memory
         cells = (run.lo - 1e-9, run.hi) if combined else None
+        if combined:
+            _check_cell_span(*cells, 1.5 * run.sigma_voxels * run.voxel_size, "decision='combined' in tiles",
+                             "use decision='point' (tiles have no such limit), or a larger voxel")
         jobs = [(key, run.root, run.tiling, run.opts, store and str(store.path), regions or combined, cells,
                  noise.correlation_length) for key in run.tiles]
         steps = ("read", "build_reference", "build_current", "detect") + (("distance",) if combined else ())
@@ -482,8 +497,11 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
     with Session({"reference": reference, "current": current}, sigma_p / 2.0, sigma_voxels=2.0, k=DEFAULTS.k,
                   h=None, truncate=DEFAULTS.truncate, method=DEFAULTS.method, halo=halo,
                   **execution.tile_keywords()) as run:
+        corner = np.asarray(run.sources["reference"].lo) - 1e-9
+        _check_cell_span(corner, run.hi, min(1.5 * sigma_p, D / 4.0), "distances in tiles",
+                         "give a larger projection scale, or measure parts of the clouds apart")
         opts = dict(cylinder=Cylinder(projection_scale=d, normal_scale=D, max_distance=reach),
-                    registration_error=reg, orientation=orientation, corner=np.asarray(run.sources["reference"].lo) - 1e-9,
+                    registration_error=reg, orientation=orientation, corner=corner,
                     margin=margin,
                     memory_limit=run.opts["memory_limit"])
         results = run.tasks("distances", _distance_tile, [(key, run.root, run.tiling, opts) for key in run.tiles],
