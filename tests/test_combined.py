@@ -268,6 +268,16 @@ def test_a_density_region_in_cells_that_do_not_touch_is_kept_whole():
     assert (labels[found] == 0).all() and changed.sum() < len(found) + 100
 
 
+def test_components_holding_one_density_region_are_joined():
+    """Four components: 0 and 1 hold points of density region 0, 2 a point in no region (-1), 3
+    nothing: regions 0, 0, 1, 2, numbered in the components' order."""
+    from sdp.change._combined import joined_by_regions
+
+    joined = joined_by_regions(np.array([0, 1, 1, 2]), np.array([0, 0, 0, -1]), 4)
+    assert joined.tolist() == [0, 0, 1, 2]
+    assert joined_by_regions(np.zeros(0, np.int64), np.zeros(0, np.int64), 2).tolist() == [0, 1]
+
+
 @pytest.mark.slow
 def test_on_airborne_lidar_the_combined_decision_keeps_what_the_density_finds(shared_data):
     """Toronto 2015 → 2023, the ground aligned: the density alone finds 61 appeared points in

@@ -130,6 +130,7 @@ def joined_by_regions(components: np.ndarray, regions: np.ndarray, n: int) -> np
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    components, regions = components[regions >= 0], regions[regions >= 0]  # -1: in no region
     m = int(regions.max()) + 1 if regions.size else 0
     graph = coo_matrix((np.ones(len(components)), (components, n + regions)), shape=(n + m, n + m))
     label = connected_components(graph, directed=False)[1][:n]
