@@ -184,6 +184,7 @@ def test_sdp_watch_decision_combined(tmp_path, shared_data):
     assert 0 < density < combined == frame.n_appeared
 
 
+@pytest.mark.slow  # subprocesses, 4–6 s: the whole suite only
 def test_sdp_watch_sensor_origin_viewpoint(tmp_path, shared_data):
     import subprocess
     import sys

@@ -320,6 +320,7 @@ def test_an_append_running_elsewhere_is_neither_rolled_back_nor_joined(slope, tm
     assert _digest(out) == before and sorted(os.listdir(tmp_path)) == ["s.zarr"]
 
 
+@pytest.mark.slow  # subprocesses, 4–6 s: the whole suite only
 def test_append_killed_after_its_commit_is_complete(slope, tmp_path, monkeypatch):
     out = tmp_path / "s.zarr"
     sdp.series(slope.epochs[:3], output=out, cylinder=CYL, times=range(3))
