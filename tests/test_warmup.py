@@ -42,6 +42,14 @@ def test_first_run_note_until_the_command_ran(tmp_path, monkeypatch):
     assert warmup.first_run_note("distance") is not None
 
 
+def test_the_stamp_keys_every_module_with_kernels():
+    # a kernel module left out of the key would keep an old stamp after its kernels changed
+    root = Path(sdp.__file__).parent
+    with_kernels = {str(p.relative_to(root).with_suffix("")) for p in root.rglob("*.py")
+                    if "nb.njit" in p.read_text(encoding="utf-8")}
+    assert with_kernels == set(warmup.KERNEL_MODULES)
+
+
 def test_the_note_shows_on_a_terminal_when_numba_compiles(tmp_path, monkeypatch):
     import io
 
