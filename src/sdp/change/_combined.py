@@ -51,8 +51,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import numba as nb
 import numpy as np
 
+from .._core._disjoint import find, union
 from ._coverage import CHANGED, UNCHANGED
 from ._regions import describe_regions
 
@@ -127,11 +129,31 @@ def joined_by_regions(components: np.ndarray, regions: np.ndarray, n: int) -> np
     """The region (0, 1, … in the order of the components) of each of ``n`` components, from
     the component and the density's region of each point the density's decision keeps: the
     components holding points of one density region are one region (rule 4)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    regions = np.asarray(regions, np.int64)
+    out = np.empty(n, np.int64)
+    _joined(np.asarray(components, np.int64), regions, int(regions.max()) + 1 if regions.size else 0, out)
+    return out
 
-    components, regions = components[regions >= 0], regions[regions >= 0]  # -1: in no region
-    m = int(regions.max()) + 1 if regions.size else 0
-    graph = coo_matrix((np.ones(len(components)), (components, n + regions)), shape=(n + m, n + m))
-    label = connected_components(graph, directed=False)[1][:n]
-    return np.unique(label, return_inverse=True)[1].ravel()
+
+@nb.njit(cache=True, nogil=True)
+def _joined(components, regions, m, out):
+    """:func:`joined_by_regions`' kernel: each region's components in one set (-1: in no region),
+    the sets numbered by their first component."""
+    n = out.shape[0]
+    parent = np.arange(n)
+    first = np.full(m, -1, np.int64)  # a component of each region
+    for i in range(components.shape[0]):
+        g = regions[i]
+        if g >= 0:
+            if first[g] < 0:
+                first[g] = components[i]
+            else:
+                union(parent, first[g], components[i])
+    ids = np.full(n, -1, np.int64)
+    k = 0
+    for c in range(n):
+        r = find(parent, c)  # the set's first component: met before any other of its set
+        if ids[r] < 0:
+            ids[r] = k
+            k += 1
+        out[c] = ids[r]

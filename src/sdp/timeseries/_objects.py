@@ -48,6 +48,8 @@ import math
 import numba as nb
 import numpy as np
 
+from .._core._disjoint import find, union
+
 __all__ = ["neighbour_pairs", "min_object_points", "Tracker", "OBJECT_FIELDS"]
 
 OBJECT_FIELDS = ("object_start", "object_end", "object_start_time", "object_end_time", "object_points",
@@ -98,23 +100,6 @@ def _components(sign: np.ndarray, i: np.ndarray, j: np.ndarray, step: np.ndarray
     return out, _epoch_labels(np.ascontiguousarray(sign, np.int8), i, j, step, k, out)
 
 
-@nb.njit(cache=True, inline="always")
-def _find(parent, a):
-    while parent[a] != a:  # path halving
-        parent[a] = parent[parent[a]]
-        a = parent[a]
-    return a
-
-
-@nb.njit(cache=True, inline="always")
-def _union(parent, a, b):
-    ra, rb = _find(parent, a), _find(parent, b)
-    if ra < rb:
-        parent[rb] = ra
-    elif rb < ra:
-        parent[ra] = rb
-
-
 @nb.njit(cache=True)
 def _epoch_labels(sign, i, j, step, k, out):
     """:func:`_components`' kernel: ``out`` filled, the number of components returned."""
@@ -128,12 +113,12 @@ def _epoch_labels(sign, i, j, step, k, out):
             da, db = 0 <= sta <= k, 0 <= stb <= k
             if da != db or (da and abs(sta - stb) > 1):  # a step beside a creep, or steps apart
                 continue
-            _union(parent, a, b)
+            union(parent, a, b)
     ids = np.full(m, -1, np.int64)  # root → component
     n = 0
     for p in range(m):
         if sign[p] != 0:
-            r = _find(parent, p)
+            r = find(parent, p)
             if ids[r] < 0:
                 ids[r] = n
                 n += 1
