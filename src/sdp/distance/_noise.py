@@ -515,11 +515,14 @@ def _fit_exponent(dist: np.ndarray, r: np.ndarray) -> float:
     a, r = a[keep], r[keep]
     if a.size < 100:
         return 0.0
-    by_range = np.argsort(r, kind="stable")
-    r, a = r[by_range], a[by_range]
-    if r[int(0.9 * (r.size - 1))] < 1.2 * r[int(0.1 * (r.size - 1))]:
-        return 0.0
     q = r.size // 10  # ten bins of q points (the at most 9 farthest left out)
+    p10, p90 = int(0.1 * (r.size - 1)), int(0.9 * (r.size - 1))
+    # the bins need only their members, not their order: a partition at their edges (a third
+    # of a sort's time, which was most of the calibration's)
+    by_range = np.argpartition(r, np.unique([p10, p90, *range(q, min(10 * q, r.size - 1) + 1, q)]))
+    r, a = r[by_range], a[by_range]
+    if r[p90] < 1.2 * r[p10]:
+        return 0.0
     x = np.log(np.median(r[: 10 * q].reshape(10, q), axis=1))
     y = np.log(np.median(a[: 10 * q].reshape(10, q), axis=1))
     return float(np.clip(np.polyfit(x, y, 1)[0], 0.0, _MAX_EXPONENT))
