@@ -454,14 +454,16 @@ class _CellLists:
         entry = self.get(xyz, cell)
         return entry[5], entry[1]
 
-    def get(self, xyz: np.ndarray, cell: float):
+    def get(self, xyz: np.ndarray, cell: float, *, point_cells: bool = False):
         """(points sorted by cell, start of each occupied cell's run, cell table, its box of
         cells (the first cell's index, then the box's size) or zeros for a hash table, cell
         size, the sorting permutation).
 
         A cell's index is floor((p − lo) / cell) in both tables, so the cells do not depend on
         which table holds them; the dense box spans the points' own cells only (a tile of a
-        large cloud, whose cells start at the whole cloud's corner, gets a small box)."""
+        large cloud, whose cells start at the whole cloud's corner, gets a small box).
+        ``point_cells``: each point's run is wanted too (:meth:`point_cells`): the counting
+        sort writes it as it goes, in order, where a pass afterwards would scatter it."""
         key = (id(xyz), cell)
         if key not in self._cache:
             if np.max(self.extent) / cell >= MAX_INDEX - 4:
@@ -471,14 +473,26 @@ class _CellLists:
             size = last - first + 1
             if np.prod(size.astype(float)) <= _DENSE_CELLS:  # a counting sort over the box of cells
                 dims = np.r_[size, first]
-                linear = np.empty(len(xyz), np.int64)
+                linear = np.empty(len(xyz), np.int32)  # at most 2**25 cells
                 _box_cells(xyz, self.lo, cell, dims, linear)
-                order, starts, table, ordered = _counting_sort(xyz, linear, int(np.prod(size)))
+                runs = np.empty(len(xyz) if point_cells else 0, np.int64)
+                order, starts, table, ordered = _counting_sort(xyz, linear, int(np.prod(size)), runs)
+                if point_cells:
+                    self._cache[("cells", *key)] = runs
             else:
                 order, starts, table = hashed_sort(xyz, self.lo, cell)
                 dims = np.zeros(6, np.int64)
                 ordered = _gather(xyz, order)
             self._cache[key] = (ordered, starts, table, dims, cell, order)
+        return self._cache[key]
+
+    def point_cells(self, xyz: np.ndarray, cell: float) -> np.ndarray:
+        """Each point's cell: its run in :meth:`get`'s order (int64)."""
+        key = ("cells", id(xyz), cell)
+        if key not in self._cache:
+            _, starts, _, _, _, order = self.get(xyz, cell, point_cells=True)
+            if key not in self._cache:  # sorted before, or by hashing
+                self._cache[key] = _runs_of(order, starts)
         return self._cache[key]
 
     def normals(self, xyz, queries, sigma, cell=None):
@@ -579,10 +593,11 @@ def _box_cells(xyz, lo, cell, dims, linear):
 
 
 @nb.njit(cache=True, nogil=True)
-def _counting_sort(xyz, linear, total):
+def _counting_sort(xyz, linear, total, run_of):
     """Points sorted by cell in O(n + cells): (permutation, start of each occupied cell's run,
     dense table cell → run (-1: empty), the points in that order), ``linear``: each point's
-    cell in a box of ``total`` cells (:func:`_box_cells`)."""
+    cell in a box of ``total`` cells (:func:`_box_cells`); ``run_of``, unless empty: each
+    point's run."""
     n = xyz.shape[0]
     table = np.zeros(total, np.int32)
     for i in range(n):
@@ -603,14 +618,27 @@ def _counting_sort(xyz, linear, total):
     fill = starts[:runs].copy()
     order = np.empty(n, np.int64)
     ordered = np.empty_like(xyz)
+    keep = run_of.shape[0] == n
     for i in range(n):
         r = table[linear[i]]
+        if keep:
+            run_of[i] = r
         j = fill[r]
         order[j] = i
         for a in range(3):
             ordered[j, a] = xyz[i, a]
         fill[r] = j + 1
     return order, starts[: runs + 1].copy(), table, ordered
+
+
+@nb.njit(cache=True, nogil=True)
+def _runs_of(order, starts):
+    """Each point's run of a sort by cell (permutation ``order``, runs ``starts``)."""
+    out = np.empty(order.shape[0], np.int64)
+    for k in range(starts.shape[0] - 1):
+        for j in range(starts[k], starts[k + 1]):
+            out[order[j]] = k
+    return out
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)

@@ -176,7 +176,8 @@ def pair_cells(clouds, sigma: float, *, sort: bool = False) -> _CellLists:
     them once, for both directions (``sort``: now, both at once, rather than when first read)."""
     lists = _CellLists(np.minimum(clouds[0].lo, clouds[1].lo) - 1e-9, np.maximum(clouds[0].hi, clouds[1].hi))
     if sort:
-        map_concurrently(lambda c: lists.moments(c.xyz, _CELL * sigma), clouds, parallel_kernels=True)
+        map_concurrently(lambda c: (lists.point_cells(c.xyz, _CELL * sigma), lists.moments(c.xyz, _CELL * sigma)),
+                         clouds, parallel_kernels=True)
     return lists
 
 
@@ -230,11 +231,12 @@ class SurfaceDistances:
         # the cylinders' own cells of 1.5σ: this epoch's points grouped by counting, the centroids
         # read off the cells' moments
         if n:
+            self.cells = lists.point_cells(self.points, c)
             ordered, self._starts, self._table, self._dims, _, self._order = lists.get(self.points, c)
             m = len(self._starts) - 1
-            self._centroid, self.cells, self.cell_index = np.empty((m, 3)), np.empty(n, np.int64), np.empty((m, 3), np.int64)
-            _cells_of(ordered, self._order, self._starts, lists.moments(self.points, c)[0], lists.lo, c,
-                      self._centroid, self.cells, self.cell_index)
+            self._centroid, self.cell_index = np.empty((m, 3)), np.empty((m, 3), np.int64)
+            _cells_of(ordered, self._starts, lists.moments(self.points, c)[0], lists.lo, c, self._centroid,
+                      self.cell_index)
         else:
             self._starts, self._order = np.zeros(1, np.int64), np.zeros(0, np.int64)
             self._centroid, self.cells, self.cell_index = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 3), np.int64)
@@ -385,16 +387,13 @@ def fit_level(dist: np.ndarray, random: np.ndarray, r: np.ndarray, *, registrati
 
 
 @nb.njit(cache=True, nogil=True)
-def _cells_of(ordered, order, starts, moments, lo, c, centroid, cells, cell_index):
-    """From a counting sort into cells of ``c`` (points ``ordered``, permutation ``order``,
-    runs ``starts``) and the cells' ``moments``: each cell's centroid and integer index, each
-    point's cell."""
+def _cells_of(ordered, starts, moments, lo, c, centroid, cell_index):
+    """From a counting sort into cells of ``c`` (points ``ordered``, runs ``starts``) and the
+    cells' ``moments``: each cell's centroid and integer index."""
     for k in range(starts.shape[0] - 1):
         for a in range(3):
             centroid[k, a] = moments[k, 1 + a]
             cell_index[k, a] = int(math.floor((ordered[starts[k], a] - lo[a]) / c))
-        for j in range(starts[k], starts[k + 1]):
-            cells[order[j]] = k
 
 
 @nb.njit(cache=True, nogil=True)
