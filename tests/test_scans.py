@@ -183,6 +183,14 @@ def test_sdp_info_lists_the_scans_and_poses(two_epochs):
     assert info["sensors"] == [A.tolist(), B.tolist()]
 
 
+def test_sdp_change_between_multi_scan_e57_files_says_how_many_scanners(two_epochs, tmp_path):
+    # the text summary once formatted an origin per direction, and several scanners crashed it
+    p = run("change", two_epochs[0], two_epochs[1], "-o", tmp_path / "c.ply")
+    assert p.returncode == 0, p.stderr
+    assert "the reference's sensor rays (2 scanners)" in p.stdout and "Traceback" not in p.stderr
+    assert (tmp_path / "c.ply").exists()
+
+
 def test_spherical_scans_are_converted():
     from sdp.io._e57 import _scan_points  # pye57 writes Cartesian scans only
 

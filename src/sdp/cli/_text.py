@@ -56,8 +56,10 @@ def coverage_text(s: dict) -> str:
     def one(kind, other):
         how = s["coverage"][kind]
         if how == "sensor rays":
-            o = ", ".join(f"{v:.4g}" for v in origins[other])
-            return f"{kind}: the {other}'s sensor rays (origin {o})"
+            o = origins[other]
+            if isinstance(o[0], (list, tuple)):  # several scanners (a multi-scan E57)
+                return f"{kind}: the {other}'s sensor rays ({len(o)} scanners)"
+            return f"{kind}: the {other}'s sensor rays (origin {', '.join(f'{v:.4g}' for v in o)})"
         return f"{kind}: the {other}'s footprint (no sensor position known)" if how == "footprint" else f"{kind}: off"
     return "coverage: " + "; ".join((one("appeared", "reference"), one("disappeared", "current")))
 
