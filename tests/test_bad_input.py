@@ -165,6 +165,10 @@ def test_atomic_path_leaves_nothing_on_any_exception(tmp_path):
     ["change", "g.npy", "g2.npy", "-o", "existing_dir.ply"],
     ["change", "g.npy", "g2.npy", "-o", "o.ply", "--voxel-size", "0.001", "--memory-limit", "1MB"],  # tiles: LAS
     ["action", "train", ".", "-o", "nodir/model.npz"],
+    ["change", "g.npy", "g2.npy", "-o", "o.ply", "--png", "x.jpg"],  # a picture named as another format
+    ["distance", "g.npy", "g2.npy", "-o", "d.ply", "--report", "d.pdf"],
+    ["render", "lab.ply", "--html", "x.png"],
+    ["series", "g.npy", "g2.npy", "-o", "s.foo"],  # an archive is a .zarr folder
 ]))
 def test_cli_output_paths_are_checked_first(tmp_path, args):
     xyz = np.random.default_rng(3).random((3000, 3))

@@ -366,6 +366,8 @@ class Outputs:
     def __post_init__(self):
         if self.field_names not in ("sdp", "cloudcompare", "pdal"):
             raise InvalidOptionError(f"field_names must be one of sdp, cloudcompare, pdal, got {self.field_names!r}")
+        for name in ("png", "html", "report"):
+            V.picture_path(name, getattr(self, name))
 
     @property
     def pictures(self) -> bool:

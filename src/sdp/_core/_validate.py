@@ -43,7 +43,7 @@ from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 __all__ = ["positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
            "auto_or_exponent", "auto_or_nonnegative", "memory_size", "existing_folder", "check_threshold", "check_grid_options",
            "check_tile_options", "check_workdir", "cli_type", "sensor_origin_option", "class_numbers",
-           "check_alignment_options", "check_tiled_options", "direction", "as_sensor_origins"]
+           "check_alignment_options", "check_tiled_options", "direction", "as_sensor_origins", "picture_path"]
 
 
 def _number(name: str, value) -> float:
@@ -194,6 +194,21 @@ def check_tile_options(*, tile_size=None, tile_points=None, workers=None, workdi
     if scheduler is not None and not isinstance(scheduler, str):
         raise InvalidOptionError(f"scheduler must be an address such as tcp://host:8786, got {scheduler!r}")
     check_workdir("workdir", workdir)
+
+
+#: What each picture option writes, by the names its file may end with.
+PICTURE_SUFFIXES = {"png": (".png",), "html": (".html", ".htm"), "report": (".html", ".htm")}
+
+
+def picture_path(name: str, value) -> None:
+    """Refuse a picture ``value`` (``png``, ``html`` or ``report``, by ``name``) whose name says
+    another format: a PNG written into ``x.jpg`` or a page into ``x.pdf`` opens as neither."""
+    if value is None:
+        return
+    suffixes = PICTURE_SUFFIXES[name]
+    if Path(os.fspath(value)).suffix.lower() not in suffixes:
+        raise InvalidOptionError(f"{name} {os.fspath(value)!r}: writes {'a PNG' if name == 'png' else 'HTML'}; "
+                                 f"name it {' or '.join('…' + x for x in suffixes)}")
 
 
 def auto_or_nonnegative(name: str, value) -> float | str:

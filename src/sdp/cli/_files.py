@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._core import _validate as V
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
@@ -335,6 +336,8 @@ def render_file(path, *, png=None, html=None, field: str = "change", format: str
     returns the files written."""
     if not (png or html):
         raise SDPError("nothing to write: give --png OUT.png and/or --html OUT.html")
+    V.picture_path("png", png)
+    V.picture_path("html", html)
     check_outputs([png, html], [path])
     if is_field(path):
         from ..fields._density import DensityField

@@ -290,6 +290,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     check_outputs([out], inputs)
     if out.exists() and not A.is_series(out):
         raise SDPError(f"{out}: exists and is not a series archive; choose another output name")
+    if out.suffix.lower() != ".zarr" and not A.is_series(out):
+        raise InvalidOptionError(f"{out}: a series archive is a Zarr folder; name it ….zarr")
     registration = Registration.of(align)
     if registration_error is not None:
         auto_or_nonnegative("registration_error", registration_error)
