@@ -111,7 +111,8 @@ def test_scales_are_the_density_kernel(rng):
                                     lambda: dict(cylinder=sdp.Cylinder(normal_scale=-1)),
                                     lambda: dict(cylinder=sdp.Cylinder(max_distance="far")),
                                     dict(registration_error=-0.1), dict(orientation=[0, 0, 0]),
-                                    dict(core_points="both"), dict(core_points=np.zeros((0, 3)))])
+                                    dict(core_points="both"), dict(core_points=np.zeros((0, 3))),
+                                    dict(orientation=[1, 0, 0], sensor_origin=[0, 0, 5])])  # one would be ignored
 def test_bad_options_are_refused(rng, kwargs):
     a = plane(rng, 1_000, 0.002)
     with pytest.raises(sdp.SDPError):

@@ -97,9 +97,11 @@ def test_without_sensor_origin_nothing_changes(rng):
     s = office_scene(seed=3, width=160, height=120)
     r = sdp.detect_changes(s.reference, s.current, lattice=sdp.Lattice(voxel_size=0.02))
     explicit = sdp.detect_changes(s.reference, s.current, lattice=sdp.Lattice(voxel_size=0.02),
-                                  coverage=sdp.Coverage(sensor_origin=None, range_noise=0.5))
+                                  coverage=sdp.Coverage(sensor_origin=None))
     np.testing.assert_array_equal(r.appeared, explicit.appeared)
     np.testing.assert_array_equal(r.disappeared, explicit.disappeared)
+    with pytest.raises(sdp.SDPError, match="range_noise .* would be ignored"):  # no rays to widen
+        sdp.Coverage(sensor_origin=None, range_noise=0.5)
 
 
 def test_nan_rows_keep_their_place(rng):

@@ -141,6 +141,9 @@ class Coverage:
             origin.flags.writeable = False
         object.__setattr__(self, "sensor_origin", origin)
         V.nonnegative_finite("range_noise", self.range_noise)
+        if isinstance(origin, str) and origin == "none" and self.range_noise != DEFAULTS.range_noise:
+            raise InvalidOptionError("range_noise is the sensor rays' band; with sensor_origin none (the footprint "
+                                     "decides) it would be ignored")
 
     @property
     def given(self) -> bool:

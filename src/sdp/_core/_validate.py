@@ -43,7 +43,8 @@ from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 __all__ = ["positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
            "auto_or_exponent", "auto_or_nonnegative", "memory_size", "existing_folder", "check_threshold", "check_grid_options",
            "check_tile_options", "check_workdir", "cli_type", "sensor_origin_option", "class_numbers",
-           "check_alignment_options", "check_tiled_options", "direction", "as_sensor_origins", "picture_path"]
+           "check_alignment_options", "check_tiled_options", "direction", "as_sensor_origins", "picture_path",
+           "check_orientation"]
 
 
 def _number(name: str, value) -> float:
@@ -287,6 +288,17 @@ def direction(name: str, value) -> np.ndarray:
         raise InvalidOptionError(f"{name} must be three finite numbers X,Y,Z, not all zero; got {shown!r}")
     xyz = xyz / np.abs(xyz).max()
     return xyz / np.linalg.norm(xyz)
+
+
+def check_orientation(orientation, sensor_origin, *, names=("orientation", "sensor_origin")) -> None:
+    """Refuse an ``orientation`` that a sensor given (a position, or ``"viewpoint"``: the files'
+    own) would override: the normals face the sensor wherever one is known."""
+    if orientation is None or sensor_origin is None or (isinstance(sensor_origin, str)
+                                                          and sensor_origin in ("auto", "none")):
+        return
+    raise InvalidOptionError(f"{names[0]} points the normals where no sensor is known; with {names[1]} "
+                             f"{sensor_origin if isinstance(sensor_origin, str) else 'given'} it would be ignored: "
+                             "give one of them")
 
 
 def as_sensor_origins(sensor_origin) -> tuple[np.ndarray, np.ndarray]:

@@ -83,7 +83,7 @@ from .._core._kdtree import k_nearest
 from .._core._memory import check_memory
 from .._core._memory import memory_limit as grid_memory_limit
 from .._core._points import as_points
-from .._core._validate import auto_or_nonnegative, auto_or_positive, direction
+from .._core._validate import auto_or_nonnegative, auto_or_positive, check_orientation, direction
 from ..change._visibility import resolve_sensor_origins, scanner_of_points
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
@@ -296,6 +296,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     reg = auto_or_nonnegative("registration_error", registration_error)
     grid_memory_limit(memory_limit)  # readable and positive, before any work
     towards = np.array([0.0, 0.0, 1.0]) if orientation is None else direction("orientation", orientation)
+    check_orientation(orientation, sensor_origin)
     origins = resolve_sensor_origins(sensor_origin, reference, current)
     if core_points is None or (isinstance(core_points, str) and core_points == "reference"):
         core, sensor = ref.xyz, _sensor_per_point(origins[0], reference, ref.xyz)
