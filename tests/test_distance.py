@@ -223,6 +223,20 @@ def test_tiles_give_the_same_distances(rng):
 
 
 @pytest.mark.slow
+def test_tiles_measure_the_automatic_scales_as_memory_does(rng):
+    # a surface half rough: the roughness rule's median sits between the halves, where a sample's
+    # cells (the tiles took their scales from one) moved the normal scale (15 % on the Toronto pair)
+    n = 60_000  # the sample was every third point
+    a = np.c_[rng.uniform(0, [12, 3], (n, 2)), 0.003 * rng.standard_normal(n)]
+    a[a[:, 0] < 6, 2] += 0.03 * rng.standard_normal(int((a[:, 0] < 6).sum()))
+    b = a + [0, 0, 0.01]
+    memory = sdp.distances(a, b, sensor_origin=None)
+    tiled = sdp.distances_tiled(a, b, execution=sdp.Execution(scheduler="synchronous"))  # one slice: the cloud
+    assert (tiled.projection_scale, tiled.normal_scale) == (memory.projection_scale, memory.normal_scale)
+    assert np.array_equal(memory.distance, tiled.distance, equal_nan=True)
+
+
+@pytest.mark.slow
 def test_sdp_distance_in_tiles_streams_the_reference_with_its_distances(rng, tmp_path):
     n = 30_000
     a = np.c_[rng.uniform(0, [8, 3], (n, 2)), 0.003 * rng.standard_normal(n)]

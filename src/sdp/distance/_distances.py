@@ -310,11 +310,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     timings = {"validate": time.perf_counter() - t0}
 
     t = time.perf_counter()
-    if d_opt == "auto":
-        voxel, sigma_voxels = resolve_lattice([ref, cur], k=DEFAULTS.k)  # the density kernel's σ
-        sigma_p = sigma_voxels * voxel
-    else:
-        sigma_p = d_opt / 4.0
+    sigma_p = _projection_sigma(ref, cur, d_opt)
     max_half = search_reach(L_opt, 4.0 * sigma_p)
     # the reference's cells start at its corner, the current's whole cells lower where it reaches lower:
     # every epoch measured against one reference is cut into the same cells (sdp.series equals this)
@@ -338,9 +334,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     t = time.perf_counter()
     # queries in cell order: neighbouring queries then read the same cells while they are cached,
     # and the core points of a cell share one normal, taken at their centroid
-    order, starts = lists.order(core, _CELL * sigma_p)
-    core_sorted = lists.get(core, _CELL * sigma_p)[0]
-    centroids = np.ascontiguousarray(_cell_moments(core_sorted, starts)[:, 1:4])
+    order, starts, core_sorted, centroids = _core_cells(lists, core, sigma_p)
     per_cell = np.diff(starts)
     sigma_n = normal_sigma(lists, ref.xyz, centroids, sigma_p, D_opt)
     normal, _ = lists.normals(ref.xyz, centroids, sigma_n)
@@ -386,6 +380,37 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     d = with_level(d, reg)
     timings["total"] = time.perf_counter() - t0
     return d
+
+
+def auto_scales(reference, current, *, cylinder: Cylinder | None = None) -> tuple[float, float]:
+    """(projection scale, normal scale) as :func:`distances` chooses them at the reference's own
+    points (its default core points), ``"auto"`` parts measured, given ones kept: what the tiles
+    take from the first slice of each cloud, so that where that slice is the whole cloud they
+    equal the run in memory."""
+    ref, cur = as_points(reference, name="reference"), as_points(current, name="current")
+    cylinder = Cylinder() if cylinder is None else cylinder
+    d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
+    D_opt = auto_or_positive("normal_scale", cylinder.normal_scale)
+    sigma_p = _projection_sigma(ref, cur, d_opt)
+    lists = _CellLists(cell_corner(ref.lo), np.maximum(ref.hi, cur.hi))
+    centroids = _core_cells(lists, ref.xyz, sigma_p)[3]
+    return 4.0 * sigma_p, 4.0 * normal_sigma(lists, ref.xyz, centroids, sigma_p, D_opt)
+
+
+def _projection_sigma(ref, cur, projection_scale) -> float:
+    """σ_p: a quarter of ``projection_scale``, or for ``"auto"`` the density kernel's σ."""
+    if projection_scale != "auto":
+        return projection_scale / 4.0
+    voxel, sigma_voxels = resolve_lattice([ref, cur], k=DEFAULTS.k)
+    return sigma_voxels * voxel
+
+
+def _core_cells(lists: "_CellLists", core: np.ndarray, sigma_p: float):
+    """(permutation into cell order, each cell's first row, the core points in that order, each
+    cell's centroid) of the core points in the cylinders' cells."""
+    order, starts = lists.order(core, _CELL * sigma_p)
+    core_sorted = lists.get(core, _CELL * sigma_p)[0]
+    return order, starts, core_sorted, np.ascontiguousarray(_cell_moments(core_sorted, starts)[:, 1:4])
 
 
 def cells_below(corner: np.ndarray, lowest: np.ndarray, cell: float) -> np.ndarray:

@@ -467,7 +467,8 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
     a halo of the longest search (``max_distance`` + the cylinder and normal reach + two cells);
     the cells start at the reference's corner, as in memory, so with the same scales each distance equals
     :func:`sdp.distances`' (tested). ``"auto"`` scales come from the first slice of each cloud
-    (the tiles need them before the points); normals point along ``orientation`` (+z: the tiles
+    (the tiles need them before the points), measured as in memory (:func:`sdp.distance._distances.auto_scales`):
+    where that slice is the whole cloud, the same scales; normals point along ``orientation`` (+z: the tiles
     follow no sensor); an ``"auto"`` registration error is measured over the whole cloud once the
     tiles are in. Parameters as in :func:`sdp.distances` and :func:`detect_changes_tiled`.
 
@@ -476,7 +477,7 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
     Distances
         One row per reference row, in row order (rows that held NaN/Inf: NaN, not comparable).
     """
-    from ..distance._distances import Distances, distances, search_reach, tile_halo
+    from ..distance._distances import Distances, auto_scales, search_reach, tile_halo
     from ..distance._level import with_level
 
     cylinder = Cylinder() if cylinder is None else cylinder
@@ -486,11 +487,7 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
     t0 = time.perf_counter()
     d, D = cylinder.projection_scale, cylinder.normal_scale
     if d == "auto" or D == "auto":  # from the first slice of each cloud, as the tiled change detection
-        firsts = first_slices([reference, current])
-        sample = firsts[0].xyz[:: max(1, len(firsts[0].xyz) // 20_000)]
-        probe = distances(*firsts, core_points=sample, cylinder=cylinder, sensor_origin=None, orientation=orientation,
-                          memory_limit=execution.memory_limit)
-        d, D = probe.projection_scale, probe.normal_scale
+        d, D = auto_scales(*first_slices([reference, current]), cylinder=cylinder)
     sigma_p = d / 4.0
     reach = search_reach(cylinder.max_distance, d)
     halo, margin = tile_halo(d, D, reach)
