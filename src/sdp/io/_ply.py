@@ -29,7 +29,8 @@ def read_ply(path):
 
 def write_ply(tmp: Path, xyz: np.ndarray, fields: dict[str, np.ndarray]) -> None:
     """Write vertices x, y, z and a property per field, each in its numeric type (booleans as
-    ``u1``, other types as ``f8``), to ``tmp`` as binary PLY in the machine's byte order."""
+    ``u1``; 64-bit integers, which PLY lacks, as 32-bit where their values fit, else ``f8``;
+    other types as ``f8``), to ``tmp`` as binary PLY in the machine's byte order."""
     from plyfile import PlyData, PlyElement
 
     cols = [("x", xyz[:, 0]), ("y", xyz[:, 1]), ("z", xyz[:, 2])] + list(fields.items())
@@ -43,6 +44,10 @@ def _ply_type(v: np.ndarray) -> str:
     v = np.asarray(v)
     if v.dtype == bool:
         return "u1"
+    if v.dtype.kind in "ui" and v.dtype.itemsize == 8:
+        narrow = np.dtype(v.dtype.kind + "4")
+        info = np.iinfo(narrow)
+        return narrow.str.lstrip("<>=|") if not v.size or info.min <= v.min() and v.max() <= info.max else "f8"
     return v.dtype.str.lstrip("<>=|") if v.dtype.kind in "uif" else "f8"
 
 
