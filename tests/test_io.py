@@ -84,6 +84,29 @@ def test_las_output_keeps_input_dimensions(tmp_path, rng, monkeypatch):
     np.testing.assert_array_equal(lean.xyz, back.xyz)
 
 
+def test_other_inputs_keep_their_fields_and_las_says_only_what_they_hold(tmp_path, rng):
+    import laspy
+
+    xyz = rng.random((300, 3))
+    colour = {c: rng.integers(0, 256, 300).astype(np.uint8) for c in ("red", "green", "blue")}
+    fields = {**colour, "intensity": rng.random(300).astype(np.float32), "label": rng.integers(0, 9, 300)}
+    write_points(tmp_path / "in.ply", xyz, fields)
+    cloud = read_points(tmp_path / "in.ply")
+    write_points(tmp_path / "out.las", cloud.xyz, {"change": np.ones(300, np.uint8)}, like=cloud)
+    write_points(tmp_path / "out.ply", cloud.xyz, {"change": np.ones(300, np.uint8)}, like=cloud)
+    las = laspy.read(str(tmp_path / "out.las"))
+    assert las.header.point_format.id == 2  # LAS's own colour, spread over 16 bits
+    np.testing.assert_array_equal(las.red, colour["red"].astype(np.uint16) * 257)
+    np.testing.assert_array_equal(las.intensity, np.round(fields["intensity"] * 65535).astype(np.uint16))
+    np.testing.assert_array_equal(las.label, fields["label"])
+    back = read_points(tmp_path / "out.ply")
+    assert sorted(back.fields) == sorted([*fields, "change"])
+    np.testing.assert_array_equal(back.fields["green"], colour["green"])
+    write_points(tmp_path / "plain.las", xyz, {"change": np.ones(300, np.uint8)})
+    plain = laspy.read(str(tmp_path / "plain.las"))  # no colour given: none claimed (zeros read as black)
+    assert plain.header.point_format.id == 0 and "red" not in plain.point_format.dimension_names
+
+
 def test_mesh_writers(tmp_path, rng):
     f = sdp.DensityField.from_points(rng.normal(0, 0.1, (3000, 3)), voxel_size=0.02)
     mesh = f.mesh()

@@ -52,6 +52,32 @@ def read_las(path, *, fields: bool = True):
     return xyz, {d: np.asarray(las[d]) for d in las.point_format.dimension_names if d not in ("X", "Y", "Z")}, las
 
 
+def _standard_dimensions(fields: dict) -> dict:
+    """LAS's own ``intensity`` and ``red``, ``green``, ``blue`` (16 bits) from fields of those
+    names that hold them: integers within 16 bits (8-bit colour spread over 16, as the
+    specification asks), or values within [0, 1] (an E57's intensity). Others stay extra
+    dimensions (an ``intensity`` in other units is renamed ``input_intensity``)."""
+    def sixteen(v, colour):
+        v = np.asarray(v)
+        if v.dtype.kind in "ui" and v.size and v.min() >= 0 and v.max() <= 65535:
+            return v.astype(np.uint16) * (257 if colour and v.max() <= 255 else 1)
+        if v.dtype.kind == "f" and v.size and np.isfinite(v).all() and v.min() >= 0 and v.max() <= 1:
+            return np.round(v * 65535).astype(np.uint16)
+        return None
+
+    out = {}
+    if "intensity" in fields:
+        i = sixteen(fields["intensity"], False)
+        if i is None:
+            fields["input_intensity"] = fields.pop("intensity")
+        else:
+            out["intensity"] = i
+    rgb = [sixteen(fields[c], True) if c in fields else None for c in ("red", "green", "blue")]
+    if all(c is not None for c in rgb):
+        out.update(zip(("red", "green", "blue"), rgb))
+    return out
+
+
 def xyz_only():
     """laspy's decompression selection of x, y, z alone: LAZ point formats 6-10 store the other
     dimensions in layers of their own, which lazrs then skips (most of the decoding where a file
@@ -197,13 +223,19 @@ def write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
     dimension, scale and offset, other points get :func:`las_scale_offset`."""
     import laspy
 
+    fields = dict(fields)
     if like is not None and like.las is not None and len(like.las.points) == len(xyz) and like.n_dropped == 0:
         las = like.las
     else:
-        header = laspy.LasHeader(point_format=3, version="1.4")
+        standard = _standard_dimensions(fields)  # colour and intensity a non-LAS input carries
+        # colour only where there is some: a format without it, rather than zeros that read as black
+        header = laspy.LasHeader(point_format=2 if "red" in standard else 0, version="1.4")
         header.scales, header.offsets = las_scale_offset(xyz.min(axis=0), xyz.max(axis=0), tmp)
         las = laspy.LasData(header)
         las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        for name, v in standard.items():
+            las[name] = v
+            del fields[name]
     for name, v in fields.items():
         v = np.asarray(v)
         dtype = np.uint8 if v.dtype == bool else (v.dtype if v.dtype.kind in "uif" else np.float64)

@@ -194,11 +194,15 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
                  like: Cloud | None = None, inputs=()) -> Path:
     """Write points with per-point scalar fields as PLY, LAS/LAZ or NPZ (by extension).
 
-    LAS/LAZ output made from LAS/LAZ input (``like``) keeps every input dimension, scale and
-    offset, and adds ``fields`` as extra dimensions; other LAS output gets a 1 mm scale (coarser
-    only for clouds wider than ±2,147 km: :func:`~sdp.io._las.las_scale_offset`) and an offset at
-    the cloud's centre, so large coordinates stay exact. The file is written
-    under a temporary name and renamed; ``inputs`` are never overwritten.
+    ``like``: the cloud the points are (as many rows, in order): its dimensions are kept, and
+    ``fields`` added (they win on a name). LAS/LAZ output made from LAS/LAZ input keeps every
+    input dimension, scale and offset; from other input, its per-point fields (an E57's colour,
+    intensity, row and column; a PCD's label) become LAS colour and intensity where they are
+    those, else extra dimensions, and no colour is written where there was none. Other LAS
+    output gets a 1 mm scale (coarser only for clouds wider than ±2,147 km:
+    :func:`~sdp.io._las.las_scale_offset`) and an offset at the cloud's centre, so large
+    coordinates stay exact. The file is written under a temporary name and renamed; ``inputs``
+    are never overwritten.
 
     Examples
     --------
@@ -219,6 +223,10 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
     if ext not in (".ply", ".las", ".laz", ".npz"):
         raise CloudFileError(f"{path}: can't write {ext or 'files without extension'}; use .ply, .las, .laz or .npz")
     xyz, fields = _checked_points(path, xyz, fields)
+    if like is not None and like.las is None and like.fields:
+        kept = {k: v for k, v in like.fields.items() if len(v) == len(xyz) and k not in fields}
+        if kept:
+            fields = {**_checked_points(path, xyz, kept)[1], **fields}
     with atomic_path(path, inputs=inputs) as tmp:
         if ext == ".ply":
             write_ply(tmp, xyz, fields)
