@@ -397,7 +397,9 @@ def _compare_tiled(plan: ChangePlan, reference, current, out: Path, *, both, min
             change, region = r.rows(cloud, start, stop)
             return {"change": change, "region": region}
 
-        outputs.append(str(write_points_streamed(path, src, fields_of, inputs=(reference, current))))
+        # an earlier output's G, F, distance and lod would not match the change written now
+        outputs.append(str(write_points_streamed(path, src, fields_of, inputs=(reference, current),
+                                                 drop=("G", "F", "distance", "lod"))))
     summary = r.summary()
     summary["timings"]["write"] = time.perf_counter() - t
     summary["outputs"] = outputs

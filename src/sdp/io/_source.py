@@ -185,12 +185,14 @@ def _decoded(source: PointSource, iterator):
 
 
 def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_of, *, inputs=(),
-                          chunk_size: int = LAS_CHUNK) -> Path:
+                          chunk_size: int = LAS_CHUNK, drop=()) -> Path:
     """Write every row of ``source`` with extra per-point fields, chunk by chunk, as LAS/LAZ.
 
     ``fields_of(start, stop)`` returns the fields of rows ``start`` … ``stop − 1`` (a dict of
-    arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset; other input gets the
-    scale and offset of :func:`~sdp.io._las.las_scale_offset` (1 mm, offset at the centre).
+    arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset, but the extra
+    dimensions named in ``drop`` (an earlier run's outputs that this one does not write anew);
+    other input gets the scale and offset of :func:`~sdp.io._las.las_scale_offset` (1 mm, offset
+    at the centre) and no colour.
     Memory is bounded by ``chunk_size``; the file is written under a temporary name and renamed,
     and ``inputs`` are never overwritten. LAZ is decoded and encoded on all cores (lazrs'
     parallel backend).
@@ -206,9 +208,12 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
         if source.format == "las":
             reader = stack.enter_context(laspy.open(str(source.path), laz_backend=laspy.LazBackend.LazrsParallel))
             header = copy.deepcopy(reader.header)
+            stale = [name for name in header.point_format.extra_dimension_names if name in drop]
+            if stale:
+                header.remove_extra_dims(stale)
             chunks = ((len(c), c) for c in _decoded(source, reader.chunk_iterator(chunk_size)))
         else:
-            header = laspy.LasHeader(point_format=3, version="1.4")
+            header = laspy.LasHeader(point_format=0, version="1.4")
             header.scales, header.offsets = las_scale_offset(source.lo, source.hi, path)
             chunks = ((len(xyz), xyz) for _, xyz in source.chunks(chunk_size))
         tmp = stack.enter_context(atomic_path(path, inputs=inputs))
@@ -224,8 +229,10 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
                                                         laz_backend=laspy.LazBackend.LazrsParallel))
             out = laspy.ScaleAwarePointRecord.zeros(n, header=header)
             if source.format == "las":
+                kept = out.array.dtype.names
                 for name in chunk.array.dtype.names:
-                    out.array[name] = chunk.array[name]
+                    if name in kept:  # not a dimension dropped
+                        out.array[name] = chunk.array[name]
             else:  # LAS can't hold NaN rows: they are left out
                 ok = np.isfinite(chunk).all(axis=1)
                 out = out[ok] if not ok.all() else out
