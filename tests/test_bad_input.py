@@ -71,10 +71,15 @@ def test_truncated_laz_in_chunks_names_the_file(clouds):
 
 def test_directory_and_unknown_format(tmp_path):
     (tmp_path / "d.ply").mkdir()
-    with pytest.raises(CloudFileError, match="is a directory, not a point-cloud file"):
-        read_points(tmp_path / "d.ply")
-    with pytest.raises(CloudFileError, match="is a directory"):
+    (tmp_path / "d").mkdir()
+    for name in ("d.ply", "d"):  # a folder is a folder, whatever its name's extension
+        with pytest.raises(CloudFileError, match="is a folder, not a point-cloud file"):
+            read_points(tmp_path / name)
+    with pytest.raises(CloudFileError, match="is a folder"):
         PointSource.open(tmp_path / "d.ply")
+    (tmp_path / "f.sdpf").write_bytes(b"")
+    with pytest.raises(CloudFileError, match="a density field .* not a point cloud"):
+        read_points(tmp_path / "f.sdpf")
     np.save(tmp_path / "g.npy", np.zeros((3, 3)))
     with pytest.raises(CloudFileError, match="unknown format 'foo'"):
         read_points(tmp_path / "g.npy", format="foo")

@@ -128,6 +128,8 @@ def test_bad_clouds_and_memory_are_refused_before_work(rng):
         sdp.distances(a, a, memory_limit=10_000)
     with pytest.raises(sdp.SDPError):
         sdp.distances(a, a, memory_limit="lots")
+    with pytest.raises(sdp.InvalidPointsError, match="the core points reach 1e\\+09 units across"):
+        sdp.distances(a, a, core_points=[[0, 0, 0], [1e9, 1e9, 1e9]])  # the core points at fault, not the clouds
 
 
 def test_huge_offsets_keep_sub_millimetre_distances(rng):

@@ -317,6 +317,10 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     lo = cell_corner(np.minimum(ref.lo, core.min(axis=0)), corner)
     cur_lo = cells_below(lo, cur.lo, _CELL * sigma_p)
     hi = np.maximum(np.maximum(ref.hi, cur.hi), core.max(axis=0))
+    clouds = np.maximum(ref.hi, cur.hi) - np.minimum(ref.lo, cur.lo)
+    if np.max(hi - lo) / (_CELL * sigma_p) >= MAX_INDEX - 4 > np.max(clouds) / (_CELL * sigma_p):
+        raise InvalidPointsError(f"the core points reach {np.max(hi - lo):g} units across, the clouds "
+                                 f"{np.max(clouds):g}: give core points on or near the clouds")
     # per cloud point: a sorted copy, its permutation and cell (8 × 5 B) and its cell's moments
     # at two cell sizes (at most 2 × 80 B); per core point: its copy, normal and results (≈ 30 × 8 B);
     # the dense cell tables (4 B per cell of the box, for the cells of three clouds)

@@ -157,6 +157,11 @@ def input_format(path: Path, format: str | None) -> str:
     """The reader's format name for ``path`` (``format`` overrides the extension), once ``path``
     is known to be an existing file; else :class:`CloudFileError` saying what is wrong."""
     names = sorted(set(FORMATS.values()))
+    if path.is_dir():
+        raise CloudFileError(f"{path}: is a folder, not a point-cloud file")
+    if format is None and path.suffix.lower() == ".sdpf":
+        raise CloudFileError(f"{path}: a density field (sdp build), not a point cloud; sdp watch, bool, mesh and "
+                             "render read fields")
     if format is not None:  # a format name or an extension, in any case: "PLY", "laz", ".xyz"
         fmt = FORMATS.get("." + format.lower().lstrip("."), format.lower())
         if fmt not in names:
@@ -167,8 +172,6 @@ def input_format(path: Path, format: str | None) -> str:
             raise CloudFileError(f"{path}: unknown point-cloud format {path.suffix or '(no extension)'!r}; use one "
                                  f"of the extensions {', '.join(sorted(FORMATS))} or give the format "
                                  f"({', '.join(names)})")
-    if path.is_dir():
-        raise CloudFileError(f"{path}: is a directory, not a point-cloud file")
     if not path.exists():
         raise CloudFileError(f"{path}: no such file")
     if not path.is_file():
