@@ -122,9 +122,9 @@ def test_distance_report(tmp_path, rng):
 
 @pytest.mark.parametrize("kw, match", [
     ({"report": "nodir/r.html"}, "does not exist"),
-    ({"report": "ref.npy"}, "overwrite an input"),
-    ({"report": "out.ply"}, "two outputs"),
-    ({"report": "r.html", "png": "r.html"}, "two outputs"),
+    ({"report": "ref.npy"}, "writes HTML; name it"),  # a page named as a cloud (the input, here)
+    ({"report": "out.html", "html": "out.html"}, "two outputs"),
+    ({"report": "r.html", "png": "r.html"}, "writes a PNG"),
     ({"report": "r.html", "tiled": True}, "--png/--html/--report is not available with --tiled"),
     ({"report": "r.html", "memory_limit": "1MB", "output": "out.laz"}, "made in memory"),  # tiles by themselves
 ])

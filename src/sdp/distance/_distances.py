@@ -296,7 +296,6 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     reg = auto_or_nonnegative("registration_error", registration_error)
     grid_memory_limit(memory_limit)  # readable and positive, before any work
     towards = np.array([0.0, 0.0, 1.0]) if orientation is None else direction("orientation", orientation)
-    check_orientation(orientation, sensor_origin)
     origins = resolve_sensor_origins(sensor_origin, reference, current)
     if core_points is None or (isinstance(core_points, str) and core_points == "reference"):
         core, sensor = ref.xyz, _sensor_per_point(origins[0], reference, ref.xyz)
@@ -307,6 +306,8 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     else:
         core = as_points(core_points, name="core points").xyz
         sensor = _sensor_per_point(origins[0], reference, ref.xyz, core)
+    if sensor is not None and not (isinstance(sensor_origin, str) and sensor_origin == "auto"):
+        check_orientation(orientation, "given")  # the core points' sensor, given: it sets the normals
     timings = {"validate": time.perf_counter() - t0}
 
     t = time.perf_counter()
