@@ -1,5 +1,6 @@
-"""Disjoint sets (union–find) on an int64 ``parent`` array, shared by the joins of
-:mod:`sdp.change._combined` and the 4D objects of :mod:`sdp.timeseries._objects`.
+"""Disjoint sets (union–find) on an integer ``parent`` array, shared by the volumes' components
+(:mod:`sdp.fields._volume_kernels`), the joins of :mod:`sdp.change._combined` and the 4D objects
+of :mod:`sdp.timeseries._objects`.
 
 A set's root is its smallest member (:func:`union` hangs the larger root under the smaller), so
 numbering the roots while walking the members in order numbers the sets by their first member.

@@ -15,18 +15,11 @@ import numba as nb
 import numpy as np
 
 from .._core import _parallel  # noqa: F401  (how OpenMP's workers wait: set before a parallel kernel runs)
+from .._core._disjoint import find, union
 from ._lattice import BLOCK as B
 
 B2 = B * B
 B3 = B * B * B
-
-
-@nb.njit(cache=True, nogil=True)
-def _find(parent, i):
-    while parent[i] != i:
-        parent[i] = parent[parent[i]]
-        i = parent[i]
-    return i
 
 
 # ---------------------------------------------------------------------------- volumes (sdp.regions)
@@ -200,14 +193,6 @@ def _neighbour_block(directory, keys, blk, axis):
 
 
 @nb.njit(cache=True, nogil=True)
-def _union(parent, a, b):
-    ra = _find(parent, a)
-    rb = _find(parent, b)
-    if ra != rb:
-        parent[max(ra, rb)] = min(ra, rb)
-
-
-@nb.njit(cache=True, nogil=True)
 def label_nodes(masks, directory, keys):
     """6-connected components of the nodes set in ``masks`` ((m, 64) uint8, :func:`volume_masks`).
 
@@ -261,7 +246,7 @@ def label_nodes(masks, directory, keys):
                 continue
             t = below[2]
             if run_mask[r0] & 1 and t >= 0 and masks[active[t], j] & 128:
-                _union(parent, r0, first[t * B2 + j + 1] - 1)  # the last run of that line
+                union(parent, r0, first[t * B2 + j + 1] - 1)  # the last run of that line
             for axis in range(2):  # x, then y: the line before, in this block or the block below
                 stride = B if axis == 0 else 1
                 if (j // stride) % B > 0:
@@ -273,7 +258,7 @@ def label_nodes(masks, directory, keys):
                 for r in range(r0, r1):
                     for q in range(first[t * B2 + jj], first[t * B2 + jj + 1]):
                         if run_mask[r] & run_mask[q]:
-                            _union(parent, r, q)
+                            union(parent, r, q)
     labels = np.empty((n_active, B3), np.int32)  # each line written whole below, while it is in cache
     root_label = np.full(run_mask.shape[0], -1, np.int64)
     node_counts = np.zeros(run_mask.shape[0], np.int64)
@@ -284,7 +269,7 @@ def label_nodes(masks, directory, keys):
             for z in range(B):
                 row[j * B + z] = -1
             for r in range(first[s * B2 + j], first[s * B2 + j + 1]):
-                root = _find(parent, r)
+                root = find(parent, r)
                 if root_label[root] < 0:
                     root_label[root] = count
                     count += 1
