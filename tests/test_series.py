@@ -557,6 +557,25 @@ def test_command_series_append_info_and_exports(slope, tmp_path, capsys):
     assert rows[0].startswith("point,epoch,time") and len(rows) == 1 + 2 * 5
 
 
+def test_exports_out_of_range_are_refused_before_the_archive_is_touched(slope, tmp_path, capsys):
+    # they were checked once the archive was committed: a replaced archive was lost, an append kept
+    files = _write_epochs(slope, tmp_path, 3)
+    out = tmp_path / "s.zarr"
+    base = ["--projection-scale", "0.8", "--registration-error", "0.002", "--quiet"]
+    assert main(["series", *files[:2], "-o", str(out), "--times", "0,1", *base]) == 0
+    before = _digest(out)
+    for args in (["series", *files[:2], "-o", str(out), "--epoch-output", f"2:{tmp_path / 'e.npz'}"],  # replacing
+                 ["series", files[2], "--append", "-o", str(out), "--times", "2", "--epoch-output",
+                  f"3:{tmp_path / 'e.npz'}"],
+                 ["series", files[2], "--append", "-o", str(out), "--times", "2", "--points-output",
+                  str(tmp_path / "p.csv"), "--points", "0,99999"],
+                 ["series", *files[:2], "-o", str(tmp_path / "new.zarr"), "--points", "1"]):  # ignored: refused
+        assert main([*args, *base]) == 2
+        assert "error" in capsys.readouterr().err
+        assert _digest(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["e0.ply", "e1.ply", "e2.ply", "s.zarr"]
+
+
 def test_command_append_and_info_import_no_xarray(slope, tmp_path):
     """A job appending an epoch, or summarising an archive, reads and writes it with zarr alone:
     xarray and pandas are a third of a second of its start-up."""

@@ -196,6 +196,10 @@ def cmd_series(a):
                                        max_distance=a.max_distance)
     if isinstance(options["orientation"], str):
         raise SDPError(f"--orientation must be X,Y,Z, got {a.orientation!r}")
+    if a.points is not None and a.points_output is None:  # options that would be ignored
+        raise SDPError("--points chooses the core points of --points-output: give --points-output FILE.csv too")
+    if a.field_names != DEFAULTS.field_names and not (a.epoch_output or a.points_output):
+        raise SDPError("--field-names names the exports' fields: give --epoch-output or --points-output too")
     r = S.series_files(a.epochs, output=a.output, append=a.append, times=a.times, options=options,
                        execution=_execution(a, None if a.json else _say),
                        outputs=Outputs(report=a.report, field_names=a.field_names),

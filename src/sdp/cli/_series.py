@@ -123,8 +123,18 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
         from ..viz._report import require_extras
 
         require_extras()
+    chosen_points = _point_list(points[1]) if points is not None else None
+
+    def check(n_epochs, n_points):  # the exports' indices, before the archive is touched
+        for k_text, _ in epoch_files:
+            _epoch_index(str(k_text), n_epochs)
+        bad = [p for p in chosen_points or () if not 0 <= p < n_points]
+        if bad:
+            raise InvalidOptionError(f"--points {bad[0]}: the archive has core points 0..{n_points - 1}")
+
     t0 = time.perf_counter()
-    archive = write_series(epochs, output=output, append=append, times=times, execution=execution, **options)
+    archive = write_series(epochs, output=output, append=append, times=times, execution=execution, check=check,
+                           **options)
     summary = describe_series(archive)
     # the dataset only for exports (importing xarray and pandas is much of a job's start-up); without
     # Dask's arrays: the command reads the rows and columns it indexes, and importing them costs more
@@ -135,12 +145,12 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
             _write_epoch(ds, _epoch_index(str(k_text), summary["epochs"]), f, inputs, outputs.field_names)
             written.append(str(f))
         if points is not None:
-            _write_points(ds, points[0], _point_list(points[1]), inputs, outputs.field_names)
+            _write_points(ds, points[0], chosen_points, inputs, outputs.field_names)
             written.append(str(points[0]))
         if report:
             from ..viz._report import series_report
 
-            chosen = _point_list(points[1]) if points is not None and points[1] is not None else default_points(ds)
+            chosen = chosen_points if chosen_points is not None else default_points(ds)
             series_report(report, ds, summary=summary, points=chosen[:5])
             written.append(str(report))
     summary["outputs"] = written

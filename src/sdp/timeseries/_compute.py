@@ -275,8 +275,11 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
 def write_series(epochs, *, output, append: bool = False, times=None, core_points=None, reference: int | None = None,
                  cylinder: Cylinder | None = None, registration_error: float | str | None = None,
                  align: Registration | str | None = None, orientation=None, execution: Execution | None = None,
-                 format: str | None = None) -> Path:
-    """:func:`series` without opening the archive: its path (the command opens it without Dask)."""
+                 format: str | None = None, check=None) -> Path:
+    """:func:`series` without opening the archive: its path (the command opens it without Dask).
+    ``check(epochs, core_points)``: called with the archive's counts after the run as soon as
+    they are known, before any epoch is measured or anything written (what the command will
+    export from the archive: its refusal leaves an archive as it was)."""
     A.require_zarr()
     t_start = time.perf_counter()  # after zarr's import, start-up like Python's
     epochs = list(epochs)
@@ -328,6 +331,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                 stored = np.c_[g["x"][:], g["y"][:], g["z"][:]]
                 if core.shape != stored.shape or not np.array_equal(core, stored):
                     raise InvalidOptionError(f"--core-points differs from the archive's core points ({out})")
+            if check is not None:
+                check(len(old_times) + len(epochs), g["x"].shape[0])
             reg_opt = params["given"]["registration_error"]
             registration = Registration.of(params["given"]["align"])
             tiles = plan_series(epochs, reference=None, core_count=g["x"].shape[0], execution=execution,
@@ -379,6 +384,13 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             ref_xyz, core, cylinder=Cylinder(projection_scale=d_opt, normal_scale=cylinder.normal_scale,
                                              max_distance=cylinder.max_distance),
             orientation=orientation, memory_limit=limit)
+    if check is not None:
+        try:
+            check(len(epochs), len(prepared.core_points))
+        except BaseException:
+            if tiles is not None:
+                tiles.close()
+            raise
     arrays, scalars = prepared.state()
     used = {"projection_scale": prepared.projection_scale, "normal_scale": prepared.normal_scale,
             "max_distance": prepared.max_distance, "registration_error": reg_opt,
