@@ -111,6 +111,15 @@ def test_a_bag_without_the_topic_lists_its_topics(tmp_path):
         watch_folder(np.zeros((10, 3)), path)
 
 
+def test_a_topic_without_messages_is_refused_as_an_empty_folder_is(tmp_path):
+    path = write_ros2(tmp_path / "b2", [], topic="/points")  # declared, never written to
+    with pytest.raises(CloudFileError, match=r"'/points' holds 0 messages"):
+        bag_frames(path, "/points")
+    with pytest.raises(CloudFileError, match=r"holds 0 messages"):  # sdp watch once printed nothing, exit 0
+        np.save(tmp_path / "r.npy", np.random.default_rng(0).random((100, 3)))
+        next(iter(watch_folder(tmp_path / "r.npy", path, topic="/points")))
+
+
 def test_sdp_info_lists_a_bags_pointcloud2_topics(tmp_path):
     path = write_ros2(tmp_path / "b2", [(1, message(small_frames()[0], 4, 5))] * 2, topic="/lidar")
     from sdp.cli._files import describe_file

@@ -93,6 +93,8 @@ def bag_frames(path, topic: str) -> Iterator[tuple[str, Cloud]]:
             clouds = sorted({c.topic for c in reader.connections if c.msgtype == POINTCLOUD2})
             what = "not a PointCloud2 topic" if conns else "no topic"
             raise CloudFileError(f"{path}: {what} {topic!r}; its PointCloud2 topics: {', '.join(clouds) or 'none'}")
+        if sum(c.msgcount for c in conns) == 0:  # a stream of no frame: an error, as an empty folder is
+            raise CloudFileError(f"{path}: {topic!r} holds 0 messages")
     except BaseException:
         reader.close()
         raise
