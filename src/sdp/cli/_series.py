@@ -117,7 +117,7 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
         import importlib.util
 
         if importlib.util.find_spec("pyarrow") is None:
-            raise SDPError(f"{points[0]}: Parquet needs pyarrow (pip install pyarrow); or write .csv")
+            raise SDPError(f"{points[0]}: Parquet needs pyarrow (pip install 'sdp[parquet]'); or write .csv")
     check_outputs([output, report, *(f for _, f in epoch_files), points[0] if points else None], inputs)
     if report:
         from ..viz._report import require_extras
