@@ -4,6 +4,7 @@ import ast
 import inspect
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import sdp
@@ -125,6 +126,12 @@ def test_options_are_shared_and_checked_once():
         sdp.NoiseModel(range_exponent=3)
     with pytest.raises(AttributeError):  # frozen
         lattice.voxel_size = 1
+    pts = np.random.default_rng(0).random((200, 3))
+    for call in (lambda: sdp.detect_changes(pts, pts, lattice={"voxel_size": 0.1}),  # a dict: one line, not an
+                 lambda: sdp.distances(pts, pts, cylinder={"projection_scale": 0.2}),  # AttributeError inside
+                 lambda: next(sdp.watch(pts, [pts], coverage={"sensor_origin": None}))):
+        with pytest.raises(sdp.InvalidOptionError, match=r"must be an sdp\.(Lattice|Cylinder|Coverage)"):
+            call()
     for func in (sdp.detect_changes, sdp.detect_changes_tiled, sdp.watch, sdp.compare_files, sdp.plan_change,
                  sdp.build_field_tiled):
         assert inspect.signature(func).parameters["lattice"].annotation in ("Lattice | None",)

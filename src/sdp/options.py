@@ -40,7 +40,7 @@ from ._core import _validate as V
 from .defaults import DEFAULTS
 from .errors import InvalidOptionError
 
-__all__ = ["Lattice", "Coverage", "Registration", "Cylinder", "NoiseModel", "Execution", "Outputs"]
+__all__ = ["Lattice", "Coverage", "Registration", "Cylinder", "NoiseModel", "Execution", "Outputs", "as_options"]
 
 PathLike = str | os.PathLike
 
@@ -376,3 +376,15 @@ class Outputs:
     def pictures(self) -> bool:
         """Whether a picture or a report is asked for (made in memory)."""
         return bool(self.png or self.html or self.report)
+
+
+def as_options(cls, value, name: str):
+    """``value`` as the options object ``cls`` takes (None: its defaults); anything else (a dict,
+    say) refused in one line naming the class to build, rather than failing at its first attribute."""
+    if value is None:
+        return cls()
+    if isinstance(value, cls):
+        return value
+    raise InvalidOptionError(f"{name} must be an sdp.{cls.__name__} (sdp.{cls.__name__}(...)), "
+                             f"got {type(value).__name__}")
+

@@ -58,7 +58,7 @@ from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError
 from ..fields._density import DensityField, build_fields
 from ..fields._spacing import resolve_lattice
-from ..options import Coverage, Lattice, NoiseModel
+from ..options import Coverage, Lattice, NoiseModel, as_options
 from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
@@ -385,8 +385,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     if decision not in DECISIONS:
         raise InvalidOptionError(f"decision must be one of {', '.join(DECISIONS)}, got {decision!r}")
     decision = "point" if decision == "density" else decision
-    lattice = Lattice() if lattice is None else lattice
-    coverage = Coverage() if coverage is None else coverage
+    lattice = as_options(Lattice, lattice, "lattice")
+    coverage = as_options(Coverage, coverage, "coverage")
     noise = NoiseModel.of(noise, decision)
     memory_limit_bytes(memory_limit)
     integer_at_least("min_region_points", min_region_points, 0)

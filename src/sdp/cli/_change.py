@@ -27,7 +27,7 @@ from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
-from ..options import Coverage, Execution, Lattice, NoiseModel, Outputs, Registration
+from ..options import Coverage, Execution, Lattice, NoiseModel, Outputs, Registration, as_options
 from . import _text as report
 from ..io._bag import is_bag
 from ._common import (align_clouds, check_picture_extras, disappeared_path, is_store, pictures, read_input,
@@ -136,10 +136,10 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
     from ..scale._budget import dense_grid_bytes, untiled_point_bytes
     from ..scale._session import sampled_lattice
 
-    outputs = Outputs() if outputs is None else outputs
-    lattice = Lattice() if lattice is None else lattice
-    coverage = Coverage() if coverage is None else coverage
-    execution = Execution() if execution is None else execution
+    outputs = as_options(Outputs, outputs, "outputs")
+    lattice = as_options(Lattice, lattice, "lattice")
+    coverage = as_options(Coverage, coverage, "coverage")
+    execution = as_options(Execution, execution, "execution")
     both, tiled, align = outputs.both, execution.tiled, Registration.of(align)
     if is_store(reference):  # a stored reference field: its lattice, σ, h and tiles
         from ..scale._store import FieldStore
@@ -260,10 +260,10 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     ...                       outputs=sdp.Outputs(both=True))  # doctest: +SKIP
     >>> print(r.summary_text()); r.tiled, r.summary["current"]["appeared"]  # doctest: +SKIP
     """
-    outputs = Outputs() if outputs is None else outputs
-    lattice = Lattice() if lattice is None else lattice
-    coverage = Coverage() if coverage is None else coverage
-    execution = Execution() if execution is None else execution
+    outputs = as_options(Outputs, outputs, "outputs")
+    lattice = as_options(Lattice, lattice, "lattice")
+    coverage = as_options(Coverage, coverage, "coverage")
+    execution = as_options(Execution, execution, "execution")
     noise = NoiseModel.of(noise, decision)
     align = Registration.of(align)
     if outputs.aligned and align is None:  # nothing moved: the option would be ignored

@@ -19,7 +19,7 @@ from ..distance._names import rename_fields
 from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
 from ..io._read import read_points
-from ..options import Cylinder, Execution, Outputs, Registration
+from ..options import Cylinder, Execution, Outputs, Registration, as_options
 from . import _text as report
 from ._common import align_clouds, check_picture_extras, sensor_origins
 
@@ -101,9 +101,9 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
     from ..distance._distances import distances
     from ..io._output import write_points
 
-    outputs = Outputs() if outputs is None else outputs
-    cylinder = Cylinder() if cylinder is None else cylinder
-    execution = Execution() if execution is None else execution
+    outputs = as_options(Outputs, outputs, "outputs")
+    cylinder = as_options(Cylinder, cylinder, "cylinder")
+    execution = as_options(Execution, execution, "execution")
     align = Registration.of(align)
     png, report, memory_limit = outputs.png, outputs.report, execution.memory_limit
     out = Path(output)

@@ -15,7 +15,7 @@ from ..errors import SDPError
 from ..io._output import all_or_none, check_outputs
 from ..io._cloud import input_format
 from ..io._read import read_points
-from ..options import Coverage, Execution, Lattice, NoiseModel, Registration
+from ..options import Coverage, Execution, Lattice, NoiseModel, Registration, as_options
 from . import _text as report
 from ._common import align_clouds, is_field, is_store, pictures, sensor_origins
 
@@ -66,8 +66,8 @@ def build_field_file(cloud, *, output, format: str | None = None, lattice: Latti
     (:func:`sdp.build_field_tiled` with ``execution``, the file read in slices,
     ``voxel_size="auto"`` from its first slice). Returns the field or store.
     """
-    lattice = Lattice() if lattice is None else lattice
-    execution = Execution() if execution is None else execution
+    lattice = as_options(Lattice, lattice, "lattice")
+    execution = as_options(Execution, execution, "execution")
     check_outputs([output], [cloud])
     if not is_store(output):
         fld = _field(cloud, format, lattice, execution.memory_limit)
@@ -98,7 +98,7 @@ def mesh_file(path, *, output, level: float = 0.0, format: str | None = None, la
     from .._core._memory import memory_limit as limit
     from ..io._output import write_mesh
 
-    lattice = Lattice() if lattice is None else lattice
+    lattice = as_options(Lattice, lattice, "lattice")
     check_outputs([output], [path])
     limit(memory_limit)
     if is_store(path):
@@ -126,7 +126,7 @@ def combine_files(operation: str, a, b, *, output, format: str | None = None, la
 
     if operation not in ("union", "intersection", "difference"):
         raise SDPError(f"operation must be union, intersection or difference, got {operation!r}")
-    lattice = Lattice() if lattice is None else lattice
+    lattice = as_options(Lattice, lattice, "lattice")
     check_outputs([output], [a, b])
     limit(memory_limit)
     if is_store(output):
@@ -238,7 +238,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
                                   key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
     if not bag and not paths:
         raise SDPError(f"{folder}: no point-cloud files ({', '.join(sorted(FORMATS))})")
-    coverage = Coverage() if coverage is None else coverage
+    coverage = as_options(Coverage, coverage, "coverage")
     choice = coverage.sensor_origin
     if is_field(reference):
         from ..fields._density import DensityField

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import InvalidOptionError, SDPError
 from ..io._output import all_or_none, atomic_path, check_outputs
-from ..options import Execution, Outputs
+from ..options import Execution, Outputs, as_options
 from ._text import series_text
 
 __all__ = ["SeriesRun", "series_files", "describe_series", "point_table"]
@@ -95,7 +95,7 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     from ..timeseries._archive import open_series
     from ..timeseries._compute import write_series
 
-    outputs = Outputs() if outputs is None else outputs
+    outputs = as_options(Outputs, outputs, "outputs")
     exports = {} if exports is None else exports
     options = dict(options or {})
     unknown = set(options) - {"core_points", "reference", "cylinder", "registration_error", "align", "orientation",

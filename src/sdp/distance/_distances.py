@@ -88,7 +88,7 @@ from ..change._visibility import resolve_sensor_origins, scanner_of_points
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
-from ..options import Cylinder
+from ..options import Cylinder, as_options
 from ._level import with_level
 from ._seen import without_unseen
 
@@ -289,7 +289,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
         if len(pts.xyz) < 3:
             raise InvalidPointsError(f"the {name} has {len(pts.xyz)} point(s): a surface normal and a spread need "
                                      "at least 3")
-    cylinder = Cylinder() if cylinder is None else cylinder
+    cylinder = as_options(Cylinder, cylinder, "cylinder")
     d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
     D_opt = auto_or_positive("normal_scale", cylinder.normal_scale)
     L_opt = auto_or_positive("max_distance", cylinder.max_distance)
@@ -393,7 +393,7 @@ def auto_scales(reference, current, *, cylinder: Cylinder | None = None) -> tupl
     take from the first slice of each cloud, so that where that slice is the whole cloud they
     equal the run in memory."""
     ref, cur = as_points(reference, name="reference"), as_points(current, name="current")
-    cylinder = Cylinder() if cylinder is None else cylinder
+    cylinder = as_options(Cylinder, cylinder, "cylinder")
     d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
     D_opt = auto_or_positive("normal_scale", cylinder.normal_scale)
     sigma_p = _projection_sigma(ref, cur, d_opt)

@@ -32,7 +32,7 @@ from .._core._validate import auto_or_nonnegative, auto_or_positive
 from ..change._visibility import resolve_sensor_origins
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
-from ..options import Cylinder
+from ..options import Cylinder, as_options
 from ._distances import (
     _CELL,
     _RADIUS,
@@ -106,7 +106,7 @@ class PreparedReference:
         if len(ref.xyz) < 3:
             raise InvalidPointsError(f"the reference has {len(ref.xyz)} point(s): a surface normal and a spread "
                                      "need at least 3")
-        cylinder = Cylinder() if cylinder is None else cylinder
+        cylinder = as_options(Cylinder, cylinder, "cylinder")
         d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
         D_opt = auto_or_positive("normal_scale", cylinder.normal_scale)
         L_opt = auto_or_positive("max_distance", cylinder.max_distance)

@@ -83,7 +83,7 @@ from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError
 from ..fields._density import DensityField, threshold
 from ..fields._lattice import BLOCK
-from ..options import Cylinder, Execution, Lattice, NoiseModel
+from ..options import Cylinder, Execution, Lattice, NoiseModel, as_options
 from ._budget import BYTES_PER_TILE_POINT
 from ._session import Session, Tiling, first_slices, load_bucket
 from ._store import FieldStore, require_zarr
@@ -480,8 +480,8 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
     from ..distance._distances import Distances, auto_scales, search_reach, tile_halo
     from ..distance._level import with_level
 
-    cylinder = Cylinder() if cylinder is None else cylinder
-    execution = Execution() if execution is None else execution
+    cylinder = as_options(Cylinder, cylinder, "cylinder")
+    execution = as_options(Execution, execution, "execution")
     reg_opt = auto_or_nonnegative("registration_error", registration_error)
     reg = 0.0 if reg_opt == "auto" else reg_opt
     t0 = time.perf_counter()
@@ -571,7 +571,7 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, lattice: Lattice | None
 def _tiled_options(lattice: Lattice | None, execution: Execution | None) -> tuple[Lattice, Execution]:
     """The options of a tiled function, with their defaults; a ``grid_size`` refused (the tiles need
     the voxel before they read the points)."""
-    lattice = Lattice() if lattice is None else lattice
+    lattice = as_options(Lattice, lattice, "lattice")
     if lattice.grid_size is not None:
         raise InvalidOptionError("grid_size is not available in tiles: give a voxel size or 'auto'")
     return lattice, Execution() if execution is None else execution

@@ -53,7 +53,7 @@ from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError
 from ..fields._density import DensityField
 from ..fields._spacing import resolve_lattice
-from ..options import Coverage, Lattice, NoiseModel, Registration
+from ..options import Coverage, Lattice, NoiseModel, Registration, as_options
 from ..registration._align import GicpTarget
 from ..registration._align import align as align_density
 from ..registration._align import transform_points
@@ -173,8 +173,8 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     ------
     FrameChange
     """
-    lattice = Lattice() if lattice is None else lattice
-    coverage = Coverage() if coverage is None else coverage
+    lattice = as_options(Lattice, lattice, "lattice")
+    coverage = as_options(Coverage, coverage, "coverage")
     registration = Registration.of(align)
     if update not in ("none", "window", "decay"):
         raise InvalidOptionError(f"update must be 'none', 'window' or 'decay', got {update!r}")

@@ -51,7 +51,7 @@ from ..io._cloud import Cloud
 from ..io._output import check_outputs
 from ..io._read import read_points
 from ..io._time import file_time
-from ..options import Cylinder, Execution, Registration
+from ..options import Cylinder, Execution, Registration, as_options
 from ..scale._series import CORE_BYTES, POINT_BYTES, count_points, plan_series
 from . import _archive as A
 from ._kalman import BYTES_PER_VALUE, FilterState, kalman, observation_variance, process_noise
@@ -285,7 +285,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     epochs = list(epochs)
     if not epochs:
         raise InvalidOptionError("no epochs given")
-    execution = Execution() if execution is None else execution
+    execution = as_options(Execution, execution, "execution")
     limit = resolve_memory_limit(execution.memory_limit)
     out = Path(output)
     files = [e for e in epochs if isinstance(e, (str, os.PathLike))]
@@ -345,7 +345,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     reference = integer_at_least("reference", reference, 0)
     if reference >= len(epochs):
         raise InvalidOptionError(f"reference {reference} is not an epoch (there are {len(epochs)})")
-    cylinder = Cylinder() if cylinder is None else cylinder
+    cylinder = as_options(Cylinder, cylinder, "cylinder")
     t, kind, source = _resolve_times(epochs, times)
     if len(np.unique(t)) != len(t):
         raise InvalidOptionError(f"two epochs have the time {_show_time(t[np.argmax(np.diff(np.sort(t)) == 0)], kind)}"
