@@ -93,8 +93,9 @@ def test_train_predict_save_load(tmp_path, rng):
     np.testing.assert_array_equal(again.predict(x), y)
     assert again.coef.dtype == np.float32  # half the size of float64, and faster to load
     (tmp_path / "bad.npz").write_bytes(b"not a model")
-    with pytest.raises(SDPError, match="not an sdp action model"):
+    with pytest.raises(SDPError, match="not an sdp action model") as err:
         ActionModel.load(tmp_path / "bad.npz")
+    assert "pickle" not in str(err.value)  # NumPy's advice to load pickled data is not passed on
 
 
 @pytest.mark.slow

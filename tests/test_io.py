@@ -105,6 +105,8 @@ def test_other_inputs_keep_their_fields_and_las_says_only_what_they_hold(tmp_pat
     write_points(tmp_path / "plain.las", xyz, {"change": np.ones(300, np.uint8)})
     plain = laspy.read(str(tmp_path / "plain.las"))  # no colour given: none claimed (zeros read as black)
     assert plain.header.point_format.id == 0 and "red" not in plain.point_format.dimension_names
+    write_points(tmp_path / "again.ply", cloud)  # a cloud as read, written again with its fields
+    assert sorted(read_points(tmp_path / "again.ply").fields) == sorted(fields)
 
 
 def test_mesh_writers(tmp_path, rng):

@@ -347,6 +347,8 @@ def test_append_refuses_other_options_and_repeated_times(slope, tmp_path):
     out = tmp_path / "s.zarr"
     sdp.series(slope.epochs[:3], output=out, cylinder=CYL, times=[10, 11, 12])
     before = _digest(out)
+    with pytest.raises(sdp.InvalidOptionError, match="a list of files or clouds, got one path"):
+        sdp.series(str(tmp_path / "e0.ply"), output=out, append=True)  # not a list of letters
     with pytest.raises(sdp.InvalidOptionError, match="projection-scale 0.5 differs"):
         sdp.series(slope.epochs[3:4], output=out, append=True, cylinder=sdp.Cylinder(projection_scale=0.5),
                    times=[13])

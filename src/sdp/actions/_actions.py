@@ -475,8 +475,10 @@ class ActionModel:
                         raise SDPError(f"made with other pattern parameters ({key})")
                 alpha = tuple(float(a) for a in np.atleast_1d(z["alpha"]))
                 return cls(z["coef"], z["intercept"], z["classes"], alpha)
-        except (OSError, KeyError, ValueError, SDPError) as exc:
+        except (KeyError, SDPError) as exc:
             raise SDPError(f"{path}: not an sdp action model ({exc})") from None
+        except (OSError, ValueError):  # NumPy's own words would advise loading pickled data
+            raise SDPError(f"{path}: not an sdp action model (an .npz file that 'sdp action train' writes)") from None
 
 
 class ActionStream:

@@ -181,7 +181,7 @@ def series_text(s: dict) -> str:
              f"{s['last_time']}) at {s['core_points']:,} core points against {s['reference']}",
              f"  scales: projection {p['projection_scale']:.4g}, normal {p['normal_scale']:.4g}, search "
              f"{p['max_distance']:.4g}; registration error "
-             + ("measured on each epoch's stable part (0 below 100 stable places)" if p["registration_error"] == "auto"
+             + ("measured on each epoch's stable part (0 where fewer than 100 places are stable)" if p["registration_error"] == "auto"
                 else str(p["registration_error"])),
              f"  significant: {100 * s['significant_fraction']:.1f} % of (epoch, core point); smoother: process "
              f"noise {sm.get('process_noise', float('nan')):.3g}, velocity {sm.get('velocity', '')}",
@@ -194,4 +194,5 @@ def series_text(s: dict) -> str:
         where = f" in {tiled['tiles']} tiles on Dask" if tiled else ""
         lines.append(f"  this run: {last['added']} epoch(s) {'appended' if last['append'] else 'measured'}{where} in "
                      f"{last['timings'].get('total', 0):.2f} s")
+    lines += [f"wrote {o}" for o in s.get("outputs", [])[1:]]  # the exports (the archive is named above)
     return "\n".join(lines)

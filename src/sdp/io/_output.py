@@ -194,6 +194,7 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
                  like: Cloud | None = None, inputs=()) -> Path:
     """Write points with per-point scalar fields as PLY, LAS/LAZ or NPZ (by extension).
 
+    ``xyz``: (n, 3) points, or a :class:`~sdp.Cloud` (its points, and ``like`` itself).
     ``like``: the cloud the points are (as many rows, in order): its dimensions are kept, and
     ``fields`` added (they win on a name). LAS/LAZ output made from LAS/LAZ input keeps every
     input dimension, scale and offset; from other input, its per-point fields (an E57's colour,
@@ -222,6 +223,9 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
     ext = path.suffix.lower()
     if ext not in (".ply", ".las", ".laz", ".npz"):
         raise CloudFileError(f"{path}: can't write {ext or 'files without extension'}; use .ply, .las, .laz or .npz")
+    if isinstance(xyz, Cloud):  # a cloud as read: its points, with its dimensions
+        like = xyz if like is None else like
+        xyz = xyz.xyz
     xyz, fields = _checked_points(path, xyz, fields)
     if like is not None and like.las is None and like.fields:
         kept = {k: v for k, v in like.fields.items() if len(v) == len(xyz) and k not in fields}

@@ -282,6 +282,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     export from the archive: its refusal leaves an archive as it was)."""
     A.require_zarr()
     t_start = time.perf_counter()  # after zarr's import, start-up like Python's
+    if isinstance(epochs, (str, os.PathLike)):  # list() would make a file name a list of letters
+        raise InvalidOptionError(f"epochs must be a list of files or clouds, got one path {os.fspath(epochs)!r}")
     epochs = list(epochs)
     if not epochs:
         raise InvalidOptionError("no epochs given")
