@@ -585,7 +585,7 @@ class _CellLists:
 def _index_box(xyz, lo, cell):
     """(first, last) cell index per axis of the points, as the kernels index them: from the
     points' corners, since ⌊(x − lo) / cell⌋ never decreases with x (one serial pass: a parallel
-    reduction waited up to 10 ms for cores busy decoding the next epoch)."""
+    reduction waits for every core, and a series decodes its next epoch on them meanwhile)."""
     low, high = bounds(xyz)
     return (np.floor((low - lo) / cell).astype(np.int64), np.floor((high - lo) / cell).astype(np.int64))
 
