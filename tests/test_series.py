@@ -546,7 +546,7 @@ def test_command_series_append_info_and_exports(slope, tmp_path, capsys):
     assert main(["series", files[4], "--append", "-o", str(out), "--times", "4", "--epoch-output",
                  f"4:{tmp_path / 'e4.npz'}", "--points-output", str(tmp_path / "p.csv"), "--points", "0,5"]) == 0
     text = capsys.readouterr().out
-    assert "5 epochs" in text and "appended" in text
+    assert "5 epochs" in text and "appended" in text and f"wrote {tmp_path / 'p.csv'}" in text
     assert main(["info", str(out)]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["epochs"] == 5 and info["parameters"]["used"]["projection_scale"] == 0.8
@@ -571,7 +571,8 @@ def test_exports_out_of_range_are_refused_before_the_archive_is_touched(slope, t
                   f"3:{tmp_path / 'e.npz'}"],
                  ["series", files[2], "--append", "-o", str(out), "--times", "2", "--points-output",
                   str(tmp_path / "p.csv"), "--points", "0,99999"],
-                 ["series", *files[:2], "-o", str(tmp_path / "new.zarr"), "--points", "1"]):  # ignored: refused
+                 ["series", *files[:2], "-o", str(tmp_path / "new.zarr"), "--points", "1"],  # ignored: refused
+                 ["series", *files[:2], "-o", str(tmp_path / "new.zarr"), "--field-names", "pdal"]):
         assert main([*args, *base]) == 2
         assert "error" in capsys.readouterr().err
         assert _digest(out) == before

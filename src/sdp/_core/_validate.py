@@ -290,15 +290,12 @@ def direction(name: str, value) -> np.ndarray:
     return xyz / np.linalg.norm(xyz)
 
 
-def check_orientation(orientation, sensor_origin, *, names=("orientation", "sensor_origin")) -> None:
-    """Refuse an ``orientation`` that a sensor given (a position, or ``"viewpoint"``: the files'
-    own) would override: the normals face the sensor wherever one is known."""
-    if orientation is None or sensor_origin is None or (isinstance(sensor_origin, str)
-                                                          and sensor_origin in ("auto", "none")):
-        return
-    raise InvalidOptionError(f"{names[0]} points the normals where no sensor is known; with {names[1]} "
-                             f"{sensor_origin if isinstance(sensor_origin, str) else 'given'} it would be ignored: "
-                             "give one of them")
+def check_orientation(orientation, *, sensor_given: bool, names=("orientation", "sensor_origin")) -> None:
+    """Refuse an ``orientation`` beside a sensor given (a position, or the files' own): the normals
+    face the sensor wherever one is known, so the orientation would be ignored."""
+    if orientation is not None and sensor_given:
+        raise InvalidOptionError(f"{names[0]} points the normals where no sensor is known; with {names[1]} given "
+                                 "it would be ignored: give one of them")
 
 
 def as_sensor_origins(sensor_origin) -> tuple[np.ndarray, np.ndarray]:

@@ -113,7 +113,8 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
     sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)
     if orientation is not None:
         orientation = V.direction("--orientation", orientation)
-    V.check_orientation(orientation, sensor, names=("--orientation", "--sensor-origin"))
+    V.check_orientation(orientation, sensor_given=not (isinstance(sensor, str) and sensor in ("auto", "none")),
+                        names=("--orientation", "--sensor-origin"))
     if _distances_in_tiles(reference, current, output, format=format, execution=execution, core_points=core_points,
                            align=align, png=png, report=report):
         return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,

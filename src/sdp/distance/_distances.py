@@ -306,8 +306,9 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     else:
         core = as_points(core_points, name="core points").xyz
         sensor = _sensor_per_point(origins[0], reference, ref.xyz, core)
-    if sensor is not None and not (isinstance(sensor_origin, str) and sensor_origin == "auto"):
-        check_orientation(orientation, "given")  # the core points' sensor, given: it sets the normals
+    # the core points' own sensor, given (not read by "auto"), sets their normals
+    check_orientation(orientation, sensor_given=sensor is not None
+                      and not (isinstance(sensor_origin, str) and sensor_origin == "auto"))
     timings = {"validate": time.perf_counter() - t0}
 
     t = time.perf_counter()
