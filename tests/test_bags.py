@@ -162,7 +162,7 @@ def test_grabber_sequence_as_a_ros2_bag_gives_the_states_of_its_pcd_folder(share
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "watch", pcds[0], bag, "--topic", "/camera/depth/points",
                         "--json"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
-    frames = json.loads(p.stdout)
+    frames = [json.loads(line) for line in p.stdout.splitlines()]
     assert [f["appeared"] for f in frames] == [int(f.appeared.sum()) for f in from_files]
     assert [f["not_comparable"] for f in frames] == [int(f.not_comparable.sum()) for f in from_files]
 

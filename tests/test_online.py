@@ -88,6 +88,35 @@ def test_window_forgets_what_left(rng):
     assert forgot[3].n_appeared > 0.5 * len(box)  # left the 2-frame window: new again
 
 
+@pytest.mark.parametrize("update", ["window", "decay"])
+def test_an_empty_frame_is_reported_and_changes_nothing(rng, update, tmp_path, capsys):
+    """A blinded sensor's frame (no finite point, or no point) is yielded empty and the stream goes
+    on: the model neither learns nor forgets, so what follows is as without it."""
+    frames, _ = stream(rng)
+    blind = [np.full((7, 3), np.nan), np.zeros((0, 3))]
+    opts = dict(update=update, lattice=sdp.Lattice(voxel_size=0.03), **({"window": 2} if update == "window" else {}))
+    ref = room_scene(rng)
+    plain = list(watch(ref, frames, **opts))
+    gappy = list(watch(ref, frames[:4] + blind + frames[4:], **opts))
+    assert [r.empty for r in gappy] == [False] * 4 + [True, True] + [False] * 2
+    assert [len(r.appeared) for r in gappy[4:6]] == [7, 0] and not any(r.appeared.any() for r in gappy[4:6])
+    for a, b in zip(plain, gappy[:4] + gappy[6:]):
+        np.testing.assert_array_equal(a.appeared, b.appeared)
+    # sdp watch: an empty file in the folder is a line of its own (JSON Lines with --json), not an error
+    from sdp.cli._main import main
+
+    np.save(tmp_path / "ref.npy", ref)
+    (tmp_path / "frames").mkdir()
+    for i, f in enumerate([frames[0], np.zeros((0, 3)), frames[3]]):
+        sdp.write_points(tmp_path / "frames" / f"f{i}.ply", f)
+    assert main([str(a) for a in ("watch", tmp_path / "ref.npy", tmp_path / "frames", "--voxel-size", "0.03")]) == 0
+    assert "f1.ply: 0 points, none finite: nothing compared" in capsys.readouterr().out
+    assert main([str(a) for a in ("watch", tmp_path / "ref.npy", tmp_path / "frames", "--voxel-size", "0.03",
+                                  "--json")]) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [r["empty"] for r in lines] == [False, True, False] and lines[2]["appeared"] > 0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("align", [None, "gicp"])
 def test_sdp_watch_folder(tmp_path, rng, align):
@@ -105,7 +134,7 @@ def test_sdp_watch_folder(tmp_path, rng, align):
                         "--voxel-size", "0.03", "--json"] + (["--align", align] if align else []),
                        capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
-    out = json.loads(p.stdout)
+    out = [json.loads(line) for line in p.stdout.splitlines()]  # JSON Lines: a frame a line
     assert [r["name"] for r in out] == [f"frame{i + 8}.npz" for i in range(6)]
     assert [r["appeared"] > 0 for r in out] == [False, False, False, True, False, False]
     assert all((r["transform"] is None) == (align is None) for r in out)
@@ -178,7 +207,7 @@ def test_sdp_watch_decision_combined(tmp_path, shared_data):
     runs = [subprocess.run([sys.executable, "-m", "sdp.cli", "watch", str(ref), str(tmp_path / "frames"), "--json",
                             "--decision", dec], capture_output=True, text=True) for dec in ("point", "combined")]
     assert all(p.returncode == 0 for p in runs), runs[1].stderr
-    density, combined = (json.loads(p.stdout)[0]["appeared"] for p in runs)
+    density, combined = (json.loads(p.stdout.splitlines()[0])["appeared"] for p in runs)
     frame = next(sdp.watch(sdp.read_points(ref), [sdp.read_points(tmp_path / "frames" / "learn21.pcd")],
                            decision="combined"))
     assert 0 < density < combined == frame.n_appeared
@@ -195,7 +224,7 @@ def test_sdp_watch_sensor_origin_viewpoint(tmp_path, shared_data):
                             str(tmp_path / "frames"), "--json"] + extra, capture_output=True, text=True)
             for extra in (["--sensor-origin", "none"], ["--sensor-origin", "viewpoint"], [])]
     assert all(p.returncode == 0 for p in runs), runs[1].stderr
-    plain, seen, default = (json.loads(p.stdout)[0]["appeared"] for p in runs)
+    plain, seen, default = (json.loads(p.stdout.splitlines()[0])["appeared"] for p in runs)
     assert 0 < seen < plain and default == seen  # the PCD's VIEWPOINT is used without being asked
     field = tmp_path / "ref.sdpf"
     ref = sdp.read_points(shared_data / "mosd/learn/learn6.pcd").xyz

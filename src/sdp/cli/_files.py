@@ -250,7 +250,9 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
         ref = read_points(reference, format=format)
         origin = sensor_origins(choice, (reference, ref), (reference, ref))
         origin = origin[0] if isinstance(origin, np.ndarray) else origin
-    stream = bag_frames(folder, topic) if bag else ((p.name, read_points(p, format=format)) for p in paths)
+    # an empty frame (a blinded sensor) is the stream's to report, not an error
+    stream = bag_frames(folder, topic) if bag else ((p.name, read_points(p, format=format, allow_empty=True))
+                                                    for p in paths)
     return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
                  min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin),
                  decision=decision, noise=noise)

@@ -231,10 +231,11 @@ def cmd_watch(a):
                             update=a.update, window=a.window, decay=a.decay, min_region_points=a.min_region_points,
                             align=a.align, coverage=_coverage(a), topic=a.topic, decision=a.decision,
                             noise=_noise(a))
-    if a.json:
-        return _show("", [r.summary() for r in frames], as_json=True)
     for r in frames:  # a line per frame, as it comes (the frames are compared as they are iterated)
-        _line(frame_text(r))
+        if a.json:  # JSON Lines: a reader takes each frame as it comes
+            _print(dumps(r.summary(), indent=None))
+        else:
+            _line(frame_text(r))
     return 0
 
 
@@ -458,7 +459,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="point / density (the density alone, default) or combined (also the distance to the "
                         "reference's surface beyond its level of detection, completing what the density found)")
     _noise_options(w)
-    w.add_argument("--json", action="store_true", help="print one summary per frame as JSON")
+    w.add_argument("--json", action="store_true",
+                   help="print each frame's summary as it comes, one JSON object a line (JSON Lines)")
 
     act = _command(sub, "action", cmd_action, "recognise human actions in depth sequences (MSR Action3D)", X.ACTION)
     asub = act.add_subparsers(dest="action_command", required=True)

@@ -88,6 +88,8 @@ def motion_text(al: dict) -> str:
 def frame_text(frame) -> str:
     """One line per :class:`sdp.FrameChange` of ``sdp watch``: counts, latency, the largest regions."""
     s = frame.summary()
+    if frame.empty:
+        return f"{frame.name}: {s['points']:,} points, none finite: nothing compared, the model unchanged"
     where = "; ".join(f"{g['n_points']:,} at ({', '.join(f'{v:.2f}' for v in g['centroid'])})"
                       for g in s["regions"][:3])
     return (f"{frame.name}: {s['points']:,} points, {frame.n_appeared:,} appeared in {len(frame.regions)} regions, "

@@ -38,7 +38,8 @@ _READERS = {"pcd": read_pcd, "ply": read_ply, "las": read_las, "text": read_text
             "npz": read_npz, "e57": read_e57}
 
 
-def read_points(path: str | os.PathLike, *, format: str | None = None, fields: bool = True) -> Cloud:
+def read_points(path: str | os.PathLike, *, format: str | None = None, fields: bool = True,
+                allow_empty: bool = False) -> Cloud:
     """Read a point cloud; the format comes from the extension unless ``format`` is given.
 
     Parameters
@@ -54,11 +55,15 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
         False: the coordinates only (``Cloud.fields`` empty but for a multi-scan E57's ``scan``,
         which says where each point was seen from), for callers that need no other dimension (a
         LAS/LAZ file then skips unpacking them).
+    allow_empty : bool
+        True: a file that holds no point with finite x, y, z gives a cloud of none (a stream's
+        frame from a blinded sensor), not an error.
 
     Raises
     ------
     CloudFileError
-        Unknown format, missing file, unreadable content, no x/y/z, or no finite point.
+        Unknown format, missing file, unreadable content, no x/y/z, or no finite point (unless
+        ``allow_empty``).
 
     Examples
     --------
@@ -100,7 +105,7 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
     if dropped:
         xyz = xyz[finite]
         values = {k: v[finite] for k, v in values.items()}
-    if len(xyz) == 0:
+    if len(xyz) == 0 and not allow_empty:
         raise CloudFileError(f"{path}: holds no point with finite x, y, z")
     viewpoint, organized, sensors = (list(pose) + [None, False, None][len(pose):])[:3]
     return Cloud(np.ascontiguousarray(xyz), values, path, dropped, las, viewpoint, organized, sensors)

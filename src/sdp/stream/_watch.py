@@ -12,6 +12,10 @@ whatever the history:
   forgotten;
 - ``update="decay"``: exponential forgetting, weights λ^age (``decay`` = λ per frame).
 
+A frame without a finite point (a covered or blinded sensor, a message of no points) is
+yielded empty (:attr:`FrameChange.empty`) and changes nothing: nothing was seen, so nothing is
+compared, and the model neither learns nor forgets (a window keeps its frames).
+
 Each update costs the frame's own field (built once, used for detection too) plus a pass over
 its blocks: time proportional to the frame, not to the history.
 
@@ -50,7 +54,7 @@ from ..change._detect import inside_difference, judge_coverage, region_rules, si
 from ..change._regions import Region
 from ..change._visibility import RangeImage, resolve_sensor_origins, scanner_of_points
 from ..defaults import DEFAULTS
-from ..errors import InvalidOptionError
+from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._density import DensityField
 from ..fields._spacing import resolve_lattice
 from ..options import Coverage, Lattice, NoiseModel, Registration, as_options
@@ -89,6 +93,8 @@ class FrameChange:
     transform : ndarray (4, 4) or None
         With ``align=``: the rigid transform that mapped the frame onto the reference (its
         points were compared and merged after it); None otherwise.
+    empty : bool
+        The frame held no finite point: nothing was compared and the model did not change.
     """
 
     index: int
@@ -100,6 +106,7 @@ class FrameChange:
     latency: float
     timings: dict[str, float] = dc_field(default_factory=dict)
     transform: np.ndarray | None = None
+    empty: bool = False
 
     @property
     def n_appeared(self) -> int:
@@ -114,7 +121,7 @@ class FrameChange:
         return {"index": self.index, "name": self.name, "points": int(self.appeared.size),
                 "appeared": self.n_appeared, "not_comparable": int(self.not_comparable.sum()),
                 "latency": self.latency, "timings": dict(self.timings),
-                "transform": None if self.transform is None else self.transform.tolist(),
+                "transform": None if self.transform is None else self.transform.tolist(), "empty": self.empty,
                 "regions": [{"n_points": r.n_points, "centroid": r.centroid.tolist(), "size": r.size.tolist()}
                             for r in self.regions]}
 
@@ -221,7 +228,17 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         name, given = item if isinstance(item, tuple) else (str(index), item)
         t0 = time.perf_counter()
         timings = {}
-        cur = as_points(given, name=f"frame {name}")
+        try:
+            cur = as_points(given, name=f"frame {name}")
+        except InvalidPointsError:
+            rows = _rows_if_empty(given)
+            if rows is None:  # not an array of points at all
+                raise
+            none = np.zeros(rows, bool)
+            yield FrameChange(index=index, name=name, appeared=none, not_comparable=none.copy(), regions=[],
+                              appeared_labels=np.full(rows, -1, np.int32), latency=time.perf_counter() - t0,
+                              transform=matrix, empty=True)
+            continue
         if align is not None:  # from the previous frame's pose: the sensor moved little since
             t = time.perf_counter()
             matrix = (target.register(cur.xyz, matrix) if target is not None else
@@ -271,6 +288,18 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
                           not_comparable=to_rows(unseen, cur, False), regions=regs,
                           appeared_labels=to_rows(labels, cur, -1), latency=t4 - t0, timings=timings,
                           transform=matrix)
+
+
+def _rows_if_empty(given) -> int | None:
+    """The number of rows of a frame that is an (n, 3) array (or cloud) without a finite row, else None."""
+    xyz = given.xyz if hasattr(given, "xyz") and hasattr(given, "n_dropped") else given
+    try:
+        arr = np.asarray(xyz, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    if arr.ndim != 2 or arr.shape[1] != 3 or np.isfinite(arr).all(axis=1).any():
+        return None
+    return len(arr)
 
 
 def _complete(cur, ref, states, found, found_labels, frame: DensityField, *, own_origin, other_origin,
