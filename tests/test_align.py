@@ -158,6 +158,9 @@ def test_an_alignment_reads_as_the_shift_of_the_centroid_and_angles_about_x_y_z(
     text = alignment_text(s)
     assert "shift (0.000, 0.000, 0.410) m of the current scan's centroid" in text
     assert "roll 0.0020°, pitch -0.0010°, yaw 0.0005°" in text, text
+    assert "residual 0.05 m (RMS)" in text
+    for none in (np.nan, None):  # a reference field: no points to measure the residual to (None in JSON)
+        assert "no residual (a field holds no points" in alignment_text({**s, "rmse": none})
     assert sdp.Alignment(matrix=m, method="gicp", inside_before=0, inside_after=0, rmse=0, seconds=0).shift \
         == pytest.approx(m[:3, 3])  # no centre known: the world origin's motion
 

@@ -6,6 +6,8 @@ Each function returns the lines (joined, without a final newline) that a command
 
 from __future__ import annotations
 
+import numpy as np
+
 __all__ = ["change_text", "coverage_text", "alignment_text", "motion_text", "frame_text", "evaluation_text",
            "written_text", "train_text", "action_eval_text"]
 
@@ -68,9 +70,11 @@ def alignment_text(al: dict) -> str:
     """Two lines from :meth:`sdp.Alignment.summary`: the shift of the current scan's centroid and
     the rotation about it (roll, pitch, yaw about x, y, z, and the total angle); the overlap,
     residual and time. Lengths in metres, as :mod:`sdp.viz._render` labels them."""
+    residual = (f"residual {al['rmse']:.4g} m (RMS)" if al["rmse"] is not None and np.isfinite(al["rmse"]) else
+                "no residual (a field holds no points to measure it to)")
     return (f"aligned current onto reference ({al['method']}): {motion_text(al)}\n"
             f"  inside the reference's volume {al['inside_before']:.1%} → {al['inside_after']:.1%}, "
-            f"residual {al['rmse']:.4g} m (RMS), {al['seconds']:.2f} s")
+            f"{residual}, {al['seconds']:.2f} s")
 
 
 def motion_text(al: dict) -> str:
