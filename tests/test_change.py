@@ -26,6 +26,20 @@ def test_identical_clouds_give_no_change(rng):
     assert r.appeared_regions == [] and r.disappeared_regions == []
 
 
+def test_rows_holding_nan_are_not_comparable(scene_pair):
+    """A row without a position was not measured: not comparable and in no region, whichever
+    cloud holds it; the other rows get what they get without it."""
+    reference, current, _ = scene_pair
+    gap = np.array([[np.nan, 1.0, 1.0], [1.0, np.inf, 1.0]])
+    lattice = sdp.Lattice(voxel_size=0.015)
+    r = sdp.detect_changes(np.r_[reference, gap], np.r_[gap, current], lattice=lattice)
+    plain = sdp.detect_changes(reference, current, lattice=lattice)
+    assert (r.reference_state[-2:] == sdp.NOT_COMPARABLE).all() and (r.current_state[:2] == sdp.NOT_COMPARABLE).all()
+    assert (r.disappeared_labels[-2:] == -1).all() and (r.appeared_labels[:2] == -1).all()
+    np.testing.assert_array_equal(r.current_state[2:], plain.current_state)
+    np.testing.assert_array_equal(r.reference_state[:-2], plain.reference_state)
+
+
 def test_inserted_box_is_found_as_one_region(scene_pair):
     reference, current, truth = scene_pair
     r = sdp.detect_changes(reference, current, lattice=sdp.Lattice(voxel_size=0.015))

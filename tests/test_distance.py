@@ -86,6 +86,15 @@ def test_core_points_and_registration_error(rng):
     assert np.allclose(wide.lod - d.lod, 1.96 * 0.01) and not wide.significant.any()
     cur = sdp.distances(a, b, core_points="current")
     assert len(cur.distance) == len(b)
+    # a core point holding NaN keeps its row, without a distance: the others stay where they were given
+    holed = core.copy()
+    holed[[3, 17]] = [np.nan, 1.0, 0.0], [np.inf, 2.0, 0.0]
+    h = sdp.distances(a, b, core_points=holed, registration_error=0)
+    assert h.distance.shape == (50,) and np.isnan(h.distance[[3, 17]]).all() and (h.level[[3, 17]] == -1).all()
+    kept = np.ones(50, bool)
+    kept[[3, 17]] = False
+    np.testing.assert_allclose(h.distance[kept], d.distance[kept], atol=1e-9)
+    assert not h.significant[[3, 17]].any() and h.normal.shape == (50, 3)
 
 
 def test_fields_and_summary(rng):

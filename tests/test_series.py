@@ -63,6 +63,22 @@ def test_series_measures_the_known_change(slope, tmp_path):
     assert params["smoother"]["process_noise"] >= 0 and ds.attrs["epochs"][0]["time_source"] == "index"
 
 
+def test_a_core_point_not_seen_at_an_epoch_is_in_no_object_there(slope, tmp_path):
+    """The stepped disk goes unscanned at one epoch after the step: the smoother still gives a
+    value there (its guess from the epochs around), but not seen is not changed; the object goes
+    on where it is seen again."""
+    epochs = list(slope.epochs)
+    k = slope.step_epoch + 2
+    near = np.hypot(*(epochs[k][:, :2] - slope.step_centre).T) < slope.step_radius + CYL.projection_scale
+    epochs[k] = epochs[k][~near]  # the cylinders' reach beyond the disk too
+    ds = sdp.series(epochs, output=tmp_path / "s.zarr", cylinder=CYL, registration_error=2 * slope.registration)
+    disk = slope.zone(np.c_[ds.x.values, ds.y.values, ds.z.values], margin=0.25 * CYL.projection_scale) == 2
+    unseen = ~np.isfinite(ds.distance.values)
+    assert disk.sum() >= 5 and unseen[k][disk].all() and np.isfinite(ds.smoothed.values[k][disk]).all()
+    assert not (ds.object.values[unseen] > 0).any()
+    assert [(ds.object.values[e][disk] > 0).mean() for e in (k - 1, k, k + 1)] == [1.0, 0.0, 1.0]
+
+
 def test_each_epoch_equals_sdp_distances_on_that_pair(tmp_path):
     rng = np.random.default_rng(4)
     ref = np.c_[rng.uniform(0, 6, (6000, 2)), 0.003 * rng.standard_normal(6000)]

@@ -127,7 +127,7 @@ class ChangeResult:
     Every point is in one of three states (:mod:`sdp.change._coverage`): changed (appeared in the
     current, disappeared from the reference), not comparable (the other epoch never saw its
     place), or unchanged. Per-point arrays have one entry per input row (rows that held NaN/Inf
-    are unchanged, in no region).
+    are not comparable, in no region; tiles, whose outputs leave such rows out, call them unchanged).
 
     A result of the tiles (``tiled``) holds the rows that changed, not per-point arrays: the
     command streams its output from those rows (:meth:`rows`), so that its memory does not grow
@@ -140,7 +140,7 @@ class ChangeResult:
         The ``change`` field of each point: :data:`~sdp.UNCHANGED` (0), :data:`~sdp.CHANGED` (1:
         appeared in the current, disappeared from the reference), :data:`~sdp.NOT_COMPARABLE`
         (2: the other epoch has no density there and never saw the place: outside its footprint,
-        field of view, or hidden from its sensor).
+        field of view, or hidden from its sensor; and a row holding NaN or Inf, which nothing measured).
     appeared_labels, disappeared_labels : ndarray of int32 (n_current,), (n_reference,)
         The label of each point's change region in ``appeared_regions`` / ``disappeared_regions``
         (-1: none: unchanged, not comparable, or a stray dropped by ``min_region_points``).
@@ -479,7 +479,7 @@ def _point_changes(out, pts):
     """(PointChanges over the input rows, regions) of one direction's (states, changed mask,
     regions, region label per point)."""
     states, mask, regs, region_of = out
-    state = to_rows(states_of(mask, states == NOT_COMPARABLE), pts, UNCHANGED)
+    state = to_rows(states_of(mask, states == NOT_COMPARABLE), pts, NOT_COMPARABLE)  # a NaN row: nothing measured
     labels = to_rows(np.asarray(region_of).astype(np.int32), pts, -1)
     return PointChanges(len(state), state=state, labels=labels), regs
 

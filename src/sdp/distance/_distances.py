@@ -230,7 +230,8 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     reference, current : array_like (n, 3) or :class:`sdp.io.Cloud`
         The two epochs, in one frame (align them first: :func:`sdp.align`).
     core_points : array_like (m, 3), Cloud, ``"reference"`` or ``"current"``, optional
-        Where to measure; default every reference point (M3C2's epoch 1).
+        Where to measure; default every reference point (M3C2's epoch 1). Rows holding NaN or
+        Inf stay in the results, without a distance (NaN, ``level`` -1).
     cylinder : Cylinder, optional
         M3C2's scales (:class:`sdp.Cylinder`, world units): the projection scale ``d`` (the
         cylinder's diameter; its Gaussian has σ_p = d/4; ``"auto"``: the density kernel's σ from
@@ -297,6 +298,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     grid_memory_limit(memory_limit)  # readable and positive, before any work
     towards = np.array([0.0, 0.0, 1.0]) if orientation is None else direction("orientation", orientation)
     origins = resolve_sensor_origins(sensor_origin, reference, current)
+    given_rows = None  # core points given with NaN rows: which rows were measured
     if core_points is None or (isinstance(core_points, str) and core_points == "reference"):
         core, sensor = ref.xyz, _sensor_per_point(origins[0], reference, ref.xyz)
     elif isinstance(core_points, str):
@@ -304,7 +306,8 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
             raise InvalidOptionError(f"core_points must be points, 'reference' or 'current', got {core_points!r}")
         core, sensor = cur.xyz, _sensor_per_point(origins[1], current, cur.xyz)
     else:
-        core = as_points(core_points, name="core points").xyz
+        given = as_points(core_points, name="core points")
+        core, given_rows = given.xyz, given.finite
         sensor = _sensor_per_point(origins[0], reference, ref.xyz, core)
     # the core points' own sensor, given (not read by "auto"), sets their normals
     check_orientation(orientation, sensor_given=sensor is not None
@@ -384,8 +387,27 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
         d = without_unseen(d, reference, ref.xyz, origins[0], sigma=sigma_p)
     timings["not_seen"] = time.perf_counter() - t
     d = with_level(d, reg)
+    if given_rows is not None:
+        d = _on_given_rows(d, given_rows)
     timings["total"] = time.perf_counter() - t0
     return d
+
+
+def _on_given_rows(d: Distances, rows: np.ndarray) -> Distances:
+    """``d`` measured at the finite core points ``rows`` (mask) of those given, spread over every
+    row given: a row holding NaN or Inf gets no distance (NaN, level -1), so that results stay
+    aligned with the caller's core points."""
+    import dataclasses
+
+    def spread(values, fill):
+        out = np.full((len(rows),) + values.shape[1:], fill, values.dtype)
+        out[rows] = values
+        return out
+
+    arrays = {name: spread(getattr(d, name), np.nan) for name in ("core_points", "distance", "lod", "n1", "n2",
+                                                                  "spread1", "spread2", "normal")}
+    return dataclasses.replace(d, **arrays, significant=spread(d.significant, False), level=spread(d.level, -1),
+                               mean1=None if d.mean1 is None else spread(d.mean1, np.nan))
 
 
 def auto_scales(reference, current, *, cylinder: Cylinder | None = None) -> tuple[float, float]:

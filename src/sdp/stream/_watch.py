@@ -79,7 +79,8 @@ class FrameChange:
         One flag per row of the frame (False for NaN rows).
     not_comparable : ndarray of bool
         Rows where the reference could not see (outside its footprint or field of view, or
-        hidden from its sensor): neither appeared nor unchanged (:mod:`sdp.change._coverage`).
+        hidden from its sensor): neither appeared nor unchanged (:mod:`sdp.change._coverage`);
+        also rows holding NaN or Inf (no return), which nothing measured.
     regions : list of Region
         Connected appeared regions, largest first.
     appeared_labels : ndarray of int32
@@ -234,8 +235,8 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
             rows = _rows_if_empty(given)
             if rows is None:  # not an array of points at all
                 raise
-            none = np.zeros(rows, bool)
-            yield FrameChange(index=index, name=name, appeared=none, not_comparable=none.copy(), regions=[],
+            yield FrameChange(index=index, name=name, appeared=np.zeros(rows, bool), not_comparable=np.ones(rows, bool),
+                              regions=[],
                               appeared_labels=np.full(rows, -1, np.int32), latency=time.perf_counter() - t0,
                               transform=matrix, empty=True)
             continue
@@ -285,7 +286,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         t4 = time.perf_counter()
         timings.update(build=t1 - t0 - timings.get("align", 0.0), detect=t2 - t1, regions=t3 - t2, update=t4 - t3)
         yield FrameChange(index=index, name=name, appeared=to_rows(mask, cur, False),
-                          not_comparable=to_rows(unseen, cur, False), regions=regs,
+                          not_comparable=to_rows(unseen, cur, True), regions=regs,
                           appeared_labels=to_rows(labels, cur, -1), latency=t4 - t0, timings=timings,
                           transform=matrix)
 

@@ -147,6 +147,18 @@ def _xyz(cloud) -> np.ndarray:
     return cloud.xyz if isinstance(cloud, Cloud) else as_points(cloud, name="epoch").xyz
 
 
+def _core_name(core_points) -> str:
+    return str(core_points) if isinstance(core_points, (str, os.PathLike)) else "given as an array"
+
+
+def _core_xyz(cloud) -> tuple[np.ndarray, int]:
+    """(the core points' finite rows, how many rows were left out for holding NaN or Inf)."""
+    if isinstance(cloud, Cloud):
+        return cloud.xyz, int(cloud.n_dropped)
+    pts = as_points(cloud, name="core points")
+    return pts.xyz, 0 if pts.finite is None else int((~pts.finite).sum())
+
+
 def _same(a, b) -> bool:
     if isinstance(a, (int, float)) and isinstance(b, (int, float)):
         return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=0.0)
@@ -218,7 +230,8 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
         else the epochs' index.
     core_points : path-like or array_like (m, 3), optional
         Where to measure; default the reference subsampled at the projection scale (one point per
-        cube of d, the one nearest its cell's centroid). Stored in the archive.
+        cube of d, the one nearest its cell's centroid). Stored in the archive (``x``, ``y``,
+        ``z``); rows holding NaN or Inf are left out, and the archive's record says how many.
     reference : int, optional
         Index of the reference epoch among ``epochs`` (default 0, the first).
     cylinder : Cylinder, optional
@@ -329,7 +342,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             if np.any(np.diff(t_new) <= 0):
                 raise InvalidOptionError("the times of the epochs must increase (and differ), in the order given")
             if core_points is not None:
-                core = np.asarray(_xyz(_load(core_points, format)), np.float64)
+                core = np.asarray(_core_xyz(_load(core_points, format))[0], np.float64)
                 stored = np.c_[g["x"][:], g["y"][:], g["z"][:]]
                 if core.shape != stored.shape or not np.array_equal(core, stored):
                     raise InvalidOptionError(f"--core-points differs from the archive's core points ({out})")
@@ -367,7 +380,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             raise
         ref_cloud = epochs[reference]
         core_source = (f"the reference subsampled at the projection scale ({prepared.projection_scale:.6g})"
-                       if core_points is None else _name(core_points, -1))
+                       if core_points is None else _core_name(core_points))
     else:
         ref_cloud = _load(epochs[reference], format)
         d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
@@ -380,8 +393,9 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             core = ref_xyz[subsample(ref_xyz, d_opt)]
             core_source = f"the reference subsampled at the projection scale ({d_opt:.6g})"
         else:
-            core = _xyz(_load(core_points, format))
-            core_source = _name(core_points, -1)
+            core, dropped = _core_xyz(_load(core_points, format))
+            core_source = _core_name(core_points) + (f" ({dropped:,} rows holding NaN or Inf left out)"
+                                                    if dropped else "")
         prepared = PreparedReference.prepare(
             ref_xyz, core, cylinder=Cylinder(projection_scale=d_opt, normal_scale=cylinder.normal_scale,
                                              max_distance=cylinder.max_distance),
@@ -543,12 +557,17 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
 
         def read(k):
             if held is not None:  # the rows are in memory: no read
-                return tuple(a[k - r0].astype(np.float64) for a in held)
-            a = k - k % _DERIVED_EPOCHS
-            if a not in rows:
-                rows.clear()
-                rows[a] = [w[n][a:a + _DERIVED_EPOCHS] for n in ("smoothed", "smoothed_sigma", "velocity")]
-            return tuple(r[k - a].astype(np.float64) for r in rows[a])
+                sm, sd, vel = (a[k - r0].astype(np.float64) for a in held)
+            else:
+                a = k - k % _DERIVED_EPOCHS
+                if a not in rows:
+                    rows.clear()
+                    rows[a] = [w[n][a:a + _DERIVED_EPOCHS] for n in ("smoothed", "smoothed_sigma", "velocity")]
+                sm, sd, vel = (r[k - a].astype(np.float64) for r in rows[a])
+            # a core point without a distance at this epoch was not seen: its smoothed value there is
+            # the smoother's guess, and not seen is not changed (in no object, no onset)
+            sd[~np.isfinite(w["distance"][k])] = np.nan
+            return sm, sd, vel
 
         saved = tracker.state() if E - 1 - lag < tracker.epoch + 1 else None
         labels = []

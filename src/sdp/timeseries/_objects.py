@@ -1,7 +1,9 @@
 """4D objects of change, tracked epoch by epoch, and the epoch each change starts.
 
 A core point at an epoch is *changed* when its smoothed change is significant: ``|smoothed| >
-1.96·smoothed_sigma`` (the smoother's own 95 % bound). Changed core points of the same sign are
+1.96·smoothed_sigma`` (the smoother's own 95 % bound), and it was measured at that epoch: where an
+epoch has no distance (nothing seen near the core point), the smoother's value is a guess from the
+epochs around, and not seen is not changed. Changed core points of the same sign are
 joined to their spatial neighbours at the same epoch (core points closer than ``radius``, by
 default the 90th percentile of each core point's distance to its 6th nearest) where both changed
 in one way: gradually, or by steps at the same epoch (± 1; the steps of :mod:`sdp.timeseries._kalman`),
