@@ -111,6 +111,25 @@ def test_wide_clouds_are_written_as_las(tmp_path):
     assert np.abs(read_points(tmp_path / "s.laz").xyz - xyz).max() <= 0.5
 
 
+def test_close_points_keep_their_places_in_las(tmp_path):
+    """A millimetre-sized object in metres (points 0.1–0.3 mm apart) is written at a scale finer than
+    its spacing, in memory and chunk by chunk: no two points merge, none moves by more than a
+    twentieth of the spacing; a centimetre-spaced scan keeps LAS's usual 1 mm."""
+    from sdp.io._las import coordinate_scale
+
+    rng = np.random.default_rng(5)
+    small = rng.normal(0, 0.01, (20_000, 3)) + [2.0, -3.0, 0.5]  # a 4 cm ball of points
+    assert coordinate_scale(small) <= 1e-5
+    sdp.write_points(tmp_path / "s.las", small)
+    src = PointSource.open(np.save(tmp_path / "s.npy", small) or tmp_path / "s.npy")
+    sdp.write_points_streamed(tmp_path / "t.laz", src, lambda a, b: {"change": np.zeros(b - a, np.uint8)})
+    for name in ("s.las", "t.laz"):
+        back = read_points(tmp_path / name).xyz
+        assert len(np.unique(back, axis=0)) == len(small) and np.abs(back - small).max() <= 5e-6
+    room = rng.uniform(0, 4, (20_000, 3))  # about 2 cm apart
+    assert coordinate_scale(room) == 0.001
+
+
 def test_align_refuses_too_few_points_and_tiny_references(rng):
     ref = rng.random((2000, 3))
     for cur in (ref[:1], ref[:3], np.repeat(ref[:2], 20, axis=0)):

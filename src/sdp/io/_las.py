@@ -8,6 +8,7 @@ laspy loop for hours, a corrupt chunk-table count makes lazrs abort the process.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -190,12 +191,14 @@ def _check_laz_chunks(path, header, n: int) -> None:
                              f"{len(table):,} chunks of {size:,}")
 
 
-def las_scale_offset(lo, hi, path=None) -> tuple[np.ndarray, np.ndarray]:
+def las_scale_offset(lo, hi, path=None, *, xyz=None) -> tuple[np.ndarray, np.ndarray]:
     """Scale and offset of LAS integer coordinates for points in the box [lo, hi].
 
-    The offset is a whole number near the box's centre; the scale (per axis) the finest of
-    0.001, 0.01, 0.1, 1, … whose 32-bit integers reach both ends of the box (so 1 mm unless
-    the cloud spans more than ±2,147 km).
+    The offset is a whole number near the box's centre; the scale (per axis) a power of ten: 1 mm,
+    or finer where the points (``xyz``, if given) lie closer together, a tenth of their median
+    spacing (:func:`coordinate_scale`), so that rounding moves a point by at most a twentieth of
+    it and neighbours stay apart (a millimetre-sized plant in metres, a small part scanned); then
+    coarser only as the 32-bit integers must reach both ends of the box (1 mm reaches ±2,147 km).
 
     Raises
     ------
@@ -208,13 +211,31 @@ def las_scale_offset(lo, hi, path=None) -> tuple[np.ndarray, np.ndarray]:
     offset = np.floor((lo + hi) / 2)
     half = np.maximum(hi - offset, offset - lo)
     limit = 2**31 - 2  # one unit of margin for rounding
+    finest = 0.001 if xyz is None else coordinate_scale(xyz)
     scales = np.empty(3)
     for axis in range(3):
-        scale = 0.001
+        scale = finest
         while half[axis] / scale > limit:
             scale *= 10
         scales[axis] = scale
     return scales, offset
+
+
+def coordinate_scale(xyz: np.ndarray, *, sample: int = 2_000) -> float:
+    """The largest power of ten at most a tenth of the median distance from a point of ``xyz``
+    to its nearest other point (measured on ``sample`` of them), and at most 1 mm: the LAS
+    scale those points need (1 mm for scans whose points lie a centimetre or more apart)."""
+    from ..fields._spacing import kth_neighbour_distance
+
+    xyz = np.asarray(xyz, np.float64)
+    if len(xyz) < 2:
+        return 0.001
+    queries = xyz[np.linspace(0, len(xyz) - 1, min(sample, len(xyz))).astype(np.int64)]
+    d = kth_neighbour_distance(xyz, queries, 2)  # the query itself is its first
+    d = d[d > 0]
+    if not d.size:
+        return 0.001
+    return float(min(0.001, 10.0 ** math.floor(math.log10(float(np.median(d)) / 10.0))))
 
 
 def write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
@@ -230,7 +251,7 @@ def write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
         standard = _standard_dimensions(fields)  # colour and intensity a non-LAS input carries
         # colour only where there is some: a format without it, rather than zeros that read as black
         header = laspy.LasHeader(point_format=2 if "red" in standard else 0, version="1.4")
-        header.scales, header.offsets = las_scale_offset(xyz.min(axis=0), xyz.max(axis=0), tmp)
+        header.scales, header.offsets = las_scale_offset(xyz.min(axis=0), xyz.max(axis=0), tmp, xyz=xyz)
         las = laspy.LasData(header)
         las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
         for name, v in standard.items():

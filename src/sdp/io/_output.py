@@ -200,8 +200,9 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
     input dimension, scale and offset; from other input, its per-point fields (an E57's colour,
     intensity, row and column; a PCD's label) become LAS colour and intensity where they are
     those, else extra dimensions, and no colour is written where there was none. Other LAS
-    output gets a 1 mm scale (coarser only for clouds wider than ±2,147 km:
-    :func:`~sdp.io._las.las_scale_offset`) and an offset at the cloud's centre, so large
+    output gets a scale of 1 mm, finer where the points lie closer than a centimetre apart (a
+    tenth of their median spacing), coarser only for clouds wider than ±2,147 km
+    (:func:`~sdp.io._las.las_scale_offset`), and an offset at the cloud's centre, so large
     coordinates stay exact. The file is written under a temporary name and renamed; ``inputs``
     are never overwritten.
 

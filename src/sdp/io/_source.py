@@ -4,6 +4,8 @@ per-point fields, chunk by chunk, as LAS/LAZ."""
 
 from __future__ import annotations
 
+import itertools
+
 import os
 import tempfile
 from contextlib import ExitStack, contextmanager
@@ -191,8 +193,8 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
     ``fields_of(start, stop)`` returns the fields of rows ``start`` … ``stop − 1`` (a dict of
     arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset, but the extra
     dimensions named in ``drop`` (an earlier run's outputs that this one does not write anew);
-    other input gets the scale and offset of :func:`~sdp.io._las.las_scale_offset` (1 mm, offset
-    at the centre) and no colour.
+    other input gets the scale and offset of :func:`~sdp.io._las.las_scale_offset` (1 mm, finer
+    where the first chunk's points lie closer than a centimetre; offset at the centre) and no colour.
     Memory is bounded by ``chunk_size``; the file is written under a temporary name and renamed,
     and ``inputs`` are never overwritten. LAZ is decoded and encoded on all cores (lazrs'
     parallel backend).
@@ -214,8 +216,11 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
             chunks = ((len(c), c) for c in _decoded(source, reader.chunk_iterator(chunk_size)))
         else:
             header = laspy.LasHeader(point_format=0, version="1.4")
-            header.scales, header.offsets = las_scale_offset(source.lo, source.hi, path)
-            chunks = ((len(xyz), xyz) for _, xyz in source.chunks(chunk_size))
+            parts = ((len(xyz), xyz) for _, xyz in source.chunks(chunk_size))
+            first = next(parts, None)  # its spacing sets the scale, as the whole cloud's does in memory
+            sample = None if first is None else first[1][np.isfinite(first[1]).all(axis=1)]
+            header.scales, header.offsets = las_scale_offset(source.lo, source.hi, path, xyz=sample)
+            chunks = itertools.chain([] if first is None else [first], parts)
         tmp = stack.enter_context(atomic_path(path, inputs=inputs))
         writer, start = None, 0
         for n, chunk in chunks:
