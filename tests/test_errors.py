@@ -76,6 +76,25 @@ def test_options_are_checked():
         sdp.detect_changes(pts, pts, decision="vote")
 
 
+def test_wrong_types_in_the_python_api_are_sdp_errors(rng, tmp_path):
+    """Every wrong type reaching the API is refused in one line as an sdp.SDPError, before work,
+    not a TypeError, ValueError or AttributeError from inside."""
+    a = np.c_[rng.uniform(0, 5, (3000, 2)), 0.01 * rng.standard_normal(3000)]
+    cases = [lambda: sdp.detect_changes(a, a, min_region_points="5"),
+             lambda: sdp.distances(a, a, corner=(1, 2)),
+             lambda: sdp.series([a, a], output=tmp_path / "s.zarr", cylinder={"projection_scale": 1}),
+             lambda: sdp.read_points(5),
+             lambda: sdp.read_points(None)]
+    for case in cases:
+        with pytest.raises(sdp.SDPError):
+            case()
+    assert not (tmp_path / "s.zarr").exists()
+    ds = sdp.series([a, a + [0, 0, 0.01], a], output=tmp_path / "t.zarr")
+    with pytest.raises(sdp.SDPError, match="chunks"):
+        sdp.open_series(tmp_path / "t.zarr", chunks="bogus")
+    assert ds.sizes["epoch"] == 3
+
+
 def test_query_shape_is_checked(rng):
     f = DensityField.from_points(rng.random((10, 3)), voxel_size=0.1)
     with pytest.raises(sdp.InvalidPointsError, match="shape"):

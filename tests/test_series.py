@@ -403,8 +403,10 @@ def test_dates_give_velocities_per_day_and_open_with_xarray(slope, tmp_path):
     assert lazy.distance.chunks is not None and plain.distance.chunks is None
     assert all(np.array_equal(lazy[v].values, plain[v].values, equal_nan=True) for v in lazy.variables)
     assert ds.attrs["parameters"]["smoother"]["velocity"] == "per day"
-    with pytest.raises(sdp.InvalidOptionError, match="are numbers, the archive's are dates"):
+    with pytest.raises(sdp.InvalidOptionError, match="dated and the new epochs' times are numbers .give dates"):
         sdp.series(slope.epochs[4:5], output=out, append=True, times=[5])
+    with pytest.raises(sdp.InvalidOptionError, match="times are indices .their files record no date: give times"):
+        sdp.series(slope.epochs[4:5], output=out, append=True)
 
 
 def test_smoother_recovers_velocity_and_steps():

@@ -80,6 +80,11 @@ def test_store_errors(tmp_path):
     with pytest.raises(sdp.FieldFileError, match="not a Zarr store"):
         FieldStore.create(tmp_path / "plain", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8)
     assert (tmp_path / "plain" / "notes.txt").read_text() == "keep me"
+    import zarr
+
+    zarr.open_group(str(tmp_path / "other.zarr"), mode="w").create_array("a", shape=(3,), dtype="f4")
+    with pytest.raises(sdp.FieldFileError, match="a Zarr store sdp did not write: neither a field store"):
+        FieldStore.open(tmp_path / "other.zarr")
 
 
 @pytest.mark.slow

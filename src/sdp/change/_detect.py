@@ -389,7 +389,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     coverage = as_options(Coverage, coverage, "coverage")
     noise = NoiseModel.of(noise, decision)
     memory_limit_bytes(memory_limit)
-    integer_at_least("min_region_points", min_region_points, 0)
+    min_region_points = integer_at_least("min_region_points", min_region_points, 0)
     if not 0 <= finite("cluster_fraction", cluster_fraction) < 1:
         raise InvalidOptionError(f"cluster_fraction must be in [0, 1), got {cluster_fraction!r}")
     o_ref, o_cur = resolve_sensor_origins(coverage.sensor_origin, reference, current)

@@ -454,7 +454,13 @@ def cell_corner(lowest: np.ndarray, corner=None) -> np.ndarray:
     lo = np.asarray(lowest, np.float64) - 1e-9
     if corner is None:
         return lo
-    corner = np.asarray(corner, np.float64).reshape(3)
+    try:
+        given = np.asarray(corner, np.float64)
+    except (TypeError, ValueError):
+        given = np.full(1, np.nan)
+    if given.shape != (3,):
+        raise InvalidOptionError(f"corner must be three numbers x, y, z, got {corner!r}")
+    corner = given
     if not (np.isfinite(corner).all() and (corner <= lo).all()):
         raise InvalidOptionError(f"corner {corner} must be finite and below every reference and core point "
                                  f"(lowest {lo})")

@@ -79,6 +79,8 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
     (True, ['high'], 0)
     >>> folder.cleanup()
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise CloudFileError(f"read_points takes a file's path, got {type(path).__name__}")
     path = Path(path)
     fmt = input_format(path, format)
     try:

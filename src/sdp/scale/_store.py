@@ -97,6 +97,9 @@ class FieldStore:
             group = zarr.open_group(str(path), mode="r+")
         except Exception as exc:  # zarr raises several types for missing or foreign folders
             raise FieldFileError(f"{path}: not a readable sdp field store ({type(exc).__name__}: {exc})") from None
+        if group.attrs.get("format") is None:
+            raise FieldFileError(f"{path}: a Zarr store sdp did not write: neither a field store (sdp build "
+                                 f"--tiled) nor a series archive (sdp series)")
         if group.attrs.get("format") != "sdp-field-store" or group.attrs.get("format_version") != STORE_FORMAT_VERSION:
             raise FieldFileError(f"{path}: format {group.attrs.get('format')!r} version "
                                  f"{group.attrs.get('format_version')!r}; this sdp reads sdp-field-store "

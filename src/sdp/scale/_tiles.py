@@ -391,7 +391,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
         reference, only what appeared: every reference point is unchanged.
     """
     lattice, execution = _tiled_options(lattice, execution)
-    integer_at_least("min_region_points", min_region_points, 0)
+    min_region_points = integer_at_least("min_region_points", min_region_points, 0)
     if decision not in ("point", "density", "combined"):
         raise InvalidOptionError(f"decision={decision!r} is not available in tiles: 'point' or 'combined'")
     noise = NoiseModel.of(noise, decision)

@@ -198,7 +198,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     if registration is not None and (registration.fix_horizontal or registration.classes is not None):
         raise InvalidOptionError("a stream aligns its frames by the method alone: no fix_horizontal or align_class")
     align = None if registration is None else registration.method
-    integer_at_least("min_region_points", min_region_points, 0)
+    min_region_points = integer_at_least("min_region_points", min_region_points, 0)
     if decision not in ("point", "density", "combined"):
         raise InvalidOptionError(f"decision must be 'point', 'density' or 'combined' in a stream, got {decision!r}")
     noise = NoiseModel.of(noise, decision)

@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SDPError, require
+from ..errors import InvalidOptionError, SDPError, require
 
 __all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "archive_exists", "open_series", "recover", "writing", "transaction",
            "untouched_by_append", "Writer",
@@ -651,6 +651,8 @@ def open_series(path, *, chunks="auto"):
     .. [1] S. Hoyer, J. Hamman, "xarray: N-D labeled arrays and datasets in Python" (2017).
     """
     xr, _ = require_series()
+    if not (chunks is None or isinstance(chunks, dict) or (isinstance(chunks, str) and chunks == "auto")):
+        raise InvalidOptionError(f"chunks must be 'auto', a dict of dimension sizes or None, got {chunks!r}")
     path = Path(path)
     read_group(path)
     with warnings.catch_warnings():

@@ -311,6 +311,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     if out.suffix.lower() != ".zarr" and not A.is_series(out):
         raise InvalidOptionError(f"{out}: a series archive is a Zarr folder; name it ….zarr")
     registration = Registration.of(align)
+    cylinder = None if cylinder is None else as_options(Cylinder, cylinder, "cylinder")
     if registration_error is not None:
         auto_or_nonnegative("registration_error", registration_error)
     given = {"projection_scale": None if cylinder is None else cylinder.projection_scale,
@@ -331,8 +332,12 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             old_times = np.asarray([e["time"] for e in attrs["epochs"]], np.float64)
             t_new, kind, source = _resolve_times(epochs, times, start_index=len(old_times))
             if kind != attrs["time_kind"]:
-                raise InvalidOptionError(f"the new epochs' times are {kind}s, the archive's are "
-                                         f"{attrs['time_kind']}s")
+                why = "their files record no date: give times (--times)" if times is None else "give dates"
+                raise InvalidOptionError(f"the archive's epochs are dated and the new epochs' times are "
+                                         f"{'indices' if source == 'index' else 'numbers'} ({why})"
+                                         if attrs["time_kind"] == "date" else
+                                         f"the archive's epochs are numbered and the new epochs' times are dates "
+                                         f"(give numbers)")
             dup = np.intersect1d(t_new, old_times)
             if dup.size:
                 raise InvalidOptionError(f"epoch time {_show_time(dup[0], kind)} is already in the archive {out}")
@@ -360,7 +365,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     reference = integer_at_least("reference", reference, 0)
     if reference >= len(epochs):
         raise InvalidOptionError(f"reference {reference} is not an epoch (there are {len(epochs)})")
-    cylinder = as_options(Cylinder, cylinder, "cylinder")
+    cylinder = as_options(Cylinder, cylinder, "cylinder")  # the defaults where none was given
     t, kind, source = _resolve_times(epochs, times)
     if len(np.unique(t)) != len(t):
         raise InvalidOptionError(f"two epochs have the time {_show_time(t[np.argmax(np.diff(np.sort(t)) == 0)], kind)}"
