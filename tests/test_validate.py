@@ -137,6 +137,26 @@ def test_cli_refuses_bad_options_in_one_line(tmp_path, cloud, args):
     assert sorted(f.name for f in tmp_path.iterdir()) == ["g.npy"]
 
 
+def test_build_counts_the_points_and_the_process_in_the_limit(tmp_path, capsys):
+    """`sdp build`'s memory limit is the whole job's, as `sdp change`'s: points that would not fit
+    with the process are refused before they are read, and the blocks get what is left."""
+    from sdp.cli._main import main
+    from sdp.scale._budget import untiled_point_bytes
+
+    xyz = np.random.default_rng(0).uniform(0, 10, (500_000, 3))
+    np.save(tmp_path / "g.npy", xyz)
+    need = untiled_point_bytes(len(xyz))
+    assert main(["build", str(tmp_path / "g.npy"), "-o", str(tmp_path / "f.sdpf"),
+                 "--memory-limit", str(need - 2**20)]) == 2
+    err = capsys.readouterr().err
+    assert "500,000 points in memory with the process" in err and "-o FIELD.zarr" in err
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["g.npy"]
+    assert main(["build", str(tmp_path / "g.npy"), "-o", str(tmp_path / "f.sdpf"), "--voxel-size", "0.01",
+                 "--memory-limit", str(need + 2**20)]) == 2  # room for the points, not for these blocks
+    err = capsys.readouterr().err
+    assert "would need" in err and "limit less" in err and "500,000 points" in err and not (tmp_path / "f.sdpf").exists()
+
+
 def test_a_tile_refusal_names_the_workers_share_of_the_limit(tmp_path, cloud, monkeypatch):
     monkeypatch.setattr("sdp.scale._session._connect", lambda *a: pytest.fail("reached Dask"))
     with pytest.raises(sdp.GridTooLargeError, match=r"a task's share of the memory limit of 4 GB \(less 485 MB for the "

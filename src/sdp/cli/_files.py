@@ -11,7 +11,7 @@ import numpy as np
 
 from .._core import _validate as V
 from ..defaults import DEFAULTS
-from ..errors import SDPError
+from ..errors import GridTooLargeError, SDPError
 from ..io._output import all_or_none, check_outputs
 from ..io._cloud import input_format
 from ..io._read import read_points
@@ -70,7 +70,25 @@ def build_field_file(cloud, *, output, format: str | None = None, lattice: Latti
     execution = as_options(Execution, execution, "execution")
     check_outputs([output], [cloud])
     if not is_store(output):
-        fld = _field(cloud, format, lattice, execution.memory_limit)
+        from .._core._memory import format_bytes
+        from .._core._memory import memory_limit as limit
+        from ..scale._budget import untiled_point_bytes
+        from ..scale._series import count_points
+
+        # the limit is the whole job's: the process and the points first (counted from the file's
+        # header where it has one, before reading), the blocks in what is left
+        cap, n = limit(execution.memory_limit), count_points(cloud, format)
+        held = untiled_point_bytes(n or 0)
+        what = "the process itself" if n is None else f"{n:,} points in memory with the process"
+        if held >= cap:
+            raise GridTooLargeError(f"{cloud}: {what} need about {format_bytes(held)}, above the memory limit of "
+                                    f"{format_bytes(cap)}: build a field store in tiles (-o FIELD.zarr), or raise "
+                                    f"the memory limit ($SDP_MEMORY_LIMIT)")
+        try:
+            fld = _field(cloud, format, lattice, cap - held)
+        except GridTooLargeError as exc:  # its limit was what the points and the process leave
+            raise GridTooLargeError(f"{exc} (the {format_bytes(cap)} limit less {format_bytes(held)} for {what})") \
+                from None
         _save_field(fld, output, inputs=(cloud,))
         return fld
     from ..io._source import PointSource
