@@ -80,7 +80,7 @@ def test_wrong_types_in_the_python_api_are_sdp_errors(rng, tmp_path):
     """Every wrong type reaching the API is refused in one line as an sdp.SDPError, before work,
     not a TypeError, ValueError or AttributeError from inside."""
     a = np.c_[rng.uniform(0, 5, (3000, 2)), 0.01 * rng.standard_normal(3000)]
-    cases = [lambda: sdp.detect_changes(a, a, min_region_points="5"),
+    cases = [lambda: sdp.detect_changes(a, a, min_region_points="five"),
              lambda: sdp.distances(a, a, corner=(1, 2)),
              lambda: sdp.series([a, a], output=tmp_path / "s.zarr", cylinder={"projection_scale": 1}),
              lambda: sdp.read_points(5),
@@ -93,6 +93,9 @@ def test_wrong_types_in_the_python_api_are_sdp_errors(rng, tmp_path):
     with pytest.raises(sdp.SDPError, match="chunks"):
         sdp.open_series(tmp_path / "t.zarr", chunks="bogus")
     assert ds.sizes["epoch"] == 3
+    # a whole number as text is that number, as on the command line (it was compared as text)
+    assert sdp.detect_changes(a, a + 0.3, min_region_points="5").appeared.sum() == \
+        sdp.detect_changes(a, a + 0.3, min_region_points=5).appeared.sum()
 
 
 def test_query_shape_is_checked(rng):

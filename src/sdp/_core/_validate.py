@@ -94,9 +94,10 @@ def nonnegative_finite(name: str, value) -> float:
 
 def integer_at_least(name: str, value, minimum: int) -> int:
     """``value`` as an int if it is a whole number ≥ ``minimum``, else :class:`InvalidOptionError`."""
-    # a number, not text that reads as one: the caller uses what it gave
-    v = float(value) if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
-        else math.nan
+    try:
+        v = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError):
+        v = math.nan
     if not (math.isfinite(v) and v == int(v) and v >= minimum):
         raise InvalidOptionError(f"{name} must be a whole number of at least {minimum}, got {value!r}")
     return int(v)

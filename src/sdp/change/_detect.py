@@ -127,7 +127,7 @@ class ChangeResult:
     Every point is in one of three states (:mod:`sdp.change._coverage`): changed (appeared in the
     current, disappeared from the reference), not comparable (the other epoch never saw its
     place), or unchanged. Per-point arrays have one entry per input row (rows that held NaN/Inf
-    are not comparable, in no region; tiles, whose outputs leave such rows out, call them unchanged).
+    are not comparable, in no region).
 
     A result of the tiles (``tiled``) holds the rows that changed, not per-point arrays: the
     command streams its output from those rows (:meth:`rows`), so that its memory does not grow

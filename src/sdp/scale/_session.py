@@ -63,9 +63,9 @@ class Tiling:
 def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: int, tiling: Tiling,
                  root: str, chunk_rows: int) -> tuple[dict, int, float]:
     """Bucket rows start … stop−1 of ``source``, ``chunk_rows`` at a time; returns ({tile: count},
-    rows dropped, seconds reading)."""
+    the rows dropped for holding NaN or Inf, seconds reading)."""
     counts: dict[tuple[int, int], int] = {}
-    dropped, t_read = 0, 0.0
+    dropped, t_read = [], 0.0
     chunks = source.chunks(chunk_rows, start, stop)
     while True:
         t = time.perf_counter()
@@ -76,7 +76,8 @@ def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: i
         first, xyz = item
         i0, j0, nj, sizes, records, n_bad = K.tile_buckets(xyz, first, tiling.voxel_size, tiling.blocks * BLOCK,
                                                             tiling.halo)
-        dropped += n_bad
+        if n_bad:  # which rows: a result marks them not comparable, as in memory
+            dropped.append(first + np.flatnonzero(~np.isfinite(xyz).all(axis=1)))
         ends = np.cumsum(sizes)
         for b in np.flatnonzero(sizes):
             key = (int(i0 + b // nj), int(j0 + b % nj))
@@ -91,7 +92,7 @@ def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: i
                 raise SDPError(f"{path}: can't write a tile's points ({exc.strerror or exc}): is the work folder's "
                                "disk full? give --workdir on a disk with room") from None
             counts[key] = counts.get(key, 0) + int(sizes[b])
-    return counts, dropped, t_read
+    return counts, np.concatenate(dropped) if dropped else np.zeros(0, np.int64), t_read
 
 
 def load_bucket(root: str, epoch: str, key) -> np.ndarray:
@@ -186,6 +187,7 @@ class Session:
                 self.executor, self.cluster = _connect(scheduler, workers, self.root)
             self.budget = plan
             self.dropped: dict[str, int] = {}
+            self.dropped_rows: dict[str, np.ndarray] = {}  # each source's rows holding NaN or Inf, in order
             self.tiles = self._bucket(list(self.sources))
         except BaseException:
             self.__exit__(*sys.exc_info())
@@ -199,7 +201,9 @@ class Session:
                 for e in names for i, s in enumerate(range(0, self.sources[e].n_rows, _PART_ROWS))]
         done = self.tasks("bucket", _bucket_part, jobs, (), unit="slice")
         self.timings["read"] = self.timings.get("read", 0.0) + sum(d[2] for d in done)
-        self.dropped.update({e: sum(d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e) for e in names})
+        self.dropped_rows.update({e: np.concatenate([d[1] for d, j in zip(done, jobs, strict=True) if j[1] == e]
+                                                    or [np.zeros(0, np.int64)]) for e in names})
+        self.dropped.update({e: len(self.dropped_rows[e]) for e in names})
         return sorted({key for d in done for key in d[0]})
 
     def add(self, name: str, cloud, *, format: str | None = None) -> list:

@@ -446,6 +446,9 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
             run.timings["regions"] += time.perf_counter() - t
     levels = (_Level(levels["disappeared"], noise), _Level(levels["appeared"], noise)) if combined else (None, None)
     n_ref = run.sources["reference"].n_rows if store is None else store.n_points
+    # rows holding NaN or Inf: nothing measured them, not comparable as in memory
+    unseen = {kind: np.union1d(unseen[kind], run.dropped_rows.get(name, np.zeros(0, np.int64)))
+              for kind, name in (("appeared", "current"), ("disappeared", "reference"))}
     points = {kind: PointChanges.of_rows(n, *out[kind][:2], unseen[kind])
               for kind, n in (("appeared", run.sources["current"].n_rows), ("disappeared", n_ref))}
     return ChangeResult(_reference=points["disappeared"], _current=points["appeared"],
