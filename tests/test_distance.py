@@ -203,6 +203,11 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path, capsys):
               "--registration-error", "-1"])
     assert exit_.value.code == 2 and len(capsys.readouterr().err.strip().splitlines()) == 1
     assert not (tmp_path / "y.ply").exists()
+    # core points far off both clouds: every distance NaN, and a notice says why it may be
+    sdp.write_points(tmp_path / "far.npz", core + [0, 0, 50])
+    assert main(["distance", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "-o", str(tmp_path / "f.ply"),
+                 "--core-points", str(tmp_path / "far.npz")]) == 0
+    assert "no core point has a distance" in capsys.readouterr().err
 
 
 def test_hash_cells_equal_dense_cells(rng, monkeypatch):

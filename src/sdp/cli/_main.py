@@ -163,7 +163,12 @@ def cmd_distance(a):
                          registration_error=a.registration_error, orientation=a.orientation,
                          sensor_origin=a.sensor_origin, align=_registration(a),
                          execution=_execution(a, None if a.json else _say))
-    return _show(r.summary_text(), r.summary, a.json)
+    s = r.summary
+    if s["core_points"] and not s["comparable"]:  # every row NaN: most likely core points off the clouds
+        _say(f"no core point has a distance: no epoch's points lie within the cylinders (d = "
+             f"{s['projection_scale']:.4g}, ±{s['max_distance']:.4g} along the normal) of any of them; are the "
+             f"core points on the clouds, in the same frame?")
+    return _show(r.summary_text(), s, a.json)
 
 
 def cmd_build(a):
