@@ -336,8 +336,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                 raise InvalidOptionError(f"the archive's epochs are dated and the new epochs' times are "
                                          f"{'indices' if source == 'index' else 'numbers'} ({why})"
                                          if attrs["time_kind"] == "date" else
-                                         f"the archive's epochs are numbered and the new epochs' times are dates "
-                                         f"(give numbers)")
+                                         "the archive's epochs are numbered and the new epochs' times are dates "
+                                         "(give numbers)")
             dup = np.intersect1d(t_new, old_times)
             if dup.size:
                 raise InvalidOptionError(f"epoch time {_show_time(dup[0], kind)} is already in the archive {out}")
