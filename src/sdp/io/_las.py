@@ -224,10 +224,12 @@ def las_scale_offset(lo, hi, path=None, *, xyz=None) -> tuple[np.ndarray, np.nda
 def coordinate_scale(xyz: np.ndarray, *, sample: int = 2_000) -> float:
     """The largest power of ten at most a tenth of the median distance from a point of ``xyz``
     to its nearest other point (measured on ``sample`` of them), and at most 1 mm: the LAS
-    scale those points need (1 mm for scans whose points lie a centimetre or more apart)."""
+    scale those points need (1 mm for scans whose points lie a centimetre or more apart). Only
+    the first :data:`LAS_CHUNK` rows are looked at, as a streamed writer sees its first chunk:
+    the same scale either way, and bounded work for large clouds."""
     from ..fields._spacing import kth_neighbour_distance
 
-    xyz = np.asarray(xyz, np.float64)
+    xyz = np.asarray(xyz, np.float64)[:LAS_CHUNK]
     if len(xyz) < 2:
         return 0.001
     queries = xyz[np.linspace(0, len(xyz) - 1, min(sample, len(xyz))).astype(np.int64)]

@@ -5,7 +5,6 @@ per-point fields, chunk by chunk, as LAS/LAZ."""
 from __future__ import annotations
 
 import itertools
-
 import os
 import tempfile
 from contextlib import ExitStack, contextmanager

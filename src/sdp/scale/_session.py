@@ -61,7 +61,7 @@ class Tiling:
 
 
 def _bucket_part(source: PointSource, epoch: str, start: int, stop: int, part: int, tiling: Tiling,
-                 root: str, chunk_rows: int) -> tuple[dict, int, float]:
+                 root: str, chunk_rows: int) -> tuple[dict, np.ndarray, float]:
     """Bucket rows start … stop−1 of ``source``, ``chunk_rows`` at a time; returns ({tile: count},
     the rows dropped for holding NaN or Inf, seconds reading)."""
     counts: dict[tuple[int, int], int] = {}

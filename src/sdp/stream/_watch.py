@@ -235,8 +235,8 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
             rows = _rows_if_empty(given)
             if rows is None:  # not an array of points at all
                 raise
-            yield FrameChange(index=index, name=name, appeared=np.zeros(rows, bool), not_comparable=np.ones(rows, bool),
-                              regions=[],
+            yield FrameChange(index=index, name=name, appeared=np.zeros(rows, bool),
+                              not_comparable=np.ones(rows, bool), regions=[],
                               appeared_labels=np.full(rows, -1, np.int32), latency=time.perf_counter() - t0,
                               transform=matrix, empty=True)
             continue
