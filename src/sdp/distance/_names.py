@@ -12,6 +12,10 @@ plugins name the same quantities otherwise, and whose tools (colour scales, filt
   ``m3c2_significant``, ``m3c2_std_dev1``/``m3c2_std_dev2``, ``m3c2_count1``/``m3c2_count2``,
   and PDAL's ``NormalX``/``NormalY``/``NormalZ``.
 
+The counts (``n1``, ``n2``) are sdp's effective counts ``(Σw)²/Σw²`` of its Gaussian-weighted
+cylinders, not whole numbers: what a hard cylinder (CloudCompare's, PDAL's) holding that many
+points would give for the spread of the mean.
+
 Every name is at most 32 characters, the length of a LAS extra-bytes name (ASPRS LAS 1.4 R15,
 "Extra Bytes" VLR), so a LAS/LAZ output keeps them whole.
 
