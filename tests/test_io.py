@@ -82,6 +82,14 @@ def test_las_output_keeps_input_dimensions(tmp_path, rng, monkeypatch):
     lean = read_points(tmp_path / "out.las", fields=False)  # the coordinates alone, in chunks too
     assert lean.fields == {} and lean.las is None
     np.testing.assert_array_equal(lean.xyz, back.xyz)
+    # moved (an aligned output): its records at the new coordinates, the offset moved as far as needed;
+    # the cloud read keeps its own records (no output's dimension added to them)
+    for shift in ([0.0, 0.0, -0.5], [3e7, 0.0, 0.0]):  # 30,000 km: beyond 2**31 centimetres of the offset
+        write_points(tmp_path / "moved.laz", cloud.xyz + shift, {"change": np.ones(200, np.uint8)}, like=cloud)
+        moved = read_points(tmp_path / "moved.laz")
+        assert np.abs(moved.xyz - (cloud.xyz + shift)).max() <= 0.005 + 1e-6
+        np.testing.assert_array_equal(moved.fields["classification"], las.classification)
+    assert "change" not in cloud.las.point_format.dimension_names
 
 
 def test_other_inputs_keep_their_fields_and_las_says_only_what_they_hold(tmp_path, rng):

@@ -8,6 +8,7 @@ laspy loop for hours, a corrupt chunk-table count makes lazrs abort the process.
 
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 
@@ -243,12 +244,21 @@ def coordinate_scale(xyz: np.ndarray, *, sample: int = 2_000) -> float:
 def write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
     """Write points to ``tmp`` as LAS (LAZ if ``compressed``), ``fields`` as extra dimensions;
     the points of ``like`` (LAS/LAZ input of as many rows, none dropped) keep its every
-    dimension, scale and offset, other points get :func:`las_scale_offset`."""
+    dimension, scale and offset, at the coordinates ``xyz`` (moved by an alignment: the offset
+    moves too where the scale's 32-bit integers would not reach them), other points get
+    :func:`las_scale_offset`."""
     import laspy
 
     fields = dict(fields)
     if like is not None and like.las is not None and len(like.las.points) == len(xyz) and like.n_dropped == 0:
-        las = like.las
+        # a copy: the caller's cloud keeps its records (no extra dimension of this output added to them)
+        las = laspy.LasData(copy.deepcopy(like.las.header), points=like.las.points.copy())
+        if not np.array_equal(xyz, like.xyz):  # moved (an alignment): the records at the new coordinates
+            lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+            reach = (2**31 - 2) * np.asarray(las.header.scales)
+            if np.any(np.maximum(hi - las.header.offsets, las.header.offsets - lo) > reach):
+                las.header.offsets = np.floor((lo + hi) / 2)
+            las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     else:
         standard = _standard_dimensions(fields)  # colour and intensity a non-LAS input carries
         # colour only where there is some: a format without it, rather than zeros that read as black
