@@ -70,6 +70,14 @@ def test_changes_against_a_stored_reference(tmp_path, clouds):
     assert got.n_tiles >= 20 and want.appeared.sum() > 1000
     np.testing.assert_array_equal(got.appeared, want.appeared)
     assert not got.disappeared.any() and got.disappeared.size == len(ref)
+    # a store of larger tiles than the run's memory lets it take, far from the origin: the run reads
+    # the stored blocks of its own tiles (it read the store's tile of the same key: nothing there)
+    far = np.array([634_000.0, 4_831_000.0, 80.0])
+    big = FieldStore.from_field(sdp.DensityField.from_points(ref + far, voxel_size=0.1), tmp_path / "big.zarr",
+                                tile_blocks=64)
+    cut = detect_changes_tiled(big, cur + far, execution=sdp.Execution(scheduler="synchronous", tile_points=20_000))
+    assert cut.tile_size < 64 * 8 * 0.1
+    np.testing.assert_array_equal(cut.current_state, want.current_state)
 
 
 def test_store_errors(tmp_path):

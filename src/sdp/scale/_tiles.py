@@ -126,7 +126,10 @@ def _tile_changes(key, root: str, tiling: Tiling, opts: dict, store: str | None,
     for e, rec in recs.items():
         t = time.perf_counter()
         if e == "reference" and store is not None:
-            fields[e] = FieldStore.open(store).tile_field(key)
+            # the stored blocks of this run's tile and one block around it (the run's tiles need not be
+            # the store's: its memory budget may cut smaller ones), enough to interpolate anywhere in it
+            lo = np.asarray(key, np.int64) * tiling.blocks - 1
+            fields[e] = FieldStore.open(store).read(lo, lo + tiling.blocks + 2)
         else:
             fields[e] = DensityField.from_points(rec[:, :3], **opts) if len(rec) else None
         out[f"build_{e}"] = out.get(f"build_{e}", 0.0) + time.perf_counter() - t
