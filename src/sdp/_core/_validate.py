@@ -348,14 +348,15 @@ def check_alignment_options(method: str | None, *, fix_horizontal: bool = False,
 
 
 def check_tiled_options(*, grid_size=None, align=None, sensor_origin="auto", decision="point",
-                        pictures: bool = False) -> None:
-    """Refuse the options of ``sdp change`` that a comparison in tiles does not have (``--tiled``)."""
+                        pictures: bool = False, why: str = "with --tiled") -> None:
+    """Refuse the options of ``sdp change`` that a comparison in tiles does not have (``--tiled``,
+    or ``why`` they are taken)."""
     given_sensor = not (isinstance(sensor_origin, str) and sensor_origin in ("auto", "none"))
     for flag, bad in (("--grid-size", grid_size is not None), ("--align", align), ("--sensor-origin", given_sensor),
                       (f"--decision {decision}", decision == "cluster"),
                       ("--png/--html/--report", pictures)):
         if bad:
-            raise InvalidOptionError(f"{flag} is not available with --tiled")
+            raise InvalidOptionError(f"{flag} is not available {why}")
 
 
 def cli_type(check: Callable, *args) -> Callable[[str], object]:

@@ -144,6 +144,14 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
     if is_store(reference):  # a stored reference field: its lattice, σ, h and tiles
         from ..scale._store import FieldStore
 
+        why = "with a .zarr field store as the reference (compared in tiles)"
+        V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
+                              decision=decision, pictures=outputs.pictures, why=why)
+        if lattice != Lattice():
+            raise SDPError("the lattice (voxel, σ, k, h) is the field store's: give no --voxel-size, --sigma-voxels, "
+                           "-k, --h or --grid-size with it")
+        if output is not None and Path(output).suffix.lower() not in (".las", ".laz"):
+            raise SDPError(f"{output}: the comparison {why} streams its output to LAS/LAZ: give -o OUT.laz")
         sources = [FieldStore.open(reference), PointSource.open(current, format=format)]
         if both:
             raise SDPError("--both needs the reference points; a .zarr field store only tells what appeared")
