@@ -92,6 +92,29 @@ def test_las_output_keeps_input_dimensions(tmp_path, rng, monkeypatch):
     assert "change" not in cloud.las.point_format.dimension_names
 
 
+@pytest.mark.parametrize("packed", ["rgb", "rgba"])
+def test_a_pcds_packed_colour_is_written_as_colour(tmp_path, rng, packed):
+    """PCL packs colour into one field (``rgb``: a float32's bytes 0x00RRGGBB; ``rgba``: a uint32
+    0xAARRGGBB): read as red, green, blue, it is LAS's and PLY's colour."""
+    import laspy
+    from pypcd4 import Encoding, PointCloud
+
+    xyz = rng.random((300, 3)).astype(np.float32)
+    rgb = rng.integers(0, 256, (300, 3)).astype(np.uint32)
+    bits = (np.uint32(200) << 24 if packed == "rgba" else 0) | (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
+    kind = np.float32 if packed == "rgb" else np.uint32
+    pc = PointCloud.from_points([xyz[:, 0], xyz[:, 1], xyz[:, 2], bits.view(kind)], ("x", "y", "z", packed),
+                                (np.float32, np.float32, np.float32, kind))
+    pc.save(tmp_path / "c.pcd", encoding=Encoding.BINARY)
+    cloud = read_points(tmp_path / "c.pcd")
+    assert packed not in cloud.fields
+    for c, name in enumerate(("red", "green", "blue")):
+        np.testing.assert_array_equal(cloud.fields[name], rgb[:, c])
+    write_points(tmp_path / "c.las", cloud)
+    las = laspy.read(str(tmp_path / "c.las"))
+    np.testing.assert_array_equal(las.blue, rgb[:, 2].astype(np.uint16) * 257)
+
+
 def test_other_inputs_keep_their_fields_and_las_says_only_what_they_hold(tmp_path, rng):
     import laspy
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import require
-from ._cloud import Cloud, CloudFileError, library_error
+from ._cloud import Cloud, CloudFileError, library_error, unpacked_colour
 
 __all__ = ["bag_frames", "bag_message", "bag_topics", "is_bag", "pointcloud2_arrays"]
 
@@ -166,7 +166,8 @@ def pointcloud2_arrays(msg) -> tuple[np.ndarray, dict[str, np.ndarray], bool]:
     organized = h > 1
     if organized:  # as PCD files: an organized cloud marks a missing return by NaN or by (0, 0, 0)
         xyz[~xyz.any(axis=1)] = np.nan
-    fields = {n: np.ascontiguousarray(points[n]) for n in names if n not in ("x", "y", "z") and n}
+    fields = unpacked_colour({n: np.ascontiguousarray(points[n]).astype(points[n].dtype.newbyteorder("="))
+                              for n in names if n not in ("x", "y", "z") and n})
     return xyz, fields, organized
 
 

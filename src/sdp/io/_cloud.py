@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import SDPError
 
-__all__ = ["Cloud", "CloudFileError", "FORMATS", "input_format", "library_error", "unreadable"]
+__all__ = ["Cloud", "CloudFileError", "FORMATS", "input_format", "library_error", "unreadable", "unpacked_colour"]
 
 #: Extension → format name understood by :func:`sdp.io.read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
@@ -151,6 +151,26 @@ class Cloud:
             viewpoint = np.r_[m[:3, :3] @ self.viewpoint[:3] + m[:3, 3], w, x, y, z]
         sensors = None if self.sensors is None else self.sensors @ m[:3, :3].T + m[:3, 3]
         return replace(self, xyz=np.ascontiguousarray(xyz), viewpoint=viewpoint, sensors=sensors)
+
+
+def unpacked_colour(fields: dict) -> dict:
+    """``fields`` with PCL's packed colour (``rgb``: 0x00RRGGBB, or ``rgba``: 0xAARRGGBB, in the
+    four bytes of a float32 or uint32, as PCD files and ``PointCloud2`` messages hold it [1]_)
+    as ``red``, ``green``, ``blue`` (uint8), which every output writes as colour (LAS colour,
+    PLY's properties); other fields as they are.
+
+    References
+    ----------
+    .. [1] PCL, "The PCD (Point Cloud Data) file format", pointclouds.org (the ``rgb`` field).
+    """
+    for packed in ("rgb", "rgba"):
+        v = fields.get(packed)
+        if v is not None and "red" not in fields and np.asarray(v).dtype.itemsize == 4 and np.ndim(v) == 1:
+            bits = np.ascontiguousarray(v).view(np.uint32)
+            rest = {k: x for k, x in fields.items() if k != packed}
+            return {**rest, "red": ((bits >> 16) & 255).astype(np.uint8),
+                    "green": ((bits >> 8) & 255).astype(np.uint8), "blue": (bits & 255).astype(np.uint8)}
+    return fields
 
 
 def input_format(path: Path, format: str | None) -> str:

@@ -12,14 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ._cloud import CloudFileError
+from ._cloud import CloudFileError, unpacked_colour
 
 __all__ = ["read_pcd"]
 
 
 def read_pcd(path):
     """``(xyz, fields, None, viewpoint, organized)`` of a PCD file (x, y, z as float64, missing
-    returns of an organized file as NaN; other fields in their declared integer types)."""
+    returns of an organized file as NaN; other fields in their declared integer types, a packed
+    ``rgb``/``rgba`` as ``red``, ``green``, ``blue``: :func:`~sdp.io._cloud.unpacked_colour`)."""
     from pypcd4 import PointCloud
 
     _check_header_columns(path)
@@ -31,6 +32,10 @@ def read_pcd(path):
     _check_count(path, pc, len(data))
     cols = {n: data[:, i] for i, n in enumerate(names)}
     fields = {n: _pcd_column(pc, n, cols[n]) for n in names if n not in ("x", "y", "z")}
+    for packed in ("rgb", "rgba"):  # its four bytes as stored (pypcd4's float64 copy would not keep them)
+        if packed in fields and pc.pc_data.dtype[packed].itemsize == 4 and pc.pc_data.dtype[packed].shape == ():
+            fields[packed] = np.ascontiguousarray(pc.pc_data[packed])
+    fields = unpacked_colour(fields)
     xyz = np.c_[cols["x"], cols["y"], cols["z"]]
     if pc.metadata.height > 1:  # organized scans mark a missing return by NaN or by (0, 0, 0)
         xyz[~xyz.any(axis=1)] = np.nan
