@@ -570,7 +570,11 @@ def test_command_series_append_info_and_exports(slope, tmp_path, capsys):
     assert info["epochs"] == 5 and info["parameters"]["used"]["projection_scale"] == 0.8
     sizes = [o["core_points"] for o in info["largest_objects"]]
     assert len(sizes) >= 2 and sizes == sorted(sizes, reverse=True)  # ids count in the order found; listed by size
-    assert info["significant_fraction"] == pytest.approx(float(sdp.open_series(out).significant.mean()))
+    ds = sdp.open_series(out)
+    after = ds.isel(epoch=slice(1, None))  # the reference is the first epoch
+    assert info["significant_fraction"] == pytest.approx(float(after.significant.sum() / np.isfinite(after.distance).sum()))
+    seen = np.isfinite(ds.distance.values[-1])
+    assert info["median_abs_smoothed_last"] == pytest.approx(float(np.median(np.abs(ds.smoothed.values[-1][seen]))))
     with np.load(tmp_path / "e4.npz") as f:
         assert f["distance"].shape == (info["core_points"],) and "velocity" in f.files
     rows = (tmp_path / "p.csv").read_text().splitlines()

@@ -229,15 +229,21 @@ def describe_series(path) -> dict:
     attrs = g.attrs.asdict()
     epochs = attrs["epochs"]
     n_points = g["x"].shape[0]
-    cells = len(epochs) * n_points  # from each epoch's record: no pass over the archive
-    sig_fraction = sum(e["significant"] for e in epochs) / cells if cells else 0.0
+    # of the cells measured after the reference (against itself it is never significant), from each
+    # epoch's record: no pass over the archive
+    ref = attrs["parameters"]["used"]["reference"]
+    measured = [e for k, e in enumerate(epochs) if k != ref]
+    cells = sum(e["comparable"] for e in measured)
+    sig_fraction = sum(e["significant"] for e in measured) / cells if cells else 0.0
     kind = attrs["time_kind"]
     times = [e["time"] for e in epochs]
     if kind == "date":
         times = [str(np.datetime64("1970-01-01T00:00:00", "s") + np.timedelta64(int(round(t * 86400)), "s"))
                  for t in times]
-    last = np.asarray(g["smoothed"][-1]) if epochs else np.empty(0)  # one row read
-    vel = np.asarray(g["velocity"][-1]) if epochs else np.empty(0)
+    # the last epoch where it was measured (elsewhere the smoother's value is a guess): one row each
+    seen = np.isfinite(np.asarray(g["distance"][-1])) if epochs else np.zeros(0, bool)
+    last = np.asarray(g["smoothed"][-1])[seen] if epochs else np.empty(0)
+    vel = np.asarray(g["velocity"][-1])[seen] if epochs else np.empty(0)
     order = objects_by_size(g)
     table = [{"id": int(i), "start": int(s), "end": int(e), "core_points": int(n), "area": float(a),
               "peak_change": float(p), "mean_velocity": float(v)}

@@ -189,7 +189,8 @@ def series_text(s: dict) -> str:
              f"{p['max_distance']:.4g}; registration error "
              + ("measured on each epoch's stable part (0 where fewer than 100 places are stable)" if p["registration_error"] == "auto"
                 else str(p["registration_error"])),
-             f"  significant: {100 * s['significant_fraction']:.1f} % of (epoch, core point); smoother: process "
+             f"  significant: {100 * s['significant_fraction']:.1f} % of the (epoch, core point) measured after "
+             f"the reference; smoother: process "
              f"noise {sm.get('process_noise', float('nan')):.3g}, velocity {sm.get('velocity', '')}",
              f"  objects of change: {s['objects']}"]
     for o in s["largest_objects"][:5]:
