@@ -150,3 +150,16 @@ def test_the_functions_take_the_defaults_objects():
                 # None: the DEFAULTS value where the option applies (refused where it would be ignored)
                 conditional = name in ("window", "decay") and p.default is None
                 assert conditional or p.default is getattr(sdp.DEFAULTS, name), (func.__name__, name)
+
+
+def test_render_draws_a_fields_nan_as_no_value(tmp_path, rng):
+    """`sdp render --field F`: F ≠ 0 is drawn vermillion, and NaN (nothing measured there) grey, not as
+    ≠ 0."""
+    from conftest import drawn_pixels, picture
+
+    distance = np.zeros(1000, np.float32)
+    distance[:900] = np.nan
+    np.savez(tmp_path / "d.npz", xyz=rng.random((1000, 3)), distance=distance)
+    pipeline.render_file(tmp_path / "d.npz", png=tmp_path / "d.png", field="distance")
+    img = picture(tmp_path / "d.png")
+    assert drawn_pixels(img, "#D55E00") == 0 and drawn_pixels(img, "#B4B4B4") > 0

@@ -351,8 +351,8 @@ def _check_same_points(a, b) -> None:
 
 
 def render_file(path, *, png=None, html=None, field: str = "change", format: str | None = None) -> list[str]:
-    """Pictures of a labelled cloud (points whose ``field`` is nonzero in vermillion; sdp's
-    ``change``: not comparable grey) or PNG slices of a field ``.sdpf`` (``sdp render``);
+    """Pictures of a labelled cloud (points whose ``field`` is nonzero in vermillion, NaN grey: no
+    value; sdp's ``change``: not comparable grey) or PNG slices of a field ``.sdpf`` (``sdp render``);
     returns the files written."""
     if not (png or html):
         raise SDPError("nothing to write: give --png OUT.png and/or --html OUT.html")
@@ -374,8 +374,11 @@ def render_file(path, *, png=None, html=None, field: str = "change", format: str
     values = np.asarray(c.fields[field])
     if field == "change":  # sdp's field: 0 unchanged, 1 changed, 2 not comparable
         state, what = values.astype(np.uint8), "changed vermillion, not comparable grey"
-    else:
-        state, what = values != 0, f"{field} ≠ 0 in vermillion"
+    else:  # NaN (no value: nothing measured there) is not comparable, not "≠ 0"
+        state = np.where(values != 0, np.uint8(1), np.uint8(0))
+        if values.dtype.kind == "f":
+            state[~np.isfinite(values)] = 2
+        what = f"{field} ≠ 0 in vermillion, NaN grey"
     with all_or_none():
         return pictures(png, html, c.xyz, state, f"{Path(path).name}: {what}")
 
