@@ -208,6 +208,11 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path, capsys):
     assert main(["distance", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "-o", str(tmp_path / "f.ply"),
                  "--core-points", str(tmp_path / "far.npz")]) == 0
     assert "no core point has a distance" in capsys.readouterr().err
+    sdp.write_points(tmp_path / "holed.ply", np.r_[core, [[np.nan, 1.0, 0.0]]])  # a row without a position
+    r = sdp.distance_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "h.npz",
+                           core_points=tmp_path / "holed.ply")
+    assert r.summary["core_points"] == 30 and r.summary["core_points_dropped"] == 1
+    assert "(and 1 row holding NaN or Inf, left out)" in r.summary_text()
 
 
 def test_hash_cells_equal_dense_cells(rng, monkeypatch):

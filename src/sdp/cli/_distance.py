@@ -145,6 +145,7 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
                              title=f"{Path(reference).name} → {Path(current).name}: signed distance")
             outputs.append(str(png))
         summary = d.summary()
+        summary["core_points_dropped"] = int((core if core is not None else ref).n_dropped)  # NaN/Inf rows of the file
         summary["timings"]["read"] = round(t_read, 4)
         if alignment is not None:
             summary["alignment"] = alignment.summary()

@@ -159,7 +159,10 @@ def distance_text(s: dict, reference, current) -> str:
     """The table of ``sdp distance``."""
     n = max(s["core_points"], 1)
     lines = [f"{reference} → {current}: signed distance along the normal ({s['orientation']})",
-             f"  core points      {s['core_points']:>12,}",
+             f"  core points      {s['core_points']:>12,}"
+             + (f"  (and {s['core_points_dropped']:,} row{'s' if s['core_points_dropped'] != 1 else ''} holding "
+                f"NaN or Inf, left out)"
+                if s.get("core_points_dropped") else ""),
              f"  with a distance  {s['comparable']:>12,}  ({s['comparable'] / n:.1%}; the others: an epoch has no "
              "points near" + (f", or its sensor could not see the place ({s['not_seen']:,})" if s.get("not_seen")
                               else "") + ", not comparable)",
