@@ -147,6 +147,15 @@ def test_mesh_writers(tmp_path, rng):
         p = write_mesh(tmp_path / f"m.{ext}", mesh)
         assert p.stat().st_size > 1000
     assert (tmp_path / "m.stl").stat().st_size == 84 + 50 * len(mesh.faces)
+    # far from the origin (UTM): OBJ keeps every digit; STL's 32-bit floats would move the vertices by more
+    # than the mesh's detail, so it is refused and nothing is written
+    far = sdp.Mesh(mesh.vertices + [634_000.0, 4_831_000.0, 80.0], mesh.faces)
+    write_mesh(tmp_path / "far.obj", far)
+    back = np.array([line.split()[1:] for line in open(tmp_path / "far.obj") if line.startswith("v ")], float)
+    np.testing.assert_allclose(back, far.vertices, rtol=0, atol=1e-9)
+    with pytest.raises(sdp.CloudFileError, match="STL holds 32-bit floats"):
+        write_mesh(tmp_path / "far.stl", far)
+    assert not (tmp_path / "far.stl").exists()
 
 
 @pytest.mark.parametrize("name, content, match", [

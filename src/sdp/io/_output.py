@@ -274,7 +274,9 @@ def _checked_points(path: Path, xyz, fields) -> tuple[np.ndarray, dict[str, np.n
 
 
 def write_mesh(path: str | os.PathLike, mesh, *, inputs=()) -> Path:
-    """Write a :class:`sdp.Mesh` as PLY, OBJ or STL (by extension), atomically."""
+    """Write a :class:`sdp.Mesh` as PLY, OBJ or STL (by extension), atomically. PLY and OBJ keep
+    64-bit coordinates; STL, whose coordinates are 32-bit, is refused where rounding them would move
+    a vertex by more than 1 % of the median edge (coordinates far from the origin: UTM)."""
     path = Path(path)
     ext = path.suffix.lower()
     v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
@@ -283,12 +285,20 @@ def write_mesh(path: str | os.PathLike, mesh, *, inputs=()) -> Path:
     with atomic_path(path, inputs=inputs) as tmp:
         if ext == ".ply":
             write_ply_mesh(tmp, v, f)
-        elif ext == ".obj":
+        elif ext == ".obj":  # every digit of a double: UTM coordinates keep their millimetres
             with open(tmp, "w") as fh:
-                np.savetxt(fh, v, fmt="v %.9g %.9g %.9g")
+                np.savetxt(fh, v, fmt="v %.17g %.17g %.17g")
                 np.savetxt(fh, f + 1, fmt="f %d %d %d")
         else:  # binary STL: an 80-byte header, the triangle count, then normal, corners, attribute
             tri = v[f]
+            # STL holds 32-bit floats: far from the origin they round by more than the mesh's detail
+            edge = float(np.median(np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1))) if len(f) else 0.0
+            rounding = float(np.abs(tri.astype(np.float32).astype(np.float64) - tri).max()) if len(f) else 0.0
+            if rounding > 0.01 * edge:
+                raise CloudFileError(f"{path}: STL holds 32-bit floats, which move these vertices (up to "
+                                     f"{np.abs(v).max():.4g} from the origin) by {rounding:.3g}, "
+                                     f"{rounding / max(edge, 1e-300):.0%} of the mesh's median edge: write "
+                                     f".ply or .obj (64-bit), or move the cloud near the origin first")
             normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
             normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
             rec = np.zeros(len(f), dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
