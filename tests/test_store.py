@@ -93,6 +93,16 @@ def test_store_errors(tmp_path):
     zarr.open_group(str(tmp_path / "other.zarr"), mode="w").create_array("a", shape=(3,), dtype="f4")
     with pytest.raises(sdp.FieldFileError, match="a Zarr store sdp did not write: neither a field store"):
         FieldStore.open(tmp_path / "other.zarr")
+    zarr.open_group(str(tmp_path / "series.zarr"), mode="w").attrs.update({"format": "sdp-series"})
+    with pytest.raises(sdp.FieldFileError, match="a series archive .sdp series., not a density field store"):
+        FieldStore.open(tmp_path / "series.zarr")
+    from sdp.cli import combine_files
+
+    FieldStore.create(tmp_path / "s.zarr", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8)
+    np.save(tmp_path / "c.npy", np.random.default_rng(0).random((100, 3)))
+    with pytest.raises(sdp.SDPError, match="combines with another one into a .zarr output"):
+        combine_files("union", tmp_path / "s.zarr", tmp_path / "c.npy", output=tmp_path / "u.sdpf")
+    assert not (tmp_path / "u.sdpf").exists()
 
 
 @pytest.mark.slow

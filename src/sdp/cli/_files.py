@@ -153,6 +153,9 @@ def combine_files(operation: str, a, b, *, output, format: str | None = None, la
         if not (is_store(a) and is_store(b)):
             raise SDPError("a .zarr output combines two .zarr field stores (build them with sdp build -o X.zarr)")
         return FieldStore.open(a).combine(FieldStore.open(b), operation, output)
+    if is_store(a) or is_store(b):
+        raise SDPError(f"{a if is_store(a) else b}: a .zarr field store combines with another one into a .zarr "
+                       f"output (-o X.zarr); with a cloud or a .sdpf field, give the cloud it was built from")
     items = [_field_or_points(p, format) for p in (a, b)]
     like = next((x for x in items if isinstance(x, DensityField)), None)
     kw = _lattice(items, lattice, memory_limit, like)  # clouds are built on a given field's lattice, else on one from both

@@ -508,7 +508,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="per-point field whose nonzero points are drawn as changed (default change)")
 
     for q in (c, ds, se, b, i, m, o, al, w, e, r):
-        q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz)")
+        q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz, e57)")
     for q in (c, b, m, o):
         _grid_options(q)
 

@@ -97,6 +97,9 @@ class FieldStore:
             group = zarr.open_group(str(path), mode="r+")
         except Exception as exc:  # zarr raises several types for missing or foreign folders
             raise FieldFileError(f"{path}: not a readable sdp field store ({type(exc).__name__}: {exc})") from None
+        if group.attrs.get("format") == "sdp-series":
+            raise FieldFileError(f"{path}: a series archive (sdp series), not a density field store: `sdp info` "
+                                 f"summarises it, sdp.open_series reads it")
         if group.attrs.get("format") is None:
             raise FieldFileError(f"{path}: a Zarr store sdp did not write: neither a field store (sdp build "
                                  f"--tiled) nor a series archive (sdp series)")
