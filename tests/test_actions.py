@@ -96,6 +96,15 @@ def test_train_predict_save_load(tmp_path, rng):
     with pytest.raises(SDPError, match="not an sdp action model") as err:
         ActionModel.load(tmp_path / "bad.npz")
     assert "pickle" not in str(err.value)  # NumPy's advice to load pickled data is not passed on
+    np.savez(tmp_path / "cloud.npz", xyz=np.zeros((3, 3)), change=np.zeros(3))  # an .npz, not a model
+    with pytest.raises(SDPError, match="cloud.npz: not an sdp action model .an .npz file that 'sdp action train'"):
+        ActionModel.load(tmp_path / "cloud.npz")
+    with pytest.raises(SDPError, match="gone.mat: no such file"):
+        read_sequence(tmp_path / "gone.mat")
+    from sdp.cli import train_actions
+
+    with pytest.raises(SDPError, match="name it ….npz"):
+        train_actions(tmp_path, output=tmp_path / "m.txt")
 
 
 @pytest.mark.slow

@@ -112,6 +112,8 @@ def read_sequence(path: str | os.PathLike) -> np.ndarray:
     H × W × T) or the original ``.bin`` (three little-endian uint32 frames, width, height, then
     frames × height × width uint32 depths, row-major)."""
     path = Path(path)
+    if not path.is_file():  # SciPy names a missing .mat otherwise ("Reader needs file name …")
+        raise SDPError(f"{path}: no such file" if not path.exists() else f"{path}: not a file")
     try:
         if path.suffix.lower() == ".bin":
             raw = np.fromfile(path, dtype="<u4")
@@ -470,6 +472,8 @@ class ActionModel:
     def load(cls, path: str | os.PathLike) -> "ActionModel":
         try:
             with np.load(path, allow_pickle=False) as z:
+                if not {"coef", "intercept", "classes"} <= set(z.files):  # another .npz (a labelled cloud)
+                    raise OSError
                 for key, value in PARAMETERS.items():
                     if key not in z or not np.array_equal(z[key], np.asarray(value)):
                         raise SDPError(f"made with other pattern parameters ({key})")

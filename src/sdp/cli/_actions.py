@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -22,6 +23,8 @@ def train_actions(data_dir, *, output, subjects=None, workers: int = os.cpu_coun
     from ..actions import _actions as actions
 
     check_outputs([output], [data_dir])
+    if Path(output).suffix.lower() != ".npz":
+        raise SDPError(f"{output}: an action model is a NumPy .npz file: name it ….npz")
     rows = actions.list_sequences(data_dir)
     if subjects:
         try:
