@@ -118,6 +118,11 @@ def test_eval_matches_library_scores(tmp_path, rng):
     p = run("eval", tmp_path / "p.ply", tmp_path / "t.npz", "--truth-field", "label", "--json")
     assert p.returncode == 0, p.stderr
     assert json.loads(p.stdout) == pytest.approx(sdp.scores(truth, pred), nan_ok=True)
+    from sdp.cli import evaluate_files
+
+    write_points(tmp_path / "r.npz", xyz, {"region": np.where(pred, np.arange(500) % 3, -1)})  # ids from 0, -1 none
+    assert evaluate_files(tmp_path / "r.npz", tmp_path / "t.npz", predicted_field="region",
+                          truth_field="label").scores == pytest.approx(sdp.scores(truth, pred), nan_ok=True)
     bad = run("eval", tmp_path / "p.ply", tmp_path / "t.npz")
     assert bad.returncode == 2 and "no per-point field 'change'" in bad.stderr and "label" in bad.stderr
 

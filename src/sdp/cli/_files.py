@@ -306,7 +306,8 @@ def evaluate_files(predicted, truth, *, predicted_field: str = "change", truth_f
     """Kappa, precision, recall, IoU … of the labels of one file against another's (``sdp eval``).
 
     ``predicted_field="change"`` (sdp's field): 1 is changed and 2 not comparable (left out);
-    any other field, and ``truth_field``: nonzero is changed. Both files hold the same points
+    ``"region"`` (sdp's too): a region's id (0, 1, …) is changed, -1 not; any other field, and
+    ``truth_field``: nonzero is changed. Both files hold the same points
     in the same order.
     """
     from ..change._coverage import CHANGED, NOT_COMPARABLE
@@ -332,6 +333,8 @@ def evaluate_files(predicted, truth, *, predicted_field: str = "change", truth_f
     _check_same_points(clouds[0], clouds[1])
     if predicted_field == "change":  # sdp's field: 1 changed, 2 not comparable (scored apart)
         changed, comparable = values[0] == CHANGED, values[0] != NOT_COMPARABLE
+    elif predicted_field == "region":  # sdp's field: a region's id (from 0), -1 none
+        changed, comparable = values[0] >= 0, None
     else:  # any other field: nonzero is changed
         changed, comparable = values[0] != 0, None
     true = values[1] != 0

@@ -495,8 +495,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
     e.add_argument("truth", help="cloud with the true labels, same points in the same order")
     e.add_argument("--predicted-field", default="change",
-                   help="field of PREDICTED (default change: 1 changed, 2 not comparable, left out; other fields: "
-                        "nonzero is changed)")
+                   help="field of PREDICTED (default change: 1 changed, 2 not comparable, left out; region: an id "
+                        "from 0 is changed, -1 not; other fields: nonzero is changed)")
     e.add_argument("--truth-field", default="change", help="field of TRUTH (nonzero: changed; default change)")
     e.add_argument("--json", action="store_true", help="print the scores as JSON")
 
