@@ -425,6 +425,14 @@ def test_smoother_recovers_velocity_and_steps():
     assert np.all(ssd > 0) and np.all(vsd > 0)
     one = kalman(z[:, :1], var[:, :1], t, 1e-6, lag=8, scale=1.0, dt=1.0)[0]
     np.testing.assert_array_equal(one[:, 0], sm[:, 0])
+    # a steady change faster than the noise (8 deviations an epoch, from the reference or from epoch
+    # 10 on) is a rate, learnt, and a gradual onset: not a step at every epoch with no rate
+    fast = np.zeros((30, 200))
+    fast[:, :100] = 8.0 * t[:, None]
+    fast[:, 100:] = 8.0 * np.maximum(t - 10, 0)[:, None]
+    sm, vel, *_, step, _ = kalman(fast + rng.standard_normal((30, 200)), np.ones((30, 200)), t, 1e-6, lag=8,
+                                  scale=1.0, dt=1.0)
+    assert abs(np.median(vel[12:]) - 8.0) < 0.2 and (step < 0).mean() > 0.9  # a few: a step and a rate, by noise
 
 
 def test_a_step_after_the_first_epoch_an_outlier_and_a_step_at_the_newest_epoch():

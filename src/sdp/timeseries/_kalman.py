@@ -25,7 +25,11 @@ Not-comparable epochs are skipped (prediction only).
   Not confirmed, it is an outlier (a person, a parked car, a splash of rain): its variance is
   raised by the innovation's square, so it hardly moves the series. Without a next observation
   (the newest epoch, or the next one not comparable) it counts as a step, which a later epoch
-  confirms or revises.
+  confirms or revises. A confirmed jump that the next epoch carries on from as far again (in
+  proportion to the time: nearer that than the jump's own level) is a change of rate: a steady
+  change faster than the noise, which a step at every epoch would leave with no rate at all. The
+  rate's variance is then raised by that rate's square too, so the filter learns it; its epoch is
+  no step (the onset is gradual).
 - **The rate starts at 0 ± one of the point's noise deviations per time step** at its first
   observation (the change itself starts diffuse). A diffuse rate is set by the second epoch, so a
   step right after the reference would read as a rate, and the third epoch, predicted twice as
@@ -304,6 +308,7 @@ def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen,
             # comparable) it counts as a step until one comes
             is_step = k == E - 1 or not (np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1])
                                          and var[j, w + 1] > 0)
+            ramp = False
             if not is_step:
                 h = t[k + 1] - t[k]
                 nu2 = z[j, w + 1] - (x0 + h * x1)
@@ -311,10 +316,19 @@ def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen,
                 is_step = abs(nu2) > step_k * np.sqrt(s2) and np.sign(nu) == np.sign(nu2)
                 if not is_step:
                     s = s + nu * nu
+                else:
+                    # a step stays at its new level; a change of rate goes on from it as far again
+                    # (in proportion to the time) by the next epoch: whichever the next epoch lies
+                    # nearer to. A ramp (a steady change faster than the noise) opens the rate's
+                    # variance by its square too, so the filter learns the rate
+                    d2 = z[j, w + 1] - z[j, w]
+                    ramp = np.sign(d2) == np.sign(nu) and abs(d2) > 0.5 * abs(nu) * h / (t[k] - t[k - 1])
+                    if ramp:
+                        p11 = p11 + (d2 / h) ** 2
             if is_step:
                 p00 = p00 + nu * nu
                 s = s + nu * nu
-                if step[j] < 0:
+                if step[j] < 0 and not ramp:  # a ramp's start is an onset of the gradual kind
                     step[j] = k
         xp[r, 0], xp[r, 1] = x0, x1
         Pp[r, 0], Pp[r, 1], Pp[r, 2] = p00, p01, p11
