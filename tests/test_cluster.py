@@ -170,3 +170,30 @@ def test_a_lost_worker_beyond_the_allowed_failures_stops_the_run(cluster, pair, 
     assert r.returncode == 2, r.stderr
     assert r.stderr.count("\n") == 1 and r.stderr.startswith("sdp: error: ") and "died" in r.stderr, r.stderr
     assert list(out.iterdir()) == [] and list(work.iterdir()) == []
+
+
+def _too_big(x):
+    from sdp.errors import GridTooLargeError
+
+    raise GridTooLargeError(f"tile {x}: 787,284 blocks would need 1.57 GB")
+
+
+def _out_of_memory(x):
+    raise MemoryError
+
+
+@pytest.mark.slow
+def test_a_tiles_memory_error_comes_back_as_one_sdp_error():
+    """Distributed sends a MemoryError (GridTooLargeError is one) back as a bare Exception holding its
+    repr, which the command printed as a traceback (exit 1): the tasks send it as an SDPError."""
+    from dask.distributed import Client, LocalCluster
+
+    import sdp
+    from sdp.scale._session import _run
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        with pytest.raises(sdp.SDPError, match="a tile: tile 1: 787,284 blocks would need 1.57 GB"):
+            _run(client, _too_big, [(1,)], "compare")
+        with pytest.raises(sdp.SDPError, match="ran out of memory"):
+            _run(client, _out_of_memory, [(1,)], "compare")

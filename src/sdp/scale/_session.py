@@ -6,6 +6,7 @@ failure, with Ctrl-C and SIGTERM ending the run and removing the work folder.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -413,6 +414,23 @@ def _sigint_deferred():
 TASK_RETRIES = 1
 
 
+def _guarded(func, *args):
+    """``func(*args)`` in a Dask worker. Distributed sends a ``MemoryError`` back as a bare
+    ``Exception`` holding its repr, which the command could not tell from a fault of its own: a
+    tile's grid beyond its share of the memory limit (:class:`GridTooLargeError`, a MemoryError
+    too) goes back as the :class:`SDPError` it is, in one line, and so does a tile that ran out of
+    memory."""
+    try:
+        return func(*args)
+    except GridTooLargeError as exc:
+        message = f"a tile: {exc}"
+    except MemoryError:
+        message = "a tile ran out of memory in its worker: give a larger --memory-limit, or a smaller --tile-size"
+    # raised outside the handler: distributed looks at the error this one happened in, and would see the
+    # MemoryError again
+    raise SDPError(message)
+
+
 def _run(executor, func, jobs: list, what: str, unit: str = "tile") -> list:
     """func(*job) for every job, in order, on a distributed ``Client`` or a local Dask scheduler (its name).
 
@@ -427,7 +445,8 @@ def _run(executor, func, jobs: list, what: str, unit: str = "tile") -> list:
         return list(dask.compute(*[dask.delayed(func, pure=False)(*job) for job in jobs], scheduler=executor))
     distributed = _dask("dask.distributed")
 
-    futures = executor.map(func, *zip(*jobs, strict=True), pure=False, retries=TASK_RETRIES)
+    futures = executor.map(functools.partial(_guarded, func), *zip(*jobs, strict=True), pure=False,
+                           retries=TASK_RETRIES)
     try:
         with bar(len(futures), what, unit=unit) as pb:
             for future in distributed.as_completed(futures):
