@@ -409,6 +409,18 @@ def test_dates_give_velocities_per_day_and_open_with_xarray(slope, tmp_path):
         sdp.series(slope.epochs[4:5], output=out, append=True)
 
 
+def test_an_archive_counted_by_index_goes_on_counting(slope, tmp_path):
+    """LAS files written the same day give the same creation date: the first run counts the epochs
+    by index, and an append of one more such file goes on counting (it was refused: a date against
+    numbers)."""
+    files = [sdp.write_points(tmp_path / f"e{k}.las", e) for k, e in enumerate(slope.epochs[:4])]
+    out = tmp_path / "s.zarr"
+    sdp.series(files[:3], output=out, cylinder=CYL)
+    ds = sdp.series(files[3:], output=out, append=True, cylinder=CYL)
+    assert ds.time.values.tolist() == [0.0, 1.0, 2.0, 3.0]
+    assert [e["time_source"] for e in ds.attrs["epochs"]] == ["index"] * 4
+
+
 def test_smoother_recovers_velocity_and_steps():
     rng = np.random.default_rng(0)
     t = np.arange(30.0)

@@ -330,7 +330,12 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             params = attrs["parameters"]
             _check_append(params, given, core_points, out)
             old_times = np.asarray([e["time"] for e in attrs["epochs"]], np.float64)
-            t_new, kind, source = _resolve_times(epochs, times, start_index=len(old_times))
+            by_index = times is None and all(e["time_source"] == "index" for e in attrs["epochs"])
+            if by_index:  # the archive counts its epochs: the new ones go on counting, whatever their files say
+                t_new = np.arange(len(old_times), len(old_times) + len(epochs), dtype=np.float64)
+                kind, source = "number", "index"
+            else:
+                t_new, kind, source = _resolve_times(epochs, times, start_index=len(old_times))
             if kind != attrs["time_kind"]:
                 why = "their files record no date: give times (--times)" if times is None else "give dates"
                 raise InvalidOptionError(f"the archive's epochs are dated and the new epochs' times are "
