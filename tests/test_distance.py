@@ -62,6 +62,13 @@ def test_normals_point_to_the_sensor(rng):
     assert (d.normal[:, 0] < 0).all()  # towards the sensor at x = 0
     assert abs(np.median(d.distance) - 0.02) < 0.001  # the current lies on the sensor's side
     assert "sensor" in d.orientation
+    # a cloud whose file records its sensor (a PCD's VIEWPOINT): an orientation given would be ignored, so
+    # it is refused; without the sensor it is used
+    cloud = sdp.io.Cloud(wall, {}, None, 0, None, np.array([0.0, 0, 0, 1, 0, 0, 0]), True, None)  # organized
+    with pytest.raises(sdp.InvalidOptionError, match="records theirs"):
+        sdp.distances(cloud, nearer, orientation=[1.0, 0, 0])
+    away = sdp.distances(cloud, nearer, orientation=[1.0, 0, 0], sensor_origin=None)
+    assert (away.normal[:, 0] > 0).all()
 
 
 def test_no_data_is_not_comparable(rng):

@@ -309,9 +309,13 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
         given = as_points(core_points, name="core points")
         core, given_rows = given.xyz, given.finite
         sensor = _sensor_per_point(origins[0], reference, ref.xyz, core)
-    # the core points' own sensor, given (not read by "auto"), sets their normals
-    check_orientation(orientation, sensor_given=sensor is not None
-                      and not (isinstance(sensor_origin, str) and sensor_origin == "auto"))
+    # the core points' own sensor, given or read from their file ("auto"), sets their normals
+    from_file = isinstance(sensor_origin, str) and sensor_origin == "auto"
+    if orientation is not None and sensor is not None and from_file:
+        raise InvalidOptionError("orientation points the normals where no sensor is known, and the core points' "
+                                 "file records theirs (a PCD's VIEWPOINT, an E57's poses), which the normals face: "
+                                 "give sensor_origin=None (--sensor-origin none) to orient them by orientation")
+    check_orientation(orientation, sensor_given=sensor is not None and not from_file)
     timings = {"validate": time.perf_counter() - t0}
 
     t = time.perf_counter()
