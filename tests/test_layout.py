@@ -136,3 +136,12 @@ def test_options_are_shared_and_checked_once():
                  sdp.build_field_tiled):
         assert inspect.signature(func).parameters["lattice"].annotation in ("Lattice | None",)
     assert sdp.Registration().method == sdp.DEFAULTS.align_method
+    # an output a command does not write is refused, not ignored (in Python as on the command line)
+    for call, says in ((lambda: sdp.distance_files("a.npy", "b.npy", output="d.ply",
+                                                   outputs=sdp.Outputs(html="d.html")), "an HTML view"),
+                       (lambda: sdp.distance_files("a.npy", "b.npy", output="d.ply", outputs=sdp.Outputs(both=True)),
+                        "labelled copy"),
+                       (lambda: sdp.compare_files("a.npy", "b.npy", output="c.ply",
+                                                  outputs=sdp.Outputs(field_names="pdal")), "field names")):
+        with pytest.raises(sdp.InvalidOptionError, match=f"does not write .*{says}"):
+            call()

@@ -377,6 +377,17 @@ class Outputs:
         """Whether a picture or a report is asked for (made in memory)."""
         return bool(self.png or self.html or self.report)
 
+    def only(self, command: str, *names: str) -> "Outputs":
+        """``self`` if it asks for nothing but the outputs ``names`` that ``command`` writes, else
+        a one-line :class:`~sdp.InvalidOptionError` naming the first it would ignore."""
+        default = Outputs()
+        what = {"both": "the reference's labelled copy", "png": "a PNG picture", "html": "an HTML view",
+                "report": "a report", "aligned": "aligned coordinates", "field_names": "other tools' field names"}
+        for name, thing in what.items():
+            if name not in names and getattr(self, name) != getattr(default, name):
+                raise InvalidOptionError(f"{command} does not write {thing} (outputs.{name}): it would be ignored")
+        return self
+
 
 def as_options(cls, value, name: str):
     """``value`` as the options object ``cls`` takes (None: its defaults); anything else (a dict,

@@ -268,7 +268,7 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     ...                       outputs=sdp.Outputs(both=True))  # doctest: +SKIP
     >>> print(r.summary_text()); r.tiled, r.summary["current"]["appeared"]  # doctest: +SKIP
     """
-    outputs = as_options(Outputs, outputs, "outputs")
+    outputs = as_options(Outputs, outputs, "outputs").only("sdp change", "both", "png", "html", "report", "aligned")
     lattice = as_options(Lattice, lattice, "lattice")
     coverage = as_options(Coverage, coverage, "coverage")
     execution = as_options(Execution, execution, "execution")

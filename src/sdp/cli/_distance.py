@@ -101,7 +101,7 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
     from ..distance._distances import distances
     from ..io._output import write_points
 
-    outputs = as_options(Outputs, outputs, "outputs")
+    outputs = as_options(Outputs, outputs, "outputs").only("sdp distance", "png", "report", "field_names")
     cylinder = as_options(Cylinder, cylinder, "cylinder")
     execution = as_options(Execution, execution, "execution")
     align = Registration.of(align)

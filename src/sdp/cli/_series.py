@@ -95,7 +95,7 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     from ..timeseries._archive import open_series
     from ..timeseries._compute import write_series
 
-    outputs = as_options(Outputs, outputs, "outputs")
+    outputs = as_options(Outputs, outputs, "outputs").only("sdp series", "report", "field_names")
     exports = {} if exports is None else exports
     options = dict(options or {})
     unknown = set(options) - {"core_points", "reference", "cylinder", "registration_error", "align", "orientation",
