@@ -5,14 +5,18 @@ import doctest
 import pytest
 
 import sdp.change._detect
+import sdp.distance._distances
 import sdp.fields._boolean
 import sdp.fields._density
 import sdp.io._output
 import sdp.io._read
 import sdp.options
+import sdp.timeseries._compute
 
-MODULES = [sdp.change._detect, sdp.fields._density, sdp.io._read, sdp.io._output, sdp.fields._boolean, sdp.options]
-ENTRY_POINTS = [sdp.detect_changes, sdp.DensityField.from_points, sdp.read_points, sdp.write_points, sdp.difference]
+MODULES = [sdp.change._detect, sdp.fields._density, sdp.io._read, sdp.io._output, sdp.fields._boolean, sdp.options,
+           sdp.distance._distances, sdp.timeseries._compute]
+ENTRY_POINTS = [sdp.detect_changes, sdp.DensityField.from_points, sdp.read_points, sdp.write_points, sdp.difference,
+                sdp.distances, sdp.series]
 
 
 @pytest.mark.parametrize("module", MODULES, ids=lambda m: m.__name__)

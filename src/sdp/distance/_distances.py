@@ -279,10 +279,19 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     >>> import numpy as np, sdp
     >>> rng = np.random.default_rng(0)
     >>> ground = np.c_[rng.uniform(0, 10, (20000, 2)), 0.01 * rng.standard_normal(20000)]
-    >>> raised = ground + [0, 0, 0.05]
+    >>> raised = ground.copy()
+    >>> raised[np.hypot(*(ground[:, :2] - 5).T) < 2, 2] += 0.05  # a disc raised 5 cm, the rest stable
     >>> d = sdp.distances(ground, raised, cylinder=sdp.Cylinder(projection_scale=0.5))
-    >>> print(round(float(np.median(d.distance)), 3), bool(d.significant.mean() > 0.99))
+    >>> disc = np.hypot(*(d.core_points[:, :2] - 5).T) < 1.5
+    >>> print(round(float(np.median(d.distance[disc])), 3), bool(d.significant[disc].mean() > 0.99))
     0.05 True
+
+    A whole scene moved reads as a registration error (``"auto"``); give 0 for M3C2's level:
+
+    >>> shifted = sdp.distances(ground, ground + [0, 0, 0.05], cylinder=sdp.Cylinder(projection_scale=0.5),
+    ...                         registration_error=0)
+    >>> bool(shifted.significant.mean() > 0.99)
+    True
     """
     t0 = time.perf_counter()
     ref, cur = as_points(reference, name="reference"), as_points(current, name="current")
