@@ -114,6 +114,8 @@ def test_options_are_shared_and_checked_once():
     lattice = sdp.Lattice(voxel_size=0.05)
     with pytest.raises(sdp.InvalidOptionError, match="voxel_size"):
         sdp.Lattice(voxel_size=0)
+    with pytest.raises(sdp.InvalidOptionError, match="grid_size= or voxel_size=, not both"):
+        sdp.Lattice(voxel_size=0.02, grid_size=80)  # refused when made, not by some callers only
     with pytest.raises(sdp.InvalidOptionError, match="range_noise"):
         sdp.Coverage(range_noise=-1)
     with pytest.raises(sdp.InvalidOptionError, match="workers"):

@@ -56,7 +56,8 @@ class Lattice:
         point spacing (:func:`sdp.auto_voxel_size`).
     grid_size : int, optional
         The paper's parameterization instead: the longest side of the box holding every cloud
-        divided into ``grid_size`` segments (80 in the paper); wins over ``voxel_size``.
+        divided into ``grid_size`` segments (80 in the paper); with a ``voxel_size`` given too,
+        refused (one of them sets the lattice).
     sigma_voxels : float or "auto"
         The Gaussian's σ in voxels; ``"auto"``: 1.5 on the automatic lattice, the paper's 2
         with a given voxel or grid size.
@@ -86,6 +87,8 @@ class Lattice:
     def __post_init__(self):
         if self.grid_size is not None:
             V.integer_at_least("grid_size", self.grid_size, 1)
+            if self.voxel_size not in (None, "auto"):
+                raise InvalidOptionError("give grid_size= or voxel_size=, not both")
         V.check_grid_options(voxel_size=None if self.grid_size is not None else self.voxel_size,
                              sigma_voxels=self.sigma_voxels, k=self.k, h=self.h, truncate=self.truncate)
         if self.method not in ("auto", "exact", "fast"):
