@@ -25,7 +25,7 @@ DISTANCE = """  sdp distance 2015.laz 2023.laz -o d.laz --png d.png    how much,
 SERIES = """  sdp series day*.laz -o slope.zarr --times 2024-05-01,2024-05-02,2024-05-03
   sdp series day4.laz --append -o slope.zarr --times 2024-05-04   only the new epoch is measured
   sdp series e*.laz -o s.zarr --core-points core.laz --registration-error 0.005 --report s.html
-  sdp series e*.laz -o s.zarr --epoch-output 3:e3.laz --points-output p.csv --points 10,20
+  sdp series e*.laz -o s.zarr --epoch-output 3:distances3.laz --points-output p.csv --points 10,20
   sdp series big*.laz -o big.zarr --tiled --max-distance 0.5    epochs beyond memory: tiles on Dask
   sdp info s.zarr                                              epochs, objects, every parameter
 """
