@@ -156,7 +156,9 @@ class Coverage:
 
 @dataclass(frozen=True, kw_only=True)
 class Registration:
-    """How the current scan is moved onto the reference before a comparison (:func:`sdp.align`).
+    """How the current scan is moved onto the reference before a comparison, by :func:`sdp.align`
+    (which itself takes the method by name): ``align=`` of :func:`sdp.compare_files`,
+    :func:`sdp.distance_files`, :func:`sdp.watch` and :func:`sdp.series`.
 
     Attributes
     ----------

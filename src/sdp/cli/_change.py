@@ -217,9 +217,10 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     Parameters
     ----------
     reference, current : path-like
-        Point-cloud files (PCD, PLY, LAS/LAZ, XYZ/TXT/CSV, NPY/NPZ; ``format`` overrides the
-        extension). ``reference`` may be a ``.zarr`` field store (:func:`build_field_file`):
-        compared in tiles, what appeared only.
+        Point-cloud files (PCD, PLY, LAS/LAZ, XYZ/TXT/CSV, NPY/NPZ, E57; ``format`` overrides the
+        extension), or ROS bags with ``topic``. ``reference`` may be a ``.zarr`` field store
+        (:func:`sdp.build_field_tiled`, ``sdp build -o FIELD.zarr``): compared in tiles, what
+        appeared only.
     output : path-like
         The labelled current cloud (.ply, .las, .laz, .npz; tiles write LAS/LAZ).
     outputs : Outputs, optional
@@ -243,6 +244,10 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
         The memory limit and the tiles (:class:`sdp.Execution`): ``tiled`` compares in tiles
         even if the clouds fit in memory; ``notify`` is called with one line when the
         comparison switches to tiles by itself (``sdp change`` prints it on stderr).
+    topic : str, optional
+        With a ROS bag (a ``.bag`` file, or a ROS 2 bag folder) as an input: its
+        ``sensor_msgs/PointCloud2`` topic, ``TOPIC`` (its first message) or ``TOPIC:N`` (its N-th,
+        from 0; negative from the end).
 
     Returns
     -------

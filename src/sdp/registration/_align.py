@@ -187,9 +187,9 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
     method : {"density", "gicp"}
         See the module docstring.
     voxel_size : float or "auto"
-        Voxel of the finest level (``"auto"``: :func:`sdp.auto_voxel_size` of the reference):
-        σ = 2 voxels as for change detection, sampled at half that voxel. Ignored when
-        ``reference`` is a field.
+        Voxel of the finest level (``"auto"``: :func:`sdp.auto_voxel_size` of the reference, the
+        automatic lattice's voxel): σ = 2 of these voxels (a third wider than change detection's
+        1.5 on the same lattice), sampled at half that voxel. Ignored when ``reference`` is a field.
     levels : int
         Levels of the pyramid (``"density"``): the coarsest has σ × 2^(levels−1), which sets
         the largest offset that can be recovered (about that σ).

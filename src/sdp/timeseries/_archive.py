@@ -643,8 +643,8 @@ def open_series(path, *, chunks="auto"):
 
     Raises
     ------
-    SeriesArchiveError
-        Not a series archive (or one of another format version).
+    sdp.SDPError
+        Not a series archive (or one of another format version): a ``SeriesArchiveError``.
 
     References
     ----------
