@@ -1,7 +1,7 @@
 """The examples that end each ``sdp`` command's ``--help``, kept as written (the columns align)."""
 
-REPORT_HELP = ("one self-contained HTML page: summary, parameters and why, map, histogram, regions with "
-               "thumbnails, 3-D view (needs the plots extra; in memory only)")
+REPORT_HELP = ("one self-contained HTML page: summary, parameters and why, maps, histogram (changes: regions with "
+               "thumbnails and a 3-D view; needs the plots extra; in memory only)")
 
 CHANGE = """  sdp change ref.pcd cur.pcd -o changes.ply                  appeared points of cur.pcd
   sdp change ref.laz cur.laz -o out.laz --report report.html  one page to read or send

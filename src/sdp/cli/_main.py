@@ -334,7 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--aligned-output", action="store_true", help="write CURRENT's aligned coordinates (with --align)")
     _align_options(c)
     c.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
-                   help="test changes along the sensor's rays (sdp.visibility). auto (default): where a file "
+                   help="test changes along the sensor's rays (sdp.change._visibility). auto (default): where a file "
                         "records it (organized PCD: VIEWPOINT), as it lifts kappa on Kinect pairs from 0.67 to 0.85; "
                         "viewpoint: the same, required; none: density and footprint only; X,Y,Z: one position")
     c.add_argument("--range-noise", type=V.cli_type(V.nonnegative_finite), default=DEFAULTS.range_noise,
@@ -456,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="register each frame onto the reference first (a moving camera): gicp (small_gicp, "
                         "needs a reference cloud) or density")
     w.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
-                   help="test changes along the reference's rays (sdp.visibility): auto (default) where its file "
+                   help="test changes along the reference's rays (sdp.change._visibility): auto (default) where its file "
                         "records the sensor (organized PCD), viewpoint the same but required, none, or X,Y,Z")
     w.add_argument("--range-noise", type=V.cli_type(V.nonnegative_finite), default=DEFAULTS.range_noise,
                    help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
@@ -487,9 +487,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--splits", choices=("standard", "all"), default="standard",
                     help="standard: train on subjects 1,3,5,7,9 (default); all: every five-subject training set "
                          "(252), the mean, spread and the standard split's place")
-    for q in (t, ev):
+    for q, more in ((t, ""), (ev, " (and, with --splits all, sharing the splits)")):
         q.add_argument("--workers", type=V.cli_type(V.integer_at_least, 1), default=os.cpu_count() or 1,
-                       help="processes reading sequences (and, with --splits all, sharing the splits)")
+                       help=f"processes reading sequences{more}")
 
     e = _command(sub, "eval", cmd_eval, "kappa, precision, recall, … of predicted change labels against truth", X.EVAL)
     e.add_argument("predicted", help="cloud with the predicted labels (e.g. the output of sdp change)")
@@ -500,12 +500,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--truth-field", default="change", help="field of TRUTH (nonzero: changed; default change)")
     e.add_argument("--json", action="store_true", help="print the scores as JSON")
 
-    r = _command(sub, "render", cmd_render, "picture of a labelled cloud (red: changed) or slices of a field", X.RENDER)
+    r = _command(sub, "render", cmd_render, "picture of a labelled cloud (vermillion: changed) or slices of a field", X.RENDER)
     r.add_argument("file", help="cloud with a label field, or a field (.sdpf)")
     r.add_argument("--png", help="picture (three views of a cloud; three slices of a field)")
     r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")
     r.add_argument("--field", default="change",
-                   help="per-point field whose nonzero points are drawn as changed (default change)")
+                   help="per-point field to colour by (default change: 1 changed, 2 not comparable, grey); "
+                        "another field: nonzero drawn as changed, NaN grey")
 
     for q in (c, ds, se, b, i, m, o, al, w, e, r):
         q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz, e57)")
@@ -517,9 +518,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0)
     wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does)", "  sdp warmup")
     for q in (c, ds, se, b, i, m, o, al, w, t, pr, ev, e, r, d, wu):
+        takes_json = any("--json" in a.option_strings for a in q._actions)
         q.add_argument("-q", "--quiet", action="store_true",
-                       help="print nothing but errors (and the JSON that --json asks for): no summary, progress "
-                            "bar or notice")
+                       help="print nothing but errors" + (" (and the JSON that --json asks for)" if takes_json else "")
+                            + ": no summary, progress bar or notice")
     return p
 
 
