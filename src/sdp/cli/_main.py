@@ -517,10 +517,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-o", "--output", default="demo-output")
     d.add_argument("--seed", type=int, default=0)
     wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does)", "  sdp warmup")
+    with_json = (c, ds, se, al, w, ev, e)
     for q in (c, ds, se, b, i, m, o, al, w, t, pr, ev, e, r, d, wu):
-        takes_json = any("--json" in a.option_strings for a in q._actions)
         q.add_argument("-q", "--quiet", action="store_true",
-                       help="print nothing but errors" + (" (and the JSON that --json asks for)" if takes_json else "")
+                       help="print nothing but errors" + (" (and the JSON that --json asks for)" if q in with_json else "")
                             + ": no summary, progress bar or notice")
     return p
 
