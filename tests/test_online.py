@@ -109,12 +109,15 @@ def test_an_empty_frame_is_reported_and_changes_nothing(rng, update, tmp_path, c
     (tmp_path / "frames").mkdir()
     for i, f in enumerate([frames[0], np.zeros((0, 3)), frames[3]]):
         sdp.write_points(tmp_path / "frames" / f"f{i}.ply", f)
+    (tmp_path / "frames" / "f1b.xyz").write_text("")  # an empty text file and a LAS file of no point: empty too
+    sdp.write_points(tmp_path / "frames" / "f1c.las", np.zeros((0, 3)))
     assert main([str(a) for a in ("watch", tmp_path / "ref.npy", tmp_path / "frames", "--voxel-size", "0.03")]) == 0
-    assert "f1.ply: 0 points, none finite: nothing compared" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert all(f"{name}: 0 points, none finite: nothing compared" in text for name in ("f1.ply", "f1b.xyz", "f1c.las"))
     assert main([str(a) for a in ("watch", tmp_path / "ref.npy", tmp_path / "frames", "--voxel-size", "0.03",
                                   "--json")]) == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
-    assert [r["empty"] for r in lines] == [False, True, False] and lines[2]["appeared"] > 0
+    assert [r["empty"] for r in lines] == [False, True, True, True, False] and lines[-1]["appeared"] > 0
 
 
 @pytest.mark.slow

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import SDPError
 
-__all__ = ["Cloud", "CloudFileError", "FORMATS", "input_format", "library_error", "unreadable", "unpacked_colour"]
+__all__ = ["Cloud", "CloudFileError", "EmptyCloudError", "FORMATS", "input_format", "library_error", "unreadable", "unpacked_colour"]
 
 #: Extension → format name understood by :func:`sdp.io.read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
@@ -28,6 +28,11 @@ _DEFAULT_VIEWPOINT = np.array([0.0, 0, 0, 1, 0, 0, 0])  # PCL's VIEWPOINT when t
 
 class CloudFileError(SDPError, OSError):
     """A point-cloud file can't be read: unknown format, corrupt, empty, or without x/y/z."""
+
+
+class EmptyCloudError(CloudFileError):
+    """The file holds no point (no row, or none with finite x, y, z): an error, but for a
+    stream's frame, which a blinded sensor leaves empty (``read_points(allow_empty=True)``)."""
 
 
 def _one_line(exc: BaseException, limit: int = 200) -> str:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .._core._progress import bar
-from ._cloud import Cloud, CloudFileError
+from ._cloud import Cloud, CloudFileError, EmptyCloudError
 
 __all__ = ["LAS_CHUNK", "read_las", "las_point_count", "check_las_counts", "check_las_points", "las_scale_offset",
            "write_las", "xyz_only"]
@@ -149,7 +149,7 @@ def check_las_points(path, header) -> None:
     """Refuse a LAS/LAZ file without points, or an uncompressed LAS shorter than its header says."""
     n = int(header.point_count)
     if n == 0:
-        raise CloudFileError(f"{path}: holds no point (its LAS header counts 0)")
+        raise EmptyCloudError(f"{path}: holds no point (its LAS header counts 0)")
     if not header.are_points_compressed:
         need = int(header.offset_to_point_data) + n * int(header.point_format.size)
         have = Path(path).stat().st_size
@@ -263,7 +263,8 @@ def write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
         standard = _standard_dimensions(fields)  # colour and intensity a non-LAS input carries
         # colour only where there is some: a format without it, rather than zeros that read as black
         header = laspy.LasHeader(point_format=2 if "red" in standard else 0, version="1.4")
-        header.scales, header.offsets = las_scale_offset(xyz.min(axis=0), xyz.max(axis=0), tmp, xyz=xyz)
+        lo, hi = (xyz.min(axis=0), xyz.max(axis=0)) if len(xyz) else (np.zeros(3), np.zeros(3))  # none: a valid file
+        header.scales, header.offsets = las_scale_offset(lo, hi, tmp, xyz=xyz)
         las = laspy.LasData(header)
         las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
         for name, v in standard.items():

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import MissingDependencyError
-from ._cloud import Cloud, CloudFileError, input_format, library_error, unreadable
+from ._cloud import Cloud, CloudFileError, EmptyCloudError, input_format, library_error, unreadable
 from ._e57 import read_e57
 from ._las import read_las
 from ._numpy import read_npy, read_npz
@@ -92,6 +92,10 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
         if xyz.dtype.kind not in "iuf":  # complex, text, structured: no coordinates to cast
             raise CloudFileError(f"{path}: coordinates of type {xyz.dtype} (expected real numbers)")
         xyz = xyz.astype(np.float64, copy=False)
+    except EmptyCloudError:
+        if not allow_empty:
+            raise
+        xyz, values, las, pose = np.zeros((0, 3)), {}, None, []
     except (CloudFileError, MissingDependencyError):
         raise
     except MemoryError:
@@ -108,6 +112,6 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
         xyz = xyz[finite]
         values = {k: v[finite] for k, v in values.items()}
     if len(xyz) == 0 and not allow_empty:
-        raise CloudFileError(f"{path}: holds no point with finite x, y, z")
+        raise EmptyCloudError(f"{path}: holds no point with finite x, y, z")
     viewpoint, organized, sensors = (list(pose) + [None, False, None][len(pose):])[:3]
     return Cloud(np.ascontiguousarray(xyz), values, path, dropped, las, viewpoint, organized, sensors)

@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from ._cloud import CloudFileError
+from ._cloud import CloudFileError, EmptyCloudError
 
 __all__ = ["read_text"]
 
@@ -18,7 +18,7 @@ def read_text(path):
     with open(path, encoding="utf-8", errors="replace") as fh:
         sample = fh.read(4096)
     if not sample.strip():
-        raise CloudFileError(f"{path}: the file is empty: no point to read")
+        raise EmptyCloudError(f"{path}: the file is empty: no point to read")
     delimiter = "," if "," in sample else None
     first = sample.splitlines()[0] if sample else ""
     skip = 0 if _is_numeric_row(first, delimiter) else 1
@@ -26,7 +26,7 @@ def read_text(path):
         warnings.simplefilter("ignore", UserWarning)
         arr = np.loadtxt(path, delimiter=delimiter, skiprows=skip, ndmin=2)
     if arr.size == 0:
-        raise CloudFileError(f"{path}: holds a header but no point")
+        raise EmptyCloudError(f"{path}: holds a header but no point")
     if arr.shape[1] < 3:
         raise CloudFileError(f"{path}: expected at least 3 columns (x y z), found {arr.shape[1]}")
     names = [n.strip().lower() for n in first.replace(",", " ").split()] if skip else []
