@@ -38,6 +38,8 @@ def test_rows_holding_nan_are_not_comparable(scene_pair):
     assert (r.disappeared_labels[-2:] == -1).all() and (r.appeared_labels[:2] == -1).all()
     np.testing.assert_array_equal(r.current_state[2:], plain.current_state)
     np.testing.assert_array_equal(r.reference_state[:-2], plain.reference_state)
+    s, t = r.summary()["current"], plain.summary()["current"]  # rows without a position: dropped, not points
+    assert (s["points"], s["dropped"], s["not_comparable"]) == (t["points"], 2, t["not_comparable"])
 
 
 def test_inserted_box_is_found_as_one_region(scene_pair):

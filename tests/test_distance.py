@@ -102,6 +102,8 @@ def test_core_points_and_registration_error(rng):
     kept[[3, 17]] = False
     np.testing.assert_allclose(h.distance[kept], d.distance[kept], atol=1e-9)
     assert not h.significant[[3, 17]].any() and h.normal.shape == (50, 3)
+    assert (h.summary()["core_points"], h.summary()["core_points_dropped"], h.summary()["not_comparable"]) == \
+        (48, 2, d.summary()["not_comparable"] - int((~np.isfinite(d.distance[[3, 17]])).sum()))
 
 
 def test_fields_and_summary(rng):

@@ -76,17 +76,20 @@ class PointChanges:
     not comparable (in tiles, whose clouds need not fit in memory). From rows, the per-point
     arrays are made on first use and kept; :meth:`rows` makes those of a slice of rows alone."""
 
-    __slots__ = ("n", "_state", "_labels", "_changed", "_changed_labels", "_unseen")
+    __slots__ = ("n", "blank", "_state", "_labels", "_changed", "_changed_labels", "_unseen")
 
-    def __init__(self, n: int, *, state=None, labels=None, changed=None, changed_labels=None, unseen=None):
+    def __init__(self, n: int, *, state=None, labels=None, changed=None, changed_labels=None, unseen=None,
+                 blank: int = 0):
         self.n = int(n)
+        self.blank = int(blank)  # rows holding NaN or Inf among the n: not comparable, and no point
         self._state, self._labels = state, labels
         self._changed, self._changed_labels, self._unseen = changed, changed_labels, unseen
 
     @classmethod
-    def of_rows(cls, n: int, changed: np.ndarray, changed_labels: np.ndarray, unseen: np.ndarray) -> PointChanges:
+    def of_rows(cls, n: int, changed: np.ndarray, changed_labels: np.ndarray, unseen: np.ndarray, *,
+                blank: int = 0) -> PointChanges:
         return cls(n, changed=np.asarray(changed, np.int64), changed_labels=np.asarray(changed_labels, np.int32),
-                   unseen=np.asarray(unseen, np.int64))
+                   unseen=np.asarray(unseen, np.int64), blank=blank)
 
     @property
     def state(self) -> np.ndarray:
@@ -281,8 +284,9 @@ class ChangeResult:
             return None if o is None else np.asarray(o, np.float64).tolist()  # (3,), or (k, 3) scanners
 
         def counts(points, dropped, kind, distances=None):
-            out = {"points": points.n, "dropped": int(dropped), kind: points.count(CHANGED),
-                   "not_comparable": points.count(NOT_COMPARABLE)}
+            # the points compared: rows holding NaN or Inf are counted as dropped, not as points
+            out = {"points": points.n - points.blank, "dropped": int(dropped), kind: points.count(CHANGED),
+                   "not_comparable": points.count(NOT_COMPARABLE) - points.blank}
             if distances is not None:
                 out["level"] = distances.level()
             return out
@@ -481,7 +485,8 @@ def _point_changes(out, pts):
     states, mask, regs, region_of = out
     state = to_rows(states_of(mask, states == NOT_COMPARABLE), pts, NOT_COMPARABLE)  # a NaN row: nothing measured
     labels = to_rows(np.asarray(region_of).astype(np.int32), pts, -1)
-    return PointChanges(len(state), state=state, labels=labels), regs
+    blank = 0 if pts.finite is None else int((~pts.finite).sum())
+    return PointChanges(len(state), state=state, labels=labels, blank=blank), regs
 
 
 class _Distances:

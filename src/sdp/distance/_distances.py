@@ -190,14 +190,17 @@ class Distances:
         """Counts, the distribution of the distances and the parameters, as plain numbers."""
         ok = self.comparable
         d, sig = self.distance[ok], self.significant[ok]
+        # rows given without a position (NaN, Inf) are counted as dropped, not as core points
+        blank = int((~np.isfinite(self.core_points).all(axis=1)).sum()) if self.core_points.size else 0
 
         def q(values, p):
             return float(np.quantile(values, p)) if values.size else float("nan")
 
         return {
-            "core_points": int(len(self.distance)),
+            "core_points": int(len(self.distance)) - blank,
+            "core_points_dropped": blank,
             "comparable": int(ok.sum()),
-            "not_comparable": int((~ok).sum()),
+            "not_comparable": int((~ok).sum()) - blank,
             "not_seen": self.not_seen,
             "significant": int(sig.sum()),
             "significant_positive": int((sig & (d > 0)).sum()),

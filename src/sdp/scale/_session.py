@@ -370,18 +370,26 @@ def _connect(scheduler: str | None, workers: int, root: str):
         # process's warning options) would warn of "leaked semaphores" it reclaims anyway
         if _TRACKER_WARNING not in sys.warnoptions:
             sys.warnoptions.append(_TRACKER_WARNING)
-        with _sigint_deferred() as interrupted, _dask("dask").config.set({"temporary-directory": root}):
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=0,
-                                   dashboard_address=":0", env={"NUMBA_NUM_THREADS": "1"},  # a core per worker
-                                   # a task's error reaches the client, which says it in one line: no
-                                   # "Compute Failed" logs, no warnings about tasks cancelled on Ctrl-C
-                                   silence_logs=logging.CRITICAL,
-                                   preload=[_WORKER_PRELOAD])  # scratch space in root: removed with it
-            try:
-                client = Client(cluster)
-            except BaseException:
-                cluster.close()
-                raise
+        try:
+            with _sigint_deferred() as interrupted, _dask("dask").config.set({"temporary-directory": root}):
+                cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=0,
+                                       dashboard_address=":0", env={"NUMBA_NUM_THREADS": "1"},  # a core per worker
+                                       # a task's error reaches the client, which says it in one line: no
+                                       # "Compute Failed" logs, no warnings about tasks cancelled on Ctrl-C
+                                       silence_logs=logging.CRITICAL,
+                                       preload=[_WORKER_PRELOAD])  # scratch space in root: removed with it
+                try:
+                    client = Client(cluster)
+                except BaseException:
+                    cluster.close()
+                    raise
+        except Exception as exc:
+            # a Ctrl-C to the process group reaches the workers while they start, before they ignore it:
+            # they die and the cluster fails to start ("Nanny failed to start"); the command was interrupted
+            if interrupted():
+                raise KeyboardInterrupt from None
+            reason = str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise SDPError(f"the local Dask cluster did not start ({reason})") from None
         if interrupted():
             client.close()
             cluster.close()

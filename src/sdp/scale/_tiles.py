@@ -452,8 +452,10 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
     # rows holding NaN or Inf: nothing measured them, not comparable as in memory
     unseen = {kind: np.union1d(unseen[kind], run.dropped_rows.get(name, np.zeros(0, np.int64)))
               for kind, name in (("appeared", "current"), ("disappeared", "reference"))}
-    points = {kind: PointChanges.of_rows(n, *out[kind][:2], unseen[kind])
-              for kind, n in (("appeared", run.sources["current"].n_rows), ("disappeared", n_ref))}
+    points = {kind: PointChanges.of_rows(n, *out[kind][:2], unseen[kind],
+                                         blank=len(run.dropped_rows.get(name, ())))
+              for kind, n, name in (("appeared", run.sources["current"].n_rows, "current"),
+                                    ("disappeared", n_ref, "reference"))}
     return ChangeResult(_reference=points["disappeared"], _current=points["appeared"],
                         appeared_regions=out["appeared"][2], disappeared_regions=out["disappeared"][2],
                         voxel_size=run.voxel_size, sigma=run.sigma_voxels * run.voxel_size,
