@@ -96,6 +96,10 @@ def test_store_errors(tmp_path):
     zarr.open_group(str(tmp_path / "series.zarr"), mode="w").attrs.update({"format": "sdp-series"})
     with pytest.raises(sdp.FieldFileError, match="a series archive .sdp series., not a density field store"):
         FieldStore.open(tmp_path / "series.zarr")
+    for other, says in (("series.zarr", "is a series archive"), ("other.zarr", "is a Zarr store that is not a field")):
+        with pytest.raises(sdp.FieldFileError, match=says):  # replaced before: a whole series lost
+            FieldStore.create(tmp_path / other, voxel_size=0.1, sigma=0.2, truncate=3, h=2.8)
+    assert (tmp_path / "series.zarr" / "zarr.json").is_file() and (tmp_path / "other.zarr" / "a").exists()
     from sdp.cli import combine_files
 
     FieldStore.create(tmp_path / "s.zarr", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8)

@@ -68,7 +68,8 @@ class FieldStore:
     @classmethod
     def create(cls, path: str | os.PathLike, *, voxel_size: float, sigma: float, truncate: float, h: float,
                tile_blocks: int = 64, method: str = "fast", inputs=()) -> "FieldStore":
-        """An empty store at ``path`` (replaced if it is a store; ``inputs`` are never overwritten)."""
+        """An empty store at ``path`` (replaced if it is a field store; anything else there, a series
+        archive or another Zarr store, is refused; ``inputs`` are never overwritten)."""
         zarr = require_zarr()
 
         from ..io._output import refuse_overwrite
@@ -78,6 +79,13 @@ class FieldStore:
         if path.exists():
             if not (path / "zarr.json").is_file():
                 raise FieldFileError(f"{path}: exists and is not a Zarr store; choose another output name")
+            try:
+                kind = zarr.open_group(str(path), mode="r").attrs.get("format")
+            except Exception:  # zarr raises several types for a damaged store: not ours to replace
+                kind = None
+            if kind != "sdp-field-store":
+                what = "a series archive" if kind == "sdp-series" else "a Zarr store that is not a field store"
+                raise FieldFileError(f"{path}: exists and is {what}; choose another output name")
             shutil.rmtree(path)
         group = zarr.open_group(str(path), mode="w")
         group.attrs.update({"format": "sdp-field-store", "format_version": STORE_FORMAT_VERSION,
