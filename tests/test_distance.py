@@ -285,3 +285,9 @@ def test_sdp_distance_in_tiles_streams_the_reference_with_its_distances(rng, tmp
         assert np.array_equal(tiled.fields[name], whole.fields[name], equal_nan=True), name
     refused = run_sdp("distance", tmp_path / "a.laz", tmp_path / "b.laz", "-o", tmp_path / "t.ply", "--tiled")
     assert refused.returncode == 2 and "LAS/LAZ" in refused.stderr
+    # tiles follow no sensor: a sensor given is refused, not ignored (its normals' sign would be lost)
+    for extra in (["--sensor-origin", "4,1,-5"], ["--report", tmp_path / "r.html"]):
+        refused = run_sdp("distance", tmp_path / "a.laz", tmp_path / "b.laz", "-o", tmp_path / "s.laz", "--tiled",
+                          *extra)
+        assert refused.returncode == 2 and f"{extra[0]} is not available with --tiled" in refused.stderr
+    assert not (tmp_path / "s.laz").exists()

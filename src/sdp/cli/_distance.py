@@ -116,7 +116,7 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
     V.check_orientation(orientation, sensor_given=not (isinstance(sensor, str) and sensor in ("auto", "none")),
                         names=("--orientation", "--sensor-origin"))
     if _distances_in_tiles(reference, current, output, format=format, execution=execution, core_points=core_points,
-                           align=align, png=png, report=report):
+                           align=align, png=png, report=report, sensor=sensor):
         return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,
                                orientation=orientation, cylinder=cylinder, execution=execution,
                                field_names=outputs.field_names)
@@ -166,7 +166,7 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
 
 
 def _distances_in_tiles(reference, current, output, *, format, execution: Execution, core_points, align, png,
-                        report=None) -> bool:
+                        report=None, sensor=None) -> bool:
     """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (about
     450 bytes per reference point and 200 per current point) would exceed the memory limit."""
     from .._core._memory import memory_limit as limit
@@ -183,10 +183,13 @@ def _distances_in_tiles(reference, current, output, *, format, execution: Execut
     need, cap = 450.0 * n_ref + 200.0 * n_cur, limit(execution.memory_limit)
     if not (tiled or need > cap):
         return False
-    for option, given in (("--core-points", core_points), ("--align", align), ("--png", png), ("--report", report)):
+    given_sensor = not (sensor is None or (isinstance(sensor, str) and sensor in ("auto", "none")))
+    for option, given in (("--core-points", core_points), ("--align", align), ("--png", png), ("--report", report),
+                          ("--sensor-origin", given_sensor)):  # tiles follow no sensor: its normals would be lost
         if given:
-            raise SDPError(f"{option} is not available in tiles (the in-memory work would need "
-                           f"{format_bytes(need)}; the memory limit is {format_bytes(cap)})")
+            why = ("with --tiled" if tiled else f"in tiles (the in-memory work would need {format_bytes(need)}; "
+                                                f"the memory limit is {format_bytes(cap)})")
+            raise SDPError(f"{option} is not available {why}")
     if Path(output).suffix.lower() not in (".las", ".laz"):
         raise SDPError(f"{output}: distances in tiles stream to LAS/LAZ: give -o OUT.laz")
     if not tiled and notify is not None:
