@@ -656,5 +656,9 @@ def run() -> None:
         status = main(restore_signals=False)
     finally:
         gc.freeze()
+    if status == 0:  # everything written: a Ctrl-C from now on changes nothing. Ignored, not handled, as the
+        # interpreter's shutdown puts the default action back for signals a Python function handles
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_IGN)
     sys.exit(status)
 
