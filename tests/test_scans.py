@@ -266,3 +266,27 @@ def test_e57_without_the_extra_says_how_to_install(monkeypatch, two_epochs):
     monkeypatch.setitem(sys.modules, "pye57", None)
     with pytest.raises(sdp.MissingDependencyError, match=r"pip install 'sdp\[scans\]'"):
         sdp.read_points(two_epochs[0])
+
+
+class _EmptySafe(np.ndarray):
+    """pye57's writer takes each field's min and max: a scan of no point needs them said."""
+
+    def min(self, *a, **k):
+        return 0 if self.size == 0 else np.asarray(self).min(*a, **k)
+
+    def max(self, *a, **k):
+        return 2 if self.size == 0 else np.asarray(self).max(*a, **k)
+
+
+def test_a_scan_of_no_point_is_read_as_none(tmp_path, rng):
+    """A scan of no record (older writers leave them; libE57Format can't read its empty vector,
+    libE57Format issue 262) is skipped, its scanner kept: the file's other scans are read."""
+    xyz = rng.random((500, 3))
+    e = pye57.E57(str(tmp_path / "s.e57"), mode="w")
+    e.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]}, name="A")
+    e.write_scan_raw({k: np.zeros(0).view(_EmptySafe) for k in ("cartesianX", "cartesianY", "cartesianZ")},
+                     name="empty", translation=np.array([0.5, 0.0, 0.0]))
+    e.close()
+    cloud = sdp.read_points(tmp_path / "s.e57")
+    np.testing.assert_allclose(cloud.xyz, xyz)
+    assert cloud.sensors.shape == (2, 3) and set(cloud.fields["scan"].tolist()) == {0}

@@ -112,9 +112,13 @@ def read_e57(path):
         h = e.get_header(i)
         q, t = _pose(h)
         sensors[i] = t
+        if int(h.point_count) == 0:  # a scan of no record: libE57Format can't read its empty vector
+            continue
         raw = e.read_scan_raw(i, ignore_unsupported_fields=True)
         parts.append(_scan_points(raw, q, t, i, path))
-    names = set.intersection(*(set(p) for p in parts))  # fields every scan has
+    if not parts:  # every scan empty: no point (said by the reader's caller)
+        return np.zeros((0, 3)), {}, None, None, False, sensors
+    names = set.intersection(*(set(p) for p in parts))  # fields every scan with points has
     xyz = np.concatenate([p.pop("xyz") for p in parts])
     names.discard("xyz")
     fields = {n: np.concatenate([p[n] for p in parts]) for n in sorted(names)}
