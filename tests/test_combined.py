@@ -150,6 +150,9 @@ def test_tiles_take_the_combined_decision_and_density_not_the_cluster_rule():
     check_tiled_options(decision="combined")
     with pytest.raises(InvalidOptionError, match="--decision cluster is not available with --tiled"):
         check_tiled_options(decision="cluster")
+    with pytest.raises(InvalidOptionError, match="--range-noise is not available with --tiled"):
+        check_tiled_options(range_noise=0.004)  # tiles follow no sensor's rays
+    check_tiled_options(range_noise=sdp.DEFAULTS.range_noise)
 
 
 @pytest.mark.parametrize("tile_size", [10.0, 0.7])

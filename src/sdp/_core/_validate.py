@@ -348,11 +348,15 @@ def check_alignment_options(method: str | None, *, fix_horizontal: bool = False,
 
 
 def check_tiled_options(*, grid_size=None, align=None, sensor_origin="auto", decision="point",
-                        pictures: bool = False, why: str = "with --tiled") -> None:
+                        pictures: bool = False, range_noise=None, why: str = "with --tiled") -> None:
     """Refuse the options of ``sdp change`` that a comparison in tiles does not have (``--tiled``,
-    or ``why`` they are taken)."""
+    or ``why`` they are taken): tiles follow no sensor's rays, so a range noise given is one too."""
+    from ..defaults import DEFAULTS
+
     given_sensor = not (isinstance(sensor_origin, str) and sensor_origin in ("auto", "none"))
+    noise_given = range_noise is not None and range_noise != DEFAULTS.range_noise
     for flag, bad in (("--grid-size", grid_size is not None), ("--align", align), ("--sensor-origin", given_sensor),
+                      ("--range-noise", noise_given),
                       (f"--decision {decision}", decision == "cluster"),
                       ("--png/--html/--report", pictures)):
         if bad:

@@ -146,6 +146,7 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
 
         why = "with a .zarr field store as the reference (compared in tiles)"
         V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
+                              range_noise=coverage.range_noise,
                               decision=decision, pictures=outputs.pictures, why=why)
         if lattice != Lattice():
             raise SDPError("the lattice (voxel, σ, k, h) is the field store's: give no --voxel-size, --sigma-voxels, "
@@ -159,12 +160,14 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
                           sigma_voxels=sources[0].sigma / sources[0].voxel_size, sources=sources)
     streamed = all((format or FORMATS.get(Path(f).suffix.lower())) in ("las", "npy", "ply")
                    for f in (reference, current))
-    # tiles follow no rays: a given sensor keeps the comparison in memory
+    # tiles follow no rays: a given sensor (or its range noise) keeps the comparison in memory
     given_sensor = not (isinstance(coverage.sensor_origin, str) and coverage.sensor_origin in ("auto", "none"))
-    if not tiled and (not streamed or lattice.grid_size is not None or align or decision == "cluster" or given_sensor):
+    rays = given_sensor or coverage.range_noise != DEFAULTS.range_noise  # the sensor's rays asked for
+    if not tiled and (not streamed or lattice.grid_size is not None or align or decision == "cluster" or rays):
         return ChangePlan(tiled=False)
     if tiled:
         V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
+                              range_noise=coverage.range_noise,
                               decision=decision, pictures=outputs.pictures)
         if not streamed:
             raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; convert the clouds first")
@@ -293,6 +296,7 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
         raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices, not ROS bags")
     if execution.tiled and not is_store(reference):
         V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
+                              range_noise=coverage.range_noise,
                               decision=decision, pictures=outputs.pictures)
     plan = plan_change(reference, current, output=out, format=format, outputs=outputs, lattice=lattice,
                        coverage=coverage, align=align, decision=decision, execution=execution)
