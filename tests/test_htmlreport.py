@@ -145,7 +145,7 @@ def test_report_is_checked_before_any_work(tmp_path, rng, monkeypatch, kw, match
 def test_distance_report_is_refused_in_tiles(tmp_path, rng):
     ref, _ = landscape(rng, building=False)
     np.save(tmp_path / "ref.npy", ref)
-    with pytest.raises(sdp.SDPError, match="--report is not available in tiles"):
+    with pytest.raises(sdp.SDPError, match="--report is not available with --tiled"):
         sdp.distance_files(tmp_path / "ref.npy", tmp_path / "ref.npy", output=tmp_path / "d.laz",
                            execution=sdp.Execution(tiled=True),
                            outputs=sdp.Outputs(report=tmp_path / "d.html"))
