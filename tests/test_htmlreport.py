@@ -118,6 +118,7 @@ def test_distance_report(tmp_path, rng):
     drawn, total, _ = drawn_note(page)
     assert total == len(ref) and drawn < 5_500 and f"{d.summary()['significant']:,}" in page
     assert "level of detection" in page
+    assert "no sensor known: the default direction, up (+z)" in page  # the normals' own reason
 
 
 @pytest.mark.parametrize("kw, match", [

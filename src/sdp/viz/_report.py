@@ -446,7 +446,9 @@ def _parameters(s: dict, options: dict | None, kind: str) -> str:
                  s["registration_source"] if s.get("registration_source", "given") != "given"
                  else why("registration_error")),
                 ("normals", str(s["orientation"]), "given (--orientation)" if options.get("orientation") is not None
-                 else why("sensor_origin"))]
+                 else "a surface faces the scanner that saw it: its position from the file or --sensor-origin"
+                 if "sensor" in str(s["orientation"]) or "scanner" in str(s["orientation"])
+                 else "no sensor known: the default direction, up (+z), as M3C2 orients its normals")]
     if "alignment" in s:
         al = s["alignment"]
         from ..cli._text import motion_text
