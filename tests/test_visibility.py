@@ -229,3 +229,24 @@ def test_cube_means_number_cubes_by_first_point_in_any_box(rng, far):
     np.testing.assert_array_equal(centres, ref / np.bincount(inverse)[:, None])
     inverse, centres = _cube_means(query[:0], 0.4)
     assert inverse.shape == (0,) and centres.shape == (0, 3)
+
+
+def test_ground_the_other_scan_never_saw_is_not_comparable_far_from_what_it_saw():
+    """The current scan reaches 2.5 m beyond the reference's floor, with a box there: the plane of
+    the floor the reference saw is not extrapolated over ground it never saw (that was called
+    unchanged, the box's foot too); what lies within the seen patch's reach is explained."""
+    rng = np.random.default_rng(0)
+
+    def floor(n, x1):
+        p = rng.uniform(0, 1, (n, 3))
+        p[:, 0] *= x1
+        p[:, 2] = rng.normal(0, 0.002, n)
+        return p
+
+    box = rng.uniform(0, 1, (800, 3)) * [0.1, 0.1, 0.1] + [2.0, 0.4, 0.0]
+    ref, cur = floor(3000, 0.5), np.vstack([floor(18000, 3.0), box])
+    r = sdp.detect_changes(ref, cur, coverage=sdp.Coverage(sensor_origin=(0.25, 0.5, 1.0)))
+    far = cur[:, 0] > 1.0  # more than a patch's reach beyond what the reference saw
+    assert (r.current_state[far] == sdp.NOT_COMPARABLE).all()
+    near = (cur[:, 0] > 0.5) & (cur[:, 0] < 0.55)
+    assert (r.current_state[near] == sdp.UNCHANGED).mean() > 0.9  # the seen floor continued: explained

@@ -23,7 +23,9 @@ least σ):
 A hidden or unobserved point is explained, not a change, when it continues the unchanged
 surface around it (it lies on the least-squares plane of its nearest unchanged neighbours,
 and that patch is flat; Hoppe et al. [3]): that is the table a moved object uncovers, or the
-border of a field of view that moved. Otherwise (something where the other scan could not
+border of a field of view that moved. A point the other scan says nothing of (not comparable)
+must also lie within that patch's reach (twice its spread of its centre): farther, the plane
+would be extrapolated over ground the other scan never saw. Otherwise (something where the other scan could not
 look) it is not comparable (:data:`sdp.change._coverage.NOT_COMPARABLE`): the other scan says nothing
 of it.
 
@@ -266,12 +268,14 @@ def _hider_points(points, origin, hide, rng, cls):
 @nb.njit(cache=True, nogil=True)
 def _plane_fits(static, idx):
     """Least-squares plane of each patch ``static[idx[i]]``: its mean, unit normal (eigenvector of
-    the covariance's smallest eigenvalue λ, closed form for symmetric 3×3 matrices) and RMS
-    deviation sqrt(λ); RMS is inf for a patch without a plane (all points equal)."""
+    the covariance's smallest eigenvalue λ, closed form for symmetric 3×3 matrices), RMS
+    deviation sqrt(λ) (inf for a patch without a plane: all points equal) and spread (the RMS
+    distance of its points from their mean: how far the patch reaches)."""
     m, k = idx.shape
     mean = np.zeros((m, 3))
     normal = np.zeros((m, 3))
     rms = np.full(m, np.inf)
+    spread = np.zeros(m)
     for i in range(m):
         mx = my = mz = 0.0
         for j in range(k):
@@ -301,6 +305,7 @@ def _plane_fits(static, idx):
         a11 /= k
         a12 /= k
         a22 /= k
+        spread[i] = math.sqrt(a00 + a11 + a22)
         # smallest eigenvalue: trigonometric solution of the characteristic cubic
         q = (a00 + a11 + a22) / 3.0
         p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)
@@ -334,7 +339,7 @@ def _plane_fits(static, idx):
             normal[i, 1] *= f
             normal[i, 2] *= f
             rms[i] = math.sqrt(max(lam, 0.0))
-    return mean, normal, rms
+    return mean, normal, rms, spread
 
 
 # ---------------------------------------------------------------- range image
@@ -740,12 +745,18 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
 
 def _explain_by_planes(points, changed, states, unseen, *, plane_points, plane_stride, plane_distance,
                        plane_flatness, plane_bin) -> np.ndarray:
-    """``states`` with the ``unseen`` points that continue the unchanged surface made unchanged."""
+    """``states`` with the ``unseen`` points that continue the unchanged surface made unchanged: on
+    its plane, and for a point the other scan says nothing of (not comparable: outside its view,
+    or hidden behind what is still there) also within the patch's reach (twice its spread of its
+    centre). Farther, the plane would be extrapolated over ground never seen; a point the other
+    scan saw changed (a gone hider, a free ray) is judged by the plane alone, as a moved object's
+    uncovered table."""
     static = _every_nth_unchanged(points, changed, max(1, int(plane_stride)))
     if len(unseen) and len(static) >= 3:
-        on_plane = _on_unchanged_plane(np.take(points, unseen, axis=0), static, k=min(int(plane_points), len(static)),
-                                       distance=plane_distance, flatness=plane_flatness, bin_size=plane_bin)
-        states[unseen[on_plane]] = UNCHANGED
+        on_plane, within = _on_unchanged_plane(np.take(points, unseen, axis=0), static,
+                                               k=min(int(plane_points), len(static)), distance=plane_distance,
+                                               flatness=plane_flatness, bin_size=plane_bin)
+        states[unseen[on_plane & (within | (states[unseen] == CHANGED))]] = UNCHANGED
     return states
 
 
@@ -779,14 +790,16 @@ def _many_scanners(points, changed, states, cand, other, origins, other_scan, *,
 
 
 def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distance: float, flatness: float,
-                        bin_size: float) -> np.ndarray:
-    """Does each query point lie on the least-squares plane of the ``k`` static points nearest to
+                        bin_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Does each query point lie on the least-squares plane of the ``k`` static points nearest to
     it, the patch being flat (RMS off-plane deviation < ``flatness``) and the point within
-    ``distance`` of the plane? Query points sharing a cube of side ``bin_size`` share one patch:
-    the one nearest to their mean (one neighbour query per cube, not per point)."""
+    ``distance`` of the plane? Does it lie within the patch's reach, twice its spread of its
+    centre?) Query points sharing a cube of side ``bin_size`` share one patch: the one nearest to
+    their mean (one neighbour query per cube, not per point)."""
     inverse, centres = _cube_means(query, bin_size)
-    mean, normal, rms = _plane_fits(static, k_nearest(static, centres, k))
-    return _on_planes(query, inverse, mean, normal, rms, distance, flatness)
+    mean, normal, rms, spread = _plane_fits(static, k_nearest(static, centres, k))
+    within = np.linalg.norm(query - mean[inverse], axis=1) <= 2.0 * spread[inverse]
+    return _on_planes(query, inverse, mean, normal, rms, distance, flatness), within
 
 
 def _cube_means(query: np.ndarray, bin_size: float) -> tuple[np.ndarray, np.ndarray]:
