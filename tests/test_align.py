@@ -175,6 +175,11 @@ def test_options_are_checked(rng):
         align(ref, ref, levels=0)
     s = align(ref, ref, levels=1).summary()
     assert len(s["conditioning"]) == 6 and s["used"] > 0.9
+    # a start that is no rigid motion (a scale, a mirror, a shape, NaN) is refused: the answer would be none
+    for init, says in ((np.diag([2.0, 2, 2, 1]), "rigid"), (np.diag([1.0, 1, -1, 1]), "rigid"),
+                       (np.eye(3), "4×4"), (np.full((4, 4), np.nan), "finite"), ("up", "numbers")):
+        with pytest.raises(sdp.InvalidOptionError, match=says):
+            align(ref, ref, init=init)
 
 
 def test_closed_form_top_eigenpair_matches_eigh(rng):

@@ -236,7 +236,7 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
         # σ = 2l as for change detection, sampled at l/2: a trilinear interpolant sags between
         # nodes (3 % at σ = 2 voxels, 0.8 % at 4), which would pull planes onto node planes
         ref_field = DensityField.from_points(ref_xyz, voxel_size=l / 2, sigma_voxels=4)
-    t0 = np.eye(4) if init is None else np.array(init, np.float64)
+    t0 = np.eye(4) if init is None else rigid_matrix(init, "init")
     rng = np.random.default_rng(seed)
     sample = cur if len(cur) <= max_points else cur[rng.choice(len(cur), max_points, replace=False)]
     start = time.perf_counter()
@@ -264,6 +264,24 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
                                  "transform) or move them together first")
     return Alignment(matrix=matrix, method=method, inside_before=before, inside_after=after, rmse=rmse,
                      seconds=seconds, centre=cur.mean(axis=0), **info)
+
+
+def rigid_matrix(matrix, name: str = "matrix") -> np.ndarray:
+    """``matrix`` as a 4×4 float64 rigid transform (a rotation, determinant +1, and a translation;
+    last row 0 0 0 1), else a one-line :class:`~sdp.InvalidOptionError`: a scale, a shear or a
+    mirror would make the alignment's answer no rigid motion."""
+    try:
+        m = np.array(matrix, np.float64)
+    except (TypeError, ValueError):
+        raise InvalidOptionError(f"{name} must be a 4×4 matrix of numbers") from None
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise InvalidOptionError(f"{name} must be a 4×4 matrix of finite numbers, got shape {m.shape}")
+    r = m[:3, :3]
+    if not (np.allclose(m[3], [0, 0, 0, 1], atol=1e-9) and np.allclose(r @ r.T, np.eye(3), atol=1e-6)
+            and np.linalg.det(r) > 0):
+        raise InvalidOptionError(f"{name} must be a rigid transform (a rotation and a translation, last row 0 0 0 1): "
+                                 f"no scale, shear or mirror")
+    return m
 
 
 #: Fewest (finite, distinct) points of a cloud to align: a rigid motion has 6 unknowns, and a
