@@ -28,3 +28,9 @@ def test_kappa_edge_cases():
     with pytest.raises(sdp.SDPError, match="same points"):
         sdp.kappa([1, 0], [1])
     assert np.isnan(sdp.scores([0, 0], [0, 0])["precision"])
+    # labels are booleans or 0/1: a change state's 2 (not comparable), NaN or text would count as changed
+    for bad, says in (([0, 1, 2], "got 2: give a change state's"), ([0.0, np.nan, 1.0], "got nan"),
+                      (["no", "yes", "no"], "type")):
+        with pytest.raises(sdp.SDPError, match=says):
+            sdp.kappa([0, 1, 1], bad)
+    assert sdp.kappa(np.array([0.0, 1.0, 1.0]), [False, True, True]) == 1.0

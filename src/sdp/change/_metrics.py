@@ -17,9 +17,23 @@ from ..errors import SDPError
 __all__ = ["confusion_matrix", "kappa", "scores"]
 
 
+def _binary(values, name: str) -> np.ndarray:
+    """``values`` as booleans, if they are booleans or numbers 0 and 1; else a one-line error (a
+    change state's 2, not comparable, would count as changed; text and NaN would count too)."""
+    v = np.asarray(values)
+    if v.dtype == bool:
+        return v.ravel()
+    if v.dtype.kind not in "iuf":
+        raise SDPError(f"{name} labels must be booleans or 0/1, got values of type {v.dtype}")
+    if v.size and not np.isin(v, (0, 1)).all():
+        odd = v[~np.isin(v, (0, 1))].ravel()[0].item()
+        raise SDPError(f"{name} labels must be booleans or 0/1, got {odd!r}: give a change state's (state == 1) with "
+                       f"comparable=(state != 2), as sdp eval does")
+    return v.astype(bool).ravel()
+
+
 def _labels(truth, predicted) -> tuple[np.ndarray, np.ndarray]:
-    t = np.asarray(truth).astype(bool).ravel()
-    p = np.asarray(predicted).astype(bool).ravel()
+    t, p = _binary(truth, "truth"), _binary(predicted, "predicted")
     if t.shape != p.shape:
         raise SDPError(f"truth has {t.size} labels and predicted {p.size}: they must label the same points")
     return t, p
