@@ -20,6 +20,13 @@ def test_accumulate_equals_a_rebuild_and_subtracting_undoes_it(rng):
     np.testing.assert_allclose(back.density(q), fa.density(q), atol=1e-4 * both.density(q).max())
     with pytest.raises(sdp.IncompatibleFieldsError, match="voxel"):
         fa.accumulate(sdp.DensityField.from_points(b, voxel_size=0.05))
+    # what is no field, or no finite weight, is refused in one line (not an AttributeError inside)
+    for call, error in ((lambda: fa.accumulate(b), sdp.IncompatibleFieldsError),
+                        (lambda: fa.copy().accumulate(fa, weight=float("nan")), sdp.InvalidOptionError),
+                        (lambda: sdp.union(fa, b), sdp.IncompatibleFieldsError),
+                        (lambda: fa.density([["a", "b", "c"]]), sdp.InvalidPointsError)):
+        with pytest.raises(error):
+            call()
 
 
 def test_accumulating_a_stream_fills_spare_rows_and_equals_a_rebuild(rng):

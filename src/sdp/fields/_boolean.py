@@ -35,7 +35,11 @@ _OPS = {"union": np.minimum, "intersection": np.maximum, "difference": _differen
 
 
 def check_compatible(a: DensityField, b: DensityField) -> None:
-    """Raise :class:`IncompatibleFieldsError` unless ``a`` and ``b`` share their lattice."""
+    """Raise :class:`IncompatibleFieldsError` unless ``a`` and ``b`` are fields sharing their lattice."""
+    for name, f in (("first", a), ("second", b)):
+        if not isinstance(f, DensityField):  # points, say: build their field on the other's lattice first
+            raise IncompatibleFieldsError(f"the {name} operand is a {type(f).__name__}, not a DensityField: build it "
+                                          f"with sdp.DensityField.from_points on the other's voxel size")
     if not np.isclose(a.voxel_size, b.voxel_size, rtol=1e-12, atol=0):
         raise IncompatibleFieldsError(
             f"fields have different voxel sizes ({a.voxel_size:g} and {b.voxel_size:g}): build both "

@@ -246,6 +246,11 @@ class DensityField:
         IncompatibleFieldsError
             Another lattice or σ, or either field is a Boolean result (:attr:`is_boolean`).
         """
+        if not isinstance(other, DensityField):
+            raise IncompatibleFieldsError(f"accumulate takes a DensityField (built on this one's lattice), got "
+                                          f"{type(other).__name__}")
+        if not (isinstance(weight, (int, float, np.integer, np.floating)) and math.isfinite(weight)):
+            raise InvalidOptionError(f"weight must be a finite number, got {weight!r}")
         self._refuse_boolean("accumulate", other)
         if not (np.isclose(other.voxel_size, self.voxel_size, rtol=1e-12, atol=0)
                 and np.isclose(other.sigma, self.sigma, rtol=1e-9) and other.truncate == self.truncate):
@@ -507,7 +512,10 @@ def _gaussian_taps(s: float, radius: int) -> np.ndarray:
 
 
 def _query_array(points) -> np.ndarray:
-    arr = np.ascontiguousarray(points, dtype=np.float64)
+    try:
+        arr = np.ascontiguousarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidPointsError(f"query points: expected an (n, 3) array of numbers ({exc})") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InvalidPointsError(f"query points: expected shape (n, 3), got {arr.shape}")
     return arr
