@@ -18,6 +18,15 @@ def test_bad_points_raise_invalid_points_error(points, match):
     assert issubclass(sdp.InvalidPointsError, sdp.SDPError)
 
 
+def test_coordinates_too_large_for_a_spacing_are_said_so():
+    huge = np.random.default_rng(0).random((50, 3)) * 1e200  # their differences overflow
+    import warnings
+
+    with warnings.catch_warnings(), pytest.raises(sdp.InvalidPointsError, match="coordinates this large"):
+        warnings.simplefilter("ignore", RuntimeWarning)  # NumPy's overflow on the way
+        DensityField.from_points(huge)  # it said "voxel_size must be … finite, got nan"
+
+
 def test_single_point_needs_an_explicit_voxel_size():
     with pytest.raises(sdp.InvalidPointsError, match="zero extent.*voxel size"):
         DensityField.from_points([[1.0, 2.0, 3.0]], grid_size=80)

@@ -145,7 +145,14 @@ def auto_voxel_size_of(clouds: Sequence[Points], *, k: int = 3, quantile: float 
         from ..errors import InvalidPointsError
 
         raise InvalidPointsError(f"can't measure point spacing: the clouds need more than k={k} distinct points")
-    return float(scale * np.quantile(d, quantile) / sigma_voxels)
+    voxel = float(scale * np.quantile(d, quantile) / sigma_voxels)
+    if not np.isfinite(voxel):  # coordinates so large their differences overflow
+        from ..errors import InvalidPointsError
+
+        reach = max(float(np.abs(np.r_[c.lo, c.hi]).max()) for c in clouds)
+        raise InvalidPointsError(f"can't measure the point spacing of coordinates this large (up to {reach:.3g}): "
+                                 "move the clouds near the origin, or give a voxel size")
+    return voxel
 
 
 def kth_neighbour_distance(points: np.ndarray, queries: np.ndarray, k: int, *, cell: float | None = None,
