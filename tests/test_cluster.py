@@ -191,7 +191,7 @@ def test_a_tiles_memory_error_comes_back_as_one_sdp_error():
     import sdp
     from sdp.scale._session import _run
 
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
         with pytest.raises(sdp.SDPError, match="a tile: tile 1: 787,284 blocks would need 1.57 GB"):
             _run(client, _too_big, [(1,)], "compare")
