@@ -592,7 +592,8 @@ def test_command_series_append_info_and_exports(slope, tmp_path, capsys):
     assert len(sizes) >= 2 and sizes == sorted(sizes, reverse=True)  # ids count in the order found; listed by size
     ds = sdp.open_series(out)
     after = ds.isel(epoch=slice(1, None))  # the reference is the first epoch
-    assert info["significant_fraction"] == pytest.approx(float(after.significant.sum() / np.isfinite(after.distance).sum()))
+    measured = float(after.significant.sum() / np.isfinite(after.distance).sum())
+    assert info["significant_fraction"] == pytest.approx(measured)
     seen = np.isfinite(ds.distance.values[-1])
     assert info["median_abs_smoothed_last"] == pytest.approx(float(np.median(np.abs(ds.smoothed.values[-1][seen]))))
     with np.load(tmp_path / "e4.npz") as f:

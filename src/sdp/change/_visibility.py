@@ -25,9 +25,9 @@ surface around it (it lies on the least-squares plane of its nearest unchanged n
 and that patch is flat; Hoppe et al. [3]): that is the table a moved object uncovers, or the
 border of a field of view that moved. A point the other scan says nothing of (not comparable)
 must also lie within that patch's reach (twice its spread of its centre): farther, the plane
-would be extrapolated over ground the other scan never saw. Otherwise (something where the other scan could not
-look) it is not comparable (:data:`sdp.change._coverage.NOT_COMPARABLE`): the other scan says nothing
-of it.
+would be extrapolated over ground the other scan never saw. Otherwise (something where the
+other scan could not look) it is not comparable (:data:`sdp.change._coverage.NOT_COMPARABLE`):
+the other scan says nothing of it.
 
 The range image is spherical (azimuth, elevation about the sensor origin), as Underwood et al.
 [1] for change detection along laser rays, so any field of view works, from a Kinect's 57° to

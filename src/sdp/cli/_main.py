@@ -456,7 +456,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="register each frame onto the reference first (a moving camera): gicp (small_gicp, "
                         "needs a reference cloud) or density")
     w.add_argument("--sensor-origin", metavar="auto|none|viewpoint|X,Y,Z", default=DEFAULTS.sensor_origin,
-                   help="test changes along the reference's rays (sdp.change._visibility): auto (default) where its file "
+                   help="test changes along the reference's rays (sdp.change._visibility): auto (default) where its "
+                        "file "
                         "records the sensor (organized PCD), viewpoint the same but required, none, or X,Y,Z")
     w.add_argument("--range-noise", type=V.cli_type(V.nonnegative_finite), default=DEFAULTS.range_noise,
                    help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
@@ -500,7 +501,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--truth-field", default="change", help="field of TRUTH (nonzero: changed; default change)")
     e.add_argument("--json", action="store_true", help="print the scores as JSON")
 
-    r = _command(sub, "render", cmd_render, "picture of a labelled cloud (vermillion: changed) or slices of a field", X.RENDER)
+    r = _command(sub, "render", cmd_render, "picture of a labelled cloud (vermillion: changed) or slices of a field",
+                 X.RENDER)
     r.add_argument("file", help="cloud with a label field, or a field (.sdpf)")
     r.add_argument("--png", help="picture (three views of a cloud; three slices of a field)")
     r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")
@@ -520,7 +522,8 @@ def build_parser() -> argparse.ArgumentParser:
     with_json = (c, ds, se, al, w, ev, e)
     for q in (c, ds, se, b, i, m, o, al, w, t, pr, ev, e, r, d, wu):
         q.add_argument("-q", "--quiet", action="store_true",
-                       help="print nothing but errors" + (" (and the JSON that --json asks for)" if q in with_json else "")
+                       help="print nothing but errors"
+                            + (" (and the JSON that --json asks for)" if q in with_json else "")
                             + ": no summary, progress bar or notice")
     return p
 

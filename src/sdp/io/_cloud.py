@@ -17,7 +17,8 @@ import numpy as np
 
 from ..errors import SDPError
 
-__all__ = ["Cloud", "CloudFileError", "EmptyCloudError", "FORMATS", "input_format", "library_error", "unreadable", "unpacked_colour"]
+__all__ = ["Cloud", "CloudFileError", "EmptyCloudError", "FORMATS", "input_format", "library_error", "unreadable",
+           "unpacked_colour"]
 
 #: Extension → format name understood by :func:`sdp.io.read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
