@@ -567,16 +567,18 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
 
         def read(k):
             if held is not None:  # the rows are in memory: no read
-                sm, sd, vel = (a[k - r0].astype(np.float64) for a in held)
+                sm, sd, vel = (a[k - r0].astype(np.float64) for a in held[:3])
+                unseen = held[3][k - r0]
             else:
                 a = k - k % _DERIVED_EPOCHS
                 if a not in rows:
                     rows.clear()
                     rows[a] = [w[n][a:a + _DERIVED_EPOCHS] for n in ("smoothed", "smoothed_sigma", "velocity")]
                 sm, sd, vel = (r[k - a].astype(np.float64) for r in rows[a])
+                unseen = ~np.isfinite(w["distance"][k])
             # a core point without a distance at this epoch was not seen: its smoothed value there is
             # the smoother's guess, and not seen is not changed (in no object, no onset)
-            sd[~np.isfinite(w["distance"][k])] = np.nan
+            sd[unseen] = np.nan
             return sm, sd, vel
 
         saved = tracker.state() if E - 1 - lag < tracker.epoch + 1 else None
@@ -639,7 +641,7 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, reg: np.ndarray, ref_var: 
     """The smoother over blocks of core points (their number from the memory limit), from the
     saved filter ``state`` (an append) or the first epoch; the noise ``frozen`` (an append's) or
     estimated from the first ``first_epochs`` epochs. Returns (q, info, the rows written of
-    (smoothed, smoothed_sigma, velocity) if one block held them, else None, the filter state to
+    (smoothed, smoothed_sigma, velocity) and where they had no distance if one block held them, else None, the filter state to
     save, each point's first step). ``reg``: each epoch's registration error; ``ref_var``: each
     core point's reference variance (ref_spread² / ref_count). ``fresh``: this run's rows of
     distance and lod, if kept (else read from the archive)."""
@@ -715,8 +717,10 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, reg: np.ndarray, ref_var: 
                 out[:, c:d] = v
             saved.append(kept)
         w.set_all({name: ((slice(r0, E), slice(a, b)), v) for name, v in zip(names, results)})
-        if whole is not None:
-            held = (results[0], results[2], results[1])
+        if whole is not None:  # and where each row's core points had no distance (from the first epoch read)
+            unseen = np.zeros((R, m), bool)
+            unseen[a0 - r0:] = ~np.isfinite(whole[0])
+            held = (results[0], results[2], results[1], unseen)
     filt = FilterState(saved[0].epoch, np.concatenate([s.x for s in saved]), np.concatenate([s.seen for s in saved]),
                        np.concatenate([s.step for s in saved]))
     # the inputs after the saved epoch, for the next run
