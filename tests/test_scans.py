@@ -290,3 +290,17 @@ def test_a_scan_of_no_point_is_read_as_none(tmp_path, rng):
     cloud = sdp.read_points(tmp_path / "s.e57")
     np.testing.assert_allclose(cloud.xyz, xyz)
     assert cloud.sensors.shape == (2, 3) and set(cloud.fields["scan"].tolist()) == {0}
+
+
+def test_a_pair_of_sensors_with_one_unknown_keeps_every_scanner_of_the_other():
+    """``sensor_origin=[None, scanners]``: the known cloud's k scanners, not the first alone (a
+    (2, 3) read as one position per cloud) nor refused (k = 3)."""
+    from sdp.change._visibility import resolve_sensor_origins
+
+    for k in (2, 3):
+        rows = np.arange(3.0 * k).reshape(k, 3)
+        ref, cur = resolve_sensor_origins([None, rows], None, None)
+        assert ref is None and np.array_equal(cur, rows)
+    assert np.array_equal(resolve_sensor_origins([[1, 2, 3], None], None, None)[0], [1, 2, 3])
+    with pytest.raises(sdp.InvalidPointsError, match="one row per scan"):
+        resolve_sensor_origins([None, [[1, 2]]], None, None)

@@ -617,8 +617,25 @@ def resolve_sensor_origins(sensor_origin, reference, current) -> tuple[np.ndarra
             return tuple(None if o is None else o.copy() for o in known)
         sensor_origin = known
     if isinstance(sensor_origin, (list, tuple)) and len(sensor_origin) == 2 and any(o is None for o in sensor_origin):
-        return tuple(None if o is None else as_sensor_origins(o)[0] for o in sensor_origin)
+        return tuple(None if o is None else _one_cloud_origins(o) for o in sensor_origin)
     return as_sensor_origins(sensor_origin)
+
+
+def _one_cloud_origins(value) -> np.ndarray:
+    """One cloud's sensors given: a position (3,), or one per scan (k, 3) (the cloud's
+    :attr:`~sdp.Cloud.scan` indexes its rows)."""
+    try:
+        o = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidPointsError(f"sensor_origin: expected x, y, z of a sensor, or one row per scan ({exc})") from None
+    if o.ndim == 2 and o.shape[0] >= 1 and o.shape[1] == 3:
+        o = o[0] if len(o) == 1 else o
+    if o.shape != (3,) and not (o.ndim == 2 and o.shape[1] == 3):
+        raise InvalidPointsError(f"sensor_origin: expected x, y, z of a sensor (shape (3,)) or one row per scan "
+                                 f"(shape (k, 3)), got shape {o.shape}")
+    if not np.isfinite(o).all():
+        raise InvalidPointsError(f"sensor_origin must be finite, got {o.tolist()}")
+    return o.copy()
 
 
 def _known_origins(cloud) -> np.ndarray | None:
