@@ -521,6 +521,20 @@ def test_a_full_work_folder_is_one_line(pre):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("name", ["o.laz", "o.las", "o.ply"])
+def test_an_output_on_a_full_disk_is_one_line(tmp_path, name):
+    # a file-size limit stands for a full disk; lazrs reports its failed writes as its own error
+    limit = "import resource, signal; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); " \
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (30_000, 30_000)); "
+    np.save(tmp_path / "a.npy", np.random.default_rng(7).random((20_000, 3)))
+    p = subprocess.run([sys.executable, "-c", limit + "import runpy; runpy.run_module('sdp.cli', run_name='__main__', "
+                        "alter_sys=True)", "change", "a.npy", "a.npy", "-o", name, "-q"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert one_line_error(p) and f"{name}: can't write" in p.stderr, p.stderr
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a.npy"]
+
+
+@pytest.mark.slow
 def test_a_signal_while_laz_is_written_exits_130_with_nothing_written(tmp_path):
     # lazrs calls back into Python to write, and turns the KeyboardInterrupt raised there into its
     # own error; here the writer gets a real SIGINT and does the same: the command must still say it

@@ -276,4 +276,9 @@ def write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
         if name not in las.point_format.dimension_names:
             las.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dtype))
         las[name] = v.astype(dtype)
-    las.write(str(tmp), laz_backend=laspy.LazBackend.Lazrs if compressed else None)
+    try:
+        las.write(str(tmp), laz_backend=laspy.LazBackend.Lazrs if compressed else None)
+    except RuntimeError as exc:  # lazrs's own error: what its writes met (a full disk) is not kept
+        if type(exc).__name__ != "LazrsError":
+            raise
+        raise CloudFileError(f"{tmp}: can't write ({exc}: a full disk or a file-size limit?)") from None
