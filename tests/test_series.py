@@ -304,6 +304,35 @@ def test_an_append_on_a_full_disk_is_one_line_and_leaves_the_archive(slope, tmp_
     assert sorted(os.listdir(tmp_path)) == sorted(["s.zarr", *map(os.path.basename, files)])
 
 
+@pytest.mark.slow
+def test_a_signal_after_the_archive_is_committed_comes_too_late(slope, tmp_path):
+    """Ctrl-C right after the archive's commit (a new archive swapped in, an append's journal
+    dropped), before the summary: the archive is written, so the command says so (exit 0), not
+    "interrupted" over an archive that holds the epoch."""
+    import subprocess
+    import sys
+
+    files = _write_epochs(slope, tmp_path, 3)
+    out = tmp_path / "s.zarr"
+    code = ("import os, signal, shutil, sys\n"
+            "from pathlib import Path\n"
+            "from sdp.timeseries import _archive as A\n"
+            "out = Path(sys.argv[-1]); real = shutil.rmtree\n"
+            "def rmtree(path, *a, **k):\n"
+            "    if Path(path) in (A._siblings(out)[1], A._journal(out)[1]):\n"
+            "        os.kill(os.getpid(), signal.SIGINT)\n"
+            "    real(path, *a, **k)\n"
+            "shutil.rmtree = rmtree\n"
+            "from sdp.cli import main\n"
+            "sys.exit(main(sys.argv[1:]))\n")
+    for args in (["series", *files[:2], "--projection-scale", "0.8"], ["series", files[2], "--append"]):
+        p = subprocess.run([sys.executable, "-c", code, *args, "-q", "-o", str(out)], capture_output=True, text=True,
+                           timeout=120)
+        assert p.returncode == 0 and p.stderr == "", p.stderr[-2000:]
+    assert sdp.open_series(out).sizes["epoch"] == 3
+    assert sorted(os.listdir(tmp_path)) == sorted(["s.zarr", *map(os.path.basename, files)])
+
+
 def test_an_append_running_elsewhere_is_neither_rolled_back_nor_joined(slope, tmp_path):
     """While another process appends (its lock held, its journal there, a file replaced), opening
     the archive leaves that journal alone and a second append, or a run replacing the archive, is

@@ -111,6 +111,8 @@ def refuse_overwrite(path: str | os.PathLike, inputs=()) -> None:
 
 
 _PENDING: ContextVar[list | None] = ContextVar("sdp_pending_outputs", default=None)
+#: What the outermost :func:`all_or_none` calls once its outputs are committed.
+_ON_COMMIT: ContextVar = ContextVar("sdp_on_commit", default=None)
 
 
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -135,7 +137,7 @@ def all_or_none(*, on_commit=None, own: bool = False):
         yield
         return
     pending: list[tuple[str, Path]] = []
-    token = _PENDING.set(pending)
+    token, hook = _PENDING.set(pending), _ON_COMMIT.set(on_commit)
     try:
         yield
         held = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS) if _main_thread() else None
@@ -149,8 +151,27 @@ def all_or_none(*, on_commit=None, own: bool = False):
                 signal.pthread_sigmask(signal.SIG_SETMASK, held)
     finally:
         _PENDING.reset(token)
+        _ON_COMMIT.reset(hook)
         for tmp, _ in pending:
             Path(tmp).unlink(missing_ok=True)
+
+
+@contextmanager
+def commit_point():
+    """The block is a commit that cannot wait for the end of the command (a series archive's,
+    swapped in or its journal dropped before the summary is printed): it runs with Ctrl-C and
+    SIGTERM held back, then tells the command around it (:func:`all_or_none`'s ``on_commit``)
+    that its output is committed, so that a signal from then on comes too late to stop anything
+    rather than reporting as not written what was."""
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS) if _main_thread() else None
+    try:
+        yield
+        hook = _ON_COMMIT.get()
+        if hook is not None:
+            hook()
+    finally:
+        if held is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 @contextmanager

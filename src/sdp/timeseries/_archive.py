@@ -51,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InvalidOptionError, SDPError, require
+from ..io._output import commit_point
 
 __all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "archive_exists", "open_series", "recover", "writing", "transaction",
            "untouched_by_append", "Writer",
@@ -337,7 +338,8 @@ def transaction(path, *, untouched=None):
             _roll_back(path, journal)
             _say_written(exc, path, "it is as it was before this append")
             raise
-        os.rename(journal, committed)  # the commit
+        with commit_point():
+            os.rename(journal, committed)  # the commit
         shutil.rmtree(committed, ignore_errors=True)
         return
     tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
@@ -356,9 +358,10 @@ def transaction(path, *, untouched=None):
         _say_written(exc, path, "nothing was written")
         raise
     # from here the new version is complete: a crash leaves it for recover() to swap in
-    if path.exists():
-        os.rename(path, old)
-    os.rename(pending, path)
+    with commit_point():
+        if path.exists():
+            os.rename(path, old)
+        os.rename(pending, path)
     (path / _COMPLETE).unlink()
     shutil.rmtree(old, ignore_errors=True)
 
