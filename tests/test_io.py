@@ -65,6 +65,9 @@ def test_las_output_keeps_input_dimensions(tmp_path, rng, monkeypatch):
     write_points(tmp_path / "out.las", cloud.xyz, {"change": np.ones(200, np.uint8)}, like=cloud)
     back = read_points(tmp_path / "out.las")
     np.testing.assert_array_equal(back.fields["classification"], las.classification)
+    for other in ("out.ply", "out.npz"):  # and written as another format, as fields
+        write_points(tmp_path / other, cloud.xyz, {"change": np.ones(200, np.uint8)}, like=cloud)
+        np.testing.assert_array_equal(read_points(tmp_path / other).fields["classification"], las.classification)
     import sdp.io._las
 
     monkeypatch.setattr(sdp.io._las, "LAS_CHUNK", 64)  # 4 chunks, as a large file is read (with a progress bar)

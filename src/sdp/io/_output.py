@@ -249,7 +249,7 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
         like = xyz if like is None else like
         xyz = xyz.xyz
     xyz, fields = _checked_points(path, xyz, fields)
-    if like is not None and like.las is None and like.fields:
+    if like is not None and like.fields and (like.las is None or ext not in (".las", ".laz")):  # LAS: its records
         kept = {k: v for k, v in like.fields.items() if len(v) == len(xyz) and k not in fields}
         if kept:
             fields = {**_checked_points(path, xyz, kept)[1], **fields}
