@@ -304,3 +304,30 @@ def test_a_las_files_time_read_from_its_header_agrees_with_laspy(tmp_path):
                 assert file_time(path) == want, (fmt, standard, date)
                 checked += 1
     assert checked == 18
+
+
+def test_text_columns_as_their_header_names_them(tmp_path, rng):
+    """The header's x, y, z wherever they stand; a PTS file's point count; a comment's comma."""
+    xyz = np.round(rng.random((50, 3)) * 10, 4)
+    ids = np.arange(50.0)
+
+    def write(name, text):
+        (tmp_path / name).write_text(text)
+        return read_points(tmp_path / name)
+
+    rows = "\n".join(",".join(f"{v:.4f}" for v in r) for r in np.c_[xyz[:, 1], xyz[:, 0], xyz[:, 2]])
+    np.testing.assert_array_equal(write("yxz.csv", "y,x,z\n" + rows + "\n").xyz, xyz)
+    rows = "\n".join(",".join(f"{v:.4f}" for v in r) for r in np.c_[ids, xyz])
+    c = write("id.csv", "id,x,y,z\n" + rows + "\n")
+    np.testing.assert_array_equal(c.xyz, xyz)
+    np.testing.assert_array_equal(c.fields["id"], ids)
+    rows = "\n".join(";".join(f"{v:.4f}" for v in r) for r in np.c_[xyz, ids])
+    c = write("cc.txt", "//X;Y;Z;Intensity\n" + rows + "\n")  # CloudCompare's header, semicolons
+    np.testing.assert_array_equal(c.xyz, xyz)
+    np.testing.assert_array_equal(c.fields["intensity"], ids)
+    rows = "\n".join(" ".join(f"{v:.4f}" for v in r) + " 100 1 2 3" for r in xyz)
+    c = write("scan.pts", f"{len(xyz)}\n{rows}\n")
+    np.testing.assert_array_equal(c.xyz, xyz)
+    assert sorted(c.fields) == ["blue", "green", "intensity", "red"] and c.fields["blue"][0] == 3
+    rows = "\n".join(" ".join(f"{v:.4f}" for v in r) for r in xyz)
+    np.testing.assert_array_equal(write("c.xyz", "# exported by a scanner, v2\n" + rows + "\n").xyz, xyz)

@@ -1,5 +1,8 @@
-"""Text point clouds (XYZ, TXT, CSV, PTS), read with NumPy: whitespace- or comma-separated
-columns x y z then any others, with or without a header line naming them. sdp writes no text."""
+"""Text point clouds (XYZ, TXT, CSV, PTS), read with NumPy: comma-, semicolon- or
+whitespace-separated columns, with or without a header line naming them (CloudCompare's
+``//X,Y,Z,…`` too), a Leica PTS file's leading point count, and ``#`` comment lines. Columns named
+x, y and z by the header are the coordinates wherever they stand; without such names, the first
+three. sdp writes no text."""
 
 from __future__ import annotations
 
@@ -13,30 +16,45 @@ __all__ = ["read_text"]
 
 
 def read_text(path):
-    """``(xyz, fields, None)`` of a text file: columns after the third are fields, named by the
-    header line if there is one, else ``column3``, ``column4``, …"""
+    """``(xyz, fields, None)`` of a text file: the columns the header names x, y, z (else the first
+    three) are the coordinates, the others fields named by the header if there is one, else
+    ``column3``, ``column4``, …"""
     with open(path, encoding="utf-8", errors="replace") as fh:
-        sample = fh.read(4096)
-    if not sample.strip():
+        sample = fh.read(65536)
+    rows = [(i, ln.strip()) for i, ln in enumerate(sample.splitlines()) if ln.strip() and not ln.lstrip().startswith("#")]
+    if not rows:
         raise EmptyCloudError(f"{path}: the file is empty: no point to read")
-    delimiter = "," if "," in sample else None
-    first = sample.splitlines()[0] if sample else ""
-    skip = 0 if _is_numeric_row(first, delimiter) else 1
+    data = [ln for _, ln in rows if _values(ln) is not None]
+    delimiter = next((d for d in (",", ";") if data and d in data[0]), None)
+    head, names = 0, []
+    first = rows[0][1]
+    values = _values(first)
+    if values is None:  # a header naming the columns
+        head, names = rows[0][0] + 1, [n.strip().lstrip("/").strip().lower() for n in first.replace(";", ",")
+                                       .replace(",", " ").split()]
+    elif len(values) == 1 and len(rows) > 1 and len(_values(rows[1][1]) or ()) >= 3:
+        head = rows[0][0] + 1  # a PTS file's point count
     with warnings.catch_warnings():  # a header without rows: said below, not as a warning
         warnings.simplefilter("ignore", UserWarning)
-        arr = np.loadtxt(path, delimiter=delimiter, skiprows=skip, ndmin=2)
+        try:
+            arr = np.loadtxt(path, delimiter=delimiter, skiprows=head, ndmin=2, comments="#")
+        except ValueError as exc:
+            raise CloudFileError(f"{path}: not a table of numbers ({exc})") from None
     if arr.size == 0:
         raise EmptyCloudError(f"{path}: holds a header but no point")
     if arr.shape[1] < 3:
         raise CloudFileError(f"{path}: expected at least 3 columns (x y z), found {arr.shape[1]}")
-    names = [n.strip().lower() for n in first.replace(",", " ").split()] if skip else []
-    fields = {(names[i] if i < len(names) else f"column{i}"): arr[:, i] for i in range(3, arr.shape[1])}
-    return arr[:, :3], fields, None
+    if not names and str(path).lower().endswith(".pts") and arr.shape[1] in (4, 7):
+        names = ["x", "y", "z", "intensity", "red", "green", "blue"]  # Leica's PTS: x y z i [r g b]
+    names = names[:arr.shape[1]] + [f"column{i}" for i in range(len(names), arr.shape[1])]
+    axes = [names.index(a) for a in "xyz"] if {"x", "y", "z"} <= set(names) else [0, 1, 2]
+    fields = {names[i]: arr[:, i] for i in range(arr.shape[1]) if i not in axes}
+    return arr[:, axes], fields, None
 
 
-def _is_numeric_row(line: str, delimiter) -> bool:
+def _values(line: str) -> list[float] | None:
+    """The numbers of a row (any of the separators), None if it holds something else."""
     try:
-        [float(x) for x in line.split(delimiter) if x.strip()]
-        return bool(line.strip())
+        return [float(x) for x in line.replace(";", ",").replace(",", " ").split()]
     except ValueError:
-        return False
+        return None
