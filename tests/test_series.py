@@ -672,6 +672,7 @@ def test_command_append_and_info_import_no_xarray(slope, tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["missing.ply"], "missing.ply"),
     (["{e0}", "{e1}", "--times", "1,x"], "neither a number nor an ISO date"),
+    (["{e0}", "{e1}", "--times", "1,"], "a time is empty"),
     (["{e0}", "{e1}", "--times", "1"], "1 time(s) for 2 epoch(s)"),
     (["{e0}", "--append"], "no archive to append to"),
     (["{e0}", "{e1}", "--reference", "5"], "reference 5"),

@@ -84,6 +84,8 @@ def _parse_time(value) -> tuple[float, str]:
     if isinstance(value, (_dt.date, np.datetime64)):
         value = str(np.datetime64(value))
     text = str(value).strip()
+    if not text or text.lower() == "nat":
+        raise InvalidOptionError("a time is empty (two commas, or one at an end?): give one per epoch")
     try:
         number = float(text)
     except ValueError:
