@@ -164,3 +164,18 @@ def test_a_tile_refusal_names_the_workers_share_of_the_limit(tmp_path, cloud, mo
                        r"command, over 2 worker\(s\), less 256 MB for the worker itself\) of 1.51 GB"):
         sdp.detect_changes_tiled(cloud, cloud, lattice=sdp.Lattice(voxel_size=0.05, sigma_voxels=1000),
                                  execution=sdp.Execution(workers=2, memory_limit="4GB", workdir=tmp_path))
+
+
+@pytest.mark.parametrize("args", [["build", "g.npy", "-o", "f.sdpf"], ["mesh", "g.npy", "-o", "m.ply"],
+                                  ["bool", "union", "g.npy", "g.npy", "-o", "u.sdpf"],
+                                  ["series", "g.npy", "g.npy", "-o", "s.zarr"]])
+def test_every_command_counts_the_process_in_the_limit(tmp_path, cloud, capsys, args):
+    """The same limit is refused alike by the commands that build fields or a series: the process
+    itself does not fit in 100 MB (`sdp change` counts it too)."""
+    from sdp.cli._main import main
+
+    np.save(tmp_path / "g.npy", cloud)
+    here = [str(tmp_path / a) if a.endswith((".npy", ".sdpf", ".ply", ".zarr")) else a for a in args]
+    assert main([*here, "--memory-limit", "100MB"]) == 2
+    assert "the process itself needs about" in capsys.readouterr().err
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["g.npy"]

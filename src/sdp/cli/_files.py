@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -42,6 +43,34 @@ def _lattice(clouds, lattice: Lattice, memory_limit, like=None) -> dict:
     return dict(kw, memory_limit=memory_limit)
 
 
+@contextmanager
+def _blocks_budget(clouds, format, memory_limit, advice: str):
+    """Yield what the fields' blocks may take of the memory limit: the limit is the whole job's, so
+    the process and the points of the cloud files ``clouds`` come first (counted from the files'
+    headers where they have one, before reading), refused at once when they alone exceed it
+    (``advice`` says what to do), the blocks in what is left (``sdp build``, ``mesh``, ``bool``)."""
+    from .._core._memory import format_bytes
+    from .._core._memory import memory_limit as limit
+    from ..scale._budget import check_process_fits, untiled_point_bytes
+    from ..scale._series import count_points
+
+    cap = limit(memory_limit)
+    counts = [count_points(c, format) for c in clouds if not is_field(c)]
+    n = None if None in counts else sum(counts)
+    held = untiled_point_bytes(n or 0)
+    what = "the process itself" if not n else f"{n:,} points in memory with the process"
+    check_process_fits(cap)  # the points are not what to change
+    if held >= cap:
+        raise GridTooLargeError(f"{', '.join(map(str, clouds))}: {what} need about {format_bytes(held)}, above the "
+                                f"memory limit of {format_bytes(cap)}: {advice}, or raise the memory limit "
+                                "($SDP_MEMORY_LIMIT)")
+    try:
+        yield cap - held
+    except GridTooLargeError as exc:  # its limit was what the points and the process leave
+        raise GridTooLargeError(f"{exc} (the {format_bytes(cap)} limit less {format_bytes(held)} for {what})") \
+            from None
+
+
 def _field_or_points(path, format):
     """A field file loaded, or a cloud file's points (n, 3)."""
     from ..fields._density import DensityField
@@ -70,25 +99,9 @@ def build_field_file(cloud, *, output, format: str | None = None, lattice: Latti
     execution = as_options(Execution, execution, "execution")
     check_outputs([output], [cloud])
     if not is_store(output):
-        from .._core._memory import format_bytes
-        from .._core._memory import memory_limit as limit
-        from ..scale._budget import untiled_point_bytes
-        from ..scale._series import count_points
-
-        # the limit is the whole job's: the process and the points first (counted from the file's
-        # header where it has one, before reading), the blocks in what is left
-        cap, n = limit(execution.memory_limit), count_points(cloud, format)
-        held = untiled_point_bytes(n or 0)
-        what = "the process itself" if n is None else f"{n:,} points in memory with the process"
-        if held >= cap:
-            raise GridTooLargeError(f"{cloud}: {what} need about {format_bytes(held)}, above the memory limit of "
-                                    f"{format_bytes(cap)}: build a field store in tiles (-o FIELD.zarr), or raise "
-                                    f"the memory limit ($SDP_MEMORY_LIMIT)")
-        try:
-            fld = _field(cloud, format, lattice, cap - held)
-        except GridTooLargeError as exc:  # its limit was what the points and the process leave
-            raise GridTooLargeError(f"{exc} (the {format_bytes(cap)} limit less {format_bytes(held)} for {what})") \
-                from None
+        with _blocks_budget([cloud], format, execution.memory_limit,
+                            "build a field store in tiles (-o FIELD.zarr)") as blocks:
+            fld = _field(cloud, format, lattice, blocks)
         _save_field(fld, output, inputs=(cloud,))
         return fld
     from ..io._source import PointSource
@@ -124,7 +137,8 @@ def mesh_file(path, *, output, level: float = 0.0, format: str | None = None, la
 
         mesh = FieldStore.open(path).mesh(level=level)
     else:
-        mesh = _field(path, format, lattice, memory_limit).mesh(level=level)
+        with _blocks_budget([path], format, memory_limit, "use a larger --voxel-size") as blocks:
+            mesh = _field(path, format, lattice, blocks).mesh(level=level)
     write_mesh(output, mesh, inputs=(path,))
     return mesh
 
@@ -156,11 +170,12 @@ def combine_files(operation: str, a, b, *, output, format: str | None = None, la
     if is_store(a) or is_store(b):
         raise SDPError(f"{a if is_store(a) else b}: a .zarr field store combines with another one into a .zarr "
                        f"output (-o X.zarr); with a cloud or a .sdpf field, give the cloud it was built from")
-    items = [_field_or_points(p, format) for p in (a, b)]
-    like = next((x for x in items if isinstance(x, DensityField)), None)
-    kw = _lattice(items, lattice, memory_limit, like)  # clouds are built on a given field's lattice, else on one from both
-    fa, fb = (x if isinstance(x, DensityField) else DensityField.from_points(x, **kw) for x in items)
-    result = getattr(boolean, operation)(fa, fb)
+    with _blocks_budget([a, b], format, memory_limit, "use a larger --voxel-size") as blocks:
+        items = [_field_or_points(p, format) for p in (a, b)]
+        like = next((x for x in items if isinstance(x, DensityField)), None)
+        kw = _lattice(items, lattice, blocks, like)  # clouds are built on a given field's lattice, else on one from both
+        fa, fb = (x if isinstance(x, DensityField) else DensityField.from_points(x, **kw) for x in items)
+        result = getattr(boolean, operation)(fa, fb)
     if is_field(output):
         _save_field(result, output, inputs=(a, b))
         return result

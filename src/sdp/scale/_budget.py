@@ -15,6 +15,7 @@ import numpy as np
 
 from .._core._memory import format_bytes
 from .._core._validate import positive_finite
+from ..errors import GridTooLargeError
 from ..fields._lattice import kernel_reach
 
 __all__ = ["BYTES_PER_ROW_READ", "BYTES_PER_TILE_POINT", "dense_grid_bytes", "BYTES_PER_POINT_IN_MEMORY",
@@ -49,6 +50,14 @@ BYTES_PER_POINT_IN_MEMORY = 200
 #: The in-memory command's process before any data: the interpreter, NumPy, SciPy and Numba's kernels
 #: (measured: 197 MiB after a small comparison).
 PROCESS_BYTES = 224 * 2**20
+
+
+def check_process_fits(cap: float) -> None:
+    """Refuse a memory limit ``cap`` (bytes) the process itself exceeds: the limit is the whole
+    job's, in every command."""
+    if PROCESS_BYTES >= cap:
+        raise GridTooLargeError(f"the process itself needs about {format_bytes(PROCESS_BYTES)}, above the memory "
+                                f"limit of {format_bytes(cap)}: raise the memory limit ($SDP_MEMORY_LIMIT)")
 
 
 def untiled_point_bytes(n_points: int) -> int:

@@ -52,6 +52,7 @@ from ..io._output import check_outputs
 from ..io._read import read_points
 from ..io._time import file_time
 from ..options import Cylinder, Execution, Registration, as_options
+from ..scale._budget import check_process_fits
 from ..scale._series import CORE_BYTES, POINT_BYTES, count_points, plan_series
 from . import _archive as A
 from ._kalman import BYTES_PER_VALUE, FilterState, kalman, observation_variance, process_noise
@@ -304,6 +305,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
         raise InvalidOptionError("no epochs given")
     execution = as_options(Execution, execution, "execution")
     limit = resolve_memory_limit(execution.memory_limit)
+    check_process_fits(limit)
     out = Path(output)
     files = [e for e in epochs if isinstance(e, (str, os.PathLike))]
     inputs = files + ([core_points] if isinstance(core_points, (str, os.PathLike)) else [])
