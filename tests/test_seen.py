@@ -53,3 +53,66 @@ def test_a_series_epoch_knows_what_its_sensor_did_not_see(tmp_path):
     assert under.sum() > 10 and np.isnan(ds["distance"].values[1, under]).all()
     assert np.array_equal(np.isnan(ds["distance"].values[1]), np.isnan(pair.distance))
     assert np.allclose(ds["distance"].values[1], pair.distance, atol=1e-6, equal_nan=True)
+
+
+def box_scans(rng, *, lift=0.0, n=40_000):
+    """A floor and a box 2 × 2 × 1 m, scanned from x = −3 m (A: the box's west face and top) and
+    from x = +5 m (B: its east face and top, the top ``lift`` higher), each floor without the
+    box's shadow from its sensor: nothing else moved."""
+    a, b = np.array([-3.0, 0.0, 1.5]), np.array([5.0, 0.0, 1.5])
+    floor = np.c_[rng.uniform(-4, 6, n), rng.uniform(-1.6, 1.6, n), np.zeros(n)]
+
+    def lit(p, sensor):
+        """The floor points whose ray from ``sensor`` misses the box (a slab test)."""
+        d = p - sensor
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0, t1 = (np.array([0, -1, 0]) - sensor) / d, (np.array([2, 1, 1]) - sensor) / d
+        near, far = np.nanmax(np.minimum(t0, t1), axis=1), np.nanmin(np.maximum(t0, t1), axis=1)
+        return p[~((near <= far) & (near < 1) & (far > 0))]
+
+    def face(x):
+        return np.c_[np.full(n // 8, x), rng.uniform(-1, 1, n // 8), rng.uniform(0, 1, n // 8)]
+
+    def top(z):
+        return np.c_[rng.uniform(0, 2, n // 4), rng.uniform(-1, 1, n // 4), np.full(n // 4, z)]
+
+    def noisy(p):
+        return p + 0.002 * rng.standard_normal(p.shape)
+
+    first = sdp.Cloud(noisy(np.r_[lit(floor, a), face(0.0), top(1.0)]), sensors=a[None])
+    second = sdp.Cloud(noisy(np.r_[lit(floor, b), face(2.0), top(1.0 + lift)]), sensors=b[None])
+    return first, second
+
+
+def test_a_face_the_other_sensor_saw_from_behind_gets_no_distance():
+    """The place measured must be one the other epoch's sensor saw: the west face's cylinders near
+    the top edge hold the top's points in B (level 0: M3C2 measures them, centimetres off), but B
+    saw that place only through the box. A surface that moved towards the sensor, hiding the old
+    place, is still measured: the place measured is on it."""
+    rng = np.random.default_rng(8)
+    first, second = box_scans(rng, lift=0.05)
+    cyl = sdp.Cylinder(projection_scale=0.8, normal_scale=0.8)
+    west = np.c_[np.zeros(200), rng.uniform(-0.5, 0.5, 200), rng.uniform(0.5, 0.8, 200)]
+    onto = np.c_[rng.uniform(0.7, 1.3, 200), rng.uniform(-0.3, 0.3, 200), np.ones(200)]  # clear of its edges
+    core = np.r_[west, onto]
+    blind = sdp.distances(first, second, core_points=core, cylinder=cyl, sensor_origin=None, orientation=[-1, 0, 0])
+    edge = np.zeros(len(core), bool)
+    edge[:200] = 1.0 - west[:, 2] < 0.4
+    assert edge.sum() > 50 and (blind.level[edge] == 0).mean() > 0.8
+    assert np.median(np.abs(blind.distance[edge & (blind.level == 0)])) > 0.02
+    d = sdp.distances(first, second, core_points=core, cylinder=cyl, registration_error=0.005)
+    assert not d.comparable[:200].any() and d.not_seen >= 200
+    assert np.allclose(d.distance[200:], 0.05, atol=0.005) and d.significant[200:].all()
+
+
+def test_points_beyond_the_cylinders_rim_alone_give_no_distance():
+    """A few points between M3C2's rim (d/2 = 2σ_p) and the kernel's cut (3σ_p) weigh less than two
+    points on the rim: they tell where the surface lies off the axis, so no distance there."""
+    rng = np.random.default_rng(9)
+    plane = np.c_[rng.uniform(-1, 1, (20_000, 2)), 0.001 * rng.standard_normal(20_000)]
+    far = np.c_[2.5 * 0.05 * np.cos([0.0, 2.1, 4.2]), 2.5 * 0.05 * np.sin([0.0, 2.1, 4.2]), np.zeros(3)]
+    near = far * 0.6  # inside the rim: the same three points measure
+    cyl = sdp.Cylinder(projection_scale=0.2, normal_scale=0.4, max_distance=0.1)
+    core = np.zeros((1, 3))
+    assert not sdp.distances(plane, far, core_points=core, cylinder=cyl, sensor_origin=None).comparable[0]
+    assert sdp.distances(plane, near, core_points=core, cylinder=cyl, sensor_origin=None).comparable[0]

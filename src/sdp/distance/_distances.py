@@ -13,7 +13,9 @@ and their weighted moments are what M3C2 needs.
 - **Distance**: along that normal, each epoch's kernel-weighted mean offset in a cylinder
   around the core point: weight ``exp(−r²/2σ_p²)`` of the distance ``r`` to the axis, radius
   and half-length cut at 3σ_p (the kernel's truncation). Where an epoch has too few points
-  there (it moved farther than the kernel reaches), the nearest of its cells on the normal's
+  there — fewer than two effective points, or less weight than two points on the rim of M3C2's
+  cylinder (radius d/2 = 2σ_p): a few points near the cut tell where the surface lies off the
+  axis, not at it — (it moved farther than the kernel reaches), the nearest of its cells on the normal's
   line within ``max_distance`` is found and the same cylinder, moved there, answers (twice
   recentred on the mean it finds): a displacement of any size is measured at the kernel's own
   resolution, and the nearest surface answers, not a mean of all surfaces on the line.
@@ -99,6 +101,10 @@ DISTANCE_FIELDS = ("distance", "lod", "significant", "n1", "n2", "spread1", "spr
                    "normal_x", "normal_y", "normal_z")
 
 _MIN_POINTS = 2.0  # effective points an epoch needs in the cylinder: a spread needs two
+# and as much weight as two points on the rim of M3C2's cylinder (radius d/2 = 2σ_p): a few points
+# near the cut (3σ_p) weigh alike, so their effective count is full while they tell where the
+# surface lies off the axis, not at it (on a normal tilted by 1°, 2 cm at 1 m)
+_MIN_WEIGHT = 2.0 * math.exp(-2.0)
 _NORMAL_REACH = 2.0  # normal kernels cut at 2σ_n: the covariance's direction is settled by then
 _ROUGHNESS_RATIO = 20.0  # Lague et al.: normal scale ≥ 20–25 × the roughness
 _MAX_NORMAL_FACTOR = 4.0  # the roughness rule may enlarge D up to this many projection scales
@@ -396,11 +402,11 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
                   projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
                   registration_error=0.0 if reg == "auto" else reg, orientation=how, timings=timings, mean1=mean1)
     t = time.perf_counter()
-    # where an epoch was found only farther along the normal, and its sensor could not see the core
-    # point, there is no distance (sdp.distance._seen); the reference saw its own points
-    d = without_unseen(d, current, cur.xyz, origins[1], sigma=sigma_p)
+    # where an epoch's sensor could not see the place measured, there is no distance
+    # (sdp.distance._seen); the reference saw its own points
+    d = without_unseen(d, current, cur.xyz, origins[1], sigma=sigma_p, along=mean1 + d.distance)
     if core is not ref.xyz:
-        d = without_unseen(d, reference, ref.xyz, origins[0], sigma=sigma_p)
+        d = without_unseen(d, reference, ref.xyz, origins[0], sigma=sigma_p, along=mean1)
     timings["not_seen"] = time.perf_counter() - t
     d = with_level(d, reg)
     if given_rows is not None:
@@ -600,7 +606,7 @@ class _CellLists:
         line within ``max_half``, where the first found too few points."""
         half = _RADIUS * sigma
         out = self._cylinders(xyz, queries, normals, sigma, half)
-        level = np.where(out[:, 2] >= _MIN_POINTS, 0, -1)
+        level = np.where(_enough(out), 0, -1)
         todo = np.flatnonzero(level < 0)
         if todo.size and max_half > half:
             q, n = queries[todo], normals[todo]
@@ -611,20 +617,29 @@ class _CellLists:
             q, n, t = q[found], n[found], t[found]
             for _ in range(2):  # move the cylinder onto the surface found: twice settles it
                 fine = self._cylinders(xyz, np.ascontiguousarray(q + t[:, None] * n), n, sigma, half)
-                ok = fine[:, 2] >= _MIN_POINTS
+                ok = fine[:, 2] >= _MIN_POINTS  # a first cylinder beside the surface moves onto it
                 t = np.where(ok, t + np.nan_to_num(fine[:, 0]), t)
             fine[:, 0] = t
-            keep = ok & (np.abs(t) <= max_half)
+            keep = _enough(fine) & (np.abs(t) <= max_half)
             out[todo[found[keep]]] = fine[keep]
             level[todo[found[keep]]] = 1
+        out[level < 0, :2] = np.nan
         return out[:, 0], out[:, 1], out[:, 2], level
 
     def _cylinders(self, xyz, queries, normals, sigma, half):
-        out = np.empty((len(queries), 3))
+        """(mean offset, spread, effective count, weight) per cylinder; no mean nor spread
+        where too few points answer."""
+        out = np.empty((len(queries), 4))
         _cylinders(*self.moments(xyz, _CELL * sigma), self.lo, np.ascontiguousarray(queries),
                    np.ascontiguousarray(normals), sigma, _RADIUS * sigma, half, out)
         out[out[:, 2] < _MIN_POINTS, :2] = np.nan
         return out
+
+
+def _enough(out: np.ndarray) -> np.ndarray:
+    """The cylinders (rows of :meth:`_CellLists._cylinders`) that measure: as many effective points
+    as a spread needs, as much weight as two points on M3C2's rim."""
+    return (out[:, 2] >= _MIN_POINTS) & (out[:, 3] >= _MIN_WEIGHT)
 
 
 def _index_box(xyz, lo, cell):
@@ -944,7 +959,7 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
         w = w2 = st = stt = 0.0
         if not np.isfinite(nx):
             out[i, 0] = out[i, 1] = np.nan
-            out[i, 2] = 0.0
+            out[i, 2] = out[i, 3] = 0.0
             continue
         ex = half * abs(nx) + radius * math.sqrt(max(0.0, 1.0 - nx * nx))
         ey = half * abs(ny) + radius * math.sqrt(max(0.0, 1.0 - ny * ny))
@@ -972,6 +987,7 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
                         if r >= 0:
                             w, w2, st, stt = _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2,
                                                             w, w2, st, stt)
+        out[i, 3] = w
         if w <= 0.0:
             out[i, 0] = out[i, 1] = np.nan
             out[i, 2] = 0.0

@@ -171,8 +171,8 @@ class PreparedReference:
     def measure(self, current, *, registration_error: float | str = "auto", memory_limit=None) -> Distances:
         """Distances from the reference to ``current`` at the core points, as :func:`sdp.distances`
         (``registration_error``: a number, or ``"auto"``: measured on the stable part; a
-        :class:`sdp.Cloud` that knows its sensors: no distance where they could not see the core
-        point, :mod:`sdp.distance._seen`)."""
+        :class:`sdp.Cloud` that knows its sensors: no distance where they could not see the place
+        measured, :mod:`sdp.distance._seen`)."""
         t0 = time.perf_counter()
         cur = as_points(current, name="epoch")
         if len(cur.xyz) < 3:
@@ -182,7 +182,8 @@ class PreparedReference:
                      advice="measure at fewer core points")
         d = self._measure(cur.xyz, self.epoch_corner(cur.lo), cur.hi, 0.0 if reg == "auto" else reg, t0)
         origins = resolve_sensor_origins("auto", None, current)[1]  # what the epoch's file says, else None
-        d = without_unseen(d, current, cur.xyz, origins, sigma=self.projection_scale / 4.0)
+        d = without_unseen(d, current, cur.xyz, origins, sigma=self.projection_scale / 4.0,
+                           along=self.ref_mean + d.distance)
         return with_level(d, reg)
 
     def epoch_corner(self, lowest) -> np.ndarray:

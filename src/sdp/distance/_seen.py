@@ -1,21 +1,26 @@
-"""Where an epoch's sensor could not see a core point, the distance there is not measured.
+"""Where an epoch's sensor could not see the place measured, there is no distance.
 
-M3C2's search along the normal finds the other epoch's surface wherever it lies; where that epoch
-has no points in the cylinder at the core point (:attr:`sdp.Distances.level` 1: found farther
-along the normal) the place may have been emptied, or merely not seen by that epoch's sensor:
-hidden behind something nearer, or outside its field of view. A distance to whatever surface lies
-farther along the normal is then no measurement of that place, and M3C2 has no way to tell.
-Where the sensor is known (a PCD's VIEWPOINT, an E57 scan's pose), its rays tell, as they do for
-the change masks (:mod:`sdp.change._visibility`, the same range image and band): a place is seen
-when the ray through it returns at its range (the same surface) or beyond it (seen free), or
-returns nothing inside the field of view (free space, as the masks take it); it is not seen when
-every return near its ray is nearer (hidden), or when it lies outside the field of view or beyond
-the sensor's reach. With several scanners (a multi-scan E57), a place is seen when any scanner of
-that epoch saw it. Places not seen get no distance (NaN: not comparable, as M3C2's places without
-points), so they are neither significant nor counted in the level's calibration.
+M3C2's cylinder takes whatever points of the other epoch lie in it, and its search along the
+normal finds the other epoch's surface wherever it lies. Neither asks whether that epoch's sensor
+saw the place: a face turned away from the other scanner gets the points of the faces it did
+see, where a cylinder straddles an edge, and the mean of an object's far side, centimetres to
+decimetres off (a parked car's far face scanned from its other side: 1,011 of 1,080 core points
+"significant" on a static street); where an epoch has no points in the cylinder at the core point
+(:attr:`sdp.Distances.level` 1: found farther along the normal) the place may have been emptied,
+or merely hidden, or outside the field of view. Where the sensor is known (a PCD's VIEWPOINT, an
+E57 scan's pose), its rays tell, as they do for the change masks (:mod:`sdp.change._visibility`,
+the same range image and band): a place is seen when the ray through it returns at its range (the
+same surface) or beyond it (seen free), or returns nothing inside the field of view (free space,
+as the masks take it); it is not seen when every return near its ray is nearer (hidden), or when
+it lies outside the field of view or beyond the sensor's reach.
 
-On the three static mOSD pairs this leaves 2,831, 3,440 and 0 of the 2,831, 5,648 and 6,358 places
-found farther along the normal without a distance (``benchmarks/bench_level.py``).
+The place is where the epoch's surface was measured: the core point moved along the normal by
+that epoch's mean offset in its cylinder (level 0), so a surface that moved towards the sensor,
+hiding the old place, is measured where it now is and stays comparable; the core point itself
+where an epoch was found only farther along the normal (level 1: was the place emptied, or
+hidden?). With several scanners (a multi-scan E57), a place is seen when any scanner of that epoch
+saw it. Places not seen get no distance (NaN: not comparable, as M3C2's places without points), so
+they are neither significant nor counted in the level's calibration.
 """
 
 from __future__ import annotations
@@ -30,20 +35,28 @@ from ..defaults import DEFAULTS
 __all__ = ["not_seen", "without_unseen"]
 
 
-def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sigma: float):
-    """``d`` (:class:`sdp.Distances`) with no distance at the core points found only farther
-    along the normal (level 1) that the scan ``cloud`` (an array or a :class:`sdp.Cloud`; its
-    finite points ``xyz``; its sensors ``origins``: (3,), or (k, 3) with the Cloud's
-    :attr:`~sdp.Cloud.scan`, or None) could not see; ``d`` itself when nothing changes."""
-    far = np.flatnonzero(d.level == 1)
-    if origins is None or far.size == 0:
+def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sigma: float, along=None):
+    """``d`` (:class:`sdp.Distances`) with no distance at the core points whose measured place
+    the scan ``cloud`` (an array or a :class:`sdp.Cloud`; its finite points ``xyz``; its sensors
+    ``origins``: (3,), or (k, 3) with the Cloud's :attr:`~sdp.Cloud.scan`, or None) could not
+    see; ``d`` itself when nothing changes.
+
+    The place is where that epoch's surface was measured, ``along`` (m,) from the core point
+    along the normal (its cylinder's mean offset; NaN or None: the core point), where both
+    epochs answered at the core point (level 0); the core point itself where an epoch was found
+    only farther along the normal (level 1): was the place emptied, or hidden?"""
+    measured = np.flatnonzero(np.isfinite(d.distance))
+    if origins is None or measured.size == 0:
         return d
     scan = None
     if np.ndim(origins) == 2:  # several scanners: the cloud says which saw each point
-        scan = scanner_of_points(cloud, origins, len(cloud.xyz))
+        scan = scanner_of_points(cloud, origins, len(xyz))
         if len(scan) != len(xyz):  # rows with NaN were dropped from xyz
             scan = scan[np.isfinite(cloud.xyz).all(axis=1)]
-    hidden = far[not_seen(d.core_points[far], xyz, origins, scan, sigma=sigma)]
+    offset = np.zeros(measured.size) if along is None else np.asarray(along, np.float64)[measured]
+    offset = np.where((d.level[measured] == 0) & np.isfinite(offset), offset, 0.0)
+    places = d.core_points[measured] + offset[:, None] * d.normal[measured]
+    hidden = measured[not_seen(places, xyz, origins, scan, sigma=sigma)]
     if hidden.size == 0:
         return d
     distance, lod, level = d.distance.copy(), d.lod.copy(), d.level.copy()
