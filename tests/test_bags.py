@@ -182,3 +182,38 @@ def test_sdp_change_reads_a_message_of_a_bag_as_its_pcd_file(shared_data, tmp_pa
     assert np.array_equal(a["change"], b["change"]) and a["change"].any()
     with pytest.raises(sdp.SDPError, match="give --topic"):
         compare_files(pcds[0], bag, output=tmp_path / "no.npz")
+
+
+def test_fields_of_several_values_split_and_world_frames_have_no_sensor(tmp_path):
+    """A PointField of count 3 becomes three fields, as a PCD file's; a cloud in a world frame
+    (REP 105: map, odom) says nothing of its sensor, one in a sensor's frame puts it at the origin."""
+    import dataclasses
+
+    dtype = np.dtype({"names": ["x", "y", "z", "n0", "n1", "n2"], "formats": ["<f4"] * 6,
+                      "offsets": [0, 4, 8, 12, 16, 20], "itemsize": 24})
+    rec = np.zeros(6, dtype)
+    rec["x"], rec["n1"] = np.arange(6), 1.0
+    msg = message(rec, 1, 6)
+    PF = TS.types["sensor_msgs/msg/PointField"]
+    msg = dataclasses.replace(msg, fields=[*msg.fields[:3], PF(name="normal", offset=12, datatype=7, count=3)])
+    world = dataclasses.replace(msg, header=dataclasses.replace(msg.header, frame_id="/map"))
+    bag = write_ros2(tmp_path / "b", [(1, msg), (2, world)])
+    (_, sensor), (_, mapped) = bag_frames(bag, "/points")
+    assert sorted(sensor.fields) == ["normal__0000", "normal__0001", "normal__0002"]
+    np.testing.assert_array_equal(sensor.fields["normal__0001"], 1.0)
+    assert np.array_equal(sensor.sensor_origin, [0, 0, 0]) and mapped.sensor_origin is None
+
+
+def test_sdp_change_names_the_bag_message_and_refuses_one_message_against_itself(shared_data, tmp_path):
+    from sdp.cli import compare_files
+
+    pcds = sorted((shared_data / GRABBER).glob("*.pcd"))
+    bag = write_ros2(tmp_path / "grabber", [pcd_message(p, 10**9 * (i + 1)) for i, p in enumerate(pcds)])
+    r = compare_files(pcds[0], bag, output=tmp_path / "bag.npz", topic="/points:1")
+    assert r.current == f"{bag} (/points:1)" and r.summary["inputs"] == [str(pcds[0]), r.current]
+    assert "(/points:1)" in r.summary_text()
+    with pytest.raises(sdp.SDPError, match="would be the same message"):
+        compare_files(bag, bag, output=tmp_path / "same.npz", topic="/points:1")
+    with pytest.raises(sdp.SDPError, match="missing.bag: no such file"):
+        compare_files(pcds[0], tmp_path / "missing.bag", output=tmp_path / "m.npz", topic="/points")
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["bag.npz", "grabber"]

@@ -292,6 +292,9 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     bags = [is_bag(f) for f in (reference, current)]
     if topic is not None and not any(bags):
         raise SDPError("--topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if all(bags) and Path(reference).resolve() == Path(current).resolve():
+        raise SDPError(f"{reference}: the reference and the current would be the same message ({topic}): compare a "
+                       "bag's messages with sdp watch BAG_OR_REFERENCE BAG --topic TOPIC, or give each its own file")
     if any(bags) and execution.tiled:
         raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices, not ROS bags")
     if execution.tiled and not is_store(reference):
@@ -358,9 +361,11 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                        **detect["noise"].given,
                        sensor_origin=given if isinstance(given, str) else given.tolist())
         change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options,
-                      names=(Path(reference).name, Path(current).name))
+                      names=tuple(Path(f).name + (f" ({topic})" if is_bag(f) else "") for f in (reference, current)))
         summary["timings"]["report"] = time.perf_counter() - t
-    return FileComparison(str(reference), str(current), r, summary, tiled=False, alignment=alignment, outputs=outputs)
+    names = [f"{f} ({topic})" if is_bag(f) else str(f) for f in (reference, current)]  # which message
+    summary["inputs"] = names
+    return FileComparison(*names, r, summary, tiled=False, alignment=alignment, outputs=outputs)
 
 
 def _check_in_memory(n_points: int, memory_limit) -> None:

@@ -107,6 +107,8 @@ def read_input(path, *, format: str | None = None, topic: str | None = None):
     from ..io._read import read_points
 
     if is_bag(path):
+        if not Path(path).exists():
+            raise SDPError(f"{path}: no such file or folder")
         if topic is None:
             raise SDPError(f"{path}: a ROS bag: give --topic TOPIC (its first message) or TOPIC:N")
         return bag_message(path, topic)

@@ -6,10 +6,13 @@ ROS 2 bags (a folder with ``metadata.yaml`` and its ``.db3`` or ``.mcap`` files)
 extra) and yields one :class:`~sdp.io.Cloud` per message of the topic, in the order recorded:
 x, y, z as float64, the other fields kept (``rgb``, ``intensity``, …), missing returns (NaN, and
 (0, 0, 0) in an organized cloud, as :func:`sdp.read_points` drops them in PCD files) dropped and
-counted. An organized cloud (``height`` > 1: one point per pixel) stays organized, and the sensor
-stands at the origin of the message's frame (``header.frame_id``: a camera's or a lidar's optical
-frame), so the visibility test of :func:`sdp.detect_changes` follows its rays unless the caller
-says otherwise (``--sensor-origin``).
+counted; a field of several values per point (``count`` > 1) is split as PCD files' are
+(``normal__0000``, …). An organized cloud (``height`` > 1: one point per pixel) stays organized,
+and the sensor stands at the origin of the message's frame (``header.frame_id``: a camera's or a
+lidar's optical frame), so the visibility test of :func:`sdp.detect_changes` follows its rays
+unless the caller says otherwise (``--sensor-origin``). A cloud published in a world frame
+(REP 105's ``map``, ``odom``, ``earth``, or ``world``: a registered or accumulated cloud) says
+nothing of where its sensor stood: it is read without one.
 
 References
 ----------
@@ -31,6 +34,8 @@ from ._cloud import Cloud, CloudFileError, library_error, unpacked_colour
 __all__ = ["bag_frames", "bag_message", "bag_topics", "is_bag", "pointcloud2_arrays"]
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+#: Frames whose origin is no sensor (REP 105's world frames, and the usual name of the fixed one).
+WORLD_FRAMES = frozenset({"map", "odom", "earth", "world"})
 # sensor_msgs/PointField datatypes: INT8 … FLOAT64
 _TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
@@ -41,12 +46,14 @@ def is_bag(path) -> bool:
     p = Path(path)
     if p.is_dir():
         return (p / "metadata.yaml").is_file()
-    return p.is_file() and p.suffix.lower() in (".bag", ".db3", ".mcap")
+    return p.suffix.lower() in (".bag", ".db3", ".mcap")  # missing too: the reader says so
 
 
 def _reader(path):
-    highlevel = require("rosbags.highlevel", "scans", "reading ROS bags", package="rosbags")
     p = Path(path)
+    if not p.exists():
+        raise CloudFileError(f"{path}: no such file or folder")
+    highlevel = require("rosbags.highlevel", "scans", "reading ROS bags", package="rosbags")
     if p.is_file() and p.suffix.lower() in (".db3", ".mcap") and (p.parent / "metadata.yaml").is_file():
         p = p.parent  # a ROS 2 bag's storage file: its folder is the bag
     try:
@@ -112,7 +119,8 @@ def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
                 if item is None:
                     return
                 conn, stamp, raw = item
-                xyz, fields, organized = pointcloud2_arrays(reader.deserialize(raw, conn.msgtype))
+                msg = reader.deserialize(raw, conn.msgtype)
+                xyz, fields, organized = pointcloud2_arrays(msg)
             except CloudFileError as exc:
                 raise CloudFileError(f"{where}: {exc}") from None
             except MemoryError:
@@ -126,8 +134,10 @@ def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
             if dropped:
                 xyz = xyz[finite]
                 fields = {k: v[finite] for k, v in fields.items()}
+            # the summaries' coverage line says "no sensor position known"
+            world = str(msg.header.frame_id).strip().strip("/").lower() in WORLD_FRAMES
             yield f"{index:06d}@{stamp}", Cloud(np.ascontiguousarray(xyz), fields, Path(path), dropped, None, None,
-                                                 organized, np.zeros((1, 3)))
+                                                 organized, None if world else np.zeros((1, 3)))
             index += 1
     finally:
         reader.close()
@@ -166,9 +176,14 @@ def pointcloud2_arrays(msg) -> tuple[np.ndarray, dict[str, np.ndarray], bool]:
     organized = h > 1
     if organized:  # as PCD files: an organized cloud marks a missing return by NaN or by (0, 0, 0)
         xyz[~xyz.any(axis=1)] = np.nan
-    fields = unpacked_colour({n: np.ascontiguousarray(points[n]).astype(points[n].dtype.newbyteorder("="))
-                              for n in names if n not in ("x", "y", "z") and n})
-    return xyz, fields, organized
+    fields = {}
+    for n in names:
+        if n in ("x", "y", "z") or not n:
+            continue
+        v = np.ascontiguousarray(points[n]).astype(points[n].dtype.newbyteorder("="))
+        fields.update({f"{n}__{i:04d}": np.ascontiguousarray(v[:, i]) for i in range(v.shape[1])} if v.ndim == 2
+                      else {n: v})
+    return xyz, unpacked_colour(fields), organized
 
 
 def bag_message(path, topic: str) -> Cloud:
