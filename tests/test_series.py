@@ -852,3 +852,36 @@ def test_series_exports_take_the_names_cloudcompare_reads(slope, tmp_path):
     np.testing.assert_allclose(back.fields["M3C2 distance"], sdp.open_series(out).distance[2].values, equal_nan=True)
     assert csv.read_text().splitlines()[0].split(",")[6:9] == ["M3C2 distance", "distance uncertainty",
                                                                "significant change"]
+
+
+def test_an_epoch_without_a_distance_inside_a_creep_keeps_its_rate():
+    """A creep at 1 cm per day over uneven epochs, one of them not comparable: the jump before the
+    gap is judged with the next comparable epoch (a change of rate, not a step), the gap is
+    bridged at the rate, and the rate is measured from the time since the last observation."""
+    t = np.array([0.0, 1.0, 3.0, 7.0, 8.0, 15.0])
+    z = (-0.01 * t)[:, None].repeat(2, axis=1)
+    z[2, 1] = np.nan
+    var = np.full(z.shape, (0.0008 / 1.96) ** 2)
+    sm, vel, _, _, step, _ = kalman(z, var, t, 1e-10, lag=16, scale=0.0004, dt=1.0)
+    assert (step == -1).all(), step  # no step: a gradual change, with or without the gap
+    assert abs(sm[2, 1] + 0.03) < 0.002 and np.allclose(vel[1:, 1], -0.01, atol=0.001), (sm[:, 1], vel[:, 1])
+
+
+def test_the_smoother_going_on_from_a_saved_state_equals_one_run_with_gaps():
+    """Jumps judged with the next comparable epoch within the lag: a run going on from the state
+    saved by a shorter one gives the full run's rows, gaps and steps and ramps included."""
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.uniform(0.5, 3.0, 14))
+    z = np.where(t[:, None] > 9, 0.05, 0.0) + 0.004 * t[:, None] * (np.arange(6) % 2) \
+        + 0.0005 * rng.standard_normal((14, 6))
+    z[rng.random(z.shape) < 0.25] = np.nan
+    var = np.full(z.shape, 0.0005**2)
+    full = kalman(z, var, t, 1e-9, lag=3, scale=0.0005, dt=1.0)
+    for n in range(5, 14):
+        first = kalman(z[:n], var[:n], t[:n], 1e-9, lag=3, scale=0.0005, dt=1.0)
+        state = first[5]
+        rest = kalman(z[state.epoch + 1:], var[state.epoch + 1:], t, 1e-9, lag=3, scale=0.0005, dt=1.0, state=state)
+        r0 = max(state.epoch, 0)
+        for a, b in zip(full[:4], rest[:4]):
+            np.testing.assert_array_equal(a[r0:], b, err_msg=str(n))
+        np.testing.assert_array_equal(full[4], rest[4])

@@ -542,7 +542,7 @@ def _quick_codec():
 def write_state(folder, filt, tracker: dict, recent) -> None:
     """The filter and the tracker after the last final epoch, in one NumPy file beside the arrays
     (``state.npz``, written anew by every run, not a dataset variable): the filter per core point
-    (its state, covariance, first epoch seen and first step, float64),
+    (its state, covariance, time of the last observation, first epoch seen and first step, float64),
     :meth:`sdp.timeseries._objects.Tracker.state`'s arrays and the distances and levels of the
     epochs after the filter's (a copy of their rows, which the next run reads at once)."""
     arrays = {"filter": np.c_[filt.x, filt.seen.astype(np.float64), filt.step.astype(np.float64)],
@@ -566,8 +566,10 @@ def read_state(path):
         with np.load(Path(path) / _STATE, allow_pickle=False) as z:
             arrays = dict(z)
         f = arrays["filter"]
-        filt = FilterState(int(arrays["filter_epoch"][0]), np.ascontiguousarray(f[:, :5]), f[:, 5].astype(np.int64),
-                           f[:, 6].astype(np.int32))
+        if f.shape[1] == 7:  # saved before the time of the last observation was: unknown
+            f = np.c_[f[:, :5], np.full(len(f), np.nan), f[:, 5:]]
+        filt = FilterState(int(arrays["filter_epoch"][0]), np.ascontiguousarray(f[:, :6]), f[:, 6].astype(np.int64),
+                           f[:, 7].astype(np.int32))
         recent = arrays["recent_distance"], arrays["recent_lod"]
     except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as exc:
         raise SeriesArchiveError(f"{path}: its state ({_STATE}) can't be read ({type(exc).__name__}): it can't be "

@@ -18,15 +18,17 @@ Not-comparable epochs are skipped (prediction only).
   and the smoother averages over many epochs; where nothing but noise is seen, ``q`` is a tiny
   floor that keeps the covariances positive.
 - **Steps**: an observation more than ``k`` (default 4) standard deviations of its innovation
-  away from the prediction, confirmed by the next epoch lying as far on the same side, is a step:
+  away from the prediction, confirmed by the next comparable epoch (within the lag, so that an
+  append decides as the full run does) lying as far on the same side, is a step:
   the position's variance is raised by the innovation's square before the update, so the filter
   takes the new level at once and the smoother does not carry the step back into the epochs
   before it (an intervention, as in structural time-series models [2]_). Its epoch is recorded.
   Not confirmed, it is an outlier (a person, a parked car, a splash of rain): its variance is
   raised by the innovation's square, so it hardly moves the series. Without a next observation
-  (the newest epoch, or the next one not comparable) it counts as a step, which a later epoch
+  (the newest epochs, or none comparable within the lag) it counts as a step, which a later epoch
   confirms or revises. A confirmed jump that the next epoch carries on from as far again (in
-  proportion to the time: nearer that than the jump's own level) is a change of rate: a steady
+  proportion to the time since the observation before the jump: nearer that than the jump's own
+  level) is a change of rate: a steady
   change faster than the noise, which a step at every epoch would leave with no rate at all. The
   rate's variance is then raised by that rate's square too, so the filter learns it; its epoch is
   no step (the onset is gradual).
@@ -171,15 +173,18 @@ def _root(f, lo: float, hi: float, *, rtol: float = 1e-12, most: int = 100) -> f
 
 class FilterState:
     """Each core point's filter after one epoch (``epoch``; -1: before the first), which a later
-    run filters on from: the state ``(d, v)`` and its covariance (00, 01, 11) in ``x`` (m, 5), the
-    first epoch observed (``seen``, a large number if none) and of the first step (``step``, -1)."""
+    run filters on from: the state ``(d, v)``, its covariance (00, 01, 11) and the time of the last
+    observation (NaN: none) in ``x`` (m, 6), the first epoch observed (``seen``, a large number if
+    none) and of the first step (``step``, -1)."""
 
     def __init__(self, epoch: int, x: np.ndarray, seen: np.ndarray, step: np.ndarray):
         self.epoch, self.x, self.seen, self.step = int(epoch), x, seen, step
 
     @classmethod
     def start(cls, m: int) -> "FilterState":
-        return cls(-1, np.zeros((m, 5)), np.full(m, 2**62, np.int64), np.full(m, -1, np.int32))
+        x = np.zeros((m, 6))
+        x[:, 5] = np.nan
+        return cls(-1, x, np.full(m, 2**62, np.int64), np.full(m, -1, np.int32))
 
     def columns(self, a: int, b: int) -> "FilterState":
         return FilterState(self.epoch, self.x[a:b], self.seen[a:b], self.step[a:b])
@@ -271,14 +276,17 @@ def _fixed_lag(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen,
 def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
                xp, Pp, xf, Pf):
     """:func:`_fixed_lag` for core point ``j`` in the scratch ``xp, Pp, xf, Pf``."""
+    last_seen = np.nan  # the time of the last observation
     if f >= 0:
         x0, x1 = x_in[j, 0], x_in[j, 1]
         p00, p01, p11 = x_in[j, 2], x_in[j, 3], x_in[j, 4]
+        last_seen = x_in[j, 5]
         xf[0, 0], xf[0, 1] = x0, x1
         Pf[0, 0], Pf[0, 1], Pf[0, 2] = p00, p01, p11
     else:
         x0, x1 = 0.0, 0.0
         p00, p01, p11 = big_d, 0.0, 0.0
+    W = z.shape[1]
     for k in range(f + 1, E):
         w = k - f - 1  # column of the inputs
         r = k - base  # row of the scratch
@@ -302,27 +310,32 @@ def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen,
         nu = z[j, w] - x0 if ok else 0.0
         s = p00 + var[j, w] if ok else np.inf
         if ok and k > 0 and abs(nu) > step_k * np.sqrt(s):
-            # beyond step_k deviations: a step if the next epoch lies as far on the same side, an
-            # outlier if it does not (the observation weighs as if its variance held the
-            # innovation); without a next observation (the newest epoch, or the next one not
-            # comparable) it counts as a step until one comes
-            is_step = k == E - 1 or not (np.isfinite(z[j, w + 1]) and np.isfinite(var[j, w + 1])
-                                         and var[j, w + 1] > 0)
+            # beyond step_k deviations: a step if the next comparable epoch (within the lag, so
+            # that an append decides as the full run) lies as far on the same side, an outlier if
+            # it does not (the observation weighs as if its variance held the innovation); without
+            # one (the newest epochs, or none comparable) it counts as a step until one comes
+            nxt = -1
+            for w2 in range(w + 1, min(w + lag, W - 1) + 1):
+                if np.isfinite(z[j, w2]) and np.isfinite(var[j, w2]) and var[j, w2] > 0:
+                    nxt = w2
+                    break
+            is_step = nxt < 0
             ramp = False
             if not is_step:
-                h = t[k + 1] - t[k]
-                nu2 = z[j, w + 1] - (x0 + h * x1)
-                s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, w + 1]
+                h = t[f + 1 + nxt] - t[k]
+                nu2 = z[j, nxt] - (x0 + h * x1)
+                s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, nxt]
                 is_step = abs(nu2) > step_k * np.sqrt(s2) and np.sign(nu) == np.sign(nu2)
                 if not is_step:
                     s = s + nu * nu
                 else:
                     # a step stays at its new level; a change of rate goes on from it as far again
-                    # (in proportion to the time) by the next epoch: whichever the next epoch lies
-                    # nearer to. A ramp (a steady change faster than the noise) opens the rate's
-                    # variance by its square too, so the filter learns the rate
-                    d2 = z[j, w + 1] - z[j, w]
-                    ramp = np.sign(d2) == np.sign(nu) and abs(d2) > 0.5 * abs(nu) * h / (t[k] - t[k - 1])
+                    # (in proportion to the time since the observation before) by the next epoch:
+                    # whichever the next epoch lies nearer to. A ramp (a steady change faster than
+                    # the noise) opens the rate's variance by its square too, so the filter learns it
+                    d2 = z[j, nxt] - z[j, w]
+                    before = t[k] - (last_seen if np.isfinite(last_seen) else t[k - 1])
+                    ramp = np.sign(d2) == np.sign(nu) and abs(d2) > 0.5 * abs(nu) * h / before
                     if ramp:
                         p11 = p11 + (d2 / h) ** 2
             if is_step:
@@ -337,9 +350,12 @@ def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen,
         p00, p01, p11 = p00 - g0 * p00, p01 - g0 * p01, p11 - g1 * p01
         xf[r, 0], xf[r, 1] = x0, x1
         Pf[r, 0], Pf[r, 1], Pf[r, 2] = p00, p01, p11
+        if ok:
+            last_seen = t[k]
         if k == keep:
             x_out[j, 0], x_out[j, 1] = x0, x1
             x_out[j, 2], x_out[j, 3], x_out[j, 4] = p00, p01, p11
+            x_out[j, 5] = last_seen
     # rows final now (each smoothed from lag epochs on), then the last ones from the last epoch
     last = E - 1
     for row in range(base, E):
