@@ -60,6 +60,9 @@ OBJECT_FIELDS = ("object_start", "object_end", "object_start_time", "object_end_
 #: points drawn at random (every n-th point of a scan) joined only to their nearest reach about
 #: five on average, at the edge of percolation: one change fell apart into many small pieces.
 _RING = 6
+#: Neighbours whose disc measures a core point's area: enough that a grid's rings of equal
+#: distances and a random draw's clumps average out (16 reads a grid 2 % low, 8 by 21 %).
+_AREA_RING = 32
 #: The per-track numbers of :class:`Tracker` (live tracks, and the objects' table): one array each.
 _TRACK = ("uid", "obj", "first", "end", "peak", "vsum", "vcount")
 _OBJECT = ("start", "end", "points", "peak", "vsum", "vcount")
@@ -69,18 +72,22 @@ def neighbour_pairs(xyz: np.ndarray, radius: float | None = None) -> tuple[np.nd
     """(i, j, radius, area per core point): the core points' neighbour pairs within ``radius``
     (default the 90th percentile of the distance to the :data:`_RING`-th nearest: core points
     subsampled on a grid reach about seven on average, core points drawn at random about nine,
-    well past the edge of percolation); the area is the median nearest-neighbour spacing squared."""
+    well past the edge of percolation); the area is the median over the core points of the disc
+    reaching their :data:`_AREA_RING`-th nearest over that many (π r²/k: within 3 % on a grid, on
+    points drawn at random and on core points subsampled from a cloud, where the nearest
+    neighbour's spacing squared reads 100 %, 22 % and 79 % of it)."""
     from scipy.spatial import cKDTree  # imported here: an append reads the pairs it saved, and skips the import
 
     tree = cKDTree(xyz)
     if len(xyz) > 1:
-        d, _ = tree.query(xyz[:: max(1, len(xyz) // 5000)], k=min(len(xyz), _RING + 1))
-        spacing, far = float(np.median(d[:, 1])), float(np.quantile(d[:, -1], 0.9))
+        k = min(len(xyz) - 1, _AREA_RING)
+        d, _ = tree.query(xyz[:: max(1, len(xyz) // 5000)], k=[_RING + 1, k + 1] if k > _RING else [k + 1, k + 1])
+        far, area = float(np.quantile(d[:, 0], 0.9)), float(np.median(np.pi * d[:, 1] ** 2 / k))
     else:
-        spacing = far = 1.0
+        far, area = 1.0, 1.0
     radius = far if radius is None else float(radius)
     pairs = tree.query_pairs(radius, output_type="ndarray")
-    return pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64), radius, spacing * spacing
+    return pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64), radius, area
 
 
 def min_object_points(xyz: np.ndarray, projection_scale: float, *, footprints: float = 3.0,
@@ -89,7 +96,7 @@ def min_object_points(xyz: np.ndarray, projection_scale: float, *, footprints: f
     cylinders (π d²/4 each) at the core points' median spacing, if more. Core points closer than
     the cylinder share their points and their noise: a cluster of them flickers together."""
     _, _, _, area = neighbour_pairs(xyz[:: max(1, len(xyz) // 200_000)], 0.0)
-    area *= max(1, len(xyz) // 200_000)  # a sample's spacing is wider by the square root of the step
+    area /= max(1, len(xyz) // 200_000)  # a sample of every n-th point holds n times the area each
     return int(max(floor, math.ceil(footprints * math.pi * projection_scale**2 / 4.0 / area)))
 
 
