@@ -250,3 +250,21 @@ def test_ground_the_other_scan_never_saw_is_not_comparable_far_from_what_it_saw(
     assert (r.current_state[far] == sdp.NOT_COMPARABLE).all()
     near = (cur[:, 0] > 0.5) & (cur[:, 0] < 0.55)
     assert (r.current_state[near] == sdp.UNCHANGED).mean() > 0.9  # the seen floor continued: explained
+
+
+def test_an_unchanged_object_seen_from_either_side_changes_nothing():
+    """A static room scanned from either side of a partition (a multi-station survey): what one
+    station saw behind it is hidden from the other by the partition's far face, which the first
+    never saw. That face missing from the first scan says nothing of whether it is gone: the post
+    behind it and the faces themselves are not comparable, not changed."""
+    from sdp.data._scene import Box
+
+    rng = np.random.default_rng(3)
+    partition, post = Box((2.4, 0.0, 0.0), (2.6, 4.0, 2.0)), Box((1.5, 1.8, 0.0), (1.6, 2.2, 1.2))
+    a, b = (0.4, 2.0, 1.5), (4.6, 2.0, 1.5)
+    reference, hit = scan((partition, post), camera=a, target=(2.4, 2.0, 0.7), rng=rng)
+    current, _ = scan((partition, post), camera=b, target=(2.6, 2.0, 0.7), rng=rng)
+    r = sdp.detect_changes(reference, current, coverage=sdp.Coverage(sensor_origin=[a, b]))
+    assert (hit == 1).sum() > 300 and r.reference_not_comparable[hit == 1].mean() > 0.9
+    assert r.disappeared.sum() < 0.001 * len(reference) and r.appeared.sum() < 0.001 * len(current), \
+        (r.disappeared.sum(), r.appeared.sum())

@@ -43,6 +43,7 @@ References
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 from dataclasses import field as dc_field
@@ -62,12 +63,14 @@ from ..options import Coverage, Lattice, NoiseModel, as_options
 from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
-from ._visibility import resolve_sensor_origins, scanner_of_points, visibility_states
+from ._visibility import (RangeImage, gone_only_if_seen, resolve_sensor_origins, scanner_of_points,
+                          visibility_states)
 
 #: The decisions of :func:`detect_changes` (``"density"`` is ``"point"``: the paper's, density alone).
 DECISIONS = ("point", "density", "cluster", "combined")
 
-__all__ = ["DECISIONS", "ChangeResult", "PointChanges", "detect_changes", "judge_coverage", "inside_difference", "region_rules"]
+__all__ = ["DECISIONS", "ChangeResult", "PointChanges", "detect_changes", "judge_coverage", "inside_difference",
+           "region_rules"]
 
 
 class PointChanges:
@@ -421,12 +424,19 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     dis, d_dis = inside_difference(f_ref, f_cur, ref.xyz)
     timings["detect"] = time.perf_counter() - t
 
+    # each epoch's range image from its single sensor, built once when first needed: the other
+    # direction's visibility test, and this one's check that a hider's place could be seen
+    views = {id(c): _Once(lambda c=c, o=o: RangeImage.from_points(c.xyz, o) if o is not None and np.ndim(o) == 1
+                          else None) for c, o in ((ref, o_ref), (cur, o_cur))}
+
     def finish(job):
         """Coverage and region rules of one direction: (the points' states and labels, regions), times."""
-        fld, pts, mask, d, other, other_field, other_origin, other_scan, own_origin = job
+        fld, pts, mask, d, other, other_field, other_origin, other_scan, own_origin, own_scan = job
         t = time.perf_counter()
         states = judge_coverage(pts.xyz, mask, other.xyz, other_field, other_origin, coverage=coverage.enabled,
-                                range_noise=coverage.range_noise, present=fld.inside, other_scan=other_scan)
+                                range_noise=coverage.range_noise, present=fld.inside, other_scan=other_scan,
+                                image=views[id(other)].get, own_origin=own_origin, own_scan=own_scan,
+                                own_image=views[id(pts)].get)
         steps = {"coverage": time.perf_counter() - t}
         t = time.perf_counter()
         unseen = states == NOT_COMPARABLE
@@ -443,8 +453,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         steps["regions"] = time.perf_counter() - t
         return (states, mask, regs, region_of), steps
 
-    jobs = [(f_cur, cur, app, d_app, ref, f_ref, o_ref, s_ref, o_cur),
-            (f_ref, ref, dis, d_dis, cur, f_cur, o_cur, s_cur, o_ref)]
+    jobs = [(f_cur, cur, app, d_app, ref, f_ref, o_ref, s_ref, o_cur, s_cur),
+            (f_ref, ref, dis, d_dis, cur, f_cur, o_cur, s_cur, o_ref, s_ref)]
     # the two directions are independent: on two threads when there are two cores
     (appeared, steps_a), (disappeared, steps_d) = map_concurrently(finish, jobs, parallel_kernels=True)
     distances = (None, None)
@@ -497,7 +507,7 @@ class _Distances:
     def __init__(self, job, states, lists, noise: NoiseModel):
         self._job, self._states, self._lists, self._noise = job, states, lists, noise
         self._surface = self._rows = None
-        _, _, _, _, _, _, other_origin, _, own_origin = job
+        _, _, _, _, _, _, other_origin, _, own_origin, _ = job
         # one sensor per cloud: the noise model's range law and normals (several: neither yet)
         self.own_origin, self.other_origin = single_origin(own_origin), single_origin(other_origin)
         self.directed = self.other_origin is not None
@@ -538,15 +548,21 @@ def level_summary(level: tuple, noise: NoiseModel) -> dict:
 def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | None, other_field: DensityField,
                    other_origin: np.ndarray | None, *, coverage: bool = True,
                    range_noise: float = DEFAULTS.range_noise, image=None, present=None,
-                   other_scan: np.ndarray | None = None) -> np.ndarray:
+                   other_scan: np.ndarray | None = None, own_origin=None, own_scan=None,
+                   own_image=None) -> np.ndarray:
     """The state (:mod:`sdp.change._coverage`) of each point of ``points`` flagged ``changed`` against
     the other epoch (its points ``other`` and field ``other_field``): by the other scan's rays
     when its origin is known (:func:`sdp.change._visibility.visibility_states`, ``present`` and
     ``image`` as there; several origins (k, 3) with ``other_scan``, the scanner of each point of
     ``other``: a point is comparable where any of them could see it), else by the other field's footprint
     (:func:`sdp.change._coverage.footprint_covered`); without ``coverage``, what the other scan could
-    not see counts as changed."""
+    not see counts as changed. With the points' own sensors (``own_origin``, ``own_scan``, and the
+    range image ``own_image`` or a callable returning it), a hider their scan does not hold is gone
+    only where those sensors could have seen its place
+    (:func:`sdp.change._visibility.gone_only_if_seen`)."""
     if other_origin is not None:
+        present = gone_only_if_seen(present, points, own_origin, own_scan, range_noise=range_noise,
+                                    floor=other_field.sigma, image=own_image)
         states = visibility_states(points, changed, other, other_origin, sigma=other_field.sigma,
                                    range_noise=range_noise, image=image, present=present, other_scan=other_scan)
         if not coverage:
@@ -624,3 +640,16 @@ def _cluster_decision(fld: DensityField, pts: np.ndarray, changed: np.ndarray, l
 def single_origin(origin):
     """``origin`` if it is one sensor's position (3,) or None; None for several scanners (k, 3)."""
     return origin if origin is None or np.ndim(origin) == 1 else None
+
+
+class _Once:
+    """A value made by ``make()`` when first asked for (``get``), once, whichever thread asks."""
+
+    def __init__(self, make):
+        self._make, self._lock, self._value, self._made = make, threading.Lock(), None, False
+
+    def get(self):
+        with self._lock:
+            if not self._made:
+                self._value, self._made = self._make(), True
+        return self._value

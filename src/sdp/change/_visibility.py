@@ -14,7 +14,9 @@ least σ):
   other scan looked through the point's place and found it empty, so the point is new;
 - **hidden** (:data:`HIDDEN`): a return near the ray stopped nearer than r − b, none at r: the
   other scan could not see the point's place (unless the point's own scan no longer holds the
-  hiding surface: then the place changed, whatever stood behind it);
+  hiding surface where its own sensors could have seen it: then the place changed, whatever
+  stood behind it; a hider's place the own sensors could not see either, such as the far face of
+  a partition scanned from its other side, says nothing: :func:`gone_only_if_seen`);
 - **unobserved** (:data:`UNOBSERVED`): no return near the ray. Inside the other scan's field
   of view and nearer than its farthest return, the ray found nothing in range: the place was
   free (as seen free; a surface that returns nothing is the exception). Outside the field of
@@ -710,12 +712,14 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
         Angular point spacing of ``other`` (radians); measured when None.
     image : RangeImage, optional
         ``RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)``
-        built beforehand, for many calls against the same scan (:func:`sdp.watch`).
+        built beforehand, for many calls against the same scan (:func:`sdp.watch`), or a callable
+        that returns it (built when first needed).
     present : callable, optional
         ``present(xyz) -> bool mask``: does the points' own scan still hold something at these
         places (e.g. ``DensityField.inside`` of their own field)? A point hidden from the other
         scan behind a surface that is gone from its own scan (an object taken away, another put
-        in its place) is judged as a seen point: by the plane test, else changed. Without it,
+        in its place) is judged as a seen point: by the plane test, else changed
+        (:func:`gone_only_if_seen` widens it where the own sensors are known). Without it,
         every hidden point is treated as unseen.
     other_scan : ndarray of int (m,), optional
         With k positions: which scanner saw each point of ``other``. Each scanner's points make
@@ -745,6 +749,8 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
         return _many_scanners(points, changed, states, cand, other, np.asarray(other_origin, np.float64), other_scan,
                               range_noise=range_noise, floor=band_floor * sigma, cell_factor=cell_factor, reach=reach,
                               present=present, **plane)
+    if callable(image):  # built when first needed, shared with whoever else needs it
+        image = image()
     if image is None:
         image = RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)
     query = np.take(points, cand, axis=0)  # a plain gather of rows (fancy indexing takes a slower, general path)
@@ -775,6 +781,46 @@ def _explain_by_planes(points, changed, states, unseen, *, plane_points, plane_s
                                                flatness=plane_flatness, bin_size=plane_bin)
         states[unseen[on_plane & (within | (states[unseen] == CHANGED))]] = UNCHANGED
     return states
+
+
+def gone_only_if_seen(present, own: np.ndarray, own_origin, own_scan=None, *, range_noise: float, floor: float,
+                      image=None):
+    """``present`` (:func:`visibility_states`) widened: a hider the point's own scan does not hold
+    is gone only where that scan's sensors could have seen its place (the same surface there, seen
+    through it, or no return inside their view); where they could not (hidden behind something,
+    or outside their view: an unchanged object's far side, which a scanner on the other side saw),
+    nothing says it is gone, and the point stays not comparable. ``own``: the points' own scan,
+    seen from ``own_origin`` ((3,), or (k, 3) with ``own_scan``; None: ``present`` as it is);
+    ``image``: its range image from a single origin, or a callable returning it."""
+    if present is None or own_origin is None:
+        return present
+    origins = np.asarray(own_origin, np.float64)
+    cache = {}
+
+    def images():
+        if "images" not in cache:
+            if origins.ndim == 1:
+                one = image() if callable(image) else image
+                cache["images"] = [one if one is not None else RangeImage.from_points(own, origins)]
+            else:
+                cache["images"] = [RangeImage.from_points(own[own_scan == j], o) for j, o in enumerate(origins)
+                                   if (own_scan == j).any()]
+        return cache["images"]
+
+    def still_there(xyz):
+        there = np.asarray(present(xyz), bool).copy()
+        gone = np.flatnonzero(~there)
+        if gone.size:
+            query, seen = xyz[gone], np.zeros(gone.size, bool)
+            for img in images():
+                cls = img.classify(query, range_noise=range_noise, floor=floor)
+                seen |= (cls == SAME_SURFACE) | (cls == SEEN_FREE)
+                missing = cls == UNOBSERVED
+                seen[missing] |= img.in_view(query[missing])
+            there[gone[~seen]] = True
+        return there
+
+    return still_there
 
 
 def _many_scanners(points, changed, states, cand, other, origins, other_scan, *, range_noise, floor, cell_factor,
