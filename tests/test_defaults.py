@@ -96,7 +96,8 @@ def test_detect_changes_uses_the_sensor_a_cloud_brings(tmp_path):
     assert plain.coverage == {"appeared": "footprint", "disappeared": "footprint"}
     one = sdp.detect_changes(ref, s.current)  # only the reference knows: appeared follows its rays
     assert one.coverage == {"appeared": "sensor rays", "disappeared": "footprint"}
-    np.testing.assert_array_equal(one.appeared, auto.appeared)
+    # the current's own sensor only tells where a hider it lacks could not be seen by it (then no change)
+    assert not (auto.appeared & ~one.appeared).any() and (one.appeared != auto.appeared).mean() < 0.001
 
 
 @pytest.mark.slow

@@ -1,5 +1,7 @@
 """A place the other epoch's sensor could not see gets no distance (:mod:`sdp.distance._seen`)."""
 
+from pathlib import Path
+
 import numpy as np
 
 import sdp
@@ -116,3 +118,30 @@ def test_points_beyond_the_cylinders_rim_alone_give_no_distance():
     core = np.zeros((1, 3))
     assert not sdp.distances(plane, far, core_points=core, cylinder=cyl, sensor_origin=None).comparable[0]
     assert sdp.distances(plane, near, core_points=core, cylinder=cyl, sensor_origin=None).comparable[0]
+
+
+def test_a_walls_far_face_is_no_measurement_of_its_near_one():
+    """A 5 cm wall scanned from either side: within the cylinder, the far face the current's
+    scanner saw from behind the near face's normal is no measurement of the near face (M3C2:
+    5 cm off, every core point significant)."""
+    rng = np.random.default_rng(11)
+    yz = rng.uniform(-1, 1, (20_000, 2))
+    near = np.c_[0.001 * rng.standard_normal(20_000), yz]
+    far = np.c_[0.05 + 0.001 * rng.standard_normal(20_000), yz]
+    cyl = sdp.Cylinder(projection_scale=0.2, max_distance=0.3)
+    blind = sdp.distances(near, far, cylinder=cyl, sensor_origin=None, orientation=[-1, 0, 0], registration_error=0)
+    assert (blind.level == 0).mean() > 0.9 and abs(np.median(blind.distance) + 0.05) < 0.005
+    assert blind.significant.mean() > 0.9
+    d = sdp.distances(near, far, cylinder=cyl, sensor_origin=[[-1.0, 0, 0], [1.2, 0, 0]], registration_error=0)
+    assert not d.comparable.any() and d.not_seen == len(near)
+
+
+def test_a_laser_scans_band_is_its_kernel_not_a_depth_cameras():
+    from sdp.change._visibility import sensor_range_noise
+    from sdp.defaults import DEFAULTS
+
+    xyz = np.zeros((3, 3))
+    assert sensor_range_noise(sdp.io.Cloud(xyz, path=Path("survey.E57")), DEFAULTS.range_noise) == 0.0
+    assert sensor_range_noise(sdp.io.Cloud(xyz, path=Path("survey.e57")), 0.004) == 0.004  # given: kept
+    assert sensor_range_noise(sdp.io.Cloud(xyz, path=Path("frame.pcd")), DEFAULTS.range_noise) == DEFAULTS.range_noise
+    assert sensor_range_noise(xyz, DEFAULTS.range_noise) == DEFAULTS.range_noise

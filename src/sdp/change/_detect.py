@@ -64,7 +64,7 @@ from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
 from ._visibility import (RangeImage, gone_only_if_seen, resolve_sensor_origins, scanner_of_points,
-                          visibility_states)
+                          sensor_range_noise, visibility_states)
 
 #: The decisions of :func:`detect_changes` (``"density"`` is ``"point"``: the paper's, density alone).
 DECISIONS = ("point", "density", "cluster", "combined")
@@ -428,15 +428,17 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     # direction's visibility test, and this one's check that a hider's place could be seen
     views = {id(c): _Once(lambda c=c, o=o: RangeImage.from_points(c.xyz, o) if o is not None and np.ndim(o) == 1
                           else None) for c, o in ((ref, o_ref), (cur, o_cur))}
+    # and the range noise of each epoch's sensor (a laser scan's is not a depth camera's)
+    noise_of = {id(p): sensor_range_noise(c, coverage.range_noise) for p, c in ((ref, reference), (cur, current))}
 
     def finish(job):
         """Coverage and region rules of one direction: (the points' states and labels, regions), times."""
         fld, pts, mask, d, other, other_field, other_origin, other_scan, own_origin, own_scan = job
         t = time.perf_counter()
         states = judge_coverage(pts.xyz, mask, other.xyz, other_field, other_origin, coverage=coverage.enabled,
-                                range_noise=coverage.range_noise, present=fld.inside, other_scan=other_scan,
+                                range_noise=noise_of[id(other)], present=fld.inside, other_scan=other_scan,
                                 image=views[id(other)].get, own_origin=own_origin, own_scan=own_scan,
-                                own_image=views[id(pts)].get)
+                                own_image=views[id(pts)].get, own_range_noise=noise_of[id(pts)])
         steps = {"coverage": time.perf_counter() - t}
         t = time.perf_counter()
         unseen = states == NOT_COMPARABLE
@@ -549,7 +551,7 @@ def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | 
                    other_origin: np.ndarray | None, *, coverage: bool = True,
                    range_noise: float = DEFAULTS.range_noise, image=None, present=None,
                    other_scan: np.ndarray | None = None, own_origin=None, own_scan=None,
-                   own_image=None) -> np.ndarray:
+                   own_image=None, own_range_noise: float | None = None) -> np.ndarray:
     """The state (:mod:`sdp.change._coverage`) of each point of ``points`` flagged ``changed`` against
     the other epoch (its points ``other`` and field ``other_field``): by the other scan's rays
     when its origin is known (:func:`sdp.change._visibility.visibility_states`, ``present`` and
@@ -557,12 +559,12 @@ def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | 
     ``other``: a point is comparable where any of them could see it), else by the other field's footprint
     (:func:`sdp.change._coverage.footprint_covered`); without ``coverage``, what the other scan could
     not see counts as changed. With the points' own sensors (``own_origin``, ``own_scan``, and the
-    range image ``own_image`` or a callable returning it), a hider their scan does not hold is gone
-    only where those sensors could have seen its place
+    range image ``own_image`` or a callable returning it, their ``own_range_noise``), a hider their
+    scan does not hold is gone only where those sensors could have seen its place
     (:func:`sdp.change._visibility.gone_only_if_seen`)."""
     if other_origin is not None:
-        present = gone_only_if_seen(present, points, own_origin, own_scan, range_noise=range_noise,
-                                    floor=other_field.sigma, image=own_image)
+        present = gone_only_if_seen(present, points, own_origin, own_scan, floor=other_field.sigma, image=own_image,
+                                    range_noise=range_noise if own_range_noise is None else own_range_noise)
         states = visibility_states(points, changed, other, other_origin, sigma=other_field.sigma,
                                    range_noise=range_noise, image=image, present=present, other_scan=other_scan)
         if not coverage:

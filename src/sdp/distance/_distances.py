@@ -404,9 +404,10 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     t = time.perf_counter()
     # where an epoch's sensor could not see the place measured, there is no distance
     # (sdp.distance._seen); the reference saw its own points
-    d = without_unseen(d, current, cur.xyz, origins[1], sigma=sigma_p, along=mean1 + d.distance)
+    facing = sensor is not None  # the normals face the core points' own sensor
+    d = without_unseen(d, current, cur.xyz, origins[1], sigma=sigma_p, along=mean1 + d.distance, facing=facing)
     if core is not ref.xyz:
-        d = without_unseen(d, reference, ref.xyz, origins[0], sigma=sigma_p, along=mean1)
+        d = without_unseen(d, reference, ref.xyz, origins[0], sigma=sigma_p, along=mean1, facing=facing)
     timings["not_seen"] = time.perf_counter() - t
     d = with_level(d, reg)
     if given_rows is not None:

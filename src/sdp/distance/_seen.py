@@ -29,13 +29,14 @@ import dataclasses
 
 import numpy as np
 
-from ..change._visibility import HIDDEN, UNOBSERVED, RangeImage, scanner_of_points
+from ..change._visibility import HIDDEN, UNOBSERVED, RangeImage, scanner_of_points, sensor_range_noise
 from ..defaults import DEFAULTS
 
 __all__ = ["not_seen", "without_unseen"]
 
 
-def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sigma: float, along=None):
+def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sigma: float, along=None,
+                   facing: bool = False):
     """``d`` (:class:`sdp.Distances`) with no distance at the core points whose measured place
     the scan ``cloud`` (an array or a :class:`sdp.Cloud`; its finite points ``xyz``; its sensors
     ``origins``: (3,), or (k, 3) with the Cloud's :attr:`~sdp.Cloud.scan`, or None) could not
@@ -44,7 +45,10 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
     The place is where that epoch's surface was measured, ``along`` (m,) from the core point
     along the normal (its cylinder's mean offset; NaN or None: the core point), where both
     epochs answered at the core point (level 0); the core point itself where an epoch was found
-    only farther along the normal (level 1): was the place emptied, or hidden?"""
+    only farther along the normal (level 1): was the place emptied, or hidden? ``facing``: the
+    normals face the core points' own sensor, so a scanner behind the surface (on the other side
+    of its normal) saw its back, not the place: a thick object's far face is no measurement of
+    its near one."""
     measured = np.flatnonzero(np.isfinite(d.distance))
     if origins is None or measured.size == 0:
         return d
@@ -56,7 +60,9 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
     offset = np.zeros(measured.size) if along is None else np.asarray(along, np.float64)[measured]
     offset = np.where((d.level[measured] == 0) & np.isfinite(offset), offset, 0.0)
     places = d.core_points[measured] + offset[:, None] * d.normal[measured]
-    hidden = measured[not_seen(places, xyz, origins, scan, sigma=sigma)]
+    hidden = measured[not_seen(places, xyz, origins, scan, sigma=sigma,
+                               normals=d.normal[measured] if facing else None,
+                               range_noise=sensor_range_noise(cloud, DEFAULTS.range_noise))]
     if hidden.size == 0:
         return d
     distance, lod, level = d.distance.copy(), d.lod.copy(), d.level.copy()
@@ -67,11 +73,12 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
 
 
 def not_seen(points: np.ndarray, cloud: np.ndarray, origins: np.ndarray, scan: np.ndarray | None, *,
-             sigma: float) -> np.ndarray:
+             sigma: float, normals: np.ndarray | None = None, range_noise: float = DEFAULTS.range_noise) -> np.ndarray:
     """Which of ``points`` the scan ``cloud`` could not see from ``origins`` (one position (3,),
     or k positions (k, 3) with ``scan``, each point of ``cloud``'s scanner): hidden from every
-    scanner, or outside every field of view (module docstring). The band around a return is
-    the change masks' (``DEFAULTS.range_noise``·r², at least σ)."""
+    scanner, or outside every field of view (module docstring), or with ``normals`` (each
+    place's surface normal, facing its own sensor) behind every scanner's back. The band around
+    a return is the change masks' (``range_noise``·r², at least σ)."""
     unseen = np.ones(len(points), bool)
     if len(points) == 0:
         return unseen
@@ -83,9 +90,11 @@ def not_seen(points: np.ndarray, cloud: np.ndarray, origins: np.ndarray, scan: n
             continue
         image = RangeImage.from_points(mine, origin)
         query = np.take(points, todo, axis=0)
-        cls = image.classify(query, range_noise=DEFAULTS.range_noise, floor=sigma)
+        cls = image.classify(query, range_noise=range_noise, floor=sigma)
         hidden = cls == HIDDEN
         outside = cls == UNOBSERVED
         outside[outside] = ~image.in_view(query[outside])
+        if normals is not None:  # a scanner behind the surface saw its other side
+            hidden |= np.einsum("ij,ij->i", origin - query, normals[todo]) <= 0
         unseen[todo] = hidden | outside
     return unseen
