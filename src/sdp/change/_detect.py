@@ -564,7 +564,8 @@ def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | 
     (:func:`sdp.change._visibility.gone_only_if_seen`)."""
     if other_origin is not None:
         present = gone_only_if_seen(present, points, own_origin, own_scan, floor=other_field.sigma, image=own_image,
-                                    range_noise=range_noise if own_range_noise is None else own_range_noise)
+                                    range_noise=range_noise if own_range_noise is None else own_range_noise,
+                                    other_origin=other_origin)
         states = visibility_states(points, changed, other, other_origin, sigma=other_field.sigma,
                                    range_noise=range_noise, image=image, present=present, other_scan=other_scan)
         if not coverage:

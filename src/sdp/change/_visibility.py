@@ -795,15 +795,20 @@ def sensor_range_noise(cloud, range_noise: float) -> float:
 
 
 def gone_only_if_seen(present, own: np.ndarray, own_origin, own_scan=None, *, range_noise: float, floor: float,
-                      image=None):
+                      image=None, other_origin=None):
     """``present`` (:func:`visibility_states`) widened: a hider the point's own scan does not hold
     is gone only where that scan's sensors could have seen its place (the same surface there, seen
     through it, or no return inside their view); where they could not (hidden behind something,
     or outside their view: an unchanged object's far side, which a scanner on the other side saw),
     nothing says it is gone, and the point stays not comparable. ``own``: the points' own scan,
     seen from ``own_origin`` ((3,), or (k, 3) with ``own_scan``; None: ``present`` as it is);
-    ``image``: its range image from a single origin, or a callable returning it."""
+    ``image``: its range image from a single origin, or a callable returning it. A point's own
+    sensor where the other's stood (a fixed camera) saw the hider's place: the point itself lies
+    behind it on that ray, so ``present`` is returned as it is."""
     if present is None or own_origin is None:
+        return present
+    if other_origin is not None and np.shape(own_origin) == np.shape(other_origin) == (3,) \
+            and np.allclose(own_origin, other_origin, rtol=0.0, atol=1e-9 * (1.0 + np.abs(own_origin).max())):
         return present
     origins = np.asarray(own_origin, np.float64)
     cache = {}
