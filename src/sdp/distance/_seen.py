@@ -47,7 +47,7 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
     epochs answered at the core point (level 0); the core point itself where an epoch was found
     only farther along the normal (level 1): was the place emptied, or hidden? ``facing``: the
     normals face the core points' own sensor, so a scanner behind the surface (on the other side
-    of its normal) saw its back, not the place: a thick object's far face is no measurement of
+    of its normal) saw its back, not the place: a wall's far face is no measurement of
     its near one."""
     measured = np.flatnonzero(np.isfinite(d.distance))
     if origins is None or measured.size == 0:
