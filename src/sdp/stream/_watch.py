@@ -251,9 +251,15 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         t1 = time.perf_counter()
         seen = model.with_threshold(h=h * weight)
         mask, d = inside_difference(frame, seen, cur.xyz)
+        choice = coverage.sensor_origin  # the frame's own sensor: what it could see, its range law
+        choice = "auto" if isinstance(choice, str) and choice == "viewpoint" else choice
+        own = single_origin(resolve_sensor_origins(choice, None, given)[1])
+        if own is not None and matrix is not None:
+            own = transform_points(matrix, own[None, :])[0]
         # the model's footprint, or the reference's rays (imaged once)
         states = judge_coverage(cur.xyz, mask, ref, seen, origin, coverage=coverage.enabled,
-                                range_noise=band, image=image, present=frame.inside, other_scan=scan)
+                                range_noise=band, image=image, present=frame.inside, other_scan=scan,
+                                own_origin=own, own_range_noise=sensor_range_noise(given, coverage.range_noise))
         mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
         labels = np.full(len(mask), -1, np.int32)
@@ -266,11 +272,6 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         else:
             regs = []
         if decision == "combined" and mask.any():  # the distance completes what the density kept
-            choice = coverage.sensor_origin  # the frame's own sensor: its range law
-            choice = "auto" if isinstance(choice, str) and choice == "viewpoint" else choice
-            own = single_origin(resolve_sensor_origins(choice, None, given)[1])
-            if own is not None and matrix is not None:
-                own = transform_points(matrix, own[None, :])[0]
             mask, regs, region_of = _complete(cur, pts, states, mask, labels, frame, own_origin=own,
                                               other_origin=single_origin(origin), regions=regions, noise=noise)
             labels = region_of.astype(np.int32)
