@@ -351,13 +351,15 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
         outputs.append(str(report))
     summary["outputs"] = outputs
     if report:
+        from ..change._visibility import sensor_range_noise
         from ..viz._report import change_report
 
         t = time.perf_counter()
         given = coverage.sensor_origin
         options = dict(voxel_size=lattice.voxel_size, grid_size=lattice.grid_size, sigma_voxels=lattice.sigma_voxels,
                        k=lattice.k, h=lattice.h, decision=detect["decision"],
-                       min_region_points=detect["min_region_points"], range_noise=coverage.range_noise,
+                       min_region_points=detect["min_region_points"],
+                       range_noise=max(sensor_range_noise(c, coverage.range_noise) for c in (ref, cur)),
                        **detect["noise"].given,
                        sensor_origin=given if isinstance(given, str) else given.tolist())
         change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options,
