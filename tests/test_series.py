@@ -897,3 +897,19 @@ def test_the_area_per_core_point_holds_for_subsampled_and_random_core_points():
     for core in (dense[:10_000], dense[subsample(dense, 1.0)]):
         area = neighbour_pairs(core, 0.0)[3]
         assert abs(len(core) * area / 100**2 - 1) < 0.05, len(core) * area
+
+
+def test_an_onset_runs_over_an_epoch_without_a_distance():
+    """Two measured epochs running with significant change make an onset, an epoch between them
+    without a distance (a NaN σ) neither breaks nor counts: a gap's core point starts with the rest."""
+    xyz = np.c_[np.mgrid[0:5, 0:5].reshape(2, -1).T.astype(float), np.zeros(25)]
+    tr = Tracker(xyz, min_points=3)
+    none = np.full(25, -1, np.int32)
+    for k, change in enumerate([0.0, 0.05, 0.10, 0.15]):
+        sigma = np.full(25, 0.001)
+        if k == 2:
+            sigma[12] = np.nan  # the middle point not seen at epoch 2
+        tr.add(k, np.full(25, change), sigma, np.full(25, 0.05), none)
+    assert (tr.onset == 1).all() and (tr.onset_kind == 2).all(), tr.onset
+    again = Tracker.from_state(xyz, tr.state(), min_points=3)
+    assert np.array_equal(again.seen_at, tr.seen_at) and np.array_equal(again.seen_sign, tr.seen_sign)

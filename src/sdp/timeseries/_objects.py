@@ -28,7 +28,8 @@ objects never change once its smoothed values are final (:mod:`sdp.timeseries._k
   track, including those before it became an object.
 
 The onset of a core point's change is the first epoch from which its smoothed change stays
-significant for two epochs running, or the epoch of its first step if that comes first;
+significant for two measured epochs running (an epoch without a distance between them neither
+breaks nor counts), or the epoch of its first step if that comes first;
 ``onset_kind`` says which (1: step, 2: gradual). A step with no significant change after it is
 no onset.
 
@@ -175,7 +176,7 @@ def _signs(smoothed, sigma):
 
 @nb.njit(cache=True, nogil=True)
 def _epoch(k, min_points, n_objects, comp, n, sign, prev_sign, prev_track, smoothed, velocity, step, onset,
-           onset_kind, uid, obj, first, peak, vsum, vcount):
+           onset_kind, seen_sign, seen_at, uid, obj, first, peak, vsum, vcount):
     """:meth:`Tracker.add`'s kernel: epoch ``k``'s components (``comp``, ``n`` of them) into tracks.
 
     Returns the next live tracks' arrays (:data:`_TRACK`: the continued ones in the order of their
@@ -282,13 +283,14 @@ def _epoch(k, min_points, n_objects, comp, n, sign, prev_sign, prev_track, smoot
     for p in range(m):
         if track[p] >= 0:
             labels[p] = o_[track[p]]
-    # onsets: the first of two epochs running with significant change, or the step before it
+    # onsets: the first of two measured epochs running with significant change (an epoch without
+    # a distance between them neither breaks nor counts), or the step before it
     for p in range(m):
-        if onset[p] < 0 and sign[p] != 0 and prev_sign[p] != 0:
+        if onset[p] < 0 and sign[p] != 0 and seen_sign[p] != 0:
             if 0 <= step[p] <= k - 1:
                 onset[p], onset_kind[p] = step[p], 1
             else:
-                onset[p], onset_kind[p] = k - 1, 2
+                onset[p], onset_kind[p] = seen_at[p], 2
     return (u_, o_, f_, e_, pk, vs, vc, track, labels, done[:n_done], taken[:n_taken], into[:n_taken],
             gone[:n_gone])
 
@@ -319,6 +321,8 @@ class Tracker:
         self.epoch = -1
         self.track = np.full(m, -1, np.int64)  # each point's live track (an index) at the last epoch
         self.sign = np.zeros(m, np.int8)
+        # each point's sign at the last epoch it was measured at, and that epoch (onsets over gaps)
+        self.seen_sign, self.seen_at = np.zeros(m, np.int8), np.full(m, -1, np.int64)
         self.onset = np.full(m, -1, np.int64)
         self.onset_kind = np.zeros(m, np.int64)
         self.live = {k: np.zeros(0, np.float64 if k in ("peak", "vsum", "vcount") else np.int64) for k in _TRACK}
@@ -343,7 +347,8 @@ class Tracker:
         live = self.live
         (uid, obj, first, end, peak, vsum, vcount, track, labels, done, taken, into, gone) = _epoch(
             k, self.min_points, len(self.objects["start"]), comp, n, sign, self.sign, self.track, smoothed, velocity,
-            step, self.onset, self.onset_kind, *(live[key] for key in _TRACK if key != "end"))
+            step, self.onset, self.onset_kind, self.seen_sign, self.seen_at,
+            *(live[key] for key in _TRACK if key != "end"))
         nxt = dict(zip(_TRACK, (uid, obj, first, end, peak, vsum, vcount)))
         # live tracks not continued: objects end the epoch before; others are taken in whole by a
         # set they touch (their points then count for it), or are noise that ends
@@ -368,6 +373,8 @@ class Tracker:
             self.objects["start"][-born:] = k
         self.live, self.track = nxt, track
         self.sign, self.epoch = sign, k
+        seen = np.isfinite(sigma)  # not seen: a NaN σ (sdp.timeseries._compute)
+        self.seen_sign[seen], self.seen_at[seen] = sign[seen], k
         return labels
 
     # ---------------------------------------------------------------- results and state
@@ -391,7 +398,7 @@ class Tracker:
     def state(self) -> dict[str, np.ndarray]:
         """Arrays (copies) from which :meth:`from_state` makes this tracker again: per core point,
         per live track, per object, the live tracks' points, and the epoch."""
-        return {"points": np.c_[self.track, self.sign, self.onset, self.onset_kind],
+        return {"points": np.c_[self.track, self.sign, self.onset, self.onset_kind, self.seen_sign, self.seen_at],
                 "live": np.stack([self.live[k].astype(np.float64) for k in _TRACK], axis=1),
                 "objects": np.stack([self.objects[k].astype(np.float64) for k in _OBJECT], axis=1),
                 "keys": self.keys.copy(), "epoch": np.array([self.epoch]), "pair_i": self.i, "pair_j": self.j,
@@ -404,8 +411,11 @@ class Tracker:
         tr.epoch = int(arrays["epoch"][0])
         pts = np.asarray(arrays["points"], np.int64)
         # contiguous columns: the kernels are compiled (and warmed up) for contiguous arrays
-        tr.track, tr.sign, tr.onset, tr.onset_kind = (np.ascontiguousarray(pts[:, a], t) for a, t in
-                                                      enumerate((np.int64, np.int8, np.int64, np.int64)))
+        if pts.shape[1] == 4:  # saved before the last measured epoch was kept: the last epoch's
+            pts = np.c_[pts, pts[:, 1], np.full(len(pts), tr.epoch)]
+        tr.track, tr.sign, tr.onset, tr.onset_kind, tr.seen_sign, tr.seen_at = (
+            np.ascontiguousarray(pts[:, a], t) for a, t in enumerate((np.int64, np.int8, np.int64, np.int64, np.int8,
+                                                                      np.int64)))
         for name, into, keys in (("live", tr.live, _TRACK), ("objects", tr.objects, _OBJECT)):
             a = np.asarray(arrays[name], np.float64).reshape(-1, len(keys))
             for n, key in enumerate(keys):
