@@ -304,3 +304,11 @@ def test_a_pair_of_sensors_with_one_unknown_keeps_every_scanner_of_the_other():
     assert np.array_equal(resolve_sensor_origins([[1, 2, 3], None], None, None)[0], [1, 2, 3])
     with pytest.raises(sdp.InvalidPointsError, match="one row per scan"):
         resolve_sensor_origins([None, [[1, 2]]], None, None)
+
+
+def test_several_scanners_without_a_scan_index_are_refused_before_any_work():
+    xyz = np.random.default_rng(0).random((500, 3))
+    rows = [[5.0, 5, 3], [2, 2, 3]]
+    for pair in ([rows, None], [None, rows]):
+        with pytest.raises(sdp.InvalidPointsError, match="no scan index per point"):
+            sdp.distances(xyz, xyz + [0, 0, 0.01], sensor_origin=pair)

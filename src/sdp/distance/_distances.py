@@ -316,6 +316,9 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     grid_memory_limit(memory_limit)  # readable and positive, before any work
     towards = np.array([0.0, 0.0, 1.0]) if orientation is None else direction("orientation", orientation)
     origins = resolve_sensor_origins(sensor_origin, reference, current)
+    for cloud, o in zip((reference, current), origins):  # several scanners need each point's, before any work
+        if np.ndim(o) == 2:
+            scanner_of_points(cloud, o, len(getattr(cloud, "xyz", cloud)))
     given_rows = None  # core points given with NaN rows: which rows were measured
     if core_points is None or (isinstance(core_points, str) and core_points == "reference"):
         core, sensor = ref.xyz, _sensor_per_point(origins[0], reference, ref.xyz)

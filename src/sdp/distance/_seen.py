@@ -54,7 +54,7 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
         return d
     scan = None
     if np.ndim(origins) == 2:  # several scanners: the cloud says which saw each point
-        scan = scanner_of_points(cloud, origins, len(cloud.xyz))
+        scan = scanner_of_points(cloud, origins, len(getattr(cloud, "xyz", cloud)))
         if len(scan) != len(xyz):  # rows with NaN were dropped from xyz
             scan = scan[np.isfinite(cloud.xyz).all(axis=1)]
     offset = np.zeros(measured.size) if along is None else np.asarray(along, np.float64)[measured]
