@@ -101,6 +101,7 @@ def test_multi_scan_e57_reads_every_scan_with_its_pose(two_epochs):
     e = pye57.E57(str(two_epochs[0]))
     assert ref.n_dropped == e.get_header(0).point_count + e.get_header(1).point_count - len(ref)
     assert {"row", "column", "intensity", "scan"} <= set(ref.fields)
+    assert ref.range_noise == 0.0  # a laser's: the rays' band is the kernel's (sensor_range_noise)
     # the scanner B's frame is turned by 180°: its points lie on its +x side
     assert np.median(ref.xyz[ref.scan == 1, 0]) < B[0] and np.all(ref.xyz[ref.scan == 0, 0] >= -6 - 1e-9)
     moved = ref.transformed(np.array([[1, 0, 0, 1.0], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]]))

@@ -141,7 +141,9 @@ def test_a_laser_scans_band_is_its_kernel_not_a_depth_cameras():
     from sdp.defaults import DEFAULTS
 
     xyz = np.zeros((3, 3))
-    assert sensor_range_noise(sdp.io.Cloud(xyz, path=Path("survey.E57")), DEFAULTS.range_noise) == 0.0
-    assert sensor_range_noise(sdp.io.Cloud(xyz, path=Path("survey.e57")), 0.004) == 0.004  # given: kept
+    laser = sdp.io.Cloud(xyz, path=Path("survey.e57"), range_noise=0.0)  # as read_points reads an E57 file
+    assert sensor_range_noise(laser, DEFAULTS.range_noise) == 0.0
+    assert sensor_range_noise(laser, 0.004) == 0.004  # given: kept
+    assert sensor_range_noise(laser.transformed(np.eye(4)), DEFAULTS.range_noise) == 0.0
     assert sensor_range_noise(sdp.io.Cloud(xyz, path=Path("frame.pcd")), DEFAULTS.range_noise) == DEFAULTS.range_noise
     assert sensor_range_noise(xyz, DEFAULTS.range_noise) == DEFAULTS.range_noise

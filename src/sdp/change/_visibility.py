@@ -786,12 +786,23 @@ def _explain_by_planes(points, changed, states, unseen, *, plane_points, plane_s
 
 def sensor_range_noise(cloud, range_noise: float) -> float:
     """The range noise of the rays' band for ``cloud``'s sensor: ``range_noise`` as given, except
-    the default (a depth camera's, growing as r²) for a terrestrial laser scan (an E57 file),
-    whose range noise is millimetres at any range: there the band's floor, σ, bounds it alone
-    (at 4 m the default's 24 cm would take a partition's far face, 20 cm on, for its near one)."""
-    path = getattr(cloud, "path", None)
-    laser = path is not None and str(path).lower().endswith(".e57")
-    return 0.0 if laser and range_noise == DEFAULTS.range_noise else float(range_noise)
+    the default (a depth camera's, growing as r²) where the cloud's format says what its sensor's
+    is (:attr:`sdp.Cloud.range_noise`: an E57 file's laser scans, millimetres at any range, whose
+    band the floor σ bounds alone; at 4 m the default's 24 cm would take a partition's far face,
+    20 cm on, for its near one)."""
+    own = getattr(cloud, "range_noise", None)
+    return float(own) if own is not None and range_noise == DEFAULTS.range_noise else float(range_noise)
+
+
+def sees(image: RangeImage, query: np.ndarray, *, range_noise: float, floor: float) -> np.ndarray:
+    """Which of ``query`` the sensor of ``image`` could see: a return at its range (the same
+    surface) or beyond it (seen through), or none near its ray inside the field of view (free
+    space); not where every return near the ray is nearer (hidden) or outside the view."""
+    cls = image.classify(query, range_noise=range_noise, floor=floor)
+    seen = (cls == SAME_SURFACE) | (cls == SEEN_FREE)
+    missing = cls == UNOBSERVED
+    seen[missing] = image.in_view(query[missing])
+    return seen
 
 
 def gone_only_if_seen(present, own: np.ndarray, own_origin, own_scan=None, *, range_noise: float, floor: float,
@@ -829,10 +840,7 @@ def gone_only_if_seen(present, own: np.ndarray, own_origin, own_scan=None, *, ra
         if gone.size:
             query, seen = xyz[gone], np.zeros(gone.size, bool)
             for img in images():
-                cls = img.classify(query, range_noise=range_noise, floor=floor)
-                seen |= (cls == SAME_SURFACE) | (cls == SEEN_FREE)
-                missing = cls == UNOBSERVED
-                seen[missing] |= img.in_view(query[missing])
+                seen |= sees(img, query, range_noise=range_noise, floor=floor)
             there[gone[~seen]] = True
         return there
 

@@ -29,7 +29,7 @@ import dataclasses
 
 import numpy as np
 
-from ..change._visibility import HIDDEN, UNOBSERVED, RangeImage, scanner_of_points, sensor_range_noise
+from ..change._visibility import RangeImage, scanner_of_points, sees, sensor_range_noise
 from ..defaults import DEFAULTS
 
 __all__ = ["not_seen", "without_unseen"]
@@ -88,13 +88,9 @@ def not_seen(points: np.ndarray, cloud: np.ndarray, origins: np.ndarray, scan: n
         todo = np.flatnonzero(unseen)
         if len(mine) == 0 or len(todo) == 0:
             continue
-        image = RangeImage.from_points(mine, origin)
         query = np.take(points, todo, axis=0)
-        cls = image.classify(query, range_noise=range_noise, floor=sigma)
-        hidden = cls == HIDDEN
-        outside = cls == UNOBSERVED
-        outside[outside] = ~image.in_view(query[outside])
+        seen = sees(RangeImage.from_points(mine, origin), query, range_noise=range_noise, floor=sigma)
         if normals is not None:  # a scanner behind the surface saw its other side
-            hidden |= np.einsum("ij,ij->i", origin - query, normals[todo]) <= 0
-        unseen[todo] = hidden | outside
+            seen &= np.einsum("ij,ij->i", origin - query, normals[todo]) > 0
+        unseen[todo] = ~seen
     return unseen

@@ -93,6 +93,10 @@ class Cloud:
         Where each scanner stood (an E57 file's scan poses; one row per scan), in the cloud's
         frame; the ``scan`` field (:attr:`scan`) says which of them saw each point. None when
         the file records no scanner this way.
+    range_noise : float or None
+        The range noise its sensor's kind implies, per r² (the rays' band,
+        :func:`sdp.change._visibility.sensor_range_noise`): 0 for an E57 file's laser scans, whose
+        noise is millimetres at any range; None when the format says nothing of its sensor.
     """
 
     xyz: np.ndarray
@@ -104,6 +108,7 @@ class Cloud:
 
     organized: bool = False
     sensors: np.ndarray | None = None
+    range_noise: float | None = None
 
     def __len__(self) -> int:
         return len(self.xyz)

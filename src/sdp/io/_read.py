@@ -114,4 +114,5 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
     if len(xyz) == 0 and not allow_empty:
         raise EmptyCloudError(f"{path}: holds no point with finite x, y, z")
     viewpoint, organized, sensors = (list(pose) + [None, False, None][len(pose):])[:3]
-    return Cloud(np.ascontiguousarray(xyz), values, path, dropped, las, viewpoint, organized, sensors)
+    return Cloud(np.ascontiguousarray(xyz), values, path, dropped, las, viewpoint, organized, sensors,
+                 0.0 if fmt == "e57" else None)  # a terrestrial laser's range noise: millimetres at any range
