@@ -572,3 +572,24 @@ def test_gicp_messages_become_errors(rng):
     target = GicpTarget(rng.random((2000, 3)), resolution=0.05, max_distance=0.2)
     with pytest.raises(sdp.InvalidPointsError, match="GICP: warning: source point cloud is too small"):
         target.register(rng.random((3, 3)))
+
+
+@pytest.mark.parametrize("args, output, says", [
+    (["change", "bad.ply", "bad.ply", "-o", "o.xyz"], "o.xyz", "can't write points as .xyz; use .ply, .las, .laz or .npz"),
+    (["distance", "bad.ply", "bad.ply", "-o", "o.txt"], "o.txt", "can't write points as .txt"),
+    (["build", "bad.ply", "-o", "f.ply"], "f.ply", "can't write a density field as .ply; use .sdpf or .zarr"),
+    (["mesh", "bad.ply", "-o", "m.txt"], "m.txt", "can't write a mesh as .txt; use .ply, .obj or .stl"),
+    (["bool", "union", "bad.ply", "bad.ply", "-o", "u"], "u", "can't write a density field or a mesh as a file"),
+    (["series", "bad.ply", "bad.ply", "-o", "s.zarr", "--epoch-output", "1:e.csv"], "e.csv", "can't write points"),
+])
+def test_an_output_no_writer_takes_is_refused_before_the_inputs_are_read(tmp_path, monkeypatch, capsys, args, output,
+                                                                         says):
+    # the input can't be read: an error naming the output shows that it was checked first
+    from sdp.cli._main import main
+
+    (tmp_path / "bad.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n")
+    monkeypatch.chdir(tmp_path)
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"sdp: error: {output}: {says}") and len(err.strip().splitlines()) == 1, err
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["bad.ply"]

@@ -26,7 +26,7 @@ from .._core import _validate as V
 from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
 from ..errors import SDPError
-from ..io._output import all_or_none, check_outputs
+from ..io._output import all_or_none, check_format, check_outputs
 from ..options import Coverage, Execution, Lattice, NoiseModel, Outputs, Registration, as_options
 from . import _text as report
 from ..io._bag import is_bag
@@ -287,6 +287,7 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     out = Path(output)
     check_outputs([out, disappeared_path(out) if outputs.both else None, outputs.png, outputs.html, outputs.report],
                   [reference, current])
+    check_format(out, "points")
     check_picture_extras(png=outputs.png, html=outputs.html, report=outputs.report)
     V.integer_at_least("min_region_points", min_region_points, 0)
     bags = [is_bag(f) for f in (reference, current)]

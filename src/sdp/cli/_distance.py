@@ -17,7 +17,7 @@ from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
 from ..distance._names import rename_fields
 from ..errors import SDPError
-from ..io._output import all_or_none, check_outputs
+from ..io._output import all_or_none, check_format, check_outputs
 from ..io._read import read_points
 from ..options import Cylinder, Execution, Outputs, Registration, as_options
 from . import _text as report
@@ -108,6 +108,7 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
     png, report, memory_limit = outputs.png, outputs.report, execution.memory_limit
     out = Path(output)
     check_outputs([out, png, report], [reference, current, core_points])
+    check_format(out, "points")
     check_picture_extras(png=png, report=report)
     V.auto_or_nonnegative("--registration-error", registration_error)
     sensor = V.sensor_origin_option("--sensor-origin", sensor_origin)

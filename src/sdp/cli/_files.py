@@ -13,7 +13,7 @@ import numpy as np
 from .._core import _validate as V
 from ..defaults import DEFAULTS
 from ..errors import GridTooLargeError, SDPError
-from ..io._output import all_or_none, check_outputs
+from ..io._output import all_or_none, check_format, check_outputs
 from ..io._cloud import input_format
 from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, NoiseModel, Registration, as_options
@@ -98,6 +98,7 @@ def build_field_file(cloud, *, output, format: str | None = None, lattice: Latti
     lattice = as_options(Lattice, lattice, "lattice")
     execution = as_options(Execution, execution, "execution")
     check_outputs([output], [cloud])
+    check_format(output, "field")
     if not is_store(output):
         with _blocks_budget([cloud], format, execution.memory_limit,
                             "build a field store in tiles (-o FIELD.zarr)") as blocks:
@@ -131,6 +132,7 @@ def mesh_file(path, *, output, level: float = 0.0, format: str | None = None, la
 
     lattice = as_options(Lattice, lattice, "lattice")
     check_outputs([output], [path])
+    check_format(output, "mesh")
     limit(memory_limit)
     if is_store(path):
         from ..scale._store import FieldStore
@@ -160,6 +162,7 @@ def combine_files(operation: str, a, b, *, output, format: str | None = None, la
         raise SDPError(f"operation must be union, intersection or difference, got {operation!r}")
     lattice = as_options(Lattice, lattice, "lattice")
     check_outputs([output], [a, b])
+    check_format(output, "field", "mesh")
     limit(memory_limit)
     if is_store(output):
         from ..scale._store import FieldStore

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InvalidOptionError, SDPError
-from ..io._output import all_or_none, atomic_path, check_outputs
+from ..io._output import all_or_none, atomic_path, check_format, check_outputs
 from ..options import Execution, Outputs, as_options
 from ._text import series_text
 
@@ -109,8 +109,7 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     points = exports.get("points")
     report = outputs.report
     for _, f in epoch_files:
-        if Path(f).suffix.lower() not in (".las", ".laz", ".ply", ".npz"):
-            raise InvalidOptionError(f"{f}: an epoch's distances are written as .las, .laz, .ply or .npz")
+        check_format(f, "points")
     if points is not None and Path(points[0]).suffix.lower() not in (".csv", ".parquet"):
         raise InvalidOptionError(f"{points[0]}: per-point series are written as .csv or .parquet")
     if points is not None and Path(points[0]).suffix.lower() == ".parquet":

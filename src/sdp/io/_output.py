@@ -27,7 +27,7 @@ from ._las import write_las
 from ._numpy import write_npz
 from ._ply import write_ply, write_ply_mesh
 
-__all__ = ["check_outputs", "refuse_overwrite", "all_or_none", "atomic_path", "write_points", "write_mesh"]
+__all__ = ["FORMATS", "check_format", "check_outputs", "refuse_overwrite", "all_or_none", "atomic_path", "write_points", "write_mesh"]
 
 
 def _main_thread() -> bool:
@@ -100,6 +100,31 @@ def check_outputs(outputs, inputs=()) -> None:
         if path.exists() and not path.is_dir() and not os.access(path, os.W_OK):
             raise SDPError(f"{path}: exists and is not writable")
         seen.append(path)
+
+
+#: The extensions each kind of output is written as, by its writer: :func:`write_points`,
+#: :func:`write_mesh`, a density field (:meth:`sdp.DensityField.save`, or a field store in tiles).
+FORMATS = {"points": (".ply", ".las", ".laz", ".npz"), "mesh": (".ply", ".obj", ".stl"), "field": (".sdpf", ".zarr")}
+_WHAT = {"points": "points", "mesh": "a mesh", "field": "a density field"}
+
+
+def check_format(path: str | os.PathLike | None, *kinds: str) -> None:
+    """Refuse an output whose extension no writer of ``kinds`` (keys of :data:`FORMATS`) writes:
+    before any work, so that a command does not compute and then fail to write (None: not given).
+
+    Raises
+    ------
+    CloudFileError
+        One line naming the output and the extensions that do.
+    """
+    if path is None:
+        return
+    ext = Path(path).suffix.lower()
+    allowed = [x for kind in kinds for x in FORMATS[kind]]
+    if ext not in allowed:
+        allowed = list(dict.fromkeys(allowed))
+        raise CloudFileError(f"{path}: can't write {' or '.join(_WHAT[k] for k in kinds)} as "
+                             f"{ext or 'a file without extension'}; use {', '.join(allowed[:-1])} or {allowed[-1]}")
 
 
 def refuse_overwrite(path: str | os.PathLike, inputs=()) -> None:
@@ -243,8 +268,7 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
     """
     path = Path(path)
     ext = path.suffix.lower()
-    if ext not in (".ply", ".las", ".laz", ".npz"):
-        raise CloudFileError(f"{path}: can't write {ext or 'files without extension'}; use .ply, .las, .laz or .npz")
+    check_format(path, "points")
     if isinstance(xyz, Cloud):  # a cloud as read: its points, with its dimensions
         like = xyz if like is None else like
         xyz = xyz.xyz
@@ -301,8 +325,7 @@ def write_mesh(path: str | os.PathLike, mesh, *, inputs=()) -> Path:
     path = Path(path)
     ext = path.suffix.lower()
     v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
-    if ext not in (".ply", ".obj", ".stl"):
-        raise CloudFileError(f"{path}: can't write a mesh as {ext or 'no extension'}; use .ply, .obj or .stl")
+    check_format(path, "mesh")
     with atomic_path(path, inputs=inputs) as tmp:
         if ext == ".ply":
             write_ply_mesh(tmp, v, f)
