@@ -163,3 +163,17 @@ def test_render_draws_a_fields_nan_as_no_value(tmp_path, rng):
     pipeline.render_file(tmp_path / "d.npz", png=tmp_path / "d.png", field="distance")
     img = picture(tmp_path / "d.png")
     assert drawn_pixels(img, "#D55E00") == 0 and drawn_pixels(img, "#B4B4B4") > 0
+
+
+def test_the_distances_memory_limit_counts_the_process(tmp_path, rng):
+    # as in every command, the limit is the whole job's: 1,000 points under 200 MB go to tiles
+    from sdp.cli._distance import _distances_in_tiles
+    from sdp.scale._budget import PROCESS_BYTES
+
+    write_points(tmp_path / "a.laz", rng.random((1000, 3)))
+    said = []
+    for limit, tiles in ((PROCESS_BYTES - 2**20, True), (PROCESS_BYTES + 2**22, False)):
+        ex = sdp.Execution(memory_limit=limit, notify=said.append)
+        assert _distances_in_tiles(tmp_path / "a.laz", tmp_path / "a.laz", tmp_path / "o.laz", format=None,
+                                   execution=ex, core_points=None, align=None, png=None) is tiles
+    assert len(said) == 1 and "with the process" in said[0], said

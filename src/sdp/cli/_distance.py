@@ -168,10 +168,12 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
 
 def _distances_in_tiles(reference, current, output, *, format, execution: Execution, core_points, align, png,
                         report=None, sensor=None) -> bool:
-    """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (about
-    450 bytes per reference point and 200 per current point) would exceed the memory limit."""
+    """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (the
+    process itself, about 450 bytes per reference point and 200 per current point) would exceed
+    the memory limit, which is the whole job's as in every command."""
     from .._core._memory import memory_limit as limit
     from ..io._source import PointSource
+    from ..scale._budget import PROCESS_BYTES
 
     tiled, notify = execution.tiled, execution.notify
     try:
@@ -181,21 +183,21 @@ def _distances_in_tiles(reference, current, output, *, format, execution: Execut
             raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; "
                            "convert the clouds first") from None
         return False
-    need, cap = 450.0 * n_ref + 200.0 * n_cur, limit(execution.memory_limit)
+    need, cap = PROCESS_BYTES + 450.0 * n_ref + 200.0 * n_cur, limit(execution.memory_limit)
     if not (tiled or need > cap):
         return False
     given_sensor = not (sensor is None or (isinstance(sensor, str) and sensor in ("auto", "none")))
     for option, given in (("--core-points", core_points), ("--align", align), ("--png", png), ("--report", report),
                           ("--sensor-origin", given_sensor)):  # tiles follow no sensor: its normals would be lost
         if given:
-            why = ("with --tiled" if tiled else f"in tiles (the in-memory work would need {format_bytes(need)}; "
-                                                f"the memory limit is {format_bytes(cap)})")
+            why = ("with --tiled" if tiled else f"in tiles (the in-memory work would need {format_bytes(need)} with "
+                                                f"the process; the memory limit is {format_bytes(cap)})")
             raise SDPError(f"{option} is not available {why}")
     if Path(output).suffix.lower() not in (".las", ".laz"):
         raise SDPError(f"{output}: distances in tiles stream to LAS/LAZ: give -o OUT.laz")
     if not tiled and notify is not None:
-        notify(f"measuring in tiles on Dask: the in-memory work would need {format_bytes(need)}, above the "
-               f"memory limit of {format_bytes(cap)}")
+        notify(f"measuring in tiles on Dask: the in-memory work would need {format_bytes(need)} with the process, "
+               f"above the memory limit of {format_bytes(cap)}")
     return True
 
 

@@ -1,5 +1,7 @@
 """The examples that end each ``sdp`` command's ``--help``, kept as written (the columns align)."""
 
+MEMORY_HELP = ("memory of the whole job, the process and Dask workers included (e.g. 2GB; default $SDP_MEMORY_LIMIT "
+               "or 4GiB)")
 REPORT_HELP = ("one self-contained HTML page: summary, parameters and why, maps, histogram (changes: regions with "
                "thumbnails and a 3-D view; needs the plots extra; in memory only)")
 

@@ -47,7 +47,7 @@ def _grid_options(p):
     g.add_argument("--sigma-voxels", type=V.cli_type(V.auto_or_positive), default=DEFAULTS.sigma_voxels,
                    help="sigma in voxels (default auto: 1.5 on the automatic voxel, the paper's 2 on a given one)")
     g.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
-                   help="memory of the whole job, Dask workers included (e.g. 2GB; default $SDP_MEMORY_LIMIT or 4GiB)")
+                   help=X.MEMORY_HELP)
 
 
 def _tile_options(p, title, *, tiled: bool = True):
@@ -368,7 +368,7 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--align", choices=("density", "gicp"), help="register CURRENT onto REFERENCE first")
     _align_options(ds)
     ds.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
-                    help="refuse work needing more (default $SDP_MEMORY_LIMIT or 4GiB)")
+                    help=X.MEMORY_HELP)
     _tile_options(ds, "large clouds: tiles on Dask (taken by itself beyond --memory-limit; output LAS/LAZ)")
 
     se = _command(sub, "series", cmd_series, "many epochs against one reference: distances, smoothed change, "
@@ -395,7 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("--align", choices=("density", "gicp"), help="register each epoch onto the reference first")
     _align_options(se)
     se.add_argument("--memory-limit", type=V.cli_type(V.memory_size),
-                    help="memory of the job (default $SDP_MEMORY_LIMIT or 4GiB): epochs are read one at a time")
+                    help=X.MEMORY_HELP + "; epochs are read one at a time")
     _tile_options(se, "epochs beyond memory: tiles on Dask (taken by themselves beyond --memory-limit)")
     se.add_argument("--report", help="one HTML page: maps of change and velocity, the largest objects' series, "
                     "the object table, the parameters (needs the plots extra)")
