@@ -118,6 +118,20 @@ def test_a_pcds_packed_colour_is_written_as_colour(tmp_path, rng, packed):
     np.testing.assert_array_equal(las.blue, rgb[:, 2].astype(np.uint16) * 257)
 
 
+def test_a_text_files_colour_columns_are_written_as_colour(tmp_path, rng):
+    # text columns are read as floats: whole numbers within 8 bits are colour all the same
+    import laspy
+
+    rgb = rng.integers(0, 256, (200, 3))
+    np.savetxt(tmp_path / "c.txt", np.c_[rng.random((200, 3)), rgb, rgb[:, 0] + 0.5], fmt="%.6f",
+               header="x y z red green blue intensity", comments="//")
+    write_points(tmp_path / "c.las", read_points(tmp_path / "c.txt"))
+    las = laspy.read(str(tmp_path / "c.las"))
+    assert las.header.point_format.id == 2
+    np.testing.assert_array_equal(las.green, rgb[:, 1].astype(np.uint16) * 257)
+    np.testing.assert_array_equal(las.input_intensity, rgb[:, 0] + 0.5)  # not whole: kept as it is
+
+
 def test_other_inputs_keep_their_fields_and_las_says_only_what_they_hold(tmp_path, rng):
     import laspy
 

@@ -56,16 +56,21 @@ def read_las(path, *, fields: bool = True):
 
 def _standard_dimensions(fields: dict) -> dict:
     """LAS's own ``intensity`` and ``red``, ``green``, ``blue`` (16 bits) from fields of those
-    names that hold them: integers within 16 bits (8-bit colour spread over 16, as the
-    specification asks), or values within [0, 1] (an E57's intensity). Others stay extra
-    dimensions (an ``intensity`` in other units is renamed ``input_intensity``)."""
+    names that hold them: values within [0, 1] (an E57's intensity), or whole numbers within 16
+    bits, integers or the floats a text file's columns are read as (8-bit colour spread over 16,
+    as the specification asks). Others stay extra dimensions (an ``intensity`` in other units is
+    renamed ``input_intensity``)."""
     def sixteen(v, colour):
         v = np.asarray(v)
-        if v.dtype.kind in "ui" and v.size and v.min() >= 0 and v.max() <= 65535:
-            return v.astype(np.uint16) * (257 if colour and v.max() <= 255 else 1)
-        if v.dtype.kind == "f" and v.size and np.isfinite(v).all() and v.min() >= 0 and v.max() <= 1:
+        if not v.size or v.dtype.kind not in "uif" or (v.dtype.kind == "f" and not np.isfinite(v).all()):
+            return None
+        if v.min() < 0 or v.max() > 65535:
+            return None
+        if v.dtype.kind == "f" and v.max() <= 1:
             return np.round(v * 65535).astype(np.uint16)
-        return None
+        if v.dtype.kind == "f" and not np.array_equal(v, np.round(v)):
+            return None
+        return v.astype(np.uint16) * (257 if colour and v.max() <= 255 else 1)
 
     out = {}
     if "intensity" in fields:
