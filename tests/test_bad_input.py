@@ -593,3 +593,11 @@ def test_an_output_no_writer_takes_is_refused_before_the_inputs_are_read(tmp_pat
     err = capsys.readouterr().err
     assert err.startswith(f"sdp: error: {output}: {says}") and len(err.strip().splitlines()) == 1, err
     assert sorted(f.name for f in tmp_path.iterdir()) == ["bad.ply"]
+
+
+def test_a_missing_input_says_so_in_tiles_too(tmp_path, monkeypatch, capsys):
+    from sdp.cli._main import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["distance", "nope.laz", "nope.laz", "-o", "o.laz", "--tiled"]) == 2
+    assert capsys.readouterr().err.strip() == "sdp: error: nope.laz: no such file"

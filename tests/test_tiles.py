@@ -157,6 +157,22 @@ def test_streamed_las_output_keeps_every_dimension(tmp_path, rng):
     assert laspy.read(str(tmp_path / "in.laz")).header.point_count == len(xyz)
 
 
+def test_streamed_las_output_keeps_the_extended_records(tmp_path, rng):
+    # LAS 1.4 may hold its CRS (OGC WKT) in an extended record after the points
+    from laspy.vlrs.vlrlist import VLRList
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.global_encoding.wkt = True
+    header.evlrs = VLRList([laspy.VLR("LASF_Projection", 2112, "OGC WKT", b'PROJCS["WGS 84 / UTM 17N"]\0')])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = (rng.random((3, 5000)) * 10).tolist()
+    las.write(str(tmp_path / "in.laz"))
+    out = write_points_streamed(tmp_path / "out.laz", PointSource.open(tmp_path / "in.laz"),
+                                lambda s, e: {"change": np.zeros(e - s, np.uint8)}, chunk_size=2_000)
+    evlrs = laspy.read(str(out)).header.evlrs
+    assert [v.record_id for v in evlrs] == [2112] and "UTM 17N" in evlrs[0].string
+
+
 def run(*args):
     return subprocess.run([sys.executable, "-m", "sdp.cli", *map(str, args)], capture_output=True, text=True)
 

@@ -172,10 +172,13 @@ def _distances_in_tiles(reference, current, output, *, format, execution: Execut
     process itself, about 450 bytes per reference point and 200 per current point) would exceed
     the memory limit, which is the whole job's as in every command."""
     from .._core._memory import memory_limit as limit
+    from ..io._cloud import input_format
     from ..io._source import PointSource
     from ..scale._budget import PROCESS_BYTES
 
     tiled, notify = execution.tiled, execution.notify
+    for f in (reference, current):  # a missing or unknown file says so, not that tiles can't read it
+        input_format(Path(f), format)
     try:
         n_ref, n_cur = (PointSource.open(f, format=format).n_rows for f in (reference, current))
     except SDPError:

@@ -246,4 +246,6 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
                 out[name] = v
             writer.write_points(out)
             start += n
+        if writer is not None and source.format == "las" and header.evlrs:  # LAS 1.4's extended records
+            writer.write_evlrs(header.evlrs)  # (a WKT CRS) follow the points: the writer adds them when told
     return path
