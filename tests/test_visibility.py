@@ -268,3 +268,40 @@ def test_an_unchanged_object_seen_from_either_side_changes_nothing():
     assert (hit == 1).sum() > 300 and r.reference_not_comparable[hit == 1].mean() > 0.9
     assert r.disappeared.sum() < 0.001 * len(reference) and r.appeared.sum() < 0.001 * len(current), \
         (r.disappeared.sum(), r.appeared.sum())
+
+
+def _spinning_lidar(origin, yaw, boxes, *, beams=16, columns=1800, seed=0):
+    """A spinning LiDAR's returns (beams rings from -15° to 15°, ``columns`` steps of azimuth, 1 cm
+    of range noise) inside a room 10 × 8 × 3 m holding axis-aligned ``boxes`` (lo, hi)."""
+    el = np.deg2rad(np.linspace(-15, 15, beams))[:, None]
+    az = np.deg2rad(yaw) + np.linspace(-np.pi, np.pi, columns, endpoint=False)[None, :]
+    d = np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)), -1).reshape(-1, 3)
+    o = np.asarray(origin, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        room_lo, room_hi = np.array([-4.0, -4.0, 0.0]), np.array([6.0, 4.0, 3.0])
+        t = np.max([(room_lo - o) / d, (room_hi - o) / d], axis=0).min(axis=1)  # leaving the room
+        for lo, hi in boxes:  # slabs: entering the box before leaving it
+            near, far = np.sort([(np.asarray(lo) - o) / d, (np.asarray(hi) - o) / d], axis=0)
+            t_in, t_out = near.max(axis=1), far.min(axis=1)
+            t = np.where((t_in <= t_out) & (t_in > 0) & (t_in < t), t_in, t)
+    t = t + np.random.default_rng(seed).normal(0, 0.01, len(t))
+    return o + d * t[:, None]
+
+
+@pytest.mark.parametrize("beams", [16, 64])
+def test_a_spinning_lidars_rings_leave_no_false_change_between_them(beams):
+    # two robot poses 0.58 m and 20° apart in a static room: the floor between one scan's rings,
+    # and below its lowest ring, is no change; a box brought in is
+    table = ([1.5, 1.0, 0.0], [2.5, 2.0, 0.8])
+    a_at, b_at = [1.0, 0.0, 0.5], [1.5, -0.3, 0.5]
+    a = _spinning_lidar(a_at, 0, [table], beams=beams, seed=1)
+    b = _spinning_lidar(b_at, 20, [table], beams=beams, seed=2)
+    for noise in (0.001, 0.015):  # a laser's range noise, and the default's
+        r = sdp.detect_changes(a, b, coverage=sdp.Coverage(sensor_origin=[a_at, b_at], range_noise=noise))
+        assert r.appeared.sum() == 0 and r.disappeared.sum() == 0, (noise, r.appeared.sum(), r.disappeared.sum())
+    box = ([3.0, -2.0, 0.0], [3.6, -1.4, 0.6])
+    b = _spinning_lidar(b_at, 20, [table, box], beams=beams, seed=2)
+    on_box = np.all((b >= np.array(box[0]) - 0.02) & (b <= np.array(box[1]) + 0.02), axis=1) & (b[:, 2] > 0.05)
+    r = sdp.detect_changes(a, b, coverage=sdp.Coverage(sensor_origin=[a_at, b_at], range_noise=0.001))
+    assert r.appeared[on_box].mean() > 0.8 and r.appeared[~on_box].sum() < 0.002 * len(b), \
+        (r.appeared[on_box].mean(), r.appeared[~on_box].sum())

@@ -35,7 +35,13 @@ The range image is spherical (azimuth, elevation about the sensor origin), as Un
 [1] for change detection along laser rays, so any field of view works, from a Kinect's 57° to
 a full turn; each cell keeps the nearest and the farthest return. Cells are ``cell_factor``
 times the scan's angular point spacing, measured from the solid angle the scan covers (O(n), no
-neighbour search). The band grows as r², as the depth noise of triangulation sensors such as
+neighbour search). A scan that samples one axis more sparsely than the other (a spinning LiDAR's
+rings, 0.5–2° apart, 0.2° along them) gets cells of ``cell_factor`` times its step along that
+axis (:func:`_axis_cells`), and there a ray whose cells on one side hold returns all nearer and
+on the other side all farther passes through the surface sampled between them (same surface),
+as the floor between two rings. A ray beyond the angles the scan sent rays to (more than half a
+cell past its extreme returns) is unobserved whatever the cells beside it hold: the floor below
+a LiDAR's lowest ring. The band grows as r², as the depth noise of triangulation sensors such as
 the Kinect (Khoshelham and Elberink [2]: σ_z ≈ 1.4e-3·r² m, depth steps ≈ 2.9e-3·r²).
 
 References
@@ -73,6 +79,8 @@ SEEN_FREE, SAME_SURFACE, HIDDEN, UNOBSERVED = 0, 1, 2, 3
 
 _MAX_CELLS = 50_000_000  # a range image larger than this gets coarser cells (400 MB of float64)
 _DIRECTION_SAMPLE = 5_000  # points used to choose the image's frame
+_MAX_COARSENING = 6  # doublings of a sparse axis's cell (64×): a 16-ring LiDAR's 2° rings at a 0.2° step need 2
+_SPARSE = 0.75  # an axis whose occupied cells have an occupied next cell this much less often is sampled sparsely
 
 
 # ---------------------------------------------------------------- kernels (compiled once, cached)
@@ -196,17 +204,24 @@ def _occupied_solid_angle(az, el, lo_az, lo_el, bin_size, n_az, n_el):
 
 
 @nb.njit(cache=True, nogil=True)
-def _near_far(az, el, rng, lo_az, lo_el, cell, n_az, n_el):
-    """Nearest and farthest range per cell (inf / -inf: no return)."""
+def _near_far(az, el, rng, lo_az, lo_el, cell, cell_el, n_az, n_el, half):
+    """Nearest and farthest range per cell (inf / -inf: no return); cells of ``cell`` in azimuth,
+    ``cell_el`` in elevation. ``half`` (2 n_az × 2 n_el, or empty): marks the cells of half
+    those sizes holding a return, in the same pass."""
+    halves = half.shape[0] > 0
     near = np.full(n_az * n_el, np.inf)
     far = np.full(n_az * n_el, -np.inf)
     for i in range(az.shape[0]):
         if not math.isfinite(az[i]):
             continue
-        a = int((az[i] - lo_az) / cell)
-        e = int((el[i] - lo_el) / cell)
+        u = (az[i] - lo_az) / cell
+        v = (el[i] - lo_el) / cell_el
+        a = int(u)
+        e = int(v)
         if a < 0 or e < 0 or a >= n_az or e >= n_el:
             continue
+        if halves:
+            half[min(int(2 * u), 2 * n_az - 1) * 2 * n_el + min(int(2 * v), 2 * n_el - 1)] = True
         j = a * n_el + e
         near[j] = min(near[j], rng[i])
         far[j] = max(far[j], rng[i])
@@ -214,9 +229,14 @@ def _near_far(az, el, rng, lo_az, lo_el, cell, n_az, n_el):
 
 
 @nb.njit(cache=True, nogil=True)
-def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noise, floor):
+def _classify(az, el, rng, near, far, lo, hi, cell, cell_el, n_az, n_el, reach, noise, floor, sparse):
     """Class of each ray (see :meth:`RangeImage.classify`) from the cells within ``reach`` of its own,
-    and for hidden rays the range of the hiding surface (the farthest of the nearer cells' returns)."""
+    and for hidden rays the range of the hiding surface (the farthest of the nearer cells' returns).
+    A ray more than half a cell beyond the angles of the scan's returns (``lo``, ``hi``: azimuth,
+    elevation) is unobserved: the scan sent no ray there. Along the
+    ``sparse`` axis (0 azimuth, 1 elevation, -1 none: :func:`_sparse_axis`), a ray between a cell
+    whose returns are all nearer and one on its other side whose returns are all farther passes
+    through the surface sampled on either side of it: the same surface."""
     out = np.empty(az.shape[0], np.int8)
     hider = np.full(az.shape[0], np.nan)
     for i in range(az.shape[0]):
@@ -226,9 +246,12 @@ def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noi
         same = False
         nearer = False
         hide = -np.inf
+        below_nearer = below_farther = above_nearer = above_farther = False
         if math.isfinite(az[i]):
-            a0 = int(math.floor((az[i] - lo_az) / cell))
-            e0 = int(math.floor((el[i] - lo_el) / cell))
+            a0 = int(math.floor((az[i] - lo[0]) / cell))
+            e0 = int(math.floor((el[i] - lo[1]) / cell_el))
+            if not (lo[0] - cell / 2 <= az[i] <= hi[0] + cell / 2 and lo[1] - cell_el / 2 <= el[i] <= hi[1] + cell_el / 2):
+                a0 = e0 = -2 * reach - 2  # off the scan's angles: no cell within reach
             for a in range(max(a0 - reach, 0), min(a0 + reach + 1, n_az)):
                 for e in range(max(e0 - reach, 0), min(e0 + reach + 1, n_el)):
                     j = a * n_el + e
@@ -238,11 +261,19 @@ def _classify(az, el, rng, near, far, lo_az, lo_el, cell, n_az, n_el, reach, noi
                     if near[j] - band <= r <= far[j] + band:
                         same = True
                         break  # the same surface decides: the other cells need not be read
-                    elif r > far[j]:
+                    step = (a - a0) if sparse == 0 else (e - e0)
+                    if r > far[j]:
                         nearer = True
                         hide = max(hide, far[j])
+                        below_nearer |= step <= 0
+                        above_nearer |= step >= 0
+                    else:
+                        below_farther |= step <= 0
+                        above_farther |= step >= 0
                 if same:
                     break
+            if sparse >= 0 and not same:
+                same = (below_nearer and above_farther) or (below_farther and above_nearer)
         if same:
             out[i] = 1  # SAME_SURFACE
         elif nearer:
@@ -359,7 +390,7 @@ class RangeImage:
         Rows: forward (azimuth 0, the scan's main viewing direction), left, pole (elevation
         +π/2, the direction the scan spreads least along).
     cell : float
-        Cell size in radians (azimuth and elevation).
+        Cell size in azimuth (radians).
     spacing : float
         Angular point spacing the cell was derived from (radians).
     lo : ndarray (2,) float64
@@ -373,6 +404,15 @@ class RangeImage:
         inside it is a ray that found nothing in range).
     reach_range : float
         The farthest return of the scan: how far the sensor is known to see.
+    cell_el : float
+        Cell size in elevation (radians): ``cell`` unless the scan samples one axis more
+        sparsely than the other (:func:`_sparse_axis`: a spinning LiDAR's rings).
+    sparse : int
+        That axis (0 azimuth, 1 elevation), whose cells were made coarser; -1 for neither. Along
+        it, a ray between returns nearer and farther than its point is on the surface between them.
+    hi : ndarray (2,) float64
+        The highest azimuth and elevation of a return: with ``lo``, the angles the scan sent rays
+        to (half a cell beyond them, a ray's own footprint; the last cell reaches farther).
     """
 
     origin: np.ndarray
@@ -385,6 +425,9 @@ class RangeImage:
     far: np.ndarray
     view: np.ndarray
     reach_range: float
+    cell_el: float
+    sparse: int
+    hi: np.ndarray
 
     @classmethod
     def from_points(cls, points: np.ndarray, origin: npt.ArrayLike, *, cell_factor: float = 1.5,
@@ -418,18 +461,24 @@ class RangeImage:
             spacing = _angular_spacing(az, el, lo, extent, n)
         cell = max(cell_factor * spacing, 1e-9, float(np.sqrt(np.prod(extent + 1e-9) / _MAX_CELLS)))
         shape = (int(extent[0] // cell) + 1, int(extent[1] // cell) + 1)
-        near, far = _near_far(az, el, rng, lo[0], lo[1], cell, shape[0], shape[1])
+        half = np.zeros(4 * shape[0] * shape[1], np.bool_)  # the cells of half a cell holding a return
+        near, far = _near_far(az, el, rng, lo[0], lo[1], cell, cell, shape[0], shape[1], half)
+        cells, sparse = _axis_cells(az, el, lo, extent, cell, cell_factor, half.reshape(2 * shape[0], 2 * shape[1]))
+        if sparse >= 0:
+            shape = (int(extent[0] // cells[0]) + 1, int(extent[1] // cells[1]) + 1)
+            near, far = _near_far(az, el, rng, lo[0], lo[1], cells[0], cells[1], shape[0], shape[1], half[:0])
         view = _convex_hull(np.isfinite(near).reshape(shape))
-        return cls(origin, frame, float(cell), float(spacing), lo, shape, near, far, view.ravel(),
-                   float(far[np.isfinite(far)].max()))
+        return cls(origin, frame, float(cells[0]), float(spacing), lo, shape, near, far, view.ravel(),
+                   float(far[np.isfinite(far)].max()), float(cells[1]), sparse, np.array([hi_a, hi_e]))
 
     def in_view(self, points: np.ndarray) -> np.ndarray:
         """Is each point inside the field of view (:attr:`view`) and within :attr:`reach_range`?"""
         az, el, rng, _ = _angles(np.ascontiguousarray(points, dtype=np.float64), self.origin, self.frame)
         with np.errstate(invalid="ignore"):
             a = np.floor((az - self.lo[0]) / self.cell)
-            e = np.floor((el - self.lo[1]) / self.cell)
-            ok = (a >= 0) & (a < self.shape[0]) & (e >= 0) & (e < self.shape[1]) & (rng <= self.reach_range)
+            e = np.floor((el - self.lo[1]) / self.cell_el)
+            ok = (a >= 0) & (a < self.shape[0]) & (e >= 0) & (e < self.shape[1]) & (rng <= self.reach_range) \
+                & (az <= self.hi[0] + self.cell / 2) & (el <= self.hi[1] + self.cell_el / 2)
         out = np.zeros(len(az), bool)
         out[ok] = self.view[a[ok].astype(np.int64) * self.shape[1] + e[ok].astype(np.int64)]
         return out
@@ -448,11 +497,75 @@ class RangeImage:
         """
         points = np.ascontiguousarray(points, dtype=np.float64)
         az, el, rng, _ = _angles(points, self.origin, self.frame)
-        cls, hide = _classify(az, el, rng, self.near, self.far, self.lo[0], self.lo[1], self.cell, self.shape[0],
-                              self.shape[1], int(reach), float(range_noise), float(floor))
+        cls, hide = _classify(az, el, rng, self.near, self.far, self.lo, self.hi, self.cell, self.cell_el,
+                              self.shape[0], self.shape[1], int(reach), float(range_noise), float(floor), self.sparse)
         if not hiders:
             return cls
         return cls, _hider_points(points, self.origin, hide, rng, cls)
+
+
+def _axis_cells(az, el, lo, extent, cell: float, cell_factor: float, half: np.ndarray) -> tuple[list[float], int]:
+    """([azimuth cell, elevation cell], the axis sampled sparsely or -1); ``half``: the cells of
+    half ``cell`` holding a return.
+
+    ``cell`` comes from the mean angular spacing (the square root of the solid angle per point),
+    right for a camera's square pixels. A spinning LiDAR steps 0.5–2° between its rings and 0.2°
+    along them: on square cells of the mean spacing, a point between two rings finds only one
+    ring's returns near its ray, the nearer (hidden) or the farther (seen free), on a floor the
+    sensor did see. Along an axis sampled at least once per cell, an occupied cell's next cell is
+    occupied as often as along the other axis (surfaces continue; edges and dropouts cut both
+    alike); where the sampling step s exceeds the cell c, a share s/c − 1 of the rows is empty
+    and that frequency falls to about 2 − s/c. On cells of half ``cell``, an axis whose frequency
+    is below :data:`_SPARSE` of the other's (s > 0.6 ``cell``, while the other axis is sampled
+    finer) is sparse: its cell is doubled until it is sampled again (c ≥ s/1.25), and that
+    axis's cells are ``cell_factor`` times that step, at least ``cell``. A camera's pixels leave
+    both axes alike, and its cells as they were."""
+    def occupancy(cells):
+        shape = (int(extent[0] // cells[0]) + 1, int(extent[1] // cells[1]) + 1)
+        return _occupied(az, el, lo[0], lo[1], cells[0], cells[1], shape[0], shape[1]).reshape(shape)
+
+    fine = [cell / 2, cell / 2]
+    freq = _next_occupied(half)
+    if freq[1] < _SPARSE * freq[0]:
+        axis = 1
+    elif freq[0] < _SPARSE * freq[1]:
+        axis = 0
+    else:
+        return [cell, cell], -1
+    for _ in range(_MAX_COARSENING):
+        fine[axis] *= 2.0
+        freq = _next_occupied(occupancy(fine))
+        if freq[axis] >= _SPARSE * freq[1 - axis]:
+            break
+    cells = [cell, cell]
+    cells[axis] = max(cell, cell_factor * fine[axis])
+    return cells, axis
+
+
+@nb.njit(cache=True, nogil=True)
+def _next_occupied(occupied):
+    """How often an occupied cell's next cell along azimuth, and along elevation, is occupied."""
+    n_az, n_el = occupied.shape
+    cells = next_az = next_el = 0
+    for a in range(n_az):
+        for e in range(n_el):
+            if occupied[a, e]:
+                cells += 1
+                next_az += a + 1 < n_az and occupied[a + 1, e]
+                next_el += e + 1 < n_el and occupied[a, e + 1]
+    return (next_az / cells, next_el / cells) if cells else (1.0, 1.0)
+
+
+@nb.njit(cache=True, nogil=True)
+def _occupied(az, el, lo_az, lo_el, cell, cell_el, n_az, n_el):
+    """Cells of ``cell`` × ``cell_el`` holding a return."""
+    occ = np.zeros(n_az * n_el, np.bool_)
+    for i in range(az.shape[0]):
+        if math.isfinite(az[i]):
+            a = min(int((az[i] - lo_az) / cell), n_az - 1)
+            e = min(int((el[i] - lo_el) / cell_el), n_el - 1)
+            occ[a * n_el + e] = True
+    return occ
 
 
 @nb.njit(cache=True, nogil=True)
