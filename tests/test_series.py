@@ -632,6 +632,35 @@ def test_command_series_append_info_and_exports(slope, tmp_path, capsys):
     assert rows[0].startswith("point,epoch,time") and len(rows) == 1 + 2 * 5
 
 
+def test_an_epochs_las_export_keeps_the_core_points_records_and_crs(slope, tmp_path, capsys):
+    # the default core points are reference rows: their LAS records (class, GPS time) and CRS go along
+    import laspy
+
+    files = []
+    for k in range(2):
+        header = laspy.LasHeader(point_format=6, version="1.4")
+        header.scales, header.offsets = [0.0001] * 3, [630_000, 4_830_000, 0]
+        header.vlrs.append(laspy.VLR("LASF_Projection", 2112, "OGC WKT", b'PROJCS["UTM 17N"]\0'))
+        header.global_encoding.wkt = True
+        las = laspy.LasData(header)
+        xyz = slope.epochs[k] + [630_000, 4_830_000, 0]
+        las.x, las.y, las.z = xyz.T
+        las.classification = np.full(len(xyz), 2, np.uint8)
+        las.gps_time = np.arange(len(xyz), dtype=float)
+        las.write(str(tmp_path / f"e{k}.laz"))
+        files.append(str(tmp_path / f"e{k}.laz"))
+    out = tmp_path / "distances1.laz"
+    assert main(["series", *files, "-o", str(tmp_path / "s.zarr"), "--projection-scale", "0.8", "--epoch-output",
+                 f"1:{out}", "-q"]) == 0
+    back, ds = laspy.read(str(out)), sdp.open_series(tmp_path / "s.zarr")
+    assert 2112 in [v.record_id for v in back.header.vlrs] and back.header.point_format.id == 6
+    assert len(back.points) == ds.sizes["point"] and set(np.asarray(back.classification).tolist()) == {2}
+    rows = np.asarray(back.gps_time).astype(int)  # each record is the reference row at its core point
+    np.testing.assert_allclose(np.c_[back.x, back.y, back.z], slope.epochs[0][rows] + [630_000, 4_830_000, 0],
+                               atol=1e-4)
+    np.testing.assert_array_equal(back.distance, ds.distance.values[1])
+
+
 def test_exports_out_of_range_are_refused_before_the_archive_is_touched(slope, tmp_path, capsys):
     # they were checked once the archive was committed: a replaced archive was lost, an append kept
     files = _write_epochs(slope, tmp_path, 3)

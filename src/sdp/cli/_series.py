@@ -139,9 +139,10 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     # Dask's arrays: the command reads the rows and columns it indexes, and importing them costs more
     ds = open_series(archive, chunks=None) if epoch_files or points is not None or report else None
     written = [str(output)]
+    like = _core_records(ds, execution.memory_limit) if epoch_files else None
     with all_or_none():
         for k_text, f in epoch_files:
-            _write_epoch(ds, _epoch_index(str(k_text), summary["epochs"]), f, inputs, outputs.field_names)
+            _write_epoch(ds, _epoch_index(str(k_text), summary["epochs"]), f, inputs, outputs.field_names, like)
             written.append(str(f))
         if points is not None:
             _write_points(ds, points[0], chosen_points, inputs, outputs.field_names)
@@ -157,7 +158,57 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     return SeriesRun(str(output), ds, summary, written)
 
 
-def _write_epoch(ds, k: int, path, inputs, field_names: str) -> None:
+def _core_records(ds, memory_limit=None):
+    """The LAS/LAZ records of the core points (a :class:`~sdp.Cloud` of them alone), for the
+    epochs' exports to keep their every dimension and the file's CRS as ``sdp distance`` does:
+    from the core points' file, else the reference's, when its rows hold every core point
+    exactly (none dropped) and the file fits the memory limit; else None (the exports then carry
+    x, y, z and the series' values, at sdp's own scale and offset)."""
+    import copy
+    from dataclasses import replace
+
+    import laspy
+
+    from .._core._memory import memory_limit as limit
+    from ..io._read import read_points
+    from ..io._source import PointSource
+    from ..scale._budget import untiled_point_bytes
+
+    params = ds.attrs["parameters"]
+    core = np.c_[ds.x.values, ds.y.values, ds.z.values]
+    for name in (params.get("core_points"), params.get("reference_file")):
+        path = Path(str(name))
+        if path.suffix.lower() not in (".las", ".laz") or not path.is_file():
+            continue
+        try:
+            if untiled_point_bytes(PointSource.open(path).n_rows) > limit(memory_limit):
+                continue
+            cloud = read_points(path)
+        except SDPError:
+            continue
+        rows = _rows_holding(cloud.xyz, core)
+        if rows is None or cloud.n_dropped or cloud.las is None:
+            continue
+        las = laspy.LasData(copy.deepcopy(cloud.las.header), points=cloud.las.points[rows])
+        return replace(cloud, xyz=cloud.xyz[rows], fields={k: np.asarray(v)[rows] for k, v in cloud.fields.items()},
+                       las=las)
+    return None
+
+
+def _rows_holding(points: np.ndarray, xyz: np.ndarray) -> np.ndarray | None:
+    """The row of ``points`` equal to each row of ``xyz`` (bit for bit), or None if one is missing."""
+    def keys(a):
+        return np.ascontiguousarray(a, np.float64).view(np.dtype((np.void, 24))).ravel()
+
+    have, want = keys(points), keys(xyz)
+    if not len(have):
+        return None
+    order = np.argsort(have, kind="stable")
+    rows = order[np.minimum(np.searchsorted(have[order], want), len(order) - 1)]
+    return rows if np.array_equal(have[rows], want) else None
+
+
+def _write_epoch(ds, k: int, path, inputs, field_names: str, like=None) -> None:
     from ..distance._names import rename_fields
     from ..io._output import write_points
 
@@ -168,7 +219,7 @@ def _write_epoch(ds, k: int, path, inputs, field_names: str) -> None:
     fields["significant"] = np.asarray(row["significant"].values).astype(np.uint8)
     for axis in "xyz":
         fields[f"normal_{axis}"] = ds[f"normal_{axis}"].values
-    write_points(path, xyz, rename_fields(fields, field_names, path=path), inputs=inputs)
+    write_points(path, xyz, rename_fields(fields, field_names, path=path), like=like, inputs=inputs)
 
 
 def default_points(ds, count: int = 5) -> list[int]:
