@@ -197,3 +197,19 @@ def test_closed_form_top_eigenpair_matches_eigh(rng):
     np.testing.assert_allclose(np.linalg.norm(vec, axis=1), 1.0, rtol=1e-12)
     gap = w[:, 2] - w[:, 1] > 1e-3
     np.testing.assert_allclose(np.abs((vec * v[:, :, 2]).sum(axis=1))[gap], 1.0, atol=1e-8)
+
+
+def test_gicp_brings_a_move_beyond_its_pairing_distance_in_coarse_to_fine(rng):
+    # 12° and 32 cm move the room's far corners by up to a metre: 12× the fine pass's pairing distance
+    pytest.importorskip("small_gicp")
+    from sdp.registration._align import GicpTarget
+
+    def scene():
+        return np.concatenate([room_scene(rng), box_surface(rng, [2, 0.5, 0], [2.5, 1, 1.2], 5000)])
+
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 12, degrees=True).as_matrix()
+    turn[:3, 3] = [0.3, 0.1, 0.0]
+    found = GicpTarget(scene(), resolution=0.02, max_distance=0.08).register(transform_points(np.linalg.inv(turn),
+                                                                                              scene()))
+    assert np.abs(found - turn).max() < 0.005, found

@@ -453,8 +453,12 @@ class GicpTarget:
 
     The reference is downsampled on a voxel grid of side ``resolution`` and given per-point
     covariances and a k-d tree [1, 2]; :meth:`register` prepares each scan the same way and
-    returns the 4×4 transform that maps it onto the reference. Used by :func:`sdp.watch`
-    (``align="gicp"``), where the reference is prepared once for the whole stream.
+    returns the 4×4 transform that maps it onto the reference. Coarse to fine: GICP pairs points
+    only up to ``max_distance`` apart, so a first pass on a grid of ``_COARSE``× the resolution,
+    pairing up to ``_COARSE``× the distance, brings a scan that moved more than that (a camera
+    panning 4° at 3 m moves its points 20 cm, 8σ of a fine lattice) into the fine pass's reach.
+    Used by :func:`sdp.watch` (``align="gicp"``), where the reference is prepared once for the
+    whole stream.
 
     Raises
     ------
@@ -466,23 +470,27 @@ class GicpTarget:
         small_gicp = require("small_gicp", "align", "GICP")
         self._gicp, self.resolution, self.max_distance = small_gicp, float(resolution), float(max_distance)
         self._o = reference.mean(axis=0)  # local frame: small_gicp's voxel keys hold 21 bits per axis
-        self._target, self._tree = self._prepare(reference)
+        self._levels = [(_COARSE * self.resolution, _COARSE * self.max_distance), (self.resolution, self.max_distance)]
+        self._targets = [self._prepare(reference, res) for res, _ in self._levels]
 
-    def _prepare(self, points: np.ndarray):
+    def _prepare(self, points: np.ndarray, resolution: float):
         with _native_stderr("GICP"):
-            return self._gicp.preprocess_points(points - self._o, downsampling_resolution=self.resolution,
-                                                num_threads=2)
+            return self._gicp.preprocess_points(points - self._o, downsampling_resolution=resolution, num_threads=2)
 
     def register(self, current: np.ndarray, init: np.ndarray | None = None) -> np.ndarray:
         """4×4 transform mapping ``current`` (finite rows) onto the reference, starting from ``init``."""
         shift, unshift = np.eye(4), np.eye(4)
         shift[:3, 3], unshift[:3, 3] = -self._o, self._o
-        t0 = np.eye(4) if init is None else np.asarray(init, np.float64)
-        source, _ = self._prepare(current)
-        with _native_stderr("GICP"):
-            result = self._gicp.align(self._target, source, self._tree, shift @ t0 @ unshift, registration_type="GICP",
-                                      max_correspondence_distance=self.max_distance, num_threads=2, max_iterations=100)
-        return unshift @ result.T_target_source @ shift
+        t = shift @ (np.eye(4) if init is None else np.asarray(init, np.float64)) @ unshift
+        for (resolution, reach), (target, tree) in zip(self._levels, self._targets):
+            source, _ = self._prepare(current, resolution)
+            with _native_stderr("GICP"):
+                t = self._gicp.align(target, source, tree, t, registration_type="GICP", max_correspondence_distance=reach,
+                                     num_threads=2, max_iterations=100).T_target_source
+        return unshift @ t @ shift
+
+
+_COARSE = 4.0  # GicpTarget's first pass: grid and pairing distance, in units of the fine pass's
 
 
 @contextlib.contextmanager
