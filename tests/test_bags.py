@@ -212,8 +212,15 @@ def test_sdp_change_names_the_bag_message_and_refuses_one_message_against_itself
     r = compare_files(pcds[0], bag, output=tmp_path / "bag.npz", topic="/points:1")
     assert r.current == f"{bag} (/points:1)" and r.summary["inputs"] == [str(pcds[0]), r.current]
     assert "(/points:1)" in r.summary_text()
-    with pytest.raises(sdp.SDPError, match="would be the same message"):
+    with pytest.raises(sdp.SDPError, match="would be the same message") as refused:
         compare_files(bag, bag, output=tmp_path / "same.npz", topic="/points:1")
+    # what the refusal advises works: a bag's message as the reference of its own stream
+    assert "sdp watch BAG_OR_REFERENCE BAG" in str(refused.value)
+    from_bag = list(watch_folder(bag, bag, topic="/points:0"))
+    from_files = list(watch_folder(pcds[0], bag, topic="/points"))
+    assert len(from_bag) == 3 and not from_bag[0].appeared.any()  # the reference against itself
+    for a, b in zip(from_bag, from_files):
+        assert np.array_equal(a.appeared, b.appeared) and np.array_equal(a.not_comparable, b.not_comparable)
     with pytest.raises(sdp.SDPError, match="missing.bag: no such file"):
         compare_files(pcds[0], tmp_path / "missing.bag", output=tmp_path / "m.npz", topic="/points")
     assert sorted(f.name for f in tmp_path.iterdir()) == ["bag.npz", "grabber"]

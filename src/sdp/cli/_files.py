@@ -18,7 +18,7 @@ from ..io._cloud import input_format
 from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, NoiseModel, Registration, as_options
 from . import _text as report
-from ._common import align_clouds, is_field, is_store, pictures, sensor_origins
+from ._common import align_clouds, is_field, is_store, pictures, read_input, sensor_origins
 
 __all__ = ["build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder",
            "Evaluation", "evaluate_files", "render_file"]
@@ -249,7 +249,9 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     the ``sensor_msgs/PointCloud2`` messages of a ROS bag's ``topic`` (:func:`sdp.io._bag.bag_frames`,
     the ``scans`` extra), in the order recorded (``sdp watch``).
 
-    ``reference`` is a cloud file or a field (``.sdpf``); ``coverage`` as in
+    ``reference`` is a cloud file, a field (``.sdpf``) or a ROS bag's message on ``topic``
+    (``TOPIC``: its first, ``TOPIC:N``: its N-th; the frames are then every message on ``TOPIC``,
+    the reference's among them if it is the same bag); ``coverage`` as in
     :func:`compare_files` (its ``sensor_origin`` is the reference's); ``decision`` and ``noise`` as in
     :func:`sdp.watch`. The folder and the reference are checked and read
     now; the frames are read one by one as the returned iterator of :class:`~sdp.FrameChange`
@@ -269,7 +271,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
         topics = bag_topics(folder)
         raise SDPError(f"{folder}: a ROS bag: give --topic, one of its PointCloud2 topics "
                        f"({', '.join(f'{t} ({n} messages)' for t, n in sorted(topics.items())) or 'none'})")
-    if topic is not None and not bag:
+    if topic is not None and not bag and not is_bag(reference):
         raise SDPError(f"{folder}: --topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
     if not bag and not folder.is_dir():
         raise SDPError(f"{folder}: not a folder of frames nor a ROS bag")
@@ -285,13 +287,13 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
         if not (isinstance(choice, str) and choice in ("auto", "none")):
             raise SDPError("--sensor-origin follows the reference's rays: give the reference cloud, not a field")
         ref, origin = DensityField.load(reference), None
-    else:
-        ref = read_points(reference, format=format)
+    else:  # a bag's message (--topic TOPIC: its first, TOPIC:N its N-th) or a cloud file
+        ref = read_input(reference, format=format, topic=topic if is_bag(reference) else None)
         origin = sensor_origins(choice, (reference, ref), (reference, ref))
         origin = origin[0] if isinstance(origin, np.ndarray) else origin
     # an empty frame (a blinded sensor) is the stream's to report, not an error
-    stream = bag_frames(folder, topic) if bag else ((p.name, read_points(p, format=format, allow_empty=True))
-                                                    for p in paths)
+    stream = bag_frames(folder, topic.split(":")[0]) if bag else (
+        (p.name, read_points(p, format=format, allow_empty=True)) for p in paths)
     return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
                  min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin),
                  decision=decision, noise=noise)

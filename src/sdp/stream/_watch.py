@@ -161,7 +161,8 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         Register each frame onto the reference first (see the module docstring), starting
         from the previous frame's transform (the method only: no ``fix_horizontal`` or
         ``align_class`` in a stream): ``"gicp"`` needs reference points (not a field) and the
-        ``align`` extra, downsamples both at σ and pairs points up to 4σ apart; ``"density"``
+        ``align`` extra, downsamples both at σ and pairs points up to 4σ apart, after a first pass at 4σ
+        and 16σ (:class:`sdp.registration._align.GicpTarget`); ``"density"``
         is :func:`sdp.align` on the reference field. None: the frames are already in the
         reference's frame (a fixed camera, or poses applied by the caller).
     coverage : Coverage, optional
