@@ -177,3 +177,12 @@ def test_the_distances_memory_limit_counts_the_process(tmp_path, rng):
         assert _distances_in_tiles(tmp_path / "a.laz", tmp_path / "a.laz", tmp_path / "o.laz", format=None,
                                    execution=ex, core_points=None, align=None, png=None) is tiles
     assert len(said) == 1 and "with the process" in said[0], said
+
+
+def test_both_draws_what_disappeared_beside_what_appeared(tmp_path, pair):
+    # the box is in the reference only: nothing appeared, it disappeared
+    with_box, without = pair[1], pair[0]
+    sdp.compare_files(with_box, without, output=tmp_path / "c.ply", lattice=sdp.Lattice(voxel_size=0.03),
+                      outputs=sdp.Outputs(both=True, png=tmp_path / "c.png"))
+    assert_changes_drawn(tmp_path / "c.png", changed=False)
+    assert_changes_drawn(tmp_path / "c_disappeared.png")

@@ -229,7 +229,8 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     outputs : Outputs, optional
         What else to write (:class:`sdp.Outputs`): ``both``, the reference's points labelled
         as disappeared, to :func:`disappeared_path`; ``png`` and ``html``, pictures of the
-        appeared points (:func:`sdp.render_changes`, :func:`sdp.render_changes_html`);
+        appeared points (:func:`sdp.render_changes`, :func:`sdp.render_changes_html`; with
+        ``both``, the disappeared points' beside them, named as :func:`disappeared_path` says);
         ``report``, one self-contained HTML page (:func:`sdp.change_report`: summary,
         parameters and why, maps of both directions, region sizes, the region table with
         thumbnails, a 3-D view; in memory only, refused with tiles); ``aligned``, the current's
@@ -285,8 +286,8 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     if outputs.aligned and align is None:  # nothing moved: the option would be ignored
         raise SDPError("--aligned-output (outputs.aligned) writes the aligned coordinates: give --align too")
     out = Path(output)
-    check_outputs([out, disappeared_path(out) if outputs.both else None, outputs.png, outputs.html, outputs.report],
-                  [reference, current])
+    beside = [disappeared_path(f) for f in (out, outputs.png, outputs.html) if f is not None] if outputs.both else []
+    check_outputs([out, *beside, outputs.png, outputs.html, outputs.report], [reference, current])
     check_format(out, "points")
     check_picture_extras(png=outputs.png, html=outputs.html, report=outputs.report)
     V.integer_at_least("min_region_points", min_region_points, 0)
@@ -343,6 +344,9 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
     outputs = _write_labelled(jobs, inputs=(reference, current))
     outputs += pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}",
                          regions=r.appeared_regions if out_xyz is moved.xyz else ())  # boxes in the moved frame
+    if both:  # the reference's own pictures, beside them as its points are
+        outputs += pictures(png and disappeared_path(png), html and disappeared_path(html), ref.xyz, r.reference_state,
+                            f"disappeared from {Path(reference).name}", regions=r.disappeared_regions)
     summary = r.summary()
     summary["timings"]["read"] = t_read
     if alignment is not None:
