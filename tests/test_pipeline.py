@@ -186,3 +186,10 @@ def test_both_draws_what_disappeared_beside_what_appeared(tmp_path, pair):
                       outputs=sdp.Outputs(both=True, png=tmp_path / "c.png"))
     assert_changes_drawn(tmp_path / "c.png", changed=False)
     assert_changes_drawn(tmp_path / "c_disappeared.png")
+
+
+def test_a_run_in_memory_says_it_leaves_the_tiles_options(tmp_path, pair):
+    said = []
+    sdp.compare_files(*pair, output=tmp_path / "c.ply", lattice=sdp.Lattice(voxel_size=0.03),
+                      execution=sdp.Execution(workers=2, scheduler="tcp://127.0.0.1:8786", notify=said.append))
+    assert said == ["in memory: --scheduler, --workers used by tiles only (--tiled, or work beyond --memory-limit)"]

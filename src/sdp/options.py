@@ -335,6 +335,20 @@ class Execution:
         V.check_tile_options(tile_size=self.tile_size, tile_points=self.tile_points, workers=self.workers,
                              workdir=self.workdir, scheduler=self.scheduler)
 
+    def tiles_only(self) -> list[str]:
+        """The options given that only tiles use, by their command-line names: in memory a run
+        says it leaves them (:meth:`say_in_memory`)."""
+        names = {"tile_size": "--tile-size", "tile_points": "--tile-points", "scheduler": "--scheduler",
+                 "workers": "--workers", "workdir": "--workdir"}
+        return [flag for name, flag in names.items() if getattr(self, name) is not None]
+
+    def say_in_memory(self) -> None:
+        """Tell ``notify`` that a run in memory leaves the tiles' options given (a cluster's address
+        does not send the work there by itself: the run fits in memory)."""
+        unused = self.tiles_only()
+        if unused and self.notify is not None:
+            self.notify(f"in memory: {', '.join(unused)} used by tiles only (--tiled, or work beyond --memory-limit)")
+
     def tile_keywords(self) -> dict:
         """The keywords of the tiled functions (:func:`sdp.detect_changes_tiled`, …)."""
         return dict(tile_size=self.tile_size, tile_points=self.tile_points, memory_limit=self.memory_limit,

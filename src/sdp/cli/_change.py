@@ -312,6 +312,7 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
             return _compare_tiled(plan, reference, current, out, both=outputs.both,
                                   min_region_points=min_region_points, lattice=lattice, execution=execution,
                                   decision=decision, noise=noise)
+        execution.say_in_memory()
         return _compare_in_memory(reference, current, out, outputs=outputs, format=format, lattice=lattice,
                                   coverage=coverage, align=align, memory_limit=execution.memory_limit,
                                   detect=dict(decision=decision, min_region_points=min_region_points, noise=noise),

@@ -121,6 +121,7 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
         return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,
                                orientation=orientation, cylinder=cylinder, execution=execution,
                                field_names=outputs.field_names)
+    execution.say_in_memory()
     with all_or_none():
         t0 = time.perf_counter()
         ref, cur = read_points(reference, format=format), read_points(current, format=format)

@@ -366,6 +366,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             registration = Registration.of(params["given"]["align"])
             tiles = plan_series(epochs, reference=None, core_count=g["x"].shape[0], execution=execution,
                                 format=format, align=registration is not None)
+            if tiles is None:
+                execution.say_in_memory()
             _run(epochs, out, t_new, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt,
                  limit=limit, fmt=format, t_start=t_start, tiles=tiles)
         return out
@@ -386,6 +388,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     core_count = 0 if core_points is None else count_points(core_points, format) or 0  # not read twice
     tiles = plan_series(epochs, reference=reference, core_count=core_count, execution=execution, format=format,
                         align=registration is not None)
+    if tiles is None:
+        execution.say_in_memory()
     if tiles is not None:  # the reference prepared tile by tile, its state assembled as in memory
         try:
             prepared = tiles.prepare(epochs[reference], core_points, cylinder=cylinder, orientation=orientation)
