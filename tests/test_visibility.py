@@ -270,12 +270,16 @@ def test_an_unchanged_object_seen_from_either_side_changes_nothing():
         (r.disappeared.sum(), r.appeared.sum())
 
 
-def _spinning_lidar(origin, yaw, boxes, *, beams=16, columns=1800, seed=0):
+def _spinning_lidar(origin, yaw, boxes, *, beams=16, columns=1800, seed=0, tilt=0.0):
     """A spinning LiDAR's returns (beams rings from -15° to 15°, ``columns`` steps of azimuth, 1 cm
-    of range noise) inside a room 10 × 8 × 3 m holding axis-aligned ``boxes`` (lo, hi)."""
+    of range noise; its axis tilted by ``tilt`` degrees) inside a room 10 × 8 × 3 m holding
+    axis-aligned ``boxes`` (lo, hi)."""
+    from scipy.spatial.transform import Rotation
+
     el = np.deg2rad(np.linspace(-15, 15, beams))[:, None]
-    az = np.deg2rad(yaw) + np.linspace(-np.pi, np.pi, columns, endpoint=False)[None, :]
+    az = np.linspace(-np.pi, np.pi, columns, endpoint=False)[None, :]
     d = np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)), -1).reshape(-1, 3)
+    d = d @ Rotation.from_euler("yz", [tilt, yaw], degrees=True).as_matrix().T
     o = np.asarray(origin, float)
     with np.errstate(divide="ignore", invalid="ignore"):
         room_lo, room_hi = np.array([-4.0, -4.0, 0.0]), np.array([6.0, 4.0, 3.0])
@@ -288,19 +292,19 @@ def _spinning_lidar(origin, yaw, boxes, *, beams=16, columns=1800, seed=0):
     return o + d * t[:, None]
 
 
-@pytest.mark.parametrize("beams", [16, 64])
-def test_a_spinning_lidars_rings_leave_no_false_change_between_them(beams):
+@pytest.mark.parametrize("beams, height, tilt", [(16, 0.5, 0), (16, 1.0, 0), (32, 1.0, 20), (64, 0.5, 0)])
+def test_a_spinning_lidars_rings_leave_no_false_change_between_them(beams, height, tilt):
     # two robot poses 0.58 m and 20° apart in a static room: the floor between one scan's rings,
     # and below its lowest ring, is no change; a box brought in is
     table = ([1.5, 1.0, 0.0], [2.5, 2.0, 0.8])
-    a_at, b_at = [1.0, 0.0, 0.5], [1.5, -0.3, 0.5]
-    a = _spinning_lidar(a_at, 0, [table], beams=beams, seed=1)
-    b = _spinning_lidar(b_at, 20, [table], beams=beams, seed=2)
+    a_at, b_at = [1.0, 0.0, height], [1.5, -0.3, height]
+    a = _spinning_lidar(a_at, 0, [table], beams=beams, seed=1, tilt=tilt)
+    b = _spinning_lidar(b_at, 20, [table], beams=beams, seed=2, tilt=tilt)
     for noise in (0.001, 0.015):  # a laser's range noise, and the default's
         r = sdp.detect_changes(a, b, coverage=sdp.Coverage(sensor_origin=[a_at, b_at], range_noise=noise))
         assert r.appeared.sum() == 0 and r.disappeared.sum() == 0, (noise, r.appeared.sum(), r.disappeared.sum())
     box = ([3.0, -2.0, 0.0], [3.6, -1.4, 0.6])
-    b = _spinning_lidar(b_at, 20, [table, box], beams=beams, seed=2)
+    b = _spinning_lidar(b_at, 20, [table, box], beams=beams, seed=2, tilt=tilt)
     on_box = np.all((b >= np.array(box[0]) - 0.02) & (b <= np.array(box[1]) + 0.02), axis=1) & (b[:, 2] > 0.05)
     r = sdp.detect_changes(a, b, coverage=sdp.Coverage(sensor_origin=[a_at, b_at], range_noise=0.001))
     assert r.appeared[on_box].mean() > 0.8 and r.appeared[~on_box].sum() < 0.002 * len(b), \

@@ -40,8 +40,10 @@ rings, 0.5–2° apart, 0.2° along them) gets cells of ``cell_factor`` times it
 axis (:func:`_axis_cells`), and there a ray whose cells on one side hold returns all nearer and
 on the other side all farther passes through the surface sampled between them (same surface),
 as the floor between two rings. A ray beyond the angles the scan sent rays to (more than half a
-cell past its extreme returns) is unobserved whatever the cells beside it hold: the floor below
-a LiDAR's lowest ring. The band grows as r², as the depth noise of triangulation sensors such as
+cell past its extreme returns, none along a sparse axis) is unobserved whatever the cells beside it
+hold: the floor below a LiDAR's lowest ring.
+
+The band grows as r², as the depth noise of triangulation sensors such as
 the Kinect (Khoshelham and Elberink [2]: σ_z ≈ 1.4e-3·r² m, depth steps ≈ 2.9e-3·r²).
 
 References
@@ -229,11 +231,11 @@ def _near_far(az, el, rng, lo_az, lo_el, cell, cell_el, n_az, n_el, half):
 
 
 @nb.njit(cache=True, nogil=True)
-def _classify(az, el, rng, near, far, lo, hi, cell, cell_el, n_az, n_el, reach, noise, floor, sparse):
+def _classify(az, el, rng, near, far, lo, hi, margin, cell, cell_el, n_az, n_el, reach, noise, floor, sparse):
     """Class of each ray (see :meth:`RangeImage.classify`) from the cells within ``reach`` of its own,
     and for hidden rays the range of the hiding surface (the farthest of the nearer cells' returns).
-    A ray more than half a cell beyond the angles of the scan's returns (``lo``, ``hi``: azimuth,
-    elevation) is unobserved: the scan sent no ray there. Along the
+    A ray beyond the angles of the scan's returns (``lo``, ``hi``: azimuth, elevation) by more
+    than ``margin`` (:attr:`RangeImage.margin`) is unobserved: the scan sent no ray there. Along the
     ``sparse`` axis (0 azimuth, 1 elevation, -1 none: :func:`_sparse_axis`), a ray between a cell
     whose returns are all nearer and one on its other side whose returns are all farther passes
     through the surface sampled on either side of it: the same surface."""
@@ -250,7 +252,9 @@ def _classify(az, el, rng, near, far, lo, hi, cell, cell_el, n_az, n_el, reach, 
         if math.isfinite(az[i]):
             a0 = int(math.floor((az[i] - lo[0]) / cell))
             e0 = int(math.floor((el[i] - lo[1]) / cell_el))
-            if not (lo[0] - cell / 2 <= az[i] <= hi[0] + cell / 2 and lo[1] - cell_el / 2 <= el[i] <= hi[1] + cell_el / 2):
+            off = not (lo[0] - margin[0] <= az[i] <= hi[0] + margin[0]) or not (lo[1] - margin[1] <= el[i]
+                                                                                   <= hi[1] + margin[1])
+            if off:
                 a0 = e0 = -2 * reach - 2  # off the scan's angles: no cell within reach
             for a in range(max(a0 - reach, 0), min(a0 + reach + 1, n_az)):
                 for e in range(max(e0 - reach, 0), min(e0 + reach + 1, n_el)):
@@ -412,7 +416,7 @@ class RangeImage:
         it, a ray between returns nearer and farther than its point is on the surface between them.
     hi : ndarray (2,) float64
         The highest azimuth and elevation of a return: with ``lo``, the angles the scan sent rays
-        to (half a cell beyond them, a ray's own footprint; the last cell reaches farther).
+        to (and :attr:`margin` beyond them; the last cell reaches farther).
     """
 
     origin: np.ndarray
@@ -471,6 +475,13 @@ class RangeImage:
         return cls(origin, frame, float(cells[0]), float(spacing), lo, shape, near, far, view.ravel(),
                    float(far[np.isfinite(far)].max()), float(cells[1]), sparse, np.array([hi_a, hi_e]))
 
+    @property
+    def margin(self) -> np.ndarray:
+        """How far beyond its extreme returns (azimuth, elevation) the scan is taken to have looked:
+        half a cell (a pixel's own width), none along a sparse axis (below a LiDAR's lowest ring,
+        the floor was never sampled, however near the ring)."""
+        return np.array([0.0 if self.sparse == 0 else self.cell / 2, 0.0 if self.sparse == 1 else self.cell_el / 2])
+
     def in_view(self, points: np.ndarray) -> np.ndarray:
         """Is each point inside the field of view (:attr:`view`) and within :attr:`reach_range`?"""
         az, el, rng, _ = _angles(np.ascontiguousarray(points, dtype=np.float64), self.origin, self.frame)
@@ -478,7 +489,7 @@ class RangeImage:
             a = np.floor((az - self.lo[0]) / self.cell)
             e = np.floor((el - self.lo[1]) / self.cell_el)
             ok = (a >= 0) & (a < self.shape[0]) & (e >= 0) & (e < self.shape[1]) & (rng <= self.reach_range) \
-                & (az <= self.hi[0] + self.cell / 2) & (el <= self.hi[1] + self.cell_el / 2)
+                & (az <= self.hi[0] + self.margin[0]) & (el <= self.hi[1] + self.margin[1])
         out = np.zeros(len(az), bool)
         out[ok] = self.view[a[ok].astype(np.int64) * self.shape[1] + e[ok].astype(np.int64)]
         return out
@@ -497,7 +508,7 @@ class RangeImage:
         """
         points = np.ascontiguousarray(points, dtype=np.float64)
         az, el, rng, _ = _angles(points, self.origin, self.frame)
-        cls, hide = _classify(az, el, rng, self.near, self.far, self.lo, self.hi, self.cell, self.cell_el,
+        cls, hide = _classify(az, el, rng, self.near, self.far, self.lo, self.hi, self.margin, self.cell, self.cell_el,
                               self.shape[0], self.shape[1], int(reach), float(range_noise), float(floor), self.sparse)
         if not hiders:
             return cls
