@@ -601,3 +601,18 @@ def test_a_missing_input_says_so_in_tiles_too(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert main(["distance", "nope.laz", "nope.laz", "-o", "o.laz", "--tiled"]) == 2
     assert capsys.readouterr().err.strip() == "sdp: error: nope.laz: no such file"
+
+
+@pytest.mark.parametrize("command", ["change", "distance"])
+def test_a_file_announcing_more_than_memory_holds_is_refused_before_it_is_read(tmp_path, monkeypatch, capsys, command):
+    # a PCD's header announces its points: 50 million of them would not fit 1 GB, whatever the file holds
+    from sdp.cli._main import main
+
+    (tmp_path / "big.pcd").write_text("VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+                                      "WIDTH 50000000\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 50000000\n"
+                                      "DATA ascii\n1 2 3\n")
+    monkeypatch.chdir(tmp_path)
+    assert main([command, "big.pcd", "big.pcd", "-o", "o.laz", "--memory-limit", "1GB"]) == 2
+    err = capsys.readouterr().err
+    assert ("100,000,000" if command == "change" else "50,000,000") in err and "memory limit of 1 GB" in err, err
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["big.pcd"]

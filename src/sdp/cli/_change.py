@@ -324,7 +324,12 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                        topic: str | None = None) -> FileComparison:
     from ..change._detect import detect_changes
 
+    from ..io._read import header_point_count
+
     t0 = time.perf_counter()
+    announced = [header_point_count(f, format=format) for f in (reference, current)]
+    if all(n is not None for n in announced):  # before reading: a file too large is not loaded first
+        _check_in_memory(sum(announced), memory_limit)
     ref, cur = (read_input(f, format=format, topic=topic) for f in (reference, current))
     t_read = time.perf_counter() - t0
     _check_in_memory(len(ref.xyz) + len(cur.xyz), memory_limit)

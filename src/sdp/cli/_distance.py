@@ -8,6 +8,7 @@ References
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -173,21 +174,31 @@ def _distances_in_tiles(reference, current, output, *, format, execution: Execut
     process itself, about 450 bytes per reference point and 200 per current point) would exceed
     the memory limit, which is the whole job's as in every command."""
     from .._core._memory import memory_limit as limit
+    from ..errors import GridTooLargeError
     from ..io._cloud import input_format
+    from ..io._read import header_point_count
     from ..io._source import PointSource
     from ..scale._budget import PROCESS_BYTES
 
     tiled, notify = execution.tiled, execution.notify
     for f in (reference, current):  # a missing or unknown file says so, not that tiles can't read it
         input_format(Path(f), format)
+    cap = limit(execution.memory_limit)
     try:
         n_ref, n_cur = (PointSource.open(f, format=format).n_rows for f in (reference, current))
     except SDPError:
         if tiled:
             raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices; "
                            "convert the clouds first") from None
+        n_ref, n_cur = (header_point_count(f, format=format) for f in (reference, current))
+        need = None if n_ref is None or n_cur is None else PROCESS_BYTES + 450.0 * n_ref + 200.0 * n_cur
+        if need is not None and need > cap:  # in memory only, and too large: refused before reading
+            raise GridTooLargeError(f"measuring {n_ref:,} against {n_cur:,} points in memory needs about "
+                                    f"{format_bytes(need)}, above the memory limit of {format_bytes(cap)}: give "
+                                    f"--memory-limit {math.ceil(need / 2**20)}MB or more (LAS/LAZ, NPY or binary "
+                                    "PLY files are measured in tiles instead)")
         return False
-    need, cap = PROCESS_BYTES + 450.0 * n_ref + 200.0 * n_cur, limit(execution.memory_limit)
+    need = PROCESS_BYTES + 450.0 * n_ref + 200.0 * n_cur
     if not (tiled or need > cap):
         return False
     given_sensor = not (sensor is None or (isinstance(sensor, str) and sensor in ("auto", "none")))

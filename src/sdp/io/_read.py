@@ -32,7 +32,7 @@ from ._pcd import read_pcd
 from ._ply import read_ply
 from ._text import read_text
 
-__all__ = ["read_points"]
+__all__ = ["read_points", "header_point_count"]
 
 _READERS = {"pcd": read_pcd, "ply": read_ply, "las": read_las, "text": read_text, "npy": read_npy,
             "npz": read_npz, "e57": read_e57}
@@ -116,3 +116,34 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
     viewpoint, organized, sensors = (list(pose) + [None, False, None][len(pose):])[:3]
     return Cloud(np.ascontiguousarray(xyz), values, path, dropped, las, viewpoint, organized, sensors,
                  0.0 if fmt == "e57" else None)  # a terrestrial laser's range noise: millimetres at any range
+
+
+def header_point_count(path: str | os.PathLike, *, format: str | None = None) -> int | None:
+    """The rows a point-cloud file announces in its header, read without its points: LAS/LAZ's
+    point count, PCD's ``POINTS``, PLY's vertex count, the sum of an E57 file's scans, an NPY's
+    rows; None for formats without one (text, NPZ) or a file that can't tell (its reader then
+    says why). Lets a command refuse a file too large for the memory limit before reading it."""
+    path = Path(path)
+    try:
+        kind = input_format(path, format)
+        if kind == "las":
+            from ._las import las_point_count
+
+            return las_point_count(path)
+        if kind == "npy":
+            shape = np.load(path, mmap_mode="r", allow_pickle=False).shape
+            return int(shape[0]) if shape else None
+        if kind in ("pcd", "ply"):
+            key = b"POINTS" if kind == "pcd" else b"element vertex"
+            with open(path, "rb") as f:
+                for line in f.read(65_536).split(b"\n")[:200]:
+                    if line.startswith(key):
+                        return int(line.split()[-1])
+            return None
+        if kind == "e57":
+            from ._e57 import e57_scans
+
+            return sum(scan["points"] for scan in e57_scans(path))
+    except Exception:  # the reader says what is wrong
+        return None
+    return None
