@@ -236,7 +236,7 @@ def _classify(az, el, rng, near, far, lo, hi, margin, cell, cell_el, n_az, n_el,
     and for hidden rays the range of the hiding surface (the farthest of the nearer cells' returns).
     A ray beyond the angles of the scan's returns (``lo``, ``hi``: azimuth, elevation) by more
     than ``margin`` (:attr:`RangeImage.margin`) is unobserved: the scan sent no ray there. Along the
-    ``sparse`` axis (0 azimuth, 1 elevation, -1 none: :func:`_sparse_axis`), a ray between a cell
+    ``sparse`` axis (0 azimuth, 1 elevation, -1 none: :func:`_axis_cells`), a ray between a cell
     whose returns are all nearer and one on its other side whose returns are all farther passes
     through the surface sampled on either side of it: the same surface."""
     out = np.empty(az.shape[0], np.int8)
@@ -410,7 +410,7 @@ class RangeImage:
         The farthest return of the scan: how far the sensor is known to see.
     cell_el : float
         Cell size in elevation (radians): ``cell`` unless the scan samples one axis more
-        sparsely than the other (:func:`_sparse_axis`: a spinning LiDAR's rings).
+        sparsely than the other (:func:`_axis_cells`: a spinning LiDAR's rings).
     sparse : int
         That axis (0 azimuth, 1 elevation), whose cells were made coarser; -1 for neither. Along
         it, a ray between returns nearer and farther than its point is on the surface between them.
@@ -465,9 +465,11 @@ class RangeImage:
             spacing = _angular_spacing(az, el, lo, extent, n)
         cell = max(cell_factor * spacing, 1e-9, float(np.sqrt(np.prod(extent + 1e-9) / _MAX_CELLS)))
         shape = (int(extent[0] // cell) + 1, int(extent[1] // cell) + 1)
-        half = np.zeros(4 * shape[0] * shape[1], np.bool_)  # the cells of half a cell holding a return
+        # the cells of half a cell holding a return (not for images this large: a dense scanner's)
+        half = np.zeros(4 * shape[0] * shape[1] if 4 * shape[0] * shape[1] <= _MAX_CELLS else 0, np.bool_)
         near, far = _near_far(az, el, rng, lo[0], lo[1], cell, cell, shape[0], shape[1], half)
-        cells, sparse = _axis_cells(az, el, lo, extent, cell, cell_factor, half.reshape(2 * shape[0], 2 * shape[1]))
+        cells, sparse = ([cell, cell], -1) if not half.size else \
+            _axis_cells(az, el, lo, extent, cell, cell_factor, half.reshape(2 * shape[0], 2 * shape[1]))
         if sparse >= 0:
             shape = (int(extent[0] // cells[0]) + 1, int(extent[1] // cells[1]) + 1)
             near, far = _near_far(az, el, rng, lo[0], lo[1], cells[0], cells[1], shape[0], shape[1], half[:0])
