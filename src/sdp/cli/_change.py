@@ -323,7 +323,6 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                        coverage: Coverage, align: Registration | None, memory_limit, detect: dict,
                        topic: str | None = None) -> FileComparison:
     from ..change._detect import detect_changes
-
     from ..io._read import header_point_count
 
     t0 = time.perf_counter()

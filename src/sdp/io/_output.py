@@ -27,7 +27,8 @@ from ._las import write_las
 from ._numpy import write_npz
 from ._ply import write_ply, write_ply_mesh
 
-__all__ = ["FORMATS", "check_format", "check_outputs", "refuse_overwrite", "all_or_none", "atomic_path", "write_points", "write_mesh"]
+__all__ = ["WRITTEN_AS", "check_format", "check_outputs", "refuse_overwrite", "all_or_none", "atomic_path",
+           "write_points", "write_mesh"]
 
 
 def _main_thread() -> bool:
@@ -104,12 +105,12 @@ def check_outputs(outputs, inputs=()) -> None:
 
 #: The extensions each kind of output is written as, by its writer: :func:`write_points`,
 #: :func:`write_mesh`, a density field (:meth:`sdp.DensityField.save`, or a field store in tiles).
-FORMATS = {"points": (".ply", ".las", ".laz", ".npz"), "mesh": (".ply", ".obj", ".stl"), "field": (".sdpf", ".zarr")}
+WRITTEN_AS = {"points": (".ply", ".las", ".laz", ".npz"), "mesh": (".ply", ".obj", ".stl"), "field": (".sdpf", ".zarr")}
 _WHAT = {"points": "points", "mesh": "a mesh", "field": "a density field"}
 
 
 def check_format(path: str | os.PathLike | None, *kinds: str) -> None:
-    """Refuse an output whose extension no writer of ``kinds`` (keys of :data:`FORMATS`) writes:
+    """Refuse an output whose extension no writer of ``kinds`` (keys of :data:`WRITTEN_AS`) writes:
     before any work, so that a command does not compute and then fail to write (None: not given).
 
     Raises
@@ -120,7 +121,7 @@ def check_format(path: str | os.PathLike | None, *kinds: str) -> None:
     if path is None:
         return
     ext = Path(path).suffix.lower()
-    allowed = [x for kind in kinds for x in FORMATS[kind]]
+    allowed = [x for kind in kinds for x in WRITTEN_AS[kind]]
     if ext not in allowed:
         allowed = list(dict.fromkeys(allowed))
         raise CloudFileError(f"{path}: can't write {' or '.join(_WHAT[k] for k in kinds)} as "

@@ -130,7 +130,7 @@ def header_point_count(path: str | os.PathLike, *, format: str | None = None) ->
             from ._las import las_point_count
 
             return las_point_count(path)
-        if kind == "npy":
+        if kind == "npy":  # rows of an (n, 3) array, or of a structured one
             shape = np.load(path, mmap_mode="r", allow_pickle=False).shape
             return int(shape[0]) if shape else None
         if kind in ("pcd", "ply"):

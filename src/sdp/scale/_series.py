@@ -62,8 +62,8 @@ from ..distance._reference import PreparedReference, subsample
 from ..errors import InvalidOptionError, SDPError
 from ..fields._lattice import BLOCK
 from ..io._cloud import Cloud, input_format
-from ..io._las import las_point_count
-from ..io._ply import ply_is_binary, ply_vertices
+from ..io._ply import ply_is_binary
+from ..io._read import header_point_count
 from ..io._source import PointSource
 from ..options import Cylinder, Execution
 from ._session import Session, Tiling, first_slices, load_bucket
@@ -107,13 +107,10 @@ def count_points(epoch, fmt: str | None) -> int | None:
         return len(epoch.xyz if isinstance(epoch, Cloud) else epoch)
     try:
         kind = input_format(Path(epoch), fmt)
-        if kind == "las":  # the header's fixed fields alone (PointSource.open also decodes a LAZ point: 25 ms)
-            return las_point_count(epoch)
-        if kind == "npy":
-            shape = np.load(epoch, mmap_mode="r", allow_pickle=False).shape
-            return int(shape[0]) if len(shape) == 2 else None
-        if kind == "ply" and ply_is_binary(epoch):
-            return len(ply_vertices(epoch))
+        if kind == "npy" and np.load(epoch, mmap_mode="r", allow_pickle=False).ndim != 2:
+            return None  # a structured array: read whole
+        if kind in ("las", "npy") or (kind == "ply" and ply_is_binary(epoch)):  # headers alone (PointSource.open
+            return header_point_count(epoch, format=fmt)  # also decodes a LAZ point: 25 ms)
     except Exception:  # unreadable here: the in-memory run reads it, or says why it can't
         pass
     return None
