@@ -116,10 +116,9 @@ def test_a_series_of_multi_scan_epochs_measures_what_some_scanner_saw(two_epochs
     ds = sdp.series(list(two_epochs), output=tmp_path / "s.zarr")
     core = np.c_[ds["x"].values, ds["y"].values, ds["z"].values]
     u = ds.attrs["parameters"]["used"]
-    pair = sdp.distances(sdp.read_points(two_epochs[0]), lean, core_points=core, orientation=[0, 0, 1],
-                         sensor_origin=[None, lean.sensor_origins], cylinder=sdp.Cylinder(
-                             projection_scale=u["projection_scale"], normal_scale=u["normal_scale"],
-                             max_distance=u["max_distance"]))
+    pair = sdp.distances(sdp.read_points(two_epochs[0]), lean, core_points=core, cylinder=sdp.Cylinder(
+        projection_scale=u["projection_scale"], normal_scale=u["normal_scale"], max_distance=u["max_distance"]))
+    assert pair.orientation == u["orientation"] == "towards each point's scanner"  # as the pair's normals
     assert np.allclose(ds["distance"].values[1], pair.distance, atol=1e-5, equal_nan=True)
 
 

@@ -94,14 +94,17 @@ class PreparedReference:
 
     @classmethod
     def prepare(cls, reference, core_points=None, *, cylinder: Cylinder | None = None, orientation=None,
-                memory_limit=None, corner=None) -> "PreparedReference":
+                memory_limit=None, corner=None, sensor=None) -> "PreparedReference":
         """Cells, normals and the reference's cylinders at the core points (default: every reference point).
 
         ``cylinder`` as in :func:`sdp.distances`, except that ``"auto"`` scales come from the
         reference alone (they must not depend on epochs not seen yet). ``corner``: where the
         cells start (default just below the reference and core points), as in
         :func:`sdp.distances`: the tiles of one reference (:mod:`sdp.scale._series`) give the
-        whole reference's, so their cells, and numbers, are those of the whole."""
+        whole reference's, so their cells, and numbers, are those of the whole. ``sensor``: the
+        position (3,) the normals face, or each core point's scanner's (m, 3), as
+        :func:`sdp.distances` turns them where the reference's file records its sensors; else
+        they face ``orientation`` (default +z)."""
         ref = as_points(reference, name="reference")
         if len(ref.xyz) < 3:
             raise InvalidPointsError(f"the reference has {len(ref.xyz)} point(s): a surface normal and a spread "
@@ -133,7 +136,12 @@ class PreparedReference:
         sigma_n = normal_sigma(lists, ref.xyz, centroids, sigma_p, D_opt)
         normal, _ = lists.normals(ref.xyz, centroids, sigma_n)
         normal = np.repeat(normal, np.diff(starts), axis=0)
-        normal[normal @ towards < 0] *= -1.0
+        if sensor is None:
+            normal[normal @ towards < 0] *= -1.0
+        else:  # as sdp.distances: towards the sensor, or each core point's own scanner
+            sensor = np.asarray(sensor, np.float64)
+            facing = (sensor[order] if sensor.ndim == 2 else sensor[None, :]) - core_sorted
+            normal[np.einsum("ij,ij->i", normal, facing) < 0] *= -1.0
         m1, s1, c1, k1 = lists.cylinder(ref.xyz, core_sorted, normal, sigma_p, max_half)
         back = np.empty_like(order)
         back[order] = np.arange(len(order))

@@ -44,6 +44,7 @@ from .._core._memory import memory_limit as resolve_memory_limit
 from .._core._points import as_points
 from .._core._validate import auto_or_nonnegative, auto_or_positive, integer_at_least
 from ..defaults import DEFAULTS
+from ..distance._distances import _sensor_per_point
 from ..distance._reference import PreparedReference, subsample
 from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 from ..fields._spacing import resolve_lattice
@@ -390,6 +391,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                         align=registration is not None)
     if tiles is None:
         execution.say_in_memory()
+    faced = None  # the sensors the normals face, where the reference's file records them
     if tiles is not None:  # the reference prepared tile by tile, its state assembled as in memory
         try:
             prepared = tiles.prepare(epochs[reference], core_points, cylinder=cylinder, orientation=orientation)
@@ -414,10 +416,16 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             core, dropped = _core_xyz(_load(core_points, format))
             core_source = _core_name(core_points) + (f" ({dropped:,} rows holding NaN or Inf left out)"
                                                     if dropped else "")
+        # the normals face the reference's sensors where its file records them, as sdp.distance's do
+        origins = None if orientation is not None else getattr(ref_cloud, "sensor_origins", None)
+        sensor = None if origins is None else _sensor_per_point(origins if len(origins) > 1 else origins[0],
+                                                                ref_cloud, ref_xyz, core)
+        if sensor is not None:
+            faced = "towards the sensor" if len(origins) == 1 else "towards each point's scanner"
         prepared = PreparedReference.prepare(
             ref_xyz, core, cylinder=Cylinder(projection_scale=d_opt, normal_scale=cylinder.normal_scale,
                                              max_distance=cylinder.max_distance),
-            orientation=orientation, memory_limit=limit)
+            orientation=orientation, memory_limit=limit, sensor=sensor)
     if check is not None:
         try:
             check(len(epochs), len(prepared.core_points))
@@ -429,10 +437,10 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     used = {"projection_scale": prepared.projection_scale, "normal_scale": prepared.normal_scale,
             "max_distance": prepared.max_distance, "registration_error": reg_opt,
             "align": None if registration is None else registration.method,
-            "orientation": scalars["orientation"], "reference": reference, "lag": DEFAULTS.smoothing_lag}
+            "orientation": faced or scalars["orientation"], "reference": reference, "lag": DEFAULTS.smoothing_lag}
     given_rec = dict(given, projection_scale=cylinder.projection_scale, normal_scale=cylinder.normal_scale,
                      max_distance=cylinder.max_distance, registration_error=reg_opt, reference=reference,
-                     orientation=scalars["orientation"] if orientation is None else given["orientation"])
+                     orientation=(faced or scalars["orientation"]) if orientation is None else given["orientation"])
     attrs = {"format": A.ARCHIVE_FORMAT, "format_version": A.ARCHIVE_VERSION, "sdp_version": _version(),
              "time_kind": kind, "epochs": [], "runs": [],
              "parameters": {"given": given_rec, "used": used, "reference_state": scalars,
