@@ -312,3 +312,21 @@ def test_several_scanners_without_a_scan_index_are_refused_before_any_work():
     for pair in ([rows, None], [None, rows]):
         with pytest.raises(sdp.InvalidPointsError, match="no scan index per point"):
             sdp.distances(xyz, xyz + [0, 0, 0.01], sensor_origin=pair)
+
+
+def test_a_field_some_scans_lack_is_kept_and_filled_at_the_others(tmp_path):
+    # colour and intensity at one station only, as surveys often have: kept, 0 where a scan has none
+    rng = np.random.default_rng(3)
+    e = pye57.E57(str(tmp_path / "m.e57"), mode="w")
+    colour = rng.integers(1, 256, (3, 500)).astype(np.uint8)
+    e.write_scan_raw({"cartesianX": rng.random(500), "cartesianY": rng.random(500), "cartesianZ": rng.random(500),
+                      "intensity": np.full(500, 0.25), "colorRed": colour[0], "colorGreen": colour[1],
+                      "colorBlue": colour[2]}, rotation=np.array([1.0, 0, 0, 0]), translation=np.zeros(3))
+    e.write_scan_raw({"cartesianX": rng.random(300), "cartesianY": rng.random(300), "cartesianZ": rng.random(300)},
+                     rotation=np.array([1.0, 0, 0, 0]), translation=np.array([2.0, 0, 0]))
+    e.close()
+    cloud = sdp.read_points(tmp_path / "m.e57")
+    assert {"intensity", "red", "green", "blue", "scan"} <= set(cloud.fields)
+    first = cloud.fields["scan"] == 0
+    assert first.sum() == 500 and np.array_equal(cloud.fields["red"][first], colour[0])
+    assert (cloud.fields["red"][~first] == 0).all() and (cloud.fields["intensity"][~first] == 0).all()

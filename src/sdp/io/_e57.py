@@ -52,15 +52,15 @@ def _rotation(q: np.ndarray) -> np.ndarray:
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
-def _pose(header) -> tuple[np.ndarray, np.ndarray]:
-    """(rotation quaternion w, x, y, z; translation) of a scan, identity when it has no pose."""
+def _pose(header, path, index: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rotation quaternion w, x, y, z; translation) of scan ``index``, identity when it has no pose."""
     if not header.has_pose():
         return np.array([1.0, 0, 0, 0]), np.zeros(3)
     q = np.asarray(header.rotation, np.float64).reshape(4)
     t = np.asarray(header.translation, np.float64).reshape(3)
     if not (np.isfinite(q).all() and np.isfinite(t).all() and np.linalg.norm(q) > 0):
-        raise CloudFileError(f"scan pose is not finite or its rotation is zero: rotation {q.tolist()}, "
-                             f"translation {t.tolist()}")
+        raise CloudFileError(f"{path}: scan {index}'s pose is not finite or its rotation is zero: rotation "
+                             f"{q.tolist()}, translation {t.tolist()}")
     return q, t
 
 
@@ -71,7 +71,7 @@ def e57_scans(path) -> list[dict]:
     out = []
     for i in range(e.scan_count):
         h = e.get_header(i)
-        q, t = _pose(h)
+        q, t = _pose(h, path, i)
         fields = list(h.point_fields)
         grid = None
         if "rowIndex" in fields and "columnIndex" in fields:
@@ -101,8 +101,9 @@ def e57_start(path) -> float | None:
 def read_e57(path):
     """``(xyz, fields, None, None, False, sensors)`` of an E57 file: every scan moved by its pose
     into the file's frame (invalid points as NaN rows), the fields ``scan`` (uint16: which scan),
-    ``intensity``, ``red``/``green``/``blue`` and ``row``/``column`` where the scans have them,
-    and the scanners' positions (k, 3) in the file's frame."""
+    ``intensity``, ``red``/``green``/``blue`` and ``row``/``column`` where any scan has them (at
+    the points of a scan without one: 0, or -1 for ``row`` and ``column``; a survey often has
+    colour at some stations only), and the scanners' positions (k, 3) in the file's frame."""
     e = _open(path)
     k = e.scan_count
     if k == 0:
@@ -110,7 +111,7 @@ def read_e57(path):
     parts, sensors = [], np.zeros((k, 3))
     for i in range(k):
         h = e.get_header(i)
-        q, t = _pose(h)
+        q, t = _pose(h, path, i)
         sensors[i] = t
         if int(h.point_count) == 0:  # a scan of no record: libE57Format can't read its empty vector
             continue
@@ -118,10 +119,15 @@ def read_e57(path):
         parts.append(_scan_points(raw, q, t, i, path))
     if not parts:  # every scan empty: no point (said by the reader's caller)
         return np.zeros((0, 3)), {}, None, None, False, sensors
-    names = set.intersection(*(set(p) for p in parts))  # fields every scan with points has
     xyz = np.concatenate([p.pop("xyz") for p in parts])
-    names.discard("xyz")
-    fields = {n: np.concatenate([p[n] for p in parts]) for n in sorted(names)}
+    fields = {}
+    for name in sorted(set().union(*parts)):  # a field any scan has, filled where a scan lacks it
+        kind = np.result_type(*(p[name] for p in parts if name in p))
+        fill = -1 if name in ("row", "column") else 0
+        if fill < 0 and kind.kind == "u":
+            kind = np.result_type(kind, np.int8)  # signed, to hold -1
+        fields[name] = np.concatenate([np.asarray(p[name], kind) if name in p else np.full(len(p["scan"]), fill, kind)
+                                       for p in parts])
     return xyz, fields, None, None, False, sensors
 
 
@@ -142,7 +148,8 @@ def _scan_points(raw: dict, q, t, index: int, path) -> dict:
         invalid = raw.get("sphericalInvalidState")
     else:
         raise CloudFileError(f"{path}: scan {index} has neither Cartesian nor spherical coordinates")
-    xyz = local @ _rotation(q).T + t
+    with np.errstate(invalid="ignore", over="ignore"):  # an infinite coordinate: a row the reader drops
+        xyz = local @ _rotation(q).T + t
     if invalid is not None:
         xyz[np.asarray(invalid) != 0] = np.nan  # 1: no return, 2: direction only (E57 §8.4.19)
     out = {"xyz": xyz, "scan": np.full(len(xyz), index, np.uint16)}
