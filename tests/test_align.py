@@ -161,6 +161,7 @@ def test_an_alignment_reads_as_the_shift_of_the_centroid_and_angles_about_x_y_z(
     assert "residual 0.05 m (RMS)" in text
     for none in (np.nan, None):  # a reference field: no points to measure the residual to (None in JSON)
         assert "no residual (a field holds no points" in alignment_text({**s, "rmse": none})
+    assert "a guess" not in text and "barely overlapped before (0.0%" in alignment_text({**s, "inside_before": 0.0})
     assert sdp.Alignment(matrix=m, method="gicp", inside_before=0, inside_after=0, rmse=0, seconds=0).shift \
         == pytest.approx(m[:3, 3])  # no centre known: the world origin's motion
 

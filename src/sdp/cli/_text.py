@@ -72,9 +72,19 @@ def alignment_text(al: dict) -> str:
     residual and time. Lengths in metres, as :mod:`sdp.viz._render` labels them."""
     residual = (f"residual {al['rmse']:.4g} m (RMS)" if al["rmse"] is not None and np.isfinite(al["rmse"]) else
                 "no residual (a field holds no points to measure it to)")
-    return (f"aligned current onto reference ({al['method']}): {motion_text(al)}\n"
+    text = (f"aligned current onto reference ({al['method']}): {motion_text(al)}\n"
             f"  inside the reference's volume {al['inside_before']:.1%} → {al['inside_after']:.1%}, "
             f"{residual}, {al['seconds']:.2f} s")
+    if al["inside_before"] < LOW_OVERLAP:  # both methods refine a pose: from no overlap they find any
+        text += (f"\n  the scans barely overlapped before ({al['inside_before']:.1%} of the current inside the "
+                 "reference's volume): a registration from so little overlap is a guess; check it")
+    return text
+
+
+#: Share of the current's points inside the reference's volume before an alignment below which the
+#: summary says the result is a guess: GICP and the density alignment refine an overlap they start
+#: from (a camera turned away from the reference's scene, 0 %, got a 90° roll and "no change").
+LOW_OVERLAP = 0.05
 
 
 def motion_text(al: dict) -> str:
