@@ -242,3 +242,15 @@ def test_sdp_watch_sensor_origin_viewpoint(tmp_path, shared_data):
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "watch", str(field), str(tmp_path / "frames"),
                         "--sensor-origin", "viewpoint"], capture_output=True, text=True)
     assert p.returncode != 0 and "not a field" in p.stderr
+
+
+def test_a_frame_sharing_nothing_with_the_model_says_its_pose_is_a_guess(rng):
+    from sdp.cli._text import frame_text
+
+    pytest.importorskip("small_gicp")  # (the density alignment refuses clouds that do not overlap at all)
+    room = room_scene(rng, n=20_000)
+    far = room_scene(rng, n=20_000) + [50.0, 0.0, 0.0]  # nowhere near what the model holds
+    same, apart = watch(room, [room_scene(rng, n=20_000), far], align="gicp", lattice=sdp.Lattice(voxel_size=0.05))
+    assert same.overlap > 0.9 and "a guess" not in frame_text(same)
+    assert apart.overlap < 0.05 and "its pose, and what the model learns from it, are a guess" in frame_text(apart)
+    assert same.summary()["overlap"] == same.overlap

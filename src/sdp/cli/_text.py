@@ -106,8 +106,12 @@ def frame_text(frame) -> str:
         return f"{frame.name}: {s['points']:,} points, none finite: nothing compared, the model unchanged"
     where = "; ".join(f"{g['n_points']:,} at ({', '.join(f'{v:.2f}' for v in g['centroid'])})"
                       for g in s["regions"][:3])
-    return (f"{frame.name}: {s['points']:,} points, {frame.n_appeared:,} appeared in {len(frame.regions)} regions, "
+    text = (f"{frame.name}: {s['points']:,} points, {frame.n_appeared:,} appeared in {len(frame.regions)} regions, "
             f"{s['not_comparable']:,} not comparable ({frame.latency * 1e3:.1f} ms){': ' + where if where else ''}")
+    if frame.overlap is not None and frame.overlap < LOW_OVERLAP:  # as alignment_text says of a pair
+        text += (f" (registered with {frame.overlap:.1%} of the frame inside the model: its pose, and what the "
+                 "model learns from it, are a guess)")
+    return text
 
 
 def evaluation_text(e) -> str:

@@ -96,6 +96,10 @@ class FrameChange:
         points were compared and merged after it); None otherwise.
     empty : bool
         The frame held no finite point: nothing was compared and the model did not change.
+    overlap : float or None
+        With ``align=``: the share of the frame's finite points inside the model after the
+        registration. A registration refines an overlap it starts from: a frame that shares
+        (almost) nothing with the model gets a pose that is a guess (``sdp watch`` says so below 5 %).
     """
 
     index: int
@@ -108,6 +112,7 @@ class FrameChange:
     timings: dict[str, float] = dc_field(default_factory=dict)
     transform: np.ndarray | None = None
     empty: bool = False
+    overlap: float | None = None
 
     @property
     def n_appeared(self) -> int:
@@ -123,6 +128,7 @@ class FrameChange:
                 "appeared": self.n_appeared, "not_comparable": int(self.not_comparable.sum()),
                 "latency": self.latency, "timings": dict(self.timings),
                 "transform": None if self.transform is None else self.transform.tolist(), "empty": self.empty,
+                "overlap": self.overlap,
                 "regions": [{"n_points": r.n_points, "centroid": r.centroid.tolist(), "size": r.size.tolist()}
                             for r in self.regions]}
 
@@ -252,6 +258,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         t1 = time.perf_counter()
         seen = model.with_threshold(h=h * weight)
         mask, d = inside_difference(frame, seen, cur.xyz)
+        overlap = None if align is None else float(np.mean(~mask)) if len(mask) else 0.0  # inside the model
         choice = coverage.sensor_origin  # the frame's own sensor: what it could see, its range law
         choice = "auto" if isinstance(choice, str) and choice == "viewpoint" else choice
         own = single_origin(resolve_sensor_origins(choice, None, given)[1])
@@ -291,7 +298,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         yield FrameChange(index=index, name=name, appeared=to_rows(mask, cur, False),
                           not_comparable=to_rows(unseen, cur, True), regions=regs,
                           appeared_labels=to_rows(labels, cur, -1), latency=t4 - t0, timings=timings,
-                          transform=matrix)
+                          transform=matrix, overlap=overlap)
 
 
 def _rows_if_empty(given) -> int | None:
