@@ -309,3 +309,28 @@ def test_a_spinning_lidars_rings_leave_no_false_change_between_them(beams, heigh
     r = sdp.detect_changes(a, b, coverage=sdp.Coverage(sensor_origin=[a_at, b_at], range_noise=0.001))
     assert r.appeared[on_box].mean() > 0.8 and r.appeared[~on_box].sum() < 0.002 * len(b), \
         (r.appeared[on_box].mean(), r.appeared[~on_box].sum())
+
+
+def test_a_scan_pattern_that_leaves_directions_unsampled_says_nothing_of_them(tmp_path):
+    # a rosette-like scanner's unorganized PCD files: each window samples a pattern of directions
+    # that leaves half of its view unsampled, the next window another; a static bumpy wall 3 m away
+    def window(shift, seed):
+        rng = np.random.default_rng(seed)
+        u, v = rng.uniform(-0.5, 0.5, (2, 120_000))
+        keep = np.sin(9 * u + shift) + np.sin(9 * v + shift) > 0
+        u, v = u[keep], v[keep]
+        d = np.c_[np.ones(len(u)), u, v]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        xyz = d * (3.0 + 0.25 * np.sin(25 * u) * np.sin(25 * v) + rng.normal(0, 0.002, len(u)))[:, None]
+        path = tmp_path / f"w{seed}.pcd"
+        path.write_text(f"VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {len(xyz)}\nHEIGHT 1\n"
+                        f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(xyz)}\nDATA ascii\n"
+                        + "\n".join(f"{x:.5f} {y:.5f} {z:.5f}" for x, y, z in xyz) + "\n")
+        return sdp.read_points(path)
+
+    a, b = window(0.0, 1), window(1.5, 2)
+    assert not a.organized  # a sensor's own points, not an image
+    r = sdp.detect_changes(a, b, coverage=sdp.Coverage(sensor_origin=(0, 0, 0)))  # 16,503 appeared before
+    assert r.appeared.sum() == 0 and r.disappeared.sum() == 0, (r.appeared.sum(), r.disappeared.sum())
+    # arrays, as a camera's frames are passed: every ray taken as sent, a missing return as seen free
+    assert sdp.detect_changes(a.xyz, b.xyz, coverage=sdp.Coverage(sensor_origin=(0, 0, 0))).appeared.sum() > 1000

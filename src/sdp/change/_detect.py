@@ -63,7 +63,7 @@ from ..options import Coverage, Lattice, NoiseModel, as_options
 from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
-from ._visibility import (RangeImage, gone_only_if_seen, resolve_sensor_origins, scanner_of_points,
+from ._visibility import (RangeImage, gone_only_if_seen, rays_sent, resolve_sensor_origins, scanner_of_points,
                           sensor_range_noise, visibility_states)
 
 #: The decisions of :func:`detect_changes` (``"density"`` is ``"point"``: the paper's, density alone).
@@ -426,8 +426,9 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
 
     # each epoch's range image from its single sensor, built once when first needed: the other
     # direction's visibility test, and this one's check that a hider's place could be seen
-    views = {id(c): _Once(lambda c=c, o=o: RangeImage.from_points(c.xyz, o) if o is not None and np.ndim(o) == 1
-                          else None) for c, o in ((ref, o_ref), (cur, o_cur))}
+    views = {id(c): _Once(lambda c=c, o=o, s=s: RangeImage.from_points(c.xyz, o, rays_sent=s)
+                          if o is not None and np.ndim(o) == 1 else None)
+             for c, o, s in ((ref, o_ref, rays_sent(reference)), (cur, o_cur, rays_sent(current)))}
     # and the range noise of each epoch's sensor (a laser scan's is not a depth camera's)
     noise_of = {id(p): sensor_range_noise(c, coverage.range_noise) for p, c in ((ref, reference), (cur, current))}
 

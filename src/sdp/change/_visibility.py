@@ -291,6 +291,24 @@ def _classify(az, el, rng, near, far, lo, hi, margin, cell, cell_el, n_az, n_el,
 
 
 @nb.njit(cache=True, nogil=True)
+def _sampled_around(az, el, near, lo, cell, cell_el, n_az, n_el):
+    """Per ray: at least half of the 5 × 5 cells around its own (those on the image) hold a return."""
+    out = np.zeros(az.shape[0], np.bool_)
+    for i in range(az.shape[0]):
+        if not math.isfinite(az[i]):
+            continue
+        a0 = int(math.floor((az[i] - lo[0]) / cell))
+        e0 = int(math.floor((el[i] - lo[1]) / cell_el))
+        held = cells = 0
+        for a in range(max(a0 - 2, 0), min(a0 + 3, n_az)):
+            for e in range(max(e0 - 2, 0), min(e0 + 3, n_el)):
+                cells += 1
+                held += near[a * n_el + e] < np.inf
+        out[i] = cells > 0 and 2 * held >= cells
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
 def _hider_points(points, origin, hide, rng, cls):
     """Where the surface hiding each :data:`HIDDEN` point was seen: origin + (point − origin) ·
     hide / range (NaN rows for the other classes)."""
@@ -417,6 +435,12 @@ class RangeImage:
     hi : ndarray (2,) float64
         The highest azimuth and elevation of a return: with ``lo``, the angles the scan sent rays
         to (and :attr:`margin` beyond them; the last cell reaches farther).
+    rays_sent : bool
+        The scan sent a ray along every direction of its field of view, whatever share of them came
+        back (a camera's image, an organized cloud, a terrestrial scan's grid): a missing return
+        inside the view is then a ray that found nothing (:meth:`seen_free`). False for a scan known
+        to sample its view irregularly (an unorganized file or message from a sensor: a rosette
+        scanner's petals leave half of its view unsampled).
     """
 
     origin: np.ndarray
@@ -432,10 +456,11 @@ class RangeImage:
     cell_el: float
     sparse: int
     hi: np.ndarray
+    rays_sent: bool = True
 
     @classmethod
     def from_points(cls, points: np.ndarray, origin: npt.ArrayLike, *, cell_factor: float = 1.5,
-                    spacing: float | None = None) -> RangeImage:
+                    spacing: float | None = None, rays_sent: bool = True) -> RangeImage:
         """Range image of ``points`` seen from ``origin``.
 
         Parameters
@@ -475,7 +500,8 @@ class RangeImage:
             near, far = _near_far(az, el, rng, lo[0], lo[1], cells[0], cells[1], shape[0], shape[1], half[:0])
         view = _convex_hull(np.isfinite(near).reshape(shape))
         return cls(origin, frame, float(cells[0]), float(spacing), lo, shape, near, far, view.ravel(),
-                   float(far[np.isfinite(far)].max()), float(cells[1]), sparse, np.array([hi_a, hi_e]))
+                   float(far[np.isfinite(far)].max()), float(cells[1]), sparse, np.array([hi_a, hi_e]),
+                   bool(rays_sent))
 
     @property
     def margin(self) -> np.ndarray:
@@ -483,6 +509,22 @@ class RangeImage:
         half a cell (a pixel's own width), none along a sparse axis (below a LiDAR's lowest ring,
         the floor was never sampled, however near the ring)."""
         return np.array([0.0 if self.sparse == 0 else self.cell / 2, 0.0 if self.sparse == 1 else self.cell_el / 2])
+
+    def seen_free(self, points: np.ndarray) -> np.ndarray:
+        """Did the sensor look along each ray (of :data:`UNOBSERVED` points) and find nothing?
+        Inside the field of view (:meth:`in_view`); for a scan not known to have sent every ray
+        (not :attr:`rays_sent`), also where it sampled the directions around: at least half of
+        the 5 × 5 cells around the ray's own hold a return. A camera's dropout (a dark or shiny
+        patch) is a ray that went out and came back empty; a scan pattern that leaves most
+        directions unsampled (a rosette scanner's gaps between its petals) says nothing of the
+        rays it did not send."""
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        view = self.in_view(points)
+        if self.rays_sent:
+            return view
+        az, el, _, _ = _angles(points, self.origin, self.frame)
+        return view & _sampled_around(az, el, self.near, self.lo, self.cell, self.cell_el, self.shape[0],
+                                      self.shape[1])
 
     def in_view(self, points: np.ndarray) -> np.ndarray:
         """Is each point inside the field of view (:attr:`view`) and within :attr:`reach_range`?"""
@@ -889,7 +931,7 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     else:
         states[cand[hidden]] = NOT_COMPARABLE
     if missing.any():  # no return: free in range inside the field of view, unseen outside it
-        states[cand[missing]] = np.where(image.in_view(query[missing]), CHANGED, NOT_COMPARABLE)
+        states[cand[missing]] = np.where(image.seen_free(query[missing]), CHANGED, NOT_COMPARABLE)
     return _explain_by_planes(points, changed, states, cand[hidden | missing], **plane)
 
 
@@ -910,6 +952,16 @@ def _explain_by_planes(points, changed, states, unseen, *, plane_points, plane_s
     return states
 
 
+def rays_sent(cloud) -> bool:
+    """Did ``cloud``'s sensor send a ray along every direction of its view
+    (:attr:`RangeImage.rays_sent`)? Yes for arrays (as a camera's frames are taken), an organized
+    cloud (a PCD image, an organized bag message) and a scan with its grid (an E57's rows and
+    columns); no for an unorganized file or message (a rosette scanner, a merged map)."""
+    from ..io._cloud import Cloud
+
+    return not isinstance(cloud, Cloud) or bool(cloud.organized) or "row" in cloud.fields
+
+
 def sensor_range_noise(cloud, range_noise: float) -> float:
     """The range noise of the rays' band for ``cloud``'s sensor: ``range_noise`` as given, except
     the default (a depth camera's, growing as r²) where the cloud's format says what its sensor's
@@ -927,7 +979,7 @@ def sees(image: RangeImage, query: np.ndarray, *, range_noise: float, floor: flo
     cls = image.classify(query, range_noise=range_noise, floor=floor)
     seen = (cls == SAME_SURFACE) | (cls == SEEN_FREE)
     missing = cls == UNOBSERVED
-    seen[missing] = image.in_view(query[missing])
+    seen[missing] = image.seen_free(query[missing])
     return seen
 
 
@@ -995,7 +1047,7 @@ def _many_scanners(points, changed, states, cand, other, origins, other_scan, *,
         if present is not None and hidden.any():
             r[hidden] = np.where(present(hider[hidden]), 3, 2)
         if missing.any():
-            r[missing] = np.where(image.in_view(query[missing]), 2, 3)
+            r[missing] = np.where(image.seen_free(query[missing]), 2, 3)
         np.minimum(rank, r, out=rank)
     states[cand[rank == 0]] = UNCHANGED
     states[cand[rank == 3]] = NOT_COMPARABLE

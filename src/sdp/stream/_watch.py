@@ -52,7 +52,7 @@ from .._core._validate import integer_at_least
 from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, states_of
 from ..change._detect import inside_difference, judge_coverage, region_rules, single_origin
 from ..change._regions import Region
-from ..change._visibility import RangeImage, resolve_sensor_origins, scanner_of_points, sensor_range_noise
+from ..change._visibility import RangeImage, rays_sent, resolve_sensor_origins, scanner_of_points, sensor_range_noise
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._density import DensityField
@@ -230,7 +230,8 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     weight, history = 1.0, deque([base])
     target = None if align != "gicp" else GicpTarget(ref, resolution=base.sigma, max_distance=4 * base.sigma)
     scan = None if is_field else scanner_of_points(reference, origin, len(ref))  # several scanners: each point's
-    image = None if origin is None or np.ndim(origin) == 2 else RangeImage.from_points(ref, origin)
+    image = None if origin is None or np.ndim(origin) == 2 else \
+        RangeImage.from_points(ref, origin, rays_sent=rays_sent(reference))
     band = sensor_range_noise(reference, coverage.range_noise)  # the reference's sensor: a laser's, a camera's
     matrix = None if align is None else np.eye(4)
     for index, item in enumerate(frames):
