@@ -89,8 +89,21 @@ class Lattice:
             V.integer_at_least("grid_size", self.grid_size, 1)
             if self.voxel_size not in (None, "auto"):
                 raise InvalidOptionError("give grid_size= or voxel_size=, not both")
-        V.check_grid_options(voxel_size=None if self.grid_size is not None else self.voxel_size,
-                             sigma_voxels=self.sigma_voxels, k=self.k, h=self.h, truncate=self.truncate)
+        if self.k is None and self.h is None:
+            raise InvalidOptionError("the threshold needs k (h = 1 + k·e^-1/2) or h, got neither")
+        voxel = V.check_grid_options(voxel_size=None if self.grid_size is not None else self.voxel_size,
+                                     sigma_voxels=self.sigma_voxels, k=self.k, h=self.h, truncate=self.truncate)
+        # kept as the numbers they were checked as: a string that reads as one ("2") is not passed on
+        numbers = {"k": None if self.k is None else V.finite("k", self.k), "truncate": V.positive_finite(
+            "truncate", self.truncate), "h": None if self.h is None else V.positive_finite("h", self.h)}
+        if voxel is not None:
+            numbers["voxel_size"] = voxel
+        if self.grid_size is not None:
+            numbers["grid_size"] = V.integer_at_least("grid_size", self.grid_size, 1)
+        if not isinstance(self.sigma_voxels, str):
+            numbers["sigma_voxels"] = V.positive_finite("sigma_voxels", self.sigma_voxels)
+        for name, value in numbers.items():
+            object.__setattr__(self, name, value)
         if self.method not in ("auto", "exact", "fast"):
             raise InvalidOptionError(f"method must be 'auto', 'exact' or 'fast', got {self.method!r}")
 
@@ -144,6 +157,7 @@ class Coverage:
             origin.flags.writeable = False
         object.__setattr__(self, "sensor_origin", origin)
         V.nonnegative_finite("range_noise", self.range_noise)
+        V.boolean("enabled", self.enabled)
         if isinstance(origin, str) and origin == "none" and self.range_noise != DEFAULTS.range_noise:
             raise InvalidOptionError("range_noise is the sensor rays' band; with sensor_origin none (the footprint "
                                      "decides) it would be ignored")
@@ -332,6 +346,7 @@ class Execution:
         from ._core._memory import memory_limit
 
         memory_limit(self.memory_limit)
+        V.boolean("tiled", self.tiled)
         V.check_tile_options(tile_size=self.tile_size, tile_points=self.tile_points, workers=self.workers,
                              workdir=self.workdir, scheduler=self.scheduler)
 
@@ -390,6 +405,8 @@ class Outputs:
             raise InvalidOptionError(f"field_names must be one of sdp, cloudcompare, pdal, got {self.field_names!r}")
         for name in ("png", "html", "report"):
             V.picture_path(name, getattr(self, name))
+        for name in ("both", "aligned"):
+            V.boolean(name, getattr(self, name))
 
     @property
     def pictures(self) -> bool:

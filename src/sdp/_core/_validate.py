@@ -40,7 +40,7 @@ import numpy as np
 
 from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 
-__all__ = ["positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
+__all__ = ["boolean", "path_like", "positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
            "auto_or_exponent", "auto_or_nonnegative", "memory_size", "existing_folder", "check_threshold", "check_grid_options",
            "check_tile_options", "check_workdir", "cli_type", "sensor_origin_option", "class_numbers",
            "check_alignment_options", "check_tiled_options", "direction", "as_sensor_origins", "picture_path",
@@ -90,6 +90,20 @@ def nonnegative_finite(name: str, value) -> float:
     if v < 0:
         raise InvalidOptionError(f"{name} must be a finite number >= 0, got {value!r}")
     return v
+
+
+def boolean(name: str, value) -> bool:
+    """``value`` if it is True or False (NumPy's too), else :class:`InvalidOptionError`: a string
+    ``"false"`` or a 0/1 would otherwise read as Python's truth of it."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InvalidOptionError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+def path_like(name: str, value) -> None:
+    """Refuse a ``value`` (not None) that is not a path: a str or an ``os.PathLike``."""
+    if value is not None and not isinstance(value, (str, os.PathLike)):
+        raise InvalidOptionError(f"{name} must be a file path, got {value!r}")
 
 
 def integer_at_least(name: str, value, minimum: int) -> int:
@@ -163,6 +177,7 @@ def check_workdir(name: str, workdir) -> None:
     """Refuse a work folder that does not exist, is not a folder, or can't be written."""
     if workdir is None:
         return
+    path_like(name, workdir)
     path = Path(workdir)
     if not path.exists():
         raise InvalidOptionError(f"{name} {str(path)!r}: no such folder")
@@ -206,6 +221,7 @@ def picture_path(name: str, value) -> None:
     another format: a PNG written into ``x.jpg`` or a page into ``x.pdf`` opens as neither."""
     if value is None:
         return
+    path_like(name, value)
     suffixes = PICTURE_SUFFIXES[name]
     if Path(os.fspath(value)).suffix.lower() not in suffixes:
         raise InvalidOptionError(f"{name} {os.fspath(value)!r}: writes {'a PNG' if name == 'png' else 'HTML'}; "
@@ -339,6 +355,7 @@ def check_alignment_options(method: str | None, *, fix_horizontal: bool = False,
     ``fix_horizontal`` and ``align_class`` need a ``method``; ``fix_horizontal`` works with the
     density alignment only.
     """
+    boolean("fix_horizontal", fix_horizontal)
     classes = align_class is not None and not (isinstance(align_class, str) and align_class == "")
     if (fix_horizontal or classes) and not method:
         raise InvalidOptionError("--fix-horizontal and --align-class choose how to align: give --align density too")

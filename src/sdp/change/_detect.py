@@ -54,7 +54,7 @@ from .._core._memory import check_memory
 from .._core._memory import memory_limit as memory_limit_bytes
 from .._core._parallel import map_concurrently
 from .._core._points import as_points, to_rows
-from .._core._validate import finite, integer_at_least
+from .._core._validate import boolean, finite, integer_at_least
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError
 from ..fields._density import DensityField, build_fields
@@ -397,6 +397,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     noise = NoiseModel.of(noise, decision)
     memory_limit_bytes(memory_limit)
     min_region_points = integer_at_least("min_region_points", min_region_points, 0)
+    boolean("regions", regions)
     if not 0 <= finite("cluster_fraction", cluster_fraction) < 1:
         raise InvalidOptionError(f"cluster_fraction must be in [0, 1), got {cluster_fraction!r}")
     o_ref, o_cur = resolve_sensor_origins(coverage.sensor_origin, reference, current)

@@ -49,7 +49,7 @@ from .._core._memory import check_memory
 from .._core._parallel import map_concurrently
 from .._core._points import Points, as_points
 from .._core._progress import bar
-from .._core._validate import check_grid_options
+from .._core._validate import check_grid_options, check_threshold, finite
 from ..defaults import DEFAULTS
 from ..errors import IncompatibleFieldsError, InvalidOptionError, InvalidPointsError
 from . import _file as fieldfile
@@ -73,8 +73,15 @@ _CHUNK = 4_000_000  # points binned per kernel call (a progress step)
 
 
 def threshold(k: float = 3) -> float:
-    """The paper's threshold h = 1 + k·e^(−1/2): the density of a point with k neighbours at σ."""
-    return 1.0 + k * _DELTA
+    """The paper's threshold h = 1 + k·e^(−1/2): the density of a point with k neighbours at σ.
+
+    Raises
+    ------
+    InvalidOptionError
+        ``k`` not a finite number, or one that makes h ≤ 0 (no density is below it).
+    """
+    check_threshold(k, None)
+    return 1.0 + float(k) * _DELTA
 
 
 class DensityField:
@@ -283,9 +290,10 @@ class DensityField:
         """Multiply G by ``factor``, in place (an exponential decay: old points fade); returns ``self``.
 
         O(allocated nodes). Observed every frame with decay λ, a static surface's G settles at
-        1/(1 − λ) times one frame's.
+        1/(1 − λ) times one frame's. ``factor``: a finite number (refused in one line before the
+        field is touched, as :meth:`accumulate`'s ``weight``).
         """
-        self.blocks.values *= np.float32(factor)
+        self.blocks.values *= np.float32(finite("factor", factor))
         return self
 
     @property
@@ -325,6 +333,10 @@ class DensityField:
         """Trilinear interpolation at world positions of per-node ``values`` laid out like this
         field's blocks (float32, (n_blocks, 512)); nodes outside the blocks read as 0."""
         pts = _query_array(points)
+        values = np.asarray(values)
+        if values.shape != self.blocks.values.shape or values.dtype != np.float32:
+            raise InvalidOptionError(f"values must be float32 of this field's blocks' shape {self.blocks.values.shape}, "
+                                     f"got {values.dtype} {values.shape}")
         out = np.empty(len(pts))
         trilinear(pts, self.grid.origin, self.voxel_size, self.blocks.directory, values, out)
         return out
@@ -378,7 +390,8 @@ class DensityField:
     def with_threshold(self, *, k: float | None = None, h: float | None = None) -> "DensityField":
         """The same density with another threshold (shares the node values, no copy)."""
         if (k is None) == (h is None):
-            raise ValueError("give exactly one of k= and h=")
+            raise InvalidOptionError("give exactly one of k= and h=")
+        check_threshold(k, h)
         out = DensityField.__new__(DensityField)
         out.__dict__.update(self.__dict__)
         out.blocks = self.blocks.view()

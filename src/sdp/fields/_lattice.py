@@ -107,7 +107,11 @@ def check_lattice(lo, hi, voxel_size: float, reach: int = 0) -> None:
             f"(≈{MAX_GRID_UNITS:.3g}): float64 can't place points within a voxel there; subtract an offset "
             "(e.g. the cloud's minimum) or use a larger voxel size")
     corner = (units + reach + 2 * BLOCK) * l * BLOCK  # the farthest node and block corner, in world units
-    if not (math.isfinite(corner) and math.isfinite((reach * l) ** 2 + corner**2)):
+    try:
+        placed = math.isfinite(corner) and math.isfinite((reach * l) ** 2 + corner**2)
+    except OverflowError:  # Python's float power raises where NumPy's would give inf
+        placed = False
+    if not placed:
         raise InvalidOptionError(f"voxel size {l:g} is too large: the grid's nodes would lie beyond the range of "
                                  "floating-point numbers; use a voxel size near the cloud's point spacing")
 
