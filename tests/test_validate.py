@@ -179,3 +179,46 @@ def test_every_command_counts_the_process_in_the_limit(tmp_path, cloud, capsys, 
     assert main([*here, "--memory-limit", "100MB"]) == 2
     assert "the process itself needs about" in capsys.readouterr().err
     assert sorted(f.name for f in tmp_path.iterdir()) == ["g.npy"]
+
+
+def _field():
+    return sdp.DensityField.from_points(np.random.default_rng(0).random((500, 3)), voxel_size=0.05)
+
+
+@pytest.mark.parametrize("call", [
+    lambda: sdp.Lattice(k=None),
+    lambda: sdp.detect_changes(np.random.rand(50, 3), np.random.rand(50, 3), lattice=sdp.Lattice(voxel_size=1e300)),
+    lambda: sdp.threshold("x"),
+    lambda: sdp.threshold(-5),
+    lambda: sdp.Coverage(enabled="false"),
+    lambda: sdp.Coverage(sensor_origin=(0, 0, 1e300)),
+    lambda: sdp.Execution(tiled="no"),
+    lambda: sdp.Execution(workdir=0),
+    lambda: sdp.Outputs(both="no"),
+    lambda: sdp.Outputs(png=0),
+    lambda: sdp.Registration(method="density", fix_horizontal="no"),
+    lambda: sdp.detect_changes(np.random.rand(50, 3), np.random.rand(50, 3), regions="no"),
+    lambda: sdp.detect_changes(np.random.rand(50, 3) + 0j, np.random.rand(50, 3)),
+    lambda: _field().interpolate(np.zeros((3, 512), np.float32), np.zeros((1, 3))),
+    lambda: _field().with_threshold(h=-1),
+    lambda: _field().scale(float("nan")),
+    lambda: _field().mesh(level="x"),
+    lambda: sdp.extract_surface(np.zeros((5, 3))),
+    lambda: sdp.footprint_covered(np.zeros((5, 3)), np.zeros((5, 3))),
+    lambda: sdp.render_changes("x.ply", np.random.rand(10, 3), np.zeros(10, bool)),
+    lambda: sdp.render_changes("x.png", np.random.rand(10, 3), np.zeros(3, bool)),
+    lambda: sdp.align(np.random.rand(50, 3), np.random.rand(50, 3), levels=2.5),
+    lambda: sdp.transform_points(np.eye(3), np.zeros((2, 3))),
+    lambda: list(sdp.watch(np.random.rand(50, 3), 5)),
+    lambda: sdp.write_points("x.ply", np.zeros((2, 3)), fields=[1, 2]),
+    lambda: sdp.write_points("x.ply", np.zeros((2, 3)), like=np.zeros((2, 3))),
+    lambda: sdp.scores([1, 0, 1], [1, 0, 0], comparable=[0, 1, 2]),
+])
+def test_the_python_api_refuses_odd_values_in_one_line(call, tmp_path, monkeypatch):
+    # each once ended in a raw TypeError, ValueError, OverflowError or AttributeError, or went on
+    # with a wrong answer (a string "false" as True, values read past their rows, h < 0)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(sdp.SDPError) as refused:
+        call()
+    assert "\n" not in str(refused.value)
+    assert not list(tmp_path.iterdir())

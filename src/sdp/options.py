@@ -282,8 +282,9 @@ class NoiseModel:
         object.__setattr__(self, "registration_error",
                            V.auto_or_nonnegative("registration_error", self.registration_error))
         object.__setattr__(self, "range_exponent", V.auto_or_exponent("range_exponent", self.range_exponent))
-        if self.correlation_length is not None:
-            V.positive_finite("correlation_length", self.correlation_length)
+        if self.correlation_length is not None:  # kept as the number it was checked as
+            object.__setattr__(self, "correlation_length",
+                               V.positive_finite("correlation_length", self.correlation_length))
 
     @property
     def given(self) -> dict:

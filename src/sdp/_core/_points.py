@@ -49,6 +49,8 @@ def as_points(points, *, name: str = "points") -> Points:
     before = 0
     if hasattr(points, "xyz") and hasattr(points, "n_dropped"):  # a Cloud from sdp.read_points
         points, before = points.xyz, int(points.n_dropped)
+    if np.iscomplexobj(points):  # NumPy would keep the real part with a warning
+        raise InvalidPointsError(f"{name}: expected real x, y, z coordinates, got complex numbers")
     try:
         arr = np.ascontiguousarray(points, dtype=np.float64)
     except (TypeError, ValueError) as exc:

@@ -332,9 +332,12 @@ def as_sensor_origins(sensor_origin) -> tuple[np.ndarray, np.ndarray]:
     if o.shape != (2, 3):
         raise InvalidPointsError(f"sensor_origin: expected x, y, z of the sensor (shape (3,)) or one row per "
                                  f"scan (shape (2, 3): reference's, current's), got shape {o.shape}")
-    if not np.isfinite(o).all():
-        raise InvalidPointsError(f"sensor_origin must be finite, got {o.tolist()}")
+    if not (np.isfinite(o).all() and np.abs(o).max() < _MAX_POSITION):
+        raise InvalidPointsError(f"sensor_origin must be finite and within ±{_MAX_POSITION:.0e}, got {o.tolist()}")
     return o[0].copy(), o[1].copy()
+
+
+_MAX_POSITION = 1e12  # a sensor's coordinates: ranges and angles from farther overflow (1e12 m: beyond any scene)
 
 
 def class_numbers(name: str, value) -> list[int]:

@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import InvalidOptionError
+
 __all__ = ["UNCHANGED", "CHANGED", "NOT_COMPARABLE", "footprint_covered", "states_of"]
 
 #: Values of the ``change`` field: unchanged, changed, not comparable.
@@ -60,6 +62,10 @@ def footprint_covered(points: np.ndarray, other) -> np.ndarray:
     -------
     ndarray of bool (n,)
     """
+    from ..fields._density import DensityField
+
+    if not isinstance(other, DensityField):
+        raise InvalidOptionError(f"footprint_covered takes the other epoch's DensityField, got {type(other).__name__}")
     points = np.asarray(points, dtype=np.float64)
     if len(points) == 0:
         return np.zeros(0, bool)

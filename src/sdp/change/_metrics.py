@@ -76,6 +76,8 @@ def scores(truth, predicted, *, comparable=None) -> dict[str, float]:
     Ratios whose denominator is 0 are NaN.
     """
     t, p = _labels(truth, predicted)
+    if comparable is not None and np.asarray(comparable).dtype != bool:  # as truth and predicted: labels, not counts
+        raise SDPError(f"comparable must be booleans (True: compared), got {np.asarray(comparable).dtype}")
     keep = np.ones(t.size, bool) if comparable is None else np.asarray(comparable, bool).ravel()
     if keep.shape != t.shape:
         raise SDPError(f"comparable has {keep.size} labels and truth {t.size}: they must label the same points")

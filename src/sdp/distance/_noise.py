@@ -209,7 +209,8 @@ class SurfaceDistances:
             raise InvalidOptionError(f"registration_error must be 'auto' or a number >= 0, got {registration_error!r}")
         if range_exponent != "auto" and not (np.isscalar(range_exponent) and 0 <= range_exponent <= _MAX_EXPONENT):
             raise InvalidOptionError(f"range_exponent must be 'auto' or in [0, 2], got {range_exponent!r}")
-        if correlation_length is not None and not (np.isscalar(correlation_length) and correlation_length > 0):
+        if correlation_length is not None and not (isinstance(correlation_length, (int, float, np.integer, np.floating))
+                                                   and correlation_length > 0):
             raise InvalidOptionError(f"correlation_length must be a length > 0, got {correlation_length!r}")
         t0 = time.perf_counter()
         self.points = np.ascontiguousarray(points, np.float64)
@@ -323,7 +324,7 @@ class SurfaceDistances:
         normal[flip] *= -1.0
         mean1, spread1, n1, _ = lists.cylinder(other, centroid, normal, sigma, 3.0 * sigma)
         corr = self._options[2]
-        n_corr = np.inf if corr is None else (2.0 * sigma / float(corr)) ** 2
+        n_corr = np.inf if corr is None else np.float64(2.0 * sigma / float(corr)) ** 2  # inf, not OverflowError
         # one point of an unchanged surface scatters about the other epoch's mean as that epoch's
         # own points do: s₁²(1 + 1/n₁'); the other epoch's cylinder holds no new object, so an
         # object next to the point does not widen its level

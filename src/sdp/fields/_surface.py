@@ -48,6 +48,11 @@ def extract_surface(field, *, level: float = 0.0) -> Mesh:
     """
     from skimage.measure import marching_cubes
 
+    from .._core._validate import finite
+
+    if not all(hasattr(field, a) for a in ("blocks", "h", "n_blocks")):  # a DensityField (which imports this module)
+        raise SurfaceError(f"extract_surface takes a DensityField, got {type(field).__name__}")
+    level = finite("level", level)
     if field.n_blocks == 0:
         raise SurfaceError("the field is empty: there is no surface")
     g_level = field.h - level

@@ -273,7 +273,14 @@ def write_points(path: str | os.PathLike, xyz: np.ndarray, fields: dict[str, np.
     if isinstance(xyz, Cloud):  # a cloud as read: its points, with its dimensions
         like = xyz if like is None else like
         xyz = xyz.xyz
+    if fields is not None and not isinstance(fields, dict):
+        raise InvalidPointsError(f"{path}: fields must be a dict of name to per-point values, got "
+                                 f"{type(fields).__name__}")
     xyz, fields = _checked_points(path, xyz, fields)
+    if like is not None and (not isinstance(like, Cloud) or len(like.xyz) != len(xyz)):
+        raise InvalidPointsError(f"{path}: like= is the Cloud these points are, row for row "
+                                 f"({len(xyz):,} points), got {type(like).__name__}"
+                                 + (f" of {len(like.xyz):,}" if isinstance(like, Cloud) else ""))
     if like is not None and like.fields and (like.las is None or ext not in (".las", ".laz")):  # LAS: its records
         kept = {k: v for k, v in like.fields.items() if len(v) == len(xyz) and k not in fields}
         if kept:

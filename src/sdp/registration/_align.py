@@ -51,7 +51,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._core._points import as_points
-from .._core._validate import positive_finite
+from .._core._validate import boolean, finite, integer_at_least, positive_finite
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError, require
 from ..fields._density import DensityField
@@ -163,11 +163,22 @@ class Alignment:
 
 
 def transform_points(matrix, points) -> np.ndarray:
-    """Apply a 4×4 rigid transform to (n, 3) points (float64)."""
-    m = np.asarray(matrix, np.float64)
-    if m.shape != (4, 4):
-        raise ValueError(f"a transform is a 4x4 matrix, got shape {m.shape}")
-    return np.asarray(points, np.float64) @ m[:3, :3].T + m[:3, 3]
+    """Apply a 4×4 rigid transform to (n, 3) points (float64).
+
+    Raises
+    ------
+    InvalidOptionError
+        ``matrix`` is not a 4×4 array of numbers, or ``points`` not (n, 3).
+    """
+    try:
+        m, p = np.asarray(matrix, np.float64), np.asarray(points, np.float64)
+    except (TypeError, ValueError):
+        raise InvalidOptionError(f"a transform is a 4x4 matrix of numbers applied to (n, 3) points, got "
+                                 f"{type(matrix).__name__} and {type(points).__name__}") from None
+    if m.shape != (4, 4) or p.ndim != 2 or p.shape[1] != 3:
+        raise InvalidOptionError(f"a transform is a 4x4 matrix applied to (n, 3) points, got shapes {m.shape} and "
+                                 f"{p.shape}")
+    return p @ m[:3, :3].T + m[:3, 3]
 
 
 def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size: float | str = DEFAULTS.voxel_size,
@@ -219,10 +230,13 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
         raise InvalidOptionError(f"method must be 'density' or 'gicp', got {method!r}")
     if method == "gicp" and fix_horizontal:
         raise InvalidOptionError("fix_horizontal is available with method='density' only")
-    if not 0 <= min_constraint < 1:
+    if not 0 <= finite("min_constraint", min_constraint) < 1:
         raise InvalidOptionError(f"min_constraint must be in [0, 1), got {min_constraint}")
-    if levels < 1:
-        raise InvalidOptionError(f"levels must be at least 1, got {levels}")
+    if not 1 <= integer_at_least("levels", levels, 1) <= _MAX_LEVELS:
+        raise InvalidOptionError(f"levels must be at most {_MAX_LEVELS} (the coarsest σ is 2^(levels-1) times the "
+                                 f"finest), got {levels}")
+    max_points, seed = integer_at_least("max_points", max_points, 3), integer_at_least("seed", seed, 0)
+    boolean("fix_horizontal", fix_horizontal)
     cur = _enough_points(as_points(current, name="current").xyz, "current")
     ref_xyz = None
     if isinstance(reference, DensityField):
@@ -302,6 +316,7 @@ _G_MIN = 0.05  # density below which a point sees no surface (a lone point's ker
 _OVERLAP = 0.25  # reference density / own density, relative to the median ratio, to take part
 _MAX_ITER = 30  # Gauss–Newton iterations per level
 _COARSE_POINTS = 20_000  # current points used on the coarser levels
+_MAX_LEVELS = 16  # pyramid levels: the coarsest σ 2^15 times the finest, beyond any scene's size
 _TOL = 1e-3  # stop a level when the step moves points by less than this × σ
 
 

@@ -234,7 +234,15 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         RangeImage.from_points(ref, origin, rays_sent=rays_sent(reference))
     band = sensor_range_noise(reference, coverage.range_noise)  # the reference's sensor: a laser's, a camera's
     matrix = None if align is None else np.eye(4)
+    try:
+        frames = iter(frames)
+    except TypeError:
+        raise InvalidOptionError(f"frames must be an iterable of point arrays or clouds (or (name, points) pairs), "
+                                 f"got {type(frames).__name__}") from None
     for index, item in enumerate(frames):
+        if isinstance(item, tuple) and len(item) != 2:
+            raise InvalidOptionError(f"frame {index}: a frame is points, or a (name, points) pair; got a tuple of "
+                                     f"{len(item)}")
         name, given = item if isinstance(item, tuple) else (str(index), item)
         t0 = time.perf_counter()
         timings = {}

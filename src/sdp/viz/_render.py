@@ -65,8 +65,33 @@ def render_changes(path: str | os.PathLike, xyz: np.ndarray, changed: np.ndarray
     ``regions`` (:class:`sdp.Region`, or their ``to_dict()``): on a map, each is outlined and
     numbered by its label. ``unit``: of the coordinates, on the scale bar and the axes.
     """
+    xyz, changed = _checked_changes("png", path, xyz, changed, max_points, seed, view)
     return _save_png(changes_figure(xyz, changed, title=title, max_points=max_points, seed=seed, view=view,
                                     regions=regions, unit=unit), path)
+
+
+def _checked_changes(kind: str, path, xyz, changed, max_points, seed, view="auto"):
+    """(xyz (n, 3) float64, change field (n,)) of a picture's arguments, checked before any
+    drawing: the picture's name (``….png``, ``….html``), x, y, z of at least one point (a Cloud
+    gives its own), one state per point (bool, or 0, 1, 2), the counts and the view."""
+    from .._core import _validate as V
+    from ..errors import InvalidOptionError, InvalidPointsError
+
+    V.picture_path(kind, path)
+    xyz = np.asarray(getattr(xyz, "xyz", xyz))
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or not len(xyz) or xyz.dtype.kind not in "iuf":
+        raise InvalidPointsError(f"a picture draws x, y, z of at least one point: (n, 3) real numbers, got "
+                                 f"{xyz.dtype} {xyz.shape}")
+    state = np.asarray(changed)
+    if state.shape != (len(xyz),) or not (state.dtype == bool or (state.dtype.kind in "iu" and
+                                                                  np.isin(state, (0, 1, 2)).all())):
+        raise InvalidOptionError(f"changed must hold one state per point ({len(xyz):,}: bool, or 0 unchanged, 1 "
+                                 f"changed, 2 not comparable), got {state.dtype} {state.shape}")
+    V.integer_at_least("max_points", max_points, 1)
+    V.integer_at_least("seed", seed, 0)
+    if view not in ("auto", "map", "3d"):
+        raise InvalidOptionError(f"view must be 'auto', 'map' or '3d', got {view!r}")
+    return np.asarray(xyz, np.float64), state
 
 
 def changes_figure(xyz: np.ndarray, changed: np.ndarray, *, title: str = "", max_points: int = 80_000,
@@ -266,7 +291,7 @@ def render_changes_html(path: str | os.PathLike, xyz: np.ndarray, changed: np.nd
         plotly is not installed (``pip install 'sdp[plots]'``).
     """
     go = require("plotly.graph_objects", "plots", "an HTML view")
-    xyz = np.asarray(xyz)
+    xyz, changed = _checked_changes("html", path, xyz, changed, max_points, seed)
     fig = go.Figure([go.Scatter3d(x=xyz[i, 0], y=xyz[i, 1], z=xyz[i, 2], mode="markers", name=f"{name} ({n:,})",
                                   marker={"size": size, "color": color})
                      for i, name, n, color, _, size in _drawn(changed, max_points, seed)])
