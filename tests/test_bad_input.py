@@ -575,7 +575,8 @@ def test_gicp_messages_become_errors(rng):
 
 
 @pytest.mark.parametrize("args, output, says", [
-    (["change", "bad.ply", "bad.ply", "-o", "o.xyz"], "o.xyz", "can't write points as .xyz; use .ply, .las, .laz or .npz"),
+    (["change", "bad.ply", "bad.ply", "-o", "o.xyz"], "o.xyz",
+     "can't write points as .xyz; use .ply, .las, .laz or .npz"),
     (["distance", "bad.ply", "bad.ply", "-o", "o.txt"], "o.txt", "can't write points as .txt"),
     (["build", "bad.ply", "-o", "f.ply"], "f.ply", "can't write a density field as .ply; use .sdpf or .zarr"),
     (["mesh", "bad.ply", "-o", "m.txt"], "m.txt", "can't write a mesh as .txt; use .ply, .obj or .stl"),

@@ -40,11 +40,11 @@ import numpy as np
 
 from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 
-__all__ = ["boolean", "path_like", "positive_finite", "finite", "nonnegative_finite", "integer_at_least", "auto_or_positive",
-           "auto_or_exponent", "auto_or_nonnegative", "memory_size", "existing_folder", "check_threshold", "check_grid_options",
-           "check_tile_options", "check_workdir", "cli_type", "sensor_origin_option", "class_numbers",
-           "check_alignment_options", "check_tiled_options", "direction", "as_sensor_origins", "picture_path",
-           "check_orientation"]
+__all__ = ["boolean", "path_like", "positive_finite", "finite", "nonnegative_finite", "integer_at_least",
+           "auto_or_positive", "auto_or_exponent", "auto_or_nonnegative", "memory_size", "existing_folder",
+           "check_threshold", "check_grid_options", "check_tile_options", "check_workdir", "cli_type",
+           "sensor_origin_option", "class_numbers", "check_alignment_options", "check_tiled_options", "direction",
+           "as_sensor_origins", "picture_path", "check_orientation"]
 
 
 def _number(name: str, value) -> float:

@@ -80,8 +80,9 @@ def threshold(k: float = 3) -> float:
     InvalidOptionError
         ``k`` not a finite number, or one that makes h ≤ 0 (no density is below it).
     """
+    k = finite("k", k)
     check_threshold(k, None)
-    return 1.0 + float(k) * _DELTA
+    return 1.0 + k * _DELTA
 
 
 class DensityField:
@@ -335,8 +336,8 @@ class DensityField:
         pts = _query_array(points)
         values = np.asarray(values)
         if values.shape != self.blocks.values.shape or values.dtype != np.float32:
-            raise InvalidOptionError(f"values must be float32 of this field's blocks' shape {self.blocks.values.shape}, "
-                                     f"got {values.dtype} {values.shape}")
+            raise InvalidOptionError(f"values must be float32 of this field's blocks' shape "
+                                     f"{self.blocks.values.shape}, got {values.dtype} {values.shape}")
         out = np.empty(len(pts))
         trilinear(pts, self.grid.origin, self.voxel_size, self.blocks.directory, values, out)
         return out

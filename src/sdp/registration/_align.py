@@ -500,8 +500,9 @@ class GicpTarget:
         for (resolution, reach), (target, tree) in zip(self._levels, self._targets):
             source, _ = self._prepare(current, resolution)
             with _native_stderr("GICP"):
-                t = self._gicp.align(target, source, tree, t, registration_type="GICP", max_correspondence_distance=reach,
-                                     num_threads=2, max_iterations=100).T_target_source
+                t = self._gicp.align(target, source, tree, t, registration_type="GICP",
+                                     max_correspondence_distance=reach, num_threads=2,
+                                     max_iterations=100).T_target_source
         return unshift @ t @ shift
 
 
