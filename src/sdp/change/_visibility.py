@@ -37,9 +37,11 @@ a full turn; each cell keeps the nearest and the farthest return. Cells are ``ce
 times the scan's angular point spacing, measured from the solid angle the scan covers (O(n), no
 neighbour search). A scan that samples one axis more sparsely than the other (a spinning LiDAR's
 rings, 0.5–2° apart, 0.2° along them) gets cells of ``cell_factor`` times its step along that
-axis (:func:`_axis_cells`), and there a ray whose cells on one side hold returns all nearer and
-on the other side all farther passes through the surface sampled between them (same surface),
-as the floor between two rings. A ray beyond the angles the scan sent rays to (more than half a
+axis (:func:`_axis_cells`; at most twice the square cell, so that rings far apart in range do not
+share one), and there a ray whose cells on one side hold returns all nearer and on the other side
+all farther passes through the surface sampled between them (same surface), as the floor between
+two rings; where no ring lies within reach on a side (a VLP-32C's rings, 0.33° apart near the
+horizon and 9.4° at the bottom), the nearest one within ``_MAX_GAP_CELLS`` cells is asked. A ray beyond the angles the scan sent rays to (more than half a
 cell past its extreme returns, none along a sparse axis) is unobserved whatever the cells beside it
 hold: the floor below a LiDAR's lowest ring.
 
@@ -83,6 +85,8 @@ _MAX_CELLS = 50_000_000  # a range image larger than this gets coarser cells (40
 _DIRECTION_SAMPLE = 5_000  # points used to choose the image's frame
 _MAX_COARSENING = 6  # doublings of a sparse axis's cell (64×): a 16-ring LiDAR's 2° rings at a 0.2° step need 2
 _SPARSE = 0.75  # an axis whose occupied cells have an occupied next cell this much less often is sampled sparsely
+_MAX_STRETCH = 2.0  # a sparse axis's cells at most this many square cells: wider, near and far rings share a cell
+_MAX_GAP_CELLS = 8  # cells searched beyond reach along a sparse axis for the rings on either side of a ray
 
 
 # ---------------------------------------------------------------- kernels (compiled once, cached)
@@ -238,7 +242,9 @@ def _classify(az, el, rng, near, far, lo, hi, margin, cell, cell_el, n_az, n_el,
     than ``margin`` (:attr:`RangeImage.margin`) is unobserved: the scan sent no ray there. Along the
     ``sparse`` axis (0 azimuth, 1 elevation, -1 none: :func:`_axis_cells`), a ray between a cell
     whose returns are all nearer and one on its other side whose returns are all farther passes
-    through the surface sampled on either side of it: the same surface."""
+    through the surface sampled on either side of it: the same surface; on a side without a return
+    within reach, the nearest cells up to ``_MAX_GAP_CELLS`` away are asked (for that alone: so far
+    off, they neither hide the ray nor say it was seen)."""
     out = np.empty(az.shape[0], np.int8)
     hider = np.full(az.shape[0], np.nan)
     for i in range(az.shape[0]):
@@ -249,6 +255,7 @@ def _classify(az, el, rng, near, far, lo, hi, margin, cell, cell_el, n_az, n_el,
         nearer = False
         hide = -np.inf
         below_nearer = below_farther = above_nearer = above_farther = False
+        seen_below = seen_above = False  # a return within reach strictly on that side of the ray's cell
         if math.isfinite(az[i]):
             a0 = int(math.floor((az[i] - lo[0]) / cell))
             e0 = int(math.floor((el[i] - lo[1]) / cell_el))
@@ -266,6 +273,8 @@ def _classify(az, el, rng, near, far, lo, hi, margin, cell, cell_el, n_az, n_el,
                         same = True
                         break  # the same surface decides: the other cells need not be read
                     step = (a - a0) if sparse == 0 else (e - e0)
+                    seen_below |= step < 0
+                    seen_above |= step > 0
                     if r > far[j]:
                         nearer = True
                         hide = max(hide, far[j])
@@ -276,7 +285,28 @@ def _classify(az, el, rng, near, far, lo, hi, margin, cell, cell_el, n_az, n_el,
                         above_farther |= step >= 0
                 if same:
                     break
-            if sparse >= 0 and not same:
+            if sparse >= 0 and not same and not off:  # the nearest rings beyond reach, when none is within it
+                for side in (-1, 1):
+                    if seen_below if side < 0 else seen_above:
+                        continue
+                    for k in range(reach + 1, reach + 1 + _MAX_GAP_CELLS):
+                        found = False
+                        for o in range(-reach, reach + 1):
+                            a, e = (a0 + side * k, e0 + o) if sparse == 0 else (a0 + o, e0 + side * k)
+                            if a < 0 or e < 0 or a >= n_az or e >= n_el:
+                                continue
+                            j = a * n_el + e
+                            if near[j] == np.inf:
+                                continue
+                            found = True  # its returns bracket the ray or not; they hide nothing this far
+                            if r > far[j]:
+                                below_nearer |= side < 0
+                                above_nearer |= side > 0
+                            else:
+                                below_farther |= side < 0
+                                above_farther |= side > 0
+                        if found:
+                            break
                 same = (below_nearer and above_farther) or (below_farther and above_nearer)
         if same:
             out[i] = 1  # SAME_SURFACE
@@ -573,8 +603,11 @@ def _axis_cells(az, el, lo, extent, cell: float, cell_factor: float, half: np.nd
     and that frequency falls to about 2 − s/c. On cells of half ``cell``, an axis whose frequency
     is below :data:`_SPARSE` of the other's (s > 0.6 ``cell``, while the other axis is sampled
     finer) is sparse: its cell is doubled until it is sampled again (c ≥ s/1.25), and that
-    axis's cells are ``cell_factor`` times that step, at least ``cell``. A camera's pixels leave
-    both axes alike, and its cells as they were."""
+    axis's cells are ``cell_factor`` times that step, at least ``cell`` and at most
+    :data:`_MAX_STRETCH` times it (rings spaced unevenly double the cell up to their widest gap: 8°
+    on a VLP-32C, where a cell then held the ground from 5 to 40 m and a car 12 m away "was" it;
+    the gaps wider than the cell are bridged by :func:`_classify`). A camera's pixels leave both
+    axes alike, and its cells as they were."""
     def occupancy(cells):
         shape = (int(extent[0] // cells[0]) + 1, int(extent[1] // cells[1]) + 1)
         return _occupied(az, el, lo[0], lo[1], cells[0], cells[1], shape[0], shape[1]).reshape(shape)
@@ -593,7 +626,7 @@ def _axis_cells(az, el, lo, extent, cell: float, cell_factor: float, half: np.nd
         if freq[axis] >= _SPARSE * freq[1 - axis]:
             break
     cells = [cell, cell]
-    cells[axis] = max(cell, cell_factor * fine[axis])
+    cells[axis] = min(max(cell, cell_factor * fine[axis]), _MAX_STRETCH * cell)
     return cells, axis
 
 
