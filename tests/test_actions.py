@@ -302,3 +302,31 @@ def test_evaluate_protocol_trains_then_classifies_the_test_subjects(tmp_path, rn
     (tmp_path / "a02_s04_e01_sdepth.bin").unlink()
     with pytest.raises(SDPError, match="subset AS1 needs sequences of training and test subjects"):
         evaluate_protocol(tmp_path, workers=1)
+
+
+@pytest.mark.parametrize("depth, says", [
+    (np.ones((4, 4, 3)) * (1 + 1j), "complex"),
+    (np.full((4, 4, 3), np.nan), "NaN or infinite"),
+    (np.full((4, 4, 3), -5, np.int16), "negative"),
+    (np.ones((4, 4, 1), np.uint16), "1 frame"),
+])
+def test_a_depth_sequence_that_is_not_one_is_refused_naming_its_file(tmp_path, depth, says):
+    import scipy.io
+
+    scipy.io.savemat(tmp_path / "a01_s01_e01_sdepth.mat", {"depth": depth})
+    with pytest.raises(SDPError, match=rf"a01_s01_e01_sdepth.mat: .*{says}"):
+        read_sequence(tmp_path / "a01_s01_e01_sdepth.mat")
+
+
+def test_a_cut_or_empty_model_file_is_not_a_model(tmp_path, rng):
+    x = np.stack([sequence_descriptor(sequence(k, rng)) for k in (1, 2) for _ in range(3)])
+    model, _ = train(x, np.repeat([1, 2], 3), np.tile([1, 2, 3], 2))
+    model.save(tmp_path / "m.npz")
+    (tmp_path / "empty.npz").write_bytes(b"")
+    (tmp_path / "cut.npz").write_bytes((tmp_path / "m.npz").read_bytes()[:200])
+    for name in ("empty.npz", "cut.npz"):
+        with pytest.raises(SDPError, match="not an sdp action model"):
+            ActionModel.load(tmp_path / name)
+    with pytest.raises(SDPError, match="no such file"):
+        ActionModel.load(tmp_path / "missing.npz")
+    assert list(ActionModel.load(tmp_path / "m.npz").classes) == [1, 2]

@@ -617,3 +617,21 @@ def test_a_file_announcing_more_than_memory_holds_is_refused_before_it_is_read(t
     err = capsys.readouterr().err
     assert ("100,000,000" if command == "change" else "50,000,000") in err and "memory limit of 1 GB" in err, err
     assert sorted(f.name for f in tmp_path.iterdir()) == ["big.pcd"]
+
+
+@pytest.mark.parametrize("values, says", [
+    (np.array(["0", "1"] * 5), "holds <U1 values, not numeric labels"),
+    (np.array([0.5, 1.5] * 5),
+     "holds values other than 0 (unchanged), 1 (changed) and 2 (not comparable), e.g. 0.5"),
+])
+def test_eval_refuses_labels_that_are_not_sdps(tmp_path, values, says):
+    # text labels were all "changed", a change field of 0.5 or 7 all "unchanged": scores without a word
+    from sdp.cli import evaluate_files
+
+    xyz = np.random.default_rng(0).random((10, 3))
+    np.savez(tmp_path / "p.npz", xyz=xyz, change=values)
+    np.savez(tmp_path / "t.npz", xyz=xyz, change=np.zeros(10, np.uint8))
+    import re
+
+    with pytest.raises(sdp.SDPError, match=re.escape(f"p.npz: field 'change' {says}")):
+        evaluate_files(tmp_path / "p.npz", tmp_path / "t.npz")

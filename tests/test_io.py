@@ -345,3 +345,10 @@ def test_text_columns_as_their_header_names_them(tmp_path, rng):
     assert sorted(c.fields) == ["blue", "green", "intensity", "red"] and c.fields["blue"][0] == 3
     rows = "\n".join(" ".join(f"{v:.4f}" for v in r) for r in xyz)
     np.testing.assert_array_equal(write("c.xyz", "# exported by a scanner, v2\n" + rows + "\n").xyz, xyz)
+
+
+def test_an_npz_cloud_with_metadata_reads(tmp_path, rng):
+    # a 0-d array beside the points (an epoch's year) is metadata, not a per-point field
+    np.savez(tmp_path / "c.npz", xyz=rng.random((50, 3)), change=np.zeros(50, np.uint8), epoch=np.array(2023))
+    cloud = read_points(tmp_path / "c.npz")
+    assert len(cloud.xyz) == 50 and set(cloud.fields) == {"change"}

@@ -122,19 +122,33 @@ def read_sequence(path: str | os.PathLike) -> np.ndarray:
             t, w, h = (int(v) for v in raw[:3])
             if raw.size != 3 + t * w * h:
                 raise SDPError(f"header says {t} frames of {w}x{h}, the file holds {raw.size - 3} values")
-            return raw[3:].reshape(t, h, w)
+            return _checked_depth(raw[3:].reshape(t, h, w))
         if path.suffix.lower() == ".mat":
             import scipy.io
 
             d = scipy.io.loadmat(path, variable_names=["depth"]).get("depth")
             if d is None or d.ndim != 3:
                 raise SDPError("no H x W x T variable 'depth'")
-            return np.ascontiguousarray(np.transpose(d, (2, 0, 1)))
+            return _checked_depth(np.ascontiguousarray(np.transpose(d, (2, 0, 1))))
     except FileNotFoundError:
         raise SDPError(f"{path}: no such file") from None
     except Exception as exc:  # SciPy's MatReadError, a zlib error, a short read: all name the file
         raise SDPError(f"{path}: can't read a depth sequence ({exc or type(exc).__name__})") from None
     raise SDPError(f"{path}: unknown depth-sequence format; use .mat (MSR Action3D) or .bin")
+
+
+def _checked_depth(depth: np.ndarray) -> np.ndarray:
+    """``depth`` (T, H, W) if it is a sequence of depths: real, finite, not negative, at least two
+    frames (a motion needs two); else :class:`SDPError` (the caller names the file)."""
+    if depth.dtype.kind not in "uif" or depth.dtype == bool:
+        raise SDPError(f"'depth' holds {depth.dtype} values, not depths (MSR Action3D's are uint16 millimetres)")
+    if depth.shape[0] < 2:
+        raise SDPError(f"'depth' holds {depth.shape[0]} frame(s): an action needs at least 2")
+    if depth.dtype.kind == "f" and not np.isfinite(depth).all():
+        raise SDPError("'depth' holds NaN or infinite values")
+    if depth.min(initial=0) < 0:
+        raise SDPError("'depth' holds negative depths")
+    return depth
 
 
 def depth_to_points(depth: np.ndarray, *, focal: float = FOCAL) -> tuple[np.ndarray, np.ndarray]:
@@ -228,7 +242,8 @@ def frame_densities(depth: np.ndarray, *, step: int = 1) -> np.ndarray:
 
 def _check_depth(depth: np.ndarray) -> None:
     if depth.ndim != 3 or not depth.any():
-        raise SDPError("a depth sequence needs shape (T, H, W) and some non-zero (foreground) pixels")
+        raise SDPError("a depth sequence needs frames of depths (T, H, W; a .mat file's H x W x T) with some "
+                       "non-zero (foreground) pixels")
 
 
 def _densities(depth: np.ndarray, centres: np.ndarray, half: np.ndarray, shape: tuple[int, int, int],
@@ -406,7 +421,11 @@ def list_sequences(folder: str | os.PathLike) -> list[tuple[Path, int, int]]:
 
 
 def _describe_file(path) -> np.ndarray:
-    return sequence_descriptor(read_sequence(path))
+    depth = read_sequence(path)
+    try:
+        return sequence_descriptor(depth)
+    except SDPError as exc:  # in a folder of hundreds, the file to look at
+        raise SDPError(f"{path}: {exc}") from None
 
 
 def describe_sequences(paths, *, workers: int = os.cpu_count() or 1) -> np.ndarray:
@@ -478,10 +497,17 @@ class ActionModel:
                     if key not in z or not np.array_equal(z[key], np.asarray(value)):
                         raise SDPError(f"made with other pattern parameters ({key})")
                 alpha = tuple(float(a) for a in np.atleast_1d(z["alpha"]))
-                return cls(z["coef"], z["intercept"], z["classes"], alpha)
+                coef, intercept, classes = np.atleast_2d(z["coef"]), np.atleast_1d(z["intercept"]), z["classes"]
+                rows = 1 if len(classes) == 2 else len(classes)  # two actions: one decision function
+                if len(classes) < 2 or coef.shape[0] != rows or intercept.shape != (rows,):
+                    raise SDPError(f"{len(classes)} actions, {coef.shape[0]} rows of coefficients, "
+                                   f"{intercept.size} intercepts")
+                return cls(z["coef"], z["intercept"], classes, alpha)
         except (KeyError, SDPError) as exc:
             raise SDPError(f"{path}: not an sdp action model ({exc})") from None
-        except (OSError, ValueError):  # NumPy's own words would advise loading pickled data
+        except FileNotFoundError:
+            raise SDPError(f"{path}: no such file") from None
+        except Exception:  # NumPy's own words (pickled data), a cut zip (EOFError, BadZipFile): not a model
             raise SDPError(f"{path}: not an sdp action model (an .npz file that 'sdp action train' writes)") from None
 
 
@@ -683,6 +709,12 @@ def evaluate_protocol(folder: str | os.PathLike, *, workers: int = os.cpu_count(
     for name, acts in SUBSETS.items():
         if not np.isin(y[training], acts).any() or not np.isin(y[test], acts).any():
             raise SDPError(f"{folder}: subset {name} needs sequences of training and test subjects")
+        if len(np.unique(y[training][np.isin(y[training], acts)])) < 2:
+            raise SDPError(f"{folder}: subset {name} needs at least two actions among the training subjects' "
+                           "sequences to tell apart")
+        if len(np.unique(s[training][np.isin(y[training], acts)])) < 2:
+            raise SDPError(f"{folder}: subset {name} needs at least two training subjects (its choices are "
+                           "cross-validated leaving one subject out)")
     x = describe_sequences([rows[i][0] for i in training], workers=workers)
     t1 = time.perf_counter()
     grams = _grams(x, np.arange(len(x)))  # every subset's training rows are among these: one pass over x

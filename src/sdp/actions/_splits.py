@@ -38,6 +38,7 @@ from itertools import combinations
 
 import numpy as np
 
+from .._core._validate import integer_at_least
 from ..errors import SDPError
 from ._actions import (
     ALPHAS,
@@ -228,6 +229,8 @@ def split_accuracies(descriptors: np.ndarray, actions, subjects, *, subsets=None
     if parts is None:
         parts = PARTS if x.shape[1] == PARTS[-1][1] else ((0, x.shape[1], 1.0),)
     subsets = dict(SUBSETS if subsets is None else subsets)
+    if integer_at_least("n_train", n_train, 1) < 2:  # the choices are cross-validated leaving one subject out
+        raise SDPError(f"n_train must be at least 2 (one training subject is left out in turn), got {n_train}")
     _plan(y, s, training_sets(s, n_train), subsets)  # bad splits refused before the Gram matrices
     return _from_grams(_grams(x, np.arange(len(x)), parts), y, s, subsets=subsets, n_train=n_train, alphas=alphas,
                        shares=[p[2] for p in parts], workers=workers)

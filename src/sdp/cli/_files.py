@@ -330,7 +330,7 @@ def evaluate_files(predicted, truth, *, predicted_field: str = "change", truth_f
     ``truth_field``: nonzero is changed. Both files hold the same points
     in the same order.
     """
-    from ..change._coverage import CHANGED, NOT_COMPARABLE
+    from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
     from ..change._metrics import scores
 
     values, clouds = [], []
@@ -342,9 +342,14 @@ def evaluate_files(predicted, truth, *, predicted_field: str = "change", truth_f
         if v.ndim != 1:
             raise SDPError(f"{path}: field {name!r} holds {v.shape[1:]} values per point; give a field of one label "
                            "per point")
+        if v.dtype.kind not in "biuf":
+            raise SDPError(f"{path}: field {name!r} holds {v.dtype} values, not numeric labels")
         if v.dtype.kind == "f" and not np.isfinite(v).all():
             raise SDPError(f"{path}: field {name!r} has {int((~np.isfinite(v)).sum()):,} labels that are not numbers "
                            "(NaN or infinite)")
+        if name == "change" and not np.isin(v, (UNCHANGED, CHANGED, NOT_COMPARABLE)).all():  # sdp's three states
+            raise SDPError(f"{path}: field 'change' holds values other than 0 (unchanged), 1 (changed) and 2 (not "
+                           f"comparable), e.g. {v[~np.isin(v, (0, 1, 2))][0].item()!r}")
         values.append(v)
         clouds.append(c)
     if len(values[0]) != len(values[1]):

@@ -37,7 +37,8 @@ def read_npz(path):
             xyz = np.c_[z["x"], z["y"], z["z"]]
         else:
             raise CloudFileError(f"{path}: NPZ needs an array 'xyz' or arrays 'x', 'y', 'z' (has {z.files})")
-        fields = {k: z[k] for k in z.files if k not in ("xyz", "x", "y", "z") and len(z[k]) == len(xyz)}
+        fields = {k: z[k] for k in z.files if k not in ("xyz", "x", "y", "z")}
+        fields = {k: v for k, v in fields.items() if v.ndim and len(v) == len(xyz)}  # not 0-d metadata
     return xyz, fields, None
 
 
