@@ -635,3 +635,12 @@ def test_eval_refuses_labels_that_are_not_sdps(tmp_path, values, says):
 
     with pytest.raises(sdp.SDPError, match=re.escape(f"p.npz: field 'change' {says}")):
         evaluate_files(tmp_path / "p.npz", tmp_path / "t.npz")
+
+
+@pytest.mark.parametrize("args", [["-o", "new/deep", "--seed", "-5"], ["-o", ""]])
+def test_the_demo_refuses_before_it_makes_a_folder(tmp_path, monkeypatch, capsys, args):
+    from sdp.cli._main import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["demo", *args]) == 2
+    assert capsys.readouterr().err.startswith("sdp: error: ") and not list(tmp_path.iterdir())

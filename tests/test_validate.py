@@ -213,6 +213,7 @@ def _field():
     lambda: sdp.write_points("x.ply", np.zeros((2, 3)), fields=[1, 2]),
     lambda: sdp.write_points("x.ply", np.zeros((2, 3)), like=np.zeros((2, 3))),
     lambda: sdp.scores([1, 0, 1], [1, 0, 0], comparable=[0, 1, 2]),
+    lambda: sdp.render_field("slices.jpg", _field()),
 ])
 def test_the_python_api_refuses_odd_values_in_one_line(call, tmp_path, monkeypatch):
     # each once ended in a raw TypeError, ValueError, OverflowError or AttributeError, or went on

@@ -28,6 +28,12 @@ def run_demo(output: str | os.PathLike = "demo-output", *, seed: int = 0, echo: 
     from ..viz._render import render_changes
     from ._scene import INSERTED, office_scene
 
+    from .._core._validate import integer_at_least
+    from ..errors import InvalidOptionError
+
+    seed = integer_at_least("seed", seed, 0)  # before any folder is made
+    if not str(output).strip():
+        raise InvalidOptionError("give the demo a folder to write into (-o FOLDER), got an empty name")
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
     echo("Simulating a Kinect-like depth sensor in an office (ray casting, occlusion, depth noise):")

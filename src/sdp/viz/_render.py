@@ -312,6 +312,9 @@ def render_field(path: str | os.PathLike, field, *, center: np.ndarray | None = 
     and the black line is the boundary F = 0. ``center`` defaults to the middle of the
     allocated blocks. ``unit``: of the coordinates, on the axes.
     """
+    from .._core._validate import picture_path
+
+    picture_path("png", path)  # a PNG under another name opens as nothing
     plt = pyplot()
     from matplotlib.colors import TwoSlopeNorm
 
