@@ -498,8 +498,9 @@ class ActionModel:
                         raise SDPError(f"made with other pattern parameters ({key})")
                 alpha = tuple(float(a) for a in np.atleast_1d(z["alpha"]))
                 coef, intercept, classes = np.atleast_2d(z["coef"]), np.atleast_1d(z["intercept"]), z["classes"]
-                rows = 1 if len(classes) == 2 else len(classes)  # two actions: one decision function
-                if len(classes) < 2 or coef.shape[0] != rows or intercept.shape != (rows,):
+                rows = coef.shape[0]  # one per action, or one decision function for two
+                if len(classes) < 2 or rows not in ({1, 2} if len(classes) == 2 else {len(classes)}) \
+                        or intercept.shape != (rows,):
                     raise SDPError(f"{len(classes)} actions, {coef.shape[0]} rows of coefficients, "
                                    f"{intercept.size} intercepts")
                 return cls(z["coef"], z["intercept"], classes, alpha)
