@@ -147,3 +147,16 @@ def test_a_laser_scans_band_is_its_kernel_not_a_depth_cameras():
     assert sensor_range_noise(laser.transformed(np.eye(4)), DEFAULTS.range_noise) == 0.0
     assert sensor_range_noise(sdp.io.Cloud(xyz, path=Path("frame.pcd")), DEFAULTS.range_noise) == DEFAULTS.range_noise
     assert sensor_range_noise(xyz, DEFAULTS.range_noise) == DEFAULTS.range_noise
+
+
+def test_a_hole_in_an_unorganized_scan_pattern_is_not_a_place_seen():
+    # the change masks' rule for scans that did not send every ray (sdp.change._visibility.rays_sent)
+    from sdp.distance._seen import not_seen
+
+    rng = np.random.default_rng(4)
+    u, v = rng.uniform(-0.5, 0.5, (2, 60_000))
+    keep = ~((np.abs(u) < 0.15) & (np.abs(v) < 0.15))  # a square of directions never sampled
+    wall = np.c_[np.full(keep.sum(), 3.0), 3.0 * u[keep], 3.0 * v[keep]]
+    place = np.array([[3.0, 0.0, 0.0]])  # on the wall, in the hole's middle
+    assert not not_seen(place, wall, np.zeros(3), None, sigma=0.01, range_noise=0.0, rays=True)[0]
+    assert not_seen(place, wall, np.zeros(3), None, sigma=0.01, range_noise=0.0, rays=False)[0]

@@ -262,7 +262,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     from ..io._cloud import FORMATS
     from ..stream._watch import watch
 
-    from ..io._bag import bag_frames, bag_topics, is_bag
+    from ..io._bag import bag_frames, bag_topics, is_bag, split_topic
 
     noise = NoiseModel.of(noise, decision)
     folder = Path(frames)
@@ -292,7 +292,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
         origin = sensor_origins(choice, (reference, ref), (reference, ref))
         origin = origin[0] if isinstance(origin, np.ndarray) else origin
     # an empty frame (a blinded sensor) is the stream's to report, not an error
-    stream = bag_frames(folder, topic.split(":")[0]) if bag else (
+    stream = bag_frames(folder, split_topic(topic)[0]) if bag else (
         (p.name, read_points(p, format=format, allow_empty=True)) for p in paths)
     return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
                  min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin),

@@ -29,7 +29,7 @@ import dataclasses
 
 import numpy as np
 
-from ..change._visibility import RangeImage, scanner_of_points, sees, sensor_range_noise
+from ..change._visibility import RangeImage, rays_sent, scanner_of_points, sees, sensor_range_noise
 from ..defaults import DEFAULTS
 
 __all__ = ["not_seen", "without_unseen"]
@@ -62,7 +62,7 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
     places = d.core_points[measured] + offset[:, None] * d.normal[measured]
     hidden = measured[not_seen(places, xyz, origins, scan, sigma=sigma,
                                normals=d.normal[measured] if facing else None,
-                               range_noise=sensor_range_noise(cloud, DEFAULTS.range_noise))]
+                               range_noise=sensor_range_noise(cloud, DEFAULTS.range_noise), rays=rays_sent(cloud))]
     if hidden.size == 0:
         return d
     distance, lod, level = d.distance.copy(), d.lod.copy(), d.level.copy()
@@ -73,12 +73,14 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
 
 
 def not_seen(points: np.ndarray, cloud: np.ndarray, origins: np.ndarray, scan: np.ndarray | None, *,
-             sigma: float, normals: np.ndarray | None = None, range_noise: float = DEFAULTS.range_noise) -> np.ndarray:
+             sigma: float, normals: np.ndarray | None = None, range_noise: float = DEFAULTS.range_noise,
+             rays: bool = True) -> np.ndarray:
     """Which of ``points`` the scan ``cloud`` could not see from ``origins`` (one position (3,),
     or k positions (k, 3) with ``scan``, each point of ``cloud``'s scanner): hidden from every
     scanner, or outside every field of view (module docstring), or with ``normals`` (each
     place's surface normal, facing its own sensor) behind every scanner's back. The band around
-    a return is the change masks' (``range_noise``·r², at least σ)."""
+    a return is the change masks' (``range_noise``·r², at least σ); ``rays``: the scan sent every
+    ray of its view (:func:`sdp.change._visibility.rays_sent`), as the change masks ask."""
     unseen = np.ones(len(points), bool)
     if len(points) == 0:
         return unseen
@@ -89,7 +91,8 @@ def not_seen(points: np.ndarray, cloud: np.ndarray, origins: np.ndarray, scan: n
         if len(mine) == 0 or len(todo) == 0:
             continue
         query = np.take(points, todo, axis=0)
-        seen = sees(RangeImage.from_points(mine, origin), query, range_noise=range_noise, floor=sigma)
+        seen = sees(RangeImage.from_points(mine, origin, rays_sent=rays), query, range_noise=range_noise,
+                    floor=sigma)
         if normals is not None:  # a scanner behind the surface saw its other side
             seen &= np.einsum("ij,ij->i", origin - query, normals[todo]) > 0
         unseen[todo] = ~seen

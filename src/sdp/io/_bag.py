@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import require
 from ._cloud import Cloud, CloudFileError, library_error, unpacked_colour
 
-__all__ = ["bag_frames", "bag_message", "bag_topics", "is_bag", "pointcloud2_arrays"]
+__all__ = ["bag_frames", "bag_message", "bag_topics", "is_bag", "pointcloud2_arrays", "split_topic"]
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 #: Frames whose origin is no sensor (REP 105's world frames, and the usual name of the fixed one).
@@ -186,10 +186,16 @@ def pointcloud2_arrays(msg) -> tuple[np.ndarray, dict[str, np.ndarray], bool]:
     return xyz, unpacked_colour(fields), organized
 
 
+def split_topic(topic: str) -> tuple[str, str]:
+    """(topic name, message number as given) of ``--topic``: ``/points`` (its first message, "0")
+    or ``/points:N``. ROS names hold no colon."""
+    return tuple(topic.rsplit(":", 1)) if ":" in topic else (topic, "0")
+
+
 def bag_message(path, topic: str) -> Cloud:
     """One message of a bag as a cloud: ``topic`` is ``/points`` (its first message) or
-    ``/points:N`` (its N-th, from 0; negative from the end). ROS names hold no colon."""
-    name, number = topic.rsplit(":", 1) if ":" in topic else (topic, "0")
+    ``/points:N`` (its N-th, from 0; negative from the end: :func:`split_topic`)."""
+    name, number = split_topic(topic)
     try:
         index = int(number)
     except ValueError:
