@@ -10,6 +10,8 @@ import pytest
 
 import sdp
 from sdp.cli import main
+from sdp.cli._series import describe_series, series_files
+from sdp.cli._text import series_text
 from sdp.data import slope_series
 from sdp.distance import PreparedReference
 from sdp.distance._reference import subsample
@@ -395,10 +397,10 @@ def test_append_refuses_other_options_and_repeated_times(slope, tmp_path):
     before = _digest(out)
     with pytest.raises(sdp.InvalidOptionError, match="a list of files or clouds, got one path"):
         sdp.series(str(tmp_path / "e0.ply"), output=out, append=True)  # not a list of letters
-    with pytest.raises(sdp.InvalidOptionError, match="projection-scale 0.5 differs"):
+    with pytest.raises(sdp.InvalidOptionError, match="projection scale 0.5 differs"):
         sdp.series(slope.epochs[3:4], output=out, append=True, cylinder=sdp.Cylinder(projection_scale=0.5),
                    times=[13])
-    with pytest.raises(sdp.InvalidOptionError, match="registration-error"):
+    with pytest.raises(sdp.InvalidOptionError, match="registration error 0.01 differs"):
         sdp.series(slope.epochs[3:4], output=out, append=True, registration_error=0.01, times=[13])
     with pytest.raises(sdp.InvalidOptionError, match="already in the archive"):
         sdp.series(slope.epochs[3:4], output=out, append=True, times=[12])
@@ -419,6 +421,9 @@ def test_append_refuses_other_options_and_repeated_times(slope, tmp_path):
     with pytest.raises(sdp.SDPError, match="not a series archive"):
         sdp.series(slope.epochs[:2], output=other)
     assert sorted(p.name for p in other.iterdir()) == ["zarr.json"]
+    (tmp_path / "folder.zarr").mkdir()  # a folder, as an archive is: not told to choose a file name
+    with pytest.raises(sdp.SDPError, match="is an existing directory and not a series archive; choose another"):
+        sdp.series(slope.epochs[:2], output=tmp_path / "folder.zarr")
     assert not (tmp_path / "t.zarr").exists()
 
 
@@ -816,6 +821,16 @@ def test_times_are_read_from_the_files(slope, tmp_path):
     assert source == "LAS GPS time" and t == pytest.approx(days_noon + 1 / 24 + 30 / 86400, abs=1e-6)
     ds = sdp.series(files, output=tmp_path / "s.zarr", cylinder=CYL)
     assert ds.attrs["epochs"][0]["time_source"] == "file (LAS GPS time)"
+    # a file without a time among dated ones, or two files of one time: numbered, and said why
+    sdp.write_points(tmp_path / "e.ply", slope.epochs[3])
+    text = series_files([*files[:2], tmp_path / "e.ply"], output=tmp_path / "u.zarr",
+                        options={"cylinder": CYL}).summary_text()
+    assert "index times" in text and f"times: 2 of 3 files record a time, not {tmp_path / 'e.ply'}" in text
+    text = series_files([files[0], files[1], files[1]], output=tmp_path / "v.zarr",
+                        options={"cylinder": CYL}).summary_text()
+    assert "times: two files record the same time 2024-05-01T13:00:30" in text
+    with pytest.raises(sdp.InvalidOptionError, match=r"must increase, in the order given \(read from the files"):
+        sdp.series(files[::-1], output=tmp_path / "w.zarr", cylinder=CYL)
     hours = (ds.time.values - ds.time.values[0]) / np.timedelta64(1, "h")  # xarray decodes the days
     assert hours == pytest.approx([0, 1, 2], abs=1e-6)
     # week time dates nothing: the header's creation date (a day) instead
@@ -834,6 +849,15 @@ def test_times_are_read_from_the_files(slope, tmp_path):
     e.close()
     assert file_time(tmp_path / "a.e57") == (pytest.approx(days_noon, abs=1e-9), "E57 acquisition start")
     assert file_time(tmp_path / "missing.laz") is None and file_time(np.zeros((3, 3))) is None
+
+
+def test_an_epoch_measured_nowhere_is_named(slope, tmp_path):
+    """A file of another place or frame (here 1 km off) gets no distance: the summary says so."""
+    epochs = [slope.epochs[0], slope.epochs[1] + 1000.0, slope.epochs[2]]
+    sdp.series(epochs, output=tmp_path / "s.zarr", cylinder=CYL)
+    summary = describe_series(tmp_path / "s.zarr")
+    assert summary["unmeasured_epochs"] == [{"epoch": 1, "file": "array 1"}]
+    assert "epoch 1 (array 1): no core point has a distance" in series_text(summary)
 
 
 @pytest.mark.slow

@@ -306,6 +306,9 @@ def describe_series(path) -> dict:
             "first_time": times[0] if times else None, "last_time": times[-1] if times else None,
             "reference": attrs["parameters"]["reference_file"],
             "significant_fraction": sig_fraction,
+            # a file in another frame, or of another place, gives an epoch measured nowhere
+            "unmeasured_epochs": [{"epoch": k, "file": e["file"]} for k, e in enumerate(epochs)
+                                  if k != ref and e["comparable"] == 0],
             "median_abs_smoothed_last": float(np.nanmedian(np.abs(last))) if np.isfinite(last).any() else None,
             "max_abs_velocity_last": float(np.nanmax(np.abs(vel))) if np.isfinite(vel).any() else None,
             "objects": len(table), "largest_objects": table[:10], "parameters": attrs["parameters"],

@@ -210,6 +210,9 @@ def series_text(s: dict) -> str:
              f"the reference; smoother: process "
              f"noise {sm.get('process_noise', float('nan')):.3g}, velocity {sm.get('velocity', '')}",
              f"  objects of change: {s['objects']}"]
+    for e in s.get("unmeasured_epochs", []):
+        lines.append(f"  epoch {e['epoch']} ({e['file']}): no core point has a distance; is it of the same place, in "
+                     "the same frame?")
     for o in s["largest_objects"][:5]:
         lines.append(f"    #{o['id']}: epochs {o['start']}..{o['end']}, {o['core_points']} core points, "
                      f"peak {o['peak_change']:+.4g}, mean velocity {o['mean_velocity']:+.4g}")
@@ -218,5 +221,7 @@ def series_text(s: dict) -> str:
         where = f" in {tiled['tiles']} tiles on Dask" if tiled else ""
         lines.append(f"  this run: {last['added']} epoch(s) {'appended' if last['append'] else 'measured'}{where} in "
                      f"{last['timings'].get('total', 0):.2f} s")
+        if last.get("times_note"):
+            lines.append(f"  times: {last['times_note']}")
     lines += [f"wrote {o}" for o in s.get("outputs", [])[1:]]  # the exports (the archive is named above)
     return "\n".join(lines)

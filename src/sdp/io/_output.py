@@ -85,7 +85,9 @@ def check_outputs(outputs, inputs=()) -> None:
         if not parent.is_dir():
             raise SDPError(f"{path}: {str(parent)!r} is not a folder")
         if path.is_dir() and not (path.suffix.lower() == ".zarr" and (path / "zarr.json").is_file()):
-            raise SDPError(f"{path}: is an existing directory; choose a file name for the output")
+            raise SDPError(f"{path}: is an existing directory" + (" and not a series archive; choose another output name"
+                                                                   if path.suffix.lower() == ".zarr" else
+                                                                   "; choose a file name for the output"))
         for src in ins:
             if _same_file(path, src):
                 raise SDPError(f"{path}: refusing to overwrite an input file; choose another output name")

@@ -115,16 +115,28 @@ def parse_times(values) -> tuple[np.ndarray, str]:
 
 
 def _resolve_times(epochs, times, *, start_index: int = 0):
-    """(times, kind, source) of the epochs: given, from the files, else their index."""
+    """(times, kind, source, note) of the epochs: given, from the files, else their index; ``note``
+    says why the files' own times were not used where some record one (None otherwise)."""
     if times is not None:
         t, kind = parse_times(times)
         if len(t) != len(epochs):
             raise InvalidOptionError(f"{len(t)} time(s) for {len(epochs)} epoch(s)")
-        return t, kind, "given"
+        return t, kind, "given", None
     found = [file_time(e) for e in epochs]
-    if found and all(f is not None for f in found) and len({f[0] for f in found}) == len(found):
-        return np.array([f[0] for f in found]), "date", f"file ({', '.join(sorted({f[1] for f in found}))})"
-    return np.arange(start_index, start_index + len(epochs), dtype=np.float64), "number", "index"
+    stamps = [f[0] for f in found if f is not None]
+    if found and len(stamps) == len(found) and len(set(stamps)) == len(found):
+        return np.array(stamps), "date", f"file ({', '.join(sorted({f[1] for f in found}))})", None
+    note = None
+    if stamps:  # some files are dated: say why their dates were not used
+        undated = [_name(e, k) for k, (e, f) in enumerate(zip(epochs, found)) if f is None]
+        if undated:
+            note = (f"{len(stamps)} of {len(found)} files record a time, not {', '.join(undated[:3])}"
+                    f"{' …' if len(undated) > 3 else ''}: the epochs are numbered (give --times to date them)")
+        else:
+            twice = next(x for x in stamps if stamps.count(x) > 1)
+            note = (f"two files record the same time {_show_time(twice, 'date')}: the epochs are numbered (give "
+                    f"--times to date them)")
+    return np.arange(start_index, start_index + len(epochs), dtype=np.float64), "number", "index", note
 
 
 # ------------------------------------------------------------------ inputs
@@ -176,9 +188,9 @@ def _check_append(archive: dict, given: dict, core_points, path: Path) -> None:
             continue
         kept, used = archive["given"].get(name), archive["used"].get(name)
         if not (_same(value, kept) or _same(value, used)):
-            flag = "--" + name.replace("_", "-")
-            raise InvalidOptionError(f"{flag} {value} differs from the archive's {kept} ({path}): an append keeps "
-                                     "the archive's options")
+            # named for both the command (--projection-scale) and Python (projection_scale)
+            raise InvalidOptionError(f"{name.replace('_', ' ')} {value} differs from the archive's {kept} ({path}): "
+                                     "an append keeps the archive's options")
 
 
 def _read_ahead(epochs, fmt, *, skip: int, fits, tiled: bool):
@@ -338,9 +350,9 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             by_index = times is None and all(e["time_source"] == "index" for e in attrs["epochs"])
             if by_index:  # the archive counts its epochs: the new ones go on counting, whatever their files say
                 t_new = np.arange(len(old_times), len(old_times) + len(epochs), dtype=np.float64)
-                kind, source = "number", "index"
+                kind, source, note = "number", "index", None
             else:
-                t_new, kind, source = _resolve_times(epochs, times, start_index=len(old_times))
+                t_new, kind, source, note = _resolve_times(epochs, times, start_index=len(old_times))
             if kind != attrs["time_kind"]:
                 why = "their files record no date: give times (--times)" if times is None else "give dates"
                 raise InvalidOptionError(f"the archive's epochs are dated and the new epochs' times are "
@@ -360,7 +372,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                 core = np.asarray(_core_xyz(_load(core_points, format))[0], np.float64)
                 stored = np.c_[g["x"][:], g["y"][:], g["z"][:]]
                 if core.shape != stored.shape or not np.array_equal(core, stored):
-                    raise InvalidOptionError(f"--core-points differs from the archive's core points ({out})")
+                    raise InvalidOptionError(f"the core points given differ from the archive's ({out})")
             if check is not None:
                 check(len(old_times) + len(epochs), g["x"].shape[0])
             reg_opt = params["given"]["registration_error"]
@@ -369,7 +381,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                                 format=format, align=registration is not None)
             if tiles is None:
                 execution.say_in_memory()
-            _run(epochs, out, t_new, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt,
+            _run(epochs, out, t_new, kind, source, note=note, attrs=attrs, registration=registration, reg_opt=reg_opt,
                  limit=limit, fmt=format, t_start=t_start, tiles=tiles)
         return out
     if reference is None:
@@ -378,12 +390,13 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     if reference >= len(epochs):
         raise InvalidOptionError(f"reference {reference} is not an epoch (there are {len(epochs)})")
     cylinder = as_options(Cylinder, cylinder, "cylinder")  # the defaults where none was given
-    t, kind, source = _resolve_times(epochs, times)
+    t, kind, source, note = _resolve_times(epochs, times)
     if len(np.unique(t)) != len(t):
         raise InvalidOptionError(f"two epochs have the time {_show_time(t[np.argmax(np.diff(np.sort(t)) == 0)], kind)}"
                                  f" ({source}): give distinct --times")
     if np.any(np.diff(t) <= 0):
-        raise InvalidOptionError("the times of the epochs must increase, in the order given")
+        raise InvalidOptionError("the times of the epochs must increase, in the order given"
+                                 + ("" if source == "given" else f" (read from the files: {source})"))
     reg_opt = DEFAULTS.registration_error if registration_error is None else registration_error
 
     core_count = 0 if core_points is None else count_points(core_points, format) or 0  # not read twice
@@ -448,7 +461,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                             "min_object_points": min_object_points(prepared.core_points,
                                                                    prepared.projection_scale)}}
     with A.writing(out) if out.is_dir() else contextlib.nullcontext():  # an archive replaced: not while appended to
-        _run(epochs, out, t, kind, source, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
+        _run(epochs, out, t, kind, source, note=note, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
              fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud),
              tiles=tiles)
     return out
@@ -460,7 +473,7 @@ def _show_time(value: float, kind: str) -> str:
     return f"{value:g}"
 
 
-def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt, limit, fmt, t_start,
+def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registration, reg_opt, limit, fmt, t_start,
          prepared=None, state=None, ref_cloud=None, tiles=None):
     append = prepared is None
     timings = {}
@@ -635,6 +648,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, attrs, registration, reg_opt
         attrs["runs"].append({"when": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                               "sdp_version": _version(), "added": len(epochs), "append": append,
                               "timings": {k: round(v, 4) for k, v in timings.items()},
+                              **({"times_note": note} if note else {}),
                               **({"tiled": tiles.record()} if tiles else {})})
         w.finish(attrs)
 
