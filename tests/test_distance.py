@@ -222,6 +222,22 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path, capsys):
                            core_points=tmp_path / "holed.ply")
     assert r.summary["core_points"] == 30 and r.summary["core_points_dropped"] == 1
     assert "(and 1 row holding NaN or Inf, left out)" in r.summary_text()
+    # core points carrying normals of their own: kept as given, not used, and said so
+    sdp.write_points(tmp_path / "normals.ply", core, {"nx": np.ones(30), "ny": np.zeros(30), "nz": np.zeros(30)})
+    r = sdp.distance_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "n.ply",
+                           core_points=tmp_path / "normals.ply")
+    assert r.summary["input_normals"] == ["nx", "ny", "nz"] and "(nx, ny, nz) were not used" in r.summary_text()
+    assert np.abs(r.result.normal[:, 2]).min() > 0.99  # measured on the planes, not the file's (1, 0, 0)
+    # a search shorter than the cylinder, and scales below the spacing, each said in its own words
+    capsys.readouterr()
+    assert main(["distance", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "-o", str(tmp_path / "s.ply"),
+                 "--core-points", str(tmp_path / "core.npz"), "--max-distance", "0.001"]) == 0
+    assert "--max-distance 0.001 is shorter than the cylinder itself" in capsys.readouterr().err
+    sdp.write_points(tmp_path / "own.npz", a[::100])  # the reference's own points: on the cloud
+    assert main(["distance", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "-o", str(tmp_path / "t.ply"),
+                 "--core-points", str(tmp_path / "own.npz"), "--normal-scale", "0.002"]) == 0
+    out = capsys.readouterr()
+    assert "no core point has a normal" in out.err and "no normal (80)" in out.out
 
 
 def test_hash_cells_equal_dense_cells(rng, monkeypatch):

@@ -227,7 +227,10 @@ class Cylinder:
         Diameter D of the neighbourhood of the normal; ``"auto"``: 2d, raised to 20× the
         roughness at that scale, at most 4d.
     max_distance : float or "auto"
-        How far along the normal each epoch is looked for; ``"auto"``: 12d.
+        How far along the normal each epoch is looked for; ``"auto"``: 12d. Never less than the
+        cylinder's own half-length, 0.75d (the kernel's 3σ, where its weights are cut): a smaller
+        value searches that far (M3C2's "max depth" can be shorter than its cylinder; sdp's cylinder
+        is the kernel, and the summary gives the reach used).
 
     References
     ----------

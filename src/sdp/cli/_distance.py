@@ -13,6 +13,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from .._core import _validate as V
 from .._core._memory import format_bytes
 from ..defaults import DEFAULTS
@@ -40,6 +42,10 @@ class FileDistances:
 
     def summary_text(self) -> str:
         return report.distance_text(self.summary, self.reference, self.current)
+
+
+#: Names of normals a points file may carry (PLY's, PCL's, PDAL's, CloudCompare's), in lower case.
+_NORMAL_NAMES = {"nx", "ny", "nz", "normal_x", "normal_y", "normal_z", "normalx", "normaly", "normalz"}
 
 
 def distance_files(reference, current, *, output, core_points=None, outputs: Outputs | None = None,
@@ -138,8 +144,8 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
                       orientation=orientation, sensor_origin=origin, memory_limit=memory_limit)
         like = core if core is not None else ref
         like = like if like.n_dropped == 0 else None  # rows were dropped: the input's dimensions no longer line up
-        write_points(out, d.core_points, rename_fields(d.fields(), outputs.field_names, path=out), like=like,
-                     inputs=(reference, current, core_points))
+        fields = rename_fields(d.fields(), outputs.field_names, path=out)
+        write_points(out, d.core_points, fields, like=like, inputs=(reference, current, core_points))
         outputs = [str(out)]
         if png:
             from ..viz._render import render_distances
@@ -149,6 +155,15 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
             outputs.append(str(png))
         summary = d.summary()
         summary["core_points_dropped"] = int((core if core is not None else ref).n_dropped)  # NaN/Inf rows of the file
+        if summary["core_points"] and summary["no_normal"] == summary["core_points"]:
+            # no normal anywhere: core points off the clouds, or a normal scale below the points' spacing
+            from scipy.spatial import cKDTree
+
+            sample = d.core_points[np.isfinite(d.core_points).all(axis=1)][:: max(1, summary["core_points"] // 200)]
+            summary["nearest_reference"] = float(np.median(cKDTree(ref.xyz).query(sample)[0]))
+        given = [k for k in (like.fields if like is not None else {}) if k.lower() in _NORMAL_NAMES and k not in fields]
+        if given:  # kept as input dimensions, beside the normals measured along: say which is which
+            summary["input_normals"] = given
         summary["timings"]["read"] = round(t_read, 4)
         if alignment is not None:
             summary["alignment"] = alignment.summary()

@@ -164,7 +164,14 @@ def cmd_distance(a):
                          sensor_origin=a.sensor_origin, align=_registration(a),
                          execution=_execution(a, None if a.json else _say))
     s = r.summary
-    if s["core_points"] and not s["comparable"]:  # every row NaN: most likely core points off the clouds
+    if a.max_distance not in (None, "auto") and float(a.max_distance) < s["max_distance"]:
+        _say(f"--max-distance {a.max_distance} is shorter than the cylinder itself (0.75 d, the kernel's cut): "
+             f"searched ±{s['max_distance']:.4g} along the normal")
+    if s.get("nearest_reference", float("inf")) < s["normal_scale"] / 2:  # near the points, yet no normal: too small
+        _say(f"no core point has a normal: fewer than three reference points lie within D/2 = "
+             f"{s['normal_scale'] / 2:.4g} of each; give a --normal-scale (and --projection-scale) above the "
+             f"points' spacing")
+    elif s["core_points"] and not s["comparable"]:  # every row NaN: most likely core points off the clouds
         _say(f"no core point has a distance: no epoch's points lie within the cylinders (d = "
              f"{s['projection_scale']:.4g}, ±{s['max_distance']:.4g} along the normal) of any of them; are the "
              f"core points on the clouds, in the same frame?")

@@ -177,9 +177,10 @@ def distance_text(s: dict, reference, current) -> str:
              + (f"  (and {s['core_points_dropped']:,} row{'s' if s['core_points_dropped'] != 1 else ''} holding "
                 f"NaN or Inf, left out)"
                 if s.get("core_points_dropped") else ""),
-             f"  with a distance  {s['comparable']:>12,}  ({s['comparable'] / n:.1%}; the others: an epoch has no "
-             "points near" + (f", or its sensor could not see the place ({s['not_seen']:,})" if s.get("not_seen")
-                              else "") + ", not comparable)",
+             f"  with a distance  {s['comparable']:>12,}  ({s['comparable'] / n:.1%}; the others: "
+             + (f"no normal ({s['no_normal']:,}), " if s.get("no_normal") else "") + "an epoch has too few points "
+             "near" + (f", or its sensor could not see the place ({s['not_seen']:,})" if s.get("not_seen")
+                       else "") + ", not comparable)",
              f"  significant      {s['significant']:>12,}  ({s['significant_positive']:,} +, "
              f"{s['significant_negative']:,} −; |distance| > level of detection at 95 %)",
              f"  median distance  {s['median_distance']:>12.4g}  (5–95 %: {s['distance_p05']:.4g} … "
@@ -189,6 +190,9 @@ def distance_text(s: dict, reference, current) -> str:
              f"  scales           projection d = {s['projection_scale']:.4g}, normal D = {s['normal_scale']:.4g}, "
              f"searched ±{s['max_distance']:.4g} along the normal",
              f"  time             {s['timings'].get('total', 0):.2f} s"]
+    if s.get("input_normals"):
+        lines.append(f"  the core points' own normals ({', '.join(s['input_normals'])}) were not used: kept as given "
+                     "beside the normals measured along, estimated at the normal scale")
     if "alignment" in s:
         lines.append(alignment_text(s["alignment"]))
     lines += [f"wrote {path}" for path in s.get("outputs", [])]

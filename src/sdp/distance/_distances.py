@@ -123,8 +123,11 @@ class Distances:
     core_points : ndarray (m, 3) float64
         Where the distances were measured.
     distance : ndarray (m,) float64
-        Signed distance ``mean₂ − mean₁`` along ``normal``; NaN where an epoch has fewer than two
-        effective points in the longest cylinder (not comparable: nothing to measure against).
+        Signed distance ``mean₂ − mean₁`` along ``normal``; NaN (not comparable) where no normal
+        could be fitted (fewer than three reference points within ``normal_scale / 2``), where an
+        epoch has fewer than two effective points in the longest cylinder or less weight than two
+        points on its rim (:mod:`sdp.distance._seen`), or where its sensor could not see the place
+        (``not_seen``).
     lod : ndarray (m,) float64
         Level of detection at 95 % (M3C2's LoD95), NaN where ``distance`` is.
     significant : ndarray (m,) bool
@@ -208,6 +211,7 @@ class Distances:
             "comparable": int(ok.sum()),
             "not_comparable": int((~ok).sum()) - blank,
             "not_seen": self.not_seen,
+            "no_normal": int((np.isnan(self.normal).any(axis=1) & np.isfinite(self.core_points).all(axis=1)).sum()),
             "significant": int(sig.sum()),
             "significant_positive": int((sig & (d > 0)).sum()),
             "significant_negative": int((sig & (d < 0)).sum()),
@@ -252,7 +256,8 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
         e.g. the residual of an alignment on ground known to be stable. ``"auto"`` (default):
         measured on the data, the smallest for which at most 5 % of the stable part of the
         core points (distances within 2σ_p) lies beyond the level (:mod:`sdp.distance._level`; a
-        shift of the whole scene by less than 2σ_p reads as a registration error).
+        shift of the whole scene by less than 2σ_p reads as a registration error where the scene
+        is alike throughout, as changed on its smooth parts where the rest is rough).
     orientation : array_like (3,), optional
         Direction the normals point to where the sensor is unknown; default +z.
     sensor_origin : "auto", None or array_like

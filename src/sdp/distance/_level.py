@@ -35,7 +35,11 @@ handful of chosen core points, or a scene that all moved), ``reg = 0`` too: a 5 
 n places has a standard error of √(0.05·0.95/n), 2.2 % at 100, the level's own tolerance.
 
 What this cannot tell: a shift smaller than 2σ_p of the whole scene (a registration error, or
-a real subsidence of every place by less than the kernel) reads as a registration error. Give
+a real subsidence of every place by less than the kernel) reads as a registration error where
+the scene is alike throughout; where it stands out of the noise of the scene's smooth parts and
+not of its rough ones (flat ground among trees and roofs), those smooth parts fall outside the
+stable part and read as changed instead (Toronto's ALS tile against itself raised by 5 cm: 0
+measured, 10.7 % significant). Give
 ``reg`` as a number (e.g. the residual of an alignment on ground known to be stable) where that
 matters. Where a sensor's noise exceeds 2σ_p (a depth camera far from its subject, seen with a
 kernel set by the nearer points' spacing) the stable part is cut at 2σ_p and the level is too low
