@@ -109,6 +109,8 @@ def test_a_bag_without_the_topic_lists_its_topics(tmp_path):
         bag_frames(path, "/points")
     with pytest.raises(sdp.SDPError, match=r"give --topic, one of its PointCloud2 topics \(/lidar \(1 messages\)\)"):
         watch_folder(np.zeros((10, 3)), path)
+    with pytest.raises(sdp.SDPError, match=r"sdp watch reads every message of the bag; give TOPIC"):
+        watch_folder(np.zeros((10, 3)), path, topic="/lidar:5")  # once every frame, N ignored
 
 
 def test_a_topic_without_messages_is_refused_as_an_empty_folder_is(tmp_path):

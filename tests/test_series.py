@@ -851,6 +851,26 @@ def test_times_are_read_from_the_files(slope, tmp_path):
     assert file_time(tmp_path / "missing.laz") is None and file_time(np.zeros((3, 3))) is None
 
 
+def test_a_full_stdout_after_the_archive_is_written_says_it_was(slope, tmp_path, monkeypatch, capsys):
+    """The archive is committed before its summary is printed: a failing stdout then says so."""
+    import errno
+    import sys
+
+    class Full:
+        def write(self, text):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def flush(self):
+            pass
+
+    files = _write_epochs(slope, tmp_path, 2)
+    monkeypatch.setattr(sys, "stdout", Full())
+    assert main(["series", *files, "-o", str(tmp_path / "s.zarr")]) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device; the archive was written before it" in err
+    assert describe_series(tmp_path / "s.zarr")["epochs"] == 2
+
+
 def test_an_epoch_measured_nowhere_is_named(slope, tmp_path):
     """A file of another place or frame (here 1 km off) gets no distance: the summary says so."""
     epochs = [slope.epochs[0], slope.epochs[1] + 1000.0, slope.epochs[2]]

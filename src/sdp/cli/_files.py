@@ -273,6 +273,9 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
                        f"({', '.join(f'{t} ({n} messages)' for t, n in sorted(topics.items())) or 'none'})")
     if topic is not None and not bag and not is_bag(reference):
         raise SDPError(f"{folder}: --topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if bag and not is_bag(reference) and ":" in topic:  # every message is a frame: no N to pick
+        raise SDPError(f"--topic {topic!r}: sdp watch reads every message of the bag; give TOPIC (TOPIC:N picks "
+                       "the reference's message when the reference is a bag too)")
     if not bag and not folder.is_dir():
         raise SDPError(f"{folder}: not a folder of frames nor a ROS bag")
     paths = [] if bag else sorted((p for p in folder.iterdir() if p.suffix.lower() in FORMATS and p.is_file()),

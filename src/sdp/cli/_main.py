@@ -125,7 +125,10 @@ def _print(text: str) -> None:
     except BrokenPipeError:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush too
     except OSError as exc:
-        raise SDPError(f"standard output: {exc.strerror or exc}") from None
+        # a series archive is committed before its summary (sdp.io._output.commit_point): say so
+        raise SDPError(f"standard output: {exc.strerror or exc}" + (
+            "; the archive was written before it (see `sdp info`), the other outputs were not" if _finished
+            else "")) from None
 
 
 def _line(text: str) -> None:

@@ -22,6 +22,7 @@ References
 
 from __future__ import annotations
 
+import os
 from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
@@ -42,7 +43,9 @@ _TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"
 
 def is_bag(path) -> bool:
     """A ROS 1 bag file (``.bag``), or a ROS 2 bag: a folder holding ``metadata.yaml``, or one of
-    its ``.db3`` / ``.mcap`` files."""
+    its ``.db3`` / ``.mcap`` files (arrays and clouds are not)."""
+    if not isinstance(path, (str, os.PathLike)):
+        return False
     p = Path(path)
     if p.is_dir():
         return (p / "metadata.yaml").is_file()
