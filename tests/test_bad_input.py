@@ -424,7 +424,10 @@ def slow_after_pairs(n, cases):
     (["change", "a.npy", "b.npy", "-o", "o.ply", "--sensor-origin", "none", "--range-noise", "0.01"],
      "range_noise is the sensor rays' band"),
     (["watch", "a.npy", "frames", "--update", "none", "--window", "3"], "window applies to update='window' only"),
-    (["bool", "union", "a.sdpf", "b.npy", "-o", "u.sdpf", "--voxel-size", "0.5"], "a field operand sets the lattice"),
+    (["bool", "union", "a.sdpf", "b.npy", "-o", "u.sdpf", "--voxel-size", "0.5"], "a field sets the lattice"),
+    (["mesh", "a.sdpf", "-o", "m.ply", "--sigma-voxels", "5"], "a field sets the lattice"),
+    (["watch", "a.sdpf", "frames", "--voxel-size", "0.5"], "a field sets the lattice"),
+    (["change", "a.npy", "b.npy", "-o", "o.ply", "--h", "2", "-k", "4"], "give k or h, not both"),
     (["align", "a.npy", "far.npy", "-o", "al.ply"], "the clouds do not overlap"),
     (["action", "predict", "model.npz", "empty.mat"], "empty.mat: can't read a depth sequence"),
 ]))

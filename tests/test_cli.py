@@ -188,6 +188,9 @@ def test_change_sensor_origin(tmp_path, pair):
     assert s["sensor_origin"]["reference"] == [2, 1.5, 2]
     bad = run("change", ref, cur, "-o", tmp_path / "o.ply", "--sensor-origin", "viewpoint")
     assert bad.returncode == 2 and "records no sensor position" in bad.stderr
+    # the band of the rays with no rays to follow: said, not silently ignored
+    p = run("change", ref, cur, "-o", tmp_path / "f.ply", "--voxel-size", "0.02", "--range-noise", "0.5")
+    assert p.returncode == 0 and "--range-noise 0.5 was not used: neither file records" in p.stderr
 
 
 @pytest.mark.slow

@@ -91,6 +91,8 @@ class Lattice:
                 raise InvalidOptionError("give grid_size= or voxel_size=, not both")
         if self.k is None and self.h is None:
             raise InvalidOptionError("the threshold needs k (h = 1 + k·e^-1/2) or h, got neither")
+        if self.h is not None and self.k not in (None, DEFAULTS.k):  # h wins: a k given would be ignored
+            raise InvalidOptionError("give k or h, not both: h = 1 + k·e^-1/2")
         voxel = V.check_grid_options(voxel_size=None if self.grid_size is not None else self.voxel_size,
                                      sigma_voxels=self.sigma_voxels, k=self.k, h=self.h, truncate=self.truncate)
         # kept as the numbers they were checked as: a string that reads as one ("2") is not passed on

@@ -24,6 +24,13 @@ __all__ = ["build_field_file", "mesh_file", "combine_files", "describe_file", "a
            "Evaluation", "evaluate_files", "render_file"]
 
 
+def _no_lattice(lattice: Lattice) -> None:
+    """Refuse a lattice given with a field, whose own lattice wins (it would be ignored)."""
+    if lattice != Lattice():
+        raise SDPError("a field sets the lattice (voxel, σ, h): give no --voxel-size, --sigma-voxels, -k, --h or "
+                       "--grid-size with it")
+
+
 def _lattice(clouds, lattice: Lattice, memory_limit, like=None) -> dict:
     """``DensityField.from_points`` options: ``lattice`` (``auto``: from all ``clouds``' point
     spacing), or the lattice, σ and h of the field ``like`` so results can be combined."""
@@ -31,9 +38,7 @@ def _lattice(clouds, lattice: Lattice, memory_limit, like=None) -> dict:
     from ..fields._spacing import resolve_lattice
 
     if like is not None:
-        if lattice != Lattice():  # the field's own lattice wins: a lattice given would be ignored
-            raise SDPError("a field operand sets the lattice (voxel, σ, h): give no --voxel-size, --sigma-voxels, -k, --h or "
-                           "--grid-size with it")
+        _no_lattice(lattice)
         return dict(voxel_size=like.voxel_size, sigma_voxels=like.sigma / like.voxel_size, h=like.h,
                     truncate=like.truncate, memory_limit=memory_limit)
     kw = lattice.keywords()
@@ -82,6 +87,8 @@ def _field(path, format, lattice: Lattice, memory_limit):
     """A field file loaded, or a cloud file's field built on ``lattice``."""
     from ..fields._density import DensityField
 
+    if is_field(path):
+        _no_lattice(lattice)
     x = _field_or_points(path, format)
     return x if isinstance(x, DensityField) else DensityField.from_points(x, **_lattice([x], lattice, memory_limit))
 
@@ -137,6 +144,7 @@ def mesh_file(path, *, output, level: float = 0.0, format: str | None = None, la
     if is_store(path):
         from ..scale._store import FieldStore
 
+        _no_lattice(lattice)
         mesh = FieldStore.open(path).mesh(level=level)
     else:
         with _blocks_budget([path], format, memory_limit, "use a larger --voxel-size") as blocks:
@@ -289,6 +297,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
 
         if not (isinstance(choice, str) and choice in ("auto", "none")):
             raise SDPError("--sensor-origin follows the reference's rays: give the reference cloud, not a field")
+        _no_lattice(as_options(Lattice, lattice, "lattice"))
         ref, origin = DensityField.load(reference), None
     else:  # a bag's message (--topic TOPIC: its first, TOPIC:N its N-th) or a cloud file
         ref = read_input(reference, format=format, topic=topic if is_bag(reference) else None)

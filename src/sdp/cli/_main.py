@@ -155,6 +155,10 @@ def cmd_change(a):
                         lattice=_lattice(a), coverage=_coverage(a),
                         align=_registration(a), execution=_execution(a, None if a.json else _say),
                         decision=a.decision, min_region_points=a.min_region_points, topic=a.topic, noise=_noise(a))
+    how = set((r.summary.get("coverage") or {}).values())
+    if a.range_noise != DEFAULTS.range_noise and how == {"footprint"}:  # known only once the files are read
+        _say(f"--range-noise {a.range_noise} was not used: neither file records where its sensor stood (coverage "
+             "by footprint); give --sensor-origin")
     return _show(r.summary_text(), r.summary, a.json)
 
 
