@@ -62,6 +62,14 @@ def test_mismatched_voxel_sizes_are_refused(rng):
         union(fa, fb)
 
 
+def test_fields_far_apart_are_refused_before_their_directory_is_allocated(rng):
+    a = DensityField.from_points(rng.random((300, 3)), voxel_size=0.01)
+    b = DensityField.from_points(rng.random((300, 3)) + [5e6, 0, 0], voxel_size=0.01)
+    for op in (union, intersection, difference):
+        with pytest.raises(sdp.GridTooLargeError, match="the fields span 5e\\+06 units together"):
+            op(a, b)
+
+
 @pytest.mark.slow
 def test_difference_volume_equals_the_stored_difference(two_fields, rng):
     """Change detection evaluates max(F_a, -F_b) node by node (regions.Volume); the tiled path and

@@ -99,4 +99,4 @@ def check_memory(nbytes: float, what: str, limit: int | float | str | None, *,
     if not nbytes <= cap:
         raise GridTooLargeError(
             f"{what} would need {format_bytes(nbytes)}, above {budget} of {format_bytes(cap)}: "
-            f"{advice}, or raise the memory limit ($SDP_MEMORY_LIMIT)")
+            f"{advice}, or raise the memory limit (--memory-limit, $SDP_MEMORY_LIMIT)")

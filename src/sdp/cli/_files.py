@@ -68,7 +68,7 @@ def _blocks_budget(clouds, format, memory_limit, advice: str):
     if held >= cap:
         raise GridTooLargeError(f"{', '.join(map(str, clouds))}: {what} need about {format_bytes(held)}, above the "
                                 f"memory limit of {format_bytes(cap)}: {advice}, or raise the memory limit "
-                                "($SDP_MEMORY_LIMIT)")
+                                "(--memory-limit, $SDP_MEMORY_LIMIT)")
     try:
         yield cap - held
     except GridTooLargeError as exc:  # its limit was what the points and the process leave

@@ -587,7 +587,8 @@ def _error(exc: BaseException) -> int | None:
     if isinstance(exc, (SDPError, ValueError)):
         message = _one_line(exc)
     elif isinstance(exc, MemoryError):
-        message = "out of memory: use a larger --voxel-size or a lower --memory-limit"
+        message = ("out of memory: use a larger --voxel-size, or a --memory-limit the machine has free (sdp then "
+                   "refuses, or compares in tiles, before allocating)")
     elif isinstance(exc, OSError):  # a disk full, a file vanishing: said in one line
         message = f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or _one_line(exc)}"
     else:

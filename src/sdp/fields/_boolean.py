@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._core._memory import check_memory
 from ..errors import IncompatibleFieldsError
 from ._density import DensityField
 from ._lattice import Grid
@@ -52,6 +53,10 @@ def _combine(a: DensityField, b: DensityField, name: str) -> DensityField:
     keys = np.unique(np.concatenate([a.global_keys, b.global_keys]), axis=0)
     lo, hi = keys.min(axis=0), keys.max(axis=0)
     grid = Grid(a.voxel_size, lo, tuple(int(v) for v in hi - lo + 1))
+    # the result's directory spans both fields' boxes (two clouds far apart: a vast one): refused before allocating
+    check_memory(grid.n_blocks_box * 5 + a.nbytes + b.nbytes, f"the block directory of a {grid.shape} grid", None,
+                 advice=f"the fields span {np.max(grid.shape) * a.voxel_size:g} units together; combine fields of "
+                        "the same place, or build them on a larger voxel size")
     f3 = op(a.h - a.node_values(keys), b.h - b.node_values(keys))
     h3 = float(op(np.float64(a.h), np.float64(b.h)))  # the value far from both clouds
     return DensityField(grid, keys - lo, h3 - f3, h=h3, sigma=a.sigma, truncate=a.truncate, method=name)
