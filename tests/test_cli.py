@@ -86,6 +86,21 @@ def test_demo(tmp_path):
     assert_changes_drawn(tmp_path / "demo" / "changes.png")
 
 
+def test_a_failed_demo_leaves_no_folder_it_made(tmp_path, monkeypatch, capsys):
+    import sdp
+    import sdp.data._scene
+    from sdp.cli._main import main
+
+    def fail(**kwargs):
+        raise sdp.SDPError("the disk is full")
+
+    monkeypatch.setattr(sdp.data._scene, "office_scene", fail)
+    assert main(["demo", "-o", str(tmp_path / "a" / "b")]) == 2
+    assert "the disk is full" in capsys.readouterr().err and not (tmp_path / "a").exists()
+    (tmp_path / "kept").mkdir()  # a folder that was there stays
+    assert main(["demo", "-o", str(tmp_path / "kept")]) == 2 and (tmp_path / "kept").is_dir()
+
+
 @pytest.mark.slow
 def test_bool_fields_and_clouds(tmp_path, pair):
     ref, cur = pair

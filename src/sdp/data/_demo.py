@@ -21,6 +21,18 @@ def run_demo(output: str | os.PathLike = "demo-output", *, seed: int = 0, echo: 
     """Run the demo, saying what it does through ``echo`` line by line; write into ``output``
     ``reference.ply``, ``current_labelled.ply`` (fields ``change``, ``truth``, ``region``, ``F``),
     ``current_cluster_volume.ply`` and ``changes.png``. Returns the :class:`~sdp.ChangeResult`."""
+    from .._core._validate import integer_at_least
+    from ..errors import InvalidOptionError
+    from ..io._output import new_folder
+
+    seed = integer_at_least("seed", seed, 0)  # before any folder is made
+    if not str(output).strip():
+        raise InvalidOptionError("give the demo a folder to write into (-o FOLDER), got an empty name")
+    with new_folder(output) as out:
+        return _run(out, seed=seed, echo=echo)
+
+
+def _run(out: Path, *, seed: int, echo):
     from ..change._detect import detect_changes
     from ..change._metrics import scores
     from ..io._output import write_mesh, write_points
@@ -28,14 +40,6 @@ def run_demo(output: str | os.PathLike = "demo-output", *, seed: int = 0, echo: 
     from ..viz._render import render_changes
     from ._scene import INSERTED, office_scene
 
-    from .._core._validate import integer_at_least
-    from ..errors import InvalidOptionError
-
-    seed = integer_at_least("seed", seed, 0)  # before any folder is made
-    if not str(output).strip():
-        raise InvalidOptionError("give the demo a folder to write into (-o FOLDER), got an empty name")
-    out = Path(output)
-    out.mkdir(parents=True, exist_ok=True)
     echo("Simulating a Kinect-like depth sensor in an office (ray casting, occlusion, depth noise):")
     s = office_scene(seed=seed)
     echo(f"  reference scan {len(s.reference):,} points; current scan {len(s.current):,} points with "

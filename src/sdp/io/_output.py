@@ -10,6 +10,7 @@ and :func:`write_mesh` pick the format's writer by file extension.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -27,7 +28,7 @@ from ._las import write_las
 from ._numpy import write_npz
 from ._ply import write_ply, write_ply_mesh
 
-__all__ = ["WRITTEN_AS", "check_format", "check_outputs", "refuse_overwrite", "all_or_none", "atomic_path",
+__all__ = ["WRITTEN_AS", "check_format", "check_outputs", "refuse_overwrite", "all_or_none", "atomic_path", "new_folder",
            "write_points", "write_mesh"]
 
 
@@ -139,6 +140,8 @@ def refuse_overwrite(path: str | os.PathLike, inputs=()) -> None:
 
 
 _PENDING: ContextVar[list | None] = ContextVar("sdp_pending_outputs", default=None)
+#: What to undo when the command fails (:func:`new_folder`), after its temporary files are removed.
+_UNDO: ContextVar[list | None] = ContextVar("sdp_undo_outputs", default=None)
 #: What the outermost :func:`all_or_none` calls once its outputs are committed.
 _ON_COMMIT: ContextVar = ContextVar("sdp_on_commit", default=None)
 
@@ -165,13 +168,16 @@ def all_or_none(*, on_commit=None, own: bool = False):
         yield
         return
     pending: list[tuple[str, Path]] = []
-    token, hook = _PENDING.set(pending), _ON_COMMIT.set(on_commit)
+    undo: list = []
+    token, hook, undo_token = _PENDING.set(pending), _ON_COMMIT.set(on_commit), _UNDO.set(undo)
+    committed = False
     try:
         yield
         held = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS) if _main_thread() else None
         try:
             for tmp, path in pending:
                 os.replace(tmp, path)
+            committed = True
             if on_commit is not None:
                 on_commit()
         finally:
@@ -180,8 +186,39 @@ def all_or_none(*, on_commit=None, own: bool = False):
     finally:
         _PENDING.reset(token)
         _ON_COMMIT.reset(hook)
+        _UNDO.reset(undo_token)
         for tmp, _ in pending:
             Path(tmp).unlink(missing_ok=True)
+        for step in () if committed else reversed(undo):
+            step()
+
+
+@contextmanager
+def new_folder(path: str | os.PathLike):
+    """Make the folder ``path`` (and its missing parents) for a command's outputs; the folders
+    made are removed again, when empty, if the block fails or, inside :func:`all_or_none`, if
+    the command does (after its temporary files are gone)."""
+    path = Path(path)
+    made = [p for p in (path, *path.parents) if not p.exists()]  # innermost first
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SDPError(f"{path}: can't create the folder ({exc.strerror or exc})") from None
+
+    def remove():
+        for folder in made:
+            with contextlib.suppress(OSError):  # not empty: something else wrote there meanwhile
+                folder.rmdir()
+
+    undo = _UNDO.get()
+    if undo is not None:
+        undo.append(remove)
+    try:
+        yield path
+    except BaseException:
+        if undo is None:
+            remove()
+        raise
 
 
 @contextmanager
