@@ -647,3 +647,25 @@ def test_the_demo_refuses_before_it_makes_a_folder(tmp_path, monkeypatch, capsys
     monkeypatch.chdir(tmp_path)
     assert main(["demo", *args]) == 2
     assert capsys.readouterr().err.startswith("sdp: error: ") and not list(tmp_path.iterdir())
+
+
+def test_messages_name_the_cause_not_the_librarys_advice(tmp_path):
+    rng = np.random.default_rng(0)
+    xyz = rng.random((3000, 3))
+    np.savetxt(tmp_path / "short.xyz", np.r_[xyz[:5], [[1.0, 2.0, np.nan]], xyz[5:10]][:, :3])
+    text = (tmp_path / "short.xyz").read_text().splitlines()
+    text[5] = "1.0 2.0"
+    (tmp_path / "short.xyz").write_text("\n".join(text) + "\n")
+    noise = rng.integers(0, 256, 4096, dtype=np.uint8).tobytes()
+    (tmp_path / "r.npy").write_bytes(b"\x93NUMPY\x01\x00v\x00{'descr': '|O', 'fortran_order': False, 'shape': (3,), }"
+                                     .ljust(128, b" ") + noise)
+    (tmp_path / "r.sdpf").write_bytes((tmp_path / "r.npy").read_bytes())
+    np.savez(tmp_path / "p.npz", xyz=xyz, change=np.ones(3000))
+    np.savez(tmp_path / "t.npz", xyz=xyz, change=np.ones(2999))
+    for args, message in ((["info", "short.xyz"], "the number of columns changed from 3 to 2 at row 6)"),
+                          (["info", "r.npy"], "not an array of numbers: random bytes or pickled Python objects"),
+                          (["info", "r.sdpf"], "not a readable sdp field file (not an archive of arrays)"),
+                          (["eval", "p.npz", "t.npz"], "its array 'change' holds 2,999 values for 3,000 points")):
+        p = run(*args, cwd=tmp_path)
+        assert one_line_error(p) and message in p.stderr and "usecols" not in p.stderr, p.stderr
+        assert "allow_pickle" not in p.stderr

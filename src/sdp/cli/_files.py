@@ -76,6 +76,16 @@ def _blocks_budget(clouds, format, memory_limit, advice: str):
             from None
 
 
+def _left_out(path, name: str, n: int) -> str:
+    """Why an NPZ's array ``name`` is not a per-point field (its length is not the points'), or ""."""
+    if Path(path).suffix.lower() != ".npz":
+        return ""
+    with np.load(path, allow_pickle=False) as z:
+        if name not in z.files or not z[name].ndim:
+            return ""
+        return f"; its array {name!r} holds {len(z[name]):,} values for {n:,} points"
+
+
 def _field_or_points(path, format):
     """A field file loaded, or a cloud file's points (n, 3)."""
     from ..fields._density import DensityField
@@ -349,7 +359,8 @@ def evaluate_files(predicted, truth, *, predicted_field: str = "change", truth_f
     for path, name in ((predicted, predicted_field), (truth, truth_field)):
         c = read_points(path, format=format)
         if name not in c.fields:
-            raise SDPError(f"{path}: no per-point field {name!r} (fields: {', '.join(sorted(c.fields)) or 'none'})")
+            raise SDPError(f"{path}: no per-point field {name!r} (fields: {', '.join(sorted(c.fields)) or 'none'})"
+                           + _left_out(path, name, len(c.xyz) + c.n_dropped))
         v = np.asarray(c.fields[name])
         if v.ndim != 1:
             raise SDPError(f"{path}: field {name!r} holds {v.shape[1:]} values per point; give a field of one label "

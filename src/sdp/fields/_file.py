@@ -64,7 +64,8 @@ def read(path: str | os.PathLike) -> dict:
     except FileNotFoundError:
         raise FieldFileError(f"{path}: no such file") from None
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError) as exc:
-        raise FieldFileError(f"{path}: not a readable sdp field file ({type(exc).__name__}: {exc})") from None
+        why = "not an archive of arrays" if "allow_pickle" in str(exc) else f"{type(exc).__name__}: {exc}"
+        raise FieldFileError(f"{path}: not a readable sdp field file ({why})") from None
     if meta.get("format") != "sdp-field" or meta.get("format_version") != FORMAT_VERSION:
         raise FieldFileError(f"{path}: format {meta.get('format')!r} version {meta.get('format_version')!r}; "
                              f"this sdp reads sdp-field version {FORMAT_VERSION}")

@@ -63,6 +63,9 @@ def library_error(exc: BaseException) -> bool:
 
 def unreadable(path, fmt: str, exc: BaseException) -> "CloudFileError":
     """The CloudFileError of a library exception raised while reading ``path``."""
+    if "allow_pickle" in str(exc):  # NumPy's advice to unpickle: not something sdp does with a file
+        return CloudFileError(f"{path}: can't read as {fmt} (not an array of numbers: random bytes or pickled "
+                              "Python objects, which sdp does not load)")
     return CloudFileError(f"{path}: can't read as {fmt} ({type(exc).__name__}: {_one_line(exc)})")
 
 

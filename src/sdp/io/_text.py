@@ -39,7 +39,8 @@ def read_text(path):
         try:
             arr = np.loadtxt(path, delimiter=delimiter, skiprows=head, ndmin=2, comments="#")
         except ValueError as exc:
-            raise CloudFileError(f"{path}: not a table of numbers ({exc})") from None
+            # NumPy's own advice (its `usecols`) is not an sdp option: the cause alone
+            raise CloudFileError(f"{path}: not a table of numbers ({str(exc).split('; use `usecols`')[0]})") from None
     if arr.size == 0:
         raise EmptyCloudError(f"{path}: holds a header but no point")
     if arr.shape[1] < 3:
