@@ -660,11 +660,14 @@ def test_messages_name_the_cause_not_the_librarys_advice(tmp_path):
     (tmp_path / "r.npy").write_bytes(b"\x93NUMPY\x01\x00v\x00{'descr': '|O', 'fortran_order': False, 'shape': (3,), }"
                                      .ljust(128, b" ") + noise)
     (tmp_path / "r.sdpf").write_bytes((tmp_path / "r.npy").read_bytes())
+    np.save(tmp_path / "a.npy", xyz)
+    (tmp_path / "a.sdpf").write_bytes((tmp_path / "a.npy").read_bytes())  # an array under a field's name
     np.savez(tmp_path / "p.npz", xyz=xyz, change=np.ones(3000))
     np.savez(tmp_path / "t.npz", xyz=xyz, change=np.ones(2999))
     for args, message in ((["info", "short.xyz"], "the number of columns changed from 3 to 2 at row 6)"),
                           (["info", "r.npy"], "not an array of numbers: random bytes or pickled Python objects"),
                           (["info", "r.sdpf"], "not a readable sdp field file (not an archive of arrays)"),
+                          (["mesh", "a.sdpf", "-o", "m.ply"], "not a readable sdp field file (ValueError: an array, "),
                           (["eval", "p.npz", "t.npz"], "its array 'change' holds 2,999 values for 3,000 points")):
         p = run(*args, cwd=tmp_path)
         assert one_line_error(p) and message in p.stderr and "usecols" not in p.stderr, p.stderr

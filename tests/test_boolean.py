@@ -107,4 +107,15 @@ def test_a_boolean_result_is_flagged_and_refuses_what_needs_a_density(tmp_path, 
             r.copy().accumulate(fa)
         with pytest.raises(sdp.IncompatibleFieldsError, match="accumulate"):
             fa.copy().accumulate(r)
+        with pytest.raises(sdp.IncompatibleFieldsError, match=f"scale.*{op.__name__}"):
+            r.copy().scale(0.5)
+        with pytest.raises(sdp.IncompatibleFieldsError, match=f"footprint.*{op.__name__}"):
+            r.footprint([[0.0, 0.0, 0.0]])
+    # a union or intersection moves with the threshold; a difference is refused
+    high = np.random.default_rng(1).random((2000, 3))
+    for op in (union, intersection):
+        moved = op(fa, fb).with_threshold(k=30)
+        assert np.array_equal(moved.inside(high), op(fa.with_threshold(k=30), fb.with_threshold(k=30)).inside(high))
+    with pytest.raises(sdp.IncompatibleFieldsError, match="set it on both fields"):
+        difference(fa, fb).with_threshold(k=30)
     assert not (fa.is_boolean or fa.coarsen().is_boolean or fa.with_threshold(k=4).is_boolean)

@@ -39,3 +39,18 @@ def test_level_outside_range_raises(rng):
     lone = DensityField.from_points([[0, 0, 0]], voxel_size=0.05)  # G <= 1 < h: no cluster volume
     with pytest.raises(sdp.SurfaceError):
         lone.mesh()
+
+
+def test_faces_are_wound_with_their_normals_out_of_the_volume(rng):
+    """Right-hand winding points out of F < 0: a ball's mesh has a positive signed volume, and a
+    step along each face's normal leaves the volume."""
+    p = rng.normal(size=(20_000, 3))
+    p /= np.linalg.norm(p, axis=1)[:, None]
+    f = DensityField.from_points(p, voxel_size=0.05)
+    m = f.mesh()
+    a, b, c = (m.vertices[m.faces[:, i]] for i in range(3))
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    centre = (a + b + c) / 3
+    assert np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6 > 0  # the shell's volume, outer minus inner
+    assert (f.field(centre + 0.01 * n) > 0).mean() > 0.99

@@ -294,7 +294,9 @@ class DensityField:
         1/(1 − λ) times one frame's. ``factor``: a finite number (refused in one line before the
         field is touched, as :meth:`accumulate`'s ``weight``).
         """
-        self.blocks.values *= np.float32(finite("factor", factor))
+        factor = finite("factor", factor)
+        self._refuse_boolean("scale")  # a combined F scaled is no Boolean of scaled densities
+        self.blocks.values *= np.float32(factor)
         return self
 
     @property
@@ -351,6 +353,7 @@ class DensityField:
         ``footprint(p) >= h`` says that the cloud sampled the column of p densely enough for
         the threshold, at any height (:func:`sdp.change._coverage.footprint_covered`).
         """
+        self._refuse_boolean("footprint")  # a column's sum of h − F is no count of points
         pts = _query_array(points)
         flat = np.ascontiguousarray(pts)
         flat = np.c_[flat[:, :2], np.full(len(flat), self.grid.origin[2])]  # z at the first node of a column
@@ -389,10 +392,17 @@ class DensityField:
         return self.field(points) < 0
 
     def with_threshold(self, *, k: float | None = None, h: float | None = None) -> "DensityField":
-        """The same density with another threshold (shares the node values, no copy)."""
+        """The same density with another threshold (shares the node values, no copy).
+
+        A union or intersection moves with its operands' common threshold (F shifts alike on
+        both); a difference, max(F_a, −F_b), does not: refused (:class:`~sdp.IncompatibleFieldsError`).
+        """
         if (k is None) == (h is None):
             raise InvalidOptionError("give exactly one of k= and h=")
         check_threshold(k, h)
+        if self.method == "difference":
+            raise IncompatibleFieldsError("with_threshold() of a difference is not the difference of the fields at "
+                                          "that threshold: set it on both fields, then take their difference")
         out = DensityField.__new__(DensityField)
         out.__dict__.update(self.__dict__)
         out.blocks = self.blocks.view()

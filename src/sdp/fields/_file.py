@@ -58,7 +58,10 @@ def read(path: str | os.PathLike) -> dict:
         Missing, unreadable, or not sdp-field version :data:`FORMAT_VERSION`.
     """
     try:
-        with np.load(path, allow_pickle=False) as z:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):  # an NPY array under the field's name
+            raise ValueError("an array, not an archive of a field's arrays")
+        with z:
             meta = json.loads(str(z["meta"]))
             keys, blocks = z["keys"], z["blocks"]
     except FileNotFoundError:

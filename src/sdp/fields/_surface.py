@@ -74,7 +74,9 @@ def extract_surface(field, *, level: float = 0.0) -> Mesh:
             continue
         v, f, _, _ = marching_cubes(vol, level=g_level, method="lewiner")
         verts.append(v.astype(np.float64) + lo)
-        faces.append(f + offset)
+        # scikit-image winds its faces towards the higher values (G, inside the volume): reversed,
+        # their normals point out of F < level, as STL requires and viewers and volumes expect
+        faces.append(f[:, ::-1] + offset)
         offset += len(v)
     if not verts:
         raise SurfaceError(f"no surface crosses level {level:g}")
