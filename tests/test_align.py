@@ -130,6 +130,32 @@ def test_flat_ground_keeps_the_horizontal_and_finds_the_vertical(rng):
     np.testing.assert_allclose(fixed.apply(cur)[:, :2], cur[:, :2], atol=1e-6)  # no shift, no turn about z
     free = align(ref, cur, min_constraint=0.0)  # every direction moves: the horizontal wanders
     assert free.frozen == 0
+    # the summary names what was left: the turn about z and the horizontal shifts, unless asked for
+    from sdp.cli._text import alignment_text
+
+    assert set(a.kept) <= {"yaw (about z)", "x shift", "y shift"} and len(a.kept) == a.frozen
+    assert "left at the initial pose" in alignment_text(a.summary()) and "x shift" in alignment_text(a.summary())
+    assert fixed.kept == () and "left at the initial pose" not in alignment_text(fixed.summary())
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_a_registration_whose_surfaces_do_not_coincide_says_so(shared_data):
+    """The DLUT office turned 45° and moved 1 m: both methods end where the surfaces do not
+    coincide (a residual beyond the kernel σ), and the summary says the registration has most
+    likely failed; its real re-scan, registered right, reads 0.3σ and nothing is said."""
+    from sdp.cli._text import alignment_text
+
+    ref = sdp.read_points(shared_data / "dlut" / "A603_reference.pcd").xyz
+    centre = ref.mean(axis=0)
+    turn = rigid(45.0, [0.3, 0.2, 1.0], [0.0, 0.0, 0.0])
+    turn[:3, 3] = centre + [0.67, 0.67, 0.33] - turn[:3, :3] @ centre  # about the centre, then 1 m away
+    rescan = sdp.read_points(shared_data / "dlut" / "A603_rescan1.pcd").xyz
+    for cur, failed in ((transform_points(turn, ref), True), (rescan, False)):
+        for method in ("density", "gicp"):
+            a = align(ref, cur, method=method)
+            assert (a.rmse > a.sigma) == failed, (method, a.rmse, a.sigma)
+            assert ("has most likely failed" in alignment_text(a.summary())) == failed
 
 
 def test_an_alignment_reads_as_the_shift_of_the_centroid_and_angles_about_x_y_z():

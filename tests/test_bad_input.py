@@ -428,7 +428,8 @@ def slow_after_pairs(n, cases):
     (["mesh", "a.sdpf", "-o", "m.ply", "--sigma-voxels", "5"], "a field sets the lattice"),
     (["watch", "a.sdpf", "frames", "--voxel-size", "0.5"], "a field sets the lattice"),
     (["change", "a.npy", "b.npy", "-o", "o.ply", "--h", "2", "-k", "4"], "give k or h, not both"),
-    (["align", "a.npy", "far.npy", "-o", "al.ply"], "the clouds do not overlap"),
+    (["align", "a.npy", "far.npy", "-o", "al.txt"], "the clouds do not overlap"),
+    (["align", "a.npy", "b.npy", "-o", "al.ply"], "written as a 4x4 text matrix, not as .ply"),
     (["action", "predict", "model.npz", "empty.mat"], "empty.mat: can't read a depth sequence"),
 ]))
 def test_options_and_inputs_round_2_are_one_line_errors(pre, args, message):

@@ -3,6 +3,8 @@ the registration of the current scan, the pictures."""
 
 from __future__ import annotations
 
+import dataclasses
+
 from pathlib import Path
 
 import numpy as np
@@ -67,7 +69,9 @@ def align_clouds(ref, cur, names, registration: Registration):
                 raise SDPError(f"{name}: {int(keep.sum())} points of class {shown}: too few to align on")
             picked.append(cloud.xyz[keep])
         ref_xyz, cur_xyz = picked
-    return align(ref_xyz, cur_xyz, method=registration.method, fix_horizontal=registration.fix_horizontal)
+    al = align(ref_xyz, cur_xyz, method=registration.method, fix_horizontal=registration.fix_horizontal)
+    # the shift said is the whole scan's, not that of the classes it was estimated on
+    return al if classes is None else dataclasses.replace(al, centre=cur.xyz.mean(axis=0))
 
 
 def check_picture_extras(*, png=None, html=None, report=None) -> None:

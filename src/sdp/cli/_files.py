@@ -238,6 +238,11 @@ def describe_file(path, *, format: str | None = None) -> dict:
     return info
 
 
+#: Outputs a 4x4 text matrix is not: binary point clouds, fields, meshes, pictures, pages.
+_NOT_TEXT = (".ply", ".pcd", ".las", ".laz", ".npy", ".npz", ".e57", ".bag", ".sdpf", ".zarr", ".obj", ".stl", ".png",
+             ".html")
+
+
 def align_files(reference, current, *, output, method: str = DEFAULTS.align_method, fix_horizontal: bool = False,
                 align_class=None, format: str | None = None):
     """Estimate the rigid transform that moves ``current`` onto ``reference`` (a cloud, or a
@@ -250,6 +255,10 @@ def align_files(reference, current, *, output, method: str = DEFAULTS.align_meth
 
     check_outputs([output], [reference, current])
     refuse_overwrite(output, (reference, current))
+    suffix = Path(output).suffix.lower()
+    if suffix in _NOT_TEXT:
+        raise SDPError(f"{output}: the transform is written as a 4x4 text matrix, not as {suffix}: give -o T.txt "
+                       "(--aligned-output of sdp change writes the moved scan)")
     registration = Registration(method=method, fix_horizontal=fix_horizontal, align_class=align_class)
     ref = DensityField.load(reference) if is_field(reference) else read_points(reference, format=format)
     al = align_clouds(ref, read_points(current, format=format), (reference, current), registration)

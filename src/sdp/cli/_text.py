@@ -78,6 +78,13 @@ def alignment_text(al: dict) -> str:
     if al["inside_before"] < LOW_OVERLAP:  # both methods refine a pose: from no overlap they find any
         text += (f"\n  the scans barely overlapped before ({al['inside_before']:.1%} of the current inside the "
                  "reference's volume): a registration from so little overlap is a guess; check it")
+    if al["rmse"] is not None and al.get("sigma") and al["rmse"] > al["sigma"]:
+        text += (f"\n  the residual exceeds the kernel σ = {al['sigma']:.4g} m the surfaces are compared with: they "
+                 "do not coincide, and the registration has most likely failed (move the scans closer first)")
+    if al.get("kept"):
+        text += (f"\n  left at the initial pose, the scene pinning them less than 1 % as firmly as the best "
+                 f"direction: {', '.join(al['kept'])}; where the scans may differ in those, --align gicp "
+                 "estimates all six")
     return text
 
 

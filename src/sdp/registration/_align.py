@@ -104,9 +104,15 @@ class Alignment:
         ``"density"``: how many of those directions were left at the initial transform
         (below ``min_constraint``, or fixed by ``fix_horizontal``).
     centre : ndarray (3,)
-        The centroid of the current points the transform was estimated from (with
-        ``--align-class``, of those classes), before the transform: the pivot of the rotation
-        and the point whose motion is :attr:`shift`. The world origin when not known.
+        The centroid of the current scan, before the transform: the pivot of the rotation and
+        the point whose motion is :attr:`shift`. The world origin when not known.
+    kept : tuple of str
+        ``"density"``: the motions those frozen directions mostly are (``"yaw (about z)"``,
+        ``"x shift"``, …), left at the initial transform.
+    sigma : float
+        The kernel σ of the finest level, which :attr:`rmse` is read against: after a right
+        registration the surfaces coincide within it (0.3–0.65σ on the re-scans measured), a
+        residual beyond it says they do not.
     """
 
     matrix: np.ndarray
@@ -119,6 +125,8 @@ class Alignment:
     conditioning: np.ndarray = dataclass_field(default_factory=lambda: np.zeros(0))
     frozen: int = 0
     centre: np.ndarray = dataclass_field(default_factory=lambda: np.zeros(3))
+    kept: tuple = ()
+    sigma: float = np.nan
 
     @property
     def translation(self) -> np.ndarray:
@@ -159,7 +167,7 @@ class Alignment:
                              "unit": "degrees", "convention": ROTATION_CONVENTION},
                 "inside_before": self.inside_before, "inside_after": self.inside_after, "rmse": self.rmse,
                 "seconds": self.seconds, "used": self.used, "conditioning": np.asarray(self.conditioning).tolist(),
-                "frozen": self.frozen}
+                "frozen": self.frozen, "kept": list(self.kept), "sigma": self.sigma}
 
 
 def transform_points(matrix, points) -> np.ndarray:
@@ -274,10 +282,10 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
             f"; their centres are {np.linalg.norm(transform_points(t0, cur).mean(axis=0) - ref_xyz.mean(axis=0)):.4g} apart"
         raise InvalidPointsError(f"the clouds do not overlap (no current point within the reference's volume{gap}): "
                                  f"an alignment needs them within about "
-                                 f"{ref_field.sigma * 2 ** (levels - 1):.3g} of each other; give init= (a rough "
-                                 "transform) or move them together first")
+                                 f"{ref_field.sigma * 2 ** (levels - 1):.3g} of each other; move them together "
+                                 "first (in Python: init=, a rough transform)")
     return Alignment(matrix=matrix, method=method, inside_before=before, inside_after=after, rmse=rmse,
-                     seconds=seconds, centre=cur.mean(axis=0), **info)
+                     seconds=seconds, centre=cur.mean(axis=0), sigma=float(ref_field.sigma), **info)
 
 
 def rigid_matrix(matrix, name: str = "matrix") -> np.ndarray:
@@ -318,6 +326,8 @@ _MAX_ITER = 30  # Gauss–Newton iterations per level
 _COARSE_POINTS = 20_000  # current points used on the coarser levels
 _MAX_LEVELS = 16  # pyramid levels: the coarsest σ 2^15 times the finest, beyond any scene's size
 _TOL = 1e-3  # stop a level when the step moves points by less than this × σ
+#: The motions of the Gauss–Newton unknowns (ω·radius about x, y, z; shifts along x, y, z).
+_MOTIONS = ("roll (about x)", "pitch (about y)", "yaw (about z)", "x shift", "y shift", "z shift")
 
 
 def _probe(f: DensityField, q: np.ndarray):
@@ -410,7 +420,7 @@ def _align_density(ref_field: DensityField, ref_xyz, points: np.ndarray, t0: np.
     x0 = transform_points(t0, points)
     c = x0.mean(axis=0)
     rot, t = np.eye(3), np.zeros(3)  # q = rot·(x − c) + c + t, x = t0·(point on its own ridge)
-    used, conditioning, frozen = 0.0, np.zeros(6), 0
+    used, conditioning, frozen, kept = 0.0, np.zeros(6), 0, ()
     for ref_k, cur_k in reversed(pyramid):
         sigma = ref_k.sigma
         # coarse levels only bring the estimate into the finest level's basin: fewer points
@@ -451,12 +461,14 @@ def _align_density(ref_field: DensityField, ref_xyz, points: np.ndarray, t0: np.
             rot = Rotation.from_rotvec(x[:3] / radius).as_matrix() @ rot
             t = t + x[3:]
             used, conditioning, frozen = float(ok.mean()), ev / ev[-1], int((~keep).sum())
+            kept = tuple(_MOTIONS[i] for i in np.argmax(np.abs(vec[:, ~keep]), axis=0)
+                         if not (fix_horizontal and i in (2, 3, 4)))  # those were asked for
             if np.linalg.norm(x) < _TOL * sigma:
                 break
     step = np.eye(4)
     step[:3, :3] = rot
     step[:3, 3] = c + t - rot @ c
-    return step @ t0, {"used": used, "conditioning": conditioning, "frozen": frozen}
+    return step @ t0, {"used": used, "conditioning": conditioning, "frozen": frozen, "kept": kept}
 
 
 def _align_gicp(ref: np.ndarray, cur: np.ndarray, t0: np.ndarray, voxel: float, sigma: float) -> np.ndarray:
