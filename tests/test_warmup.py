@@ -112,3 +112,20 @@ def test_warmup_writes_bytecode_where_python_would_not(tmp_path, monkeypatch):
     monkeypatch.setattr(warmup, "_package_dir", lambda: tmp_path)
     warmup._write_bytecode()
     assert Path(importlib.util.cache_from_source(str(module))).is_file()
+
+
+def test_numba_caches_in_the_temporary_folder_where_it_can_write_nowhere_else(monkeypatch, tmp_path):
+    """A read-only install used without a writable home: Numba would stop with a traceback."""
+    import os
+    import tempfile
+
+    import sdp
+
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path / "none"))  # no such folder: ~/.cache can't be made
+    monkeypatch.setattr(os, "access", lambda path, mode: False)
+    sdp._numba_cache()
+    assert os.environ["NUMBA_CACHE_DIR"] == os.path.join(tempfile.gettempdir(), f"sdp-numba-cache-{os.getuid()}")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "/somewhere")  # one given is kept
+    sdp._numba_cache()
+    assert os.environ["NUMBA_CACHE_DIR"] == "/somewhere"

@@ -27,7 +27,29 @@ References
    Comparison and Applications".
 """
 
+import os as _os
+
 import lazy_loader as _lazy
 
 __getattr__, __dir__, __all__ = _lazy.attach_stub(__name__, __file__)
 __version__ = "0.1.0"  # the one place it is written: pyproject.toml reads it (dynamic version)
+
+
+def _numba_cache() -> None:
+    """Numba caches the kernels beside the sources, else under the user's ``~/.cache``, and
+    stops with a traceback ("no locator available") when it can write neither: an install shared
+    read-only, used by a service account without a home. There, a folder of the temporary
+    directory, per user, holds the cache (an explicit ``NUMBA_CACHE_DIR`` is kept). Set before
+    Numba is imported: it reads the variable once."""
+    if _os.environ.get("NUMBA_CACHE_DIR") or _os.access(_os.path.dirname(__file__), _os.W_OK):
+        return
+    home = _os.path.expanduser("~")
+    cache = _os.path.join(home, ".cache")
+    if home != "~" and _os.access(cache if _os.path.isdir(cache) else home, _os.W_OK):
+        return
+    import tempfile
+
+    _os.environ["NUMBA_CACHE_DIR"] = _os.path.join(tempfile.gettempdir(), f"sdp-numba-cache-{_os.getuid()}")
+
+
+_numba_cache()
