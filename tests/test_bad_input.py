@@ -430,6 +430,8 @@ def slow_after_pairs(n, cases):
     (["change", "a.npy", "b.npy", "-o", "o.ply", "--h", "2", "-k", "4"], "give k or h, not both"),
     (["align", "a.npy", "far.npy", "-o", "al.txt"], "the clouds do not overlap"),
     (["align", "a.npy", "b.npy", "-o", "al.ply"], "written as a 4x4 text matrix, not as .ply"),
+    (["change", "a.npy", "b.npy", "-o", "o.ply", "-o", "p.ply"], "-o given twice (-o o.ply, -o p.ply): give it once"),
+    (["change", "a.npy", "b.npy", "-o", "o.ply", "--voxel-size", "0.1", "--voxel=0.2"], "--voxel-size given twice"),
     (["action", "predict", "model.npz", "empty.mat"], "empty.mat: can't read a depth sequence"),
 ]))
 def test_options_and_inputs_round_2_are_one_line_errors(pre, args, message):

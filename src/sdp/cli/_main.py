@@ -621,6 +621,34 @@ def _dash_values(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
     return out
 
 
+def _once(parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    """Refuse an option given twice (``-o a.ply -o b.ply``): argparse keeps the last silently.
+    Options that collect (``--epoch-output``) may repeat."""
+    sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+    command = next((t for t in argv if not t.startswith("-")), None)
+    if sub is None or command not in sub.choices:
+        return
+    cmd = sub.choices[command]
+    strings = cmd._option_string_actions
+    seen: dict[str, str] = {}
+    for i, token in enumerate(argv):
+        if token == "--":
+            break
+        name = token.split("=", 1)[0]
+        if not name.startswith("-") or name in ("-", "--"):
+            continue
+        found = [o for o in strings if o == name] or [o for o in strings if o.startswith("--") and o.startswith(name)]
+        if len(found) != 1:
+            continue  # not an option, or an ambiguous prefix: argparse says so
+        action = strings[found[0]]
+        if isinstance(action, (argparse._AppendAction, argparse._CountAction, argparse._HelpAction)):
+            continue
+        shown = token if "=" in token or action.nargs == 0 or i + 1 == len(argv) else f"{token} {argv[i + 1]}"
+        if action.dest in seen:
+            cmd.error(f"{found[0]} given twice ({seen[action.dest]}, {shown}): give it once")
+        seen[action.dest] = shown
+
+
 def main(argv=None, *, restore_signals: bool = True) -> int:
     """Run the ``sdp`` command line ``argv`` (default ``sys.argv[1:]``); returns the exit status.
 
@@ -629,7 +657,9 @@ def main(argv=None, *, restore_signals: bool = True) -> int:
     the process ends; else the previous handlers are put back)."""
     global _quiet, _signalled, _finished
     parser = build_parser()
-    args = parser.parse_args(_dash_values(parser, list(sys.argv[1:] if argv is None else argv)))
+    argv = _dash_values(parser, list(sys.argv[1:] if argv is None else argv))
+    _once(parser, argv)
+    args = parser.parse_args(argv)
     quiet = getattr(args, "quiet", False)
     _progress.enable(not (quiet or getattr(args, "json", False)))
     in_main = threading.current_thread() is threading.main_thread()
