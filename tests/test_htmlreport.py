@@ -238,3 +238,19 @@ def test_the_combined_decisions_level_is_in_the_summary_table(tmp_path, rng):
         if shown:
             s = r.summary()["current"]["level"]
             assert f"1.96·σ_s = {1.96 * s['systematic']:.3g} m, p = {s['range_exponent']:.2f}" in page
+
+
+def test_a_distance_report_without_any_distance_says_so_without_warnings(tmp_path, rng):
+    import warnings
+
+    from sdp.viz._render import distances_figure
+
+    gx, gy = np.meshgrid(np.arange(0, 30, 1.0), np.arange(0, 20, 1.0))
+    ref = np.c_[gx.ravel(), gy.ravel(), 0.05 * rng.standard_normal(gx.size)]
+    d = sdp.distances(ref, ref + [500, 0, 0])  # far from every core point
+    assert d.summary()["comparable"] == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # matplotlib's of an empty legend, of the layout
+        sdp.distance_report(tmp_path / "d.html", d)
+        hist = distances_figure(d.core_points, d.distance, d.significant, d.lod).axes[-1]
+    assert [t.get_text() for t in hist.texts] == ["no core point has a distance"] and hist.get_legend() is None
