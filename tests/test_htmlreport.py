@@ -254,3 +254,34 @@ def test_a_distance_report_without_any_distance_says_so_without_warnings(tmp_pat
         sdp.distance_report(tmp_path / "d.html", d)
         hist = distances_figure(d.core_points, d.distance, d.significant, d.lod).axes[-1]
     assert [t.get_text() for t in hist.texts] == ["no core point has a distance"] and hist.get_legend() is None
+
+
+def test_report_points_that_do_not_match_the_result_are_refused_in_one_line(tmp_path, rng):
+    ref, cur = landscape(rng, building=False)
+    r = sdp.detect_changes(ref, cur)
+    with pytest.raises(sdp.InvalidPointsError, match=r"current: 5,999 points, but result.current_state describes "
+                                                     r"6,000") as err:
+        sdp.change_report(tmp_path / "r.html", r, ref, cur[:-1])
+    assert "\n" not in str(err.value)
+    with pytest.raises(sdp.InvalidPointsError, match=r"reference: x, y, z .* \(6000, 2\)"):
+        sdp.change_report(tmp_path / "r.html", r, ref[:, :2], cur)
+    for write, args in ((sdp.change_report, (r, ref, cur)), (sdp.distance_report, (None,))):
+        with pytest.raises(sdp.InvalidOptionError, match="writes HTML; name it ….html or ….htm"):
+            write(tmp_path / "r.png", *args)
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_distance_report_without_any_distance_says_so_without_warnings(tmp_path, rng):
+    import warnings
+
+    from sdp.viz._render import distances_figure
+
+    gx, gy = np.meshgrid(np.arange(0, 30, 1.0), np.arange(0, 20, 1.0))
+    ref = np.c_[gx.ravel(), gy.ravel(), 0.05 * rng.standard_normal(gx.size)]
+    d = sdp.distances(ref, ref + [500, 0, 0])  # far from every core point
+    assert d.summary()["comparable"] == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # matplotlib's of an empty legend, of the layout
+        sdp.distance_report(tmp_path / "d.html", d)
+        hist = distances_figure(d.core_points, d.distance, d.significant, d.lod).axes[-1]
+    assert [t.get_text() for t in hist.texts] == ["no core point has a distance"] and hist.get_legend() is None

@@ -119,6 +119,10 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
     ------
     MissingDependencyError
         matplotlib or plotly is not installed (``pip install 'sdp[plots]'``).
+    InvalidOptionError
+        ``path`` is not named ``….html`` (or ``….htm``).
+    InvalidPointsError
+        ``reference`` or ``current`` is not (n, 3), or not as long as the result's states of it.
 
     Examples
     --------
@@ -129,7 +133,10 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
     from ._render import changes_figure, is_map, png_bytes
 
     t0 = time.perf_counter()
-    reference, current = np.asarray(reference, np.float64), np.asarray(current, np.float64)
+    _check_page(path)
+    reference, current = (_checked_points(name, xyz, len(getattr(result, state)), f"result.{state}")
+                          for name, xyz, state in (("reference", reference, "reference_state"),
+                                                   ("current", current, "current_state")))
     s = summary if summary is not None else result.summary()
     clouds = [c for c in (reference, current) if len(c)]
     lo = np.min([c.min(axis=0) for c in clouds], axis=0)
@@ -328,6 +335,8 @@ def distance_report(path: str | os.PathLike, result, *, summary: dict | None = N
     ------
     MissingDependencyError
         matplotlib or plotly is not installed (``pip install 'sdp[plots]'``).
+    InvalidOptionError
+        ``path`` is not named ``….html`` (or ``….htm``).
 
     References
     ----------
@@ -338,6 +347,7 @@ def distance_report(path: str | os.PathLike, result, *, summary: dict | None = N
     from ._render import distances_figure, is_map, map_origin, png_bytes
 
     t0 = time.perf_counter()
+    _check_page(path)
     s = summary if summary is not None else result.summary()
     xyz = np.asarray(result.core_points, np.float64)
     d = np.asarray(result.distance, np.float64)
@@ -394,6 +404,27 @@ def _distance_summary(s: dict, names) -> str:
 
 
 # --- the parts of a page ---------------------------------------------------------------------------
+
+def _check_page(path) -> None:
+    """Refuse, before any drawing, a page not named ``….html``: as ``--report`` does."""
+    from .._core._validate import picture_path
+
+    picture_path("report", path)
+
+
+def _checked_points(name: str, xyz, n: int, described: str) -> np.ndarray:
+    """``xyz`` as (n, 3) float64, or one line naming the mismatch: points that are not the ones
+    the result describes would be drawn with another point's state (or fail deep in matplotlib)."""
+    from ..errors import InvalidPointsError
+
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1:] != (3,) or xyz.dtype.kind not in "iuf":
+        raise InvalidPointsError(f"{name}: x, y, z of the points as (n, 3) real numbers, got {xyz.dtype} {xyz.shape}")
+    if len(xyz) != n:
+        raise InvalidPointsError(f"{name}: {len(xyz):,} points, but {described} describes {n:,}: give the points "
+                                 "the result was computed from (with an alignment, the moved ones)")
+    return xyz.astype(np.float64, copy=False)
+
 
 def _reasons() -> dict[str, str]:
     """Each default's reason, as :class:`sdp.Defaults` documents it (the one place it is written)."""
@@ -585,6 +616,7 @@ def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, p
     require_extras()
     from ._render import png_bytes, pyplot
 
+    _check_page(path)
     plt = pyplot()
     t0 = time.perf_counter()
     attrs = ds.attrs
