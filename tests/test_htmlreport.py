@@ -285,3 +285,73 @@ def test_a_distance_report_without_any_distance_says_so_without_warnings(tmp_pat
         sdp.distance_report(tmp_path / "d.html", d)
         hist = distances_figure(d.core_points, d.distance, d.significant, d.lod).axes[-1]
     assert [t.get_text() for t in hist.texts] == ["no core point has a distance"] and hist.get_legend() is None
+
+
+def embedded_json(page: str, command: str) -> dict:
+    import html
+    import json
+
+    return json.loads(html.unescape(re.search(rf"sdp {command} --json\)</summary><pre>(.*?)</pre>", page, re.S)[1]))
+
+
+def small_scene(rng, tmp_path):
+    """Two small PLY epochs with LAS classes (2 ground, 6 a roof 5 m up in the current), the
+    current also 0.2 m higher: a density alignment on the ground finds the lift."""
+    gx, gy = np.meshgrid(np.arange(0, 40, 1.0), np.arange(0, 30, 1.0))
+    xy = np.c_[gx.ravel(), gy.ravel()] + rng.uniform(-0.3, 0.3, (gx.size, 2))
+    ref = np.c_[xy, 0.05 * rng.standard_normal(len(xy)) + 0.3 * np.sin(xy[:, 0] / 5)]
+    cur = ref + [0, 0, 0.2]
+    roof = (xy[:, 0] > 10) & (xy[:, 0] < 20) & (xy[:, 1] > 10) & (xy[:, 1] < 18)
+    cur[roof, 2] += 5
+    classes = {"classification": np.where(roof, 6, 2).astype(np.uint8)}
+    sdp.write_points(tmp_path / "ref.ply", ref, classes)
+    sdp.write_points(tmp_path / "cur.ply", cur, classes)
+    return ref, cur
+
+
+def test_the_reports_json_is_what_json_prints_and_its_time_the_same(tmp_path, rng):
+    import json
+
+    from sdp._core._json import dumps
+
+    small_scene(rng, tmp_path)
+    for command, run in (("change", sdp.compare_files), ("distance", sdp.distance_files)):
+        r = run(tmp_path / "ref.ply", tmp_path / "cur.ply", output=tmp_path / f"{command}.ply",
+                outputs=sdp.Outputs(report=tmp_path / f"{command}.html"))
+        page = (tmp_path / f"{command}.html").read_text()
+        # the page's JSON is the summary --json prints, the report's own time in both
+        assert embedded_json(page, command) == json.loads(dumps(r.summary)), command
+        assert "report" in r.summary["timings"] and (command == "distance" or "inputs" in r.summary)
+        shown = re.search(r"this report \(pictures, view\)</td><td>([\d,.]+) ms", page)[1]
+        assert shown == f"{r.summary['timings']['report'] * 1e3:,.1f}", command
+
+
+def test_report_points_that_do_not_match_the_result_are_refused_in_one_line(tmp_path, rng):
+    ref, cur = landscape(rng, building=False)
+    r = sdp.detect_changes(ref, cur)
+    with pytest.raises(sdp.InvalidPointsError, match=r"current: 5,999 points, but result.current_state describes "
+                                                     r"6,000") as err:
+        sdp.change_report(tmp_path / "r.html", r, ref, cur[:-1])
+    assert "\n" not in str(err.value)
+    with pytest.raises(sdp.InvalidPointsError, match=r"reference: x, y, z .* \(6000, 2\)"):
+        sdp.change_report(tmp_path / "r.html", r, ref[:, :2], cur)
+    for write, args in ((sdp.change_report, (r, ref, cur)), (sdp.distance_report, (None,))):
+        with pytest.raises(sdp.InvalidOptionError, match="writes HTML; name it ….html or ….htm"):
+            write(tmp_path / "r.png", *args)
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_distance_report_without_any_distance_says_so_without_warnings(tmp_path, rng):
+    import warnings
+
+    from sdp.viz._render import distances_figure
+
+    gx, gy = np.meshgrid(np.arange(0, 30, 1.0), np.arange(0, 20, 1.0))
+    ref = np.c_[gx.ravel(), gy.ravel(), 0.05 * rng.standard_normal(gx.size)]
+    d = sdp.distances(ref, ref + [500, 0, 0])  # far from every core point
+    assert d.summary()["comparable"] == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # matplotlib's of an empty legend, of the layout
+        sdp.distance_report(tmp_path / "d.html", d)
+        hist = distances_figure(d.core_points, d.distance, d.significant, d.lod).axes[-1]
+    assert [t.get_text() for t in hist.texts] == ["no core point has a distance"] and hist.get_legend() is None

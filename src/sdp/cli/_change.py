@@ -360,11 +360,12 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
     if report:
         outputs.append(str(report))
     summary["outputs"] = outputs
+    names = [f"{f} ({topic})" if is_bag(f) else str(f) for f in (reference, current)]  # which message
+    summary["inputs"] = names  # before the report: its JSON is the summary --json prints
     if report:
         from ..change._visibility import sensor_range_noise
         from ..viz._report import change_report
 
-        t = time.perf_counter()
         given = coverage.sensor_origin
         options = dict(voxel_size=lattice.voxel_size, grid_size=lattice.grid_size, sigma_voxels=lattice.sigma_voxels,
                        k=lattice.k, h=lattice.h, decision=detect["decision"],
@@ -372,11 +373,8 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                        range_noise=max(sensor_range_noise(c, coverage.range_noise) for c in (ref, cur)),
                        **detect["noise"].given,
                        sensor_origin=given if isinstance(given, str) else given.tolist())
-        change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options,
+        change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options, timings=summary["timings"],
                       names=tuple(Path(f).name + (f" ({topic})" if is_bag(f) else "") for f in (reference, current)))
-        summary["timings"]["report"] = time.perf_counter() - t
-    names = [f"{f} ({topic})" if is_bag(f) else str(f) for f in (reference, current)]  # which message
-    summary["inputs"] = names
     return FileComparison(*names, r, summary, tiled=False, alignment=alignment, outputs=outputs)
 
 

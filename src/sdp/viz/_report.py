@@ -83,7 +83,7 @@ def decimation(n: int, budget: int) -> int:
 def change_report(path: str | os.PathLike, result, reference: np.ndarray, current: np.ndarray, *,
                   summary: dict | None = None, names: tuple[str, str] = ("reference", "current"),
                   options: dict | None = None, max_points: int = POINT_BUDGET, thumbnails: int = THUMBNAILS,
-                  seed: int = 0) -> Path:
+                  seed: int = 0, timings: dict | None = None) -> Path:
     """Write the HTML report of a change detection (``sdp change --report``).
 
     Parameters
@@ -110,6 +110,10 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
         Regions per direction with a thumbnail, largest first.
     seed : int
         Of the random decimation.
+    timings : dict, optional
+        Where the report's own time goes, as ``"report"`` (seconds, to 0.1 ms: drawing and assembling
+        the page; its writing, after, is not in it), before the page's JSON is made: ``sdp change``
+        passes its summary's timings, so the page's table, its JSON and ``--json`` give one number.
 
     Returns
     -------
@@ -158,14 +162,14 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
     hist = _img(png_bytes(_region_histogram(s)), "histogram of the change regions' sizes")
     view, note = _change_view(directions, lo, hi, max_points, seed)
     title = f"sdp change: {names[0]} → {names[1]}"
-    seconds = time.perf_counter() - t0
+    seconds = _report_seconds(t0, timings)
     from ..cli import _text as report
 
     body = [f"<h1>{_e(title)}</h1>",
             _section("Summary", _change_summary(s, names) + _parameters(s, options, "change")
                      + _timings(s, seconds)
                      + _details("The summary as printed", f"<pre>{_e(report.change_text(s, *names))}</pre>")
-                     + _details("The summary as JSON (sdp change --json)", f"<pre>{_e(_json(s))}</pre>")),
+                     + _json_details("change", s)),
             _section("Where it changed" if flat else "Views", "".join(maps)
                      + ("<p>A top-down map: x, y relative to the round origin named on the axes, in metres "
                         "(the scale bar's unit), north up (+y); the largest regions outlined and numbered.</p>"
@@ -313,7 +317,7 @@ def _change_view(directions, lo, hi, budget: int, seed: int) -> tuple[str, str]:
 
 def distance_report(path: str | os.PathLike, result, *, summary: dict | None = None,
                     names: tuple[str, str] = ("reference", "current"), options: dict | None = None,
-                    max_points: int = POINT_BUDGET, seed: int = 0) -> Path:
+                    max_points: int = POINT_BUDGET, seed: int = 0, timings: dict | None = None) -> Path:
     """Write the HTML report of signed distances (``sdp distance --report``).
 
     Parameters
@@ -323,7 +327,7 @@ def distance_report(path: str | os.PathLike, result, *, summary: dict | None = N
     result : Distances
         Of :func:`sdp.distances` (``core_points``, ``distance``, ``lod``, ``significant``,
         ``summary()``).
-    summary, names, options, max_points, seed
+    summary, names, options, max_points, seed, timings
         As in :func:`change_report` (``options``: ``projection_scale``, ``normal_scale``,
         ``max_distance``, ``registration_error``, …).
 
@@ -375,13 +379,14 @@ def distance_report(path: str | os.PathLike, result, *, summary: dict | None = N
             + f" Significant distances coloured from −{limit:.3g} (purple) to +{limit:.3g} (orange)."
             + _relative(origin))
     view = _plotly(traces, origin, limit=limit)
+    seconds = _report_seconds(t0, timings)
     from ..cli import _text as report
 
     body = [f"<h1>{_e(title)}</h1>",
             _section("Summary", _distance_summary(s, names) + _parameters(s, options, "distance")
-                     + _timings(s, time.perf_counter() - t0)
+                     + _timings(s, seconds)
                      + _details("The summary as printed", f"<pre>{_e(report.distance_text(s, *names))}</pre>")
-                     + _details("The summary as JSON (sdp distance --json)", f"<pre>{_e(_json(s))}</pre>")),
+                     + _json_details("distance", s)),
             _section("Distances: map and histogram" if flat else "Distances: view and histogram", picture
                      + "<p>Left: the significant distances (|distance| above the level of detection at 95 %), "
                      "points within it pale, points without a distance grey. Right: the histogram of the signed "
@@ -497,10 +502,28 @@ def _coverage(s: dict) -> str:
     return "; ".join(f"{k}: {v}" for k, v in s.get("coverage", {}).items()) or "off"
 
 
+def _report_seconds(t0: float, timings: dict | None) -> float:
+    """The report's time since ``t0``, to 0.1 ms, put in ``timings["report"]`` when given: the one
+    number the page's table, its JSON and ``--json`` give."""
+    seconds = round(time.perf_counter() - t0, 4)
+    if timings is not None:
+        timings["report"] = seconds
+    return seconds
+
+
 def _timings(s: dict, report_seconds: float) -> str:
-    rows = [(k, f"{v * 1e3:,.1f} ms") for k, v in s.get("timings", {}).items()]
+    rows = [(k, f"{v * 1e3:,.1f} ms") for k, v in s.get("timings", {}).items() if k != "report"]
     rows.append(("this report (pictures, view)", f"{report_seconds * 1e3:,.1f} ms"))
     return "<h3>Timings</h3>" + _table(("step", "time"), rows)
+
+
+def _json_details(command: str, s: dict) -> str:
+    """The summary as ``sdp COMMAND --json`` prints it, and what of it the page could not know."""
+    has_time = "report" in s.get("timings", {})
+    note = ("<p>What --json prints: its timings' report is the time to draw and assemble this page (writing the "
+            "file, after, is in no timing).</p>" if has_time else
+            "<p>The report's own time is not in it (it is in the Timings table above).</p>")
+    return _details(f"The summary as JSON (sdp {command} --json)", f"<pre>{_e(_json(s))}</pre>{note}")
 
 
 def _plotly(traces, origin, *, limit: float | None = None) -> str:
