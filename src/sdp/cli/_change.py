@@ -30,8 +30,8 @@ from ..io._output import all_or_none, check_format, check_outputs
 from ..options import Coverage, Execution, Lattice, NoiseModel, Outputs, Registration, as_options
 from . import _text as report
 from ..io._bag import is_bag
-from ._common import (align_clouds, check_picture_extras, disappeared_path, is_store, pictures, read_input,
-                      sensor_origins)
+from ._common import (align_clouds, alignment_summary, check_picture_extras, disappeared_path, is_store, pictures,
+                      read_input, sensor_origins)
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
 
@@ -355,7 +355,7 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
     summary = r.summary()
     summary["timings"]["read"] = t_read
     if alignment is not None:
-        summary["alignment"] = alignment.summary()
+        summary["alignment"] = alignment_summary(alignment, align)
         summary["timings"]["align"] = alignment.seconds
     if report:
         outputs.append(str(report))

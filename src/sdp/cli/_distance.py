@@ -24,7 +24,7 @@ from ..io._output import all_or_none, check_format, check_outputs
 from ..io._read import read_points
 from ..options import Cylinder, Execution, Outputs, Registration, as_options
 from . import _text as report
-from ._common import align_clouds, check_picture_extras, sensor_origins
+from ._common import align_clouds, alignment_summary, check_picture_extras, sensor_origins
 
 __all__ = ["FileDistances", "distance_files"]
 
@@ -166,7 +166,7 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
             summary["input_normals"] = given
         summary["timings"]["read"] = round(t_read, 4)
         if alignment is not None:
-            summary["alignment"] = alignment.summary()
+            summary["alignment"] = alignment_summary(alignment, align)
         if report:
             from ..viz._report import distance_report
 

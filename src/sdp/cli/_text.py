@@ -75,10 +75,17 @@ def alignment_text(al: dict) -> str:
     text = (f"aligned current onto reference ({al['method']}): {motion_text(al)}\n"
             f"  inside the reference's volume {al['inside_before']:.1%} → {al['inside_after']:.1%}, "
             f"{residual}, {al['seconds']:.2f} s")
-    if al["inside_before"] < LOW_OVERLAP:  # both methods refine a pose: from no overlap they find any
-        text += (f"\n  the scans barely overlapped before ({al['inside_before']:.1%} of the current inside the "
-                 "reference's volume): a registration from so little overlap is a guess; check it")
-    return text
+    warning = overlap_warning(al)
+    return text + (f"\n  {warning}" if warning else "")
+
+
+def overlap_warning(al: dict) -> str:
+    """The warning of an alignment (:meth:`sdp.Alignment.summary`) that started from almost no
+    overlap, or ""."""
+    if al["inside_before"] >= LOW_OVERLAP:  # both methods refine a pose: from no overlap they find any
+        return ""
+    return (f"the scans barely overlapped before ({al['inside_before']:.1%} of the current inside the "
+            "reference's volume): a registration from so little overlap is a guess; check it")
 
 
 #: Share of the current's points inside the reference's volume before an alignment below which the

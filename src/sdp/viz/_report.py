@@ -486,12 +486,28 @@ def _parameters(s: dict, options: dict | None, kind: str) -> str:
                  if "sensor" in str(s["orientation"]) or "scanner" in str(s["orientation"])
                  else "no sensor known: the default direction, up (+z), as M3C2 orients its normals")]
     if "alignment" in s:
-        al = s["alignment"]
-        from ..cli._text import motion_text
-
-        rows.append(("alignment", f"{al['method']}: {motion_text(al)}; residual {al['rmse']:.4g} m (RMS)",
-                     "given (--align)"))
+        rows.append(_alignment_row(s["alignment"]))
     return "<h3>Parameters</h3>" + _table(("parameter", "value", "why"), rows)
+
+
+def _alignment_row(al: dict) -> tuple[str, str, str]:
+    """The parameters' row of an alignment: how it was asked for (``--align-class``,
+    ``--fix-horizontal``), the motion, the overlap before and after, the residual, and the
+    warning of a start from almost no overlap, in view rather than only in the JSON."""
+    from ..cli._text import motion_text, overlap_warning
+
+    classes, fixed = al.get("align_class"), al.get("fix_horizontal")
+    how = al["method"] + (f" on the points of class {', '.join(map(str, classes))} of both scans" if classes else "")
+    how += ", x, y and the heading kept (the vertical shift and the tilts estimated)" if fixed else ""
+    rmse = al.get("rmse")
+    residual = (f"residual {rmse:.4g} m (RMS)" if rmse is not None and np.isfinite(rmse) else
+                "no residual (a field holds no points to measure it to)")
+    value = (f"{how}: {motion_text(al)}; inside the reference's volume {al['inside_before']:.1%} → "
+             f"{al['inside_after']:.1%}; {residual}")
+    warning = overlap_warning(al)
+    given = (f"--align {al['method']}" + (f" --align-class {','.join(map(str, classes))}" if classes else "")
+             + (" --fix-horizontal" if fixed else ""))
+    return "alignment", value + (f". Warning: {warning}." if warning else ""), f"given ({given})"
 
 
 def _relative(origin) -> str:
@@ -715,13 +731,17 @@ def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, p
                ("smoothing lag", f"{p['smoother']['lag']} epochs", p["smoother"]["lag_reason"]),
                ("steps", f"k = {p['smoother']['step_k']}", "an innovation beyond k σ confirmed by the next epoch"),
                ("objects", f"radius {p['objects']['neighbour_radius']:.4g}, ≥ {p['min_object_points']} core points",
-                p["objects"]["rule"])]
+                p["objects"]["rule"]),
+               ("alignment", used.get("align") or "none",
+                "given (--align): each epoch moved onto the reference before it was measured (its residual below)"
+                if used.get("align") else "none given: each epoch is measured in its file's frame")]
     from ..cli._text import series_text
 
     s = summary or {}
     body = [f"<h1>{_e('sdp series: ' + str(s.get('path', '')))}</h1>",
             _section("Summary", (f"<pre>{_e(series_text(s))}</pre>" if s else "")
                      + _table(("parameter", "value", "why"), reasons)
+                     + _epoch_table(attrs)
                      + f"<p>Report written in {time.perf_counter() - t0:.2f} s.</p>"
                      + _details("The summary as JSON (sdp info ARCHIVE.zarr)", f"<pre>{_e(_json(s))}</pre>")),
             _section("Total change and velocity", maps + "<p>Core points whose smoothed change at the last epoch "
@@ -730,3 +750,32 @@ def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, p
             _section("Through time", series_png),
             _section("Objects of change", objects)]
     return _write(path, "sdp series report", body)
+
+
+def _epoch_table(attrs: dict) -> str:
+    """One row per epoch from the archive's records: its time, points, the core points it was
+    measured at, the significant share of those, its registration error and, where it was aligned,
+    the alignment's rotation and residual (what the collapsed JSON alone held)."""
+    from scipy.spatial.transform import Rotation
+
+    epochs = attrs["epochs"]
+    ref = attrs["parameters"]["used"]["reference"]
+    rows = []
+    for k, e in enumerate(epochs[:_TABLE_ROWS]):
+        t = e["time"]
+        when = (str(np.datetime64("1970-01-01T00:00:00", "s") + np.timedelta64(int(round(t * 86400)), "s"))
+                if attrs.get("time_kind") == "date" else f"{t:g}")
+        share = ("reference" if k == ref else f"{e['significant'] / e['comparable']:.1%}" if e["comparable"]
+                 else "not measured")
+        al = e.get("alignment")
+        if al:
+            angle = np.degrees(Rotation.from_matrix(np.asarray(al["matrix"], np.float64)[:3, :3]).magnitude())
+            moved = f"rotation {angle:.4f}°, residual {al['rmse']:.4g} m (RMS)"
+        else:
+            moved = "reference" if k == ref else "not aligned"
+        rows.append((str(k), when, f"{e['points']:,}", f"{e['comparable']:,}", share,
+                     f"{e['registration_error']:.4g}", moved))
+    more = f" (the first {_TABLE_ROWS} of {len(epochs):,})" if len(epochs) > _TABLE_ROWS else ""
+    return (f"<h3>Epochs{more}</h3>"
+            + _table(("epoch", "time", "points", "core points measured", "significant (of those measured)",
+                      "registration error", "alignment"), rows))
