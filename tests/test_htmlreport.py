@@ -238,3 +238,125 @@ def test_the_combined_decisions_level_is_in_the_summary_table(tmp_path, rng):
         if shown:
             s = r.summary()["current"]["level"]
             assert f"1.96·σ_s = {1.96 * s['systematic']:.3g} m, p = {s['range_exponent']:.2f}" in page
+
+
+def visible_text(page: str) -> str:
+    """The page's text a reader sees without opening anything: no script, no collapsed <details>."""
+    import html
+
+    page = re.sub(r"<script.*?</script>|<details>.*?</details>", "", page, flags=re.S)
+    return html.unescape(re.sub(r"<[^>]+>", " ", page))
+
+
+def embedded_json(page: str, command: str) -> dict:
+    import html
+    import json
+
+    return json.loads(html.unescape(re.search(rf"sdp {command} --json\)</summary><pre>(.*?)</pre>", page, re.S)[1]))
+
+
+def small_scene(rng, tmp_path):
+    """Two small PLY epochs with LAS classes (2 ground, 6 a roof 5 m up in the current), the
+    current also 0.2 m higher: a density alignment on the ground finds the lift."""
+    gx, gy = np.meshgrid(np.arange(0, 40, 1.0), np.arange(0, 30, 1.0))
+    xy = np.c_[gx.ravel(), gy.ravel()] + rng.uniform(-0.3, 0.3, (gx.size, 2))
+    ref = np.c_[xy, 0.05 * rng.standard_normal(len(xy)) + 0.3 * np.sin(xy[:, 0] / 5)]
+    cur = ref + [0, 0, 0.2]
+    roof = (xy[:, 0] > 10) & (xy[:, 0] < 20) & (xy[:, 1] > 10) & (xy[:, 1] < 18)
+    cur[roof, 2] += 5
+    classes = {"classification": np.where(roof, 6, 2).astype(np.uint8)}
+    sdp.write_points(tmp_path / "ref.ply", ref, classes)
+    sdp.write_points(tmp_path / "cur.ply", cur, classes)
+    return ref, cur
+
+
+def test_the_report_shows_how_it_aligned(tmp_path, rng):
+    small_scene(rng, tmp_path)
+    r = sdp.compare_files(tmp_path / "ref.ply", tmp_path / "cur.ply", output=tmp_path / "out.ply",
+                          outputs=sdp.Outputs(report=tmp_path / "r.html"),
+                          align=sdp.Registration(method="density", align_class="2", fix_horizontal=True))
+    al = r.summary["alignment"]
+    assert al["align_class"] == [2] and al["fix_horizontal"] is True  # in the JSON summary too
+    page = (tmp_path / "r.html").read_text()
+    row = re.search(r"<tr><td>alignment</td>.*?</tr>", page)[0]
+    assert "given (--align density --align-class 2 --fix-horizontal)" in row and "class 2" in row
+    assert f"inside the reference&#x27;s volume {al['inside_before']:.1%} → {al['inside_after']:.1%}" in row
+
+
+def test_the_reports_json_is_what_json_prints_and_its_time_the_same(tmp_path, rng):
+    import json
+
+    from sdp._core._json import dumps
+
+    small_scene(rng, tmp_path)
+    for command, run in (("change", sdp.compare_files), ("distance", sdp.distance_files)):
+        r = run(tmp_path / "ref.ply", tmp_path / "cur.ply", output=tmp_path / f"{command}.ply",
+                outputs=sdp.Outputs(report=tmp_path / f"{command}.html"))
+        page = (tmp_path / f"{command}.html").read_text()
+        # the page's JSON is the summary --json prints, the report's own time in both
+        assert embedded_json(page, command) == json.loads(dumps(r.summary)), command
+        assert "report" in r.summary["timings"] and (command == "distance" or "inputs" in r.summary)
+        shown = re.search(r"this report \(pictures, view\)</td><td>([\d,.]+) ms", page)[1]
+        assert shown == f"{r.summary['timings']['report'] * 1e3:,.1f}", command
+
+
+def test_an_alignment_from_almost_no_overlap_is_called_a_guess_in_view(tmp_path, rng):
+    from sdp.cli._common import alignment_summary
+
+    ref, cur = landscape(rng, building=False)
+    r = sdp.detect_changes(ref, cur)
+    s = r.summary()
+    s["alignment"] = alignment_summary(sdp.Alignment(matrix=np.eye(4), method="gicp", inside_before=0.01,
+                                                     inside_after=0.9, rmse=0.02, seconds=0.1),
+                                       sdp.Registration(method="gicp"))
+    page = sdp.change_report(tmp_path / "r.html", r, ref, cur, summary=s, thumbnails=0).read_text()
+    shown = visible_text(page)
+    assert "a registration from so little overlap is a guess" in shown
+    assert "inside the reference's volume 1.0% → 90.0%" in shown and "given (--align gicp)" in shown
+
+
+def test_the_series_report_shows_the_alignment_and_each_epoch(tmp_path, rng):
+    from sdp.viz._report import series_report
+
+    ref, cur = small_scene(rng, tmp_path)
+    ds = sdp.series([ref, cur, cur + [0, 0, 0.1]], output=tmp_path / "s.zarr", align="density")
+    page = series_report(tmp_path / "s.html", ds).read_text()
+    shown = visible_text(page)
+    assert re.search(r"alignment\s+density\s+given \(--align\)", shown)
+    for k, e in enumerate(ds.attrs["epochs"]):
+        cells = re.search(rf"<tr><td>{k}</td>(.*?)</tr>", page.split("<h3>Epochs")[1])[1]
+        assert f"{e['points']:,}" in cells and f"{e['registration_error']:.4g}" in cells
+        if k:  # the reference is not moved
+            assert f"residual {e['alignment']['rmse']:.4g} m (RMS)" in cells
+            assert f"{e['significant'] / e['comparable']:.1%}" in cells
+
+
+def test_report_points_that_do_not_match_the_result_are_refused_in_one_line(tmp_path, rng):
+    ref, cur = landscape(rng, building=False)
+    r = sdp.detect_changes(ref, cur)
+    with pytest.raises(sdp.InvalidPointsError, match=r"current: 5,999 points, but result.current_state describes "
+                                                     r"6,000") as err:
+        sdp.change_report(tmp_path / "r.html", r, ref, cur[:-1])
+    assert "\n" not in str(err.value)
+    with pytest.raises(sdp.InvalidPointsError, match=r"reference: x, y, z .* \(6000, 2\)"):
+        sdp.change_report(tmp_path / "r.html", r, ref[:, :2], cur)
+    for write, args in ((sdp.change_report, (r, ref, cur)), (sdp.distance_report, (None,))):
+        with pytest.raises(sdp.InvalidOptionError, match="writes HTML; name it ….html or ….htm"):
+            write(tmp_path / "r.png", *args)
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_distance_report_without_any_distance_says_so_without_warnings(tmp_path, rng):
+    import warnings
+
+    from sdp.viz._render import distances_figure
+
+    gx, gy = np.meshgrid(np.arange(0, 30, 1.0), np.arange(0, 20, 1.0))
+    ref = np.c_[gx.ravel(), gy.ravel(), 0.05 * rng.standard_normal(gx.size)]
+    d = sdp.distances(ref, ref + [500, 0, 0])  # far from every core point
+    assert d.summary()["comparable"] == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # matplotlib's of an empty legend, of the layout
+        sdp.distance_report(tmp_path / "d.html", d)
+        hist = distances_figure(d.core_points, d.distance, d.significant, d.lod).axes[-1]
+    assert [t.get_text() for t in hist.texts] == ["no core point has a distance"] and hist.get_legend() is None

@@ -30,8 +30,8 @@ from ..io._output import all_or_none, check_format, check_outputs
 from ..options import Coverage, Execution, Lattice, NoiseModel, Outputs, Registration, as_options
 from . import _text as report
 from ..io._bag import is_bag
-from ._common import (align_clouds, check_picture_extras, disappeared_path, is_store, pictures, read_input,
-                      sensor_origins)
+from ._common import (align_clouds, alignment_summary, check_picture_extras, disappeared_path, is_store, pictures,
+                      read_input, sensor_origins)
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
 
@@ -355,16 +355,17 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
     summary = r.summary()
     summary["timings"]["read"] = t_read
     if alignment is not None:
-        summary["alignment"] = alignment.summary()
+        summary["alignment"] = alignment_summary(alignment, align)
         summary["timings"]["align"] = alignment.seconds
     if report:
         outputs.append(str(report))
     summary["outputs"] = outputs
+    names = [f"{f} ({topic})" if is_bag(f) else str(f) for f in (reference, current)]  # which message
+    summary["inputs"] = names  # before the report: its JSON is the summary --json prints
     if report:
         from ..change._visibility import sensor_range_noise
         from ..viz._report import change_report
 
-        t = time.perf_counter()
         given = coverage.sensor_origin
         options = dict(voxel_size=lattice.voxel_size, grid_size=lattice.grid_size, sigma_voxels=lattice.sigma_voxels,
                        k=lattice.k, h=lattice.h, decision=detect["decision"],
@@ -372,11 +373,8 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                        range_noise=max(sensor_range_noise(c, coverage.range_noise) for c in (ref, cur)),
                        **detect["noise"].given,
                        sensor_origin=given if isinstance(given, str) else given.tolist())
-        change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options,
+        change_report(report, r, ref.xyz, moved.xyz, summary=summary, options=options, timings=summary["timings"],
                       names=tuple(Path(f).name + (f" ({topic})" if is_bag(f) else "") for f in (reference, current)))
-        summary["timings"]["report"] = time.perf_counter() - t
-    names = [f"{f} ({topic})" if is_bag(f) else str(f) for f in (reference, current)]  # which message
-    summary["inputs"] = names
     return FileComparison(*names, r, summary, tiled=False, alignment=alignment, outputs=outputs)
 
 

@@ -74,6 +74,14 @@ def align_clouds(ref, cur, names, registration: Registration):
     return al if classes is None else dataclasses.replace(al, centre=cur.xyz.mean(axis=0))
 
 
+def alignment_summary(alignment, registration: Registration) -> dict:
+    """:meth:`sdp.Alignment.summary` with what the command asked of it, which the transform does not
+    record: ``align_class`` (the LAS class numbers it was estimated on; None: every point) and
+    ``fix_horizontal``."""
+    return {**alignment.summary(), "align_class": registration.classes,
+            "fix_horizontal": bool(registration.fix_horizontal)}
+
+
 def check_picture_extras(*, png=None, html=None, report=None) -> None:
     """Before any work: the extras the asked-for pictures need (one-line :class:`sdp.MissingDependencyError`)."""
     from ..errors import require

@@ -24,7 +24,7 @@ from ..io._output import all_or_none, check_format, check_outputs
 from ..io._read import read_points
 from ..options import Cylinder, Execution, Outputs, Registration, as_options
 from . import _text as report
-from ._common import align_clouds, check_picture_extras, sensor_origins
+from ._common import align_clouds, alignment_summary, check_picture_extras, sensor_origins
 
 __all__ = ["FileDistances", "distance_files"]
 
@@ -166,19 +166,17 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
             summary["input_normals"] = given
         summary["timings"]["read"] = round(t_read, 4)
         if alignment is not None:
-            summary["alignment"] = alignment.summary()
+            summary["alignment"] = alignment_summary(alignment, align)
         if report:
             from ..viz._report import distance_report
 
             outputs.append(str(report))
             summary["outputs"] = outputs
-            t = time.perf_counter()
             distance_report(report, d, summary=summary, names=(Path(reference).name, Path(current).name),
                             options=dict(projection_scale=cylinder.projection_scale,
                                          normal_scale=cylinder.normal_scale, max_distance=cylinder.max_distance,
                                          registration_error=registration_error, orientation=orientation,
-                                         sensor_origin=sensor_origin))
-            summary["timings"]["report"] = round(time.perf_counter() - t, 4)
+                                         sensor_origin=sensor_origin), timings=summary["timings"])
     summary["outputs"] = outputs
     return FileDistances(str(reference), str(current), d, summary, alignment, outputs)
 

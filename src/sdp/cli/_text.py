@@ -75,17 +75,24 @@ def alignment_text(al: dict) -> str:
     text = (f"aligned current onto reference ({al['method']}): {motion_text(al)}\n"
             f"  inside the reference's volume {al['inside_before']:.1%} → {al['inside_after']:.1%}, "
             f"{residual}, {al['seconds']:.2f} s")
+    return text + "".join(f"\n  {w}" for w in alignment_warnings(al))
+
+
+def alignment_warnings(al: dict) -> list[str]:
+    """What an alignment (:meth:`sdp.Alignment.summary`) may have got wrong, each a sentence: it
+    started from almost no overlap (a guess), its surfaces do not coincide after it (a residual
+    beyond the kernel σ: it has most likely failed), directions it left at the initial pose."""
+    out = []
     if al["inside_before"] < LOW_OVERLAP:  # both methods refine a pose: from no overlap they find any
-        text += (f"\n  the scans barely overlapped before ({al['inside_before']:.1%} of the current inside the "
-                 "reference's volume): a registration from so little overlap is a guess; check it")
+        out.append(f"the scans barely overlapped before ({al['inside_before']:.1%} of the current inside the "
+                   "reference's volume): a registration from so little overlap is a guess; check it")
     if al["rmse"] is not None and al.get("sigma") and al["rmse"] > al["sigma"]:
-        text += (f"\n  the residual exceeds the kernel σ = {al['sigma']:.4g} m the surfaces are compared with: they "
-                 "do not coincide, and the registration has most likely failed (move the scans closer first)")
+        out.append(f"the residual exceeds the kernel σ = {al['sigma']:.4g} m the surfaces are compared with: they do "
+                   "not coincide, and the registration has most likely failed (move the scans closer first)")
     if al.get("kept"):
-        text += (f"\n  left at the initial pose, the scene pinning them less than 1 % as firmly as the best "
-                 f"direction: {', '.join(al['kept'])}; where the scans may differ in those, --align gicp "
-                 "estimates all six")
-    return text
+        out.append(f"left at the initial pose, the scene pinning them less than 1 % as firmly as the best direction: "
+                   f"{', '.join(al['kept'])}; where the scans may differ in those, --align gicp estimates all six")
+    return out
 
 
 #: Share of the current's points inside the reference's volume before an alignment below which the

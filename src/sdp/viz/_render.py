@@ -269,9 +269,11 @@ def distances_figure(xyz: np.ndarray, distance: np.ndarray, significant: np.ndar
             hx.axvline(x, color="k", ls="--", lw=1)
         hx.plot([], [], "k--", lw=1, label=f"median level of detection ±{m:.3g} {unit}")
         hx.set_yscale("log")  # the significant tails stay visible beside the peak within the level of detection
+        hx.legend(fontsize=9)
+    else:  # nothing to count: say so rather than draw empty axes with an empty legend
+        hx.text(0.5, 0.5, "no core point has a distance", ha="center", va="center", transform=hx.transAxes)
     hx.set_xlabel(f"signed distance ({unit})")
     hx.set_ylabel("points")
-    hx.legend(fontsize=9)
     if title:
         fig.suptitle(title)
     return fig

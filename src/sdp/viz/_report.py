@@ -83,7 +83,7 @@ def decimation(n: int, budget: int) -> int:
 def change_report(path: str | os.PathLike, result, reference: np.ndarray, current: np.ndarray, *,
                   summary: dict | None = None, names: tuple[str, str] = ("reference", "current"),
                   options: dict | None = None, max_points: int = POINT_BUDGET, thumbnails: int = THUMBNAILS,
-                  seed: int = 0) -> Path:
+                  seed: int = 0, timings: dict | None = None) -> Path:
     """Write the HTML report of a change detection (``sdp change --report``).
 
     Parameters
@@ -110,6 +110,10 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
         Regions per direction with a thumbnail, largest first.
     seed : int
         Of the random decimation.
+    timings : dict, optional
+        Where the report's own time goes, as ``"report"`` (seconds, to 0.1 ms: drawing and assembling
+        the page; its writing, after, is not in it), before the page's JSON is made: ``sdp change``
+        passes its summary's timings, so the page's table, its JSON and ``--json`` give one number.
 
     Returns
     -------
@@ -119,6 +123,10 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
     ------
     MissingDependencyError
         matplotlib or plotly is not installed (``pip install 'sdp[plots]'``).
+    InvalidOptionError
+        ``path`` is not named ``….html`` (or ``….htm``).
+    InvalidPointsError
+        ``reference`` or ``current`` is not (n, 3), or not as long as the result's states of it.
 
     Examples
     --------
@@ -129,7 +137,10 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
     from ._render import changes_figure, is_map, png_bytes
 
     t0 = time.perf_counter()
-    reference, current = np.asarray(reference, np.float64), np.asarray(current, np.float64)
+    _check_page(path)
+    reference, current = (_checked_points(name, xyz, len(getattr(result, state)), f"result.{state}")
+                          for name, xyz, state in (("reference", reference, "reference_state"),
+                                                   ("current", current, "current_state")))
     s = summary if summary is not None else result.summary()
     clouds = [c for c in (reference, current) if len(c)]
     lo = np.min([c.min(axis=0) for c in clouds], axis=0)
@@ -151,14 +162,14 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
     hist = _img(png_bytes(_region_histogram(s)), "histogram of the change regions' sizes")
     view, note = _change_view(directions, lo, hi, max_points, seed)
     title = f"sdp change: {names[0]} → {names[1]}"
-    seconds = time.perf_counter() - t0
+    seconds = _report_seconds(t0, timings)
     from ..cli import _text as report
 
     body = [f"<h1>{_e(title)}</h1>",
             _section("Summary", _change_summary(s, names) + _parameters(s, options, "change")
                      + _timings(s, seconds)
                      + _details("The summary as printed", f"<pre>{_e(report.change_text(s, *names))}</pre>")
-                     + _details("The summary as JSON (sdp change --json)", f"<pre>{_e(_json(s))}</pre>")),
+                     + _json_details("change", s)),
             _section("Where it changed" if flat else "Views", "".join(maps)
                      + ("<p>A top-down map: x, y relative to the round origin named on the axes, in metres "
                         "(the scale bar's unit), north up (+y); the largest regions outlined and numbered.</p>"
@@ -306,7 +317,7 @@ def _change_view(directions, lo, hi, budget: int, seed: int) -> tuple[str, str]:
 
 def distance_report(path: str | os.PathLike, result, *, summary: dict | None = None,
                     names: tuple[str, str] = ("reference", "current"), options: dict | None = None,
-                    max_points: int = POINT_BUDGET, seed: int = 0) -> Path:
+                    max_points: int = POINT_BUDGET, seed: int = 0, timings: dict | None = None) -> Path:
     """Write the HTML report of signed distances (``sdp distance --report``).
 
     Parameters
@@ -316,7 +327,7 @@ def distance_report(path: str | os.PathLike, result, *, summary: dict | None = N
     result : Distances
         Of :func:`sdp.distances` (``core_points``, ``distance``, ``lod``, ``significant``,
         ``summary()``).
-    summary, names, options, max_points, seed
+    summary, names, options, max_points, seed, timings
         As in :func:`change_report` (``options``: ``projection_scale``, ``normal_scale``,
         ``max_distance``, ``registration_error``, …).
 
@@ -328,6 +339,8 @@ def distance_report(path: str | os.PathLike, result, *, summary: dict | None = N
     ------
     MissingDependencyError
         matplotlib or plotly is not installed (``pip install 'sdp[plots]'``).
+    InvalidOptionError
+        ``path`` is not named ``….html`` (or ``….htm``).
 
     References
     ----------
@@ -338,6 +351,7 @@ def distance_report(path: str | os.PathLike, result, *, summary: dict | None = N
     from ._render import distances_figure, is_map, map_origin, png_bytes
 
     t0 = time.perf_counter()
+    _check_page(path)
     s = summary if summary is not None else result.summary()
     xyz = np.asarray(result.core_points, np.float64)
     d = np.asarray(result.distance, np.float64)
@@ -365,13 +379,14 @@ def distance_report(path: str | os.PathLike, result, *, summary: dict | None = N
             + f" Significant distances coloured from −{limit:.3g} (purple) to +{limit:.3g} (orange)."
             + _relative(origin))
     view = _plotly(traces, origin, limit=limit)
+    seconds = _report_seconds(t0, timings)
     from ..cli import _text as report
 
     body = [f"<h1>{_e(title)}</h1>",
             _section("Summary", _distance_summary(s, names) + _parameters(s, options, "distance")
-                     + _timings(s, time.perf_counter() - t0)
+                     + _timings(s, seconds)
                      + _details("The summary as printed", f"<pre>{_e(report.distance_text(s, *names))}</pre>")
-                     + _details("The summary as JSON (sdp distance --json)", f"<pre>{_e(_json(s))}</pre>")),
+                     + _json_details("distance", s)),
             _section("Distances: map and histogram" if flat else "Distances: view and histogram", picture
                      + "<p>Left: the significant distances (|distance| above the level of detection at 95 %), "
                      "points within it pale, points without a distance grey. Right: the histogram of the signed "
@@ -394,6 +409,27 @@ def _distance_summary(s: dict, names) -> str:
 
 
 # --- the parts of a page ---------------------------------------------------------------------------
+
+def _check_page(path) -> None:
+    """Refuse, before any drawing, a page not named ``….html``: as ``--report`` does."""
+    from .._core._validate import picture_path
+
+    picture_path("report", path)
+
+
+def _checked_points(name: str, xyz, n: int, described: str) -> np.ndarray:
+    """``xyz`` as (n, 3) float64, or one line naming the mismatch: points that are not the ones
+    the result describes would be drawn with another point's state (or fail deep in matplotlib)."""
+    from ..errors import InvalidPointsError
+
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1:] != (3,) or xyz.dtype.kind not in "iuf":
+        raise InvalidPointsError(f"{name}: x, y, z of the points as (n, 3) real numbers, got {xyz.dtype} {xyz.shape}")
+    if len(xyz) != n:
+        raise InvalidPointsError(f"{name}: {len(xyz):,} points, but {described} describes {n:,}: give the points "
+                                 "the result was computed from (with an alignment, the moved ones)")
+    return xyz.astype(np.float64, copy=False)
+
 
 def _reasons() -> dict[str, str]:
     """Each default's reason, as :class:`sdp.Defaults` documents it (the one place it is written)."""
@@ -450,12 +486,29 @@ def _parameters(s: dict, options: dict | None, kind: str) -> str:
                  if "sensor" in str(s["orientation"]) or "scanner" in str(s["orientation"])
                  else "no sensor known: the default direction, up (+z), as M3C2 orients its normals")]
     if "alignment" in s:
-        al = s["alignment"]
-        from ..cli._text import motion_text
-
-        rows.append(("alignment", f"{al['method']}: {motion_text(al)}; residual {al['rmse']:.4g} m (RMS)",
-                     "given (--align)"))
+        rows.append(_alignment_row(s["alignment"]))
     return "<h3>Parameters</h3>" + _table(("parameter", "value", "why"), rows)
+
+
+def _alignment_row(al: dict) -> tuple[str, str, str]:
+    """The parameters' row of an alignment: how it was asked for (``--align-class``,
+    ``--fix-horizontal``), the motion, the overlap before and after, the residual, and what it
+    may have got wrong (:func:`sdp.cli._text.alignment_warnings`), in view rather than only in the
+    JSON."""
+    from ..cli._text import alignment_warnings, motion_text
+
+    classes, fixed = al.get("align_class"), al.get("fix_horizontal")
+    how = al["method"] + (f" on the points of class {', '.join(map(str, classes))} of both scans" if classes else "")
+    how += ", x, y and the heading kept (the vertical shift and the tilts estimated)" if fixed else ""
+    rmse = al.get("rmse")
+    residual = (f"residual {rmse:.4g} m (RMS)" if rmse is not None and np.isfinite(rmse) else
+                "no residual (a field holds no points to measure it to)")
+    value = (f"{how}: {motion_text(al)}; inside the reference's volume {al['inside_before']:.1%} → "
+             f"{al['inside_after']:.1%}; {residual}")
+    warning = "; ".join(alignment_warnings(al))
+    given = (f"--align {al['method']}" + (f" --align-class {','.join(map(str, classes))}" if classes else "")
+             + (" --fix-horizontal" if fixed else ""))
+    return "alignment", value + (f". Warning: {warning}." if warning else ""), f"given ({given})"
 
 
 def _relative(origin) -> str:
@@ -466,10 +519,28 @@ def _coverage(s: dict) -> str:
     return "; ".join(f"{k}: {v}" for k, v in s.get("coverage", {}).items()) or "off"
 
 
+def _report_seconds(t0: float, timings: dict | None) -> float:
+    """The report's time since ``t0``, to 0.1 ms, put in ``timings["report"]`` when given: the one
+    number the page's table, its JSON and ``--json`` give."""
+    seconds = round(time.perf_counter() - t0, 4)
+    if timings is not None:
+        timings["report"] = seconds
+    return seconds
+
+
 def _timings(s: dict, report_seconds: float) -> str:
-    rows = [(k, f"{v * 1e3:,.1f} ms") for k, v in s.get("timings", {}).items()]
+    rows = [(k, f"{v * 1e3:,.1f} ms") for k, v in s.get("timings", {}).items() if k != "report"]
     rows.append(("this report (pictures, view)", f"{report_seconds * 1e3:,.1f} ms"))
     return "<h3>Timings</h3>" + _table(("step", "time"), rows)
+
+
+def _json_details(command: str, s: dict) -> str:
+    """The summary as ``sdp COMMAND --json`` prints it, and what of it the page could not know."""
+    has_time = "report" in s.get("timings", {})
+    note = ("<p>What --json prints: its timings' report is the time to draw and assemble this page (writing the "
+            "file, after, is in no timing).</p>" if has_time else
+            "<p>The report's own time is not in it (it is in the Timings table above).</p>")
+    return _details(f"The summary as JSON (sdp {command} --json)", f"<pre>{_e(_json(s))}</pre>{note}")
 
 
 def _plotly(traces, origin, *, limit: float | None = None) -> str:
@@ -585,6 +656,7 @@ def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, p
     require_extras()
     from ._render import png_bytes, pyplot
 
+    _check_page(path)
     plt = pyplot()
     t0 = time.perf_counter()
     attrs = ds.attrs
@@ -660,13 +732,17 @@ def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, p
                ("smoothing lag", f"{p['smoother']['lag']} epochs", p["smoother"]["lag_reason"]),
                ("steps", f"k = {p['smoother']['step_k']}", "an innovation beyond k σ confirmed by the next epoch"),
                ("objects", f"radius {p['objects']['neighbour_radius']:.4g}, ≥ {p['min_object_points']} core points",
-                p["objects"]["rule"])]
+                p["objects"]["rule"]),
+               ("alignment", used.get("align") or "none",
+                "given (--align): each epoch moved onto the reference before it was measured (its residual below)"
+                if used.get("align") else "none given: each epoch is measured in its file's frame")]
     from ..cli._text import series_text
 
     s = summary or {}
     body = [f"<h1>{_e('sdp series: ' + str(s.get('path', '')))}</h1>",
             _section("Summary", (f"<pre>{_e(series_text(s))}</pre>" if s else "")
                      + _table(("parameter", "value", "why"), reasons)
+                     + _epoch_table(attrs)
                      + f"<p>Report written in {time.perf_counter() - t0:.2f} s.</p>"
                      + _details("The summary as JSON (sdp info ARCHIVE.zarr)", f"<pre>{_e(_json(s))}</pre>")),
             _section("Total change and velocity", maps + "<p>Core points whose smoothed change at the last epoch "
@@ -675,3 +751,32 @@ def series_report(path: str | os.PathLike, ds, *, summary: dict | None = None, p
             _section("Through time", series_png),
             _section("Objects of change", objects)]
     return _write(path, "sdp series report", body)
+
+
+def _epoch_table(attrs: dict) -> str:
+    """One row per epoch from the archive's records: its time, points, the core points it was
+    measured at, the significant share of those, its registration error and, where it was aligned,
+    the alignment's rotation and residual (what the collapsed JSON alone held)."""
+    from scipy.spatial.transform import Rotation
+
+    epochs = attrs["epochs"]
+    ref = attrs["parameters"]["used"]["reference"]
+    rows = []
+    for k, e in enumerate(epochs[:_TABLE_ROWS]):
+        t = e["time"]
+        when = (str(np.datetime64("1970-01-01T00:00:00", "s") + np.timedelta64(int(round(t * 86400)), "s"))
+                if attrs.get("time_kind") == "date" else f"{t:g}")
+        share = ("reference" if k == ref else f"{e['significant'] / e['comparable']:.1%}" if e["comparable"]
+                 else "not measured")
+        al = e.get("alignment")
+        if al:
+            angle = np.degrees(Rotation.from_matrix(np.asarray(al["matrix"], np.float64)[:3, :3]).magnitude())
+            moved = f"rotation {angle:.4f}°, residual {al['rmse']:.4g} m (RMS)"
+        else:
+            moved = "reference" if k == ref else "not aligned"
+        rows.append((str(k), when, f"{e['points']:,}", f"{e['comparable']:,}", share,
+                     f"{e['registration_error']:.4g}", moved))
+    more = f" (the first {_TABLE_ROWS} of {len(epochs):,})" if len(epochs) > _TABLE_ROWS else ""
+    return (f"<h3>Epochs{more}</h3>"
+            + _table(("epoch", "time", "points", "core points measured", "significant (of those measured)",
+                      "registration error", "alignment"), rows))
