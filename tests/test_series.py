@@ -871,6 +871,20 @@ def test_a_full_stdout_after_the_archive_is_written_says_it_was(slope, tmp_path,
     assert describe_series(tmp_path / "s.zarr")["epochs"] == 2
 
 
+def test_the_alignments_options_are_kept_or_refused(slope, tmp_path):
+    """A series aligns each epoch on all its points: LAS classes are refused, not ignored, and
+    fix_horizontal is recorded, so an append aligns as the run before it did."""
+    with pytest.raises(sdp.InvalidOptionError, match="align_class .* is not available in a series"):
+        sdp.series(slope.epochs[:2], output=tmp_path / "c.zarr", align=sdp.Registration(method="density",
+                                                                                        align_class=2))
+    assert not (tmp_path / "c.zarr").exists()
+    ds = sdp.series(slope.epochs[:2], output=tmp_path / "f.zarr", cylinder=CYL,
+                    align=sdp.Registration(method="density", fix_horizontal=True))
+    assert ds.attrs["parameters"]["given"]["fix_horizontal"] is True
+    m, c = np.asarray(ds.attrs["epochs"][1]["alignment"]["matrix"]), slope.epochs[1].mean(axis=0)
+    assert np.abs((m[:3, :3] @ c + m[:3, 3] - c)[:2]).max() < 1e-6  # the centroid not moved in x and y
+
+
 def test_an_epoch_measured_nowhere_is_named(slope, tmp_path):
     """A file of another place or frame (here 1 km off) gets no distance: the summary says so."""
     epochs = [slope.epochs[0], slope.epochs[1] + 1000.0, slope.epochs[2]]

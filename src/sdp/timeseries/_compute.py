@@ -32,6 +32,7 @@ References
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as _dt
 import math
 import os
@@ -328,6 +329,9 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     if out.suffix.lower() != ".zarr" and not A.is_series(out):
         raise InvalidOptionError(f"{out}: a series archive is a Zarr folder; name it ….zarr")
     registration = Registration.of(align)
+    if registration is not None and registration.classes is not None:  # it would be ignored
+        raise InvalidOptionError("align_class (--align-class) is not available in a series, whose epochs are aligned "
+                                 "on all their points: give the alignment's method alone")
     cylinder = None if cylinder is None else as_options(Cylinder, cylinder, "cylinder")
     if registration_error is not None:
         auto_or_nonnegative("registration_error", registration_error)
@@ -336,6 +340,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
              "max_distance": None if cylinder is None else cylinder.max_distance,
              "registration_error": registration_error,
              "align": None if registration is None else registration.method,
+             # None unless asked for: archives written before it was recorded append as before
+             "fix_horizontal": True if registration is not None and registration.fix_horizontal else None,
              "orientation": None if orientation is None else [float(v) for v in np.asarray(orientation).reshape(-1)],
              "reference": reference}
     if append:
@@ -377,6 +383,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                 check(len(old_times) + len(epochs), g["x"].shape[0])
             reg_opt = params["given"]["registration_error"]
             registration = Registration.of(params["given"]["align"])
+            if registration is not None and params["given"].get("fix_horizontal"):
+                registration = dataclasses.replace(registration, fix_horizontal=True)
             tiles = plan_series(epochs, reference=None, core_count=g["x"].shape[0], execution=execution,
                                 format=format, align=registration is not None)
             if tiles is None:
