@@ -240,3 +240,11 @@ def test_gicp_brings_a_move_beyond_its_pairing_distance_in_coarse_to_fine(rng):
     found = GicpTarget(scene(), resolution=0.02, max_distance=0.08).register(transform_points(np.linalg.inv(turn),
                                                                                               scene()))
     assert np.abs(found - turn).max() < 0.005, found
+
+
+def test_a_scan_in_other_units_is_said_so(rng):
+    """A current in millimetres against a reference in metres: its grid at the reference's voxel
+    is beyond memory, and the refusal says why it may be."""
+    ref = room_scene(rng, n=5_000)
+    with pytest.raises(sdp.GridTooLargeError, match="are they in the same units"):
+        align(ref, ref * 1000.0)

@@ -53,7 +53,7 @@ from scipy.spatial.transform import Rotation
 from .._core._points import as_points
 from .._core._validate import boolean, finite, integer_at_least, positive_finite
 from ..defaults import DEFAULTS
-from ..errors import InvalidOptionError, InvalidPointsError, require
+from ..errors import GridTooLargeError, InvalidOptionError, InvalidPointsError, require
 from ..fields._density import DensityField
 from ..fields._spacing import auto_voxel_size
 
@@ -264,7 +264,14 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
     start = time.perf_counter()
     info = {}
     if method == "density":
-        matrix, info = _align_density(ref_field, ref_xyz, sample, t0, levels, min_constraint, fix_horizontal)
+        try:
+            matrix, info = _align_density(ref_field, ref_xyz, sample, t0, levels, min_constraint, fix_horizontal)
+        except GridTooLargeError as exc:  # the current's grid at the reference's voxel: say why it may be so large
+            span = [float(np.max(np.ptp(x, axis=0))) for x in (ref_xyz if ref_xyz is not None else cur, cur)]
+            if span[1] > _UNITS * span[0] or span[0] > _UNITS * span[1]:
+                raise GridTooLargeError(f"the current spans {span[1]:.4g} units and the reference {span[0]:.4g}: "
+                                        "are they in the same units (metres and millimetres)?") from None
+            raise exc
     else:
         matrix = _align_gicp(ref_xyz, sample, t0, ref_field.voxel_size, ref_field.sigma)
     seconds = time.perf_counter() - start
@@ -326,6 +333,9 @@ _MAX_ITER = 30  # Gauss–Newton iterations per level
 _COARSE_POINTS = 20_000  # current points used on the coarser levels
 _MAX_LEVELS = 16  # pyramid levels: the coarsest σ 2^15 times the finest, beyond any scene's size
 _TOL = 1e-3  # stop a level when the step moves points by less than this × σ
+#: Ratio of the two scans' extents beyond which a grid too large for memory is most likely a
+#: scan in other units (1000 between millimetres and metres).
+_UNITS = 100.0
 #: The motions of the Gauss–Newton unknowns (ω·radius about x, y, z; shifts along x, y, z).
 _MOTIONS = ("roll (about x)", "pitch (about y)", "yaw (about z)", "x shift", "y shift", "z shift")
 
