@@ -239,30 +239,40 @@ class FieldStore:
         """The surface F = ``level``, tile by tile (Lewiner marching cubes, as
         :meth:`DensityField.mesh`); vertices on tile seams are merged."""
         from ..errors import SurfaceError
-        from ..fields._surface import Mesh, extract_surface
+        from ..fields._surface import _CHUNK, Mesh, surface_nodes
 
         n = self.tile_blocks * BLOCK
         verts, faces, offset = [], [], 0
         for key in self.tiles:
+            f = self.tile_field(key)
+            # marching cubes' chunks on one lattice for every tile (its origin a multiple of _CHUNK
+            # blocks): a seam edge then gives both tiles bitwise the same vertex, merged exactly; with
+            # the tiles' own origins its copies differed in their last bits and rounded apart (open seams)
+            shift = f.grid.block_origin - np.floor_divide(f.grid.block_origin, _CHUNK) * _CHUNK
+            f = DensityField(Grid(self.voxel_size, f.grid.block_origin - shift,
+                                  tuple(int(s) for s in np.asarray(f.grid.shape_blocks) + shift)),
+                             f.blocks.keys + shift, f.blocks.values, h=f.h, sigma=f.sigma, truncate=f.truncate)
             try:
-                m = extract_surface(self.tile_field(key), level=level)
+                v, tri = surface_nodes(f, level=level)
             except SurfaceError:
                 continue
-            cell = np.floor(m.vertices[m.faces].mean(axis=1)[:, :2] / self.voxel_size).astype(np.int64)
+            v += f.grid.block_origin * BLOCK  # global node units: an integer added, exact
+            cell = np.floor(v[tri].mean(axis=1)[:, :2]).astype(np.int64)
             keep = np.all(np.floor_divide(cell, n) == key, axis=1)  # triangles of this tile's cells
-            verts.append(m.vertices)
-            faces.append(m.faces[keep] + offset)
-            offset += len(m.vertices)
+            verts.append(v)
+            faces.append(tri[keep] + offset)
+            offset += len(v)
         if not verts:
             raise SurfaceError(f"no surface crosses level {level:g}")
         v, f = np.concatenate(verts), np.concatenate(faces)
-        q = np.round(v / self.voxel_size * 2**16).astype(np.int64)
+        # the in-memory merge (sdp.fields._surface), in node units of the global lattice
+        q = np.round(v * 2**16).astype(np.int64)
         _, first, inverse = np.unique(q, axis=0, return_index=True, return_inverse=True)
         f = inverse.ravel()[f]
         used = np.unique(f)
         remap = np.full(len(first), -1, np.int64)
         remap[used] = np.arange(len(used))
-        return Mesh(v[first][used], remap[f])
+        return Mesh(v[first][used] * self.voxel_size, remap[f])
 
     def combine(self, other: "FieldStore", operation: str, path: str | os.PathLike) -> "FieldStore":
         """Out-of-core Boolean operation (``"union"``, ``"intersection"`` or ``"difference"``,
