@@ -102,7 +102,7 @@ def test_store_errors(tmp_path):
     assert (tmp_path / "series.zarr" / "zarr.json").is_file() and (tmp_path / "other.zarr" / "a").exists()
     from sdp.cli import combine_files
 
-    FieldStore.create(tmp_path / "s.zarr", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8)
+    FieldStore.create(tmp_path / "s.zarr", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8).commit()
     np.save(tmp_path / "c.npy", np.random.default_rng(0).random((100, 3)))
     with pytest.raises(sdp.SDPError, match="combines with another one into a .zarr output"):
         combine_files("union", tmp_path / "s.zarr", tmp_path / "c.npy", output=tmp_path / "u.sdpf")
@@ -155,3 +155,58 @@ def test_store_mesh_closes_its_seams(tmp_path):
     assert _boundary_edges(got) == 0
     assert (len(got.vertices), len(got.faces)) == (len(want.vertices), len(want.faces))
     assert got.area == pytest.approx(want.area, rel=1e-8)
+
+
+def _small_field():
+    return sdp.DensityField.from_points(np.random.default_rng(0).random((2000, 3)) * 3, voxel_size=0.1)
+
+
+def test_an_unfinished_store_is_refused(tmp_path):
+    # a store left by kill -9 mid-build opened, meshed and answered G = 0 where its tiles were missing
+    store = FieldStore.create(tmp_path / "f.zarr", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8)
+    store.write_tile((0, 0), _small_field())
+    assert not (tmp_path / "f.zarr").exists()  # written under a temporary name beside it
+    with pytest.raises(sdp.FieldFileError, match="no field store yet: a build of it is under way or stopped"):
+        FieldStore.open(tmp_path / "f.zarr")
+    with pytest.raises(sdp.FieldFileError, match="never completed") as err:
+        FieldStore.open(store.path)
+    assert len(str(err.value).splitlines()) == 1
+    store.commit()
+    assert FieldStore.open(tmp_path / "f.zarr").n_blocks > 0 and not any(tmp_path.glob(".f.zarr.*"))
+    # what a dead build left is removed by the next build of the same name
+    import subprocess
+    import sys
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    left = tmp_path / f".f.zarr.tmp-{int(gone.stdout)}"
+    left.mkdir()
+    FieldStore.from_field(_small_field(), tmp_path / "f.zarr")
+    assert not left.exists()
+
+
+def test_a_failed_rebuild_keeps_the_store(tmp_path, monkeypatch):
+    # a rebuild over a store removed it first: stopped or failed, it left none
+    field = _small_field()
+    FieldStore.from_field(field, tmp_path / "f.zarr", tile_blocks=1)
+
+    def fail(self, key, f):
+        raise sdp.SDPError("disk full")
+
+    monkeypatch.setattr(FieldStore, "write_tile", fail)
+    with pytest.raises(sdp.SDPError, match="disk full"):
+        FieldStore.from_field(field, tmp_path / "f.zarr", tile_blocks=2)
+    with pytest.raises(sdp.SDPError, match="disk full"):
+        build_field_tiled(field.global_keys * 0.8 + 0.05, tmp_path / "f.zarr", lattice=sdp.Lattice(voxel_size=0.1),
+                          execution=sdp.Execution(scheduler="synchronous", workdir=tmp_path))
+    back = FieldStore.open(tmp_path / "f.zarr")
+    assert back.tile_blocks == 1 and back.n_blocks == field.n_blocks and back.n_points == 2000
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.zarr"]
+
+
+def test_a_store_written_before_the_complete_mark_opens(tmp_path):
+    import zarr
+
+    FieldStore.from_field(_small_field(), tmp_path / "f.zarr")
+    group = zarr.open_group(str(tmp_path / "f.zarr"), mode="r+")
+    del group.attrs["complete"]  # as sdp wrote stores before the mark
+    assert FieldStore.open(tmp_path / "f.zarr").n_points == 2000

@@ -125,9 +125,10 @@ def _print(text: str) -> None:
     except BrokenPipeError:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush too
     except OSError as exc:
-        # a series archive is committed before its summary (sdp.io._output.commit_point): say so
+        # a series archive or field store is committed before its summary (sdp.io._output.commit_point): say so
         raise SDPError(f"standard output: {exc.strerror or exc}" + (
-            "; the archive was written before it (see `sdp info`), the other outputs were not" if _finished
+            "; the archive or field store was written before it (see `sdp info`), the other outputs were not"
+            if _finished
             else "")) from None
 
 
