@@ -210,3 +210,38 @@ def test_a_store_written_before_the_complete_mark_opens(tmp_path):
     group = zarr.open_group(str(tmp_path / "f.zarr"), mode="r+")
     del group.attrs["complete"]  # as sdp wrote stores before the mark
     assert FieldStore.open(tmp_path / "f.zarr").n_points == 2000
+
+
+def test_store_small_faults(tmp_path):
+    field = _small_field()
+    store = FieldStore.from_field(field, tmp_path / "f.zarr", tile_blocks=2)
+    assert store.read().n_points == 2000  # was 0 for the whole store
+    assert store.read([0, 0], [2, 2]).n_points == 0  # a part has no count of its own
+    with pytest.raises(sdp.InvalidOptionError, match="got 'xor'"):
+        store.combine(store, "xor", tmp_path / "x.zarr")
+    field.save(tmp_path / "f.sdpf")
+    with pytest.raises(sdp.FieldFileError, match="a file, not a field store.*DensityField.load"):
+        FieldStore.open(tmp_path / "f.sdpf")  # said FileExistsError: File exists
+
+
+def test_cli_refuses_or_says_what_a_store_or_field_ignores(tmp_path, capsys):
+    from sdp.cli import main
+
+    def at(name):
+        return str(tmp_path / name)
+
+    field = _small_field()
+    FieldStore.from_field(field, tmp_path / "a.zarr")
+    field.save(tmp_path / "a.sdpf")
+    for args, says in ((["bool", "union", at("a.zarr"), at("a.zarr"), "-o", at("u.zarr"), "-k", "20"],
+                        "a field sets the lattice"),  # was accepted, and ignored
+                       (["render", at("a.zarr"), "--png", at("r.png")], "a field store (.zarr) is not rendered"),
+                       (["render", at("a.sdpf"), "--png", at("r.png"), "--field", "x"], "give no --field")):
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert says in err and len(err.strip().splitlines()) == 1, err
+    assert not any(tmp_path.glob("u.zarr")) and not any(tmp_path.glob("r.png"))
+    np.save(tmp_path / "c.npy", np.random.default_rng(0).random((500, 3)))
+    assert main(["build", str(tmp_path / "c.npy"), "-o", str(tmp_path / "c.sdpf"), "--voxel-size", "0.1",
+                 "--tile-size", "3", "--workers", "3"]) == 0
+    assert "in memory: --tile-size, --workers used by tiles only (a .zarr output)" in capsys.readouterr().err

@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FieldFileError, require
+from ..errors import FieldFileError, InvalidOptionError, require
 from ..fields._density import DensityField
 from ..fields._lattice import BLOCK, Grid
 
@@ -248,9 +248,10 @@ class FieldStore:
 
     def read(self, lo=None, hi=None) -> DensityField:
         """The in-memory field of the blocks whose x, y block coordinates lie in [lo, hi)
-        (2-vectors; the whole store when omitted)."""
+        (2-vectors; the whole store when omitted, with its count of points: a part has none)."""
         zarr = require_zarr()
 
+        whole = lo is None and hi is None  # the points counted are the whole store's
         lo = np.full(2, np.iinfo(np.int64).min // 2) if lo is None else np.asarray(lo, np.int64)
         hi = np.full(2, np.iinfo(np.int64).max // 2) if hi is None else np.asarray(hi, np.int64)
         t = self.tile_blocks
@@ -268,7 +269,7 @@ class FieldStore:
         origin = keys.min(axis=0) if len(keys) else np.zeros(3, np.int64)
         shape = tuple(int(v) for v in (keys.max(axis=0) - origin + 1)) if len(keys) else (1, 1, 1)
         return DensityField(Grid(self.voxel_size, origin, shape), keys - origin, values, h=self.h, sigma=self.sigma,
-                            truncate=self.truncate, n_points=self.n_points if lo is None else 0,
+                            truncate=self.truncate, n_points=self.n_points if whole else 0,
                             n_dropped=int(self.attrs["n_dropped"]), method=self.attrs["method"])
 
     def tile_field(self, key, *, margin: int = 1) -> DensityField:
@@ -345,7 +346,7 @@ class FieldStore:
         from ..fields import _boolean as boolean
 
         if operation not in ("union", "intersection", "difference"):
-            raise ValueError(f"operation must be union, intersection or difference, got {operation!r}")
+            raise InvalidOptionError(f"operation must be union, intersection or difference, got {operation!r}")
         op, t = getattr(boolean, operation), self.tile_blocks
         tiles = set(self.tiles)
         for key in other.tiles:  # this store's tiles that the other's tiles overlap
