@@ -64,7 +64,7 @@ def require_zarr():
 class FieldStore:
     """A density field stored in Zarr, tile by tile (see the module docstring).
 
-    Create one with :meth:`create` (then :meth:`write_tile`), :meth:`from_field`, or
+    Create one with :meth:`create` (then :meth:`write_tile` and :meth:`commit`), :meth:`from_field`, or
     :func:`sdp.build_field_tiled`; open one with :meth:`open`.
     """
 
