@@ -867,7 +867,7 @@ def test_a_full_stdout_after_the_archive_is_written_says_it_was(slope, tmp_path,
     monkeypatch.setattr(sys, "stdout", Full())
     assert main(["series", *files, "-o", str(tmp_path / "s.zarr")]) == 2
     err = capsys.readouterr().err
-    assert "No space left on device; the archive was written before it" in err
+    assert "No space left on device; the archive or field store was written before it" in err
     assert describe_series(tmp_path / "s.zarr")["epochs"] == 2
 
 

@@ -102,7 +102,7 @@ def test_store_errors(tmp_path):
     assert (tmp_path / "series.zarr" / "zarr.json").is_file() and (tmp_path / "other.zarr" / "a").exists()
     from sdp.cli import combine_files
 
-    FieldStore.create(tmp_path / "s.zarr", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8)
+    FieldStore.create(tmp_path / "s.zarr", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8).commit()
     np.save(tmp_path / "c.npy", np.random.default_rng(0).random((100, 3)))
     with pytest.raises(sdp.SDPError, match="combines with another one into a .zarr output"):
         combine_files("union", tmp_path / "s.zarr", tmp_path / "c.npy", output=tmp_path / "u.sdpf")
@@ -136,3 +136,112 @@ def test_cli_field_store(tmp_path, clouds):
         p = run("change", tmp_path / "a.zarr", b, "-o", tmp_path / "x.laz", *extra)
         assert p.returncode == 2 and says in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert not any(tmp_path.glob("x.*")) and not (tmp_path / "r.html").exists()
+
+
+def _boundary_edges(mesh) -> int:
+    t = mesh.faces
+    edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    return int((np.unique(edges, axis=0, return_counts=True)[1] == 1).sum())
+
+
+def test_store_mesh_closes_its_seams(tmp_path):
+    # 3-block tiles left 14 seam vertices unmerged (copies 1e-16 m apart rounded apart): an open mesh
+    rng = np.random.default_rng(1)
+    p = rng.normal(size=(20_000, 3))
+    f = sdp.DensityField.from_points(p / np.linalg.norm(p, axis=1)[:, None], voxel_size=0.05)
+    want = f.mesh()
+    assert _boundary_edges(want) == 0
+    got = FieldStore.from_field(f, tmp_path / "s.zarr", tile_blocks=3).mesh()
+    assert _boundary_edges(got) == 0
+    assert (len(got.vertices), len(got.faces)) == (len(want.vertices), len(want.faces))
+    assert got.area == pytest.approx(want.area, rel=1e-8)
+
+
+def _small_field():
+    return sdp.DensityField.from_points(np.random.default_rng(0).random((2000, 3)) * 3, voxel_size=0.1)
+
+
+def test_an_unfinished_store_is_refused(tmp_path):
+    # a store left by kill -9 mid-build opened, meshed and answered G = 0 where its tiles were missing
+    store = FieldStore.create(tmp_path / "f.zarr", voxel_size=0.1, sigma=0.2, truncate=3, h=2.8)
+    store.write_tile((0, 0), _small_field())
+    assert not (tmp_path / "f.zarr").exists()  # written under a temporary name beside it
+    with pytest.raises(sdp.FieldFileError, match="no field store yet: a build of it is under way or stopped"):
+        FieldStore.open(tmp_path / "f.zarr")
+    with pytest.raises(sdp.FieldFileError, match="never completed") as err:
+        FieldStore.open(store.path)
+    assert len(str(err.value).splitlines()) == 1
+    store.commit()
+    assert FieldStore.open(tmp_path / "f.zarr").n_blocks > 0 and not any(tmp_path.glob(".f.zarr.*"))
+    # what a dead build left is removed by the next build of the same name
+    import subprocess
+    import sys
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    left = tmp_path / f".f.zarr.tmp-{int(gone.stdout)}"
+    left.mkdir()
+    FieldStore.from_field(_small_field(), tmp_path / "f.zarr")
+    assert not left.exists()
+
+
+def test_a_failed_rebuild_keeps_the_store(tmp_path, monkeypatch):
+    # a rebuild over a store removed it first: stopped or failed, it left none
+    field = _small_field()
+    FieldStore.from_field(field, tmp_path / "f.zarr", tile_blocks=1)
+
+    def fail(self, key, f):
+        raise sdp.SDPError("disk full")
+
+    monkeypatch.setattr(FieldStore, "write_tile", fail)
+    with pytest.raises(sdp.SDPError, match="disk full"):
+        FieldStore.from_field(field, tmp_path / "f.zarr", tile_blocks=2)
+    with pytest.raises(sdp.SDPError, match="disk full"):
+        build_field_tiled(field.global_keys * 0.8 + 0.05, tmp_path / "f.zarr", lattice=sdp.Lattice(voxel_size=0.1),
+                          execution=sdp.Execution(scheduler="synchronous", workdir=tmp_path))
+    back = FieldStore.open(tmp_path / "f.zarr")
+    assert back.tile_blocks == 1 and back.n_blocks == field.n_blocks and back.n_points == 2000
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.zarr"]
+
+
+def test_a_store_written_before_the_complete_mark_opens(tmp_path):
+    import zarr
+
+    FieldStore.from_field(_small_field(), tmp_path / "f.zarr")
+    group = zarr.open_group(str(tmp_path / "f.zarr"), mode="r+")
+    del group.attrs["complete"]  # as sdp wrote stores before the mark
+    assert FieldStore.open(tmp_path / "f.zarr").n_points == 2000
+
+
+def test_store_small_faults(tmp_path):
+    field = _small_field()
+    store = FieldStore.from_field(field, tmp_path / "f.zarr", tile_blocks=2)
+    assert store.read().n_points == 2000  # was 0 for the whole store
+    assert store.read([0, 0], [2, 2]).n_points == 0  # a part has no count of its own
+    with pytest.raises(sdp.InvalidOptionError, match="got 'xor'"):
+        store.combine(store, "xor", tmp_path / "x.zarr")
+    field.save(tmp_path / "f.sdpf")
+    with pytest.raises(sdp.FieldFileError, match="a file, not a field store.*DensityField.load"):
+        FieldStore.open(tmp_path / "f.sdpf")  # said FileExistsError: File exists
+
+
+def test_cli_refuses_or_says_what_a_store_or_field_ignores(tmp_path, capsys):
+    from sdp.cli import main
+
+    def at(name):
+        return str(tmp_path / name)
+
+    field = _small_field()
+    FieldStore.from_field(field, tmp_path / "a.zarr")
+    field.save(tmp_path / "a.sdpf")
+    for args, says in ((["bool", "union", at("a.zarr"), at("a.zarr"), "-o", at("u.zarr"), "-k", "20"],
+                        "a field sets the lattice"),  # was accepted, and ignored
+                       (["render", at("a.zarr"), "--png", at("r.png")], "a field store (.zarr) is not rendered"),
+                       (["render", at("a.sdpf"), "--png", at("r.png"), "--field", "x"], "give no --field")):
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert says in err and len(err.strip().splitlines()) == 1, err
+    assert not any(tmp_path.glob("u.zarr")) and not any(tmp_path.glob("r.png"))
+    np.save(tmp_path / "c.npy", np.random.default_rng(0).random((500, 3)))
+    assert main(["build", str(tmp_path / "c.npy"), "-o", str(tmp_path / "c.sdpf"), "--voxel-size", "0.1",
+                 "--tile-size", "3", "--workers", "3"]) == 0
+    assert "in memory: --tile-size, --workers used by tiles only (a .zarr output)" in capsys.readouterr().err

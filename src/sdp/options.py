@@ -363,12 +363,13 @@ class Execution:
                  "workers": "--workers", "workdir": "--workdir"}
         return [flag for name, flag in names.items() if getattr(self, name) is not None]
 
-    def say_in_memory(self) -> None:
+    def say_in_memory(self, tiles: str = "--tiled, or work beyond --memory-limit") -> None:
         """Tell ``notify`` that a run in memory leaves the tiles' options given (a cluster's address
-        does not send the work there by itself: the run fits in memory)."""
+        does not send the work there by itself: the run fits in memory); ``tiles`` says what
+        takes a run to tiles."""
         unused = self.tiles_only()
         if unused and self.notify is not None:
-            self.notify(f"in memory: {', '.join(unused)} used by tiles only (--tiled, or work beyond --memory-limit)")
+            self.notify(f"in memory: {', '.join(unused)} used by tiles only ({tiles})")
 
     def tile_keywords(self) -> dict:
         """The keywords of the tiled functions (:func:`sdp.detect_changes_tiled`, …)."""

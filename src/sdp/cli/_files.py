@@ -117,6 +117,7 @@ def build_field_file(cloud, *, output, format: str | None = None, lattice: Latti
     check_outputs([output], [cloud])
     check_format(output, "field")
     if not is_store(output):
+        execution.say_in_memory("a .zarr output")
         with _blocks_budget([cloud], format, execution.memory_limit,
                             "build a field store in tiles (-o FIELD.zarr)") as blocks:
             fld = _field(cloud, format, lattice, blocks)
@@ -187,6 +188,7 @@ def combine_files(operation: str, a, b, *, output, format: str | None = None, la
 
         if not (is_store(a) and is_store(b)):
             raise SDPError("a .zarr output combines two .zarr field stores (build them with sdp build -o X.zarr)")
+        _no_lattice(lattice)  # the stores' lattice wins: one given would be ignored
         return FieldStore.open(a).combine(FieldStore.open(b), operation, output)
     if is_store(a) or is_store(b):
         raise SDPError(f"{a if is_store(a) else b}: a .zarr field store combines with another one into a .zarr "
@@ -413,14 +415,20 @@ def _check_same_points(a, b) -> None:
                        f"{gap[worst]:.4g} apart; {int((gap > tolerance).sum()):,} points differ)")
 
 
-def render_file(path, *, png=None, html=None, field: str = "change", format: str | None = None) -> list[str]:
+def render_file(path, *, png=None, html=None, field: str | None = None, format: str | None = None) -> list[str]:
     """Pictures of a labelled cloud (points whose ``field`` is nonzero in vermillion, NaN grey: no
-    value; sdp's ``change``: not comparable grey) or PNG slices of a field ``.sdpf`` (``sdp render``);
-    returns the files written."""
+    value; sdp's ``change``, the default: not comparable grey) or PNG slices of a field ``.sdpf``
+    (``sdp render``; no ``field`` then); returns the files written. A ``.zarr`` store is refused."""
     if not (png or html):
         raise SDPError("nothing to write: give --png OUT.png and/or --html OUT.html")
     V.picture_path("png", png)
     V.picture_path("html", html)
+    if is_store(path):  # read whole, a field store may not fit in memory: its surface is what shows it
+        from ..timeseries._archive import is_series
+
+        raise SDPError(f"{path}: a series archive is not rendered; `sdp series --report` draws one" if is_series(path)
+                       else f"{path}: a field store (.zarr) is not rendered; `sdp mesh {path} -o SURFACE.ply` writes "
+                            f"its surface, tile by tile")
     check_outputs([png, html], [path])
     if is_field(path):
         from ..fields._density import DensityField
@@ -428,9 +436,13 @@ def render_file(path, *, png=None, html=None, field: str = "change", format: str
 
         if html:
             raise SDPError("--html draws clouds; for a field use --png (slices), or `sdp mesh` for its surface")
+        if field is not None:
+            raise SDPError(f"--field colours a cloud's points by one of their fields; a field ({path}) is drawn as "
+                           f"slices of its density: give no --field")
         render_field(png, DensityField.load(path))
         return [str(png)]
     c = read_points(path, format=format)
+    field = "change" if field is None else field
     if field not in c.fields:
         raise SDPError(f"{path}: no per-point field {field!r} to colour by "
                        f"(fields: {', '.join(sorted(c.fields)) or 'none'}); choose one with --field")

@@ -125,9 +125,10 @@ def _print(text: str) -> None:
     except BrokenPipeError:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush too
     except OSError as exc:
-        # a series archive is committed before its summary (sdp.io._output.commit_point): say so
+        # a series archive or field store is committed before its summary (sdp.io._output.commit_point): say so
         raise SDPError(f"standard output: {exc.strerror or exc}" + (
-            "; the archive was written before it (see `sdp info`), the other outputs were not" if _finished
+            "; the archive or field store was written before it (see `sdp info`), the other outputs were not"
+            if _finished
             else "")) from None
 
 
@@ -186,7 +187,8 @@ def cmd_distance(a):
 
 
 def cmd_build(a):
-    built = F.build_field_file(a.cloud, output=a.output, format=a.format, lattice=_lattice(a), execution=_execution(a))
+    built = F.build_field_file(a.cloud, output=a.output, format=a.format, lattice=_lattice(a),
+                               execution=_execution(a, _say))
     return _show(written_text(built, a.output))
 
 
@@ -520,9 +522,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("file", help="cloud with a label field, or a field (.sdpf)")
     r.add_argument("--png", help="picture (three views of a cloud; three slices of a field)")
     r.add_argument("--html", help="interactive 3D view of a cloud (needs the html extra: plotly)")
-    r.add_argument("--field", default="change",
-                   help="per-point field to colour by (default change: 1 changed, 2 not comparable, grey); "
-                        "another field: nonzero drawn as changed, NaN grey")
+    r.add_argument("--field",
+                   help="per-point field of a cloud to colour by (default change: 1 changed, 2 not comparable, "
+                        "grey); another field: nonzero drawn as changed, NaN grey")
 
     for q in (c, ds, se, b, i, m, o, al, w, e, r):
         q.add_argument("--format", help="input format, overriding the extension (pcd, ply, las, text, npy, npz, e57)")

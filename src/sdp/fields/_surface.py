@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import SurfaceError
 from ._lattice import BLOCK
 
-__all__ = ["Mesh", "extract_surface"]
+__all__ = ["Mesh", "extract_surface", "surface_nodes"]
 
 _CHUNK = 8  # blocks per chunk edge: marching cubes runs on (8·8 + 1)³ nodes at a time
 
@@ -45,6 +45,18 @@ def extract_surface(field, *, level: float = 0.0) -> Mesh:
     ------
     SurfaceError
         ``level`` is outside the field's range, or no surface crosses it.
+    """
+    nodes, faces = surface_nodes(field, level=level)
+    return Mesh(field.grid.to_world(nodes), faces)
+
+
+def surface_nodes(field, *, level: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`extract_surface`'s vertices in node units of ``field``'s grid (float64, (V, 3)) and
+    its faces (T, 3): what a tiled mesh merges on the global lattice (:meth:`sdp.FieldStore.mesh`).
+
+    Marching cubes runs on chunks of ``_CHUNK`` blocks from the grid's origin: a vertex's float32
+    coordinates depend on its place in its chunk, so grids whose origins are multiples of
+    ``_CHUNK`` blocks apart give the same edge bitwise the same vertex.
     """
     from skimage.measure import marching_cubes
 
@@ -86,4 +98,4 @@ def extract_surface(field, *, level: float = 0.0) -> Mesh:
     _, first, inverse = np.unique(q, axis=0, return_index=True, return_inverse=True)
     f = inverse.ravel()[f]
     keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-    return Mesh(field.grid.to_world(v[first]), f[keep].astype(np.int64))
+    return v[first], f[keep].astype(np.int64)

@@ -15,11 +15,19 @@ rounding of each tile grid's origin (tested to a relative 1e-8).
 Layout (a Zarr v3 group, a folder conventionally named ``*.zarr``)::
 
     attrs                  format "sdp-field-store", format_version, voxel_size, sigma, truncate,
-                           h, tile_blocks, n_points, n_dropped, method
+                           h, tile_blocks, n_points, n_dropped, method, complete
     tiles/{i}_{j}/keys     int64 (m, 3): global block coordinates of the tile's blocks
     tiles/{i}_{j}/values   float32 (m, 512): G at the 8³ nodes of each block (x-major)
 
 Both arrays are chunked by 256 blocks and compressed.
+
+Atomicity: a store is written under a temporary name beside it (``.NAME.tmp-PID``, its attribute
+``complete`` false), marked complete last and renamed into place by :meth:`FieldStore.commit`,
+which only then replaces a store already there (renamed away and removed): a build that fails or
+is stopped, even by ``kill -9``, leaves the previous store as it was, and :meth:`FieldStore.open`
+refuses a store never completed. The next build of the same name removes what a dead one left.
+Stores written before the ``complete`` attribute (sdp before this change) have none and open as
+before: nothing tells whether they were finished.
 
 References
 ----------
@@ -32,11 +40,12 @@ from __future__ import annotations
 
 import os
 import shutil
+from contextlib import suppress
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import FieldFileError, require
+from ..errors import FieldFileError, InvalidOptionError, require
 from ..fields._density import DensityField
 from ..fields._lattice import BLOCK, Grid
 
@@ -55,21 +64,24 @@ def require_zarr():
 class FieldStore:
     """A density field stored in Zarr, tile by tile (see the module docstring).
 
-    Create one with :meth:`create` (then :meth:`write_tile`), :meth:`from_field`, or
+    Create one with :meth:`create` (then :meth:`write_tile` and :meth:`commit`), :meth:`from_field`, or
     :func:`sdp.build_field_tiled`; open one with :meth:`open`.
     """
 
-    def __init__(self, path: str | os.PathLike, group):
+    def __init__(self, path: str | os.PathLike, group, target: Path | None = None):
         self.path = Path(path)
         self._group = group
         self.attrs = dict(group.attrs)
+        self._target = target  # where commit() moves a store being written (None: in place)
 
     # ------------------------------------------------------------------ files
     @classmethod
     def create(cls, path: str | os.PathLike, *, voxel_size: float, sigma: float, truncate: float, h: float,
                tile_blocks: int = 64, method: str = "fast", inputs=()) -> "FieldStore":
-        """An empty store at ``path`` (replaced if it is a field store; anything else there, a series
-        archive or another Zarr store, is refused; ``inputs`` are never overwritten)."""
+        """An empty store to be written at ``path``: it lives under a temporary name beside ``path``
+        until :meth:`commit` (which replaces a field store already at ``path``; anything else there,
+        a series archive or another Zarr store, is refused here; ``inputs`` are never overwritten).
+        :meth:`discard` removes it instead."""
         zarr = require_zarr()
 
         from ..io._output import refuse_overwrite
@@ -86,21 +98,70 @@ class FieldStore:
             if kind != "sdp-field-store":
                 what = "a series archive" if kind == "sdp-series" else "a Zarr store that is not a field store"
                 raise FieldFileError(f"{path}: exists and is {what}; choose another output name")
-            shutil.rmtree(path)
-        group = zarr.open_group(str(path), mode="w")
-        group.attrs.update({"format": "sdp-field-store", "format_version": STORE_FORMAT_VERSION,
-                            "voxel_size": float(voxel_size), "sigma": float(sigma), "truncate": float(truncate),
-                            "h": float(h), "tile_blocks": int(tile_blocks), "n_points": 0, "n_dropped": 0,
-                            "method": method})
-        group.create_group("tiles")
-        return cls(path, group)
+        _remove_leftovers(path)
+        tmp = _unfinished(path)[1]
+        shutil.rmtree(tmp, ignore_errors=True)
+        try:
+            group = zarr.open_group(str(tmp), mode="w")
+            group.attrs.update({"format": "sdp-field-store", "format_version": STORE_FORMAT_VERSION,
+                                "voxel_size": float(voxel_size), "sigma": float(sigma),
+                                "truncate": float(truncate), "h": float(h), "tile_blocks": int(tile_blocks),
+                                "n_points": 0, "n_dropped": 0, "method": method, "complete": False})
+            group.create_group("tiles")
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return cls(tmp, group, path)
+
+    def commit(self) -> "FieldStore":
+        """Mark a store from :meth:`create` complete and rename it into place, replacing the store
+        that was there (with Ctrl-C and SIGTERM held back meanwhile); returns it, now at its path."""
+        if self._target is None:
+            return self
+        zarr = require_zarr()
+
+        from ..io._output import commit_point
+
+        self._group.attrs["complete"] = True  # last: a store without it was never finished
+        target, old = self._target, self._target.parent / f".{self._target.name}.old-{os.getpid()}"
+        shutil.rmtree(old, ignore_errors=True)
+        with commit_point():
+            if target.exists():
+                os.rename(target, old)
+            os.rename(self.path, target)
+        shutil.rmtree(old, ignore_errors=True)
+        self.path, self._target = target, None
+        self._group = zarr.open_group(str(target), mode="r+")
+        self.attrs = dict(self._group.attrs)
+        return self
+
+    def discard(self) -> None:
+        """Remove a store from :meth:`create` that is not to be committed (what was at its path stays)."""
+        if self._target is not None:
+            shutil.rmtree(self.path, ignore_errors=True)
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> "FieldStore":
-        """Open a store written by :meth:`create` (read-only use is safe from many processes)."""
+        """Open a store written by :meth:`create` and :meth:`commit` (read-only use is safe from many
+        processes); a store never completed is refused."""
+        store = cls._open(path)
+        if store.attrs.get("complete") is False:  # stores older than the attribute have none
+            raise FieldFileError(f"{store.path}: a field store whose build never completed (stopped or failed); "
+                                 f"build it again")
+        return store
+
+    @classmethod
+    def _open(cls, path: str | os.PathLike) -> "FieldStore":
+        """:meth:`open`, a store being written too (the tasks of a tiled build write into it)."""
         zarr = require_zarr()
 
         path = Path(path)
+        if path.is_file():
+            raise FieldFileError(f"{path}: a file, not a field store (a .zarr folder, from sdp build -o X.zarr)"
+                                 + ("; sdp.DensityField.load reads a .sdpf field" if path.suffix.lower() == ".sdpf"
+                                    else ""))
+        if not path.exists() and _unfinished(path)[0]:
+            raise FieldFileError(f"{path}: no field store yet: a build of it is under way or stopped before its end")
         try:
             group = zarr.open_group(str(path), mode="r+")
         except Exception as exc:  # zarr raises several types for missing or foreign folders
@@ -122,11 +183,15 @@ class FieldStore:
         """Write an in-memory field to a store, tile by tile."""
         store = cls.create(path, voxel_size=field.voxel_size, sigma=field.sigma, truncate=field.truncate, h=field.h,
                            tile_blocks=tile_blocks, method=field.method)
-        keys = field.global_keys
-        for key in np.unique(np.floor_divide(keys[:, :2], tile_blocks), axis=0):
-            store.write_tile(tuple(key), field)
-        store.set_counts(field.n_points, field.n_dropped)
-        return store
+        try:
+            keys = field.global_keys
+            for key in np.unique(np.floor_divide(keys[:, :2], tile_blocks), axis=0):
+                store.write_tile(tuple(key), field)
+            store.set_counts(field.n_points, field.n_dropped)
+        except BaseException:
+            store.discard()
+            raise
+        return store.commit()
 
     def write_tile(self, key, field: DensityField) -> int:
         """Store the blocks of ``field`` that lie in tile ``key`` = (i, j); returns their number."""
@@ -183,9 +248,10 @@ class FieldStore:
 
     def read(self, lo=None, hi=None) -> DensityField:
         """The in-memory field of the blocks whose x, y block coordinates lie in [lo, hi)
-        (2-vectors; the whole store when omitted)."""
+        (2-vectors; the whole store when omitted, with its count of points: a part has none)."""
         zarr = require_zarr()
 
+        whole = lo is None and hi is None  # the points counted are the whole store's
         lo = np.full(2, np.iinfo(np.int64).min // 2) if lo is None else np.asarray(lo, np.int64)
         hi = np.full(2, np.iinfo(np.int64).max // 2) if hi is None else np.asarray(hi, np.int64)
         t = self.tile_blocks
@@ -203,7 +269,7 @@ class FieldStore:
         origin = keys.min(axis=0) if len(keys) else np.zeros(3, np.int64)
         shape = tuple(int(v) for v in (keys.max(axis=0) - origin + 1)) if len(keys) else (1, 1, 1)
         return DensityField(Grid(self.voxel_size, origin, shape), keys - origin, values, h=self.h, sigma=self.sigma,
-                            truncate=self.truncate, n_points=self.n_points if lo is None else 0,
+                            truncate=self.truncate, n_points=self.n_points if whole else 0,
                             n_dropped=int(self.attrs["n_dropped"]), method=self.attrs["method"])
 
     def tile_field(self, key, *, margin: int = 1) -> DensityField:
@@ -239,30 +305,40 @@ class FieldStore:
         """The surface F = ``level``, tile by tile (Lewiner marching cubes, as
         :meth:`DensityField.mesh`); vertices on tile seams are merged."""
         from ..errors import SurfaceError
-        from ..fields._surface import Mesh, extract_surface
+        from ..fields._surface import _CHUNK, Mesh, surface_nodes
 
         n = self.tile_blocks * BLOCK
         verts, faces, offset = [], [], 0
         for key in self.tiles:
+            f = self.tile_field(key)
+            # marching cubes' chunks on one lattice for every tile (its origin a multiple of _CHUNK
+            # blocks): a seam edge then gives both tiles bitwise the same vertex, merged exactly; with
+            # the tiles' own origins its copies differed in their last bits and rounded apart (open seams)
+            shift = f.grid.block_origin - np.floor_divide(f.grid.block_origin, _CHUNK) * _CHUNK
+            f = DensityField(Grid(self.voxel_size, f.grid.block_origin - shift,
+                                  tuple(int(s) for s in np.asarray(f.grid.shape_blocks) + shift)),
+                             f.blocks.keys + shift, f.blocks.values, h=f.h, sigma=f.sigma, truncate=f.truncate)
             try:
-                m = extract_surface(self.tile_field(key), level=level)
+                v, tri = surface_nodes(f, level=level)
             except SurfaceError:
                 continue
-            cell = np.floor(m.vertices[m.faces].mean(axis=1)[:, :2] / self.voxel_size).astype(np.int64)
+            v += f.grid.block_origin * BLOCK  # global node units: an integer added, exact
+            cell = np.floor(v[tri].mean(axis=1)[:, :2]).astype(np.int64)
             keep = np.all(np.floor_divide(cell, n) == key, axis=1)  # triangles of this tile's cells
-            verts.append(m.vertices)
-            faces.append(m.faces[keep] + offset)
-            offset += len(m.vertices)
+            verts.append(v)
+            faces.append(tri[keep] + offset)
+            offset += len(v)
         if not verts:
             raise SurfaceError(f"no surface crosses level {level:g}")
         v, f = np.concatenate(verts), np.concatenate(faces)
-        q = np.round(v / self.voxel_size * 2**16).astype(np.int64)
+        # the in-memory merge (sdp.fields._surface), in node units of the global lattice
+        q = np.round(v * 2**16).astype(np.int64)
         _, first, inverse = np.unique(q, axis=0, return_index=True, return_inverse=True)
         f = inverse.ravel()[f]
         used = np.unique(f)
         remap = np.full(len(first), -1, np.int64)
         remap[used] = np.arange(len(used))
-        return Mesh(v[first][used], remap[f])
+        return Mesh(v[first][used] * self.voxel_size, remap[f])
 
     def combine(self, other: "FieldStore", operation: str, path: str | os.PathLike) -> "FieldStore":
         """Out-of-core Boolean operation (``"union"``, ``"intersection"`` or ``"difference"``,
@@ -270,7 +346,7 @@ class FieldStore:
         from ..fields import _boolean as boolean
 
         if operation not in ("union", "intersection", "difference"):
-            raise ValueError(f"operation must be union, intersection or difference, got {operation!r}")
+            raise InvalidOptionError(f"operation must be union, intersection or difference, got {operation!r}")
         op, t = getattr(boolean, operation), self.tile_blocks
         tiles = set(self.tiles)
         for key in other.tiles:  # this store's tiles that the other's tiles overlap
@@ -278,14 +354,38 @@ class FieldStore:
             hi = np.floor_divide((np.asarray(key) + 1) * other.tile_blocks - 1, t)
             tiles |= {(i, j) for i in range(lo[0], hi[0] + 1) for j in range(lo[1], hi[1] + 1)}
         out = None
-        for key in sorted(tiles):
-            lo = np.asarray(key, np.int64) * t
-            a, b = self.read(lo, lo + t), other.read(lo, lo + t)
-            if a.n_blocks + b.n_blocks == 0:
+        try:
+            for key in sorted(tiles):
+                lo = np.asarray(key, np.int64) * t
+                a, b = self.read(lo, lo + t), other.read(lo, lo + t)
+                if a.n_blocks + b.n_blocks == 0:
+                    continue
+                r = op(a, b)
+                if out is None:
+                    out = FieldStore.create(path, voxel_size=r.voxel_size, sigma=r.sigma, truncate=r.truncate,
+                                            h=r.h, tile_blocks=t, method=operation, inputs=(self.path, other.path))
+                out.write_tile(key, r)
+        except BaseException:
+            if out is not None:
+                out.discard()
+            raise
+        return out if out is None else out.commit()
+
+
+def _unfinished(path: Path) -> tuple[list[Path], Path]:
+    """(the unfinished stores of ``path`` that builds left, this process's temporary name for it)."""
+    return sorted(path.parent.glob(f".{path.name}.tmp-*")), path.parent / f".{path.name}.tmp-{os.getpid()}"
+
+
+def _remove_leftovers(path: Path) -> None:
+    """Remove what builds of ``path`` whose process is gone left beside it (a ``kill -9``)."""
+    from ..timeseries._archive import _alive
+
+    for left in [*path.parent.glob(f".{path.name}.old-*"), *_unfinished(path)[0]]:
+        with suppress(ValueError):
+            if _alive(int(left.name.rsplit("-", 1)[1])):
                 continue
-            r = op(a, b)
-            if out is None:
-                out = FieldStore.create(path, voxel_size=r.voxel_size, sigma=r.sigma, truncate=r.truncate, h=r.h,
-                                        tile_blocks=t, method=operation, inputs=(self.path, other.path))
-            out.write_tile(key, r)
-        return out
+        if left.name.startswith(f".{path.name}.old-") and not path.exists():
+            os.rename(left, path)  # stopped between commit's two renames: the previous store put back
+        else:
+            shutil.rmtree(left, ignore_errors=True)

@@ -67,7 +67,6 @@ References
 from __future__ import annotations
 
 import os
-import shutil
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -554,8 +553,9 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, lattice: Lattice | None
     """The density field of a cloud of any size, built tile by tile into a :class:`FieldStore`.
 
     Same parameters as :func:`detect_changes_tiled` (one cloud); ``path`` is the store to
-    write (a folder, conventionally ``*.zarr``). Each tile's blocks equal those of
-    :meth:`DensityField.from_points` on the whole cloud.
+    write (a folder, conventionally ``*.zarr``), written under a temporary name and renamed into
+    place when complete (:meth:`FieldStore.commit`): a run that fails or is stopped leaves what was
+    at ``path``. Each tile's blocks equal those of :meth:`DensityField.from_points` on the whole cloud.
     """
     lattice, execution = _tiled_options(lattice, execution)
     require_zarr()  # before any work
@@ -570,10 +570,10 @@ def build_field_tiled(cloud, path: str | os.PathLike, *, lattice: Lattice | None
             jobs = [(key, run.root, run.tiling, run.opts, str(store.path)) for key in run.tiles]
             counts = run.tasks("build", _build_tile, jobs, ())
             store.set_counts(sum(counts), run.dropped["cloud"])
-        except BaseException:  # no half-built store left behind (a failed tile, Ctrl-C, SIGTERM)
-            shutil.rmtree(store.path, ignore_errors=True)
+        except BaseException:  # no half-built store left behind (a failed tile, Ctrl-C, SIGTERM), the old one kept
+            store.discard()
             raise
-    return store
+        return store.commit()  # only now is a store already at ``path`` replaced
 
 
 def _tiled_options(lattice: Lattice | None, execution: Execution | None) -> tuple[Lattice, Execution]:
@@ -588,6 +588,6 @@ def _tiled_options(lattice: Lattice | None, execution: Execution | None) -> tupl
 def _build_tile(key, root: str, tiling: Tiling, opts: dict, store: str) -> int:
     """Build tile ``key``'s field from its bucket and store its own blocks; returns its own points."""
     rec = load_bucket(root, "cloud", key)
-    FieldStore.open(store).write_tile(key, DensityField.from_points(rec[:, :3], **opts))
+    FieldStore._open(store).write_tile(key, DensityField.from_points(rec[:, :3], **opts))  # not committed yet
     return int(tiling.owns(key, rec).sum())
 
