@@ -133,7 +133,8 @@ def test_cli_field_store(tmp_path, clouds):
                         (["--sensor-origin", "0,0,10"], "--sensor-origin is not available"),
                         (["--voxel-size", "0.2"], "the field store's"),
                         (["-o", tmp_path / "x.ply"], "give -o OUT.laz")):
-        p = run("change", tmp_path / "a.zarr", b, "-o", tmp_path / "x.laz", *extra)
+        out = [] if "-o" in extra else ["-o", tmp_path / "x.laz"]
+        p = run("change", tmp_path / "a.zarr", b, *out, *extra)
         assert p.returncode == 2 and says in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert not any(tmp_path.glob("x.*")) and not (tmp_path / "r.html").exists()
 
