@@ -28,7 +28,8 @@ from ._las import write_las
 from ._numpy import write_npz
 from ._ply import write_ply, write_ply_mesh
 
-__all__ = ["WRITTEN_AS", "check_format", "check_outputs", "refuse_overwrite", "all_or_none", "atomic_path", "new_folder",
+__all__ = ["WRITTEN_AS", "check_format", "check_outputs", "refuse_overwrite", "all_or_none", "atomic_path",
+           "new_folder",
            "write_points", "write_mesh"]
 
 
@@ -86,9 +87,9 @@ def check_outputs(outputs, inputs=()) -> None:
         if not parent.is_dir():
             raise SDPError(f"{path}: {str(parent)!r} is not a folder")
         if path.is_dir() and not (path.suffix.lower() == ".zarr" and (path / "zarr.json").is_file()):
-            raise SDPError(f"{path}: is an existing directory" + (" and not a series archive; choose another output name"
-                                                                   if path.suffix.lower() == ".zarr" else
-                                                                   "; choose a file name for the output"))
+            advice = (" and not a series archive; choose another output name" if path.suffix.lower() == ".zarr"
+                      else "; choose a file name for the output")
+            raise SDPError(f"{path}: is an existing directory{advice}")
         for src in ins:
             if _same_file(path, src):
                 raise SDPError(f"{path}: refusing to overwrite an input file; choose another output name")

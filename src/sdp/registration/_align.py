@@ -270,7 +270,8 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
             span = [float(np.max(np.ptp(x, axis=0))) for x in (ref_xyz if ref_xyz is not None else cur, cur)]
             if span[1] > _UNITS * span[0] or span[0] > _UNITS * span[1]:
                 raise GridTooLargeError(f"{exc}; but the current spans {span[1]:.4g} units and the reference "
-                                        f"{span[0]:.4g}: are they in the same units (metres and millimetres)?") from None
+                                        f"{span[0]:.4g}: are they in the same units (metres and millimetres)?"
+                                        ) from None
             raise exc
     else:
         matrix = _align_gicp(ref_xyz, sample, t0, ref_field.voxel_size, ref_field.sigma)

@@ -57,7 +57,8 @@ def check_process_fits(cap: float) -> None:
     job's, in every command."""
     if PROCESS_BYTES >= cap:
         raise GridTooLargeError(f"the process itself needs about {format_bytes(PROCESS_BYTES)}, above the memory "
-                                f"limit of {format_bytes(cap)}: raise the memory limit (--memory-limit, $SDP_MEMORY_LIMIT)")
+                                f"limit of {format_bytes(cap)}: raise the memory limit (--memory-limit, "
+                                "$SDP_MEMORY_LIMIT)")
 
 
 def untiled_point_bytes(n_points: int) -> int:

@@ -469,9 +469,9 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                             "min_object_points": min_object_points(prepared.core_points,
                                                                    prepared.projection_scale)}}
     with A.writing(out) if out.is_dir() else contextlib.nullcontext():  # an archive replaced: not while appended to
-        _run(epochs, out, t, kind, source, note=note, attrs=attrs, registration=registration, reg_opt=reg_opt, limit=limit,
-             fmt=format, t_start=t_start, prepared=prepared, state=arrays, ref_cloud=(reference, ref_cloud),
-             tiles=tiles)
+        _run(epochs, out, t, kind, source, note=note, attrs=attrs, registration=registration, reg_opt=reg_opt,
+             limit=limit, fmt=format, t_start=t_start, prepared=prepared, state=arrays,
+             ref_cloud=(reference, ref_cloud), tiles=tiles)
     return out
 
 
