@@ -426,6 +426,7 @@ def slow_after_pairs(n, cases):
     (["watch", "a.npy", "frames", "--update", "none", "--window", "3"], "window applies to update='window' only"),
     (["bool", "union", "a.sdpf", "b.npy", "-o", "u.sdpf", "--voxel-size", "0.5"], "a field sets the lattice"),
     (["mesh", "a.sdpf", "-o", "m.ply", "--sigma-voxels", "5"], "a field sets the lattice"),
+    (["bool", "difference", "a.npy", "a.npy", "-o", "d.ply"], "the difference holds no volume"),
     (["watch", "a.sdpf", "frames", "--voxel-size", "0.5"], "a field sets the lattice"),
     (["change", "a.npy", "b.npy", "-o", "o.ply", "--h", "2", "-k", "4"], "give k or h, not both"),
     (["align", "a.npy", "far.npy", "-o", "al.txt"], "the clouds do not overlap"),

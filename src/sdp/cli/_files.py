@@ -202,7 +202,13 @@ def combine_files(operation: str, a, b, *, output, format: str | None = None, la
     if is_field(output):
         _save_field(result, output, inputs=(a, b))
         return result
-    mesh = result.mesh()
+    from ..errors import SurfaceError
+
+    try:
+        mesh = result.mesh()
+    except SurfaceError:  # no --level here: the volume itself is empty (a difference of a cloud with itself)
+        raise SurfaceError(f"the {operation} holds no volume (F ≥ 0 everywhere): there is no surface to write; "
+                           "write the field (-o OUT.sdpf) to keep it") from None
     write_mesh(output, mesh, inputs=(a, b))
     return mesh
 

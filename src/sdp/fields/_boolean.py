@@ -43,7 +43,7 @@ def check_compatible(a: DensityField, b: DensityField) -> None:
                                           f"with sdp.DensityField.from_points on the other's voxel size")
     if not np.isclose(a.voxel_size, b.voxel_size, rtol=1e-12, atol=0):
         raise IncompatibleFieldsError(
-            f"fields have different voxel sizes ({a.voxel_size:g} and {b.voxel_size:g}): build both "
+            f"fields have different voxel sizes ({a.voxel_size!r} and {b.voxel_size!r}): build both "
             "with the same voxel size so their nodes coincide")
 
 
@@ -82,12 +82,14 @@ def union(a: DensityField, b: DensityField) -> DensityField:
 
 
 def intersection(a: DensityField, b: DensityField) -> DensityField:
-    """Intersection: F = max(F_a, F_b). See :func:`union` for parameters and the result."""
+    """Intersection: F = max(F_a, F_b). See :func:`union` for parameters and the result, whose h
+    here is max(h_a, h_b), the value of F far from both clouds."""
     return _combine(a, b, "intersection")
 
 
 def difference(a: DensityField, b: DensityField) -> DensityField:
-    """Difference a − b: F = max(F_a, −F_b), inside ``a`` and outside ``b``. See :func:`union`.
+    """Difference a − b: F = max(F_a, −F_b), inside ``a`` and outside ``b``. See :func:`union`; h
+    here is max(h_a, −h_b), the value of F far from both clouds.
 
     Examples
     --------
