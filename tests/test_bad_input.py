@@ -676,3 +676,17 @@ def test_messages_name_the_cause_not_the_librarys_advice(tmp_path):
         p = run(*args, cwd=tmp_path)
         assert one_line_error(p) and message in p.stderr and "usecols" not in p.stderr, p.stderr
         assert "allow_pickle" not in p.stderr
+
+
+def test_a_scan_in_other_units_is_asked_about(tmp_path):
+    """A current in millimetres against a reference in metres compares to nothing useful: the
+    summary asks, and a Kinect-sized frame against a room does not."""
+    xyz = np.random.default_rng(0).random((4000, 3))
+    sdp.write_points(tmp_path / "m.ply", xyz)
+    sdp.write_points(tmp_path / "mm.ply", xyz * 1000)
+    r = sdp.compare_files(tmp_path / "m.ply", tmp_path / "mm.ply", output=tmp_path / "o.ply")
+    assert r.summary["extents"] == pytest.approx([1.0, 1000.0], rel=0.01)
+    assert "are they in the same units" in r.summary_text()
+    sdp.write_points(tmp_path / "part.ply", xyz[xyz[:, 0] < 0.1])
+    r = sdp.compare_files(tmp_path / "m.ply", tmp_path / "part.ply", output=tmp_path / "p.ply")
+    assert "extents" not in r.summary

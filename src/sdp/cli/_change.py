@@ -35,6 +35,10 @@ from ._common import (align_clouds, alignment_summary, check_picture_extras, dis
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
 
+#: Ratio of the two scans' extents beyond which the summary asks whether they share their units
+#: (1000 between millimetres and metres; a Kinect frame against a building's scan is within 100).
+_UNITS = 100.0
+
 
 @dataclass
 class ChangePlan:
@@ -354,6 +358,9 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                             f"disappeared from {Path(reference).name}", regions=r.disappeared_regions)
     summary = r.summary()
     summary["timings"]["read"] = t_read
+    spans = [float(np.max(np.ptp(c.xyz, axis=0))) if len(c.xyz) else 0.0 for c in (ref, moved)]
+    if min(spans) > 0 and max(spans) > _UNITS * min(spans):  # a scan in millimetres against one in metres
+        summary["extents"] = spans
     if alignment is not None:
         summary["alignment"] = alignment_summary(alignment, align)
         summary["timings"]["align"] = alignment.seconds

@@ -19,6 +19,9 @@ def change_text(s: dict, reference, current) -> str:
         c = s[role]
         lines.append(f"{role:<10} {name}: {c['points']:,} points ({c['dropped']:,} dropped), {c[kind]:,} {kind}, "
                      f"{c['not_comparable']:,} not comparable")
+    if "extents" in s:
+        lines.append(f"the reference spans {s['extents'][0]:.4g} units and the current {s['extents'][1]:.4g}: are they "
+                     "in the same units (metres and millimetres)? Compared as given")
     if "alignment" in s:
         lines.append(alignment_text(s["alignment"]))
     lines.append(f"voxel {s['voxel_size']:.4g}, sigma {s['sigma']:.4g}, h {s['h']:.4f}, decision {s['decision']}"
