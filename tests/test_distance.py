@@ -222,6 +222,11 @@ def test_distance_files_core_points_png_and_refusals(rng, tmp_path, capsys):
                            core_points=tmp_path / "holed.ply")
     assert r.summary["core_points"] == 30 and r.summary["core_points_dropped"] == 1
     assert "(and 1 row holding NaN or Inf, left out)" in r.summary_text()
+    # the rows left out go with their fields: the others keep theirs (an E57's invalid returns)
+    sdp.write_points(tmp_path / "holed_i.ply", np.r_[core, [[np.nan, 1.0, 0.0]]], {"intensity": np.arange(31.0)})
+    r = sdp.distance_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "hi.ply",
+                           core_points=tmp_path / "holed_i.ply")
+    assert np.array_equal(sdp.read_points(tmp_path / "hi.ply").fields["intensity"], np.arange(30.0))
     # core points carrying normals of their own: kept as given, not used, and said so
     sdp.write_points(tmp_path / "normals.ply", core, {"nx": np.ones(30), "ny": np.zeros(30), "nz": np.zeros(30)})
     r = sdp.distance_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "n.ply",

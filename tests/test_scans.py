@@ -330,3 +330,36 @@ def test_a_field_some_scans_lack_is_kept_and_filled_at_the_others(tmp_path):
     first = cloud.fields["scan"] == 0
     assert first.sum() == 500 and np.array_equal(cloud.fields["red"][first], colour[0])
     assert (cloud.fields["red"][~first] == 0).all() and (cloud.fields["intensity"][~first] == 0).all()
+
+
+def test_scans_of_no_pose_put_their_scanner_at_the_origin_only_alone(tmp_path):
+    """One scan without a pose is in its scanner's frame (the standard's identity); several, in a
+    registered export that kept no station, cannot all have stood at the origin: no scanner."""
+    from sdp.cli._files import describe_file
+
+    rng = np.random.default_rng(4)
+
+    import inspect
+    import textwrap
+
+    # pye57 writes an identity pose when given none; a file without one, as registered exports are
+    source = textwrap.dedent(inspect.getsource(pye57.E57.write_scan_raw)).replace(
+        "def write_scan_raw(", "def write_without_pose(").replace(
+        "if rotation is not None and translation is not None:", "if False:")
+    assert "if False:" in source
+    names = dict(vars(sys.modules[pye57.E57.__module__]))
+    exec(source, names)
+
+    def write(path, n_scans):
+        e = pye57.E57(str(path), mode="w")
+        for k in range(n_scans):
+            xyz = rng.random((400, 3)) + [5.0 * k, 3.0, 0.0]
+            names["write_without_pose"](e, {"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]})
+        e.close()
+        return path
+
+    one, two = sdp.read_points(write(tmp_path / "one.e57", 1)), sdp.read_points(write(tmp_path / "two.e57", 2))
+    assert np.allclose(one.sensor_origin, 0) and two.sensors is None and two.sensor_origin is None
+    info = describe_file(tmp_path / "two.e57")
+    assert "sensors" not in info and [s["pose"] for s in info["scans"]] == [False, False]
+    assert [s["kept"] for s in info["scans"]] == [400, 400]

@@ -142,8 +142,7 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
         origin = sensor_origins(sensor, (reference, ref), (current, moved), alignment)
         d = distances(ref, moved, core_points=core, cylinder=cylinder, registration_error=reg,
                       orientation=orientation, sensor_origin=origin, memory_limit=memory_limit)
-        like = core if core is not None else ref
-        like = like if like.n_dropped == 0 else None  # rows were dropped: the input's dimensions no longer line up
+        like = core if core is not None else ref  # its rows dropped (NaN, an E57's invalid returns) with their fields
         fields = rename_fields(d.fields(), outputs.field_names, path=out)
         write_points(out, d.core_points, fields, like=like, inputs=(reference, current, core_points))
         outputs = [str(out)]

@@ -241,7 +241,7 @@ def describe_file(path, *, format: str | None = None) -> dict:
         from ..io._e57 import e57_scans
 
         scans = e57_scans(path)
-        kept = np.bincount(c.scan, minlength=len(scans))
+        kept = np.bincount(np.asarray(c.fields["scan"], np.int64), minlength=len(scans))
         info["scans"] = [{**s, "kept": int(kept[s["scan"]])} for s in scans]
     return info
 

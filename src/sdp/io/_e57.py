@@ -8,7 +8,7 @@ and colour. :func:`read_e57` reads every scan, moves its points by its pose, kee
 marks the points flagged invalid (``cartesianInvalidState`` / ``sphericalInvalidState`` ≠ 0) as
 NaN so that :func:`sdp.io.read_points` drops and counts them, and records per point which scan
 saw it (the ``scan`` field) and where each scanner stood (the poses' translations: a scanner sits
-at its scan frame's origin).
+at its scan frame's origin; a file of several scans, some without a pose, records no scanner).
 
 The reader is pye57 (MIT; Python bindings of libE57Format, the reference implementation of the
 standard, maintained, with wheels for Linux, macOS and Windows), not the Rust-based ``e57``
@@ -81,7 +81,7 @@ def e57_scans(path) -> list[dict]:
                 grid = None
         name = h["name"].value() if h.node.isDefined("name") else None
         out.append({"scan": i, "name": name, "points": int(h.point_count), "fields": fields,
-                    "rotation": q.tolist(), "translation": t.tolist(), "grid": grid})
+                    "rotation": q.tolist(), "translation": t.tolist(), "pose": bool(h.has_pose()), "grid": grid})
     return out
 
 
@@ -103,20 +103,27 @@ def read_e57(path):
     into the file's frame (invalid points as NaN rows), the fields ``scan`` (uint16: which scan),
     ``intensity``, ``red``/``green``/``blue`` and ``row``/``column`` where any scan has them (at
     the points of a scan without one: 0, or -1 for ``row`` and ``column``; a survey often has
-    colour at some stations only), and the scanners' positions (k, 3) in the file's frame."""
+    colour at some stations only), and the scanners' positions (k, 3) in the file's frame. A scan
+    without a pose is in the file's frame (the standard's identity), its scanner at the origin: a
+    single scan exported in its scanner's frame. A file of several scans some of which record no
+    pose is a registered export whose stations were not kept (they cannot all have stood at the
+    origin): its scanners are unknown (None), and it is compared as a file that records no sensor,
+    rather than with rays made up from the origin."""
     e = _open(path)
     k = e.scan_count
     if k == 0:
         raise CloudFileError(f"{path}: the E57 file holds no scan")
-    parts, sensors = [], np.zeros((k, 3))
+    parts, sensors, posed = [], np.zeros((k, 3)), True
     for i in range(k):
         h = e.get_header(i)
         q, t = _pose(h, path, i)
         sensors[i] = t
+        posed &= bool(h.has_pose())
         if int(h.point_count) == 0:  # a scan of no record: libE57Format can't read its empty vector
             continue
         raw = e.read_scan_raw(i, ignore_unsupported_fields=True)
         parts.append(_scan_points(raw, q, t, i, path))
+    sensors = sensors if posed or k == 1 else None
     if not parts:  # every scan empty: no point (said by the reader's caller)
         return np.zeros((0, 3)), {}, None, None, False, sensors
     xyz = np.concatenate([p.pop("xyz") for p in parts])
