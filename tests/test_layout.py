@@ -67,6 +67,29 @@ def test_no_import_cycle_inside_sdp():
     assert graph["sdp.fields._lattice"] and graph["sdp.cli._change"]  # the walk sees imports at all
 
 
+#: The subpackages in the order of docs/architecture.md's map: the data path.
+PATH = ["io", "fields", "change", "distance", "registration", "stream", "scale", "timeseries", "viz", "actions",
+        "cli", "data"]
+
+
+def test_a_module_imports_at_its_top_only_the_stages_before_it():
+    """docs/architecture.md: a later stage serving an earlier one is imported inside the function
+    that needs it, so that importing a module never loads the stages after it."""
+    rank = {p: i for i, p in enumerate(PATH)}
+    late = []
+    for name, path in _modules().items():
+        own = name.split(".")[1] if name.count(".") else ""
+        if own not in rank:
+            continue
+        for node in ast.parse(path.read_text()).body:  # the module's top level only
+            if isinstance(node, ast.ImportFrom) and node.level == 2 and node.module:
+                other = node.module.split(".")[0]
+                if other in rank and rank[other] > rank[own]:
+                    late.append(f"{name} imports {node.module}")
+    assert late == []
+    assert set(PATH) <= {p.name for p in SRC.iterdir() if (p / "__init__.py").exists()}
+
+
 def test_the_top_level_reads_as_the_data_path():
     modules = sorted(p.name for p in SRC.glob("*.py"))
     packages = sorted(p.name for p in SRC.iterdir() if (p / "__init__.py").exists())

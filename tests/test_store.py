@@ -125,6 +125,9 @@ def test_cli_field_store(tmp_path, clouds):
 
     s, d = json.loads(stored.stdout), json.loads(direct.stdout)
     assert s["current"]["appeared"] == d["current"]["appeared"] > 1000 and s["tiles"] >= 12
+    # no reference points: what disappeared is not measured, not "none"
+    assert s["reference"]["disappeared"] is None and s["coverage"]["disappeared"] == "not measured"
+    assert "disappeared not measured" in run("change", tmp_path / "a.zarr", b, "-o", tmp_path / "t.laz").stdout
     both = run("change", tmp_path / "a.zarr", b, "-o", tmp_path / "x.laz", "--both")
     assert both.returncode == 2 and "reference points" in both.stderr
     # what the tiles can't do is refused before any work, as with --tiled, not ignored

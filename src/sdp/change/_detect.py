@@ -295,11 +295,14 @@ class ChangeResult:
             return out
 
         tiles = {"tiles": self.n_tiles, "tile_size": self.tile_size} if self.tiled else {}
+        reference = counts(self._reference, self.n_dropped_reference, "disappeared", self._distances[0])
+        if self.coverage.get("disappeared") == "not measured":  # a field store's reference: no points to test
+            reference.update(disappeared=None, not_comparable=None)
         return {"voxel_size": self.voxel_size, "sigma": self.sigma, "h": self.h, "decision": self.decision, **tiles,
                 "sensor_origin": {"reference": origin(self.sensor_origins[0]),
                                   "current": origin(self.sensor_origins[1])},
                 "coverage": dict(self.coverage),
-                "reference": counts(self._reference, self.n_dropped_reference, "disappeared", self._distances[0]),
+                "reference": reference,
                 "current": counts(self._current, self.n_dropped_current, "appeared", self._distances[1]),
                 "timings": dict(self.timings),
                 "appeared_regions": [r.to_dict() for r in self.appeared_regions],

@@ -17,6 +17,10 @@ def change_text(s: dict, reference, current) -> str:
     lines = []
     for role, name, kind in (("reference", reference, "disappeared"), ("current", current, "appeared")):
         c = s[role]
+        if c[kind] is None:  # a field store as the reference: only what appeared is found
+            lines.append(f"{role:<10} {name}: {c['points']:,} points, {kind} not measured (a field store holds no "
+                         "points to test)")
+            continue
         lines.append(f"{role:<10} {name}: {c['points']:,} points ({c['dropped']:,} dropped), {c[kind]:,} {kind}, "
                      f"{c['not_comparable']:,} not comparable")
     if "extents" in s:
@@ -65,6 +69,8 @@ def coverage_text(s: dict) -> str:
             if isinstance(o[0], (list, tuple)):  # several scanners (a multi-scan E57)
                 return f"{kind}: the {other}'s sensor rays ({len(o)} scanners)"
             return f"{kind}: the {other}'s sensor rays (origin {', '.join(f'{v:.4g}' for v in o)})"
+        if how == "not measured":
+            return f"{kind}: not measured"
         return f"{kind}: the {other}'s footprint (no sensor position known)" if how == "footprint" else f"{kind}: off"
     return "coverage: " + "; ".join((one("appeared", "reference"), one("disappeared", "current")))
 

@@ -461,7 +461,10 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
                         h=threshold(k) if h is None else float(h), decision="combined" if combined else "point",
                         tiled=True,
                         n_dropped_reference=run.dropped.get("reference", 0), n_dropped_current=run.dropped["current"],
-                        coverage={"appeared": "footprint", "disappeared": "footprint"}, n_tiles=len(run.tiles),
+                        # a stored reference has no points to find disappeared: not measured, not none
+                        coverage={"appeared": "footprint",
+                                  "disappeared": "footprint" if store is None else "not measured"},
+                        n_tiles=len(run.tiles),
                         tile_size=run.tiling.edge, timings=run.timings, _distances=levels)
 
 
