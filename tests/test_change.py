@@ -122,6 +122,14 @@ def test_auto_voxel_size_follows_point_spacing(rng):
     assert sdp.detect_changes(sparse, resampled, lattice=sdp.Lattice(voxel_size="auto")).appeared.mean() < 0.01
 
 
+def test_a_cloud_of_repeated_points_has_the_spacing_of_its_distinct_ones(rng):
+    """Every point five times over: its 4th neighbour is itself again; the distinct points give the
+    spacing (it was refused as having "no more than k distinct points")."""
+    xyz = rng.random((20_000, 3)) * [4.0, 4.0, 0.05]
+    once = sdp.auto_voxel_size(xyz)
+    assert sdp.auto_voxel_size(np.repeat(xyz, 5, axis=0)) == pytest.approx(once, rel=0.1)
+
+
 def test_summary_is_json_serializable(scene_pair):
     import json
 

@@ -136,9 +136,17 @@ def auto_voxel_size_of(clouds: Sequence[Points], *, k: int = 3, quantile: float 
         idx = np.sort(rng.choice(len(xyz), sample, replace=False)) if len(xyz) > sample else None
         if len(xyz) > k:
             jobs.append((pts, xyz if idx is None else xyz[idx]))
-    # each query is a point of the cloud: its k + 1-th neighbour is its k-th other point
-    dists = map_concurrently(lambda job: kth_neighbour_distance(job[0].xyz, job[1], k + 1, lo=job[0].lo,
-                                                                hi=job[0].hi), jobs)
+    def spacing(job):
+        pts, queries = job
+        # each query is a point of the cloud: its k + 1-th neighbour is its k-th other point
+        d = kth_neighbour_distance(pts.xyz, queries, k + 1, lo=pts.lo, hi=pts.hi)
+        if (d == 0).any():  # exact duplicates (merged scans, repeated rows) sample no space: distinct points
+            unique = np.unique(pts.xyz, axis=0)
+            d = kth_neighbour_distance(unique, np.unique(queries, axis=0), k + 1, lo=pts.lo, hi=pts.hi) \
+                if len(unique) > k else np.zeros(0)
+        return d
+
+    dists = map_concurrently(spacing, jobs)
     d = np.concatenate(dists) if dists else np.zeros(0)
     d = d[d > 0]
     if d.size == 0:
