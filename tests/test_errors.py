@@ -111,3 +111,9 @@ def test_query_shape_is_checked(rng):
     f = DensityField.from_points(rng.random((10, 3)), voxel_size=0.1)
     with pytest.raises(sdp.InvalidPointsError, match="shape"):
         f.density(np.zeros((4, 2)))
+
+
+def test_a_far_outlier_is_named_as_what_makes_the_grid_too_large():
+    room = np.random.default_rng(0).random((5_000, 3)) * [4.0, 4.0, 2.5]
+    with pytest.raises(sdp.GridTooLargeError, match="the points span 1000 at a voxel of .*remove far outliers"):
+        DensityField.from_points(np.r_[room, [[1000.0, 1000.0, 1000.0]]], voxel_size=0.05)

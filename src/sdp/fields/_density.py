@@ -211,7 +211,10 @@ class DensityField:
         rmax = truncate * sigma_voxels
         reach = check_kernel(sigma_voxels, truncate, memory_limit)
         grid = Grid.covering(cloud.lo, cloud.hi, l, reach)
-        check_memory(grid.n_blocks_box * 5, f"the block directory of a {grid.shape} grid", memory_limit)
+        span = float(np.max(cloud.hi - cloud.lo))
+        check_memory(grid.n_blocks_box * 5, f"the block directory of a {grid.shape} grid", memory_limit,
+                     advice=f"the points span {span:.4g} at a voxel of {l:.4g}: remove far outliers, or use a larger "
+                            "voxel size (or a smaller grid size)")
         xyz, origin, l = cloud.xyz, grid.origin, grid.voxel_size
         occ = mark_blocks(xyz, origin, l, reach, reach + 1, np.asarray(grid.shape_blocks, np.int64))
         flat = np.flatnonzero(occ)

@@ -331,7 +331,9 @@ def _check_tile_directory(tiling: Tiling, lo, hi, reach: int, share: int, budget
     span = (tiling.edge + 2 * tiling.halo) / tiling.voxel_size + 2 * reach + 2 * BLOCK
     z = (float(hi[2]) - float(lo[2])) / tiling.voxel_size + 2 * reach + 2 * BLOCK
     check_memory((span / BLOCK) ** 2 * (z / BLOCK) * 5, f"the block directory of one tile (voxel "
-                 f"{tiling.voxel_size:g}, tile edge {tiling.edge:.4g})", share, budget=budget)
+                 f"{tiling.voxel_size:g}, tile edge {tiling.edge:.4g})", share, budget=budget,
+                 advice="give a smaller --tile-size (the tiles' width follows the clouds' mean density over their "
+                        "box, which a few far outliers lower), or use a larger voxel size")
 
 
 #: Seconds to wait for a ``dask.distributed`` scheduler to answer.
