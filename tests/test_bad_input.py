@@ -690,3 +690,20 @@ def test_a_scan_in_other_units_is_asked_about(tmp_path):
     sdp.write_points(tmp_path / "part.ply", xyz[xyz[:, 0] < 0.1])
     r = sdp.compare_files(tmp_path / "m.ply", tmp_path / "part.ply", output=tmp_path / "p.ply")
     assert "extents" not in r.summary
+
+
+def test_points_too_sparse_for_the_automatic_voxel_are_said_to_be_beyond_reach(tmp_path):
+    """A dense object beside a sparse floor: the automatic voxel follows the object, and the floor's
+    points lie outside their own cluster volume, where no change can be found: said."""
+    rng = np.random.default_rng(1)
+    g = np.arange(0, 2, 0.05)
+    floor = np.c_[np.repeat(g, len(g)), np.tile(g, len(g)), np.zeros(len(g) ** 2)]
+    dense = rng.random((60_000, 3)) * 0.2 + [0.9, 0.9, 0.0]
+    sdp.write_points(tmp_path / "a.ply", np.r_[floor, dense])
+    sdp.write_points(tmp_path / "b.ply", np.r_[floor, dense, floor[:200] + [0, 0, 0.3]])  # a new shelf
+    r = sdp.compare_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "o.ply")
+    assert r.summary["current"]["outside_own_volume"] >= len(floor)
+    assert "of the current's points lie outside its own cluster volume" in r.summary_text()
+    r = sdp.compare_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "p.ply",
+                          lattice=sdp.Lattice(voxel_size=0.05))
+    assert "outside its own cluster volume" not in r.summary_text() and r.summary["current"]["appeared"] > 0

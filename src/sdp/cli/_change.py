@@ -358,6 +358,9 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                             f"disappeared from {Path(reference).name}", regions=r.disappeared_regions)
     summary = r.summary()
     summary["timings"]["read"] = t_read
+    # a point outside its own cluster volume (F ≥ 0: sparser than the lattice assumes) can't be changed
+    for role, fld, xyz in (("reference", r.reference_field, ref.xyz), ("current", r.current_field, moved.xyz)):
+        summary[role]["outside_own_volume"] = int((fld.field(xyz) >= 0).sum()) if fld is not None else 0
     spans = [float(np.max(np.ptp(c.xyz, axis=0))) if len(c.xyz) else 0.0 for c in (ref, moved)]
     if min(spans) > 0 and max(spans) > _UNITS * min(spans):  # a scan in millimetres against one in metres
         summary["extents"] = spans
