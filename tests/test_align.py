@@ -248,3 +248,30 @@ def test_a_scan_in_other_units_is_said_so(rng):
     ref = room_scene(rng, n=5_000)
     with pytest.raises(sdp.GridTooLargeError, match="are they in the same units"):
         align(ref, ref * 1000.0)
+
+
+def test_an_estimate_that_moves_the_surfaces_apart_goes_on_from_finer_levels_or_keeps_the_start(rng, monkeypatch):
+    """A pyramid's coarsest level that pulls the scan away (a room's symmetry at 8σ) is dropped and
+    the finer levels go on from the start; when every one loses overlap, the start is kept and said."""
+    import sdp.registration._align as A
+    from sdp.cli._text import alignment_text
+
+    ref = room_scene(rng)
+    truth = rigid(1.0, [0.3, 0.2, 1.0], [0.02, -0.01, 0.0])
+    cur = transform_points(np.linalg.inv(truth), room_scene(rng))
+    real, calls = A._align_density, []
+
+    def coarsest_astray(field, ref_xyz, points, t0, levels, *args):
+        calls.append(levels)
+        matrix, info = real(field, ref_xyz, points, t0, levels, *args)
+        return (rigid(0.0, [0, 0, 1], [1.5, 0.0, 0.0]) @ matrix if levels == 4 else matrix), info
+
+    monkeypatch.setattr(A, "_align_density", coarsest_astray)
+    a = align(ref, cur)
+    rms, angle = disagreement(a.matrix, truth, cur)
+    assert calls == [4, 3] and not a.diverged and rms < 0.003 and angle < 0.05
+    monkeypatch.setattr(A, "_align_density", lambda f, r, p, t0, levels, *args: (
+        rigid(0.0, [0, 0, 1], [1.5, 0.0, 0.0]) @ real(f, r, p, t0, levels, *args)[0], {}))
+    a = align(ref, cur)
+    assert a.diverged and np.array_equal(a.matrix, np.eye(4))
+    assert "the initial pose was kept" in alignment_text(a.summary())

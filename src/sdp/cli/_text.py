@@ -103,6 +103,9 @@ def alignment_warnings(al: dict) -> list[str]:
     started from almost no overlap (a guess), its surfaces do not coincide after it (a residual
     beyond the kernel σ: it has most likely failed), directions it left at the initial pose."""
     out = []
+    if al.get("diverged"):
+        out.append("the estimate moved the surfaces apart (less of the scan inside the reference's volume than at the "
+                   "start): the initial pose was kept; --align gicp, or scans moved closer, may find it")
     if al["inside_before"] < LOW_OVERLAP:  # both methods refine a pose: from no overlap they find any
         out.append(f"the scans barely overlapped before ({al['inside_before']:.1%} of the current inside the "
                    "reference's volume): a registration from so little overlap is a guess; check it")
@@ -145,6 +148,9 @@ def frame_text(frame) -> str:
     if frame.overlap is not None and frame.overlap < LOW_OVERLAP:  # as alignment_text says of a pair
         text += (f" (registered with {frame.overlap:.1%} of the frame inside the model: its pose, and what the "
                  "model learns from it, are a guess)")
+    if frame.pose_kept:
+        text += (" (its registration moved it away from the model: the previous frame's pose was kept; a camera "
+                 "turning fast is followed by --align gicp)")
     return text
 
 

@@ -113,6 +113,11 @@ class Alignment:
         The kernel σ of the finest level, which :attr:`rmse` is read against: after a right
         registration the surfaces coincide within it (0.3–0.65σ on the re-scans measured), a
         residual beyond it says they do not.
+    diverged : bool
+        The estimate ended with a share of the scan inside the reference's volume more than
+        :data:`LOST_OVERLAP` below the one it started from (for ``"density"``: from every
+        number of pyramid levels down to the finest alone): it moved the surfaces apart, and the
+        initial transform was kept (``matrix`` is ``init``).
     """
 
     matrix: np.ndarray
@@ -127,6 +132,7 @@ class Alignment:
     centre: np.ndarray = dataclass_field(default_factory=lambda: np.zeros(3))
     kept: tuple = ()
     sigma: float = np.nan
+    diverged: bool = False
 
     @property
     def translation(self) -> np.ndarray:
@@ -167,7 +173,7 @@ class Alignment:
                              "unit": "degrees", "convention": ROTATION_CONVENTION},
                 "inside_before": self.inside_before, "inside_after": self.inside_after, "rmse": self.rmse,
                 "seconds": self.seconds, "used": self.used, "conditioning": np.asarray(self.conditioning).tolist(),
-                "frozen": self.frozen, "kept": list(self.kept), "sigma": self.sigma}
+                "frozen": self.frozen, "kept": list(self.kept), "sigma": self.sigma, "diverged": self.diverged}
 
 
 def transform_points(matrix, points) -> np.ndarray:
@@ -263,19 +269,33 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
     sample = cur if len(cur) <= max_points else cur[rng.choice(len(cur), max_points, replace=False)]
     start = time.perf_counter()
     info = {}
-    if method == "density":
-        try:
-            matrix, info = _align_density(ref_field, ref_xyz, sample, t0, levels, min_constraint, fix_horizontal)
-        except GridTooLargeError as exc:  # the current's grid at the reference's voxel: say why it may be so large
-            span = [float(np.max(np.ptp(x, axis=0))) for x in (ref_xyz if ref_xyz is not None else cur, cur)]
-            if span[1] > _UNITS * span[0] or span[0] > _UNITS * span[1]:
-                raise GridTooLargeError(f"{exc}; but the current spans {span[1]:.4g} units and the reference "
-                                        f"{span[0]:.4g}: are they in the same units (metres and millimetres)?"
-                                        ) from None
-            raise exc
-    else:
-        matrix = _align_gicp(ref_xyz, sample, t0, ref_field.voxel_size, ref_field.sigma)
+    before = float(ref_field.inside(transform_points(t0, sample)).mean())
+    # both methods refine the pose they start from: one that ends with less of the scan inside the
+    # reference's volume than it began has moved the surfaces apart. The density method's coarsest
+    # level can do so (a room's walls at 8σ pull a turned camera onto the room's symmetry): the
+    # finer levels alone, whose basins are smaller but start where the pose already is, go on
+    # from there; the start is kept when none of them gains
+    diverged = True
+    for top in range(levels, 0, -1) if method == "density" else (levels,):
+        if method == "density":
+            try:
+                matrix, info = _align_density(ref_field, ref_xyz, sample, t0, top, min_constraint, fix_horizontal)
+            except GridTooLargeError as exc:  # the current's grid at the reference's voxel: why so large
+                span = [float(np.max(np.ptp(x, axis=0))) for x in (ref_xyz if ref_xyz is not None else cur, cur)]
+                if span[1] > _UNITS * span[0] or span[0] > _UNITS * span[1]:
+                    raise GridTooLargeError(f"{exc}; but the current spans {span[1]:.4g} units and the reference "
+                                            f"{span[0]:.4g}: are they in the same units (metres and millimetres)?"
+                                            ) from None
+                raise exc
+        else:
+            matrix = _align_gicp(ref_xyz, sample, t0, ref_field.voxel_size, ref_field.sigma)
+        after = float(ref_field.inside(transform_points(matrix, sample)).mean())
+        diverged = after < before - LOST_OVERLAP
+        if not diverged:
+            break
     seconds = time.perf_counter() - start
+    if diverged:
+        matrix, after = t0, before
     rmse = np.nan
     if ref_xyz is not None:
         from scipy.spatial import cKDTree
@@ -284,7 +304,6 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
                                        workers=-1)
         d = d[np.isfinite(d)]
         rmse = float(np.sqrt(np.mean(d**2))) if d.size else np.nan
-    before, after = (float(ref_field.inside(transform_points(m, sample)).mean()) for m in (t0, matrix))
     if after == 0 or (ref_xyz is not None and not np.isfinite(rmse)):  # nothing to register on: no answer
         gap = "" if ref_xyz is None else \
             f"; their centres are {np.linalg.norm(transform_points(t0, cur).mean(axis=0) - ref_xyz.mean(axis=0)):.4g} apart"
@@ -293,7 +312,8 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
                                  f"{ref_field.sigma * 2 ** (levels - 1):.3g} of each other; move them together "
                                  "first (in Python: init=, a rough transform)")
     return Alignment(matrix=matrix, method=method, inside_before=before, inside_after=after, rmse=rmse,
-                     seconds=seconds, centre=cur.mean(axis=0), sigma=float(ref_field.sigma), **info)
+                     seconds=seconds, centre=cur.mean(axis=0), sigma=float(ref_field.sigma), diverged=diverged,
+                     **info)
 
 
 def rigid_matrix(matrix, name: str = "matrix") -> np.ndarray:
@@ -334,6 +354,9 @@ _MAX_ITER = 30  # Gauss–Newton iterations per level
 _COARSE_POINTS = 20_000  # current points used on the coarser levels
 _MAX_LEVELS = 16  # pyramid levels: the coarsest σ 2^15 times the finest, beyond any scene's size
 _TOL = 1e-3  # stop a level when the step moves points by less than this × σ
+#: Share of the scan inside the reference's volume an estimate may lose before it is taken to
+#: have moved the surfaces apart (the share below which the summary calls a start a guess).
+LOST_OVERLAP = 0.05
 #: Ratio of the two scans' extents beyond which a grid too large for memory is most likely a
 #: scan in other units (1000 between millimetres and metres).
 _UNITS = 100.0

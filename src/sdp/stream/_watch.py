@@ -100,6 +100,10 @@ class FrameChange:
         With ``align=``: the share of the frame's finite points inside the model after the
         registration. A registration refines an overlap it starts from: a frame that shares
         (almost) nothing with the model gets a pose that is a guess (``sdp watch`` says so below 5 %).
+    pose_kept : bool
+        With ``align="density"``: the frame's registration ended with less of it inside the model
+        than it started from (:attr:`sdp.Alignment.diverged`), and the previous frame's pose was
+        kept (``sdp watch`` says so).
     """
 
     index: int
@@ -113,6 +117,7 @@ class FrameChange:
     transform: np.ndarray | None = None
     empty: bool = False
     overlap: float | None = None
+    pose_kept: bool = False
 
     @property
     def n_appeared(self) -> int:
@@ -128,7 +133,7 @@ class FrameChange:
                 "appeared": self.n_appeared, "not_comparable": int(self.not_comparable.sum()),
                 "latency": self.latency, "timings": dict(self.timings),
                 "transform": None if self.transform is None else self.transform.tolist(), "empty": self.empty,
-                "overlap": self.overlap,
+                "overlap": self.overlap, "pose_kept": self.pose_kept,
                 "regions": [{"n_points": r.n_points, "centroid": r.centroid.tolist(), "size": r.size.tolist()}
                             for r in self.regions]}
 
@@ -257,10 +262,14 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
                               appeared_labels=np.full(rows, -1, np.int32), latency=time.perf_counter() - t0,
                               transform=matrix, empty=True)
             continue
+        pose_kept = False
         if align is not None:  # from the previous frame's pose: the sensor moved little since
             t = time.perf_counter()
-            matrix = (target.register(cur.xyz, matrix) if target is not None else
-                      align_density(base, cur.xyz, init=matrix).matrix)
+            if target is not None:
+                matrix = target.register(cur.xyz, matrix)
+            else:
+                found = align_density(base, cur.xyz, init=matrix)
+                matrix, pose_kept = found.matrix, found.diverged
             cur = cur.moved(transform_points(matrix, cur.xyz))
             timings["align"] = time.perf_counter() - t
         frame = DensityField.from_points(cur, **opts)
@@ -307,7 +316,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         yield FrameChange(index=index, name=name, appeared=to_rows(mask, cur, False),
                           not_comparable=to_rows(unseen, cur, True), regions=regs,
                           appeared_labels=to_rows(labels, cur, -1), latency=t4 - t0, timings=timings,
-                          transform=matrix, overlap=overlap)
+                          transform=matrix, overlap=overlap, pose_kept=pose_kept)
 
 
 def _rows_if_empty(given) -> int | None:
