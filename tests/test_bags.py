@@ -111,6 +111,12 @@ def test_a_bag_without_the_topic_lists_its_topics(tmp_path):
         watch_folder(np.zeros((10, 3)), path)
     with pytest.raises(sdp.SDPError, match=r"sdp watch reads every message of the bag; give TOPIC"):
         watch_folder(np.zeros((10, 3)), path, topic="/lidar:5")  # once every frame, N ignored
+    with pytest.raises(sdp.SDPError, match=r"--format reads point-cloud files, not a ROS bag's messages"):
+        watch_folder(path, path, topic="/lidar:0", format="las")  # once read the bags and ignored it
+    with pytest.raises(sdp.SDPError, match=r"--format reads point-cloud files, not a ROS bag's messages"):
+        sdp.compare_files(path, write_ros1(tmp_path / "b1.bag", [(1, message(small_frames()[0], 4, 5, ts=TS1))],
+                                           "/lidar"),
+                          output=tmp_path / "never.ply", topic="/lidar:0", format="las")
 
 
 def test_a_topic_without_messages_is_refused_as_an_empty_folder_is(tmp_path):

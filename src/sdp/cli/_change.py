@@ -303,6 +303,8 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
                        "bag's messages with sdp watch BAG_OR_REFERENCE BAG --topic TOPIC, or give each its own file")
     if any(bags) and execution.tiled:
         raise SDPError("--tiled reads LAS/LAZ, NPY or binary PLY files in slices, not ROS bags")
+    if all(bags) and format is not None:  # it would be ignored: a bag's messages carry their own layout
+        raise SDPError("--format reads point-cloud files, not a ROS bag's messages (PointCloud2 says its own layout)")
     if execution.tiled and not is_store(reference):
         V.check_tiled_options(grid_size=lattice.grid_size, align=align, sensor_origin=coverage.sensor_origin,
                               range_noise=coverage.range_noise,

@@ -308,6 +308,8 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
                        f"({', '.join(f'{t} ({n} messages)' for t, n in sorted(topics.items())) or 'none'})")
     if topic is not None and not bag and not is_bag(reference):
         raise SDPError(f"{folder}: --topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if bag and is_bag(reference) and format is not None:  # it would be ignored: the messages carry their layout
+        raise SDPError("--format reads point-cloud files, not a ROS bag's messages (PointCloud2 says its own layout)")
     if bag and not is_bag(reference) and ":" in topic:  # every message is a frame: no N to pick
         raise SDPError(f"--topic {topic!r}: sdp watch reads every message of the bag; give TOPIC (TOPIC:N picks "
                        "the reference's message when the reference is a bag too)")
