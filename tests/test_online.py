@@ -140,12 +140,14 @@ def test_sdp_watch_folder(tmp_path, rng, align):
     (tmp_path / "frames").mkdir()
     for i, f in enumerate(frames):
         sdp.write_points(tmp_path / "frames" / f"frame{i + 8}.npz", f)  # natural order: 8, 9, 10, ...
+    np.savetxt(tmp_path / "frames" / "poses.txt", np.zeros((30, 8)))  # a recording's sidecar: not a frame
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "watch", str(tmp_path / "ref.ply"), str(tmp_path / "frames"),
                         "--voxel-size", "0.03", "--json"] + (["--align", align] if align else []),
                        capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     out = [json.loads(line) for line in p.stdout.splitlines()]  # JSON Lines: a frame a line
     assert [r["name"] for r in out] == [f"frame{i + 8}.npz" for i in range(6)]
+    assert "1 file(s) of other formats left out, not frames: poses.txt" in p.stderr
     assert [r["appeared"] > 0 for r in out] == [False, False, False, True, False, False]
     assert all((r["transform"] is None) == (align is None) for r in out)
 

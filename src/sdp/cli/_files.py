@@ -275,6 +275,28 @@ def align_files(reference, current, *, output, method: str = DEFAULTS.align_meth
     return al
 
 
+def frame_files(folder) -> tuple[list[Path], list[Path]]:
+    """(the frames of a folder, in natural name order, the files left out): the point-cloud files of
+    its most common format. A recording's folder often holds its frames beside text of the same
+    readers' formats (poses, timestamps, notes), which would be read as frames of a few points."""
+    import re
+    from collections import Counter
+
+    from ..io._cloud import FORMATS
+
+    files = [p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in FORMATS]
+    counts = Counter(p.suffix.lower() for p in files)
+    if len(counts) > 1:
+        (first, n), (_, m) = counts.most_common(2)
+        if n == m:
+            raise SDPError(f"{folder}: holds as many {first} files as of another format "
+                           f"({', '.join(f'{k}: {v}' for k, v in sorted(counts.items()))}): give a folder of one format")
+    kind = counts.most_common(1)[0][0] if counts else None
+    frames = sorted((p for p in files if p.suffix.lower() == kind),
+                    key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+    return frames, sorted(p for p in files if p.suffix.lower() != kind)
+
+
 def watch_folder(reference, frames, *, format: str | None = None, lattice: Lattice | None = None,
                  update: str = DEFAULTS.update, window: int | None = None, decay: float | None = None,
                  min_region_points: int = DEFAULTS.min_region_points, align: Registration | str | None = None,
@@ -292,8 +314,6 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     now; the frames are read one by one as the returned iterator of :class:`~sdp.FrameChange`
     (named after their files) advances.
     """
-    import re
-
     from ..io._cloud import FORMATS
     from ..stream._watch import watch
 
@@ -315,8 +335,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
                        "the reference's message when the reference is a bag too)")
     if not bag and not folder.is_dir():
         raise SDPError(f"{folder}: not a folder of frames nor a ROS bag")
-    paths = [] if bag else sorted((p for p in folder.iterdir() if p.suffix.lower() in FORMATS and p.is_file()),
-                                  key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+    paths = [] if bag else frame_files(folder)[0]
     if not bag and not paths:
         raise SDPError(f"{folder}: no point-cloud files ({', '.join(sorted(FORMATS))})")
     coverage = as_options(Coverage, coverage, "coverage")

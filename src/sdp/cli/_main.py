@@ -248,6 +248,13 @@ def cmd_align(a):
 
 
 def cmd_watch(a):
+    from ..io._bag import is_bag
+
+    if os.path.isdir(a.frames) and not is_bag(a.frames):  # frames of one format: say what is left out
+        skipped = F.frame_files(a.frames)[1]
+        if skipped:
+            _say(f"{a.frames}: {len(skipped)} file(s) of other formats left out, not frames: "
+                 f"{', '.join(p.name for p in skipped[:5])}{' …' if len(skipped) > 5 else ''}")
     frames = F.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
                             update=a.update, window=a.window, decay=a.decay, min_region_points=a.min_region_points,
                             align=a.align, coverage=_coverage(a), topic=a.topic, decision=a.decision,
