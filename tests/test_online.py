@@ -256,3 +256,12 @@ def test_a_frame_sharing_nothing_with_the_model_says_its_pose_is_a_guess(rng):
     assert same.overlap > 0.9 and "a guess" not in frame_text(same)
     assert apart.overlap < 0.05 and "its pose, and what the model learns from it, are a guess" in frame_text(apart)
     assert same.summary()["overlap"] == same.overlap
+
+
+def test_a_window_too_large_for_memory_is_refused_at_its_first_frame(rng, monkeypatch):
+    monkeypatch.setenv("SDP_MEMORY_LIMIT", "300MB")
+    ref = rng.random((20_000, 3)) * [4.0, 4.0, 2.0]
+    frames = [rng.random((20_000, 3)) * [4.0, 4.0, 2.0] for _ in range(3)]
+    with pytest.raises(sdp.GridTooLargeError, match="a window of 5000 frames' fields .* give a smaller window"):
+        list(sdp.watch(ref, frames, window=5000))
+    assert len(list(sdp.watch(ref, frames, window=10))) == 3

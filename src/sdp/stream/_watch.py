@@ -306,6 +306,12 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
             model.scale(decay).accumulate(frame)
             weight = decay * weight + 1
         elif update == "window":
+            if len(history) == 1:  # the first frame tells what a window of them will hold: refused before it grows
+                from .._core._memory import format_bytes
+
+                check_memory(window * frame.nbytes + model.nbytes, f"a window of {window} frames' fields (the first "
+                             f"{format_bytes(frame.nbytes)})", None,
+                             advice="give a smaller window, or update='decay' (one field, however many frames)")
             model.accumulate(frame)
             history.append(frame)
             if len(history) > window:
