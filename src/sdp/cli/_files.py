@@ -289,8 +289,9 @@ def frame_files(folder) -> tuple[list[Path], list[Path]]:
     if len(counts) > 1:
         (first, n), (_, m) = counts.most_common(2)
         if n == m:
-            raise SDPError(f"{folder}: holds as many {first} files as of another format "
-                           f"({', '.join(f'{k}: {v}' for k, v in sorted(counts.items()))}): give a folder of one format")
+            each = ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()))
+            raise SDPError(f"{folder}: holds as many {first} files as of another format ({each}): give a folder of "
+                           "one format")
     kind = counts.most_common(1)[0][0] if counts else None
     frames = sorted((p for p in files if p.suffix.lower() == kind),
                     key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
