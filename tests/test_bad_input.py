@@ -707,3 +707,18 @@ def test_points_too_sparse_for_the_automatic_voxel_are_said_to_be_beyond_reach(t
     r = sdp.compare_files(tmp_path / "a.ply", tmp_path / "b.ply", output=tmp_path / "p.ply",
                           lattice=sdp.Lattice(voxel_size=0.05))
     assert "outside its own cluster volume" not in r.summary_text() and r.summary["current"]["appeared"] > 0
+
+
+def test_running_out_of_memory_while_reading_says_it_is_not_the_files_size(tmp_path, monkeypatch):
+    """A stream's window can hold what the process has: a small file's read then fails for memory
+    it does not take itself."""
+    import sdp.io._read as R
+
+    np.save(tmp_path / "f.npy", np.random.default_rng(0).random((100, 3)))
+
+    def full(path):
+        raise MemoryError
+
+    monkeypatch.setitem(R._READERS, "npy", full)
+    with pytest.raises(sdp.CloudFileError, match=r"out of memory reading it as npy \(0.0 MB on disk, on top of what"):
+        sdp.read_points(tmp_path / "f.npy")

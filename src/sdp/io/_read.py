@@ -98,8 +98,10 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
         xyz, values, las, pose = np.zeros((0, 3)), {}, None, []
     except (CloudFileError, MissingDependencyError):
         raise
-    except MemoryError:
-        raise CloudFileError(f"{path}: too large to read into memory as {fmt}") from None
+    except MemoryError:  # the file, or what the process already holds (a stream's window of frames)
+        size = os.path.getsize(path) if os.path.isfile(path) else 0
+        raise CloudFileError(f"{path}: out of memory reading it as {fmt} ({size / 2**20:,.1f} MB on disk, on top of "
+                             "what the process already holds)") from None
     except BaseException as exc:  # libraries raise many types on corrupt input (lazrs: Rust panics)
         if not library_error(exc):
             raise
