@@ -267,3 +267,21 @@ def test_a_window_too_large_for_memory_is_refused_at_its_first_frame(rng, monkey
     with pytest.raises(sdp.GridTooLargeError, match="a window of 5000 frames' fields .* give a smaller window"):
         list(sdp.watch(ref, frames, window=5000))
     assert len(list(sdp.watch(ref, frames, window=10))) == 3
+
+
+def test_a_frame_whose_registration_moved_it_away_keeps_the_previous_pose_and_says_so(rng, monkeypatch):
+    import dataclasses
+
+    import sdp.stream._watch as W
+    from sdp.cli._text import frame_text
+
+    real = W.align_density
+
+    def astray(field, points, *, init):  # as sdp.align answers when every level lost overlap
+        return dataclasses.replace(real(field, points, init=init), matrix=init, diverged=True)
+
+    monkeypatch.setattr(W, "align_density", astray)
+    frames, _ = stream(rng)
+    out = list(watch(room_scene(rng), frames[:2], align="density", lattice=sdp.Lattice(voxel_size=0.03)))
+    assert all(f.pose_kept and np.array_equal(f.transform, np.eye(4)) for f in out)
+    assert "the previous frame's pose was kept" in frame_text(out[0]) and out[0].summary()["pose_kept"]

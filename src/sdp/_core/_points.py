@@ -93,3 +93,13 @@ def finite_bounds(points):
         lo1, hi1 = min(lo1, y if ok else np.inf), max(hi1, y if ok else -np.inf)
         lo2, hi2 = min(lo2, z if ok else np.inf), max(hi2, z if ok else -np.inf)
     return np.array([lo0, lo1, lo2]), np.array([hi0, hi1, hi2]), bad
+
+
+#: Ratio of two scans' extents beyond which they are most likely in other units (1000 between
+#: millimetres and metres; a Kinect frame against a building's scan stays within 100).
+UNITS_RATIO = 100.0
+
+
+def other_units(*spans: float) -> bool:
+    """Whether scans of these extents (world units) are most likely in other units."""
+    return min(spans) > 0 and max(spans) > UNITS_RATIO * min(spans)

@@ -35,10 +35,6 @@ from ._common import (align_clouds, alignment_summary, check_picture_extras, dis
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
 
-#: Ratio of the two scans' extents beyond which the summary asks whether they share their units
-#: (1000 between millimetres and metres; a Kinect frame against a building's scan is within 100).
-_UNITS = 100.0
-
 
 @dataclass
 class ChangePlan:
@@ -347,11 +343,13 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
                        memory_limit=memory_limit, **detect)
     out_xyz = moved.xyz if outputs.aligned else cur.xyz
     both, png, html, report = outputs.both, outputs.png, outputs.html, outputs.report
-    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_labels, r.current_field, moved.xyz,
+    # each scan's density at its own points, once: written as G and F, and counted where F ≥ 0
+    g_cur, g_ref = r.current_field.density(moved.xyz), r.reference_field.density(ref.xyz)
+    jobs = [(out, cur, out_xyz, r.current_state, r.appeared_labels, g_cur, r.current_field.h,
              (r.current_distance, r.current_lod))]
     if both:
         jobs.append((disappeared_path(out), ref, ref.xyz, r.reference_state, r.disappeared_labels,
-                     r.reference_field, ref.xyz, (r.reference_distance, r.reference_lod)))
+                     g_ref, r.reference_field.h, (r.reference_distance, r.reference_lod)))
     outputs = _write_labelled(jobs, inputs=(reference, current))
     outputs += pictures(png, html, out_xyz, r.current_state, f"appeared in {Path(current).name}",
                          regions=r.appeared_regions if out_xyz is moved.xyz else ())  # boxes in the moved frame
@@ -361,10 +359,12 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
     summary = r.summary()
     summary["timings"]["read"] = t_read
     # a point outside its own cluster volume (F ≥ 0: sparser than the lattice assumes) can't be changed
-    for role, fld, xyz in (("reference", r.reference_field, ref.xyz), ("current", r.current_field, moved.xyz)):
-        summary[role]["outside_own_volume"] = int((fld.field(xyz) >= 0).sum()) if fld is not None else 0
+    for role, g, fld in (("reference", g_ref, r.reference_field), ("current", g_cur, r.current_field)):
+        summary[role]["outside_own_volume"] = int((g <= fld.h).sum())
+    from .._core._points import other_units  # Numba's module: not at the command's start
+
     spans = [float(np.max(np.ptp(c.xyz, axis=0))) if len(c.xyz) else 0.0 for c in (ref, moved)]
-    if min(spans) > 0 and max(spans) > _UNITS * min(spans):  # a scan in millimetres against one in metres
+    if other_units(*spans):  # a scan in millimetres against one in metres
         summary["extents"] = spans
     if alignment is not None:
         summary["alignment"] = alignment_summary(alignment, align)
@@ -406,15 +406,16 @@ def _check_in_memory(n_points: int, memory_limit) -> None:
 
 
 def _write_labelled(jobs, inputs) -> list[str]:
-    """Write each (path, cloud, xyz, state, region, field, xyz the field saw) as a labelled cloud:
-    ``change`` (0 unchanged, 1 changed, 2 not comparable), ``region``, ``G`` and ``F``; with
-    the combined decision also ``distance`` and ``lod`` (NaN: nothing to measure against)."""
+    """Write each (path, cloud, xyz, state, region, its density G at its points, its field's h) as a
+    labelled cloud: ``change`` (0 unchanged, 1 changed, 2 not comparable), ``region``, ``G`` and
+    ``F`` = h − G; with the combined decision also ``distance`` and ``lod`` (NaN: nothing to measure
+    against)."""
     from ..io._output import write_points
 
     written = []
-    for path, cloud, xyz, state, region, fld, seen, (dist, lod) in jobs:
+    for path, cloud, xyz, state, region, g, h, (dist, lod) in jobs:
         fields = {"change": state, "region": region.astype(np.int32),
-                  "G": fld.density(seen).astype(np.float32), "F": fld.field(seen).astype(np.float32)}
+                  "G": g.astype(np.float32), "F": (h - g).astype(np.float32)}
         if dist is not None:
             fields.update(distance=dist.astype(np.float32), lod=lod.astype(np.float32))
         write_points(path, xyz, fields, like=cloud, inputs=inputs)

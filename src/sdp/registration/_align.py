@@ -50,7 +50,7 @@ from dataclasses import field as dataclass_field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .._core._points import as_points
+from .._core._points import as_points, other_units
 from .._core._validate import boolean, finite, integer_at_least, positive_finite
 from ..defaults import DEFAULTS
 from ..errors import GridTooLargeError, InvalidOptionError, InvalidPointsError, require
@@ -282,7 +282,7 @@ def align(reference, current, *, method: str = DEFAULTS.align_method, voxel_size
                 matrix, info = _align_density(ref_field, ref_xyz, sample, t0, top, min_constraint, fix_horizontal)
             except GridTooLargeError as exc:  # the current's grid at the reference's voxel: why so large
                 span = [float(np.max(np.ptp(x, axis=0))) for x in (ref_xyz if ref_xyz is not None else cur, cur)]
-                if span[1] > _UNITS * span[0] or span[0] > _UNITS * span[1]:
+                if other_units(*span):
                     raise GridTooLargeError(f"{exc}; but the current spans {span[1]:.4g} units and the reference "
                                             f"{span[0]:.4g}: are they in the same units (metres and millimetres)?"
                                             ) from None
@@ -357,9 +357,6 @@ _TOL = 1e-3  # stop a level when the step moves points by less than this × σ
 #: Share of the scan inside the reference's volume an estimate may lose before it is taken to
 #: have moved the surfaces apart (the share below which the summary calls a start a guess).
 LOST_OVERLAP = 0.05
-#: Ratio of the two scans' extents beyond which a grid too large for memory is most likely a
-#: scan in other units (1000 between millimetres and metres).
-_UNITS = 100.0
 #: The motions of the Gauss–Newton unknowns (ω·radius about x, y, z; shifts along x, y, z).
 _MOTIONS = ("roll (about x)", "pitch (about y)", "yaw (about z)", "x shift", "y shift", "z shift")
 
