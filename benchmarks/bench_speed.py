@@ -120,7 +120,7 @@ def plane_fit_neighbours(out):
 
     from sdp._core._kdtree import k_nearest
     from sdp.change._detect import inside_difference
-    from sdp.change._visibility import _cube_means
+    from sdp.change._planes import _cube_means
 
     out("## 1b. The plane fits' neighbours: sdp's k-d tree against cKDTree\n")
     out("| pair | unchanged points | cubes | sdp._kdtree (ms) | cKDTree (ms) | same distances |")

@@ -7,7 +7,7 @@ from conftest import room_scene
 from scipy.spatial import ConvexHull, cKDTree
 
 from sdp._core._kdtree import k_nearest
-from sdp.change._visibility import _hull_polygon
+from sdp.change._range_image import _hull_polygon
 
 
 def clouds(rng):

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 import sdp
-from sdp.change._visibility import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage, visibility_states
+from sdp.change._range_image import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage
+from sdp.change._visibility import visibility_states
 from sdp.data._scene import FURNITURE, INSERTED, office_scene, scan
 
 CAMERA = (0.3, 0.2, 2.2)  # sdp.data._scene's default camera
@@ -172,7 +173,7 @@ def test_real_kinect_pair_with_sensor_origin(shared_data):
 def test_field_of_view_is_the_convex_hull_of_the_returned_cells():
     from scipy.spatial import Delaunay
 
-    from sdp.change._visibility import _convex_hull
+    from sdp.change._range_image import _convex_hull
 
     rng = np.random.default_rng(7)
     squares = np.array([[-0.5, -0.5], [-0.5, 0.5], [0.5, -0.5], [0.5, 0.5]])
@@ -189,7 +190,7 @@ def test_field_of_view_is_the_convex_hull_of_the_returned_cells():
 
 def test_plane_test_helpers_match_numpy(rng):
     """The sensor test's kernels give what the NumPy expressions they replace gave."""
-    from sdp.change._visibility import _cube_means, _every_nth_unchanged
+    from sdp.change._planes import _cube_means, _every_nth_unchanged
 
     query = rng.normal(size=(5_000, 3)) * [1.0, 2.0, 0.5] + 1e3  # far from the origin, as world coordinates
     inverse, centres = _cube_means(query, 0.4)
@@ -214,7 +215,7 @@ def test_plane_test_helpers_match_numpy(rng):
 def test_cube_means_number_cubes_by_first_point_in_any_box(rng, far):
     """Cubes are numbered in the order their first point comes and their means summed in row order,
     around the origin and in a box wider than a cell key packs (2**21 cubes per axis: 1e6 / 0.4)."""
-    from sdp.change._visibility import _cube_means
+    from sdp.change._planes import _cube_means
 
     query = rng.normal(size=(3_000, 3)) * [1.0, 2.0, 0.5]
     query[::500] += far  # a few points far away (none when far is 0)

@@ -1,6 +1,6 @@
 """One spatial hash of cubic cells, shared by the k-th neighbour distances of
 :mod:`sdp.fields._spacing`, the cell moments of :mod:`sdp.distance._distances` and the cube
-grouping of :mod:`sdp.change._visibility`.
+grouping of :mod:`sdp.change._planes`.
 
 A cell ``(ix, iy, iz)``, each index in ``[0, 2**21)``, packs into one int64 key (:func:`cell_key`:
 21 bits per axis, 63 in all, so a key is never negative and ``-1`` marks a free slot). A table
@@ -10,7 +10,7 @@ full (:func:`table_bits`); a key's first slot is its Fibonacci hash (:func:`slot
 into the top bits, so that neighbouring cells along any axis spread over the table, and a
 lookup costs one multiply and a shift [1]_. What a slot points to is the caller's: the last point of a cell's
 linked list (:func:`linked_cells`), a cell's run in a counting sort (:func:`hashed_sort`),
-a group's number (the cube grouping of :mod:`sdp.change._visibility`).
+a group's number (the cube grouping of :mod:`sdp.change._planes`).
 
 Each caller keeps its own cell coordinates (how it rounds a point into a cell) and its own use
 of the table; only the packing, the hash, the probing and the table builders live here.

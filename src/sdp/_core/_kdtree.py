@@ -1,4 +1,4 @@
-"""Exact k nearest neighbours by a k-d tree, in Numba (the plane fits of :mod:`sdp.change._visibility`).
+"""Exact k nearest neighbours by a k-d tree, in Numba (the plane fits of :mod:`sdp.change._planes`).
 
 scipy's ``cKDTree`` does this as well, but importing ``scipy.spatial`` costs about 0.18 s of every
 ``sdp change`` run, for one query of some thousand points, and this tree is faster on those

@@ -63,8 +63,9 @@ from ..options import Coverage, Lattice, NoiseModel, as_options
 from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
-from ._visibility import (RangeImage, gone_only_if_seen, rays_sent, resolve_sensor_origins, scanner_of_points,
-                          sensor_range_noise, visibility_states)
+from ._range_image import RangeImage
+from ._visibility import (gone_only_if_seen, rays_sent, resolve_sensor_origins, scanner_of_points, sensor_range_noise,
+                          visibility_states)
 
 #: The decisions of :func:`detect_changes` (``"density"`` is ``"point"``: the paper's, density alone).
 DECISIONS = ("point", "density", "cluster", "combined")

@@ -29,7 +29,8 @@ import dataclasses
 
 import numpy as np
 
-from ..change._visibility import RangeImage, rays_sent, scanner_of_points, sees, sensor_range_noise
+from ..change._range_image import RangeImage, sees
+from ..change._visibility import rays_sent, scanner_of_points, sensor_range_noise
 from ..defaults import DEFAULTS
 
 __all__ = ["not_seen", "without_unseen"]

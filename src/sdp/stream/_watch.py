@@ -52,7 +52,8 @@ from .._core._validate import integer_at_least
 from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, states_of
 from ..change._detect import inside_difference, judge_coverage, region_rules, single_origin
 from ..change._regions import Region
-from ..change._visibility import RangeImage, rays_sent, resolve_sensor_origins, scanner_of_points, sensor_range_noise
+from ..change._range_image import RangeImage
+from ..change._visibility import rays_sent, resolve_sensor_origins, scanner_of_points, sensor_range_noise
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._density import DensityField
