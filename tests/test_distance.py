@@ -249,7 +249,9 @@ def test_hash_cells_equal_dense_cells(rng, monkeypatch):
     a, b = plane(rng, 2_000, 0.002, size=2.0), plane(rng, 2_000, 0.002, z=0.3, size=2.0)
     dense = sdp.distances(a, b, cylinder=sdp.Cylinder(projection_scale=0.05))
     assert (dense.level == 1).sum() > 50  # the far search along the normals too
-    monkeypatch.setattr(sdp.distance._distances, "_DENSE_CELLS", 0)  # boxes beyond the dense limit: hashed cells
+    from sdp.distance import _cells
+
+    monkeypatch.setattr(_cells, "DENSE_CELLS", 0)  # boxes beyond the dense limit: hashed cells
     hashed = sdp.distances(a, b, cylinder=sdp.Cylinder(projection_scale=0.05))
     for name in sdp.distance._distances.DISTANCE_FIELDS:
         assert np.array_equal(dense.fields()[name], hashed.fields()[name], equal_nan=True), name

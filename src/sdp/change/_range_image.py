@@ -10,9 +10,9 @@ axis (:func:`_axis_cells`; at most twice the square cell, so that rings far apar
 share one), and there a ray whose cells on one side hold returns all nearer and on the other side
 all farther passes through the surface sampled between them (same surface), as the floor between
 two rings; where no ring lies within reach on a side (a VLP-32C's rings, 0.33° apart near the
-horizon and 9.4° at the bottom), the nearest one within ``_MAX_GAP_CELLS`` cells is asked. A ray beyond the angles the scan sent rays to (more than half a
-cell past its extreme returns, none along a sparse axis) is unobserved whatever the cells beside it
-hold: the floor below a LiDAR's lowest ring.
+horizon and 9.4° at the bottom), the nearest one within ``_MAX_GAP_CELLS`` cells is asked. A ray
+beyond the angles the scan sent rays to (more than half a cell past its extreme returns, none along
+a sparse axis) is unobserved whatever the cells beside it hold: the floor below a LiDAR's lowest ring.
 
 A point's ray is compared with the returns of the cells within ``reach`` of its own, with a band
 ``b(r) = max(range_noise·r², floor)``: the band grows as r², as the depth noise of triangulation

@@ -35,9 +35,9 @@ __all__ = ["warmup", "first_run", "first_run_note", "record_warm"]
 
 #: Modules holding Numba kernels (their sources key the stamp).
 KERNEL_MODULES = ("fields/_kernels", "_core/_kdtree", "fields/_volume_kernels", "scale/_kernels", "io/_kernels",
-                  "_core/_points", "actions/_actions", "distance/_distances", "fields/_spacing", "change/_range_image",
-                  "change/_planes", "_core/_cells", "timeseries/_kalman", "timeseries/_objects", "distance/_noise", "change/_combined",
-                  "_core/_disjoint")
+                  "_core/_points", "actions/_actions", "distance/_distances", "distance/_cells", "fields/_spacing",
+                  "change/_range_image", "change/_planes", "_core/_cells", "timeseries/_kalman", "timeseries/_objects",
+                  "distance/_noise", "change/_combined", "_core/_disjoint")
 #: Commands whose first run compiles kernels, and what warmup runs for each.
 COMMANDS = ("change", "distance", "build", "bool", "mesh", "align", "watch", "action", "series")
 _STAMP = "sdp-warm.json"

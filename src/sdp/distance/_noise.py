@@ -76,12 +76,12 @@ import numpy as np
 
 from .._core._parallel import map_concurrently
 from ..errors import InvalidOptionError
-from ._distances import _DENSE_CELLS, _CellLists, bounds, rows_around
+from ._cells import DENSE_CELLS, CellLists, bounds, rows_around
 from ._level import LEVEL_Z, SHARE, systematic
 
 __all__ = ["PointDistances", "SurfaceDistances", "point_distances", "pair_cells", "distance_bytes", "LEVEL_Z"]
 
-_CELL = 1.5  # points share the distance of their cell of 1.5σ_p
+CELL = 1.5  # points share the distance of their cell of 1.5σ_p
 _MAX_EXPONENT = 2.0  # a structured-light camera's σ_z ∝ z²; nothing grows faster
 _CALIBRATION_POINTS = 20_000  # the 5 % quantile to about ±0.3 %
 _CALIBRATION_CELLS = 1024  # the cells they come from: a regular sample of the scene, no larger than the share's
@@ -166,17 +166,17 @@ def distance_bytes(clouds, sigma: float) -> float:
     most 2**25 cells)."""
     lo = np.minimum(clouds[0].lo, clouds[1].lo)
     hi = np.maximum(clouds[0].hi, clouds[1].hi)
-    box = float(np.prod((hi - lo) // (_CELL * sigma) + 1))
-    return 160.0 * (len(clouds[0].xyz) + len(clouds[1].xyz)) + 2 * 4.0 * min(box, _DENSE_CELLS)
+    box = float(np.prod((hi - lo) // (CELL * sigma) + 1))
+    return 160.0 * (len(clouds[0].xyz) + len(clouds[1].xyz)) + 2 * 4.0 * min(box, DENSE_CELLS)
 
 
-def pair_cells(clouds, sigma: float, *, sort: bool = False) -> _CellLists:
+def pair_cells(clouds, sigma: float, *, sort: bool = False) -> CellLists:
     """The cells of 1.5σ that both epochs of a pair share (:class:`SurfaceDistances` ``lists``):
     ``clouds``, the two epochs' :class:`sdp._core._points.Points`; each cloud is sorted into
     them once, for both directions (``sort``: now, both at once, rather than when first read)."""
-    lists = _CellLists(np.minimum(clouds[0].lo, clouds[1].lo) - 1e-9, np.maximum(clouds[0].hi, clouds[1].hi))
+    lists = CellLists(np.minimum(clouds[0].lo, clouds[1].lo) - 1e-9, np.maximum(clouds[0].hi, clouds[1].hi))
     if sort:
-        map_concurrently(lambda c: (lists.point_cells(c.xyz, _CELL * sigma), lists.moments(c.xyz, _CELL * sigma)),
+        map_concurrently(lambda c: (lists.point_cells(c.xyz, CELL * sigma), lists.moments(c.xyz, CELL * sigma)),
                          clouds, parallel_kernels=True)
     return lists
 
@@ -203,7 +203,7 @@ class SurfaceDistances:
     def __init__(self, points: np.ndarray, other: np.ndarray, *, sigma: float, own_origin=None, other_origin=None,
                  stable: np.ndarray | None = None, registration_error: float | str = "auto",
                  range_exponent: float | str = "auto", correlation_length: float | None = None,
-                 lists: _CellLists | None = None, level: tuple | None = None):
+                 lists: CellLists | None = None, level: tuple | None = None):
         if registration_error != "auto" and not (np.isscalar(registration_error)
                                                  and np.isfinite(registration_error) and registration_error >= 0):
             raise InvalidOptionError(f"registration_error must be 'auto' or a number >= 0, got {registration_error!r}")
@@ -216,7 +216,7 @@ class SurfaceDistances:
         self.points = np.ascontiguousarray(points, np.float64)
         self.other = np.ascontiguousarray(other, np.float64)
         self.sigma = float(sigma)
-        self.cell_size = c = _CELL * sigma
+        self.cell_size = c = CELL * sigma
         self._own_origin = None if own_origin is None else np.asarray(own_origin, np.float64)
         self._other_origin = None if other_origin is None else np.asarray(other_origin, np.float64)
         self._stable = None if stable is None else np.asarray(stable, bool)
@@ -227,7 +227,7 @@ class SurfaceDistances:
             if len(self.other):
                 lo_o, hi_o = bounds(self.other)
                 lo, hi = np.minimum(lo, lo_o), np.maximum(hi, hi_o)
-            lists = _CellLists(lo - 1e-9, hi)
+            lists = CellLists(lo - 1e-9, hi)
         self._lists = lists
         # the cylinders' own cells of 1.5σ: this epoch's points grouped by counting, the centroids
         # read off the cells' moments

@@ -33,18 +33,8 @@ from ..change._visibility import resolve_sensor_origins
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
 from ..options import Cylinder, as_options
-from ._distances import (
-    _CELL,
-    _RADIUS,
-    Distances,
-    _CellLists,
-    _cell_moments,
-    _results,
-    cell_corner,
-    cells_below,
-    normal_sigma,
-    search_reach,
-)
+from ._cells import CELL, RADIUS, CellLists, cell_moments
+from ._distances import Distances, _results, cell_corner, cells_below, normal_sigma, search_reach
 from ._level import with_level
 from ._seen import without_unseen
 
@@ -129,10 +119,10 @@ class PreparedReference:
         check_memory(200.0 * len(ref.xyz) + 240.0 * len(core),
                      f"the reference's {len(ref.xyz):,} points at {len(core):,} core points", memory_limit,
                      advice="measure at fewer core points")
-        lists = _CellLists(lo, hi)
-        order, starts = lists.order(core, _CELL * sigma_p)
-        core_sorted = lists.get(core, _CELL * sigma_p)[0]
-        centroids = np.ascontiguousarray(_cell_moments(core_sorted, starts)[:, 1:4])
+        lists = CellLists(lo, hi)
+        order, starts = lists.order(core, CELL * sigma_p)
+        core_sorted = lists.get(core, CELL * sigma_p)[0]
+        centroids = np.ascontiguousarray(cell_moments(core_sorted, starts)[:, 1:4])
         sigma_n = normal_sigma(lists, ref.xyz, centroids, sigma_p, D_opt)
         normal, _ = lists.normals(ref.xyz, centroids, sigma_n)
         normal = np.repeat(normal, np.diff(starts), axis=0)
@@ -197,17 +187,17 @@ class PreparedReference:
     def epoch_corner(self, lowest) -> np.ndarray:
         """Where an epoch's cells start: the reference's corner, whole cells lower where the epoch's
         ``lowest`` point reaches lower."""
-        return cells_below(self.corner, np.asarray(lowest, np.float64), _CELL * self.projection_scale / 4.0)
+        return cells_below(self.corner, np.asarray(lowest, np.float64), CELL * self.projection_scale / 4.0)
 
     def _measure(self, xyz: np.ndarray, lo: np.ndarray, highest: np.ndarray, reg: float, t0: float) -> Distances:
         """:meth:`measure` of finite points ``xyz`` (any number from 1; ``highest`` their upper
         corner) on cells from ``lo``."""
         sigma_p = self.projection_scale / 4.0
-        cell = _CELL * sigma_p
+        cell = CELL * sigma_p
         core = self.core_points
         core_hi = core.max(axis=0) if self._sorted is None else self._sorted[4]
         hi = np.maximum(np.maximum(highest, core_hi), lo + cell)
-        lists = _CellLists(lo, hi)
+        lists = CellLists(lo, hi)
         if self._sorted is None:
             order, _ = lists.order(core, cell)
             self._sorted = (order, lists.get(core, cell)[0], np.ascontiguousarray(self.normal[order]),
@@ -217,7 +207,7 @@ class PreparedReference:
                             core_hi)
         order, queries, normal, ref, _ = self._sorted
         cur_stats = lists.cylinder(xyz, queries, normal, sigma_p, self.max_distance)
-        reach = max(self.max_distance, _RADIUS * sigma_p)
+        reach = max(self.max_distance, RADIUS * sigma_p)
         m = len(order)
         dist, lod, n1, n2, s1, s2 = (np.empty(m) for _ in range(6))
         out_normal, level = np.empty((m, 3)), np.empty(m, np.int8)

@@ -47,16 +47,8 @@ from .._core._memory import check_memory, format_bytes
 from .._core._memory import memory_limit as resolve_memory_limit
 from .._core._points import as_points
 from ..defaults import DEFAULTS
-from ..distance._distances import (
-    _CELL,
-    Distances,
-    _CellLists,
-    _cell_moments,
-    bounds,
-    normal_sigma,
-    search_reach,
-    tile_halo,
-)
+from ..distance._cells import CELL, CellLists, bounds, cell_moments
+from ..distance._distances import Distances, normal_sigma, search_reach, tile_halo
 from ..distance._level import with_level
 from ..distance._reference import PreparedReference, subsample
 from ..errors import InvalidOptionError, SDPError
@@ -304,9 +296,9 @@ def _scales(ref, core, cylinder: Cylinder, execution: Execution) -> tuple[float,
             first = first[::step]
             cores = first[subsample(first, d)] if core is None else core
             lo = np.minimum(first.min(axis=0), cores.min(axis=0)) - 1e-9
-            lists = _CellLists(lo, np.maximum(first.max(axis=0), cores.max(axis=0)))
-            _, starts = lists.order(cores, _CELL * sigma_p)
-            centroids = np.ascontiguousarray(_cell_moments(lists.get(cores, _CELL * sigma_p)[0], starts)[:, 1:4])
+            lists = CellLists(lo, np.maximum(first.max(axis=0), cores.max(axis=0)))
+            _, starts = lists.order(cores, CELL * sigma_p)
+            centroids = np.ascontiguousarray(cell_moments(lists.get(cores, CELL * sigma_p)[0], starts)[:, 1:4])
             D = 4.0 * normal_sigma(lists, first, centroids, sigma_p, "auto")
     return float(d), float(D), search_reach(L, d)
 

@@ -194,7 +194,7 @@ def _surface(side: _Side, cells: tuple, level: tuple | None = None, correlation:
     density left unchanged. The cells start at ``cells[0]`` (the clouds' corner, as in memory:
     one cell lattice for every tile). None if nothing is stable or the other epoch has too few
     points here."""
-    from ..distance._distances import _CellLists
+    from ..distance._cells import CellLists
     from ..distance._noise import SurfaceDistances
 
     unchanged = ~side.changed
@@ -204,7 +204,7 @@ def _surface(side: _Side, cells: tuple, level: tuple | None = None, correlation:
     stable = np.zeros(len(side.records), bool)
     stable[np.flatnonzero(side.own)[unchanged]] = True
     return SurfaceDistances(np.ascontiguousarray(side.records[:, :3]), np.ascontiguousarray(side.other[:, :3]),
-                            sigma=side.field.sigma, stable=stable, lists=_CellLists(*cells), level=level,
+                            sigma=side.field.sigma, stable=stable, lists=CellLists(*cells), level=level,
                             correlation_length=correlation), stable
 
 
@@ -297,7 +297,7 @@ def _combined_regions(density, marked, found, cells: tuple, cell: float, regions
     far corner) holding a changed point, found as in memory (:func:`sdp.distance._noise._components`),
     are kept where they hold a found row, those holding one density region joined
     (:func:`sdp.change._combined.joined_by_regions`)."""
-    from ..distance._distances import _CellLists
+    from ..distance._cells import CellLists
     from ..distance._noise import _components
 
     rows = np.concatenate([p[0] for p in density] + [p[0] for p in marked])
@@ -307,7 +307,7 @@ def _combined_regions(density, marked, found, cells: tuple, cell: float, regions
     found_rows, found_regions = found
     if len(rows) == 0 or len(found_rows) == 0:
         return rows[:0], np.zeros(0, np.int64), []
-    ordered, starts, table, dims, _, by_cell = _CellLists(*cells).get(xyz, cell)
+    ordered, starts, table, dims, _, by_cell = CellLists(*cells).get(xyz, cell)
     n_cells = len(starts) - 1
     index = np.floor((ordered[starts[:-1]] - cells[0]) / cell).astype(np.int64)  # as the table's keys
     component = _components(table, dims, index, np.ones(n_cells, bool))[0]
@@ -430,7 +430,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
         unseen = {kind: np.sort(np.concatenate([r[kind][3] for r in results])) for kind in ("appeared", "disappeared")}
         run.timings["regions"] = time.perf_counter() - t
         if combined:
-            from ..distance._noise import _CELL, fit_level, thinned
+            from ..distance._noise import CELL, fit_level, thinned
 
             # one level per direction, from every tile's sample in tile order (one tile: the in-memory sample)
             levels = {kind: fit_level(*(thinned(np.concatenate([r[f"{kind} sample"][a] for r in results]))
@@ -443,7 +443,7 @@ def detect_changes_tiled(reference, current, *, lattice: Lattice | None = None, 
             t = time.perf_counter()
             sigma = run.sigma_voxels * run.voxel_size
             out = {kind: _combined_regions([r[kind][:2] for r in results], [m[kind] for m in marks], out[kind][:2],
-                                           cells, _CELL * sigma, regions)
+                                           cells, CELL * sigma, regions)
                    for kind in ("appeared", "disappeared")}
             run.timings["regions"] += time.perf_counter() - t
     levels = (_Level(levels["disappeared"], noise), _Level(levels["appeared"], noise)) if combined else (None, None)
