@@ -1,7 +1,7 @@
 """Many epochs: ``sdp series`` on a simulated slope with known truth, against py4dgeo's
 SpatiotemporalAnalysis on the same files, and appending.
 
-Prints markdown (docs/benchmarks.md §12 quotes it; ``results/series.md`` keeps the last run):
+Prints markdown (docs/benchmarks.md §13 quotes it; ``results/series.md`` keeps the last run):
 
 1. The truth (:func:`sdp.data.slope_series`: a rough slope 20 m × 20 m, 100,000 points per
    epoch resampled at every epoch, noise σ = 4 mm along z, a registration error of 1 mm and

@@ -8,7 +8,7 @@ process and all its children (the Dask workers) every 0.2 s, and prints the peak
 the wall time, the CPU seconds of the command and its workers (a figure that contention on a shared
 machine inflates less than the wall time), the command's own step timings and, when EPOCH2 holds the truth of "appeared" in
 ``user_data`` (``../shared/tools/city_epochs.py`` writes it so), kappa of the output's
-``change == 1`` against it. Example (docs/benchmarks.md, "Tiles: memory of the whole job")::
+``change == 1`` against it. Example (docs/benchmarks.md §5, "Clouds beyond memory, tiles")::
 
     python ../shared/tools/city_epochs.py 1e7 /tmp/city10m
     python benchmarks/bench_tiled_memory.py /tmp/city10m/epoch1.laz /tmp/city10m/epoch2.laz /tmp/c.laz \\
