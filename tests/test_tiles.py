@@ -173,6 +173,37 @@ def test_streamed_las_output_keeps_the_extended_records(tmp_path, rng):
     assert [v.record_id for v in evlrs] == [2112] and "UTM 17N" in evlrs[0].string
 
 
+@pytest.mark.parametrize("intensity", [np.uint16, np.float32])
+def test_streamed_ply_output_keeps_its_properties_as_in_memory(tmp_path, rng, intensity):
+    # a binary PLY's colour, intensity and other properties, written chunk by chunk as a tiled run
+    # writes them, equal what the in-memory writer makes of the whole file
+    from plyfile import PlyData, PlyElement
+
+    n = 20_000
+    v = np.empty(n, [("x", "f8"), ("y", "f8"), ("z", "f8"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+                     ("intensity", intensity), ("quality", "f4"), ("change", "u1")])
+    for c in ("x", "y", "z"):
+        v[c] = rng.uniform(0, 10, n)
+    for c in ("red", "green", "blue", "change"):
+        v[c] = rng.integers(0, 256, n)
+    # a float intensity beyond [0, 1] in a later chunk only: the whole file's values decide, as in memory
+    v["intensity"] = rng.integers(0, 1000, n) if intensity == np.uint16 else np.r_[rng.random(n - 10), np.full(10, 7.5)]
+    v["quality"] = rng.random(n)
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(tmp_path / "in.ply"))
+    new = {"change": lambda s, e: np.arange(s, e) % 3 == 0}
+    streamed = write_points_streamed(tmp_path / "streamed.laz", PointSource.open(tmp_path / "in.ply"),
+                                     lambda s, e: {k: f(s, e) for k, f in new.items()}, chunk_size=3_000)
+    cloud = sdp.read_points(tmp_path / "in.ply")
+    whole = write_points(tmp_path / "whole.laz", cloud.xyz, {**cloud.fields, "change": new["change"](0, n)})
+    a, b = laspy.read(str(streamed)), laspy.read(str(whole))
+    assert a.point_format.id == b.point_format.id == 2
+    assert list(a.point_format.dimension_names) == list(b.point_format.dimension_names)
+    for name in b.point_format.dimension_names:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    np.testing.assert_array_equal(a.red, v["red"].astype(np.uint16) * 257)
+    assert ("input_intensity" in a.point_format.extra_dimension_names) == (intensity == np.float32)
+
+
 def run(*args):
     return subprocess.run([sys.executable, "-m", "sdp.cli", *map(str, args)], capture_output=True, text=True)
 

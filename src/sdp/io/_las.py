@@ -60,28 +60,62 @@ def _standard_dimensions(fields: dict) -> dict:
     bits, integers or the floats a text file's columns are read as (8-bit colour spread over 16,
     as the specification asks). Others stay extra dimensions (an ``intensity`` in other units is
     renamed ``input_intensity``)."""
-    def sixteen(v, colour):
-        v = np.asarray(v)
-        if not v.size or v.dtype.kind not in "uif" or (v.dtype.kind == "f" and not np.isfinite(v).all()):
+    rules = standard_rules({n: value_range(v) for n, v in fields.items() if n in STANDARD})
+    return standard_values(fields, rules)
+
+
+#: The fields another format's cloud may carry that LAS holds in dimensions of its own.
+STANDARD = ("intensity", "red", "green", "blue")
+
+
+def value_range(v, merged: tuple | None = None) -> tuple | None:
+    """(dtype kind, lowest, highest, all finite, all whole) of the values ``v``, merged with an
+    earlier part's ``merged`` (a file read chunk by chunk); None for no value."""
+    v = np.asarray(v)
+    if not v.size:
+        return merged
+    finite = v.dtype.kind not in "f" or bool(np.isfinite(v).all())
+    whole = v.dtype.kind in "biu" or (finite and bool(np.array_equal(v, np.round(v))))
+    part = (v.dtype.kind, float(v.min()) if finite else np.nan, float(v.max()) if finite else np.nan, finite, whole)
+    if merged is None:
+        return part
+    kind = merged[0] if merged[0] == part[0] else "f"
+    return (kind, min(merged[1], part[1]), max(merged[2], part[2]), merged[3] and part[3], merged[4] and part[4])
+
+
+def standard_rules(ranges: dict) -> dict:
+    """For each of :data:`STANDARD` whose values (their :func:`value_range`) fit LAS's 16 bits,
+    how to write them: ``("unit", 65535)`` for values within [0, 1], else ``("scale", factor)``
+    (257 spreads 8-bit colour over 16 bits); the colour only when all three channels fit. An
+    ``intensity`` that does not fit maps to None (kept as the extra dimension ``input_intensity``)."""
+    def rule(r, colour):
+        if r is None or r[0] not in "uif" or not r[3] or r[1] < 0 or r[2] > 65535:
             return None
-        if v.min() < 0 or v.max() > 65535:
+        if r[0] == "f" and r[2] <= 1:
+            return ("unit", 65535)
+        if r[0] == "f" and not r[4]:
             return None
-        if v.dtype.kind == "f" and v.max() <= 1:
-            return np.round(v * 65535).astype(np.uint16)
-        if v.dtype.kind == "f" and not np.array_equal(v, np.round(v)):
-            return None
-        return v.astype(np.uint16) * (257 if colour and v.max() <= 255 else 1)
+        return ("scale", 257 if colour and r[2] <= 255 else 1)
 
     out = {}
-    if "intensity" in fields:
-        i = sixteen(fields["intensity"], False)
-        if i is None:
-            fields["input_intensity"] = fields.pop("intensity")
-        else:
-            out["intensity"] = i
-    rgb = [sixteen(fields[c], True) if c in fields else None for c in ("red", "green", "blue")]
+    if "intensity" in ranges:
+        out["intensity"] = rule(ranges["intensity"], False)
+    rgb = [rule(ranges.get(c), True) if c in ranges else None for c in ("red", "green", "blue")]
     if all(c is not None for c in rgb):
         out.update(zip(("red", "green", "blue"), rgb))
+    return out
+
+
+def standard_values(fields: dict, rules: dict) -> dict:
+    """The LAS dimensions :func:`standard_rules` gave, taken out of ``fields`` (an ``intensity``
+    that does not fit renamed ``input_intensity`` there)."""
+    out = {}
+    for name, r in rules.items():
+        if r is None:  # an intensity in other units
+            fields["input_intensity"] = fields.pop(name)
+            continue
+        v = np.asarray(fields.pop(name))
+        out[name] = np.round(v * 65535).astype(np.uint16) if r[0] == "unit" else v.astype(np.uint16) * r[1]
     return out
 
 
@@ -274,7 +308,6 @@ def write_las(tmp: Path, xyz, fields, like: Cloud | None, compressed: bool):
         las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
         for name, v in standard.items():
             las[name] = v
-            del fields[name]
     for name, v in fields.items():
         v = np.asarray(v)
         dtype = np.uint8 if v.dtype == bool else (v.dtype if v.dtype.kind in "uif" else np.float64)

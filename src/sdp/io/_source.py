@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from ._cloud import CloudFileError, input_format, library_error, unreadable
-from ._las import LAS_CHUNK, check_las_counts, check_las_points, las_scale_offset, xyz_only
+from ._las import (LAS_CHUNK, STANDARD, check_las_counts, check_las_points, las_scale_offset, standard_rules,
+                   standard_values, value_range, xyz_only)
 from ._output import atomic_path
 from ._ply import ply_is_binary, ply_vertices
 from ._read import read_points
@@ -131,6 +132,18 @@ class PointSource:
         v = ply_vertices(self.path)[start:stop]
         return np.c_[v["x"], v["y"], v["z"]].astype(np.float64)
 
+    def fields(self, start: int, stop: int) -> dict[str, np.ndarray]:
+        """The other per-point values of rows ``start`` … ``stop − 1``, as :func:`sdp.read_points`
+        gives them: a binary PLY's scalar vertex properties (none for NPY; a LAS file's records
+        are copied whole by :func:`write_points_streamed`)."""
+        if self.format != "ply":
+            return {}
+        with _decoding(self):
+            v = ply_vertices(self.path)
+            rows = v[max(0, start):min(stop, self.n_rows)]
+            return {n: np.asarray(rows[n]) for n in v.dtype.names
+                    if n not in ("x", "y", "z") and v.dtype[n].shape == () and v.dtype[n].kind in "biuf"}
+
     def chunks(self, size: int = LAS_CHUNK, start: int = 0, stop: int | None = None):
         """Yield ``(first_row, xyz)`` slices of at most ``size`` rows, in order.
 
@@ -193,7 +206,10 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
     arrays). LAS/LAZ input keeps every dimension, VLR, scale and offset, but the extra
     dimensions named in ``drop`` (an earlier run's outputs that this one does not write anew);
     other input gets the scale and offset of :func:`~sdp.io._las.las_scale_offset` (1 mm, finer
-    where the first chunk's points lie closer than a centimetre; offset at the centre) and no colour.
+    where the first chunk's points lie closer than a centimetre; offset at the centre) and its own
+    values (:meth:`PointSource.fields`) as :func:`sdp.write_points` writes them in memory: colour
+    and intensity as LAS's where they fit, the others as extra dimensions (but for ``drop`` and the
+    fields this output writes anew).
     Memory is bounded by ``chunk_size``; the file is written under a temporary name and renamed,
     and ``inputs`` are never overwritten. LAZ is decoded and encoded on all cores (lazrs'
     parallel backend).
@@ -214,7 +230,15 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
                 header.remove_extra_dims(stale)
             chunks = ((len(c), c) for c in _decoded(source, reader.chunk_iterator(chunk_size)))
         else:
-            header = laspy.LasHeader(point_format=0, version="1.4")
+            # the input's own values (a PLY's properties) as in memory: colour and intensity where
+            # the whole file's values fit LAS's 16 bits (one pass over them first), others extra
+            ranges = {}
+            for s in range(0, source.n_rows, chunk_size):
+                for name, v in source.fields(s, s + chunk_size).items():
+                    if name in STANDARD:
+                        ranges[name] = value_range(v, ranges.get(name))
+            rules = standard_rules(ranges)
+            header = laspy.LasHeader(point_format=2 if "red" in rules else 0, version="1.4")
             parts = ((len(xyz), xyz) for _, xyz in source.chunks(chunk_size))
             first = next(parts, None)  # its spacing sets the scale, as the whole cloud's does in memory
             sample = None if first is None else first[1][np.isfinite(first[1]).all(axis=1)]
@@ -224,10 +248,16 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
         writer, start = None, 0
         for n, chunk in chunks:
             fields = fields_of(start, start + n)
+            if source.format != "las":  # the input's values, but for those this output writes anew
+                own = {k: v for k, v in source.fields(start, start + n).items() if k not in fields and k not in drop}
+                fields = {**own, **fields}
+                standard = standard_values(fields, rules)
             if writer is None:
                 for name, v in fields.items():
                     if name not in header.point_format.dimension_names:
-                        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=np.asarray(v).dtype))
+                        v = np.asarray(v)
+                        dtype = np.uint8 if v.dtype == bool else v.dtype  # as write_las stores them
+                        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dtype))
                 writer = stack.enter_context(laspy.open(str(tmp), mode="w", header=header,
                                                         do_compress=path.suffix.lower() == ".laz",
                                                         laz_backend=laspy.LazBackend.LazrsParallel))
@@ -241,7 +271,7 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
                 ok = np.isfinite(chunk).all(axis=1)
                 out = out[ok] if not ok.all() else out
                 out.x, out.y, out.z = chunk[ok, 0], chunk[ok, 1], chunk[ok, 2]
-                fields = {name: np.asarray(v)[ok] for name, v in fields.items()}
+                fields = {name: np.asarray(v)[ok] for name, v in {**standard, **fields}.items()}
             for name, v in fields.items():
                 out[name] = v
             writer.write_points(out)
