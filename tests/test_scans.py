@@ -278,18 +278,36 @@ class _EmptySafe(np.ndarray):
         return 2 if self.size == 0 else np.asarray(self).max(*a, **k)
 
 
-def test_a_scan_of_no_point_is_read_as_none(tmp_path, rng):
+class _FromZero(np.ndarray):
+    """pye57 bounds an integer field by its values, and libE57Format's prototype holds 0."""
+
+    def min(self, *a, **k):
+        return 0
+
+
+def test_a_scan_of_no_point_is_no_scanner(tmp_path, rng):
     """A scan of no record (older writers leave them; libE57Format can't read its empty vector,
-    libE57Format issue 262) is skipped, its scanner kept: the file's other scans are read."""
+    libE57Format issue 262), or of invalid points only, is skipped and is no scanner: the file
+    reads as its other scans alone (a scanner that saw nothing would turn a one-station file into
+    a survey of several, compared otherwise)."""
     xyz = rng.random((500, 3))
-    e = pye57.E57(str(tmp_path / "s.e57"), mode="w")
-    e.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]}, name="A")
-    e.write_scan_raw({k: np.zeros(0).view(_EmptySafe) for k in ("cartesianX", "cartesianY", "cartesianZ")},
-                     name="empty", translation=np.array([0.5, 0.0, 0.0]))
-    e.close()
-    cloud = sdp.read_points(tmp_path / "s.e57")
-    np.testing.assert_allclose(cloud.xyz, xyz)
-    assert cloud.sensors.shape == (2, 3) and set(cloud.fields["scan"].tolist()) == {0}
+    for empty in ("no record", "all invalid"):
+        e = pye57.E57(str(tmp_path / "s.e57"), mode="w")
+        if empty == "all invalid":
+            e.write_scan_raw({**{k: np.ascontiguousarray(xyz[:, i]).view(_EmptySafe) for i, k in
+                                 enumerate(("cartesianX", "cartesianY", "cartesianZ"))},
+                              "cartesianInvalidState": np.full(500, 2, np.int8).view(_FromZero)}, name="blind",
+                             translation=np.array([0.5, 0.0, 0.0]))
+        e.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]}, name="A",
+                         translation=np.array([0.0, 0.0, 2.0]))
+        if empty == "no record":
+            e.write_scan_raw({k: np.zeros(0).view(_EmptySafe) for k in ("cartesianX", "cartesianY", "cartesianZ")},
+                             name="empty", translation=np.array([0.5, 0.0, 0.0]))
+        e.close()
+        cloud = sdp.read_points(tmp_path / "s.e57")
+        np.testing.assert_allclose(cloud.xyz, xyz + [0, 0, 2])
+        assert cloud.sensors.shape == (1, 3) and set(cloud.fields["scan"].tolist()) == {0}, empty
+        np.testing.assert_allclose(cloud.sensor_origin, [0, 0, 2])
 
 
 def test_a_pair_of_sensors_with_one_unknown_keeps_every_scanner_of_the_other():

@@ -100,7 +100,8 @@ def e57_start(path) -> float | None:
 
 def read_e57(path):
     """``(xyz, fields, None, None, False, sensors)`` of an E57 file: every scan moved by its pose
-    into the file's frame (invalid points as NaN rows), the fields ``scan`` (uint16: which scan),
+    into the file's frame (invalid points as NaN rows), the fields ``scan`` (uint16: which scan, the
+    scans that hold a valid point numbered in the file's order: a scan of none is no scanner),
     ``intensity``, ``red``/``green``/``blue`` and ``row``/``column`` where any scan has them (at
     the points of a scan without one: 0, or -1 for ``row`` and ``column``; a survey often has
     colour at some stations only), and the scanners' positions (k, 3) in the file's frame. A scan
@@ -113,19 +114,22 @@ def read_e57(path):
     k = e.scan_count
     if k == 0:
         raise CloudFileError(f"{path}: the E57 file holds no scan")
-    parts, sensors, posed = [], np.zeros((k, 3)), True
+    parts, sensors, posed = [], [], True
     for i in range(k):
         h = e.get_header(i)
         q, t = _pose(h, path, i)
-        sensors[i] = t
-        posed &= bool(h.has_pose())
         if int(h.point_count) == 0:  # a scan of no record: libE57Format can't read its empty vector
             continue
-        raw = e.read_scan_raw(i, ignore_unsupported_fields=True)
-        parts.append(_scan_points(raw, q, t, i, path))
-    sensors = sensors if posed or k == 1 else None
+        part = _scan_points(e.read_scan_raw(i, ignore_unsupported_fields=True), q, t, i, path)
+        if not np.isfinite(part["xyz"]).all(axis=1).any():  # a scanner that saw nothing says nothing
+            continue
+        part["scan"][:] = len(sensors)
+        parts.append(part)
+        sensors.append(t)
+        posed &= bool(h.has_pose())
+    sensors = np.array(sensors).reshape(-1, 3) if posed or len(sensors) == 1 else None
     if not parts:  # every scan empty: no point (said by the reader's caller)
-        return np.zeros((0, 3)), {}, None, None, False, sensors
+        return np.zeros((0, 3)), {}, None, None, False, None
     xyz = np.concatenate([p.pop("xyz") for p in parts])
     fields = {}
     for name in sorted(set().union(*parts)):  # a field any scan has, filled where a scan lacks it
