@@ -73,6 +73,23 @@ def test_new_objects_are_still_found():
     assert all(g.n_points >= 20 for g in seen.appeared_regions)
 
 
+def test_a_depth_camera_in_millimetres_finds_what_it_finds_in_metres():
+    # a depth image's points kept in its own unit: the band (per metre) is taken per millimetre,
+    # said in the summary; before, its 0.015·r² reached tens of metres and every change was "the
+    # same surface"
+    s = office_scene(seed=0)
+    metres = sdp.detect_changes(s.reference, s.current, coverage=sdp.Coverage(sensor_origin=CAMERA))
+    mm = sdp.detect_changes(1000 * s.reference, 1000 * s.current,
+                            coverage=sdp.Coverage(sensor_origin=1000 * np.asarray(CAMERA)))
+    assert metres.appeared.sum() > 1000 and "range_units" not in metres.summary()
+    assert abs(int(mm.appeared.sum()) - int(metres.appeared.sum())) <= 0.02 * metres.appeared.sum()
+    assert mm.summary()["range_units"] == {"reference": 1e-3, "current": 1e-3}
+    assert mm.range_noise["reference"] == pytest.approx(1e-3 * metres.range_noise["reference"])
+    given = sdp.detect_changes(1000 * s.reference, 1000 * s.current,
+                               coverage=sdp.Coverage(sensor_origin=1000 * np.asarray(CAMERA), range_noise=0.02))
+    assert given.range_noise == {"reference": 0.02, "current": 0.02} and not given.range_units
+
+
 def test_two_sensor_origins_swap_with_the_clouds():
     a, b = np.array(CAMERA), np.array([0.6, 0.5, 2.0])
     rng = np.random.default_rng(2)

@@ -64,7 +64,7 @@ from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
 from ._range_image import RangeImage
-from ._visibility import (gone_only_if_seen, rays_sent, resolve_sensor_origins, scanner_of_points, sensor_range_noise,
+from ._visibility import (gone_only_if_seen, rays_sent, resolve_sensor_origins, scanner_of_points, sensor_band,
                           visibility_states)
 
 #: The decisions of :func:`detect_changes` (``"density"`` is ``"point"``: the paper's, density alone).
@@ -179,6 +179,13 @@ class ChangeResult:
     coverage : dict of str to str
         How each direction decided what the other epoch saw: ``"sensor rays"``,
         ``"footprint"`` or ``"off"``, for ``"appeared"`` and ``"disappeared"``.
+    range_noise : dict of str to float
+        The band of each epoch's rays (``"reference"``, ``"current"``: b = range_noise·r², per
+        world unit; :func:`sdp.change._visibility.sensor_band`), where its sensor is known.
+    range_units : dict of str to float
+        Where the default band was taken per millimetre (0.001) or centimetre (0.01): that epoch's
+        points lie farther from its sensor than a depth camera sees in metres
+        (:func:`sdp.change._visibility.depth_camera_units`).
     n_tiles, tile_size : int, float or None
         In tiles: the tiles compared and their edge (world units); else 0 and None.
     timings : dict of str to float
@@ -208,6 +215,8 @@ class ChangeResult:
     n_dropped_current: int = 0
     sensor_origins: tuple = (None, None)
     coverage: dict[str, str] = dc_field(default_factory=dict)
+    range_noise: dict[str, float] = dc_field(default_factory=dict)
+    range_units: dict[str, float] = dc_field(default_factory=dict)
     n_tiles: int = 0
     tile_size: float | None = None
     timings: dict[str, float] = dc_field(default_factory=dict)
@@ -303,6 +312,8 @@ class ChangeResult:
                 "sensor_origin": {"reference": origin(self.sensor_origins[0]),
                                   "current": origin(self.sensor_origins[1])},
                 "coverage": dict(self.coverage),
+                **({"range_noise": dict(self.range_noise)} if self.range_noise else {}),
+                **({"range_units": dict(self.range_units)} if self.range_units else {}),
                 "reference": reference,
                 "current": counts(self._current, self.n_dropped_current, "appeared", self._distances[1]),
                 "timings": dict(self.timings),
@@ -435,7 +446,9 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
                           if o is not None and np.ndim(o) == 1 else None)
              for c, o, s in ((ref, o_ref, rays_sent(reference)), (cur, o_cur, rays_sent(current)))}
     # and the range noise of each epoch's sensor (a laser scan's is not a depth camera's)
-    noise_of = {id(p): sensor_range_noise(c, coverage.range_noise) for p, c in ((ref, reference), (cur, current))}
+    band = {role: sensor_band(c, coverage.range_noise, xyz=p.xyz, origin=o)
+            for role, p, c, o in (("reference", ref, reference, o_ref), ("current", cur, current, o_cur))}
+    noise_of = {id(ref): band["reference"][0], id(cur): band["current"][0]}
 
     def finish(job):
         """Coverage and region rules of one direction: (the points' states and labels, regions), times."""
@@ -494,7 +507,11 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
                         disappeared_regions=disappeared[1], voxel_size=float(f_cur.voxel_size), sigma=f_cur.sigma,
                         h=f_cur.h, decision=decision, reference_field=f_ref, current_field=f_cur,
                         n_dropped_reference=f_ref.n_dropped, n_dropped_current=f_cur.n_dropped,
-                        sensor_origins=(o_ref, o_cur), coverage=how, timings=timings, _distances=distances)
+                        sensor_origins=(o_ref, o_cur), coverage=how, timings=timings, _distances=distances,
+                        range_noise={role: band[role][0] for role, o in (("reference", o_ref), ("current", o_cur))
+                                     if o is not None and coverage.enabled},
+                        range_units={role: band[role][1] for role, o in (("reference", o_ref), ("current", o_cur))
+                                     if o is not None and coverage.enabled and band[role][1] != 1.0})
 
 
 def _point_changes(out, pts):

@@ -59,8 +59,8 @@ from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ._planes import explain_by_planes
 from ._range_image import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage, sees
 
-__all__ = ["as_sensor_origins", "gone_only_if_seen", "rays_sent", "resolve_sensor_origins", "scanner_of_points",
-           "sensor_range_noise", "visibility_states"]
+__all__ = ["as_sensor_origins", "depth_camera_units", "gone_only_if_seen", "rays_sent", "resolve_sensor_origins",
+           "scanner_of_points", "sensor_band", "sensor_range_noise", "visibility_states"]
 
 def resolve_sensor_origins(sensor_origin, reference, current) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(reference's, current's) sensor origin, each None when unknown.
@@ -243,14 +243,47 @@ def rays_sent(cloud) -> bool:
     return not isinstance(cloud, Cloud) or bool(cloud.organized) or "row" in cloud.fields
 
 
-def sensor_range_noise(cloud, range_noise: float) -> float:
-    """The range noise of the rays' band for ``cloud``'s sensor: ``range_noise`` as given, except
-    the default (a depth camera's, growing as r²) where the cloud's format says what its sensor's
-    is (:attr:`sdp.Cloud.range_noise`: an E57 file's laser scans, millimetres at any range, whose
-    band the floor σ bounds alone; at 4 m the default's 24 cm would take a partition's far face,
-    20 cm on, for its near one)."""
+def sensor_range_noise(cloud, range_noise: float, *, xyz: np.ndarray | None = None, origin=None) -> float:
+    """The range noise of the rays' band for ``cloud``'s sensor (:func:`sensor_band`)."""
+    return sensor_band(cloud, range_noise, xyz=xyz, origin=origin)[0]
+
+
+def sensor_band(cloud, range_noise: float, *, xyz: np.ndarray | None = None, origin=None) -> tuple[float, float]:
+    """(The range noise of the rays' band for ``cloud``'s sensor, the metres per unit it took):
+    ``range_noise`` as given, except the default (a depth camera's, growing as r², per metre) where
+    the cloud's format says what its sensor's is (:attr:`sdp.Cloud.range_noise`: an E57 file's
+    laser scans, millimetres at any range, whose band the floor σ bounds alone; at 4 m the
+    default's 24 cm would take a partition's far face, 20 cm on, for its near one), or where the
+    points (``xyz``, seen from one ``origin``) lie too far for a depth camera in metres: then per
+    millimetre or centimetre (:func:`depth_camera_units`)."""
     own = getattr(cloud, "range_noise", None)
-    return float(own) if own is not None and range_noise == DEFAULTS.range_noise else float(range_noise)
+    if range_noise != DEFAULTS.range_noise:
+        return float(range_noise), 1.0
+    if own is not None:
+        return float(own), 1.0
+    units = depth_camera_units(xyz, origin) if xyz is not None and origin is not None and np.ndim(origin) == 1 \
+        else 1.0
+    return float(range_noise) * units, units
+
+
+#: A depth camera sees no farther than about 10 m (a Kinect v1 4–8 m, ToF and stereo cameras up to
+#: 10 m): a median range beyond 3 × that is not in metres.
+_DEPTH_REACH = 30.0
+
+
+def depth_camera_units(xyz: np.ndarray, origin) -> float:
+    """Metres per unit of a depth camera's points ``xyz`` seen from ``origin``: 1, unless their
+    median range exceeds :data:`_DEPTH_REACH` (no depth camera sees that far in metres: the
+    default band, ``range_noise``·r² per metre, would be wider than half the range itself):
+    millimetres (0.001) from a median range of 300 (a depth image's own unit, kept when its
+    pixels become points), centimetres (0.01) below."""
+    if not len(xyz):
+        return 1.0
+    step = max(1, len(xyz) // 2_000)
+    r = float(np.median(np.linalg.norm(xyz[::step] - np.asarray(origin, np.float64), axis=1)))
+    if not r > _DEPTH_REACH:
+        return 1.0
+    return 1e-3 if r >= 10 * _DEPTH_REACH else 1e-2
 
 
 def gone_only_if_seen(present, own: np.ndarray, own_origin, own_scan=None, *, range_noise: float, floor: float,

@@ -37,6 +37,12 @@ def change_text(s: dict, reference, current) -> str:
     if "extents" in s:
         lines.append(f"the reference spans {s['extents'][0]:.4g} units and the current {s['extents'][1]:.4g}: are they "
                      "in the same units (metres and millimetres)? Compared as given")
+    units = s.get("range_units", {})
+    if units:
+        roles = " and the ".join(units)
+        lines.append(f"the {roles}'s points lie farther from the sensor than a depth camera sees in metres: the rays' "
+                     f"band taken per {'millimetre' if max(units.values()) < 0.005 else 'centimetre'} "
+                     f"({max(s['range_noise'][r] for r in units):.3g}·r²); give --range-noise for another sensor")
     if "alignment" in s:
         lines.append(alignment_text(s["alignment"]))
     lines.append(f"voxel {s['voxel_size']:.4g}, sigma {s['sigma']:.4g}, h {s['h']:.4f}, decision {s['decision']}"

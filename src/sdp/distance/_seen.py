@@ -63,7 +63,8 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
     places = d.core_points[measured] + offset[:, None] * d.normal[measured]
     hidden = measured[not_seen(places, xyz, origins, scan, sigma=sigma,
                                normals=d.normal[measured] if facing else None,
-                               range_noise=sensor_range_noise(cloud, DEFAULTS.range_noise), rays=rays_sent(cloud))]
+                               range_noise=sensor_range_noise(cloud, DEFAULTS.range_noise, xyz=xyz, origin=origins),
+                               rays=rays_sent(cloud))]
     if hidden.size == 0:
         return d
     distance, lod, level = d.distance.copy(), d.lod.copy(), d.level.copy()

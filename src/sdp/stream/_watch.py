@@ -238,7 +238,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     scan = None if is_field else scanner_of_points(reference, origin, len(ref))  # several scanners: each point's
     image = None if origin is None or np.ndim(origin) == 2 else \
         RangeImage.from_points(ref, origin, rays_sent=rays_sent(reference))
-    band = sensor_range_noise(reference, coverage.range_noise)  # the reference's sensor: a laser's, a camera's
+    band = sensor_range_noise(reference, coverage.range_noise, xyz=ref, origin=origin)  # a laser's, a camera's
     matrix = None if align is None else np.eye(4)
     try:
         frames = iter(frames)
@@ -286,7 +286,8 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         # the model's footprint, or the reference's rays (imaged once)
         states = judge_coverage(cur.xyz, mask, ref, seen, origin, coverage=coverage.enabled,
                                 range_noise=band, image=image, present=frame.inside, other_scan=scan,
-                                own_origin=own, own_range_noise=sensor_range_noise(given, coverage.range_noise))
+                                own_origin=own, own_range_noise=sensor_range_noise(given, coverage.range_noise,
+                                                                                     xyz=cur.xyz, origin=own))
         mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
         labels = np.full(len(mask), -1, np.int32)
