@@ -352,3 +352,47 @@ def test_an_npz_cloud_with_metadata_reads(tmp_path, rng):
     np.savez(tmp_path / "c.npz", xyz=rng.random((50, 3)), change=np.zeros(50, np.uint8), epoch=np.array(2023))
     cloud = read_points(tmp_path / "c.npz")
     assert len(cloud.xyz) == 50 and set(cloud.fields) == {"change"}
+
+
+def _pcl_pcd(path, n, fields, columns, *, height=1, data="binary_compressed"):
+    """A PCD file written as PCL writes it: ``fields`` (name, type, size, count); ``columns`` one
+    (n, count) array per field; binary_compressed stores each field's column whole, a point's
+    values together (``pcl::PCDWriter::writeBinaryCompressed``)."""
+    import struct
+
+    import lzf
+
+    head = (f"VERSION 0.7\nFIELDS {' '.join(f[0] for f in fields)}\nSIZE {' '.join(str(f[2]) for f in fields)}\n"
+            f"TYPE {' '.join(f[1] for f in fields)}\nCOUNT {' '.join(str(f[3]) for f in fields)}\n"
+            f"WIDTH {n // height}\nHEIGHT {height}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n").encode()
+    if data == "binary_compressed":
+        body = b"".join(np.ascontiguousarray(c).tobytes() for c in columns)
+        packed = lzf.compress(body, 2 * len(body) + 64)
+        path.write_bytes(head + struct.pack("<II", len(packed), len(body)) + packed)
+    else:  # binary: point by point
+        rec = np.empty(n, [(f[0], c.dtype, (f[3],)) for f, c in zip(fields, columns)])
+        for f, c in zip(fields, columns):
+            rec[f[0]] = c
+        path.write_bytes(head + rec.tobytes())
+
+
+def test_a_compressed_pcd_field_of_several_values_reads_as_pcl_wrote_it(tmp_path, rng):
+    # PCL stores a field of COUNT c as one column, each point's c values together; pypcd4 reads
+    # it as c columns one after the other, which scrambled the values across points
+    n = 6
+    xyz = rng.random((n, 3)).astype(np.float32)
+    xyz[3] = np.nan  # organized: a missing return, dropped; the fields' rows must stay with theirs
+    pair = (np.arange(n)[:, None] * 10 + np.arange(2)).astype(np.float32)
+    hist = (np.arange(n)[:, None] * 100 + np.arange(33)).astype(np.uint16)  # a 33-bin descriptor
+    fields = [("x", "F", 4, 1), ("y", "F", 4, 1), ("z", "F", 4, 1), ("v", "F", 4, 2), ("h", "U", 2, 33)]
+    for data in ("binary_compressed", "binary"):
+        path = tmp_path / f"{data}.pcd"
+        _pcl_pcd(path, n, fields, [xyz[:, :1], xyz[:, 1:2], xyz[:, 2:], pair, hist], height=2, data=data)
+        c = read_points(path)
+        kept = np.arange(n) != 3
+        assert c.n_dropped == 1
+        np.testing.assert_array_equal(c.xyz, xyz[kept])
+        for k in range(2):
+            np.testing.assert_array_equal(c.fields[f"v__{k:04d}"], pair[kept, k], err_msg=data)
+        for k in (0, 1, 32):
+            np.testing.assert_array_equal(c.fields[f"h__{k:04d}"], hist[kept, k], err_msg=data)

@@ -25,6 +25,7 @@ def read_pcd(path):
 
     _check_header_columns(path)
     pc = PointCloud.from_path(path)
+    _pcl_columns(pc)
     names = list(pc.fields)
     if not {"x", "y", "z"} <= set(names):
         raise CloudFileError(f"{path}: PCD fields {names} have no x, y, z")
@@ -93,6 +94,23 @@ def _check_count(path, pc, rows: int) -> None:
         if start >= 0 and extra > 0:
             raise CloudFileError(f"{path}: the PCD header announces {meta.points:,} points, the file holds "
                                  f"{extra:,} bytes more")
+
+
+def _pcl_columns(pc) -> None:
+    """Put back, in place, the values of binary_compressed fields of COUNT c > 1 as PCL stores
+    them. PCL (``PCDWriter::writeBinaryCompressed``) writes such a field's column whole, each
+    point's c values together ([p0v0, p0v1, …, p1v0, …]); pypcd4 reads it as c columns of n values
+    one after the other, which scrambles the values across points. Joined in pypcd4's order, its
+    sub-columns are that column: reshaped (n, c), sub-column k is column k."""
+    meta = pc.metadata
+    if str(getattr(meta.data, "value", meta.data)) in ("ascii", "binary") or len(pc.pc_data) == 0:
+        return
+    for name, count in zip(meta.fields, meta.count):
+        if count > 1:
+            subs = [f"{name}__{k:04d}" for k in range(count)]
+            column = np.concatenate([pc.pc_data[s] for s in subs]).reshape(len(pc.pc_data), count)
+            for k, s in enumerate(subs):
+                pc.pc_data[s] = column[:, k]
 
 
 def _pcd_column(pc, name, col):
