@@ -370,10 +370,8 @@ def _pcl_pcd(path, n, fields, columns, *, height=1, data="binary_compressed"):
         packed = lzf.compress(body, 2 * len(body) + 64)
         path.write_bytes(head + struct.pack("<II", len(packed), len(body)) + packed)
     else:  # binary: point by point
-        rec = np.empty(n, [(f[0], c.dtype, (f[3],)) for f, c in zip(fields, columns)])
-        for f, c in zip(fields, columns):
-            rec[f[0]] = c
-        path.write_bytes(head + rec.tobytes())
+        path.write_bytes(head + np.hstack([np.ascontiguousarray(c).view(np.uint8).reshape(n, -1)
+                                           for c in columns]).tobytes())
 
 
 def test_a_compressed_pcd_field_of_several_values_reads_as_pcl_wrote_it(tmp_path, rng):
@@ -396,3 +394,23 @@ def test_a_compressed_pcd_field_of_several_values_reads_as_pcl_wrote_it(tmp_path
             np.testing.assert_array_equal(c.fields[f"v__{k:04d}"], pair[kept, k], err_msg=data)
         for k in (0, 1, 32):
             np.testing.assert_array_equal(c.fields[f"h__{k:04d}"], hist[kept, k], err_msg=data)
+
+
+def test_pcl_padding_fields_are_left_out(tmp_path, rng):
+    # PCL pads records with fields named "_" (FIELDS x y z _ rgb _); pypcd4 names each after a
+    # random string: kept, they were a dozen junk dimensions in every output, named anew each run
+    n = 20
+    xyz = rng.random((n, 3)).astype(np.float32)
+    rgb = rng.integers(0, 256, (n, 3)).astype(np.uint32)
+    packed = ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).view(np.float32)[:, None]
+    fields = [("x", "F", 4, 1), ("y", "F", 4, 1), ("z", "F", 4, 1), ("_", "U", 1, 4), ("rgb", "F", 4, 1),
+              ("_", "U", 1, 12)]
+    pad = [np.full((n, 4), 7, np.uint8), np.full((n, 12), 9, np.uint8)]
+    for data in ("binary", "binary_compressed"):
+        path = tmp_path / f"{data}.pcd"
+        _pcl_pcd(path, n, fields, [xyz[:, :1], xyz[:, 1:2], xyz[:, 2:], pad[0], packed, pad[1]], data=data)
+        c = read_points(path)
+        np.testing.assert_array_equal(c.xyz, xyz)
+        assert sorted(c.fields) == ["blue", "green", "red"], data
+        for k, name in enumerate(("red", "green", "blue")):
+            np.testing.assert_array_equal(c.fields[name], rgb[:, k])

@@ -3,7 +3,8 @@
 Organized files (HEIGHT > 1: one point per pixel or ray) mark a missing return by NaN or by a
 point at exactly (0, 0, 0); both become NaN here, dropped and counted by
 :func:`sdp.io.read_points`. The header's VIEWPOINT (the sensor's pose) is returned with the
-points. sdp writes no PCD.
+points. A field of COUNT c > 1 becomes c fields (``normal__0000``, …); PCL's ``_`` padding fields
+are left out. sdp writes no PCD.
 """
 
 from __future__ import annotations
@@ -26,10 +27,11 @@ def read_pcd(path):
     _check_header_columns(path)
     pc = PointCloud.from_path(path)
     _pcl_columns(pc)
-    names = list(pc.fields)
+    padding = _padding(pc, _header(path)[0].get("FIELDS", []))
+    names = [n for n in pc.fields if n not in padding]
     if not {"x", "y", "z"} <= set(names):
         raise CloudFileError(f"{path}: PCD fields {names} have no x, y, z")
-    data = pc.numpy()
+    data = pc.numpy(names)
     _check_count(path, pc, len(data))
     cols = {n: data[:, i] for i, n in enumerate(names)}
     fields = {n: _pcd_column(pc, n, cols[n]) for n in names if n not in ("x", "y", "z")}
@@ -111,6 +113,20 @@ def _pcl_columns(pc) -> None:
             column = np.concatenate([pc.pc_data[s] for s in subs]).reshape(len(pc.pc_data), count)
             for k, s in enumerate(subs):
                 pc.pc_data[s] = column[:, k]
+
+
+def _padding(pc, fields: list[str]) -> set[str]:
+    """pypcd4's names of the header's ``_`` fields: PCL's padding (bytes that align the next
+    field, e.g. ``FIELDS x y z _ rgb _``), which PCL and CloudCompare skip. pypcd4 names each
+    after a random string, so kept they would be junk dimensions named anew at every read."""
+    meta = pc.metadata
+    if len(fields) != len(meta.fields):
+        return set()
+    skip = set()
+    for given, name, count in zip(fields, meta.fields, meta.count):
+        if given == "_":
+            skip.update([name] if count == 1 else [f"{name}__{k:04d}" for k in range(count)])
+    return skip
 
 
 def _pcd_column(pc, name, col):
