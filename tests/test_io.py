@@ -414,3 +414,16 @@ def test_pcl_padding_fields_are_left_out(tmp_path, rng):
         assert sorted(c.fields) == ["blue", "green", "red"], data
         for k, name in enumerate(("red", "green", "blue")):
             np.testing.assert_array_equal(c.fields[name], rgb[:, k])
+
+
+def test_a_text_files_byte_order_mark_is_skipped(tmp_path):
+    # Excel's "CSV UTF-8" starts with a byte-order mark: read as text, it made the first point a
+    # header (the point lost) or the first column's name "\ufeffid"
+    rows = [[1.5, 2.5, 3.5], [4.5, 5.5, 6.5], [7.5, 8.5, 9.5]]
+    body = "\n".join(",".join(map(str, r)) for r in rows) + "\n"
+    ids = "id,x,y,z\n" + "".join(f"{i}," + ",".join(map(str, r)) + "\n" for i, r in enumerate(rows))
+    for name, text in (("plain.csv", body), ("ids.csv", ids), ("c.txt", body.replace(",", " "))):
+        (tmp_path / name).write_text(text, encoding="utf-8-sig")
+        c = read_points(tmp_path / name)
+        assert c.xyz.tolist() == rows, name
+        assert sorted(c.fields) == (["id"] if name == "ids.csv" else []), name
