@@ -427,3 +427,34 @@ def test_a_text_files_byte_order_mark_is_skipped(tmp_path):
         c = read_points(tmp_path / name)
         assert c.xyz.tolist() == rows, name
         assert sorted(c.fields) == (["id"] if name == "ids.csv" else []), name
+
+
+def test_a_ply_vertex_list_property_is_left_out_with_a_notice(tmp_path, rng, capfd):
+    # a list per vertex (the views a photogrammetry tool saw each point in) is no field: kept, every
+    # output failed after the whole computation ("field 'views' must hold one real number per point")
+    from plyfile import PlyData, PlyElement
+
+    from sdp.cli._main import main
+    from sdp.io._cloud import ReadNotice
+
+    xyz = rng.random((40, 3)).astype(np.float32)
+    v = np.empty(40, [("x", "f4"), ("y", "f4"), ("z", "f4"), ("views", "O"), ("label", "u1")])
+    v["x"], v["y"], v["z"] = xyz.T
+    v["views"] = [np.arange(i % 3, dtype="i4") for i in range(40)]
+    v["label"] = np.arange(40) % 5
+    for text in (False, True):
+        path = tmp_path / f"{'ascii' if text else 'binary'}.ply"
+        element = PlyElement.describe(v, "vertex", val_types={"views": "i4"}, len_types={"views": "u1"})
+        PlyData([element], text=text).write(str(path))
+        with pytest.warns(ReadNotice, match=r"list property 'views' left out"):
+            c = read_points(path)
+        np.testing.assert_array_equal(c.xyz, xyz)
+        assert list(c.fields) == ["label"]
+        np.testing.assert_array_equal(c.fields["label"], v["label"])
+        write_points(tmp_path / "out.ply", c)  # written as any other cloud
+        assert list(read_points(tmp_path / "out.ply").fields) == ["label"]
+    assert main(["info", str(path)]) == 0  # the command line says it in one line
+    err = capfd.readouterr().err
+    assert err == f"sdp: {path}: vertex list property 'views' left out (a list per point, which no field holds; " \
+                  "Open3D and CloudCompare leave them out too)\n"
+    assert main(["info", str(path), "-q"]) == 0 and capfd.readouterr().err == ""
