@@ -458,3 +458,41 @@ def test_a_ply_vertex_list_property_is_left_out_with_a_notice(tmp_path, rng, cap
     assert err == f"sdp: {path}: vertex list property 'views' left out (a list per point, which no field holds; " \
                   "Open3D and CloudCompare leave them out too)\n"
     assert main(["info", str(path), "-q"]) == 0 and capfd.readouterr().err == ""
+
+
+def test_withheld_and_noise_las_points_are_compared_with_a_notice(tmp_path, rng, capfd):
+    # kept as PDAL and CloudCompare keep them (every output keeps its rows), but said: a change
+    # found among them may be noise, not the surface
+    import warnings
+
+    import laspy
+
+    from sdp.cli._main import main
+    from sdp.io._cloud import ReadNotice
+
+    def las(name, point_format, classification, withheld):
+        data = laspy.LasData(laspy.LasHeader(point_format=point_format, version="1.4"))
+        data.x, data.y, data.z = rng.random((3, 50)) * 10
+        data.classification, data.withheld = classification, withheld
+        data.write(str(tmp_path / name))
+        return tmp_path / name
+
+    classes = np.full(50, 2, np.uint8)
+    classes[:3], classes[3:5] = 7, 18
+    flags = (np.arange(50) >= 45).astype(np.uint8)
+    for point_format, told in ((6, "5 points flagged withheld and 5 classified noise (class 7 or 18)"),
+                               (0, "5 points flagged withheld and 3 classified noise (class 7)")):  # 18: 6-10 only
+        path = las(f"f{point_format}.las", point_format, classes, flags)
+        with pytest.warns(ReadNotice) as seen:
+            c = read_points(path)
+        assert len(seen) == 1 and str(seen[0].message) == (
+            f"{path}: {told}, compared as any other point; to leave them out, filter the file first (e.g. las2las "
+            f"-drop_withheld -drop_class {'7 18' if point_format == 6 else '7'})")
+        assert len(c) == 50 and np.array_equal(c.fields["classification"], classes)
+    path = las("noise.las", 6, np.where(np.arange(50) == 0, 7, 2).astype(np.uint8), np.zeros(50, np.uint8))
+    assert main(["info", str(path)]) == 0
+    assert capfd.readouterr().err == (f"sdp: {path}: 1 point classified noise (class 7 or 18), compared as any other "
+                                      "point; to leave them out, filter the file first (e.g. las2las -drop_class 7 18)\n")
+    with warnings.catch_warnings():  # a file without either: no word
+        warnings.simplefilter("error")
+        read_points(las("clean.las", 6, np.full(50, 2, np.uint8), np.zeros(50, np.uint8)))
