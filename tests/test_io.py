@@ -352,3 +352,147 @@ def test_an_npz_cloud_with_metadata_reads(tmp_path, rng):
     np.savez(tmp_path / "c.npz", xyz=rng.random((50, 3)), change=np.zeros(50, np.uint8), epoch=np.array(2023))
     cloud = read_points(tmp_path / "c.npz")
     assert len(cloud.xyz) == 50 and set(cloud.fields) == {"change"}
+
+
+def _pcl_pcd(path, n, fields, columns, *, height=1, data="binary_compressed"):
+    """A PCD file written as PCL writes it: ``fields`` (name, type, size, count); ``columns`` one
+    (n, count) array per field; binary_compressed stores each field's column whole, a point's
+    values together (``pcl::PCDWriter::writeBinaryCompressed``)."""
+    import struct
+
+    import lzf
+
+    head = (f"VERSION 0.7\nFIELDS {' '.join(f[0] for f in fields)}\nSIZE {' '.join(str(f[2]) for f in fields)}\n"
+            f"TYPE {' '.join(f[1] for f in fields)}\nCOUNT {' '.join(str(f[3]) for f in fields)}\n"
+            f"WIDTH {n // height}\nHEIGHT {height}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n").encode()
+    if data == "binary_compressed":
+        body = b"".join(np.ascontiguousarray(c).tobytes() for c in columns)
+        packed = lzf.compress(body, 2 * len(body) + 64)
+        path.write_bytes(head + struct.pack("<II", len(packed), len(body)) + packed)
+    else:  # binary: point by point
+        path.write_bytes(head + np.hstack([np.ascontiguousarray(c).view(np.uint8).reshape(n, -1)
+                                           for c in columns]).tobytes())
+
+
+def test_a_compressed_pcd_field_of_several_values_reads_as_pcl_wrote_it(tmp_path, rng):
+    # PCL stores a field of COUNT c as one column, each point's c values together; pypcd4 reads
+    # it as c columns one after the other, which scrambled the values across points
+    n = 6
+    xyz = rng.random((n, 3)).astype(np.float32)
+    xyz[3] = np.nan  # organized: a missing return, dropped; the fields' rows must stay with theirs
+    pair = (np.arange(n)[:, None] * 10 + np.arange(2)).astype(np.float32)
+    hist = (np.arange(n)[:, None] * 100 + np.arange(33)).astype(np.uint16)  # a 33-bin descriptor
+    fields = [("x", "F", 4, 1), ("y", "F", 4, 1), ("z", "F", 4, 1), ("v", "F", 4, 2), ("h", "U", 2, 33)]
+    for data in ("binary_compressed", "binary"):
+        path = tmp_path / f"{data}.pcd"
+        _pcl_pcd(path, n, fields, [xyz[:, :1], xyz[:, 1:2], xyz[:, 2:], pair, hist], height=2, data=data)
+        c = read_points(path)
+        kept = np.arange(n) != 3
+        assert c.n_dropped == 1
+        np.testing.assert_array_equal(c.xyz, xyz[kept])
+        for k in range(2):
+            np.testing.assert_array_equal(c.fields[f"v__{k:04d}"], pair[kept, k], err_msg=data)
+        for k in (0, 1, 32):
+            np.testing.assert_array_equal(c.fields[f"h__{k:04d}"], hist[kept, k], err_msg=data)
+
+
+def test_pcl_padding_fields_are_left_out(tmp_path, rng):
+    # PCL pads records with fields named "_" (FIELDS x y z _ rgb _); pypcd4 names each after a
+    # random string: kept, they were a dozen junk dimensions in every output, named anew each run
+    n = 20
+    xyz = rng.random((n, 3)).astype(np.float32)
+    rgb = rng.integers(0, 256, (n, 3)).astype(np.uint32)
+    packed = ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).view(np.float32)[:, None]
+    fields = [("x", "F", 4, 1), ("y", "F", 4, 1), ("z", "F", 4, 1), ("_", "U", 1, 4), ("rgb", "F", 4, 1),
+              ("_", "U", 1, 12)]
+    pad = [np.full((n, 4), 7, np.uint8), np.full((n, 12), 9, np.uint8)]
+    for data in ("binary", "binary_compressed"):
+        path = tmp_path / f"{data}.pcd"
+        _pcl_pcd(path, n, fields, [xyz[:, :1], xyz[:, 1:2], xyz[:, 2:], pad[0], packed, pad[1]], data=data)
+        c = read_points(path)
+        np.testing.assert_array_equal(c.xyz, xyz)
+        assert sorted(c.fields) == ["blue", "green", "red"], data
+        for k, name in enumerate(("red", "green", "blue")):
+            np.testing.assert_array_equal(c.fields[name], rgb[:, k])
+
+
+def test_a_text_files_byte_order_mark_is_skipped(tmp_path):
+    # Excel's "CSV UTF-8" starts with a byte-order mark: read as text, it made the first point a
+    # header (the point lost) or the first column's name "\ufeffid"
+    rows = [[1.5, 2.5, 3.5], [4.5, 5.5, 6.5], [7.5, 8.5, 9.5]]
+    body = "\n".join(",".join(map(str, r)) for r in rows) + "\n"
+    ids = "id,x,y,z\n" + "".join(f"{i}," + ",".join(map(str, r)) + "\n" for i, r in enumerate(rows))
+    for name, text in (("plain.csv", body), ("ids.csv", ids), ("c.txt", body.replace(",", " "))):
+        (tmp_path / name).write_text(text, encoding="utf-8-sig")
+        c = read_points(tmp_path / name)
+        assert c.xyz.tolist() == rows, name
+        assert sorted(c.fields) == (["id"] if name == "ids.csv" else []), name
+
+
+def test_a_ply_vertex_list_property_is_left_out_with_a_notice(tmp_path, rng, capfd):
+    # a list per vertex (the views a photogrammetry tool saw each point in) is no field: kept, every
+    # output failed after the whole computation ("field 'views' must hold one real number per point")
+    from plyfile import PlyData, PlyElement
+
+    from sdp.cli._main import main
+    from sdp.io._cloud import ReadNotice
+
+    xyz = rng.random((40, 3)).astype(np.float32)
+    v = np.empty(40, [("x", "f4"), ("y", "f4"), ("z", "f4"), ("views", "O"), ("label", "u1")])
+    v["x"], v["y"], v["z"] = xyz.T
+    v["views"] = [np.arange(i % 3, dtype="i4") for i in range(40)]
+    v["label"] = np.arange(40) % 5
+    for text in (False, True):
+        path = tmp_path / f"{'ascii' if text else 'binary'}.ply"
+        element = PlyElement.describe(v, "vertex", val_types={"views": "i4"}, len_types={"views": "u1"})
+        PlyData([element], text=text).write(str(path))
+        with pytest.warns(ReadNotice, match=r"list property 'views' left out"):
+            c = read_points(path)
+        np.testing.assert_array_equal(c.xyz, xyz)
+        assert list(c.fields) == ["label"]
+        np.testing.assert_array_equal(c.fields["label"], v["label"])
+        write_points(tmp_path / "out.ply", c)  # written as any other cloud
+        assert list(read_points(tmp_path / "out.ply").fields) == ["label"]
+    assert main(["info", str(path)]) == 0  # the command line says it in one line
+    err = capfd.readouterr().err
+    assert err == f"sdp: {path}: vertex list property 'views' left out (a list per point, which no field holds; " \
+                  "Open3D and CloudCompare leave them out too)\n"
+    assert main(["info", str(path), "-q"]) == 0 and capfd.readouterr().err == ""
+
+
+def test_withheld_and_noise_las_points_are_compared_with_a_notice(tmp_path, rng, capfd):
+    # kept as PDAL and CloudCompare keep them (every output keeps its rows), but said: a change
+    # found among them may be noise, not the surface
+    import warnings
+
+    import laspy
+
+    from sdp.cli._main import main
+    from sdp.io._cloud import ReadNotice
+
+    def las(name, point_format, classification, withheld):
+        data = laspy.LasData(laspy.LasHeader(point_format=point_format, version="1.4"))
+        data.x, data.y, data.z = rng.random((3, 50)) * 10
+        data.classification, data.withheld = classification, withheld
+        data.write(str(tmp_path / name))
+        return tmp_path / name
+
+    classes = np.full(50, 2, np.uint8)
+    classes[:3], classes[3:5] = 7, 18
+    flags = (np.arange(50) >= 45).astype(np.uint8)
+    for point_format, told in ((6, "5 points flagged withheld and 5 classified noise (class 7 or 18)"),
+                               (0, "5 points flagged withheld and 3 classified noise (class 7)")):  # 18: 6-10 only
+        path = las(f"f{point_format}.las", point_format, classes, flags)
+        with pytest.warns(ReadNotice) as seen:
+            c = read_points(path)
+        assert len(seen) == 1 and str(seen[0].message) == (
+            f"{path}: {told}, compared as any other point; to leave them out, filter the file first (e.g. las2las "
+            f"-drop_withheld -drop_class {'7 18' if point_format == 6 else '7'})")
+        assert len(c) == 50 and np.array_equal(c.fields["classification"], classes)
+    path = las("noise.las", 6, np.where(np.arange(50) == 0, 7, 2).astype(np.uint8), np.zeros(50, np.uint8))
+    assert main(["info", str(path)]) == 0
+    assert capfd.readouterr().err == (f"sdp: {path}: 1 point classified noise (class 7 or 18), compared as any other "
+                                      "point; to leave them out, filter the file first (e.g. las2las -drop_class 7 18)\n")
+    with warnings.catch_warnings():  # a file without either: no word
+        warnings.simplefilter("error")
+        read_points(las("clean.las", 6, np.full(50, 2, np.uint8), np.zeros(50, np.uint8)))

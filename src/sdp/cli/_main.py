@@ -23,6 +23,7 @@ from .._core import _validate as V
 from .._core._json import dumps
 from ..defaults import DEFAULTS
 from ..errors import SDPError
+from ..io._cloud import ReadNotice
 from ..io._output import all_or_none
 from ..options import Coverage, Cylinder, Execution, Lattice, NoiseModel, Outputs, Registration
 from . import _actions as A
@@ -114,6 +115,18 @@ def _say(message: str) -> None:
     """A notice on stderr (the switch to tiles), unless ``--quiet``."""
     if not _quiet:
         print(f"sdp: {message}", file=sys.stderr)
+
+
+def _notices(show):
+    """``warnings.showwarning`` that prints a reader's :class:`~sdp.io._cloud.ReadNotice` as one
+    ``sdp:`` line, as :func:`_say` does (Python's form takes two lines and names sdp's source),
+    and hands other warnings to ``show``."""
+    def shown(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, ReadNotice):
+            _say(str(message))
+        else:
+            show(message, category, filename, lineno, file, line)
+    return shown
 
 
 def _print(text: str) -> None:
@@ -679,6 +692,7 @@ def main(argv=None, *, restore_signals: bool = True) -> int:
         with all_or_none(on_commit=_finish), warnings.catch_warnings():
             if quiet:
                 warnings.simplefilter("ignore")
+            warnings.showwarning = _notices(warnings.showwarning)  # put back as it was when the block ends
             with first_run(args.command, quiet=quiet):
                 return args.func(args)
     except BaseException as exc:

@@ -1,7 +1,8 @@
 """A point cloud read from a file (:class:`Cloud`), the error of a file that can't be read
 (:class:`CloudFileError`), and what every reader shares: the formats by extension
-(:data:`FORMATS`, :func:`input_format`) and the one-line error of a library's failure
-(:func:`library_error`, :func:`unreadable`; pydantic's PCD header reports summarized).
+(:data:`FORMATS`, :func:`input_format`), the one-line error of a library's failure
+(:func:`library_error`, :func:`unreadable`; pydantic's PCD header reports summarized) and the
+notice of what a file holds that is read otherwise than one might expect (:func:`notice`).
 
 Kept apart from the readers (one module per format) and from :func:`sdp.io.read_points`, which
 dispatches to them, so that every one of them imports it without an import cycle.
@@ -10,6 +11,7 @@ dispatches to them, so that every one of them imports it without an import cycle
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -17,8 +19,8 @@ import numpy as np
 
 from ..errors import SDPError
 
-__all__ = ["Cloud", "CloudFileError", "EmptyCloudError", "FORMATS", "input_format", "library_error", "unreadable",
-           "unpacked_colour"]
+__all__ = ["Cloud", "CloudFileError", "EmptyCloudError", "ReadNotice", "FORMATS", "input_format", "library_error",
+           "notice", "unreadable", "unpacked_colour"]
 
 #: Extension → format name understood by :func:`sdp.io.read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
@@ -34,6 +36,19 @@ class CloudFileError(SDPError, OSError):
 class EmptyCloudError(CloudFileError):
     """The file holds no point (no row, or none with finite x, y, z): an error, but for a
     stream's frame, which a blinded sensor leaves empty (``read_points(allow_empty=True)``)."""
+
+
+class ReadNotice(UserWarning):
+    """What a reader says of a file it reads otherwise than one might expect (a PLY's vertex list
+    properties left out, a LAS file's withheld or noise points compared as any other): a warning
+    in Python, one ``sdp:`` line on stderr from the command line (none with ``--quiet``)."""
+
+
+def notice(message: str) -> None:
+    """Say ``message`` (one line, naming the file) as a :class:`ReadNotice`: a reader's word
+    reaches Python callers and every command that reads a file, whichever reads it. Called by a
+    reader itself, it points at the line that called :func:`sdp.io.read_points`."""
+    warnings.warn(message, ReadNotice, stacklevel=4)
 
 
 def _one_line(exc: BaseException, limit: int = 200) -> str:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .._core._progress import bar
-from ._cloud import Cloud, CloudFileError, EmptyCloudError
+from ._cloud import Cloud, CloudFileError, EmptyCloudError, notice
 
 __all__ = ["LAS_CHUNK", "read_las", "las_point_count", "check_las_counts", "check_las_points", "las_scale_offset",
            "write_las", "xyz_only"]
@@ -25,9 +25,10 @@ LAS_CHUNK = 2_000_000  # points per chunk read (a progress step)
 
 def read_las(path, *, fields: bool = True):
     """``(xyz, fields, las)`` of a LAS/LAZ file: world coordinates, every other dimension as a
-    field, and the ``laspy.LasData`` (so outputs can keep every dimension). ``fields=False``:
-    ``(xyz, {}, None)``, without unpacking the other dimensions (they cost as much as the
-    decompression)."""
+    field, and the ``laspy.LasData`` (so outputs can keep every dimension); points flagged
+    withheld or classified noise are read as any other, with a :func:`~sdp.io._cloud.notice`.
+    ``fields=False``: ``(xyz, {}, None)``, without unpacking the other dimensions (they cost as
+    much as the decompression) nor a notice."""
     import laspy
 
     check_las_counts(path)
@@ -51,7 +52,22 @@ def read_las(path, *, fields: bool = True):
     if not fields:
         return xyz, {}, None
     las = laspy.LasData(h, points=laspy.ScaleAwarePointRecord(records, h.point_format, h.scales, h.offsets))
-    return xyz, {d: np.asarray(las[d]) for d in las.point_format.dimension_names if d not in ("X", "Y", "Z")}, las
+    values = {d: np.asarray(las[d]) for d in las.point_format.dimension_names if d not in ("X", "Y", "Z")}
+    # withheld ("should be considered deleted") and noise points are compared as any other, as
+    # PDAL's readers.las and CloudCompare load them: leaving them out would change every output's
+    # rows. Said, as a change found among them may be noise rather than the surface.
+    noise = (7, 18) if h.point_format.id >= 6 else (7,)  # 18, high noise, is a class of formats 6-10 only
+    withheld = int(np.count_nonzero(values["withheld"])) if "withheld" in values else 0
+    noisy = int(np.isin(values["classification"], noise).sum()) if "classification" in values else 0
+    if withheld or noisy:
+        classes = " ".join(map(str, noise))
+        told = [f"{withheld:,} flagged withheld"] * bool(withheld) + \
+            [f"{noisy:,} classified noise (class {classes.replace(' ', ' or ')})"] * bool(noisy)
+        count, _, rest = " and ".join(told).partition(" ")
+        drop = ["-drop_withheld"] * bool(withheld) + [f"-drop_class {classes}"] * bool(noisy)
+        notice(f"{path}: {count} point{'' if count == '1' else 's'} {rest}, compared as any other point; to leave "
+               f"them out, filter the file first (e.g. las2las {' '.join(drop)})")
+    return xyz, values, las
 
 
 def _standard_dimensions(fields: dict) -> dict:

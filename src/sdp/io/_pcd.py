@@ -3,7 +3,8 @@
 Organized files (HEIGHT > 1: one point per pixel or ray) mark a missing return by NaN or by a
 point at exactly (0, 0, 0); both become NaN here, dropped and counted by
 :func:`sdp.io.read_points`. The header's VIEWPOINT (the sensor's pose) is returned with the
-points. sdp writes no PCD.
+points. A field of COUNT c > 1 becomes c fields (``normal__0000``, …); PCL's ``_`` padding fields
+are left out. sdp writes no PCD.
 """
 
 from __future__ import annotations
@@ -25,10 +26,12 @@ def read_pcd(path):
 
     _check_header_columns(path)
     pc = PointCloud.from_path(path)
-    names = list(pc.fields)
+    _pcl_columns(pc)
+    padding = _padding(pc, _header(path)[0].get("FIELDS", []))
+    names = [n for n in pc.fields if n not in padding]
     if not {"x", "y", "z"} <= set(names):
         raise CloudFileError(f"{path}: PCD fields {names} have no x, y, z")
-    data = pc.numpy()
+    data = pc.numpy(names)
     _check_count(path, pc, len(data))
     cols = {n: data[:, i] for i, n in enumerate(names)}
     fields = {n: _pcd_column(pc, n, cols[n]) for n in names if n not in ("x", "y", "z")}
@@ -93,6 +96,37 @@ def _check_count(path, pc, rows: int) -> None:
         if start >= 0 and extra > 0:
             raise CloudFileError(f"{path}: the PCD header announces {meta.points:,} points, the file holds "
                                  f"{extra:,} bytes more")
+
+
+def _pcl_columns(pc) -> None:
+    """Put back, in place, the values of binary_compressed fields of COUNT c > 1 as PCL stores
+    them. PCL (``PCDWriter::writeBinaryCompressed``) writes such a field's column whole, each
+    point's c values together ([p0v0, p0v1, …, p1v0, …]); pypcd4 reads it as c columns of n values
+    one after the other, which scrambles the values across points. Joined in pypcd4's order, its
+    sub-columns are that column: reshaped (n, c), sub-column k is column k."""
+    meta = pc.metadata
+    if str(getattr(meta.data, "value", meta.data)) in ("ascii", "binary") or len(pc.pc_data) == 0:
+        return
+    for name, count in zip(meta.fields, meta.count):
+        if count > 1:
+            subs = [f"{name}__{k:04d}" for k in range(count)]
+            column = np.concatenate([pc.pc_data[s] for s in subs]).reshape(len(pc.pc_data), count)
+            for k, s in enumerate(subs):
+                pc.pc_data[s] = column[:, k]
+
+
+def _padding(pc, fields: list[str]) -> set[str]:
+    """pypcd4's names of the header's ``_`` fields: PCL's padding (bytes that align the next
+    field, e.g. ``FIELDS x y z _ rgb _``), which PCL and CloudCompare skip. pypcd4 names each
+    after a random string, so kept they would be junk dimensions named anew at every read."""
+    meta = pc.metadata
+    if len(fields) != len(meta.fields):
+        return set()
+    skip = set()
+    for given, name, count in zip(fields, meta.fields, meta.count):
+        if given == "_":
+            skip.update([name] if count == 1 else [f"{name}__{k:04d}" for k in range(count)])
+    return skip
 
 
 def _pcd_column(pc, name, col):

@@ -1,29 +1,39 @@
 """PLY files, with plyfile: points (vertices with any scalar properties) read and written, binary
-PLY's vertices memory-mapped for :class:`sdp.io.PointSource`, and triangle meshes written."""
+PLY's vertices memory-mapped for :class:`sdp.io.PointSource`, and triangle meshes written. A
+vertex list property (a list per point, such as the views a photogrammetry tool saw it in) is
+left out with a notice, as Open3D and CloudCompare leave it: no field holds a list per point."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from ._cloud import CloudFileError
+from ._cloud import CloudFileError, notice
 
 __all__ = ["read_ply", "write_ply", "write_ply_mesh", "ply_vertices", "ply_is_binary"]
 
 
 def read_ply(path):
-    """``(xyz, fields, None)`` of a PLY file's vertex element (other properties as fields)."""
-    from plyfile import PlyData
+    """``(xyz, fields, None)`` of a PLY file's vertex element (other scalar properties as fields;
+    list properties left out, with a :func:`~sdp.io._cloud.notice`)."""
+    from plyfile import PlyData, PlyListProperty
 
-    ply = PlyData.read(str(path))
+    with warnings.catch_warnings():  # an ASCII PLY's empty list: NumPy's warning, of a property left out below
+        warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
+        ply = PlyData.read(str(path))
     if "vertex" not in ply:
         raise CloudFileError(f"{path}: PLY file has no vertex element")
     v = ply["vertex"].data
     names = v.dtype.names or ()
     if not {"x", "y", "z"} <= set(names):
         raise CloudFileError(f"{path}: PLY vertices have no x, y, z (properties: {list(names)})")
-    fields = {n: np.asarray(v[n]) for n in names if n not in ("x", "y", "z")}
+    lists = [p.name for p in ply["vertex"].properties if isinstance(p, PlyListProperty)]
+    if lists:
+        notice(f"{path}: vertex list propert{'ies' if len(lists) > 1 else 'y'} {', '.join(map(repr, lists))} left "
+               "out (a list per point, which no field holds; Open3D and CloudCompare leave them out too)")
+    fields = {n: np.asarray(v[n]) for n in names if n not in ("x", "y", "z", *lists)}
     return np.c_[v["x"], v["y"], v["z"]], fields, None
 
 

@@ -1,8 +1,8 @@
 """Text point clouds (XYZ, TXT, CSV, PTS), read with NumPy: comma-, semicolon- or
 whitespace-separated columns, with or without a header line naming them (CloudCompare's
-``//X,Y,Z,…`` too), a Leica PTS file's leading point count, and ``#`` comment lines. Columns named
-x, y and z by the header are the coordinates wherever they stand; without such names, the first
-three. sdp writes no text."""
+``//X,Y,Z,…`` too), a Leica PTS file's leading point count, ``#`` comment lines, and a UTF-8
+byte-order mark. Columns named x, y and z by the header are the coordinates wherever they stand;
+without such names, the first three. sdp writes no text."""
 
 from __future__ import annotations
 
@@ -19,7 +19,9 @@ def read_text(path):
     """``(xyz, fields, None)`` of a text file: the columns the header names x, y, z (else the first
     three) are the coordinates, the others fields named by the header if there is one, else
     ``column3``, ``column4``, …"""
-    with open(path, encoding="utf-8", errors="replace") as fh:
+    # utf-8-sig: a byte-order mark (Excel's "CSV UTF-8") is skipped, not read as part of the
+    # first line, where it made the first point a header, or the first column's name "\ufeffid"
+    with open(path, encoding="utf-8-sig", errors="replace") as fh:
         sample = fh.read(65536)
     rows = [(i, ln.strip()) for i, ln in enumerate(sample.splitlines()) if ln.strip() and not ln.lstrip().startswith("#")]
     if not rows:
@@ -37,7 +39,7 @@ def read_text(path):
     with warnings.catch_warnings():  # a header without rows: said below, not as a warning
         warnings.simplefilter("ignore", UserWarning)
         try:
-            arr = np.loadtxt(path, delimiter=delimiter, skiprows=head, ndmin=2, comments="#")
+            arr = np.loadtxt(path, delimiter=delimiter, skiprows=head, ndmin=2, comments="#", encoding="utf-8-sig")
         except ValueError as exc:
             # NumPy's own advice (its `usecols`) is not an sdp option: the cause alone
             raise CloudFileError(f"{path}: not a table of numbers ({str(exc).split('; use `usecols`')[0]})") from None
