@@ -64,8 +64,8 @@ from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
 from ._range_image import RangeImage
-from ._visibility import (gone_only_if_seen, rays_sent, resolve_sensor_origins, scanner_of_points, sensor_band,
-                          visibility_states)
+from ._visibility import (gone_only_if_seen, image_border, rays_sent, resolve_sensor_origins, scanner_of_points,
+                          sensor_band, visibility_states)
 
 #: The decisions of :func:`detect_changes` (``"density"`` is ``"point"``: the paper's, density alone).
 DECISIONS = ("point", "density", "cluster", "combined")
@@ -442,9 +442,11 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
 
     # each epoch's range image from its single sensor, built once when first needed: the other
     # direction's visibility test, and this one's check that a hider's place could be seen
-    views = {id(c): _Once(lambda c=c, o=o, s=s: RangeImage.from_points(c.xyz, o, rays_sent=s)
+    views = {id(c): _Once(lambda c=c, o=o, s=s, f=f: RangeImage.from_points(c.xyz, o, rays_sent=s,
+                                                                             border=image_border(f, o))
                           if o is not None and np.ndim(o) == 1 else None)
-             for c, o, s in ((ref, o_ref, rays_sent(reference)), (cur, o_cur, rays_sent(current)))}
+             for c, f, o, s in ((ref, reference, o_ref, rays_sent(reference)),
+                                (cur, current, o_cur, rays_sent(current)))}
     # and the range noise of each epoch's sensor (a laser scan's is not a depth camera's)
     band = {role: sensor_band(c, coverage.range_noise, xyz=p.xyz, origin=o)
             for role, p, c, o in (("reference", ref, reference, o_ref), ("current", cur, current, o_cur))}

@@ -39,7 +39,7 @@ import numpy.typing as npt
 
 from ..errors import InvalidPointsError
 
-__all__ = ["HIDDEN", "SAME_SURFACE", "SEEN_FREE", "UNOBSERVED", "RangeImage", "sees"]
+__all__ = ["HIDDEN", "SAME_SURFACE", "SEEN_FREE", "UNOBSERVED", "RangeImage", "camera_border", "sees"]
 
 #: Classes of :meth:`RangeImage.classify`.
 SEEN_FREE, SAME_SURFACE, HIDDEN, UNOBSERVED = 0, 1, 2, 3
@@ -375,7 +375,8 @@ class RangeImage:
 
     @classmethod
     def from_points(cls, points: np.ndarray, origin: npt.ArrayLike, *, cell_factor: float = 1.5,
-                    spacing: float | None = None, rays_sent: bool = True) -> RangeImage:
+                    spacing: float | None = None, rays_sent: bool = True,
+                    border: np.ndarray | None = None) -> RangeImage:
         """Range image of ``points`` seen from ``origin``.
 
         Parameters
@@ -388,6 +389,13 @@ class RangeImage:
             Cell size in units of the angular point spacing.
         spacing : float, optional
             Angular point spacing (radians); when None, sqrt(solid angle covered / points).
+        rays_sent : bool
+            :attr:`rays_sent`.
+        border : ndarray (m, 3), optional
+            Directions of the rays along the border of the sensor's image (:func:`camera_border`):
+            the field of view reaches them whether they returned or not (a camera's pixels beyond
+            its range, the sky), where the returns alone would end it at the farthest pixels that
+            returned. The cells of the returns stay where they are.
 
         Returns
         -------
@@ -413,7 +421,23 @@ class RangeImage:
         if sparse >= 0:
             shape = (int(extent[0] // cells[0]) + 1, int(extent[1] // cells[1]) + 1)
             near, far = _near_far(az, el, rng, lo[0], lo[1], cells[0], cells[1], shape[0], shape[1], half[:0])
-        view = _convex_hull(np.isfinite(near).reshape(shape))
+        occupied = np.isfinite(near).reshape(shape)
+        if border is not None and len(border):
+            b_az, b_el, _, (b_lo_a, b_lo_e, b_hi_a, b_hi_e, bn) = _angles(origin + np.asarray(border, np.float64),
+                                                                          origin, frame)
+            if bn:  # whole cells before the returns' first: each return keeps its cell
+                pre = np.ceil(np.maximum(lo - [b_lo_a, b_lo_e], 0.0) / cells).astype(np.int64)
+                lo = lo - pre * cells
+                grown = (max(shape[0] + int(pre[0]), int((b_hi_a - lo[0]) // cells[0]) + 1),
+                         max(shape[1] + int(pre[1]), int((b_hi_e - lo[1]) // cells[1]) + 1))
+                inside = np.s_[pre[0]:pre[0] + shape[0], pre[1]:pre[1] + shape[1]]
+                near_g, far_g = np.full(grown, np.inf), np.full(grown, -np.inf)
+                near_g[inside], far_g[inside] = near.reshape(shape), far.reshape(shape)
+                occupied = np.isfinite(near_g) | _occupied(b_az, b_el, lo[0], lo[1], cells[0], cells[1],
+                                                          *grown).reshape(grown)
+                near, far, shape = near_g.ravel(), far_g.ravel(), grown
+                hi_a, hi_e = max(hi_a, b_hi_a), max(hi_e, b_hi_e)
+        view = _convex_hull(occupied)
         return cls(origin, frame, float(cells[0]), float(spacing), lo, shape, near, far, view.ravel(),
                    float(far[np.isfinite(far)].max()), float(cells[1]), sparse, np.array([hi_a, hi_e]),
                    bool(rays_sent))
@@ -472,6 +496,54 @@ class RangeImage:
         if not hiders:
             return cls
         return cls, _hider_points(points, self.origin, hide, rng, cls)
+
+
+def camera_border(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], origin, *,
+                  tolerance: float = 0.5, sample: int = 2048) -> np.ndarray | None:
+    """Directions of the rays along the border of an organized camera image, returned or not.
+
+    A depth camera's point of pixel (column c, row r) lies on the ray ``H⁻¹ (c, r, 1)`` from its
+    origin, for one 3 × 3 matrix H (the camera's intrinsics times its rotation: a pinhole camera,
+    whatever its pose). H is fitted to the returns (``xyz`` at ``pixels``, row · width + column,
+    of an ``image`` of (height, width)) by the direct linear transform [1]_ on at most
+    ``sample`` of them; the border pixels' rays follow. None where the returns do not fit one
+    pinhole within ``tolerance`` pixels (RMS): an organized LiDAR's rings and columns, a
+    distorted image, too few returns.
+
+    References
+    ----------
+    .. [1] R. Hartley, A. Zisserman, "Multiple View Geometry in Computer Vision", 2nd ed.,
+       Cambridge University Press, 2004, §4.1 (the DLT) and §4.4 (normalization).
+    """
+    height, width = image
+    if len(pixels) < 8 or height < 2 or width < 2:
+        return None
+    step = max(1, len(pixels) // sample)
+    d = np.asarray(xyz[::step], np.float64) - np.asarray(origin, np.float64)
+    norm = np.linalg.norm(d, axis=1)
+    ok = norm > 0
+    d = d[ok] / norm[ok, None]
+    rows, cols = np.divmod(np.asarray(pixels[::step])[ok], width)
+    if len(d) < 8:
+        return None
+    centre, scale = np.array([cols.mean(), rows.mean()]), max(float(np.std(cols) + np.std(rows)), 1.0)
+    u, v = (cols - centre[0]) / scale, (rows - centre[1]) / scale  # pixels normalized: a well-conditioned fit
+    zero = np.zeros_like(d)
+    a = np.concatenate([np.c_[d, zero, -u[:, None] * d], np.c_[zero, d, -v[:, None] * d]])
+    h = np.linalg.eigh(a.T @ a)[1][:, 0].reshape(3, 3)  # the least-squares null vector
+    p = d @ h.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.hypot(p[:, 0] / p[:, 2] - u, p[:, 1] / p[:, 2] - v) * scale
+    if not np.sqrt(np.mean(err**2)) <= tolerance:
+        return None
+    across, down = np.arange(width), np.arange(height)
+    edge = np.concatenate([np.c_[across, np.zeros(width)], np.c_[across, np.full(width, height - 1)],
+                           np.c_[np.zeros(height), down], np.c_[np.full(height, width - 1), down]])
+    inv = np.linalg.inv(h)
+    rays = np.c_[(edge - centre) / scale, np.ones(len(edge))] @ inv.T
+    if np.sum(np.c_[u, v, np.ones(len(u))] @ inv.T * d) < 0:  # H is known up to its sign
+        rays = -rays
+    return rays / np.linalg.norm(rays, axis=1)[:, None]
 
 
 def _axis_cells(az, el, lo, extent, cell: float, cell_factor: float, half: np.ndarray) -> tuple[list[float], int]:

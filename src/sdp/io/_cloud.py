@@ -115,6 +115,11 @@ class Cloud:
         The range noise its sensor's kind implies, per r² (the rays' band,
         :func:`sdp.change._visibility.sensor_range_noise`): 0 for an E57 file's laser scans, whose
         noise is millimetres at any range; None when the format says nothing of its sensor.
+    image : tuple of int or None
+        An organized cloud's (height, width): the sensor's image, one ray per pixel.
+    pixels : ndarray of int64 (n,) or None
+        With ``image``: the pixel (row · width + column) of each row kept, the others being the
+        rays that returned nothing (:func:`sdp.change._range_image.camera_border`).
     """
 
     xyz: np.ndarray
@@ -127,6 +132,8 @@ class Cloud:
     organized: bool = False
     sensors: np.ndarray | None = None
     range_noise: float | None = None
+    image: tuple | None = None
+    pixels: np.ndarray | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.xyz)

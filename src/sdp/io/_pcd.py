@@ -15,7 +15,7 @@ import numpy as np
 
 from ._cloud import CloudFileError, unpacked_colour
 
-__all__ = ["read_pcd"]
+__all__ = ["pcd_image", "read_pcd"]
 
 
 def read_pcd(path):
@@ -50,6 +50,15 @@ def read_pcd(path):
 
 
 _HEADER_END = b"DATA"
+
+
+def pcd_image(path) -> tuple[int, int] | None:
+    """(HEIGHT, WIDTH) of an organized PCD file's header, or None."""
+    entries, _ = _header(path)
+    try:
+        return int(entries["HEIGHT"][0]), int(entries["WIDTH"][0])
+    except (KeyError, IndexError, ValueError):
+        return None
 
 
 def _header(path) -> tuple[dict[str, list[str]], int]:

@@ -28,7 +28,7 @@ from ._cloud import Cloud, CloudFileError, EmptyCloudError, input_format, librar
 from ._e57 import read_e57
 from ._las import read_las
 from ._numpy import read_npy, read_npz
-from ._pcd import read_pcd
+from ._pcd import pcd_image, read_pcd
 from ._ply import read_ply
 from ._text import read_text
 
@@ -116,8 +116,16 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
     if len(xyz) == 0 and not allow_empty:
         raise EmptyCloudError(f"{path}: holds no point with finite x, y, z")
     viewpoint, organized, sensors = (list(pose) + [None, False, None][len(pose):])[:3]
+    image = pixels = None
+    if organized and fmt == "pcd":  # the camera's image: which pixels returned (the rest: rays that found nothing)
+        image = pcd_image(path)
+        if image is not None and image[0] * image[1] == dropped + len(xyz):
+            pixels = np.arange(len(xyz)) if finite is None else np.flatnonzero(finite)
+        else:
+            image = None
     return Cloud(np.ascontiguousarray(xyz), values, path, dropped, las, viewpoint, organized, sensors,
-                 0.0 if fmt == "e57" else None)  # a terrestrial laser's range noise: millimetres at any range
+                 0.0 if fmt == "e57" else None,  # a terrestrial laser's range noise: millimetres at any range
+                 image, pixels)
 
 
 def header_point_count(path: str | os.PathLike, *, format: str | None = None) -> int | None:
