@@ -23,7 +23,7 @@ _CHUNK = 8  # blocks per chunk edge: marching cubes runs on (8·8 + 1)³ nodes a
 #: and faces (about two per vertex), their concatenation, the merge of the seams' copies (keys,
 #: sort, inverse), the mesh returned and the PLY writer's records (measured: `sdp mesh` of 1.28 M
 #: vertices from a 1 M-point field peaked at 793 MiB from an .sdpf, 855 MiB from a .zarr of 529
-#: tiles, where this budget gives 960 and 910 MB).
+#: tiles, where this budget gives 945 and about 910 MB).
 BYTES_PER_SURFACE_VERTEX = 500
 
 #: Bytes of one chunk's marching cubes: its dense copy and scikit-image's work arrays on it.
