@@ -285,3 +285,17 @@ def test_a_frame_whose_registration_moved_it_away_keeps_the_previous_pose_and_sa
     out = list(watch(room_scene(rng), frames[:2], align="density", lattice=sdp.Lattice(voxel_size=0.03)))
     assert all(f.pose_kept and np.array_equal(f.transform, np.eye(4)) for f in out)
     assert "the previous frame's pose was kept" in frame_text(out[0]) and out[0].summary()["pose_kept"]
+
+
+def test_watch_refusal_names_only_what_watch_accepts(tmp_path, capsys):
+    # the advice named --memory-limit (which sdp watch rejects) and a grid size it has not
+    from sdp.cli import main
+
+    pts = np.random.default_rng(0).uniform(0, 10, (1000, 3))
+    np.save(tmp_path / "ref.npy", pts)
+    (tmp_path / "frames").mkdir()
+    np.save(tmp_path / "frames" / "f0.npy", pts)
+    assert main(["watch", str(tmp_path / "ref.npy"), str(tmp_path / "frames"), "--voxel-size", "1e-4", "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "$SDP_MEMORY_LIMIT" in err and "--voxel-size" in err
+    assert "--memory-limit" not in err and "grid size" not in err

@@ -105,3 +105,18 @@ def test_command_series_tiled_on_a_local_cluster(slope, tmp_path, capsys):
     s = json.loads(capsys.readouterr().out)
     assert s["runs"][-1]["tiled"]["tiles"] >= 4
     _same(sdp.open_series(tmp_path / "m.zarr"), sdp.open_series(tmp_path / "t.zarr"))
+
+
+def test_the_in_memory_plan_counts_the_process(tmp_path):
+    # 2 x 1 M points at 250MB ran in memory and peaked at 325 MB: the plan left the process out
+    from sdp.scale._budget import PROCESS_BYTES
+    from sdp.scale._series import POINT_BYTES, plan_series
+
+    files = [np.save(tmp_path / f"e{k}.npy", np.zeros((100_000, 3))) or tmp_path / f"e{k}.npy" for k in range(2)]
+    data = POINT_BYTES * 100_000
+    fits = sdp.Execution(memory_limit=int(PROCESS_BYTES + data) + 1)
+    assert plan_series(files, reference=0, core_count=0, execution=fits) is None
+    said = []
+    short = sdp.Execution(memory_limit=int(PROCESS_BYTES + data) - 1, notify=said.append)
+    assert plan_series(files, reference=0, core_count=0, execution=short) is not None
+    assert len(said) == 1 and "in tiles on Dask" in said[0]

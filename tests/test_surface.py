@@ -54,3 +54,42 @@ def test_faces_are_wound_with_their_normals_out_of_the_volume(rng):
     centre = (a + b + c) / 3
     assert np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6 > 0  # the shell's volume, outer minus inner
     assert (f.field(centre + 0.01 * n) > 0).mean() > 0.99
+
+
+def _sphere_field(voxel=0.05):
+    p = np.random.default_rng(1).normal(size=(20_000, 3))
+    return DensityField.from_points(p / np.linalg.norm(p, axis=1)[:, None], voxel_size=voxel)
+
+
+def test_surface_vertices_bound_the_mesh():
+    # the budget of sdp mesh counts the edges the level crosses, before marching cubes
+    from sdp.fields._surface import surface_vertices
+
+    f = _sphere_field()
+    n = len(f.mesh().vertices)
+    assert 0.9 * n <= surface_vertices(f.blocks.values[:f.n_blocks], f.h) <= 1.3 * n  # the per-vertex bytes have a margin
+
+
+def test_mesh_beyond_the_memory_limit_is_refused_before_writing(tmp_path):
+    # sdp mesh and sdp bool to a mesh peaked at 3-4 times --memory-limit, without a word
+    from sdp.cli._files import combine_files, mesh_file
+    from sdp.fields._surface import surface_bytes
+    from sdp.scale._budget import PROCESS_BYTES
+    from sdp.scale._store import FieldStore
+
+    f = _sphere_field()
+    f.save(tmp_path / "f.sdpf")
+    need = PROCESS_BYTES + f.nbytes + surface_bytes(f)
+    smallest = f"{-(-need // 2**20)}MB"
+    with pytest.raises(sdp.GridTooLargeError, match=rf"f.sdpf: its surface would need about .*, above the memory "
+                       rf"limit of 230 MB: give --memory-limit {smallest} or more"):
+        mesh_file(tmp_path / "f.sdpf", output=tmp_path / "m.ply", memory_limit="230MB")
+    with pytest.raises(sdp.GridTooLargeError, match="the surface of the union would need"):
+        combine_files("union", tmp_path / "f.sdpf", tmp_path / "f.sdpf", output=tmp_path / "u.ply",
+                      memory_limit="230MB")
+    FieldStore.from_field(f, tmp_path / "s.zarr", tile_blocks=3)
+    with pytest.raises(sdp.GridTooLargeError, match=r"s.zarr: its surface, tile by tile, would need .* give "
+                       r"--memory-limit \d+MB or more"):
+        mesh_file(tmp_path / "s.zarr", output=tmp_path / "z.ply", memory_limit="230MB")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.sdpf", "s.zarr"]
+    assert len(mesh_file(tmp_path / "f.sdpf", output=tmp_path / "m.ply", memory_limit=smallest).faces)

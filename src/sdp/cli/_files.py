@@ -76,6 +76,16 @@ def _blocks_budget(clouds, format, memory_limit, advice: str):
             from None
 
 
+def _check_surface(fld, level: float, memory_limit, what: str) -> None:
+    """Refuse, before marching cubes, a surface of ``fld`` that the memory limit can't hold with
+    the process and the field (``sdp mesh``, ``sdp bool`` to a mesh)."""
+    from .._core._memory import memory_limit as limit
+    from ..fields._surface import check_surface, surface_bytes
+    from ..scale._budget import PROCESS_BYTES
+
+    check_surface(PROCESS_BYTES + fld.nbytes + surface_bytes(fld, level=level), limit(memory_limit), what)
+
+
 def _left_out(path, name: str, n: int) -> str:
     """Why an NPZ's array ``name`` is not a per-point field (its length is not the points'), or ""."""
     if Path(path).suffix.lower() != ".npz":
@@ -156,10 +166,12 @@ def mesh_file(path, *, output, level: float = 0.0, format: str | None = None, la
         from ..scale._store import FieldStore
 
         _no_lattice(lattice)
-        mesh = FieldStore.open(path).mesh(level=level)
+        mesh = FieldStore.open(path).mesh(level=level, memory_limit=memory_limit)
     else:
         with _blocks_budget([path], format, memory_limit, "use a larger --voxel-size") as blocks:
-            mesh = _field(path, format, lattice, blocks).mesh(level=level)
+            fld = _field(path, format, lattice, blocks)
+        _check_surface(fld, level, memory_limit, f"{path}: its surface")
+        mesh = fld.mesh(level=level)
     write_mesh(output, mesh, inputs=(path,))
     return mesh
 
@@ -204,6 +216,8 @@ def combine_files(operation: str, a, b, *, output, format: str | None = None, la
         return result
     from ..errors import SurfaceError
 
+    del items, like, fa, fb  # the operands: the surface is the result's alone
+    _check_surface(result, 0.0, memory_limit, f"the surface of the {operation}")
     try:
         mesh = result.mesh()
     except SurfaceError:  # no --level here: the volume itself is empty (a difference of a cloud with itself)

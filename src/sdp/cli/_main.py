@@ -22,7 +22,7 @@ from .._core import _progress
 from .._core import _validate as V
 from .._core._json import dumps
 from ..defaults import DEFAULTS
-from ..errors import SDPError
+from ..errors import GridTooLargeError, SDPError
 from ..io._cloud import ReadNotice
 from ..io._output import all_or_none
 from ..options import Coverage, Cylinder, Execution, Lattice, NoiseModel, Outputs, Registration
@@ -268,15 +268,20 @@ def cmd_watch(a):
         if skipped:
             _say(f"{a.frames}: {len(skipped)} file(s) of other formats left out, not frames: "
                  f"{', '.join(p.name for p in skipped[:5])}{' …' if len(skipped) > 5 else ''}")
-    frames = F.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
-                            update=a.update, window=a.window, decay=a.decay, min_region_points=a.min_region_points,
-                            align=a.align, coverage=_coverage(a), topic=a.topic, decision=a.decision,
-                            noise=_noise(a))
-    for r in frames:  # a line per frame, as it comes (the frames are compared as they are iterated)
-        if a.json:  # JSON Lines: a reader takes each frame as it comes
-            _print(dumps(r.summary(), indent=None))
-        else:
-            _line(frame_text(r))
+    try:
+        frames = F.watch_folder(a.reference, a.frames, format=a.format, lattice=Lattice(voxel_size=a.voxel_size),
+                                update=a.update, window=a.window, decay=a.decay,
+                                min_region_points=a.min_region_points, align=a.align, coverage=_coverage(a),
+                                topic=a.topic, decision=a.decision, noise=_noise(a))
+        for r in frames:  # a line per frame, as it comes (the frames are compared as they are iterated)
+            if a.json:  # JSON Lines: a reader takes each frame as it comes
+                _print(dumps(r.summary(), indent=None))
+            else:
+                _line(frame_text(r))
+    except GridTooLargeError as exc:  # its advice named options sdp watch has not
+        raise GridTooLargeError(str(exc).replace("(--memory-limit, $SDP_MEMORY_LIMIT)", "($SDP_MEMORY_LIMIT)")
+                                .replace("a larger voxel size (or a smaller grid size)", "a larger --voxel-size")) \
+            from None
     return 0
 
 

@@ -58,6 +58,7 @@ from ..io._ply import ply_is_binary
 from ..io._read import header_point_count
 from ..io._source import PointSource
 from ..options import Cylinder, Execution
+from ._budget import PROCESS_BYTES
 from ._session import Session, Tiling, first_slices, load_bucket
 
 __all__ = ["TiledSeries", "plan_series", "count_points", "POINT_BYTES", "CORE_BYTES", "PREPARE_CORE_BYTES"]
@@ -113,8 +114,9 @@ def plan_series(epochs: list, *, reference: int | None, core_count: int, executi
     """A :class:`TiledSeries` when the epochs are measured in tiles, else None (in memory).
 
     Tiles are taken with ``execution.tiled``, or when the in-memory run would refuse an epoch or
-    the reference: 200 bytes per point of the largest epoch plus 160 per core point, or of the
-    reference plus 240 per core point, above the memory limit (``core_count``: the core points
+    the reference: the process itself (:data:`~sdp.scale._budget.PROCESS_BYTES`) and 200 bytes per
+    point of the largest epoch plus 160 per core point, or of the reference plus 240 per core
+    point, above the memory limit (``core_count``: the core points
     given, counted without reading them (a file that can't be: none), or the archive's; the
     default core points, a subsample of the reference, are not known before it is read, and count
     as none). Only LAS/LAZ, NPY and binary PLY files (and arrays)
@@ -136,8 +138,8 @@ def plan_series(epochs: list, *, reference: int | None, core_count: int, executi
         return None  # a file the tiles can't slice: the in-memory run reads it (or says why it can't)
     n_max = max(sizes)
     n_ref = sizes[reference] if reference is not None else 0
-    need = max(POINT_BYTES * n_max + CORE_BYTES * core_count,
-               POINT_BYTES * n_ref + PREPARE_CORE_BYTES * core_count)
+    need = PROCESS_BYTES + max(POINT_BYTES * n_max + CORE_BYTES * core_count,  # the limit is the whole job's
+                               POINT_BYTES * n_ref + PREPARE_CORE_BYTES * core_count)
     if need <= limit:
         return None
     if align:

@@ -301,16 +301,35 @@ class FieldStore:
         """F = h − G at world positions: negative inside the cluster volume."""
         return self.h - self.density(points)
 
-    def mesh(self, *, level: float = 0.0):
+    def mesh(self, *, level: float = 0.0, memory_limit: int | str | None = None):
         """The surface F = ``level``, tile by tile (Lewiner marching cubes, as
-        :meth:`DensityField.mesh`); vertices on tile seams are merged."""
-        from ..errors import SurfaceError
-        from ..fields._surface import _CHUNK, Mesh, surface_nodes
+        :meth:`DensityField.mesh`); vertices on tile seams are merged.
 
+        Raises
+        ------
+        GridTooLargeError
+            The process, one tile's field and the surfaces of all tiles (merged and written:
+            :func:`sdp.fields._surface.surface_bytes`) would exceed ``memory_limit``; counted tile
+            by tile, refused before the merge with the limit that would do.
+        """
+        from .._core._memory import memory_limit as limit
+        from .._core._validate import finite
+        from ..errors import SurfaceError
+        from ..fields._surface import (_CHUNK, BYTES_PER_SURFACE_VERTEX, CHUNK_BYTES, Mesh, check_surface,
+                                       merge_seams, surface_nodes, surface_vertices)
+        from ._budget import PROCESS_BYTES
+
+        cap, level = limit(memory_limit), finite("level", level)
         n = self.tile_blocks * BLOCK
         verts, faces, offset = [], [], 0
+        tile_bytes = surface = 0  # the largest tile's field and work; the surfaces so far
         for key in self.tiles:
             f = self.tile_field(key)
+            tile_bytes = max(tile_bytes, f.nbytes + CHUNK_BYTES)
+            own = np.all(np.floor_divide(f.global_keys[:, :2], self.tile_blocks) == key, axis=1)  # not its margin
+            surface += surface_vertices(f.blocks.values[:f.n_blocks][own], f.h - level) * BYTES_PER_SURFACE_VERTEX
+            if PROCESS_BYTES + tile_bytes + surface > cap:
+                continue  # refused below: the other tiles counted for the limit that would do, none meshed
             # marching cubes' chunks on one lattice for every tile (its origin a multiple of _CHUNK
             # blocks): a seam edge then gives both tiles bitwise the same vertex, merged exactly; with
             # the tiles' own origins its copies differed in their last bits and rounded apart (open seams)
@@ -325,20 +344,19 @@ class FieldStore:
             v += f.grid.block_origin * BLOCK  # global node units: an integer added, exact
             cell = np.floor(v[tri].mean(axis=1)[:, :2]).astype(np.int64)
             keep = np.all(np.floor_divide(cell, n) == key, axis=1)  # triangles of this tile's cells
-            verts.append(v)
-            faces.append(tri[keep] + offset)
-            offset += len(v)
+            used, tri = np.unique(tri[keep], return_inverse=True)  # and their vertices alone, not the margin's
+            verts.append(v[used])
+            faces.append(tri.reshape(-1, 3) + offset)
+            offset += len(used)
+        check_surface(PROCESS_BYTES + tile_bytes + surface, cap, f"{self.path}: its surface, tile by tile,")
         if not verts:
             raise SurfaceError(f"no surface crosses level {level:g}")
         v, f = np.concatenate(verts), np.concatenate(faces)
-        # the in-memory merge (sdp.fields._surface), in node units of the global lattice
-        q = np.round(v * 2**16).astype(np.int64)
-        _, first, inverse = np.unique(q, axis=0, return_index=True, return_inverse=True)
-        f = inverse.ravel()[f]
-        used = np.unique(f)
-        remap = np.full(len(first), -1, np.int64)
-        remap[used] = np.arange(len(used))
-        return Mesh(v[first][used] * self.voxel_size, remap[f])
+        verts.clear()
+        faces.clear()
+        first, inverse = merge_seams(v)  # the in-memory merge, in node units of the global lattice
+        # every vertex kept is a kept triangle's (above): all the merged ones are used
+        return Mesh(v[first] * self.voxel_size, inverse[f])
 
     def combine(self, other: "FieldStore", operation: str, path: str | os.PathLike) -> "FieldStore":
         """Out-of-core Boolean operation (``"union"``, ``"intersection"`` or ``"difference"``,
