@@ -499,7 +499,7 @@ class RangeImage:
 
 
 def camera_border(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], origin, *,
-                  tolerance: float = 0.5, sample: int = 2048) -> np.ndarray | None:
+                  tolerance: float = 0.5, sample: int = 512) -> np.ndarray | None:
     """Directions of the rays along the border of an organized camera image, returned or not.
 
     A depth camera's point of pixel (column c, row r) lies on the ray ``H⁻¹ (c, r, 1)`` from its
