@@ -681,6 +681,10 @@ _COLUMN_BYTES = 96
 #: state (200 B), and the objects' stage: a chunk row (16 epochs) of three smoothed arrays (192 B),
 #: the labels, stacked and written (400 B). Measured: 200,000 core points, 20 epochs.
 END_CORE_BYTES = 1500
+#: What the end of a run holds beside the process (:data:`~sdp.scale._budget.PROCESS_BYTES`) whatever
+#: the core points: Zarr's event loop, its codecs' threads and buffers (measured: 48,000 and 200,000
+#: core points peaked 273 MiB + 1,235 B per core point).
+_END_BYTES = 64 * 2**20
 _MIN_BLOCK = 256  # core points per block of the smoother at least (its kernel takes 64 per task)
 
 
@@ -688,14 +692,15 @@ def _smoother_budget(limit: float, m: int) -> float:
     """Bytes of each of the smoother's two shares (the block's working memory, the column's inputs
     and results): half of what the memory limit leaves beside the process and the end of the run's
     arrays per core point."""
-    return (limit - PROCESS_BYTES - END_CORE_BYTES * m) / 2.0
+    return (limit - PROCESS_BYTES - _END_BYTES - END_CORE_BYTES * m) / 2.0
 
 
 def _check_smoother(m: int, rows: int, limit: float) -> None:
     """Refuse, before any work, a run whose end (the smoother over ``rows`` rows of ``m`` core points,
     the objects and the archive) would not fit the memory limit even in blocks of
     :data:`_MIN_BLOCK` core points: the message names the smallest limit that does."""
-    need = PROCESS_BYTES + END_CORE_BYTES * m + 2.0 * _MIN_BLOCK * rows * max(BYTES_PER_VALUE, _COLUMN_BYTES)
+    need = (PROCESS_BYTES + _END_BYTES + END_CORE_BYTES * m
+            + 2.0 * _MIN_BLOCK * rows * max(BYTES_PER_VALUE, _COLUMN_BYTES))
     check_memory(need, f"smoothing {m:,} core points over {rows:,} epochs", limit,
                  advice="measure at fewer core points (--core-points)")
 
