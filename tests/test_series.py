@@ -753,6 +753,7 @@ def test_blocks_beyond_memory_give_the_in_memory_numbers(slope, tmp_path, monkey
     whole = sdp.series(slope.epochs, output=tmp_path / "w.zarr", cylinder=CYL, registration_error=0.002)
     assert whole.sizes["point"] > 256
     monkeypatch.setattr(_compute, "BYTES_PER_VALUE", 10**12)  # smoother blocks of 256 core points, objects streamed
+    monkeypatch.setattr(_compute, "_check_smoother", lambda *a: None)  # which would refuse blocks so costly
     blocks = sdp.series(slope.epochs, output=tmp_path / "b.zarr", cylinder=CYL, registration_error=0.002)
     assert blocks.attrs["parameters"]["smoother"]["block_points"] == 256
     a, b = _arrays(whole), _arrays(blocks)
@@ -763,9 +764,10 @@ def test_blocks_beyond_memory_give_the_in_memory_numbers(slope, tmp_path, monkey
     # rows' chunks of 96 points straddle the columns
     monkeypatch.setattr(_archive, "POINT_CHUNK", 64)
     monkeypatch.setattr(_archive, "ROW_CHUNK", 96)
-    monkeypatch.setattr(_compute, "_COLUMN_BYTES", int(64e6 // (len(slope.epochs) * 150)))
+    budget = _compute._smoother_budget(256 * 2**20, whole.sizes["point"])
+    monkeypatch.setattr(_compute, "_COLUMN_BYTES", int(budget // (len(slope.epochs) * 150)))
     cols = _arrays(sdp.series(slope.epochs, output=tmp_path / "c.zarr", cylinder=CYL, registration_error=0.002,
-                              execution=sdp.Execution(memory_limit="256MB")))  # a budget of 64 MB: 128 points
+                              execution=sdp.Execution(memory_limit="256MB")))  # columns of 150 points: 128
     differ = [name for name in a if not np.array_equal(a[name], cols[name], equal_nan=True)]
     assert differ in ([], ["object_mean_velocity"]), differ
     # an append in columns, going on from the saved state (lag 2): the same numbers again
@@ -781,6 +783,29 @@ def test_blocks_beyond_memory_give_the_in_memory_numbers(slope, tmp_path, monkey
     b = _arrays(grown)
     differ = [name for name in whole if not np.array_equal(whole[name], b[name], equal_nan=True)]
     assert differ == [], differ
+
+
+def test_smoothing_beyond_the_memory_limit_is_refused_before_any_work(tmp_path):
+    # 20 epochs at 200,000 core points ran to 474 MB under --memory-limit 300MB, an append to 610 MB:
+    # the end of the run (smoother, objects, archive) takes about 1.5 kB per core point beside the
+    # smoother's blocks, which the plan did not count
+    from sdp.timeseries import _compute
+
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "core.npy", np.c_[rng.uniform(0, 10, (200_000, 2)), np.zeros(200_000)])
+    epochs = [np.c_[rng.uniform(0, 10, (2000, 2)), rng.normal(0, 0.002, 2000)] for _ in range(3)]
+    for k, e in enumerate(epochs):
+        np.save(tmp_path / f"e{k}.npy", e)
+    out = tmp_path / "s.zarr"
+    with pytest.raises(sdp.GridTooLargeError, match=r"smoothing 200,000 core points over 3 epochs would need "
+                                                    r"5\d\d MB, above the memory limit of 300 MB"):
+        sdp.series(epochs, output=out, core_points=tmp_path / "core.npy", execution=sdp.Execution(memory_limit="300MB"))
+    assert not out.exists()
+    assert _compute.END_CORE_BYTES >= 1000
+    # the command says so in one line, exit 2
+    assert main(["series", *[str(tmp_path / f"e{k}.npy") for k in range(3)],
+                 "-o", str(out), "--core-points", str(tmp_path / "core.npy"), "--memory-limit", "300MB", "-q"]) == 2
+    assert not out.exists()
 
 
 def test_without_the_series_extra_one_line_names_it(slope, tmp_path, monkeypatch):

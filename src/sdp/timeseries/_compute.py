@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._core._memory import check_memory
 from .._core._memory import memory_limit as resolve_memory_limit
 from .._core._points import as_points
 from .._core._validate import auto_or_nonnegative, auto_or_positive, integer_at_least
@@ -54,7 +55,7 @@ from ..io._output import check_outputs
 from ..io._read import read_points
 from ..io._time import file_time
 from ..options import Cylinder, Execution, Registration, as_options
-from ..scale._budget import check_process_fits
+from ..scale._budget import PROCESS_BYTES, check_process_fits
 from ..scale._series import CORE_BYTES, POINT_BYTES, count_points, plan_series
 from . import _archive as A
 from ._kalman import BYTES_PER_VALUE, FilterState, kalman, observation_variance, process_noise
@@ -381,6 +382,10 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                     raise InvalidOptionError(f"the core points given differ from the archive's ({out})")
             if check is not None:
                 check(len(old_times) + len(epochs), g["x"].shape[0])
+            E = len(old_times) + len(epochs)  # rows smoothed: from the saved state (lag + 1 more), else all
+            go_on = params.get("smoother", {}).get("estimated_from_epochs") == _noise_epochs(E)
+            _check_smoother(g["x"].shape[0], min(E, len(epochs) + int(params["used"]["lag"]) + 1) if go_on else E,
+                            limit)
             reg_opt = params["given"]["registration_error"]
             registration = Registration.of(params["given"]["align"])
             if registration is not None and params["given"].get("fix_horizontal"):
@@ -408,6 +413,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     reg_opt = DEFAULTS.registration_error if registration_error is None else registration_error
 
     core_count = 0 if core_points is None else count_points(core_points, format) or 0  # not read twice
+    _check_smoother(core_count, len(epochs), limit)  # the given core points: before the reference is read
     tiles = plan_series(epochs, reference=reference, core_count=core_count, execution=execution, format=format,
                         align=registration is not None)
     if tiles is None:
@@ -447,9 +453,11 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             ref_xyz, core, cylinder=Cylinder(projection_scale=d_opt, normal_scale=cylinder.normal_scale,
                                              max_distance=cylinder.max_distance),
             orientation=orientation, memory_limit=limit, sensor=sensor)
-    if check is not None:
+    if check is not None or core_count == 0:
         try:
-            check(len(epochs), len(prepared.core_points))
+            _check_smoother(len(prepared.core_points), len(epochs), limit)
+            if check is not None:
+                check(len(epochs), len(prepared.core_points))
         except BaseException:
             if tiles is not None:
                 tiles.close()
@@ -661,8 +669,40 @@ def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registrati
         w.finish(attrs)
 
 
-#: A column's float32 inputs (distance, lod) and results (four arrays) per epoch and core point.
-_COLUMN_BYTES = 24
+#: A column's float32 inputs (distance, lod: 8 B) and results (four arrays: 16 B) per epoch and
+#: core point, and Zarr's copies while it writes them all at once (the chunks merged, read back
+#: where a row is partly rewritten, and encoded: 4.6 times the results, measured on an append of
+#: 200,000 core points).
+_COLUMN_BYTES = 96
+#: What the end of a run holds per core point whatever the number of epochs, beside the smoother's
+#: blocks and columns: the reference side (the prepared reference and its sorted copy, or an
+#: append's arrays read from the archive, 160–250 B), the filter's state, its saved copy and the
+#: epochs' inputs since it (180 B + 8 B per epoch of the lag), the tracker's neighbour pairs and
+#: state (200 B), and the objects' stage: a chunk row (16 epochs) of three smoothed arrays (192 B),
+#: the labels, stacked and written (400 B). Measured: 200,000 core points, 20 epochs.
+END_CORE_BYTES = 1500
+#: What the end of a run holds beside the process (:data:`~sdp.scale._budget.PROCESS_BYTES`) whatever
+#: the core points: Zarr's event loop, its codecs' threads and buffers (measured: 48,000 and 200,000
+#: core points peaked 273 MiB + 1,235 B per core point).
+_END_BYTES = 64 * 2**20
+_MIN_BLOCK = 256  # core points per block of the smoother at least (its kernel takes 64 per task)
+
+
+def _smoother_budget(limit: float, m: int) -> float:
+    """Bytes of each of the smoother's two shares (the block's working memory, the column's inputs
+    and results): half of what the memory limit leaves beside the process and the end of the run's
+    arrays per core point."""
+    return (limit - PROCESS_BYTES - _END_BYTES - END_CORE_BYTES * m) / 2.0
+
+
+def _check_smoother(m: int, rows: int, limit: float) -> None:
+    """Refuse, before any work, a run whose end (the smoother over ``rows`` rows of ``m`` core points,
+    the objects and the archive) would not fit the memory limit even in blocks of
+    :data:`_MIN_BLOCK` core points: the message names the smallest limit that does."""
+    need = (PROCESS_BYTES + _END_BYTES + END_CORE_BYTES * m
+            + 2.0 * _MIN_BLOCK * rows * max(BYTES_PER_VALUE, _COLUMN_BYTES))
+    check_memory(need, f"smoothing {m:,} core points over {rows:,} epochs", limit,
+                 advice="measure at fewer core points (--core-points)")
 
 
 def _noise_epochs(E: int) -> int:
@@ -706,8 +746,8 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, reg: np.ndarray, ref_var: 
             return new
         return np.concatenate([recent[0][:, a:b], new[0]]), np.concatenate([recent[1][:, a:b], new[1]])
 
-    budget = max(limit / 4.0, 64e6)
-    block = int(max(256, min(m, budget // (R * BYTES_PER_VALUE))))
+    budget = _smoother_budget(limit, m)  # a block of _MIN_BLOCK fits: checked before the run (_check_smoother)
+    block = int(max(_MIN_BLOCK, min(m, budget // (R * BYTES_PER_VALUE))))
     whole = None
     col = m
     if block >= m:  # the rows fit: read them once
@@ -715,7 +755,7 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, reg: np.ndarray, ref_var: 
     else:
         # columns of whole chunks of the results, written once (a block narrower than a chunk would read and
         # rewrite each chunk once per block; the inputs' wider row chunks are only read again), its inputs and
-        # results in float32 (_COLUMN_BYTES) in another quarter of the limit; else blocks of whole chunks, or
+        # results in float32 and their writing (_COLUMN_BYTES) in the other share; else blocks of whole chunks, or
         # narrower ones read again per block
         col = int(budget // (R * _COLUMN_BYTES)) // A.POINT_CHUNK * A.POINT_CHUNK
         if col < A.POINT_CHUNK:
