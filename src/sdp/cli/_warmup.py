@@ -160,6 +160,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     import numpy as np
 
     from ..change._detect import detect_changes
+    from ..change._range_image import RangeImage
     from ..data._scene import office_scene
     from ..distance._distances import distances
     from ..io._output import all_or_none, write_points
@@ -196,6 +197,8 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
                             coverage=Coverage(sensor_origin=s.camera))
             C.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "c.laz", outputs=Outputs(both=True))
             detect_changes(s.reference, s.current, decision="cluster", coverage=Coverage(sensor_origin=None))
+            # an organized frame's view reaches its image's border (sdp.change._range_image.camera_border)
+            RangeImage.from_points(s.reference, s.camera, border=s.reference[::97] - np.asarray(s.camera))
             if importlib.util.find_spec("dask") and importlib.util.find_spec("zarr"):
                 C.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "t.laz",
                                 execution=Execution(tiled=True, scheduler="synchronous", workdir=d))
