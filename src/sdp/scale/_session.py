@@ -105,21 +105,27 @@ def load_bucket(root: str, epoch: str, key) -> np.ndarray:
 
 
 def _check_tile_points(tiling: Tiling, sources: dict, plan: JobBudget, *, given: bool,
-                       point_bytes: float = 2 * BYTES_PER_TILE_POINT) -> None:
+                       point_bytes: float = 2 * BYTES_PER_TILE_POINT, in_memory: float | None = None) -> None:
     """Refuse, before any task runs, tiles whose points (with their halo, at the clouds' mean
     density) would need more than a task's share of the memory limit (``point_bytes`` per point
-    of the denser cloud: a compare task holds two epochs)."""
+    of the denser cloud: a compare task holds two epochs). ``in_memory``: the limit the work
+    would run in memory under, when it switched to tiles by itself; named when it is the smaller."""
     need = _tile_points(tiling, sources) * point_bytes
     if need <= plan.task:
         return
     points = f"about {_tile_points(tiling, sources):,} points per epoch with their halo"
+    smallest = plan.smallest(need)
+    # a run that came to tiles for want of memory runs in memory under a limit below the tiles' own
+    alone = (f"; in memory it would need {format_bytes(in_memory)}"
+             if in_memory is not None and in_memory < smallest else "")
+    smallest = min(smallest, in_memory) if alone else smallest
     if given and plan.task > 0:
         raise GridTooLargeError(f"tiles of {tiling.edge:.4g} ({points}) would need {format_bytes(need)}, above "
-                                f"{plan.task_budget} of {format_bytes(plan.task)}: give a smaller --tile-size, or "
-                                f"--memory-limit {megabytes(plan.smallest(need))} or more")
+                                f"{plan.task_budget} of {format_bytes(plan.task)}{alone}: give a smaller "
+                                f"--tile-size, or --memory-limit {megabytes(smallest)} or more")
     raise GridTooLargeError(f"the memory limit of {format_bytes(plan.limit)} can't hold this job: {plan.parts()}, and "
                             f"{'these' if given else 'the smallest'} tiles (edge {tiling.edge:.4g}, {points}) need "
-                            f"{format_bytes(need)}; give --memory-limit {megabytes(plan.smallest(need))} or more")
+                            f"{format_bytes(need)}{alone}; give --memory-limit {megabytes(smallest)} or more")
 
 
 def _tile_points(tiling: Tiling, sources: dict) -> int:
@@ -141,11 +147,13 @@ class Session:
     ``point_bytes``: what a task holds per point of the denser cloud in its tile and halo (two
     epochs' fields by default), which sizes the tiles from a task's share of the memory limit.
     ``halo_sigmas``: the halo at least this many σ (the combined decision's distances read the
-    other epoch farther than the kernel reaches)."""
+    other epoch farther than the kernel reaches). ``switched`` (:attr:`sdp.Execution.switched`):
+    why the run came to tiles by itself, told to ``notify`` once the tiles pass their checks, and
+    the limit it would run in memory under, which a refusal names when it is the smaller."""
 
     def __init__(self, clouds: dict, voxel_size, *, sigma_voxels, k, h, truncate, method, tile_size, tile_points,
                  memory_limit, scheduler, workers, workdir, halo: float | None = None, halo_sigmas: float = 0.0,
-                 point_bytes: float = 2 * BYTES_PER_TILE_POINT):
+                 point_bytes: float = 2 * BYTES_PER_TILE_POINT, notify=None, switched=None):
         check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                            memory_limit=memory_limit)
         check_tile_options(tile_size=tile_size, tile_points=tile_points, workers=workers, workdir=workdir,
@@ -178,11 +186,14 @@ class Session:
             self.lo, self.hi = lo, hi
             self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo,
                                   halo_sigmas)
-            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None, point_bytes=point_bytes)
+            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None, point_bytes=point_bytes,
+                               in_memory=switched[1] if switched else None)
             self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                              method=method, memory_limit=share)
             chunk_rows = int(min(2_000_000, max(10_000, share // (4 * BYTES_PER_ROW_READ))))
             _check_tile_directory(self.tiling, lo, hi, reach, share, budget)
+            if switched and notify is not None:  # the tiles are taken: not said before a refusal of theirs
+                notify(switched[0])
             self._chunk_rows = chunk_rows
             if self.executor is None:
                 self.executor, self.cluster = _connect(scheduler, workers, self.root)
