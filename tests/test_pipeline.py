@@ -174,9 +174,14 @@ def test_the_distances_memory_limit_counts_the_process(tmp_path, rng):
     said = []
     for limit, tiles in ((PROCESS_BYTES - 2**20, True), (PROCESS_BYTES + 2**22, False)):
         ex = sdp.Execution(memory_limit=limit, notify=said.append)
-        assert _distances_in_tiles(tmp_path / "a.laz", tmp_path / "a.laz", tmp_path / "o.laz", format=None,
-                                   execution=ex, core_points=None, align=None, png=None) is tiles
-    assert len(said) == 1 and "with the process" in said[0], said
+        got = _distances_in_tiles(tmp_path / "a.laz", tmp_path / "a.laz", tmp_path / "o.laz", format=None,
+                                  execution=ex, core_points=None, align=None, png=None)
+        assert (got is not None) is tiles
+    # said by the tiles once taken, with what the work needs in memory for a refusal of theirs
+    reason, need = _distances_in_tiles(tmp_path / "a.laz", tmp_path / "a.laz", tmp_path / "o.laz", format=None,
+                                       execution=sdp.Execution(memory_limit=PROCESS_BYTES - 2**20),
+                                       core_points=None, align=None, png=None).switched
+    assert said == [] and "with the process" in reason and need == PROCESS_BYTES + 650 * 1000
 
 
 def test_both_draws_what_disappeared_beside_what_appeared(tmp_path, pair):

@@ -118,5 +118,6 @@ def test_the_in_memory_plan_counts_the_process(tmp_path):
     assert plan_series(files, reference=0, core_count=0, execution=fits) is None
     said = []
     short = sdp.Execution(memory_limit=int(PROCESS_BYTES + data) - 1, notify=said.append)
-    assert plan_series(files, reference=0, core_count=0, execution=short) is not None
-    assert len(said) == 1 and "in tiles on Dask" in said[0]
+    tiles = plan_series(files, reference=0, core_count=0, execution=short)
+    reason, need = tiles.execution.switched  # said by the tiles once taken; their refusal names the need
+    assert said == [] and "in tiles on Dask" in reason and need == PROCESS_BYTES + data

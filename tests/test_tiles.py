@@ -252,6 +252,29 @@ def test_a_memory_limit_the_job_cannot_meet_is_refused_at_once_with_the_smallest
     assert list(work.iterdir()) == []
 
 
+def test_a_job_that_came_to_tiles_is_refused_with_the_smallest_limit_that_runs(tmp_path, rng, monkeypatch):
+    # 10,000 points each at 200MB went to tiles, whose smallest need 1007MB, and were refused with
+    # that (after the notice of tiles), though 250MB ran in memory
+    import math
+
+    from sdp.scale._budget import untiled_point_bytes
+
+    a, b = tmp_path / "a.npy", tmp_path / "b.npy"
+    for path in (a, b):
+        np.save(path, rng.uniform(0, 10, (10_000, 3)) * [1, 1, 0.01])
+    monkeypatch.setattr(sdp.scale._session, "_connect", lambda *_: pytest.fail("a cluster for a refused job"))
+    in_memory = math.ceil(untiled_point_bytes(20_000) / 2**20)
+    said = []
+    with pytest.raises(sdp.GridTooLargeError, match=f"can't hold this job.*in memory it would need .*; give "
+                                                    f"--memory-limit {in_memory}MB or more$"):
+        sdp.compare_files(a, b, output=tmp_path / "c.laz", lattice=sdp.Lattice(voxel_size=0.05),
+                          execution=sdp.Execution(memory_limit="200MB", workers=2, notify=said.append))
+    assert said == []  # the tiles were not taken: no word of them
+    assert not sdp.plan_change(a, b, lattice=sdp.Lattice(voxel_size=0.05),
+                               execution=sdp.Execution(memory_limit=f"{in_memory}MB")).tiled
+    assert not (tmp_path / "c.laz").exists()
+
+
 @pytest.mark.slow
 def test_cli_refuses_tiles_under_a_tiny_memory_limit_before_any_worker(tmp_path, epochs, monkeypatch, capsys):
     import sdp.scale._tiles

@@ -160,10 +160,50 @@ def test_build_counts_the_points_and_the_process_in_the_limit(tmp_path, capsys):
 
 def test_a_tile_refusal_names_the_workers_share_of_the_limit(tmp_path, cloud, monkeypatch):
     monkeypatch.setattr("sdp.scale._session._connect", lambda *a: pytest.fail("reached Dask"))
-    with pytest.raises(sdp.GridTooLargeError, match=r"a task's share of the memory limit of 4 GB \(less 485 MB for the "
-                       r"command, over 2 worker\(s\), less 256 MB for the worker itself\) of 1.51 GB"):
+    with pytest.raises(sdp.GridTooLargeError, match=r"a task's share \(1.51 GB\) of the memory limit of 4 GB \(less "
+                       r"485 MB for the command, over 2 worker\(s\), less 256 MB for the worker itself\): .*give "
+                       r"--memory-limit \d+MB or more$"):
         sdp.detect_changes_tiled(cloud, cloud, lattice=sdp.Lattice(voxel_size=0.05, sigma_voxels=1000),
                                  execution=sdp.Execution(workers=2, memory_limit="4GB", workdir=tmp_path))
+
+
+def test_a_task_refusal_names_its_share_and_the_limit_whose_share_holds_it(tmp_path):
+    # a tile's blocks of 319 MB were refused as "above the memory limit of 270 MB" where 1.5GB was given
+    import pickle
+    import re
+
+    from sdp._core._memory import check_memory
+    from sdp.scale._budget import JobBudget, TaskShare
+
+    job = JobBudget(parse_bytes("1.5GB"), 2)
+    for share in (TaskShare(job), pickle.loads(pickle.dumps(TaskShare(job)))):  # as a Dask worker gets it
+        with pytest.raises(sdp.GridTooLargeError, match=r"above a task's share \(270 MB\) of the memory limit of 1.5 "
+                                                        r"GB \(less .*\): .*give --memory-limit \d+MB or more$") as err:
+            check_memory(319 * 2**20, "a tile's blocks", share)
+        limit = int(re.search(r"--memory-limit (\d+)MB", str(err.value)).group(1)) * 2**20
+        assert JobBudget(limit, 2).task >= 319 * 2**20 > JobBudget(limit - 2**20, 2).task
+    # tiles sized from the share grow with the limit: their edge is given with it
+    with pytest.raises(sdp.GridTooLargeError, match=r"give --tile-size 3.392 \(.*\) with --memory-limit \d+MB"):
+        check_memory(319 * 2**20, "a tile's blocks", TaskShare(job, 3.3925, sized=True))
+    # in a task: a tile's blocks beyond its share (one task at a time, in this process)
+    xyz = np.random.default_rng(1).random((20_000, 3)) * [2, 2, 0.01]
+    with pytest.raises(sdp.GridTooLargeError, match=r"blocks of 8³ nodes .* above a task's share \(\d+ MB\) of the "
+                                                    r"memory limit of 600 MB .*give --memory-limit \d+MB or more$"):
+        sdp.detect_changes_tiled(xyz, xyz, lattice=sdp.Lattice(voxel_size=0.0005), execution=sdp.Execution(
+            memory_limit="600MB", tile_size=1.0, scheduler="synchronous", workdir=tmp_path))
+
+
+def test_a_tile_block_directory_spans_no_more_than_the_points():
+    # a 10 m scene at 1e-4 had one tile's block directory put at 61.3 TB, sized for a tile of 82 m
+    from sdp.fields._lattice import BLOCK
+    from sdp.scale._budget import JobBudget, TaskShare
+    from sdp.scale._session import Tiling, _check_tile_directory
+
+    lo, hi, voxel, reach = np.zeros(3), np.array([10.0, 10.0, 1.0]), 1e-4, 6
+    whole = np.prod([(e / voxel + 2 * reach + 2 * BLOCK) / BLOCK for e in hi - lo]) * 5
+    with pytest.raises(sdp.GridTooLargeError, match=f"would need {format_bytes(whole)}, above") as err:
+        _check_tile_directory(Tiling(voxel, 102_840, 9e-4), lo, hi, reach, TaskShare(JobBudget(4 * 2**30, 2)))
+    assert "TB" not in str(err.value)
 
 
 @pytest.mark.parametrize("args", [["build", "g.npy", "-o", "f.sdpf"], ["mesh", "g.npy", "-o", "m.ply"],

@@ -336,7 +336,13 @@ class Execution:
     workdir : path-like, optional
         Folder for the tiles' intermediate files (default: the system's temporary folder).
     notify : callable, optional
-        Called with one line when a run switches to tiles by itself.
+        Called with one line when a run switches to tiles by itself, once the tiles are taken
+        (their sizes checked against the memory limit).
+    switched : (str, float), optional
+        Set by the plans of the commands (:func:`sdp.compare_files`, …), not given: why the run
+        switched to tiles by itself (the line ``notify`` gets) and the memory limit it would run
+        in memory under (bytes). Tiles that can't fit then name the smaller of that and their own
+        minimum as the limit to give.
     """
 
     memory_limit: int | float | str | None = None
@@ -347,6 +353,7 @@ class Execution:
     workers: int | None = None
     workdir: PathLike | None = None
     notify: Callable[[str], object] | None = field(default=None, compare=False)
+    switched: tuple[str, float] | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         from ._core._memory import memory_limit
@@ -372,9 +379,11 @@ class Execution:
             self.notify(f"in memory: {', '.join(unused)} used by tiles only ({tiles})")
 
     def tile_keywords(self) -> dict:
-        """The keywords of the tiled functions (:func:`sdp.detect_changes_tiled`, …)."""
+        """The keywords of a tiled run's session (:class:`sdp.scale._session.Session`), which the
+        tiled functions (:func:`sdp.detect_changes_tiled`, …) start."""
         return dict(tile_size=self.tile_size, tile_points=self.tile_points, memory_limit=self.memory_limit,
-                    scheduler=self.scheduler, workers=self.workers, workdir=self.workdir)
+                    scheduler=self.scheduler, workers=self.workers, workdir=self.workdir, notify=self.notify,
+                    switched=self.switched)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -93,10 +93,14 @@ def check_memory(nbytes: float, what: str, limit: int | float | str | None, *,
     The message gives both sizes in human units and says what to change: ``advice``, or
     raising the memory limit (``--memory-limit`` on the command line, ``memory_limit=`` in
     Python, ``$SDP_MEMORY_LIMIT`` for both). ``budget`` names what ``limit`` is (a worker's
-    share of the memory limit, for the tiles).
+    share of the memory limit, for the tiles). A tiled task's share
+    (:class:`sdp.scale._budget.TaskShare`) says itself what it is and which limit would hold ``nbytes``.
     """
     cap = memory_limit(limit)
     if not nbytes <= cap:
+        if hasattr(limit, "beyond"):  # a task's share, not the limit the user gave
+            budget, more = limit.beyond(nbytes)
+            raise GridTooLargeError(f"{what} would need {format_bytes(nbytes)}, above {budget}: {advice}, or {more}")
         raise GridTooLargeError(
             f"{what} would need {format_bytes(nbytes)}, above {budget} of {format_bytes(cap)}: "
             f"{advice}, or raise the memory limit (--memory-limit, $SDP_MEMORY_LIMIT)")

@@ -52,6 +52,10 @@ class ChangePlan:
     sources : list or None
         What the tiled run reads: (reference, current) as :class:`~sdp.io.PointSource`, the
         reference possibly a :class:`~sdp.FieldStore`.
+    in_memory : float or None
+        With ``reason``: the memory limit (bytes) under which the comparison would run in memory
+        (the dense grids or the points with the process), named by a refusal of the tiles when
+        it is below their own minimum.
     """
 
     tiled: bool
@@ -59,6 +63,7 @@ class ChangePlan:
     voxel_size: float | None = None
     sigma_voxels: float | None = None
     sources: list | None = None
+    in_memory: float | None = None
 
 
 @dataclass
@@ -199,7 +204,8 @@ def plan_change(reference, current, *, output=None, format: str | None = None, o
     if reason and outputs.pictures:  # the pictures need every point in memory
         raise SDPError(f"--png/--html/--report are made in memory, but dense grids of {format_bytes(grids)} "
                        f"exceed the memory limit of {format_bytes(cap)}: give a larger --memory-limit or no pictures")
-    return ChangePlan(tiled=True, reason=reason, voxel_size=float(voxel), sigma_voxels=sigma_voxels, sources=sources)
+    return ChangePlan(tiled=True, reason=reason, voxel_size=float(voxel), sigma_voxels=sigma_voxels, sources=sources,
+                      in_memory=max(grids, points) if reason else None)
 
 
 def compare_files(reference, current, *, output, outputs: Outputs | None = None, format: str | None = None,
@@ -307,8 +313,8 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
                               decision=decision, pictures=outputs.pictures)
     plan = plan_change(reference, current, output=out, format=format, outputs=outputs, lattice=lattice,
                        coverage=coverage, align=align, decision=decision, execution=execution)
-    if plan.reason and execution.notify is not None:
-        execution.notify(plan.reason)
+    if plan.reason:  # said by the tiles once taken; a refusal of theirs names the limit that runs in memory
+        execution = replace(execution, switched=(plan.reason, plan.in_memory))
     with all_or_none():
         if plan.tiled:
             return _compare_tiled(plan, reference, current, out, both=outputs.both,

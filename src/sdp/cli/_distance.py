@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -123,10 +123,11 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
         orientation = V.direction("--orientation", orientation)
     V.check_orientation(orientation, sensor_given=not (isinstance(sensor, str) and sensor in ("auto", "none")),
                         names=("--orientation", "--sensor-origin"))
-    if _distances_in_tiles(reference, current, output, format=format, execution=execution, core_points=core_points,
-                           align=align, png=png, report=report, sensor=sensor):
+    tiles = _distances_in_tiles(reference, current, output, format=format, execution=execution,
+                                core_points=core_points, align=align, png=png, report=report, sensor=sensor)
+    if tiles is not None:
         return _distance_tiled(reference, current, out, format=format, registration_error=registration_error,
-                               orientation=orientation, cylinder=cylinder, execution=execution,
+                               orientation=orientation, cylinder=cylinder, execution=tiles,
                                field_names=outputs.field_names)
     execution.say_in_memory()
     with all_or_none():
@@ -181,10 +182,12 @@ def distance_files(reference, current, *, output, core_points=None, outputs: Out
 
 
 def _distances_in_tiles(reference, current, output, *, format, execution: Execution, core_points, align, png,
-                        report=None, sensor=None) -> bool:
-    """Whether :func:`distance_files` measures in tiles: asked, or the in-memory work (the
-    process itself, about 450 bytes per reference point and 200 per current point) would exceed
-    the memory limit, which is the whole job's as in every command."""
+                        report=None, sensor=None) -> Execution | None:
+    """How :func:`distance_files` measures in tiles (``execution``, with why and what the work
+    would need in memory when not asked: :attr:`sdp.Execution.switched`), or None: in memory.
+    Tiles are taken when asked, or when the in-memory work (the process itself, about 450 bytes
+    per reference point and 200 per current point) would exceed the memory limit, which is the
+    whole job's as in every command."""
     from .._core._memory import memory_limit as limit
     from ..errors import GridTooLargeError
     from ..io._cloud import input_format
@@ -192,7 +195,7 @@ def _distances_in_tiles(reference, current, output, *, format, execution: Execut
     from ..io._source import PointSource
     from ..scale._budget import PROCESS_BYTES
 
-    tiled, notify = execution.tiled, execution.notify
+    tiled = execution.tiled
     for f in (reference, current):  # a missing or unknown file says so, not that tiles can't read it
         input_format(Path(f), format)
     cap = limit(execution.memory_limit)
@@ -209,10 +212,10 @@ def _distances_in_tiles(reference, current, output, *, format, execution: Execut
                                     f"{format_bytes(need)}, above the memory limit of {format_bytes(cap)}: give "
                                     f"--memory-limit {math.ceil(need / 2**20)}MB or more (LAS/LAZ, NPY or binary "
                                     "PLY files are measured in tiles instead)")
-        return False
+        return None
     need = PROCESS_BYTES + 450.0 * n_ref + 200.0 * n_cur
     if not (tiled or need > cap):
-        return False
+        return None
     given_sensor = not (sensor is None or (isinstance(sensor, str) and sensor in ("auto", "none")))
     for option, given in (("--core-points", core_points), ("--align", align), ("--png", png), ("--report", report),
                           ("--sensor-origin", given_sensor)):  # tiles follow no sensor: its normals would be lost
@@ -222,10 +225,12 @@ def _distances_in_tiles(reference, current, output, *, format, execution: Execut
             raise SDPError(f"{option} is not available {why}")
     if Path(output).suffix.lower() not in (".las", ".laz"):
         raise SDPError(f"{output}: distances in tiles stream to LAS/LAZ: give -o OUT.laz")
-    if not tiled and notify is not None:
-        notify(f"measuring in tiles on Dask: the in-memory work would need {format_bytes(need)} with the process, "
-               f"above the memory limit of {format_bytes(cap)}")
-    return True
+    if tiled:
+        return execution
+    # said by the tiles once taken; a refusal of theirs names the limit that runs in memory
+    return replace(execution, switched=(f"measuring in tiles on Dask: the in-memory work would need "
+                                        f"{format_bytes(need)} with the process, above the memory limit of "
+                                        f"{format_bytes(cap)}", need))
 
 
 def _distance_tiled(reference, current, out: Path, *, format, registration_error, orientation, cylinder: Cylinder,

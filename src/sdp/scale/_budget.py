@@ -20,7 +20,7 @@ from ..fields._lattice import kernel_reach
 
 __all__ = ["BYTES_PER_ROW_READ", "BYTES_PER_TILE_POINT", "dense_grid_bytes", "BYTES_PER_POINT_IN_MEMORY",
            "PROCESS_BYTES", "untiled_point_bytes", "CLIENT_BYTES", "WORKER_BYTES", "WRITE_BYTES", "megabytes",
-           "JobBudget"]
+           "JobBudget", "TaskShare"]
 
 
 BYTES_PER_ROW_READ = 600  # a decoded row in a bucketing task: record, x y z, tile keys, sort, bucket record
@@ -113,10 +113,10 @@ class JobBudget:
 
     @property
     def task_budget(self) -> str:
-        """What :attr:`task` is, for messages."""
+        """What :attr:`task` is, and its size, for messages."""
         itself = f", less {format_bytes(WORKER_BYTES)} for the worker itself" if self.separate else ""
-        return (f"a task's share of the memory limit of {format_bytes(self.limit)} (less {format_bytes(self.client)} "
-                f"for the command, over {self.workers} worker(s){itself})")
+        return (f"a task's share ({format_bytes(self.task)}) of the memory limit of {format_bytes(self.limit)} (less "
+                f"{format_bytes(self.client)} for the command, over {self.workers} worker(s){itself})")
 
     def parts(self) -> str:
         """Who takes what, for messages."""
@@ -128,3 +128,30 @@ class JobBudget:
         """The smallest limit under which a task may hold ``task_bytes``."""
         return int(self.client + self.workers * (task_bytes + (WORKER_BYTES if self.separate else 0)))
 
+
+class TaskShare(int):
+    """A task's share of a tiled job's memory limit (bytes, :attr:`JobBudget.task`), given to the
+    tasks as their memory limit: a refusal (:func:`sdp._core._memory.check_memory`) names it as a
+    share of the job's limit, not as the limit, and gives the limit whose share would hold the work.
+
+    ``edge``: the tiles' edge, with ``sized`` when it follows from the share (no ``--tile-size``):
+    such tiles grow with the limit, and so does what a task holds, so a larger limit alone does
+    not help; with their edge given, it does."""
+
+    def __new__(cls, job: JobBudget, edge: float | None = None, sized: bool = False):
+        share = super().__new__(cls, job.task)
+        share.job, share.edge, share.sized = job, edge, sized
+        return share
+
+    def __reduce__(self):  # to the Dask workers with what it is
+        return (TaskShare, (self.job, self.edge, self.sized))
+
+    def beyond(self, nbytes: float) -> tuple[str, str]:
+        """(what the share is, the limit that holds ``nbytes``), for a refusal of ``nbytes``."""
+        limit = megabytes(self.job.smallest(nbytes))
+        if self.sized and self.edge is not None:
+            step = 10.0 ** (math.floor(math.log10(self.edge)) - 3)
+            edge = math.floor(self.edge / step) * step  # 4 digits, rounded down: not a block wider than these tiles
+            return self.job.task_budget, (f"give --tile-size {edge:.4g} (these tiles' edge: tiles sized from the "
+                                          f"limit grow with it) with --memory-limit {limit} or more")
+        return self.job.task_budget, f"give --memory-limit {limit} or more"

@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -148,9 +149,8 @@ def plan_series(epochs: list, *, reference: int | None, core_count: int, executi
                                  "give a larger --memory-limit, or align the epochs first")
     reason = (f"measuring the series in tiles on Dask: epochs of up to {n_max:,} points need {format_bytes(need)} in "
               f"memory, above the memory limit of {format_bytes(limit)}")
-    if execution.notify is not None:
-        execution.notify(reason)
-    return TiledSeries(execution, format=format, reason=reason)
+    # said by the tiles once taken; a refusal of theirs names the limit that runs in memory
+    return TiledSeries(replace(execution, switched=(reason, need)), format=format, reason=reason)
 
 
 class TiledSeries:

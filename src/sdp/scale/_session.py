@@ -30,7 +30,7 @@ from ..errors import GridTooLargeError, InvalidPointsError, SDPError, WorkerLost
 from ..fields._lattice import BLOCK, check_kernel, check_lattice
 from ..io._source import PointSource
 from . import _kernels as K
-from ._budget import BYTES_PER_ROW_READ, BYTES_PER_TILE_POINT, JobBudget, megabytes
+from ._budget import BYTES_PER_ROW_READ, BYTES_PER_TILE_POINT, JobBudget, TaskShare, megabytes
 
 __all__ = ["Tiling", "load_bucket", "Session", "sampled_lattice", "first_slices", "CONNECT_TIMEOUT", "TASK_RETRIES"]
 
@@ -105,21 +105,27 @@ def load_bucket(root: str, epoch: str, key) -> np.ndarray:
 
 
 def _check_tile_points(tiling: Tiling, sources: dict, plan: JobBudget, *, given: bool,
-                       point_bytes: float = 2 * BYTES_PER_TILE_POINT) -> None:
+                       point_bytes: float = 2 * BYTES_PER_TILE_POINT, in_memory: float | None = None) -> None:
     """Refuse, before any task runs, tiles whose points (with their halo, at the clouds' mean
     density) would need more than a task's share of the memory limit (``point_bytes`` per point
-    of the denser cloud: a compare task holds two epochs)."""
+    of the denser cloud: a compare task holds two epochs). ``in_memory``: the limit the work
+    would run in memory under, when it switched to tiles by itself; named when it is the smaller."""
     need = _tile_points(tiling, sources) * point_bytes
     if need <= plan.task:
         return
     points = f"about {_tile_points(tiling, sources):,} points per epoch with their halo"
+    smallest = plan.smallest(need)
+    # a run that came to tiles for want of memory runs in memory under a limit below the tiles' own
+    alone = (f"; in memory it would need {format_bytes(in_memory)}"
+             if in_memory is not None and in_memory < smallest else "")
+    smallest = min(smallest, in_memory) if alone else smallest
     if given and plan.task > 0:
         raise GridTooLargeError(f"tiles of {tiling.edge:.4g} ({points}) would need {format_bytes(need)}, above "
-                                f"{plan.task_budget} of {format_bytes(plan.task)}: give a smaller --tile-size, or "
-                                f"--memory-limit {megabytes(plan.smallest(need))} or more")
+                                f"{plan.task_budget}{alone}: give a smaller "
+                                f"--tile-size, or --memory-limit {megabytes(smallest)} or more")
     raise GridTooLargeError(f"the memory limit of {format_bytes(plan.limit)} can't hold this job: {plan.parts()}, and "
                             f"{'these' if given else 'the smallest'} tiles (edge {tiling.edge:.4g}, {points}) need "
-                            f"{format_bytes(need)}; give --memory-limit {megabytes(plan.smallest(need))} or more")
+                            f"{format_bytes(need)}{alone}; give --memory-limit {megabytes(smallest)} or more")
 
 
 def _tile_points(tiling: Tiling, sources: dict) -> int:
@@ -141,11 +147,13 @@ class Session:
     ``point_bytes``: what a task holds per point of the denser cloud in its tile and halo (two
     epochs' fields by default), which sizes the tiles from a task's share of the memory limit.
     ``halo_sigmas``: the halo at least this many σ (the combined decision's distances read the
-    other epoch farther than the kernel reaches)."""
+    other epoch farther than the kernel reaches). ``switched`` (:attr:`sdp.Execution.switched`):
+    why the run came to tiles by itself, told to ``notify`` once the tiles pass their checks, and
+    the limit it would run in memory under, which a refusal names when it is the smaller."""
 
     def __init__(self, clouds: dict, voxel_size, *, sigma_voxels, k, h, truncate, method, tile_size, tile_points,
                  memory_limit, scheduler, workers, workdir, halo: float | None = None, halo_sigmas: float = 0.0,
-                 point_bytes: float = 2 * BYTES_PER_TILE_POINT):
+                 point_bytes: float = 2 * BYTES_PER_TILE_POINT, notify=None, switched=None):
         check_grid_options(voxel_size=voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                            memory_limit=memory_limit)
         check_tile_options(tile_size=tile_size, tile_points=tile_points, workers=workers, workdir=workdir,
@@ -166,23 +174,30 @@ class Session:
                 workers = max(1, sum(self.executor.nthreads().values()))
             plan = JobBudget(_memory_limit(memory_limit), 1 if scheduler == "synchronous" else workers,
                              separate=not in_process)
-            share, budget = plan.task, plan.task_budget
+            share = plan.task
             if tile_points is None:  # what a task's share holds (none: the smallest tiles, refused below)
                 tile_points = int(max(0, share // point_bytes))
             self.sources = {e: _source(c, self.root, e) for e, c in clouds.items()}
             lo = np.min([src.lo for src in self.sources.values()], axis=0)
             hi = np.max([src.hi for src in self.sources.values()], axis=0)
             # with no share left, the reach alone is checked here and the tiles are refused below
-            reach = check_kernel(sigma_voxels, truncate, share if share > 0 else 2**62, budget=budget)
+            reach = check_kernel(sigma_voxels, truncate, TaskShare(plan) if share > 0 else 2**62)
             check_lattice(lo, hi, self.voxel_size, reach)
             self.lo, self.hi = lo, hi
             self.tiling = _tiling(self.sources, self.voxel_size, tile_size, tile_points, sigma_voxels, truncate, halo,
                                   halo_sigmas)
-            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None, point_bytes=point_bytes)
+            _check_tile_points(self.tiling, self.sources, plan, given=tile_size is not None, point_bytes=point_bytes,
+                               in_memory=switched[1] if switched else None)
+            # the tasks' limit: a refusal in one names it as a share of the job's; tiles sized from it
+            # grow with the limit until one spans the clouds
+            share = TaskShare(plan, self.tiling.edge, sized=tile_size is None and (
+                self.tiling.edge + 2 * self.tiling.halo < float(np.max(hi[:2] - lo[:2]))))
             self.opts = dict(voxel_size=self.voxel_size, sigma_voxels=sigma_voxels, k=k, h=h, truncate=truncate,
                              method=method, memory_limit=share)
             chunk_rows = int(min(2_000_000, max(10_000, share // (4 * BYTES_PER_ROW_READ))))
-            _check_tile_directory(self.tiling, lo, hi, reach, share, budget)
+            _check_tile_directory(self.tiling, lo, hi, reach, share)
+            if switched and notify is not None:  # the tiles are taken: not said before a refusal of theirs
+                notify(switched[0])
             self._chunk_rows = chunk_rows
             if self.executor is None:
                 self.executor, self.cluster = _connect(scheduler, workers, self.root)
@@ -325,13 +340,15 @@ def _tiling(sources: dict, voxel_size: float, tile_size: float | None, tile_poin
     return Tiling(voxel_size, blocks, halo)
 
 
-def _check_tile_directory(tiling: Tiling, lo, hi, reach: int, share: int, budget: str) -> None:
+def _check_tile_directory(tiling: Tiling, lo, hi, reach: int, share: TaskShare) -> None:
     """Refuse, before any task runs, tiles whose block directory alone exceeds a task's share of
-    the memory limit (a voxel far below the point spacing: 1e-9 for metres)."""
-    span = (tiling.edge + 2 * tiling.halo) / tiling.voxel_size + 2 * reach + 2 * BLOCK
-    z = (float(hi[2]) - float(lo[2])) / tiling.voxel_size + 2 * reach + 2 * BLOCK
-    check_memory((span / BLOCK) ** 2 * (z / BLOCK) * 5, f"the block directory of one tile (voxel "
-                 f"{tiling.voxel_size:g}, tile edge {tiling.edge:.4g})", share, budget=budget,
+    the memory limit (a voxel far below the point spacing: 1e-9 for metres). A tile's field spans
+    its points, which lie in the clouds' box [lo, hi]: no wider than that, however wide the tile."""
+    x, y = np.minimum(tiling.edge + 2 * tiling.halo, np.asarray(hi[:2], float) - np.asarray(lo[:2], float))
+    z = float(hi[2]) - float(lo[2])
+    blocks = [(extent / tiling.voxel_size + 2 * reach + 2 * BLOCK) / BLOCK for extent in (x, y, z)]
+    check_memory(float(np.prod(blocks)) * 5, f"the block directory of one tile (voxel {tiling.voxel_size:g}, tile "
+                 f"edge {tiling.edge:.4g})", share,
                  advice="give a smaller --tile-size (the tiles' width follows the clouds' mean density over their "
                         "box, which a few far outliers lower), or use a larger voxel size")
 
