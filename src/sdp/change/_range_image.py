@@ -518,32 +518,102 @@ def camera_border(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], o
     height, width = image
     if len(pixels) < 8 or height < 2 or width < 2:
         return None
+    # in kernels that release the GIL: the two epochs' images are built at once on two threads,
+    # where some forty small NumPy steps each took three times their time
     step = max(1, len(pixels) // sample)
-    d = np.asarray(xyz[::step], np.float64) - np.asarray(origin, np.float64)
-    norm = np.linalg.norm(d, axis=1)
-    ok = norm > 0
-    d = d[ok] / norm[ok, None]
-    rows, cols = np.divmod(np.asarray(pixels[::step])[ok], width)
-    if len(d) < 8:
+    origin = np.asarray(origin, np.float64)
+    normal, centre, scale, n = _pinhole_sums(xyz, pixels, width, origin, step)
+    if n < 8:
         return None
-    centre, scale = np.array([cols.mean(), rows.mean()]), max(float(np.std(cols) + np.std(rows)), 1.0)
-    u, v = (cols - centre[0]) / scale, (rows - centre[1]) / scale  # pixels normalized: a well-conditioned fit
-    zero = np.zeros_like(d)
-    a = np.concatenate([np.c_[d, zero, -u[:, None] * d], np.c_[zero, d, -v[:, None] * d]])
-    h = np.linalg.eigh(a.T @ a)[1][:, 0].reshape(3, 3)  # the least-squares null vector
-    p = d @ h.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        err = np.hypot(p[:, 0] / p[:, 2] - u, p[:, 1] / p[:, 2] - v) * scale
-    if not np.sqrt(np.mean(err**2)) <= tolerance:
-        return None
-    across, down = np.arange(width), np.arange(height)
-    edge = np.concatenate([np.c_[across, np.zeros(width)], np.c_[across, np.full(width, height - 1)],
-                           np.c_[np.zeros(height), down], np.c_[np.full(height, width - 1), down]])
+    h = np.linalg.eigh(normal)[1][:, 0].reshape(3, 3)  # the least-squares null vector
     inv = np.linalg.inv(h)
-    rays = np.c_[(edge - centre) / scale, np.ones(len(edge))] @ inv.T
-    if np.sum(np.c_[u, v, np.ones(len(u))] @ inv.T * d) < 0:  # H is known up to its sign
-        rays = -rays
-    return rays / np.linalg.norm(rays, axis=1)[:, None]
+    rms, facing = _pinhole_check(xyz, pixels, width, origin, step, h, inv, centre, scale)
+    if not rms <= tolerance:
+        return None
+    return _border_rays(height, width, inv if facing else -inv, centre, scale)  # H is known up to its sign
+
+
+@nb.njit(cache=True, nogil=True)
+def _pinhole_sums(xyz, pixels, width, origin, step):
+    """(the DLT's normal matrix AᵀA (9, 9), the pixels' centre, their scale, the rows used) over
+    every ``step``-th return: unit directions d and normalized pixels (u, v), two rows each,
+    (dᵀ, 0, −u dᵀ) and (0, dᵀ, −v dᵀ)."""
+    n = 0
+    su = sv = su2 = sv2 = 0.0
+    for i in range(0, pixels.shape[0], step):
+        c, r = pixels[i] % width, pixels[i] // width
+        su += c
+        sv += r
+        su2 += c * c
+        sv2 += r * r
+        n += 1
+    cu, cv = su / n, sv / n
+    scale = max(math.sqrt(max(su2 / n - cu * cu, 0.0)) + math.sqrt(max(sv2 / n - cv * cv, 0.0)), 1.0)
+    ata = np.zeros((9, 9))
+    row = np.empty(9)
+    used = 0
+    for i in range(0, pixels.shape[0], step):
+        dx, dy, dz = xyz[i, 0] - origin[0], xyz[i, 1] - origin[1], xyz[i, 2] - origin[2]
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if norm == 0.0:
+            continue
+        dx, dy, dz = dx / norm, dy / norm, dz / norm
+        u, v = (pixels[i] % width - cu) / scale, (pixels[i] // width - cv) / scale
+        for which in range(2):
+            w = u if which == 0 else v
+            for k in range(9):
+                row[k] = 0.0
+            row[3 * which], row[3 * which + 1], row[3 * which + 2] = dx, dy, dz
+            row[6], row[7], row[8] = -w * dx, -w * dy, -w * dz
+            for a in range(9):
+                if row[a] != 0.0:
+                    for b in range(9):
+                        ata[a, b] += row[a] * row[b]
+        used += 1
+    return ata, np.array([cu, cv]), scale, used
+
+
+@nb.njit(cache=True, nogil=True)
+def _pinhole_check(xyz, pixels, width, origin, step, h, inv, centre, scale):
+    """(RMS reprojection error in pixels of the returns used, whether ``inv`` maps their pixels to
+    rays pointing at them rather than away)."""
+    err2 = 0.0
+    dot = 0.0
+    n = 0
+    for i in range(0, pixels.shape[0], step):
+        d0, d1, d2 = xyz[i, 0] - origin[0], xyz[i, 1] - origin[1], xyz[i, 2] - origin[2]
+        u, v = (pixels[i] % width - centre[0]) / scale, (pixels[i] // width - centre[1]) / scale
+        p0 = h[0, 0] * d0 + h[0, 1] * d1 + h[0, 2] * d2
+        p1 = h[1, 0] * d0 + h[1, 1] * d1 + h[1, 2] * d2
+        p2 = h[2, 0] * d0 + h[2, 1] * d1 + h[2, 2] * d2
+        err2 += ((p0 / p2 - u) ** 2 + (p1 / p2 - v) ** 2) * scale * scale if p2 != 0.0 else np.inf
+        for a in range(3):
+            dot += (inv[a, 0] * u + inv[a, 1] * v + inv[a, 2]) * (d0 if a == 0 else (d1 if a == 1 else d2))
+        n += 1
+    return math.sqrt(err2 / max(n, 1)), dot > 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _border_rays(height, width, inv, centre, scale):
+    """Unit rays ``inv`` (c, r, 1) of the pixels along the image's four edges (normalized pixels)."""
+    m = 2 * (width + height)
+    out = np.empty((m, 3))
+    for k in range(m):
+        if k < width:
+            c, r = k, 0
+        elif k < 2 * width:
+            c, r = k - width, height - 1
+        elif k < 2 * width + height:
+            c, r = 0, k - 2 * width
+        else:
+            c, r = width - 1, k - 2 * width - height
+        u, v = (c - centre[0]) / scale, (r - centre[1]) / scale
+        x = inv[0, 0] * u + inv[0, 1] * v + inv[0, 2]
+        y = inv[1, 0] * u + inv[1, 1] * v + inv[1, 2]
+        z = inv[2, 0] * u + inv[2, 1] * v + inv[2, 2]
+        norm = math.sqrt(x * x + y * y + z * z)
+        out[k, 0], out[k, 1], out[k, 2] = x / norm, y / norm, z / norm
+    return out
 
 
 def _axis_cells(az, el, lo, extent, cell: float, cell_factor: float, half: np.ndarray) -> tuple[list[float], int]:

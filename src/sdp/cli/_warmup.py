@@ -160,7 +160,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     import numpy as np
 
     from ..change._detect import detect_changes
-    from ..change._range_image import RangeImage
+    from ..change._range_image import RangeImage, camera_border
     from ..data._scene import office_scene
     from ..distance._distances import distances
     from ..io._output import all_or_none, write_points
@@ -197,8 +197,11 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
                             coverage=Coverage(sensor_origin=s.camera))
             C.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "c.laz", outputs=Outputs(both=True))
             detect_changes(s.reference, s.current, decision="cluster", coverage=Coverage(sensor_origin=None))
-            # an organized frame's view reaches its image's border (sdp.change._range_image.camera_border)
-            RangeImage.from_points(s.reference, s.camera, border=s.reference[::97] - np.asarray(s.camera))
+            # an organized frame's view reaches its image's border: a 16 × 12 pinhole image's
+            c, r = np.meshgrid(np.arange(16.0), np.arange(12.0))
+            frame = np.c_[(c.ravel() - 8) / 10, (r.ravel() - 6) / 10, np.ones(c.size)] * 2.0
+            border = camera_border(frame, np.arange(c.size), (12, 16), np.zeros(3))
+            RangeImage.from_points(frame, np.zeros(3), border=border)
             if importlib.util.find_spec("dask") and importlib.util.find_spec("zarr"):
                 C.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "t.laz",
                                 execution=Execution(tiled=True, scheduler="synchronous", workdir=d))
