@@ -237,13 +237,17 @@ _STABLE_SHARE = 0.2  # the share of the epoch: less, and the first alignment sta
 
 
 def _near(points: np.ndarray, centres: np.ndarray, size: float) -> np.ndarray:
-    """Which ``points`` lie in a cube of side ``size`` holding one of ``centres`` or beside one."""
-    lo = np.minimum(points.min(axis=0), centres.min(axis=0))
-    cell = lambda p: np.floor((p - lo) / size).astype(np.int64)  # noqa: E731
-    dims = cell(np.maximum(points.max(axis=0), centres.max(axis=0))) + 3
+    """Which ``points`` lie in a cube of side ``size`` holding one of ``centres`` or beside one
+    (cubes ⌊p / size⌋ compared as rows of three integers: no packing to overflow)."""
+    def rows(cells):
+        return np.ascontiguousarray(cells).view([("x", np.int64), ("y", np.int64), ("z", np.int64)]).ravel()
+
     offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    marked = np.unique((cell(centres)[:, None, :] + 1 + offsets[None]).reshape(-1, 3) @ [dims[1] * dims[2], dims[2], 1])
-    return np.isin((cell(points) + 1) @ [dims[1] * dims[2], dims[2], 1], marked)
+    around = np.floor(centres / size).astype(np.int64)[:, None, :] + offsets[None]
+    marked = np.unique(rows(around.reshape(-1, 3)))
+    own = rows(np.floor(points / size).astype(np.int64))
+    at = np.minimum(np.searchsorted(marked, own), len(marked) - 1)
+    return marked[at] == own
 
 
 def _read_ahead(epochs, fmt, *, skip: int, fits, tiled: bool):
