@@ -318,9 +318,9 @@ def real_epochs(work: Path) -> list[str]:
         ref = sdp.read_points(files[0])
         for k in range(1, len(files)):
             cur = sdp.read_points(files[k]).xyz
-            if align:
-                al = sdp.align(ref.xyz, cur, method=align)
-                cur = cur @ al.matrix[:3, :3].T + al.matrix[:3, 3]
+            if align:  # the series' own alignment (on the epoch's stable part, sdp.series's docs)
+                m = np.asarray(ds.attrs["epochs"][k]["alignment"]["matrix"])
+                cur = cur @ m[:3, :3].T + m[:3, 3]
             pair = sdp.distances(ref, cur, core_points=core, cylinder=cyl, sensor_origin=None)
             a = ds.distance.values[k]
             same_nan = np.array_equal(np.isfinite(a), np.isfinite(pair.distance))
