@@ -360,3 +360,18 @@ def test_a_distance_report_without_any_distance_says_so_without_warnings(tmp_pat
         sdp.distance_report(tmp_path / "d.html", d)
         hist = distances_figure(d.core_points, d.distance, d.significant, d.lod).axes[-1]
     assert [t.get_text() for t in hist.texts] == ["no core point has a distance"] and hist.get_legend() is None
+
+
+def test_an_airborne_tile_is_a_map_whatever_a_noise_return_above_it():
+    # a 200 m tile with 40 m of buildings is a map; one return 60 m above it does not make it a scene
+    # of three views, nor does the noise's height count; a room stays three views
+    from sdp.viz._render import is_map
+
+    rng = np.random.default_rng(0)
+    tile = np.c_[rng.uniform(0, 200, (5000, 2)), rng.uniform(0, 40, 5000)]
+    noisy = np.r_[tile, [[100.0, 100.0, 100.0]]]
+    lo, hi = noisy.min(axis=0), noisy.max(axis=0)
+    assert not is_map(lo, hi)  # the bounds alone: 100 m of 200
+    assert is_map(lo, hi, z=noisy[:, 2])
+    room = rng.uniform([0, 0, 0], [5, 4, 3], (5000, 3))
+    assert not is_map(room.min(axis=0), room.max(axis=0), z=room[:, 2])

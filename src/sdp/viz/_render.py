@@ -48,7 +48,7 @@ _VIEWS = ((25, -60, "oblique"), (90, -90, "top"), (0, -90, "front"))
 # drawn in this order (later on top): state value, name, colour, marker size (PNG, HTML)
 _LAYERS = ((UNCHANGED, "unchanged", _BLUE, 0.6, 1), (NOT_COMPARABLE, "not comparable", _GREY, 0.8, 1),
            (CHANGED, "changed", _VERMILLION, 1.5, 2))
-_FLAT = 0.1  # height below this share of the horizontal extent: a map
+_FLAT = 0.25  # height below this share of the horizontal extent: a map
 _MAP_REGIONS = 12  # regions outlined on a map, largest first
 
 
@@ -104,7 +104,7 @@ def changes_figure(xyz: np.ndarray, changed: np.ndarray, *, title: str = "", max
     xyz = np.asarray(xyz)
     layers = _drawn(changed, max_points, seed)
     lo, hi = (xyz.min(axis=0), xyz.max(axis=0)) if bounds is None else (np.asarray(b) for b in bounds)
-    if is_map(lo, hi, view):
+    if is_map(lo, hi, view, z=xyz[:, 2]):
         fig = _map(plt, xyz, layers, lo, hi, regions, size, unit)
     else:
         fig = plt.figure(figsize=(15 * size, 5.4 * size), dpi=110, layout="constrained")
@@ -129,12 +129,16 @@ def changes_figure(xyz: np.ndarray, changed: np.ndarray, *, title: str = "", max
     return fig
 
 
-def is_map(lo, hi, view: str = "auto") -> bool:
+def is_map(lo, hi, view: str = "auto", *, z=None) -> bool:
     """Whether a scene of bounds ``lo``, ``hi`` is drawn as a top-down map: ``view="map"``, or
-    ``"auto"`` and its height below a tenth of its horizontal extent (``"3d"``: never)."""
+    ``"auto"`` and its height below a quarter of its horizontal extent (``"3d"``: never): an
+    airborne tile with its relief and buildings, not a room, a facade or a forest plot. With the
+    points' heights ``z``, the height is that of their 1st to 99th percentile: a bird or a noise
+    return 60 m above a district does not make it a scene of three views."""
     if view not in ("auto", "map", "3d"):
         raise ValueError(f"view must be 'auto', 'map' or '3d', got {view!r}")
-    return view == "map" or (view == "auto" and hi[2] - lo[2] < _FLAT * max(hi[0] - lo[0], hi[1] - lo[1]))
+    low, high = (lo[2], hi[2]) if z is None or not len(z) else np.percentile(z[::max(1, len(z) // 100_000)], [1, 99])
+    return view == "map" or (view == "auto" and high - low < _FLAT * max(hi[0] - lo[0], hi[1] - lo[1]))
 
 
 def _map(plt, xyz, layers, lo, hi, regions=(), size=1.0, unit=UNIT):
@@ -232,7 +236,7 @@ def distances_figure(xyz: np.ndarray, distance: np.ndarray, significant: np.ndar
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(len(xyz), max_points, replace=False))
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
-    flat = is_map(lo, hi, view)
+    flat = is_map(lo, hi, view, z=xyz[:, 2])
     limit = float(np.quantile(np.abs(distance[sig]), 0.98)) if sig.any() else 1.0
     norm = TwoSlopeNorm(vcenter=0.0, vmin=-max(limit, 1e-12), vmax=max(limit, 1e-12))
     fig = plt.figure(figsize=(15, 6.5), dpi=110, layout="constrained")

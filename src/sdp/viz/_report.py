@@ -145,7 +145,7 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
     clouds = [c for c in (reference, current) if len(c)]
     lo = np.min([c.min(axis=0) for c in clouds], axis=0)
     hi = np.max([c.max(axis=0) for c in clouds], axis=0)
-    flat = is_map(lo, hi)
+    flat = is_map(lo, hi, z=np.concatenate([c[::max(1, len(c) // 50_000), 2] for c in clouds]))
     directions = (("appeared", names[1], current, result.current_state, result.appeared_labels,
                    s["appeared_regions"], _VERMILLION),
                   ("disappeared", names[0], reference, result.reference_state, result.disappeared_labels,
@@ -155,7 +155,8 @@ def change_report(path: str | os.PathLike, result, reference: np.ndarray, curren
         if not len(xyz):
             continue
         fig = changes_figure(xyz, state, title=f"{kind} in {name} ({int((state == CHANGED).sum()):,} points, "
-                             f"{len(regions):,} regions)", regions=regions, seed=seed, bounds=(lo, hi))
+                             f"{len(regions):,} regions)", regions=regions, seed=seed, bounds=(lo, hi),
+                             view="map" if flat else "3d")
         maps.append(_img(png_bytes(fig), f"{kind} points of {name}"))
         thumbs = [_thumbnail(xyz, state, labels, g, flat, png_bytes) for g in regions[:thumbnails]]
         tables.append(_region_table(kind, name, regions, thumbs))
@@ -357,7 +358,7 @@ def distance_report(path: str | os.PathLike, result, *, summary: dict | None = N
     d = np.asarray(result.distance, np.float64)
     sig, lod = np.asarray(result.significant, bool), np.asarray(result.lod, np.float64)
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
-    flat = is_map(lo, hi)
+    flat = is_map(lo, hi, z=xyz[:, 2])
     title = f"sdp distance: {names[0]} → {names[1]}"
     picture = _img(png_bytes(distances_figure(xyz, d, sig, lod, title="signed distance at the core points of "
                                               f"{names[0]}", seed=seed)), "map of the signed distances")
