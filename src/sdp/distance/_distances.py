@@ -319,13 +319,15 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     for cloud, o in zip((reference, current), origins):  # several scanners need each point's, before any work
         if np.ndim(o) == 2:
             scanner_of_points(cloud, o, len(getattr(cloud, "xyz", cloud)))
-    given_rows = None  # core points given with NaN rows: which rows were measured
+    # core points given with NaN rows (an array, or an epoch's own rows): which rows were measured,
+    # so that the results keep one row per row given, whichever way the core points were named
+    given_rows = None
     if core_points is None or (isinstance(core_points, str) and core_points == "reference"):
-        core, sensor = ref.xyz, _sensor_per_point(origins[0], reference, ref.xyz)
+        core, sensor, given_rows = ref.xyz, _sensor_per_point(origins[0], reference, ref.xyz), ref.finite
     elif isinstance(core_points, str):
         if core_points != "current":
             raise InvalidOptionError(f"core_points must be points, 'reference' or 'current', got {core_points!r}")
-        core, sensor = cur.xyz, _sensor_per_point(origins[1], current, cur.xyz)
+        core, sensor, given_rows = cur.xyz, _sensor_per_point(origins[1], current, cur.xyz), cur.finite
     else:
         given = as_points(core_points, name="core points")
         core, given_rows = given.xyz, given.finite
