@@ -106,6 +106,21 @@ def test_core_points_and_registration_error(rng):
         (48, 2, d.summary()["not_comparable"] - int((~np.isfinite(d.distance[[3, 17]])).sum()))
 
 
+def test_results_do_not_share_the_callers_arrays(rng):
+    # editing a result's core points (a shift to a local datum) must leave the inputs as they were
+    a, b = plane(rng, 2000, 0.002), plane(rng, 2000, 0.002, z=0.01)
+    core = a[:40].copy()
+    kw = dict(cylinder=sdp.Cylinder(projection_scale=0.4))
+    for d, given in ((sdp.distances(a, b, **kw), a), (sdp.distances(a, b, core_points=core, **kw), core),
+                     (sdp.distances(a, b, core_points="current", **kw), b)):
+        assert not np.shares_memory(d.core_points, given) and np.array_equal(d.core_points, given)
+    prep = sdp.distance.PreparedReference.prepare(a, core, **kw)
+    first, second = prep.measure(b), prep.measure(b)
+    assert not np.shares_memory(prep.core_points, core)
+    assert not np.shares_memory(first.core_points, prep.core_points)
+    assert not np.shares_memory(first.core_points, second.core_points)
+
+
 def test_default_core_points_keep_the_references_nan_rows(rng):
     # the default core points (every reference row) keep a NaN row in place, as core_points=ref does
     a, b = plane(rng, 2000, 0.002), plane(rng, 2000, 0.002, z=0.01)

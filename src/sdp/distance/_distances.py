@@ -402,7 +402,9 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     normal = out_normal
     mean1 = np.full(m, np.nan)
     mean1[order] = stats[0][0]
-    d = Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
+    # a copy: core is the caller's own array (the reference, or core_points=) where it was finite float64,
+    # and the results are the caller's to edit (shift to a local datum) without editing the input
+    d = Distances(core_points=core.copy(), distance=dist, lod=lod, significant=np.abs(dist) > lod,
                   n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
                   projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
                   registration_error=0.0 if reg == "auto" else reg, orientation=how, timings=timings, mean1=mean1)
