@@ -250,6 +250,7 @@ def _field():
     lambda: sdp.align(np.random.rand(50, 3), np.random.rand(50, 3), levels=2.5),
     lambda: sdp.transform_points(np.eye(3), np.zeros((2, 3))),
     lambda: list(sdp.watch(np.random.rand(50, 3), 5)),
+    lambda: list(sdp.watch(np.random.rand(50, 3), [np.random.rand(50, 3)], regions="no")),
     lambda: sdp.write_points("x.ply", np.zeros((2, 3)), fields=[1, 2]),
     lambda: sdp.write_points("x.ply", np.zeros((2, 3)), like=np.zeros((2, 3))),
     lambda: sdp.scores([1, 0, 1], [1, 0, 0], comparable=[0, 1, 2]),

@@ -48,7 +48,7 @@ import numpy as np
 
 from .._core._memory import check_memory
 from .._core._points import as_points, to_rows
-from .._core._validate import integer_at_least
+from .._core._validate import boolean, integer_at_least
 from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, states_of
 from ..change._detect import inside_difference, judge_coverage, region_rules, single_origin
 from ..change._regions import Region
@@ -213,6 +213,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         raise InvalidOptionError("a stream aligns its frames by the method alone: no fix_horizontal or align_class")
     align = None if registration is None else registration.method
     min_region_points = integer_at_least("min_region_points", min_region_points, 0)
+    regions = boolean("regions", regions)  # as detect_changes: a string "no" would read as True
     if decision not in ("point", "density", "combined"):
         raise InvalidOptionError(f"decision must be 'point', 'density' or 'combined' in a stream, got {decision!r}")
     noise = NoiseModel.of(noise, decision)
