@@ -103,6 +103,15 @@ def test_cluster_decision_promotes_mostly_changed_clusters(rng):
     assert cluster.appeared_regions[0].n_points >= len(new)
 
 
+def test_cluster_fraction_given_as_text_is_the_number(rng):
+    # "0.5" passed the check as a number, then reached NumPy as text (a raw TypeError)
+    floor = np.c_[rng.random((4000, 2)), np.zeros(4000)]
+    cur = np.concatenate([floor, rng.uniform([0.4, 0.4, 0.0], [0.6, 0.6, 0.2], (500, 3))])
+    kw = dict(lattice=sdp.Lattice(voxel_size=0.02), decision="cluster")
+    text, number = (sdp.detect_changes(floor, cur, cluster_fraction=f, **kw) for f in ("0.5", 0.5))
+    assert number.appeared.sum() > 0 and np.array_equal(text.appeared, number.appeared)
+
+
 def test_far_from_origin_gives_the_same_result(scene_pair):
     reference, current, truth = scene_pair
     shift = np.array([1e6, 2e6, 100.0])  # a multiple of 8·l: the lattice phase is unchanged

@@ -413,8 +413,9 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     memory_limit_bytes(memory_limit)
     min_region_points = integer_at_least("min_region_points", min_region_points, 0)
     boolean("regions", regions)
-    if not 0 <= finite("cluster_fraction", cluster_fraction) < 1:
-        raise InvalidOptionError(f"cluster_fraction must be in [0, 1), got {cluster_fraction!r}")
+    given_fraction, cluster_fraction = cluster_fraction, finite("cluster_fraction", cluster_fraction)
+    if not 0 <= cluster_fraction < 1:  # the float from here on, as min_region_points: "0.5" reached NumPy as text
+        raise InvalidOptionError(f"cluster_fraction must be in [0, 1), got {given_fraction!r}")
     o_ref, o_cur = resolve_sensor_origins(coverage.sensor_origin, reference, current)
     ref = as_points(reference, name="reference")
     cur = as_points(current, name="current")
