@@ -38,6 +38,7 @@ References
 
 from __future__ import annotations
 
+import os
 import time
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -195,6 +196,9 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     ------
     FrameChange
     """
+    if isinstance(frames, (str, bytes, os.PathLike)):  # iterated, a folder's name would be frames of one letter
+        raise InvalidOptionError(f"frames must be points, not a path ({os.fsdecode(frames)!r}): for a folder's files "
+                                 "use sdp.cli.watch_folder(reference, folder), or the command sdp watch REF FOLDER")
     lattice = as_options(Lattice, lattice, "lattice")
     coverage = as_options(Coverage, coverage, "coverage")
     registration = Registration.of(align)
