@@ -49,7 +49,7 @@ import numpy as np
 
 from .._core._memory import check_memory
 from .._core._points import as_points, to_rows
-from .._core._validate import boolean, integer_at_least
+from .._core._validate import boolean, finite, integer_at_least
 from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, states_of
 from ..change._detect import inside_difference, judge_coverage, region_rules, single_origin
 from ..change._regions import Region
@@ -209,10 +209,12 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
             raise InvalidOptionError(f"{name} applies to update={mode!r} only (update is {update!r})")
     window = DEFAULTS.window if window is None else window
     decay = DEFAULTS.decay if decay is None else decay
-    if update == "window" and window < 1:
-        raise InvalidOptionError("window must be at least 1 frame")
-    if update == "decay" and not 0 < decay < 1:
-        raise InvalidOptionError("decay must be in (0, 1)")
+    if update == "window":  # a whole number of frames: "3" compared as text, 2.5 frames kept as 2.5
+        window = integer_at_least("window", window, 1)
+    if update == "decay":  # the number checked, used: "0.5" as text failed at its first frame
+        decay = finite("decay", decay)
+        if not 0 < decay < 1:
+            raise InvalidOptionError("decay must be in (0, 1)")
     if registration is not None and (registration.fix_horizontal or registration.classes is not None):
         raise InvalidOptionError("a stream aligns its frames by the method alone: no fix_horizontal or align_class")
     align = None if registration is None else registration.method

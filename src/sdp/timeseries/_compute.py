@@ -377,6 +377,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     execution = as_options(Execution, execution, "execution")
     limit = resolve_memory_limit(execution.memory_limit)
     check_process_fits(limit)
+    if not isinstance(output, (str, os.PathLike)):  # Path(3) is a raw TypeError
+        raise InvalidOptionError(f"output must be the archive's path (a .zarr folder), got {output!r}")
     out = Path(output)
     files = [e for e in epochs if isinstance(e, (str, os.PathLike))]
     inputs = files + ([core_points] if isinstance(core_points, (str, os.PathLike)) else [])
