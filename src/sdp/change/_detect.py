@@ -421,7 +421,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         raise InvalidOptionError(f"cluster_fraction must be in [0, 1), got {given_fraction!r}")
     # options another choice leaves unused are refused, as watch refuses window without update='window'
     if cluster_fraction != DEFAULTS.cluster_fraction and decision != "cluster":
-        raise InvalidOptionError(f"cluster_fraction applies to decision='cluster' only (decision is {given_decision!r})")
+        raise InvalidOptionError(f"cluster_fraction applies to decision='cluster' only "
+                                 f"(decision is {given_decision!r})")
     if min_region_points != DEFAULTS.min_region_points and not regions and decision not in ("cluster", "combined"):
         raise InvalidOptionError("min_region_points drops small regions: it applies with regions=True only "
                                  "(regions is False)")
