@@ -42,6 +42,23 @@ def test_rows_holding_nan_are_not_comparable(scene_pair):
     assert (s["points"], s["dropped"], s["not_comparable"]) == (t["points"], 2, t["not_comparable"])
 
 
+def test_a_table_gives_its_x_y_z_columns_by_name(rng):
+    # columns ordered z, x, y (after a merge) were read by position: 4,187 appeared instead of 270
+    pd = pytest.importorskip("pandas")
+    floor = np.c_[rng.random((4000, 2)), np.zeros(4000)]
+    cur = np.concatenate([floor, rng.uniform([0.4, 0.4, 0.0], [0.6, 0.6, 0.2], (500, 3))])
+    lattice = sdp.Lattice(voxel_size=0.02)
+    want = sdp.detect_changes(floor, cur, lattice=lattice)
+    table = pd.DataFrame(cur, columns=list("xyz"))
+    for given in (table[["z", "x", "y"]], table.assign(intensity=1.0)):
+        got = sdp.detect_changes(pd.DataFrame(floor, columns=list("xyz")), given, lattice=lattice)
+        assert np.array_equal(got.appeared, want.appeared) and np.array_equal(got.disappeared, want.disappeared)
+    unnamed = sdp.detect_changes(pd.DataFrame(floor), pd.DataFrame(cur), lattice=lattice)  # three columns: x, y, z
+    assert np.array_equal(unnamed.appeared, want.appeared)
+    with pytest.raises(sdp.InvalidPointsError, match=r'current: a table of 4 columns .*df\[\["x", "y", "z"\]\]'):
+        sdp.detect_changes(floor, pd.DataFrame(np.c_[cur, cur[:, :1]], columns=list("abcd")), lattice=lattice)
+
+
 def test_inserted_box_is_found_as_one_region(scene_pair):
     reference, current, truth = scene_pair
     r = sdp.detect_changes(reference, current, lattice=sdp.Lattice(voxel_size=0.015))
@@ -84,6 +101,15 @@ def test_cluster_decision_promotes_mostly_changed_clusters(rng):
     assert cluster.appeared[truth].mean() > 0.99
     assert sdp.kappa(truth, cluster.appeared) > sdp.kappa(truth, point.appeared)
     assert cluster.appeared_regions[0].n_points >= len(new)
+
+
+def test_cluster_fraction_given_as_text_is_the_number(rng):
+    # "0.5" passed the check as a number, then reached NumPy as text (a raw TypeError)
+    floor = np.c_[rng.random((4000, 2)), np.zeros(4000)]
+    cur = np.concatenate([floor, rng.uniform([0.4, 0.4, 0.0], [0.6, 0.6, 0.2], (500, 3))])
+    kw = dict(lattice=sdp.Lattice(voxel_size=0.02), decision="cluster")
+    text, number = (sdp.detect_changes(floor, cur, cluster_fraction=f, **kw) for f in ("0.5", 0.5))
+    assert number.appeared.sum() > 0 and np.array_equal(text.appeared, number.appeared)
 
 
 def test_far_from_origin_gives_the_same_result(scene_pair):

@@ -106,6 +106,35 @@ def test_core_points_and_registration_error(rng):
         (48, 2, d.summary()["not_comparable"] - int((~np.isfinite(d.distance[[3, 17]])).sum()))
 
 
+def test_results_do_not_share_the_callers_arrays(rng):
+    # editing a result's core points (a shift to a local datum) must leave the inputs as they were
+    a, b = plane(rng, 2000, 0.002), plane(rng, 2000, 0.002, z=0.01)
+    core = a[:40].copy()
+    kw = dict(cylinder=sdp.Cylinder(projection_scale=0.4))
+    for d, given in ((sdp.distances(a, b, **kw), a), (sdp.distances(a, b, core_points=core, **kw), core),
+                     (sdp.distances(a, b, core_points="current", **kw), b)):
+        assert not np.shares_memory(d.core_points, given) and np.array_equal(d.core_points, given)
+    prep = sdp.distance.PreparedReference.prepare(a, core, **kw)
+    first, second = prep.measure(b), prep.measure(b)
+    assert not np.shares_memory(prep.core_points, core)
+    assert not np.shares_memory(first.core_points, prep.core_points)
+    assert not np.shares_memory(first.core_points, second.core_points)
+
+
+def test_default_core_points_keep_the_references_nan_rows(rng):
+    # the default core points (every reference row) keep a NaN row in place, as core_points=ref does
+    a, b = plane(rng, 2000, 0.002), plane(rng, 2000, 0.002, z=0.01)
+    a[::100] = np.nan
+    kw = dict(cylinder=sdp.Cylinder(projection_scale=0.4), registration_error=0)
+    default, given = sdp.distances(a, b, **kw), sdp.distances(a, b, core_points=a, **kw)
+    assert default.distance.shape == (2000,) and np.isnan(default.distance[::100]).all()
+    assert default.summary()["core_points_dropped"] == given.summary()["core_points_dropped"] == 20
+    for name in sdp.distance._distances.DISTANCE_FIELDS:
+        assert np.array_equal(default.fields()[name], given.fields()[name], equal_nan=True), name
+    b[7] = np.nan
+    assert sdp.distances(a, b, core_points="current", **kw).summary()["core_points_dropped"] == 1
+
+
 def test_fields_and_summary(rng):
     d = sdp.distances(plane(rng, 5_000, 0.002), plane(rng, 5_000, 0.002, z=0.05), registration_error=0)
     f = d.fields()
@@ -267,10 +296,9 @@ def test_tiles_give_the_same_distances(rng):
     kw = dict(cylinder=sdp.Cylinder(projection_scale=0.08, normal_scale=0.16, max_distance=0.2))
     whole = sdp.distances(a, b, sensor_origin=None, **kw)
     tiled = sdp.distances_tiled(a, b, **kw, execution=sdp.Execution(tile_size=1.0, scheduler="synchronous"))
-    assert tiled.tiles > 4 and len(tiled.distance) == n and np.isnan(tiled.distance[5])
-    keep = np.isfinite(a).all(axis=1)
+    assert tiled.tiles > 4 and len(tiled.distance) == len(whole.distance) == n and np.isnan(tiled.distance[5])
     for name in sdp.distance._distances.DISTANCE_FIELDS:
-        assert np.array_equal(whole.fields()[name], tiled.fields()[name][keep], equal_nan=True), name
+        assert np.array_equal(whole.fields()[name], tiled.fields()[name], equal_nan=True), name
     auto = sdp.distances_tiled(a, b, execution=sdp.Execution(scheduler="synchronous"))  # scales from the first slices
     assert abs(np.nanmedian(auto.distance[a[:, 0] > 7]) - 0.02) < 0.002
 

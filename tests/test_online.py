@@ -287,6 +287,13 @@ def test_a_frame_whose_registration_moved_it_away_keeps_the_previous_pose_and_sa
     assert "the previous frame's pose was kept" in frame_text(out[0]) and out[0].summary()["pose_kept"]
 
 
+def test_watch_refuses_a_folder_path_as_frames(tmp_path):
+    # iterated, the path was frames of one letter each ("frame 0: could not convert string to float: '/'")
+    for frames in (str(tmp_path), tmp_path):
+        with pytest.raises(sdp.InvalidOptionError, match=r"not a path .*sdp\.cli\.watch_folder\(reference, folder\)"):
+            next(watch(np.random.default_rng(0).random((500, 3)), frames))
+
+
 def test_watch_refusal_names_only_what_watch_accepts(tmp_path, capsys):
     # the advice named --memory-limit (which sdp watch rejects) and a grid size it has not
     from sdp.cli import main

@@ -408,6 +408,9 @@ def test_append_refuses_other_options_and_repeated_times(slope, tmp_path):
         sdp.series(slope.epochs[3:4], output=out, append=True, times=[11.5])
     with pytest.raises(sdp.InvalidOptionError, match="core points"):
         sdp.series(slope.epochs[3:4], output=out, append=True, times=[13], core_points=slope.epochs[0][::50])
+    for odd in ("no", 1):  # was read as True: appended to, not replaced
+        with pytest.raises(sdp.InvalidOptionError, match="append must be True or False"):
+            sdp.series(slope.epochs[3:4], output=out, append=odd, times=[13])
     assert _digest(out) == before
     with pytest.raises(sdp.InvalidOptionError, match="time 1"):
         sdp.series(slope.epochs[:3], output=tmp_path / "t.zarr", times=["0", "1", "1"])

@@ -250,6 +250,14 @@ def _field():
     lambda: sdp.align(np.random.rand(50, 3), np.random.rand(50, 3), levels=2.5),
     lambda: sdp.transform_points(np.eye(3), np.zeros((2, 3))),
     lambda: list(sdp.watch(np.random.rand(50, 3), 5)),
+    lambda: list(sdp.watch(np.random.rand(50, 3), [np.random.rand(50, 3)], regions="no")),
+    lambda: list(sdp.watch(np.random.rand(50, 3), [np.random.rand(50, 3)], window=2.5)),
+    lambda: list(sdp.watch(np.random.rand(50, 3), [np.random.rand(50, 3)], update="decay", decay="x")),
+    lambda: sdp.detect_changes_tiled(np.random.rand(50, 3), np.random.rand(50, 3), execution={"tiled": True}),
+    lambda: sdp.series([np.random.rand(50, 3)] * 2, output=3),
+    # accepted and ignored: refused, as watch refuses window without update="window"
+    lambda: sdp.detect_changes(np.random.rand(50, 3), np.random.rand(50, 3), decision="point", cluster_fraction=0.9),
+    lambda: sdp.detect_changes(np.random.rand(50, 3), np.random.rand(50, 3), regions=False, min_region_points=1000),
     lambda: sdp.write_points("x.ply", np.zeros((2, 3)), fields=[1, 2]),
     lambda: sdp.write_points("x.ply", np.zeros((2, 3)), like=np.zeros((2, 3))),
     lambda: sdp.scores([1, 0, 1], [1, 0, 0], comparable=[0, 1, 2]),
@@ -263,3 +271,16 @@ def test_the_python_api_refuses_odd_values_in_one_line(call, tmp_path, monkeypat
         call()
     assert "\n" not in str(refused.value)
     assert not list(tmp_path.iterdir())
+
+
+def test_numbers_given_as_text_are_kept_as_the_numbers_checked():
+    # Execution(tile_size="0.5") passed its check, then met arithmetic as text in the tiles (a raw TypeError)
+    e = sdp.Execution(tile_size="0.5", tile_points="1000", workers="1")
+    assert (e.tile_size, e.tile_points, e.workers) == (0.5, 1000, 1) and isinstance(e.workers, int)
+    rng = np.random.default_rng(0)
+    ref, frame = rng.random((500, 3)), rng.random((500, 3))
+    lattice = sdp.Lattice(voxel_size=0.05)
+    for update, kw in (("window", ("window", "3")), ("decay", ("decay", "0.5"))):  # "3" < 1 was a raw TypeError
+        text = list(sdp.watch(ref, [frame] * 3, lattice=lattice, update=update, **dict([kw])))
+        number = list(sdp.watch(ref, [frame] * 3, lattice=lattice, update=update, **{kw[0]: float(kw[1])}))
+        assert [f.appeared.sum() for f in text] == [f.appeared.sum() for f in number]

@@ -362,6 +362,12 @@ class Execution:
         V.boolean("tiled", self.tiled)
         V.check_tile_options(tile_size=self.tile_size, tile_points=self.tile_points, workers=self.workers,
                              workdir=self.workdir, scheduler=self.scheduler)
+        # kept as the numbers they were checked as: a string that reads as one ("0.5") is not passed on
+        if self.tile_size is not None:
+            object.__setattr__(self, "tile_size", V.positive_finite("tile_size", self.tile_size))
+        for name in ("tile_points", "workers"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, V.integer_at_least(name, getattr(self, name), 1))
 
     def tiles_only(self) -> list[str]:
         """The options given that only tiles use, by their command-line names: in memory a run

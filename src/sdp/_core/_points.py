@@ -39,16 +39,21 @@ def as_points(points, *, name: str = "points") -> Points:
     Rows with a NaN or infinite coordinate are dropped (sensors mark missing returns that
     way); :attr:`Points.finite` then holds the mask of the rows kept, so callers can report
     the count and map results back to the input rows. A cloud read from a file brings the
-    count of rows its reader dropped.
+    count of rows its reader dropped. A table (an object with ``columns``, e.g. a pandas
+    DataFrame) gives its ``x``, ``y`` and ``z`` columns by name; one without those names is read
+    by position only if it has three columns.
 
     Raises
     ------
     InvalidPointsError
-        If the array is not (n, 3) numeric, or holds no finite row.
+        If the array is not (n, 3) numeric, or holds no finite row; a table of more than three
+        columns without ``x``, ``y``, ``z`` among them.
     """
     before = 0
     if hasattr(points, "xyz") and hasattr(points, "n_dropped"):  # a Cloud from sdp.read_points
         points, before = points.xyz, int(points.n_dropped)
+    elif not isinstance(points, np.ndarray) and getattr(points, "columns", None) is not None:
+        points = _table_xyz(points, name)
     if np.iscomplexobj(points):  # NumPy would keep the real part with a warning
         raise InvalidPointsError(f"{name}: expected real x, y, z coordinates, got complex numbers")
     try:
@@ -67,6 +72,18 @@ def as_points(points, *, name: str = "points") -> Points:
         raise InvalidPointsError(f"{name} {what}: nothing to build a density field from")
     return Points(arr, finite, lo, hi, before)
 
+
+def _table_xyz(table, name: str):
+    """The ``x``, ``y``, ``z`` columns of a table (pandas, Polars) by name: by position, columns
+    ordered z, x, y (after a merge) would be read as x, y, z without a word."""
+    names = [str(c) for c in table.columns]
+    if all(axis in names for axis in "xyz"):
+        return np.column_stack([np.asarray(table[axis]) for axis in "xyz"])
+    if len(names) != 3:
+        raise InvalidPointsError(f"{name}: a table of {len(names)} columns without x, y, z among them "
+                                 f"({', '.join(names[:6])}{', …' if len(names) > 6 else ''}): select the "
+                                 'coordinates, e.g. df[["x", "y", "z"]]')
+    return table
 
 
 def to_rows(values: np.ndarray, pts: Points, fill):

@@ -373,10 +373,13 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         their own decision. (An object touching static structure shares its cluster with it
         and stays point-wise.)
     cluster_fraction : float
-        Threshold of the ``"cluster"`` decision, in [0, 1).
+        Threshold of the ``"cluster"`` decision, in [0, 1); another value is refused with the
+        other decisions, which would ignore it.
     min_region_points : int
         Change regions with fewer points are strays (noise, parallax at edges): their points
-        are reported unchanged. Default 50; 1 keeps everything. Needs ``regions=True``.
+        are reported unchanged. Default 50; 1 keeps everything. Needs ``regions=True`` (or the
+        ``"cluster"`` or ``"combined"`` decision, which find regions anyway): another value is
+        refused with ``regions=False``.
     regions : bool
         Group changed points into connected regions (skip to save time).
     noise : NoiseModel, optional
@@ -406,15 +409,23 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     """
     if decision not in DECISIONS:
         raise InvalidOptionError(f"decision must be one of {', '.join(DECISIONS)}, got {decision!r}")
-    decision = "point" if decision == "density" else decision
+    given_decision, decision = decision, "point" if decision == "density" else decision
     lattice = as_options(Lattice, lattice, "lattice")
     coverage = as_options(Coverage, coverage, "coverage")
     noise = NoiseModel.of(noise, decision)
     memory_limit_bytes(memory_limit)
     min_region_points = integer_at_least("min_region_points", min_region_points, 0)
     boolean("regions", regions)
-    if not 0 <= finite("cluster_fraction", cluster_fraction) < 1:
-        raise InvalidOptionError(f"cluster_fraction must be in [0, 1), got {cluster_fraction!r}")
+    given_fraction, cluster_fraction = cluster_fraction, finite("cluster_fraction", cluster_fraction)
+    if not 0 <= cluster_fraction < 1:  # the float from here on, as min_region_points: "0.5" reached NumPy as text
+        raise InvalidOptionError(f"cluster_fraction must be in [0, 1), got {given_fraction!r}")
+    # options another choice leaves unused are refused, as watch refuses window without update='window'
+    if cluster_fraction != DEFAULTS.cluster_fraction and decision != "cluster":
+        raise InvalidOptionError(f"cluster_fraction applies to decision='cluster' only "
+                                 f"(decision is {given_decision!r})")
+    if min_region_points != DEFAULTS.min_region_points and not regions and decision not in ("cluster", "combined"):
+        raise InvalidOptionError("min_region_points drops small regions: it applies with regions=True only "
+                                 "(regions is False)")
     o_ref, o_cur = resolve_sensor_origins(coverage.sensor_origin, reference, current)
     ref = as_points(reference, name="reference")
     cur = as_points(current, name="current")

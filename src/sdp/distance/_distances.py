@@ -319,13 +319,15 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     for cloud, o in zip((reference, current), origins):  # several scanners need each point's, before any work
         if np.ndim(o) == 2:
             scanner_of_points(cloud, o, len(getattr(cloud, "xyz", cloud)))
-    given_rows = None  # core points given with NaN rows: which rows were measured
+    # core points given with NaN rows (an array, or an epoch's own rows): which rows were measured,
+    # so that the results keep one row per row given, whichever way the core points were named
+    given_rows = None
     if core_points is None or (isinstance(core_points, str) and core_points == "reference"):
-        core, sensor = ref.xyz, _sensor_per_point(origins[0], reference, ref.xyz)
+        core, sensor, given_rows = ref.xyz, _sensor_per_point(origins[0], reference, ref.xyz), ref.finite
     elif isinstance(core_points, str):
         if core_points != "current":
             raise InvalidOptionError(f"core_points must be points, 'reference' or 'current', got {core_points!r}")
-        core, sensor = cur.xyz, _sensor_per_point(origins[1], current, cur.xyz)
+        core, sensor, given_rows = cur.xyz, _sensor_per_point(origins[1], current, cur.xyz), cur.finite
     else:
         given = as_points(core_points, name="core points")
         core, given_rows = given.xyz, given.finite
@@ -400,7 +402,9 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     normal = out_normal
     mean1 = np.full(m, np.nan)
     mean1[order] = stats[0][0]
-    d = Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
+    # a copy: core is the caller's own array (the reference, or core_points=) where it was finite float64,
+    # and the results are the caller's to edit (shift to a local datum) without editing the input
+    d = Distances(core_points=core.copy(), distance=dist, lod=lod, significant=np.abs(dist) > lod,
                   n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
                   projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
                   registration_error=0.0 if reg == "auto" else reg, orientation=how, timings=timings, mean1=mean1)

@@ -139,7 +139,8 @@ class PreparedReference:
         def unsort(a):
             return np.ascontiguousarray(a[back])
 
-        return cls(core_points=np.ascontiguousarray(core, np.float64), normal=unsort(normal), ref_mean=unsort(m1),
+        # a private copy (core may be the caller's own array); each epoch's results get theirs (_measure)
+        return cls(core_points=np.array(core, np.float64, order="C"), normal=unsort(normal), ref_mean=unsort(m1),
                    ref_spread=unsort(s1), ref_count=unsort(c1), ref_level=unsort(k1).astype(np.int8),
                    projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=max_half,
                    corner=lo, orientation=towards)
@@ -213,7 +214,7 @@ class PreparedReference:
         out_normal, level = np.empty((m, 3)), np.empty(m, np.int8)
         _results(order, ref, cur_stats, normal, reg, reach, dist, lod, n1, n2, s1, s2, out_normal, level)
         how = "towards ({:g}, {:g}, {:g})".format(*self.orientation)
-        return Distances(core_points=core, distance=dist, lod=lod, significant=np.abs(dist) > lod,
+        return Distances(core_points=core.copy(), distance=dist, lod=lod, significant=np.abs(dist) > lod,
                          n1=n1, n2=n2, spread1=s1, spread2=s2, normal=out_normal, level=level,
                          projection_scale=self.projection_scale, normal_scale=self.normal_scale, max_distance=reach,
                          registration_error=reg, orientation=how, timings={"total": time.perf_counter() - t0})

@@ -585,7 +585,7 @@ def _tiled_options(lattice: Lattice | None, execution: Execution | None) -> tupl
     lattice = as_options(Lattice, lattice, "lattice")
     if lattice.grid_size is not None:
         raise InvalidOptionError("grid_size is not available in tiles: give a voxel size or 'auto'")
-    return lattice, Execution() if execution is None else execution
+    return lattice, as_options(Execution, execution, "execution")
 
 
 def _build_tile(key, root: str, tiling: Tiling, opts: dict, store: str) -> int:

@@ -38,6 +38,7 @@ References
 
 from __future__ import annotations
 
+import os
 import time
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -48,7 +49,7 @@ import numpy as np
 
 from .._core._memory import check_memory
 from .._core._points import as_points, to_rows
-from .._core._validate import integer_at_least
+from .._core._validate import boolean, finite, integer_at_least
 from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, states_of
 from ..change._detect import inside_difference, judge_coverage, region_rules, single_origin
 from ..change._regions import Region
@@ -195,6 +196,9 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     ------
     FrameChange
     """
+    if isinstance(frames, (str, bytes, os.PathLike)):  # iterated, a folder's name would be frames of one letter
+        raise InvalidOptionError(f"frames must be points, not a path ({os.fsdecode(frames)!r}): for a folder's files "
+                                 "use sdp.cli.watch_folder(reference, folder), or the command sdp watch REF FOLDER")
     lattice = as_options(Lattice, lattice, "lattice")
     coverage = as_options(Coverage, coverage, "coverage")
     registration = Registration.of(align)
@@ -205,14 +209,17 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
             raise InvalidOptionError(f"{name} applies to update={mode!r} only (update is {update!r})")
     window = DEFAULTS.window if window is None else window
     decay = DEFAULTS.decay if decay is None else decay
-    if update == "window" and window < 1:
-        raise InvalidOptionError("window must be at least 1 frame")
-    if update == "decay" and not 0 < decay < 1:
-        raise InvalidOptionError("decay must be in (0, 1)")
+    if update == "window":  # a whole number of frames: "3" compared as text, 2.5 frames kept as 2.5
+        window = integer_at_least("window", window, 1)
+    if update == "decay":  # the number checked, used: "0.5" as text failed at its first frame
+        decay = finite("decay", decay)
+        if not 0 < decay < 1:
+            raise InvalidOptionError("decay must be in (0, 1)")
     if registration is not None and (registration.fix_horizontal or registration.classes is not None):
         raise InvalidOptionError("a stream aligns its frames by the method alone: no fix_horizontal or align_class")
     align = None if registration is None else registration.method
     min_region_points = integer_at_least("min_region_points", min_region_points, 0)
+    regions = boolean("regions", regions)  # as detect_changes: a string "no" would read as True
     if decision not in ("point", "density", "combined"):
         raise InvalidOptionError(f"decision must be 'point', 'density' or 'combined' in a stream, got {decision!r}")
     noise = NoiseModel.of(noise, decision)

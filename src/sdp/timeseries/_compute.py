@@ -44,7 +44,7 @@ import numpy as np
 from .._core._memory import check_memory
 from .._core._memory import memory_limit as resolve_memory_limit
 from .._core._points import as_points
-from .._core._validate import auto_or_nonnegative, auto_or_positive, integer_at_least
+from .._core._validate import auto_or_nonnegative, auto_or_positive, boolean, integer_at_least
 from ..defaults import DEFAULTS
 from ..distance._distances import _sensor_per_point
 from ..distance._reference import PreparedReference, subsample
@@ -368,6 +368,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     export from the archive: its refusal leaves an archive as it was)."""
     A.require_zarr()
     t_start = time.perf_counter()  # after zarr's import, start-up like Python's
+    append = boolean("append", append)  # a string "no" would read as True: the archive appended to, not replaced
     if isinstance(epochs, (str, os.PathLike)):  # list() would make a file name a list of letters
         raise InvalidOptionError(f"epochs must be a list of files or clouds, got one path {os.fspath(epochs)!r}")
     epochs = list(epochs)
@@ -376,6 +377,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     execution = as_options(Execution, execution, "execution")
     limit = resolve_memory_limit(execution.memory_limit)
     check_process_fits(limit)
+    if not isinstance(output, (str, os.PathLike)):  # Path(3) is a raw TypeError
+        raise InvalidOptionError(f"output must be the archive's path (a .zarr folder), got {output!r}")
     out = Path(output)
     files = [e for e in epochs if isinstance(e, (str, os.PathLike))]
     inputs = files + ([core_points] if isinstance(core_points, (str, os.PathLike)) else [])
