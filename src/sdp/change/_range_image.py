@@ -542,11 +542,15 @@ def camera_border(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], o
 
 @nb.njit(cache=True, nogil=True)
 def _returned_box(pixels, width):
-    """(first row, last row, first column, last column) holding a return."""
-    r0, r1, c0, c1 = pixels[0] // width, pixels[0] // width, width, -1
-    for p in pixels:
-        r, c = p // width, p % width
-        r0, r1, c0, c1 = min(r0, r), max(r1, r), min(c0, c), max(c1, c)
+    """(first row, last row, first column, last column) holding a return; ``pixels`` ascending,
+    as a frame's rows are kept: each row's first and last return found by bisection."""
+    r0, r1 = pixels[0] // width, pixels[-1] // width
+    c0, c1 = width, -1
+    for r in range(r0, r1 + 1):
+        i = np.searchsorted(pixels, r * width)
+        j = np.searchsorted(pixels, (r + 1) * width) - 1
+        if i <= j:
+            c0, c1 = min(c0, pixels[i] % width), max(c1, pixels[j] % width)
     return np.array([r0, r1, c0, c1])
 
 

@@ -118,8 +118,8 @@ class Cloud:
     image : tuple of int or None
         An organized cloud's (height, width): the sensor's image, one ray per pixel.
     pixels : ndarray of int64 (n,) or None
-        With ``image``: the pixel (row · width + column) of each row kept, the others being the
-        rays that returned nothing (:func:`sdp.change._range_image.camera_border`).
+        With ``image``: the pixel (row · width + column) of each row kept, ascending, the others
+        being the rays that returned nothing (:func:`sdp.change._range_image.camera_border`).
     """
 
     xyz: np.ndarray
