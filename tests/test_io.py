@@ -492,7 +492,8 @@ def test_withheld_and_noise_las_points_are_compared_with_a_notice(tmp_path, rng,
     path = las("noise.las", 6, np.where(np.arange(50) == 0, 7, 2).astype(np.uint8), np.zeros(50, np.uint8))
     assert main(["info", str(path)]) == 0
     assert capfd.readouterr().err == (f"sdp: {path}: 1 point classified noise (class 7 or 18), compared as any other "
-                                      "point; to leave them out, filter the file first (e.g. las2las -drop_class 7 18)\n")
+                                      "point; to leave them out, filter the file first (e.g. las2las "
+                                      "-drop_class 7 18)\n")
     with warnings.catch_warnings():  # a file without either: no word
         warnings.simplefilter("error")
         read_points(las("clean.las", 6, np.full(50, 2, np.uint8), np.zeros(50, np.uint8)))

@@ -1044,8 +1044,8 @@ def test_an_aligned_epoch_is_aligned_on_its_stable_part(tmp_path):
         y[(x < 2) & (z > 2)] -= 0.005 * k  # a tenth of it creeps 5 mm an epoch towards the scanner
         return np.c_[x, y, z]
 
-    ds = sdp.series([wall(k) for k in range(5)], output=tmp_path / "s.zarr", cylinder=sdp.Cylinder(projection_scale=0.3),
-                    align="density", orientation=[0, -1, 0])
+    ds = sdp.series([wall(k) for k in range(5)], output=tmp_path / "s.zarr",
+                    cylinder=sdp.Cylinder(projection_scale=0.3), align="density", orientation=[0, -1, 0])
     x, z = ds.x.values, ds.z.values
     still = ~((x < 2.5) & (z > 1.5))
     last = np.asarray(ds.distance.values[-1], float)

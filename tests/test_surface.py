@@ -67,7 +67,8 @@ def test_surface_vertices_bound_the_mesh():
 
     f = _sphere_field()
     n = len(f.mesh().vertices)
-    assert 0.9 * n <= surface_vertices(f.blocks.values[:f.n_blocks], f.h) <= 1.3 * n  # the per-vertex bytes have a margin
+    # the per-vertex bytes have a margin
+    assert 0.9 * n <= surface_vertices(f.blocks.values[:f.n_blocks], f.h) <= 1.3 * n
 
 
 def test_mesh_beyond_the_memory_limit_is_refused_before_writing(tmp_path):
