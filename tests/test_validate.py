@@ -100,6 +100,19 @@ def test_helpers():
     assert parse_bytes("2GB") == 2 * 2**30 and memory_limit(1000) == 1000  # numbers are bytes
 
 
+def test_options_that_name_no_class_or_no_function_are_refused():
+    # a LAS class is 0 to 255 (-1 read no point and aligned on none); notify is called with a line
+    assert sdp.Registration(method="density", align_class="2,9").classes == [2, 9]
+    for bad in (-1, 256, "2,-1"):
+        with pytest.raises(sdp.InvalidOptionError, match="LAS class numbers"):
+            sdp.Registration(method="density", align_class=bad)
+    with pytest.raises(sdp.InvalidOptionError, match="notify must be a function"):
+        sdp.Execution(notify="x")
+    assert sdp.Execution(notify=print).notify is print
+    with pytest.raises(sdp.InvalidOptionError, match="min_region_points drops small regions"):
+        next(iter(sdp.watch(np.zeros((10, 3)), [np.zeros((10, 3))], regions=False, min_region_points=5)))
+
+
 @pytest.mark.slow
 def test_unreachable_scheduler_is_one_line_error(cloud, tmp_path):
     with pytest.raises(sdp.SDPError, match="can't reach the Dask scheduler at tcp://127.0.0.1:1") as err:

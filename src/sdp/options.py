@@ -368,6 +368,8 @@ class Execution:
         for name in ("tile_points", "workers"):
             if getattr(self, name) is not None:
                 object.__setattr__(self, name, V.integer_at_least(name, getattr(self, name), 1))
+        if self.notify is not None and not callable(self.notify):
+            raise InvalidOptionError(f"notify must be a function taking one line of text, got {self.notify!r}")
 
     def tiles_only(self) -> list[str]:
         """The options given that only tiles use, by their command-line names: in memory a run

@@ -341,14 +341,17 @@ _MAX_POSITION = 1e12  # a sensor's coordinates: ranges and angles from farther o
 
 
 def class_numbers(name: str, value) -> list[int]:
-    """LAS class numbers from ``"2"``, ``"2,9"``, an int or a sequence of ints (``--align-class``)."""
+    """LAS class numbers from ``"2"``, ``"2,9"``, an int or a sequence of ints (``--align-class``):
+    0 to 255, the classes LAS 1.4 can record."""
     parts = value.split(",") if isinstance(value, str) else [value] if np.ndim(value) == 0 else list(value)
     if all(isinstance(c, str) or (isinstance(c, numbers.Integral) and not isinstance(c, bool)) for c in parts):
         try:
-            return [int(c) for c in parts]
+            classes = [int(c) for c in parts]
         except ValueError:
-            pass
-    raise InvalidOptionError(f"{name} takes LAS class numbers such as 2 or 2,9, got {value!r}")
+            classes = None
+        if classes is not None and all(0 <= c <= 255 for c in classes):
+            return classes
+    raise InvalidOptionError(f"{name} takes LAS class numbers (0 to 255) such as 2 or 2,9, got {value!r}")
 
 
 def check_alignment_options(method: str | None, *, fix_horizontal: bool = False, align_class=None) -> list[int] | None:

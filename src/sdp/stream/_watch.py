@@ -222,6 +222,9 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     regions = boolean("regions", regions)  # as detect_changes: a string "no" would read as True
     if decision not in ("point", "density", "combined"):
         raise InvalidOptionError(f"decision must be 'point', 'density' or 'combined' in a stream, got {decision!r}")
+    if min_region_points != DEFAULTS.min_region_points and not regions and decision != "combined":
+        raise InvalidOptionError("min_region_points drops small regions: it applies with regions=True only "
+                                 "(as in sdp.detect_changes)")
     noise = NoiseModel.of(noise, decision)
     is_field = isinstance(reference, DensityField)
     origin = pts = None
