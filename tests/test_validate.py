@@ -101,7 +101,7 @@ def test_helpers():
 
 
 def test_options_that_name_no_class_or_no_function_are_refused():
-    # a LAS class is 0 to 255 (-1 read no point and aligned on none); notify is called with a line
+    # a LAS class is 0 to 255 (-1 names none); notify is called with a line of text
     assert sdp.Registration(method="density", align_class="2,9").classes == [2, 9]
     for bad in (-1, 256, "2,-1"):
         with pytest.raises(sdp.InvalidOptionError, match="LAS class numbers"):
