@@ -132,17 +132,18 @@ class PointSource:
         v = ply_vertices(self.path)[start:stop]
         return np.c_[v["x"], v["y"], v["z"]].astype(np.float64)
 
-    def fields(self, start: int, stop: int) -> dict[str, np.ndarray]:
-        """The other per-point values of rows ``start`` … ``stop − 1``, as :func:`sdp.read_points`
-        gives them: a binary PLY's scalar vertex properties (none for NPY; a LAS file's records
-        are copied whole by :func:`write_points_streamed`)."""
+    def fields(self, start: int, stop: int, names=None) -> dict[str, np.ndarray]:
+        """The other per-point values of rows ``start`` … ``stop − 1`` (those of ``names`` alone,
+        if given), as :func:`sdp.read_points` gives them: a binary PLY's scalar vertex properties
+        (none for NPY; a LAS file's records are copied whole by :func:`write_points_streamed`)."""
         if self.format != "ply":
             return {}
         with _decoding(self):
             v = ply_vertices(self.path)
             rows = v[max(0, start):min(stop, self.n_rows)]
             return {n: np.asarray(rows[n]) for n in v.dtype.names
-                    if n not in ("x", "y", "z") and v.dtype[n].shape == () and v.dtype[n].kind in "biuf"}
+                    if n not in ("x", "y", "z") and v.dtype[n].shape == () and v.dtype[n].kind in "biuf"
+                    and (names is None or n in names)}
 
     def chunks(self, size: int = LAS_CHUNK, start: int = 0, stop: int | None = None):
         """Yield ``(first_row, xyz)`` slices of at most ``size`` rows, in order.
@@ -234,9 +235,8 @@ def write_points_streamed(path: str | os.PathLike, source: PointSource, fields_o
             # the whole file's values fit LAS's 16 bits (one pass over them first), others extra
             ranges = {}
             for s in range(0, source.n_rows, chunk_size):
-                for name, v in source.fields(s, s + chunk_size).items():
-                    if name in STANDARD:
-                        ranges[name] = value_range(v, ranges.get(name))
+                for name, v in source.fields(s, s + chunk_size, names=STANDARD).items():
+                    ranges[name] = value_range(v, ranges.get(name))
             rules = standard_rules(ranges)
             header = laspy.LasHeader(point_format=2 if "red" in rules else 0, version="1.4")
             parts = ((len(xyz), xyz) for _, xyz in source.chunks(chunk_size))
