@@ -391,6 +391,35 @@ def test_append_killed_after_its_commit_is_complete(slope, tmp_path, monkeypatch
         np.testing.assert_array_equal(values, _arrays(ds)[name], err_msg=name)
 
 
+def test_iso_times_keep_their_zone_and_fraction_of_a_second_without_a_warning(slope, tmp_path):
+    """A zone offset is applied without NumPy's warning that it represents none, and fractions of a
+    second are kept (they were dropped, and two epochs 0.7 s apart were refused as one time)."""
+    import warnings
+
+    from sdp.timeseries._compute import parse_times
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        t, kind = parse_times("2024-05-01T08:00+02:00,2024-05-01T06:30Z,2024-05-01T08:00:00.2,2024-05-01T08:00:00.9")
+    day = (np.datetime64("2024-05-01") - np.datetime64("1970-01-01")).astype(int)
+    assert kind == "date"
+    np.testing.assert_allclose((t - day) * 86400, [6 * 3600, 6.5 * 3600, 8 * 3600 + 0.2, 8 * 3600 + 0.9], atol=1e-5)
+    with pytest.raises(sdp.InvalidOptionError, match="neither a number nor an ISO date"):
+        parse_times("2024-05-01T08:00+2h")
+    out = tmp_path / "s.zarr"
+    files = _write_epochs(slope, tmp_path, 3)
+    times = "2024-05-01T08:00:00.2,2024-05-01T08:00:00.9,2024-05-01T08:00:02"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        text = series_files(files, output=out, times=times, options={"cylinder": CYL}).summary_text()
+    assert "2024-05-01T08:00:00.2 .. 2024-05-01T08:00:02)" in text
+    stored = (sdp.open_series(out).time.values - np.datetime64("2024-05-01T08:00")) / np.timedelta64(1, "s")
+    np.testing.assert_allclose(stored, [0.2, 0.9, 2.0], atol=1e-5)
+    with pytest.raises(sdp.InvalidOptionError, match=r"the time 2024-05-01T08:00:00\.9 \(given\)"):
+        series_files(files, output=tmp_path / "t.zarr", times="2024-05-01T08:00:00.2,"
+                     "2024-05-01T08:00:00.9,2024-05-01T10:00:00.9+02:00")
+
+
 def test_append_refuses_other_options_and_repeated_times(slope, tmp_path):
     out = tmp_path / "s.zarr"
     sdp.series(slope.epochs[:3], output=out, cylinder=CYL, times=[10, 11, 12])

@@ -273,7 +273,7 @@ def _write_points(ds, path, points, inputs, field_names: str) -> None:
 def describe_series(path) -> dict:
     """What ``sdp info ARCHIVE.zarr`` prints: epochs, times, core points, objects, every parameter
     (read with zarr: no dataset is opened)."""
-    from ..timeseries._archive import objects_by_size, read_group
+    from ..timeseries._archive import objects_by_size, read_group, show_time
 
     g = read_group(path)
     attrs = g.attrs.asdict()
@@ -288,8 +288,7 @@ def describe_series(path) -> dict:
     kind = attrs["time_kind"]
     times = [e["time"] for e in epochs]
     if kind == "date":
-        times = [str(np.datetime64("1970-01-01T00:00:00", "s") + np.timedelta64(int(round(t * 86400)), "s"))
-                 for t in times]
+        times = [show_time(t, kind) for t in times]
     # the last epoch where it was measured (elsewhere the smoother's value is a guess): one row each
     seen = np.isfinite(np.asarray(g["distance"][-1])) if epochs else np.zeros(0, bool)
     last = np.asarray(g["smoothed"][-1])[seen] if epochs else np.empty(0)

@@ -618,6 +618,18 @@ def is_series(path) -> bool:
     return meta.get("attributes", {}).get("format") == ARCHIVE_FORMAT
 
 
+def show_time(value: float, kind: str) -> str:
+    """An epoch's time as printed: a date (days since 1970-01-01) in ISO, with its fraction of a
+    second where it has one (to the microsecond), else the number."""
+    if kind != "date":
+        return f"{value:g}"
+    us = int(round(value * 86_400e6))
+    stamp = np.datetime64("1970-01-01T00:00:00", "us") + np.timedelta64(us, "us")
+    if us % 1_000_000 == 0:
+        return str(stamp.astype("datetime64[s]"))
+    return str(stamp).rstrip("0")
+
+
 def objects_by_size(ds) -> np.ndarray:
     """Positions along ``object_id`` of an archive's objects, the most core points first (ids
     count in the order objects were found); ``ds``: the dataset or its zarr group."""

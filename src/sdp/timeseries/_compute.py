@@ -36,7 +36,9 @@ import dataclasses
 import datetime as _dt
 import math
 import os
+import re
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -85,6 +87,8 @@ def _parse_time(value) -> tuple[float, str]:
         if not math.isfinite(float(value)):
             raise InvalidOptionError(f"time {value!r} is not finite")
         return float(value), "number"
+    if isinstance(value, _dt.datetime) and value.tzinfo is not None:  # NumPy keeps no zone: in UTC
+        value = value.astimezone(_dt.timezone.utc).replace(tzinfo=None)
     if isinstance(value, (_dt.date, np.datetime64)):
         value = str(np.datetime64(value))
     text = str(value).strip()
@@ -97,12 +101,26 @@ def _parse_time(value) -> tuple[float, str]:
     else:
         if math.isfinite(number):
             return number, "number"
+    # a zone (Z, +02:00) is taken off here and applied: NumPy applies it too, but warns that it
+    # represents none
+    zone = _ZONE.search(text) if re.search("[T ]", text, re.IGNORECASE) else None  # after a time only
+    shift = 0
+    if zone:
+        text = text[:zone.start()]
+        if zone.group(2):
+            shift = (1 if zone.group(2) == "+" else -1) * (int(zone.group(3)) * 60 + int(zone.group(4) or 0))
     try:
-        stamp = np.datetime64(text, "s")
-    except ValueError:
-        raise InvalidOptionError(f"time {text!r} is neither a number nor an ISO date (2024-05-01 or "
-                                 "2024-05-01T12:00)") from None
-    return float((stamp - np.datetime64("1970-01-01T00:00:00", "s")).astype(np.int64)) / 86400.0, "date"
+        with warnings.catch_warnings():  # a zone left in the text (+2h) is not one of ours: refused
+            warnings.simplefilter("error", UserWarning)
+            # at its own unit, then microseconds: a fraction of a second is kept (float days hold microseconds)
+            stamp = np.datetime64(text).astype("datetime64[us]") - np.timedelta64(shift, "m")
+    except (ValueError, UserWarning):
+        raise InvalidOptionError(f"time {value!r} is neither a number nor an ISO date (2024-05-01, "
+                                 "2024-05-01T12:00 or 2024-05-01T12:00:00.5+02:00)") from None
+    return float((stamp - np.datetime64("1970-01-01T00:00:00", "us")).astype(np.int64)) / 86_400e6, "date"
+
+
+_ZONE = re.compile(r"(Z|([+-])(\d\d):?(\d\d)?)$", re.IGNORECASE)  # an ISO time's zone: Z, +02, +0200, +02:00
 
 
 def parse_times(values) -> tuple[np.ndarray, str]:
@@ -463,7 +481,8 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     cylinder = as_options(Cylinder, cylinder, "cylinder")  # the defaults where none was given
     t, kind, source, note = _resolve_times(epochs, times)
     if len(np.unique(t)) != len(t):
-        raise InvalidOptionError(f"two epochs have the time {_show_time(t[np.argmax(np.diff(np.sort(t)) == 0)], kind)}"
+        twice = np.sort(t)[np.argmax(np.diff(np.sort(t)) == 0)]
+        raise InvalidOptionError(f"two epochs have the time {_show_time(twice, kind)}"
                                  f" ({source}): give distinct --times")
     if np.any(np.diff(t) <= 0):
         raise InvalidOptionError("the times of the epochs must increase, in the order given"
@@ -542,9 +561,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
 
 
 def _show_time(value: float, kind: str) -> str:
-    if kind == "date":
-        return str(np.datetime64("1970-01-01T00:00:00", "s") + np.timedelta64(int(round(value * 86400)), "s"))
-    return f"{value:g}"
+    return A.show_time(value, kind)
 
 
 def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registration, reg_opt, limit, fmt, t_start,

@@ -760,13 +760,14 @@ def _epoch_table(attrs: dict) -> str:
     the alignment's rotation and residual (what the collapsed JSON alone held)."""
     from scipy.spatial.transform import Rotation
 
+    from ..timeseries._archive import show_time
+
     epochs = attrs["epochs"]
     ref = attrs["parameters"]["used"]["reference"]
     rows = []
     for k, e in enumerate(epochs[:_TABLE_ROWS]):
         t = e["time"]
-        when = (str(np.datetime64("1970-01-01T00:00:00", "s") + np.timedelta64(int(round(t * 86400)), "s"))
-                if attrs.get("time_kind") == "date" else f"{t:g}")
+        when = show_time(t, attrs.get("time_kind"))
         share = ("reference" if k == ref else f"{e['significant'] / e['comparable']:.1%}" if e["comparable"]
                  else "not measured")
         al = e.get("alignment")
