@@ -1081,3 +1081,29 @@ def test_an_aligned_epoch_is_aligned_on_its_stable_part(tmp_path):
     assert np.nanmedian(np.abs(last[still])) < 0.3e-3  # 2.3 mm when aligned on every point
     assert np.nanmedian(last[(x < 1.5) & (z > 2.5)]) == pytest.approx(0.02, abs=1e-3)  # 12 mm then
     assert ds.attrs["epochs"][4]["alignment"]["stable_points"] > 0.5 * 40_000
+
+
+def test_summary_names_partial_epochs_and_registration_errors_to_look_at(slope, tmp_path):
+    """An epoch raised as a whole (snow: its measured registration error absorbs the change), one
+    scanned at 1 % of its points (too few stable places: M3C2's 0) are named, with why."""
+    rng = np.random.default_rng(0)
+    files = []
+    for k in range(6):
+        e = slope.epochs[k].copy()
+        if k == 2:
+            e[:, 2] += 0.3
+        if k == 4:
+            e = e[rng.random(len(e)) < 0.01]
+        sdp.write_points(tmp_path / f"e{k}.ply", e)
+        files.append(tmp_path / f"e{k}.ply")
+    run = series_files(files, output=tmp_path / "s.zarr", options={"cylinder": CYL})
+    text = run.summary_text()
+    assert "registration error measured on the stable part of 4 of 5 epochs; 0 on epoch(s) 4: fewer than 100" in text
+    assert f"epoch 4 ({files[4]}): measured at " in text and "a partial scan?" in text
+    large = run.summary["registration"]["large"]
+    assert [e["epoch"] for e in large] == [2] and large[0]["registration_error"] == pytest.approx(0.3, rel=0.6)
+    assert f"epoch 2 ({files[2]}): registration error" in text and "epoch 3 (" not in text
+    from sdp.viz._report import _epoch_table
+
+    table = _epoch_table(sdp.open_series(tmp_path / "s.zarr").attrs)
+    assert table.count("0 (M3C2&#x27;s 0: fewer than 100 stable places)") == 1  # escaped in HTML

@@ -270,6 +270,29 @@ def _write_points(ds, path, points, inputs, field_names: str) -> None:
             table.to_csv(tmp, index=False)
 
 
+def _epoch_notices(epochs: list, ref: int) -> dict:
+    """The epochs a reader should look at twice, from their records: measured at fewer than half the
+    core points of the median epoch (a partial scan: its objects may break there); a registration
+    error measured as M3C2's 0 (too few stable places), or more than three times both the median of
+    the others and the epoch's own random part (the epoch moved as a whole: a misaligned scan, or a
+    change everywhere such as snow, which the measured error then hides)."""
+    others = [(k, e) for k, e in enumerate(epochs) if k != ref and e["comparable"] > 0]
+    counts = np.array([e["comparable"] for _, e in others])
+    partial = [{"epoch": k, "file": e["file"], "comparable": e["comparable"], "median": int(np.median(counts))}
+               for k, e in others if e["comparable"] < 0.5 * np.median(counts)]
+    auto = [(k, e) for k, e in others if e.get("registration_source", "given") != "given"]
+    fell_back = [{"epoch": k, "file": e["file"]} for k, e in auto if not e["registration_source"].startswith("measured")]
+    large = []
+    for k, e in auto:
+        rest = [o["registration_error"] for j, o in auto if j != k]
+        typical = float(np.median(rest)) if rest else 0.0
+        if e.get("random_sd") is not None and e["registration_error"] > 3 * max(typical, e["random_sd"]):
+            large.append({"epoch": k, "file": e["file"], "registration_error": e["registration_error"],
+                          "median_others": typical, "random_sd": e["random_sd"]})
+    return {"partial_epochs": partial, "registration": {"auto_epochs": len(auto), "fell_back": fell_back,
+                                                        "large": large}}
+
+
 def describe_series(path) -> dict:
     """What ``sdp info ARCHIVE.zarr`` prints: epochs, times, core points, objects, every parameter
     (read with zarr: no dataset is opened)."""
@@ -308,6 +331,7 @@ def describe_series(path) -> dict:
             # a file in another frame, or of another place, gives an epoch measured nowhere
             "unmeasured_epochs": [{"epoch": k, "file": e["file"]} for k, e in enumerate(epochs)
                                   if k != ref and e["comparable"] == 0],
+            **_epoch_notices(epochs, ref),
             "median_abs_smoothed_last": float(np.nanmedian(np.abs(last))) if np.isfinite(last).any() else None,
             "max_abs_velocity_last": float(np.nanmax(np.abs(vel))) if np.isfinite(vel).any() else None,
             "objects": len(table), "largest_objects": table[:10], "parameters": attrs["parameters"],

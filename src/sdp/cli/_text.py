@@ -245,6 +245,19 @@ def distance_text(s: dict, reference, current) -> str:
     return "\n".join(lines)
 
 
+def _registration_text(p: dict, r: dict | None) -> str:
+    if p["registration_error"] != "auto":
+        return str(p["registration_error"])
+    if not r or not r["auto_epochs"]:  # an archive written before the records said which epochs fell back
+        return "measured on each epoch's stable part (0 where fewer than 100 places are stable)"
+    back = r["fell_back"]
+    text = f"measured on the stable part of {r['auto_epochs'] - len(back)} of {r['auto_epochs']} epochs"
+    if back:
+        shown = ", ".join(str(e["epoch"]) for e in back[:8]) + (", …" if len(back) > 8 else "")
+        text += f"; 0 on epoch(s) {shown}: fewer than 100 stable places"
+    return text
+
+
 def series_text(s: dict) -> str:
     """The summary of ``sdp series`` / ``sdp info ARCHIVE.zarr`` as text."""
     p = s["parameters"]["used"]
@@ -253,9 +266,7 @@ def series_text(s: dict) -> str:
     lines = [f"{s['path']}: {s['epochs']} epochs ({', '.join(s['time_source'])} times, {s['first_time']} .. "
              f"{s['last_time']}) at {s['core_points']:,} core points against {s['reference']}",
              f"  scales: projection {p['projection_scale']:.4g}, normal {p['normal_scale']:.4g}, search "
-             f"{p['max_distance']:.4g}; registration error "
-             + ("measured on each epoch's stable part (0 where fewer than 100 places are stable)" if p["registration_error"] == "auto"
-                else str(p["registration_error"])),
+             f"{p['max_distance']:.4g}; registration error " + _registration_text(p, s.get("registration")),
              f"  significant: {100 * s['significant_fraction']:.1f} % of the (epoch, core point) measured after "
              f"the reference; smoother: process "
              f"noise {sm.get('process_noise', float('nan')):.3g}, velocity {sm.get('velocity', '')}",
@@ -263,6 +274,14 @@ def series_text(s: dict) -> str:
     for e in s.get("unmeasured_epochs", []):
         lines.append(f"  epoch {e['epoch']} ({e['file']}): no core point has a distance; is it of the same place, in "
                      "the same frame?")
+    for e in s.get("partial_epochs", []):
+        lines.append(f"  epoch {e['epoch']} ({e['file']}): measured at {e['comparable']:,} core points, the median "
+                     f"epoch at {e['median']:,}: a partial scan? Objects through it may break there")
+    for e in (s.get("registration") or {}).get("large", []):
+        lines.append(f"  epoch {e['epoch']} ({e['file']}): registration error {e['registration_error']:.4g} measured, "
+                     f"over 3 times the others' median {e['median_others']:.3g} and its random part "
+                     f"{e['random_sd']:.3g}: it moved as a whole (misaligned, or changed everywhere, which this "
+                     "error hides); give --registration-error or --align")
     for o in s["largest_objects"][:5]:
         lines.append(f"    #{o['id']}: epochs {o['start']}..{o['end']}, {o['core_points']} core points, "
                      f"peak {o['peak_change']:+.4g}, mean velocity {o['mean_velocity']:+.4g}")

@@ -49,6 +49,7 @@ from .._core._points import as_points
 from .._core._validate import auto_or_nonnegative, auto_or_positive, boolean, integer_at_least
 from ..defaults import DEFAULTS
 from ..distance._distances import _sensor_per_point
+from ..distance._level import LEVEL_Z
 from ..distance._reference import PreparedReference, subsample
 from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 from ..fields._spacing import resolve_lattice
@@ -560,6 +561,14 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     return out
 
 
+def _random_sd(d) -> float | None:
+    """The median random part of an epoch's level (its level of detection without the registration
+    error, over 1.96): what an epoch's registration error is weighed against in the summary."""
+    if not d.comparable.any():
+        return None
+    return float(np.median(d.lod[d.comparable]) / LEVEL_Z - d.registration_error)
+
+
 def _show_time(value: float, kind: str) -> str:
     return A.show_time(value, kind)
 
@@ -649,7 +658,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registrati
                     write_rows()
                 record.update(registration_error=float(d.registration_error),
                               registration_source=d.registration_source, points=int(n_points),
-                              comparable=int(d.comparable.sum()), significant=int(d.significant.sum()))
+                              comparable=int(d.comparable.sum()), significant=int(d.significant.sum()),
+                              random_sd=_random_sd(d))
                 attrs["epochs"].append(record)
                 del cloud, xyz, d
         write_rows()

@@ -776,8 +776,10 @@ def _epoch_table(attrs: dict) -> str:
             moved = f"rotation {angle:.4f}°, residual {al['rmse']:.4g} m (RMS)"
         else:
             moved = "reference" if k == ref else "not aligned"
-        rows.append((str(k), when, f"{e['points']:,}", f"{e['comparable']:,}", share,
-                     f"{e['registration_error']:.4g}", moved))
+        reg = f"{e['registration_error']:.4g}"
+        if k != ref and e.get("registration_source", "given") not in ("given", "measured on the stable part"):
+            reg += f" ({e['registration_source']})"  # why a measured error is 0
+        rows.append((str(k), when, f"{e['points']:,}", f"{e['comparable']:,}", share, reg, moved))
     more = f" (the first {_TABLE_ROWS} of {len(epochs):,})" if len(epochs) > _TABLE_ROWS else ""
     return (f"<h3>Epochs{more}</h3>"
             + _table(("epoch", "time", "points", "core points measured", "significant (of those measured)",
