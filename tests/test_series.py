@@ -80,6 +80,8 @@ def test_a_core_point_not_seen_at_an_epoch_is_in_no_object_there(slope, tmp_path
     assert disk.sum() >= 5 and unseen[k][disk].all() and np.isfinite(ds.smoothed.values[k][disk]).all()
     assert not (ds.object.values[unseen] > 0).any()
     assert [(ds.object.values[e][disk] > 0).mean() for e in (k - 1, k, k + 1)] == [1.0, 0.0, 1.0]
+    # the same object: a change not seen for an epoch has not ended there (it was two objects)
+    assert set(ds.object.values[k - 1][disk]) == set(ds.object.values[k + 1][disk])
 
 
 def test_each_epoch_equals_sdp_distances_on_that_pair(tmp_path):

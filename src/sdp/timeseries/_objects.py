@@ -18,6 +18,9 @@ objects never change once its smoothed values are final (:mod:`sdp.timeseries._k
   before (two changes that meet are two objects, the younger ending where they meet), and a
   track that is not yet an object is taken in whole;
 - a set's track splits when it does: the parts keep its id;
+- a track none of whose core points was measured at an epoch (a partial scan) waits: its points
+  keep their track and sign, and it goes on where they are seen again, under its id (not seen is
+  not the end of a change either);
 - a track becomes an object at the first epoch at which ``min_points`` of its core points are
   changed together (:func:`min_object_points`: ten, or as many as cover three cylinders'
   footprints where core points are denser than the cylinders, which then share their noise);
@@ -350,6 +353,25 @@ class Tracker:
             step, self.onset, self.onset_kind, self.seen_sign, self.seen_at,
             *(live[key] for key in _TRACK if key != "end"))
         nxt = dict(zip(_TRACK, (uid, obj, first, end, peak, vsum, vcount)))
+        # not seen is not the end of a change either: a track none of whose points was seen at this
+        # epoch waits, its points keeping their track and sign, and goes on where they are seen again
+        seen = np.isfinite(sigma)  # not seen: a NaN σ (sdp.timeseries._compute)
+        before = self.track >= 0
+        waits = (np.bincount(self.track[before], minlength=len(live["uid"])) > 0) & (
+            np.bincount(self.track[before & seen], minlength=len(live["uid"])) == 0)
+        if waits.any():
+            done, gone = done[~waits[done]], gone[~waits[gone]]
+            for key in _TRACK:
+                nxt[key] = np.concatenate([nxt[key], live[key][waits]])
+        next_track, next_sign = track.copy(), sign.copy()
+        carried = np.flatnonzero(before & ~seen)
+        if carried.size and nxt["uid"].size:  # into their track's place among the next live ones, if it lives on
+            order = np.argsort(nxt["uid"])
+            was = live["uid"][self.track[carried]]
+            place = order[np.minimum(np.searchsorted(nxt["uid"], was, sorter=order), len(order) - 1)]
+            lives = nxt["uid"][place] == was
+            next_track[carried[lives]] = place[lives]
+            next_sign[carried[lives]] = self.sign[carried[lives]]
         # live tracks not continued: objects end the epoch before; others are taken in whole by a
         # set they touch (their points then count for it), or are noise that ends
         o = live["obj"][done] - 1
@@ -371,9 +393,8 @@ class Tracker:
             for key in _OBJECT:
                 self.objects[key] = np.concatenate([self.objects[key], np.zeros(born, self.objects[key].dtype)])
             self.objects["start"][-born:] = k
-        self.live, self.track = nxt, track
-        self.sign, self.epoch = sign, k
-        seen = np.isfinite(sigma)  # not seen: a NaN σ (sdp.timeseries._compute)
+        self.live, self.track = nxt, next_track
+        self.sign, self.epoch = next_sign, k
         self.seen_sign[seen], self.seen_at[seen] = sign[seen], k
         return labels
 
