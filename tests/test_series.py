@@ -1109,3 +1109,41 @@ def test_summary_names_partial_epochs_and_registration_errors_to_look_at(slope, 
 
     table = _epoch_table(sdp.open_series(tmp_path / "s.zarr").attrs)
     assert table.count("0 (M3C2&#x27;s 0: fewer than 100 stable places)") == 1  # escaped in HTML
+
+
+def test_a_step_across_a_gap_after_close_epochs_is_a_step():
+    """Four epochs an hour apart, then every two days, a 3 cm step at the first of these: the rate
+    known from the first hours only made the prediction across the gap too wide for the innovation
+    to see the step, which was read as creep (0.006 per day everywhere). The two epochs around the
+    gap tell it: a step, and a velocity of 0 within its σ at the flat last epochs."""
+    rng = np.random.default_rng(7)
+    t = np.array([0, 1 / 24, 2 / 24, 3 / 24, 3, 5, 7, 9])
+    sd = 0.0029
+    z = np.where(np.arange(8)[:, None] >= 4, 0.03, 0.0) + sd * rng.standard_normal((8, 300))
+    z[0] = 0.0  # the reference against itself
+    var = np.full(z.shape, sd**2)
+    sm, vel, ssd, vsd, step, _ = kalman(z, var, t, 3.5e-9, lag=16, scale=sd, dt=2.0, reference=0)
+    assert (step == 4).mean() > 0.95, np.unique(step, return_counts=True)
+    assert np.mean(np.abs(vel[-1]) < 1.96 * vsd[-1]) > 0.9 and abs(np.median(vel[-1])) < 0.001
+    assert np.median(np.abs(sm[:4])) < 0.001 and np.median(np.abs(sm[4:] - 0.03)) < 0.002
+
+
+def test_the_reference_epoch_is_pinned_at_zero(tmp_path):
+    """Accelerating subsidence: a straight line through the epochs put the reference 5 mm above
+    itself, significant, and an object started at the reference. Its distance to itself is exactly
+    0: the smoothed change there is 0 ± 0, whichever epoch is the reference."""
+    rng = np.random.default_rng(3)
+    t = np.arange(8.0)
+    z = -0.002 * t[:, None] ** 2 + 0.003 * rng.standard_normal((8, 50))
+    for ref in (0, 2):
+        zr = z - z[ref]
+        zr[ref] = 0.0
+        sm, vel, ssd, vsd, step, _ = kalman(zr, np.full(z.shape, 0.003**2), t, 1e-10, lag=4, scale=0.003, dt=1.0,
+                                            reference=ref)
+        assert np.all(sm[ref] == 0) and np.all(ssd[ref] == 0) and np.all(np.isfinite(vel)) and np.all(vsd > 0)
+    s = slope_series(6, 12_000, size=12.0, creep_rate=0.0, step=0.0, seed=3)
+    eps = [e - 0.002 * k**2 * s.normal for k, e in enumerate(s.epochs)]
+    ds = sdp.series(eps, output=tmp_path / "s.zarr", cylinder=CYL, registration_error=0.002)
+    assert np.all(ds.smoothed.values[0] == 0) and np.all(ds.smoothed_sigma.values[0] == 0)
+    assert 0 not in ds.object_start.values.tolist() and not (ds.object.values[0] > 0).any()
+    assert np.all(ds.smoothed_sigma.values[1:] > 0)

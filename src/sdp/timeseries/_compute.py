@@ -675,6 +675,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registrati
         fresh = None if fresh is None else tuple(map(np.stack, zip(*fresh)))
         q, info, held, filt, step, recent = _smooth_all(w, E, m, times, reg, ref_var, limit, lag=lag,
                                                         first_epochs=first_epochs,
+                                                        reference=int(params["used"].get("reference", 0)),
                                                         frozen=params["smoother"] if go_on else None, state=filt,
                                                         recent=recent, fresh=fresh)
         timings["smoother"] = time.perf_counter() - t0
@@ -794,14 +795,16 @@ def _noise_epochs(E: int) -> int:
 
 
 def _smooth_all(w, E: int, m: int, times: np.ndarray, reg: np.ndarray, ref_var: np.ndarray, limit: float, *,
-                lag: int, first_epochs: int, frozen: dict | None, state: FilterState | None, recent=None, fresh=None):
+                lag: int, first_epochs: int, reference: int, frozen: dict | None, state: FilterState | None,
+                recent=None, fresh=None):
     """The smoother over blocks of core points (their number from the memory limit), from the
     saved filter ``state`` (an append) or the first epoch; the noise ``frozen`` (an append's) or
     estimated from the first ``first_epochs`` epochs. Returns (q, info, the rows written of
     (smoothed, smoothed_sigma, velocity) and where they had no distance if one block held them, else None, the filter state to
     save, each point's first step). ``reg``: each epoch's registration error; ``ref_var``: each
-    core point's reference variance (ref_spread² / ref_count). ``fresh``: this run's rows of
-    distance and lod, if kept (else read from the archive)."""
+    core point's reference variance (ref_spread² / ref_count), added to every row's smoothed variance
+    but the ``reference`` epoch's, whose distance to itself is exactly 0 (pinned by the smoother).
+    ``fresh``: this run's rows of distance and lod, if kept (else read from the archive)."""
     names = ("smoothed", "velocity", "smoothed_sigma", "velocity_sigma")
     f = -1 if state is None else state.epoch
     r0, a0 = max(f, 0), f + 1  # the first row written, the first epoch read
@@ -859,6 +862,9 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, reg: np.ndarray, ref_var: 
     step = np.full(m, -1, np.int32)
     saved = []
     held = None
+    # the reference's row among those written: where it has a distance (0 to itself), the smoother pinned it
+    ref_row = reference - r0 if r0 <= reference < E else None
+    ref_seen = np.isfinite(dist[reference]) if ref_row is not None else None
     for a in range(0, m, col):
         b = min(m, a + col)
         zc, lc = whole if whole is not None else inputs(a, b)
@@ -868,8 +874,12 @@ def _smooth_all(w, E: int, m: int, times: np.ndarray, reg: np.ndarray, ref_var: 
             z = zc[:, c:d].astype(np.float64)
             var = observation_variance(lc[:, c:d], reg[a0:], ref_var[a + c:a + d])
             sm, vel, ssd, vsd, step[a + c:a + d], kept = kalman(z, var, times, q, lag=lag, scale=scale, dt=dt,
-                                                                state=state.columns(a + c, a + d))
-            ssd = np.sqrt(ssd**2 + ref_var[a + c:a + d])  # the reference's error, shared by every epoch
+                                                                state=state.columns(a + c, a + d),
+                                                                reference=reference)
+            shared = np.broadcast_to(ref_var[a + c:a + d], ssd.shape).copy()  # the reference's error, in every epoch
+            if ref_row is not None:
+                shared[ref_row, ref_seen[a + c:a + d]] = 0.0  # but the reference's own
+            ssd = np.sqrt(ssd**2 + shared)
             for out, v in zip(results, (sm, vel, ssd, vsd)):
                 out[:, c:d] = v
             saved.append(kept)

@@ -31,8 +31,15 @@ Not-comparable epochs are skipped (prediction only).
   level) is a change of rate: a steady
   change faster than the noise, which a step at every epoch would leave with no rate at all. The
   rate's variance is then raised by that rate's square too, so the filter learns it; its epoch is
-  no step (the onset is gradual).
-- **The rate starts at 0 ± one of the point's noise deviations per time step** at its first
+  no step (the onset is gradual). Where the level's prediction is wider than one epoch's noise
+  (extrapolated across a gap at a rate few epochs told), the innovation alone cannot see a step:
+  the pair of epochs is then judged by a likelihood ratio [5]_ (:func:`_level_shift`), and a
+  level shift that explains them better than an outlier or a change of rate is a step.
+- **The reference is pinned**: its distance to itself is exactly 0, an observation of variance 0,
+  so the smoothed change there is 0 ± 0 (the reference's shared part is not added to it).
+- **The rate starts at 0 ± one of the point's noise deviations per typical time step** (the
+  series' median interval, not the next one: epochs an hour apart do not make a rate of 24 deviations
+  a day plausible) at its first
   observation (the change itself starts diffuse). A diffuse rate is set by the second epoch, so a
   step right after the reference would read as a rate, and the third epoch, predicted twice as
   far, as another step.
@@ -59,6 +66,8 @@ References
    systems", AIAA Journal 3(8) (1965) 1445–1450.
 .. [4] S. Särkkä, "Bayesian Filtering and Smoothing", Cambridge University Press (2013), ch. 8
    (fixed-lag smoothing).
+.. [5] A. S. Willsky, H. L. Jones, "A generalized likelihood ratio approach to the detection and
+   estimation of jumps in linear systems", IEEE Trans. Automatic Control 21(1) (1976) 108–112.
 """
 
 from __future__ import annotations
@@ -171,6 +180,37 @@ def _root(f, lo: float, hi: float, *, rtol: float = 1e-12, most: int = 100) -> f
     return hi
 
 
+@nb.njit(cache=True, inline="always")
+def _level_shift(d2, nu, x1, p00, p01, p11, s, h, before, q, var2, step_k):
+    """The level shift at an epoch judged with the next comparable one ``h`` later (0.0: none):
+    the generalised likelihood ratio of a jump in a linear system (Willsky and Jones [5]_) on the
+    pair of innovations. Predicted from the state before the epoch, the pair ``(nu, nu + d2 −
+    h·x1)`` has the covariance of the two predictions plus their noise; each alternative explains
+    it along its own direction ``a``: a level shift ``(1, 1)``, an outlier at either epoch ``(1,
+    0)`` or ``(0, 1)``, a change of rate from the observation ``before`` earlier ``(before, before
+    + h)``. The shift's estimate is returned when its statistic ``(a'S⁻¹ν)² / a'S⁻¹a`` is beyond
+    ``step_k²`` and above every other's: a jump across a long gap whose prediction was wide with
+    the rate's uncertainty, with the epochs on both sides at their own level, is a step."""
+    nu2 = nu + d2 - h * x1
+    s12 = p00 + h * p01
+    s22 = p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3.0 + var2
+    det = s * s22 - s12 * s12
+    if not det > 0.0:
+        return 0.0
+    i11, i12, i22 = s22 / det, -s12 / det, s / det
+    b1, b2 = i11 * nu + i12 * nu2, i12 * nu + i22 * nu2  # S⁻¹ν
+    best = -1.0
+    for a1, a2 in ((1.0, 0.0), (0.0, 1.0), (before, before + h)):
+        num = a1 * b1 + a2 * b2
+        den = a1 * a1 * i11 + 2 * a1 * a2 * i12 + a2 * a2 * i22
+        if den > 0.0 and num * num / den > best:
+            best = num * num / den
+    num, den = b1 + b2, i11 + 2 * i12 + i22
+    if not den > 0.0 or num * num / den <= max(best, step_k * step_k):
+        return 0.0
+    return num / den
+
+
 class FilterState:
     """Each core point's filter after one epoch (``epoch``; -1: before the first), which a later
     run filters on from: the state ``(d, v)``, its covariance (00, 01, 11) and the time of the last
@@ -191,7 +231,7 @@ class FilterState:
 
 
 def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, lag: int, scale: float, dt: float,
-           state: FilterState | None = None, step_k: float = _STEP_K):
+           state: FilterState | None = None, step_k: float = _STEP_K, reference: int | None = None):
     """Kalman filter and fixed-lag RTS smoother of each column of ``z``.
 
     Parameters
@@ -213,6 +253,9 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, lag: int,
         The filter after epoch ``state.epoch`` (default: before the first epoch).
     step_k : float
         Innovations beyond this many standard deviations, confirmed by the next epoch, are steps.
+    reference : int, optional
+        The reference epoch (among all ``E``): its distance to itself is exactly 0, an observation
+        of variance 0 (``var`` is not read there), so the change there is 0 ± 0. None: no epoch is.
 
     Returns
     -------
@@ -243,7 +286,8 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, lag: int,
     step = state.step.copy()
     # the inputs with each point's epochs side by side, as the kernel reads them
     _fixed_lag(np.ascontiguousarray(z.T), np.ascontiguousarray(var.T), t, float(q), float(step_k), big_d, float(dt),
-               int(lag), state.epoch, np.ascontiguousarray(state.x), keep, x_out, seen, step, out)
+               int(lag), state.epoch, np.ascontiguousarray(state.x), keep, x_out, seen, step, out,
+               -1 if reference is None else int(reference))
     if keep > state.epoch:
         saved = FilterState(keep, x_out, np.where(seen <= keep, seen, 2**62), np.where(step <= keep, step, -1)
                             .astype(np.int32))
@@ -253,7 +297,7 @@ def kalman(z: np.ndarray, var: np.ndarray, t: np.ndarray, q: float, *, lag: int,
 
 
 @nb.njit(cache=True, parallel=True)
-def _fixed_lag(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen, step, out):
+def _fixed_lag(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen, step, out, ref):
     """:func:`kalman`'s kernel on (points, epochs) arrays, one core point per iteration (its epochs
     in a scratch of ten values per epoch): filtered on from epoch ``f`` (state ``x_in``), the state
     after epoch ``keep`` written to ``x_out``, rows from ``max(f, 0)`` smoothed into ``out``."""
@@ -269,12 +313,12 @@ def _fixed_lag(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen,
         Pf = np.empty((R, 3))
         for j in range(block * per, min(m, block * per + per)):
             _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
-                       xp, Pp, xf, Pf)
+                       xp, Pp, xf, Pf, ref)
 
 
 @nb.njit(cache=True, inline="always")
 def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen, step, out, j, E, base,
-               xp, Pp, xf, Pf):
+               xp, Pp, xf, Pf, ref):
     """:func:`_fixed_lag` for core point ``j`` in the scratch ``xp, Pp, xf, Pf``."""
     last_seen = np.nan  # the time of the last observation
     if f >= 0:
@@ -295,40 +339,46 @@ def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen,
             x0 = x0 + h * x1
             p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + q * h**3 / 3.0,
                              p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
-        ok = np.isfinite(z[j, w]) and np.isfinite(var[j, w]) and var[j, w] > 0
+        pinned = k == ref and np.isfinite(z[j, w])  # the reference against itself: exactly 0, variance 0
+        ok = pinned or (np.isfinite(z[j, w]) and np.isfinite(var[j, w]) and var[j, w] > 0)
         if ok and seen[j] > k:
             seen[j] = k
             # the first observation: the change diffuse, its rate 0 ± _RATE_PRIOR of the point's
-            # noise deviations (this epoch's or the next one's, the larger) per time step
-            h, v = dt, var[j, w]
-            if k < E - 1:
-                h = t[k + 1] - t[k]
-                if np.isfinite(var[j, w + 1]) and var[j, w + 1] > v:
-                    v = var[j, w + 1]
+            # noise deviations (this epoch's or the next one's, the larger) per typical time step
+            v = var[j, w] if np.isfinite(var[j, w]) and var[j, w] > 0 else 0.0
+            if k < E - 1 and np.isfinite(var[j, w + 1]) and var[j, w + 1] > v:
+                v = var[j, w + 1]
             x0, x1 = 0.0, 0.0
-            p00, p01, p11 = big_d, 0.0, _RATE_PRIOR * _RATE_PRIOR * v / (h * h)
+            p00, p01, p11 = big_d, 0.0, _RATE_PRIOR * _RATE_PRIOR * v / (dt * dt)
         nu = z[j, w] - x0 if ok else 0.0
-        s = p00 + var[j, w] if ok else np.inf
-        if ok and k > 0 and abs(nu) > step_k * np.sqrt(s):
-            # beyond step_k deviations: a step if the next comparable epoch (within the lag, so
-            # that an append decides as the full run) lies as far on the same side, an outlier if
-            # it does not (the observation weighs as if its variance held the innovation); without
-            # one (the newest epochs, or none comparable) it counts as a step until one comes
+        s = p00 + (0.0 if pinned else var[j, w]) if ok else np.inf
+        if ok and k > 0:
+            # the next comparable epoch within the lag, so that an append decides as the full run
             nxt = -1
             for w2 in range(w + 1, min(w + lag, W - 1) + 1):
                 if np.isfinite(z[j, w2]) and np.isfinite(var[j, w2]) and var[j, w2] > 0:
                     nxt = w2
                     break
-            is_step = nxt < 0
+            shift = 0.0
+            if nxt >= 0 and not pinned and p00 > var[j, w]:
+                # the level predicted less well than one epoch measures it (extrapolated at an uncertain
+                # rate across a gap): the innovation alone cannot tell a step, the pair of epochs can
+                shift = _level_shift(z[j, nxt] - z[j, w], nu, x1, p00, p01, p11, s, t[f + 1 + nxt] - t[k],
+                                     t[k] - (last_seen if np.isfinite(last_seen) else t[k - 1]),
+                                     q, 0.0 if f + 1 + nxt == ref else var[j, nxt], step_k)
+            jump = abs(nu) > step_k * np.sqrt(s)
+            is_step = jump and (nxt < 0 or pinned)
             ramp = False
-            if not is_step:
+            if jump and not is_step:
+                # beyond step_k deviations: a step if the next comparable epoch lies as far on the
+                # same side, an outlier if it does not (the observation weighs as if its variance
+                # held the innovation); without one (the newest epochs, or none comparable) it
+                # counts as a step until one comes
                 h = t[f + 1 + nxt] - t[k]
                 nu2 = z[j, nxt] - (x0 + h * x1)
                 s2 = p00 + 2 * h * p01 + h * h * p11 + var[j, nxt]
                 is_step = abs(nu2) > step_k * np.sqrt(s2) and np.sign(nu) == np.sign(nu2)
-                if not is_step:
-                    s = s + nu * nu
-                else:
+                if is_step:
                     # a step stays at its new level; a change of rate goes on from it as far again
                     # (in proportion to the time since the observation before) by the next epoch:
                     # whichever the next epoch lies nearer to. A ramp (a steady change faster than
@@ -338,7 +388,19 @@ def _one_point(z, var, t, q, step_k, big_d, dt, lag, f, x_in, keep, x_out, seen,
                     ramp = np.sign(d2) == np.sign(nu) and abs(d2) > 0.5 * abs(nu) * h / before
                     if ramp:
                         p11 = p11 + (d2 / h) ** 2
-            if is_step:
+                elif shift == 0.0:
+                    s = s + nu * nu
+            if shift != 0.0 and not is_step:
+                # not seen by the innovation alone, or judged an outlier by the next epoch as far
+                # out, but the two epochs together are a level shift: a step across a gap the
+                # rate was extrapolated over
+                is_step = True
+                nu_open = max(nu * nu, shift * shift)
+                p00 = p00 + nu_open
+                s = s + nu_open
+                if step[j] < 0:
+                    step[j] = k
+            elif is_step:
                 p00 = p00 + nu * nu
                 s = s + nu * nu
                 if step[j] < 0 and not ramp:  # a ramp's start is an onset of the gradual kind
@@ -390,7 +452,11 @@ def _rts(t, xp, Pp, xf, Pf, base, end, stop, seen, out, j):
         a00, a01, a10, a11 = f00 + h * f01, f01, f01 + h * f11, f11
         b00, b01, b11 = Pp[r + 1, 0], Pp[r + 1, 1], Pp[r + 1, 2]
         det = b00 * b11 - b01 * b01
-        i00, i01, i11 = b11 / det, -b01 / det, b00 / det
+        if det > 1e-12 * b00 * b11:
+            i00, i01, i11 = b11 / det, -b01 / det, b00 / det
+        else:  # rank one (the level pinned at the reference, no process noise): the pseudo-inverse B / tr(B)²
+            tr2 = (b00 + b11) ** 2
+            i00, i01, i11 = (b00 / tr2, b01 / tr2, b11 / tr2) if tr2 > 0.0 else (0.0, 0.0, 0.0)
         c00, c01 = a00 * i00 + a01 * i01, a00 * i01 + a01 * i11
         c10, c11 = a10 * i00 + a11 * i01, a10 * i01 + a11 * i11
         e0, e1 = s0 - xp[r + 1, 0], s1 - xp[r + 1, 1]
