@@ -1147,3 +1147,20 @@ def test_the_reference_epoch_is_pinned_at_zero(tmp_path):
     assert np.all(ds.smoothed.values[0] == 0) and np.all(ds.smoothed_sigma.values[0] == 0)
     assert 0 not in ds.object_start.values.tolist() and not (ds.object.values[0] > 0).any()
     assert np.all(ds.smoothed_sigma.values[1:] > 0)
+
+
+def test_one_epoch_raised_as_a_whole_does_not_set_the_process_noise(tmp_path):
+    """Snow on one epoch of eight (+30 cm on every point): it enters three of the six triples the
+    process noise is read from at every core point, and made it 10⁹ times larger pooled, so that
+    the smoother followed it and the stable slope's velocity swung ±0.23 per epoch around it."""
+    s = slope_series(10, 12_000, size=12.0, step_epoch=40, seed=3)  # no step: stable and creeping
+    plain = sdp.series(s.epochs, output=tmp_path / "a.zarr", cylinder=CYL, registration_error=0.002)
+    epochs = [e.copy() for e in s.epochs]
+    epochs[4][:, 2] += 0.3
+    ds = sdp.series(epochs, output=tmp_path / "b.zarr", cylinder=CYL, registration_error=0.002)
+    q = ds.attrs["parameters"]["smoother"]["process_noise"]
+    assert q < 10 * plain.attrs["parameters"]["smoother"]["process_noise"]
+    stable = s.zone(np.c_[ds.x.values, ds.y.values, ds.z.values], margin=0.8) == 0
+    assert ds.significant.values[4][stable].mean() > 0.99  # measured as it was
+    assert np.abs(ds.velocity.values[:, stable]).max() < 0.005  # 0.23 per epoch around it before
+    assert not (ds.object.values[:, stable] > 0).any()  # one epoch the next does not confirm: an outlier

@@ -121,29 +121,45 @@ def _own_variance(lod, reg, ref_var, out):
 
 
 def _second_differences(z, var, t):
-    """(slope differences, their noise variance, (h₁+h₂)/3) of consecutive valid triples, flattened."""
+    """(slope differences, their noise variance, (h₁+h₂)/3, the triple's first epoch) of consecutive
+    valid triples, flattened."""
     h = np.diff(t)
     h1, h2 = h[:-1, None], h[1:, None]
     u = (z[2:] - z[1:-1]) / h2 - (z[1:-1] - z[:-2]) / h1
     noise = var[2:] / h2**2 + var[1:-1] * (1.0 / h1 + 1.0 / h2) ** 2 + var[:-2] / h1**2
     span = np.broadcast_to((h1 + h2) / 3.0, u.shape)
     ok = np.isfinite(u) & np.isfinite(noise) & (noise > 0)
-    return u[ok], noise[ok], span[ok]
+    return u[ok], noise[ok], span[ok], np.nonzero(ok)[0]
 
 
 def process_noise(z: np.ndarray, var: np.ndarray, t: np.ndarray, *, max_samples: int = 200_000) -> float:
     """The white-noise acceleration density ``q`` (see the module docstring) of series ``z``
-    (epochs, points) observed with variances ``var`` at times ``t``."""
+    (epochs, points) observed with variances ``var`` at times ``t``: the median over the triples of
+    consecutive epochs of each triple's own ``q`` (the one for which its slope differences spread as
+    their noise says, :func:`_triple_noise`; the lower of the two middle ones for an even count), so
+    that one epoch unlike the others (snow, a misregistered scan), which enters three triples at
+    every core point, moves it no more than a minority of triples can."""
     t = np.asarray(t, np.float64)
     if len(t) < 3:
         return 0.0
-    u, noise, span = _second_differences(np.asarray(z, np.float64), np.asarray(var, np.float64), t)
+    u, noise, span, triple = _second_differences(np.asarray(z, np.float64), np.asarray(var, np.float64), t)
     if u.size > max_samples:  # an even sample over epochs and points: the median needs no more
         step = u.size // max_samples + 1
-        u, noise, span = u[::step], noise[::step], span[::step]
+        u, noise, span, triple = u[::step], noise[::step], span[::step], triple[::step]
     floor = 1e-6 * float(np.median(noise)) / float(np.median(span)) if u.size else 0.0
     if u.size < 10:
         return floor
+    starts = np.flatnonzero(np.r_[True, triple[1:] != triple[:-1]])  # triples in order (row-major flattening)
+    ends = np.r_[starts[1:], u.size]
+    each = [_triple_noise(u[a:b], noise[a:b], span[a:b], floor) for a, b in zip(starts, ends) if b - a >= 10]
+    if not each:
+        return _triple_noise(u, noise, span, floor)
+    return float(np.sort(each)[(len(each) - 1) // 2])  # the lower median: one epoch in 3 of 6 triples moves it not
+
+
+def _triple_noise(u, noise, span, floor: float) -> float:
+    """The ``q`` for which the slope differences ``u`` spread (1.4826 × their median absolute
+    value over their deviation) as their noise and the process say, at least ``floor``."""
 
     def spread(q):
         return 1.4826 * np.median(np.abs(u) / np.sqrt(noise + q * span))
