@@ -232,3 +232,46 @@ def test_sdp_change_names_the_bag_message_and_refuses_one_message_against_itself
     with pytest.raises(sdp.SDPError, match="missing.bag: no such file"):
         compare_files(pcds[0], tmp_path / "missing.bag", output=tmp_path / "m.npz", topic="/points")
     assert sorted(f.name for f in tmp_path.iterdir()) == ["bag.npz", "grabber"]
+
+
+def room(n=3000, seed=0):
+    """An unorganized PointCloud2's records: the floor and two walls of a 4 m room."""
+    rng = np.random.default_rng(seed)
+    u, v = rng.random((2, n)) * 4
+    side = rng.integers(0, 3, n)
+    xyz = np.where(side[:, None] == 0, np.c_[u, v, 0 * u], np.where(side[:, None] == 1, np.c_[u, 0 * u, v / 2],
+                                                                     np.c_[0 * u, u, v / 2]))
+    rec = np.zeros(n, np.dtype({"names": ["x", "y", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8],
+                                "itemsize": 12}))
+    rec["x"], rec["y"], rec["z"] = xyz.T
+    return rec
+
+
+def in_frame(msg, frame):
+    import dataclasses
+
+    return dataclasses.replace(msg, header=dataclasses.replace(msg.header, frame_id=frame))
+
+
+def test_clouds_in_different_frames_are_refused_unless_aligned(tmp_path):
+    """A cloud in map against one in a camera's frame was compared as if both were in one frame."""
+    mapped = write_ros2(tmp_path / "map", [(1, in_frame(message(room(), 1, 3000), "map"))])
+    camera = write_ros2(tmp_path / "cam", [(1, in_frame(message(room(), 1, 3000), "camera_link")),
+                                           (2, in_frame(message(room(), 1, 3000), "/camera_link"))])
+    with pytest.raises(sdp.InvalidPointsError, match=r"in frame 'map', .*cam \(/points\) in frame 'camera_link'"):
+        sdp.compare_files(mapped, camera, output=tmp_path / "no.npz", topic="/points")
+    np.save(tmp_path / "ref.npy", np.c_[room()["x"], room()["y"], room()["z"]].astype(float))
+    sdp.compare_files(tmp_path / "ref.npy", camera, output=tmp_path / "file.npz", topic="/points")  # a file: no frame
+    r = sdp.compare_files(mapped, camera, output=tmp_path / "aligned.npz", topic="/points", align="gicp")
+    assert r.alignment is not None
+    # sdp watch: a bag's message against its frames, one of them in another frame
+    stream = write_ros2(tmp_path / "stream", [(1, in_frame(message(room(), 1, 3000), "camera_link")),
+                                              (2, in_frame(message(room(), 1, 3000), "/camera_link")),
+                                              (3, in_frame(message(room(), 1, 3000), "odom"))])
+    frames = watch_folder(stream, stream, topic="/points:0")
+    assert len([next(frames), next(frames)]) == 2  # a leading / is the same frame
+    with pytest.raises(sdp.InvalidPointsError, match=r"frame 000002@3 in frame 'odom'"):
+        next(frames)
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "change", mapped, camera, "--topic", "/points", "-o",
+                        tmp_path / "cli.ply"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "'camera_link'" in p.stderr

@@ -31,7 +31,7 @@ from ..options import Coverage, Execution, Lattice, NoiseModel, Outputs, Registr
 from . import _text as report
 from ..io._bag import is_bag
 from ._common import (align_clouds, alignment_summary, check_picture_extras, disappeared_path, is_store, pictures,
-                      read_input, sensor_origins)
+                      read_input, same_frame, sensor_origins)
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
 
@@ -340,7 +340,10 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
     ref, cur = (read_input(f, format=format, topic=topic) for f in (reference, current))
     t_read = time.perf_counter() - t0
     _check_in_memory(len(ref.xyz) + len(cur.xyz), memory_limit)
+    names = [f"{f} ({topic})" if is_bag(f) else str(f) for f in (reference, current)]  # which message
     alignment, moved = None, cur
+    if not align:  # registered, the current is moved into the reference's frame
+        same_frame(ref, cur, names)
     if align:
         alignment = align_clouds(ref, cur, (reference, current), align)
         moved = cur.transformed(alignment.matrix)  # the current scan's sensor moves with it
@@ -378,7 +381,6 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
     if report:
         outputs.append(str(report))
     summary["outputs"] = outputs
-    names = [f"{f} ({topic})" if is_bag(f) else str(f) for f in (reference, current)]  # which message
     summary["inputs"] = names  # before the report: its JSON is the summary --json prints
     if report:
         from ..change._visibility import sensor_range_noise

@@ -12,8 +12,8 @@ import numpy as np
 from ..errors import SDPError
 from ..options import Registration
 
-__all__ = ["is_store", "is_field", "disappeared_path", "sensor_origins", "align_clouds", "check_picture_extras",
-           "pictures"]
+__all__ = ["is_store", "is_field", "disappeared_path", "sensor_origins", "same_frame", "align_clouds",
+           "check_picture_extras", "pictures"]
 
 
 def is_store(path) -> bool:
@@ -45,6 +45,20 @@ def sensor_origins(choice, ref_scan, cur_scan, alignment=None):
         return choice
     cur_xyz = choice if alignment is None else alignment.apply(np.array([choice]))[0]
     return np.array([choice, cur_xyz], dtype=np.float64)
+
+
+def same_frame(ref, cur, names) -> None:
+    """Refuse (:class:`sdp.InvalidPointsError`, one line) two clouds that name different coordinate
+    frames (:attr:`sdp.io.Cloud.frame`: a bag message's ``header.frame_id``): a cloud in ``map``
+    against one in a camera's frame would be compared as if both were in one. A cloud that names
+    none (a file) is taken to be in the other's frame; registering one onto the other (``--align``)
+    puts them in one, so the caller skips this then."""
+    if ref.frame is not None and cur.frame is not None and ref.frame != cur.frame:
+        from ..errors import InvalidPointsError
+
+        raise InvalidPointsError(f"{names[0]} is in frame {ref.frame!r}, {names[1]} in frame {cur.frame!r}: the "
+                                 "points would be compared as if in one frame; give --align density (or gicp) to "
+                                 "register them, or clouds in one frame")
 
 
 def align_clouds(ref, cur, names, registration: Registration):

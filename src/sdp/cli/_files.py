@@ -18,7 +18,7 @@ from ..io._cloud import input_format
 from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, NoiseModel, Registration, as_options
 from . import _text as report
-from ._common import align_clouds, is_field, is_store, pictures, read_input, sensor_origins
+from ._common import align_clouds, is_field, is_store, pictures, read_input, same_frame, sensor_origins
 
 __all__ = ["build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder",
            "Evaluation", "evaluate_files", "render_file"]
@@ -369,9 +369,18 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     # an empty frame (a blinded sensor) is the stream's to report, not an error
     stream = bag_frames(folder, split_topic(topic)[0]) if bag else (
         (p.name, read_points(p, format=format, allow_empty=True)) for p in paths)
+    if bag and align is None and getattr(ref, "frame", None) is not None:  # a bag's message against a bag's
+        stream = _in_frame_of(ref, stream, f"{reference} ({topic})", f"{folder} ({split_topic(topic)[0]})")
     return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
                  min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin),
                  decision=decision, noise=noise)
+
+
+def _in_frame_of(ref, stream, ref_name: str, bag_name: str):
+    """The frames of ``stream``, each refused (:func:`same_frame`) if it names another frame than ``ref``."""
+    for name, cloud in stream:
+        same_frame(ref, cloud, (ref_name, f"{bag_name} frame {name}"))
+        yield name, cloud
 
 
 @dataclass

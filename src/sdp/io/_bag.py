@@ -137,12 +137,13 @@ def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
             if dropped:
                 xyz = xyz[finite]
                 fields = {k: v[finite] for k, v in fields.items()}
+            frame = str(msg.header.frame_id).strip().lstrip("/")
             # the summaries' coverage line says "no sensor position known"
-            world = str(msg.header.frame_id).strip().strip("/").lower() in WORLD_FRAMES
+            world = frame.lower() in WORLD_FRAMES
             image = (int(msg.height), int(msg.width)) if organized else None  # which pixels returned
             yield f"{index:06d}@{stamp}", Cloud(np.ascontiguousarray(xyz), fields, Path(path), dropped, None, None,
                                                  organized, None if world else np.zeros((1, 3)), None, image,
-                                                 np.flatnonzero(finite) if organized else None)
+                                                 np.flatnonzero(finite) if organized else None, frame or None)
             index += 1
     finally:
         reader.close()

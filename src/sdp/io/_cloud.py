@@ -120,6 +120,9 @@ class Cloud:
     pixels : ndarray of int64 (n,) or None
         With ``image``: the pixel (row · width + column) of each row kept, ascending, the others
         being the rays that returned nothing (:func:`sdp.change._range_image.camera_border`).
+    frame : str or None
+        The coordinate frame the points are in: a ROS bag message's ``header.frame_id`` (without
+        a leading ``/``). None for files, which do not name theirs.
     """
 
     xyz: np.ndarray
@@ -134,6 +137,7 @@ class Cloud:
     range_noise: float | None = None
     image: tuple | None = None
     pixels: np.ndarray | None = field(default=None, repr=False)
+    frame: str | None = None
 
     def __len__(self) -> int:
         return len(self.xyz)
