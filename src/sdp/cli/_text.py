@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..io._bag import frame_kind
+
 __all__ = ["change_text", "coverage_text", "alignment_text", "motion_text", "frame_text", "evaluation_text",
            "written_text", "train_text", "action_eval_text"]
 
@@ -88,7 +90,12 @@ def coverage_text(s: dict) -> str:
             return f"{kind}: the {other}'s sensor rays (origin {', '.join(f'{v:.4g}' for v in o)})"
         if how == "not measured":
             return f"{kind}: not measured"
-        return f"{kind}: the {other}'s footprint (no sensor position known)" if how == "footprint" else f"{kind}: off"
+        if how != "footprint":
+            return f"{kind}: off"
+        frame = s.get(other, {}).get("frame")
+        kind_of = {"world": "a world frame", "body": "a robot's body frame"}.get(frame_kind(frame))
+        why = f": {frame!r} is {kind_of}" if kind_of else ""
+        return f"{kind}: the {other}'s footprint (no sensor position known{why})"
     return "coverage: " + "; ".join((one("appeared", "reference"), one("disappeared", "current")))
 
 

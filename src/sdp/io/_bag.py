@@ -11,8 +11,9 @@ counted; a field of several values per point (``count`` > 1) is split as PCD fil
 and the sensor stands at the origin of the message's frame (``header.frame_id``: a camera's or a
 lidar's optical frame), so the visibility test of :func:`sdp.detect_changes` follows its rays
 unless the caller says otherwise (``--sensor-origin``). A cloud published in a world frame
-(REP 105's ``map``, ``odom``, ``earth``, or ``world``: a registered or accumulated cloud) says
-nothing of where its sensor stood: it is read without one.
+(REP 105's ``map``, ``odom``, ``earth``, or ``world``: a registered or accumulated cloud), or in a
+robot's body frame (``base_link``, ``base_footprint``, ``base_stabilized``: moved off its sensor),
+says nothing of where its sensor stood: it is read without one.
 
 References
 ----------
@@ -32,11 +33,14 @@ import numpy as np
 from ..errors import require
 from ._cloud import Cloud, CloudFileError, library_error, unpacked_colour
 
-__all__ = ["bag_frames", "bag_message", "bag_topics", "is_bag", "pointcloud2_arrays", "split_topic"]
+__all__ = ["bag_frames", "bag_message", "bag_topics", "frame_kind", "is_bag", "pointcloud2_arrays", "split_topic"]
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 #: Frames whose origin is no sensor (REP 105's world frames, and the usual name of the fixed one).
 WORLD_FRAMES = frozenset({"map", "odom", "earth", "world"})
+#: A robot's body frames (REP 105's base_link; base_footprint, its shadow on the floor, and
+#: base_stabilized, REP 120's): a cloud moved there from its sensor says nothing of where that stood.
+BODY_FRAMES = frozenset({"base_link", "base_footprint", "base_stabilized"})
 # sensor_msgs/PointField datatypes: INT8 … FLOAT64
 _TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
@@ -138,8 +142,7 @@ def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
                 xyz = xyz[finite]
                 fields = {k: v[finite] for k, v in fields.items()}
             frame = str(msg.header.frame_id).strip().lstrip("/")
-            # the summaries' coverage line says "no sensor position known"
-            world = frame.lower() in WORLD_FRAMES
+            world = frame_kind(frame) is not None  # the summaries' coverage line says "no sensor position known"
             image = (int(msg.height), int(msg.width)) if organized else None  # which pixels returned
             yield f"{index:06d}@{stamp}", Cloud(np.ascontiguousarray(xyz), fields, Path(path), dropped, None, None,
                                                  organized, None if world else np.zeros((1, 3)), None, image,
@@ -147,6 +150,13 @@ def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
             index += 1
     finally:
         reader.close()
+
+
+def frame_kind(frame: str | None) -> str | None:
+    """"world" (:data:`WORLD_FRAMES`) or "body" (:data:`BODY_FRAMES`) for a frame whose origin is no
+    sensor, else None (a sensor's frame, or none named)."""
+    name = (frame or "").lower()
+    return "world" if name in WORLD_FRAMES else "body" if name in BODY_FRAMES else None
 
 
 def pointcloud2_arrays(msg) -> tuple[np.ndarray, dict[str, np.ndarray], bool]:
