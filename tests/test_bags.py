@@ -288,3 +288,63 @@ def test_a_cloud_in_a_body_or_world_frame_has_no_sensor_and_the_summary_says_why
     assert r.summary["coverage"]["disappeared"] == "footprint" and r.summary["current"]["frame"] == frame.lstrip("/")
     kind = "a world frame" if frame == "map" else "a robot's body frame"
     assert f"current's footprint (no sensor position known: '{frame.lstrip('/')}' is {kind})" in r.summary_text()
+
+
+@pytest.mark.parametrize("fault, said", [
+    ("huge", r"b /points message 1: coordinates up to 3.4e\+38, beyond ±1e\+12, which no scene reaches"),
+    ("overlap", r"b /points message 1: PointCloud2 fields 'x' \(bytes 0–3\) and 'y' \(bytes 2–5\) overlap"),
+    ("signalling NaN", None)], ids=["huge", "overlap", "signalling NaN"])
+def test_a_corrupt_message_is_one_line_naming_bag_topic_and_message(tmp_path, fault, said):
+    """Corrupt messages leaked numpy's RuntimeWarnings and ended in a voxel or offset error naming nothing."""
+    import dataclasses
+    import warnings
+
+    rec = room()
+    msg = message(rec, 1, 3000)
+    if fault == "huge":
+        rec["x"][5] = 3.4e38
+        msg = message(rec, 1, 3000)
+    elif fault == "overlap":
+        PF = TS.types["sensor_msgs/msg/PointField"]
+        msg = dataclasses.replace(msg, fields=[PF(name="x", offset=0, datatype=7, count=1),
+                                               PF(name="y", offset=2, datatype=7, count=1),
+                                               PF(name="z", offset=8, datatype=7, count=1)])
+    else:
+        rec["y"].view(np.uint32)[10] = 0x7FA00000  # a float32 signalling NaN: a missing return as any NaN
+        msg = message(rec, 1, 3000)
+    bag = write_ros2(tmp_path / "b", [(1, message(room(), 1, 3000)), (2, msg)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        frames = bag_frames(bag, "/points")
+        next(frames)
+        if said is None:
+            assert next(frames)[1].n_dropped == 1
+        else:
+            with pytest.raises(CloudFileError, match=said):
+                next(frames)
+
+
+def test_a_corrupt_pcd_frame_is_named_by_sdp_watch(tmp_path):
+    """A PCD frame of sdp watch FOLDER: a signalling NaN is a missing return, coordinates the lattice can't place
+    are refused naming the file."""
+    import warnings
+
+    def pcd(path, xyz):
+        head = (f"VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {len(xyz)}\nHEIGHT 1\n"
+                f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(xyz)}\nDATA binary\n")
+        path.write_bytes(head.encode() + np.asarray(xyz, "<f4").tobytes())
+
+    xyz = np.c_[room()["x"], room()["y"], room()["z"]]
+    np.save(tmp_path / "ref.npy", xyz.astype(float))
+    (tmp_path / "frames").mkdir()
+    snan, huge = xyz.copy(), xyz.copy()
+    snan.view(np.uint32)[10, 1] = 0x7FA00000
+    huge[5, 0] = 3.4e38
+    pcd(tmp_path / "frames" / "0001.pcd", snan)
+    pcd(tmp_path / "frames" / "0002.pcd", huge)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        frames = watch_folder(tmp_path / "ref.npy", tmp_path / "frames")
+        assert next(frames).name == "0001.pcd"
+        with pytest.raises(sdp.InvalidPointsError, match=r"^frame 0002.pcd: coordinates up to 3.4e\+38 are"):
+            next(frames)

@@ -41,6 +41,9 @@ WORLD_FRAMES = frozenset({"map", "odom", "earth", "world"})
 #: A robot's body frames (REP 105's base_link; base_footprint, its shadow on the floor, and
 #: base_stabilized, REP 120's): a cloud moved there from its sensor says nothing of where that stood.
 BODY_FRAMES = frozenset({"base_link", "base_footprint", "base_stabilized"})
+#: Largest |coordinate| read from a message: a float32 field of noise reaches 3.4e38, and no scene
+#: (nor the lattice, 2**40 voxels from the origin) reaches 1e12 units.
+MAX_COORDINATE = 1e12
 # sensor_msgs/PointField datatypes: INT8 … FLOAT64
 _TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
@@ -120,7 +123,7 @@ def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
     index = 0
     try:
         while True:
-            where = f"{path} message {index}"
+            where = f"{path} {conns[0].topic} message {index}"
             try:  # a corrupt bag fails in the reader's iteration or in the message's decoding
                 item = next(messages, None)
                 if item is None:
@@ -141,6 +144,10 @@ def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
             if dropped:
                 xyz = xyz[finite]
                 fields = {k: v[finite] for k, v in fields.items()}
+            reach = float(np.abs(xyz).max()) if len(xyz) else 0.0
+            if reach > MAX_COORDINATE:
+                raise CloudFileError(f"{where}: coordinates up to {reach:.3g}, beyond ±{MAX_COORDINATE:.0e}, which no "
+                                     "scene reaches: a corrupt message")
             frame = str(msg.header.frame_id).strip().lstrip("/")
             world = frame_kind(frame) is not None  # the summaries' coverage line says "no sensor position known"
             image = (int(msg.height), int(msg.width)) if organized else None  # which pixels returned
@@ -175,6 +182,12 @@ def pointcloud2_arrays(msg) -> tuple[np.ndarray, dict[str, np.ndarray], bool]:
         offsets.append(int(f.offset))
     if not {"x", "y", "z"} <= set(names):
         raise CloudFileError(f"PointCloud2 fields {names} have no x, y, z")
+    spans = {n: (o, o + np.dtype(f).itemsize) for n, f, o in zip(names, formats, offsets)}
+    for a in ("x", "y", "z"):  # a coordinate shares no byte with another field (numpy would read them anyway)
+        for b, (lo, hi) in spans.items():
+            if b != a and lo < spans[a][1] and spans[a][0] < hi:
+                raise CloudFileError(f"PointCloud2 fields {a!r} (bytes {spans[a][0]}–{spans[a][1] - 1}) and {b!r} "
+                                     f"(bytes {lo}–{hi - 1}) overlap")
     try:
         dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
     except (TypeError, ValueError) as exc:
@@ -188,7 +201,8 @@ def pointcloud2_arrays(msg) -> tuple[np.ndarray, dict[str, np.ndarray], bool]:
     else:
         rows = [data[:h * w * step]]
     points = np.concatenate(rows).view(dtype) if h * w else np.zeros(0, dtype)
-    xyz = np.c_[points["x"], points["y"], points["z"]].astype(np.float64)
+    with np.errstate(invalid="ignore"):  # a signalling NaN is a missing return as any NaN
+        xyz = np.c_[points["x"], points["y"], points["z"]].astype(np.float64)
     organized = h > 1
     if organized:  # as PCD files: an organized cloud marks a missing return by NaN or by (0, 0, 0)
         xyz[~xyz.any(axis=1)] = np.nan

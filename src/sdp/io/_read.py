@@ -91,7 +91,8 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
         xyz = np.asarray(xyz)
         if xyz.dtype.kind not in "iuf":  # complex, text, structured: no coordinates to cast
             raise CloudFileError(f"{path}: coordinates of type {xyz.dtype} (expected real numbers)")
-        xyz = xyz.astype(np.float64, copy=False)
+        with np.errstate(invalid="ignore"):  # a signalling NaN is a missing return as any NaN: dropped below
+            xyz = xyz.astype(np.float64, copy=False)
     except EmptyCloudError:
         if not allow_empty:
             raise

@@ -284,7 +284,10 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
                 matrix, pose_kept = found.matrix, found.diverged
             cur = cur.moved(transform_points(matrix, cur.xyz))
             timings["align"] = time.perf_counter() - t
-        frame = DensityField.from_points(cur, **opts)
+        try:
+            frame = DensityField.from_points(cur, **opts)
+        except InvalidPointsError as exc:  # coordinates the lattice can't place (a corrupt frame): say which
+            raise InvalidPointsError(f"frame {name}: {exc}") from None
         t1 = time.perf_counter()
         seen = model.with_threshold(h=h * weight)
         mask, d = inside_difference(frame, seen, cur.xyz)
