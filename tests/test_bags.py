@@ -348,3 +348,12 @@ def test_a_corrupt_pcd_frame_is_named_by_sdp_watch(tmp_path):
         assert next(frames).name == "0001.pcd"
         with pytest.raises(sdp.InvalidPointsError, match=r"^frame 0002.pcd: coordinates up to 3.4e\+38 are"):
             next(frames)
+
+
+def test_one_bag_as_its_folder_and_its_storage_file_is_refused_as_one_message_against_itself(tmp_path):
+    bag = write_ros2(tmp_path / "b", [(1, message(room(), 1, 3000)), (2, message(room(seed=1), 1, 3000))])
+    (db3,) = bag.glob("*.db3")
+    for ref, cur in ((bag, db3), (db3, bag), (db3, tmp_path / "." / "b" / db3.name)):
+        with pytest.raises(sdp.SDPError, match="would be the same message"):
+            sdp.compare_files(ref, cur, output=tmp_path / "same.npz", topic="/points:1")
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["b"]

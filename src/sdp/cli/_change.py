@@ -29,7 +29,7 @@ from ..errors import SDPError
 from ..io._output import all_or_none, check_format, check_outputs
 from ..options import Coverage, Execution, Lattice, NoiseModel, Outputs, Registration, as_options
 from . import _text as report
-from ..io._bag import is_bag
+from ..io._bag import bag_path, is_bag
 from ._common import (align_clouds, alignment_summary, check_picture_extras, disappeared_path, is_store, pictures,
                       read_input, same_frame, sensor_origins)
 
@@ -300,7 +300,7 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     bags = [is_bag(f) for f in (reference, current)]
     if topic is not None and not any(bags):
         raise SDPError("--topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
-    if all(bags) and Path(reference).resolve() == Path(current).resolve():
+    if all(bags) and bag_path(reference) == bag_path(current):  # a ROS 2 bag's folder and its .db3 are one bag
         raise SDPError(f"{reference}: the reference and the current would be the same message ({topic}): compare a "
                        "bag's messages with sdp watch BAG_OR_REFERENCE BAG --topic TOPIC, or give each its own file")
     if any(bags) and execution.tiled:

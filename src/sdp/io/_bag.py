@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import require
 from ._cloud import Cloud, CloudFileError, library_error, unpacked_colour
 
-__all__ = ["bag_frames", "bag_message", "bag_topics", "frame_kind", "is_bag", "pointcloud2_arrays", "split_topic"]
+__all__ = ["bag_frames", "bag_message", "bag_path", "bag_topics", "frame_kind", "is_bag", "pointcloud2_arrays", "split_topic"]
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 #: Frames whose origin is no sensor (REP 105's world frames, and the usual name of the fixed one).
@@ -59,13 +59,20 @@ def is_bag(path) -> bool:
     return p.suffix.lower() in (".bag", ".db3", ".mcap")  # missing too: the reader says so
 
 
+def bag_path(path) -> Path:
+    """The bag ``path`` names, resolved: a ROS 2 bag's storage file (``.db3``, ``.mcap`` beside its
+    ``metadata.yaml``) is its folder, so both name one bag."""
+    p = Path(path).resolve()
+    if p.is_file() and p.suffix.lower() in (".db3", ".mcap") and (p.parent / "metadata.yaml").is_file():
+        return p.parent
+    return p
+
+
 def _reader(path):
-    p = Path(path)
-    if not p.exists():
+    if not Path(path).exists():
         raise CloudFileError(f"{path}: no such file or folder")
     highlevel = require("rosbags.highlevel", "scans", "reading ROS bags", package="rosbags")
-    if p.is_file() and p.suffix.lower() in (".db3", ".mcap") and (p.parent / "metadata.yaml").is_file():
-        p = p.parent  # a ROS 2 bag's storage file: its folder is the bag
+    p = bag_path(path)
     try:
         reader = highlevel.AnyReader([p])
         reader.open()
