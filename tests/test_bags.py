@@ -272,6 +272,7 @@ def test_clouds_in_different_frames_are_refused_unless_aligned(tmp_path):
     assert len([next(frames), next(frames)]) == 2  # a leading / is the same frame
     with pytest.raises(sdp.InvalidPointsError, match=r"frame 000002@3 in frame 'odom'"):
         next(frames)
+    frames.close()
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "change", mapped, camera, "--topic", "/points", "-o",
                         tmp_path / "cli.ply"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "'camera_link'" in p.stderr
@@ -357,3 +358,99 @@ def test_one_bag_as_its_folder_and_its_storage_file_is_refused_as_one_message_ag
         with pytest.raises(sdp.SDPError, match="would be the same message"):
             sdp.compare_files(ref, cur, output=tmp_path / "same.npz", topic="/points:1")
     assert sorted(f.name for f in tmp_path.iterdir()) == ["b"]
+
+
+def tf_message(stamp: int, *links):
+    """A tf2_msgs/TFMessage of (parent, child, translation, rotation as a scipy Rotation) links."""
+    T = TS.types
+    HEADER, TIME = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
+    out = []
+    for parent, child, xyz, rot in links:
+        x, y, z, w = rot.as_quat()
+        out.append(T["geometry_msgs/msg/TransformStamped"](
+            header=HEADER(stamp=TIME(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id=parent),
+            child_frame_id=child,
+            transform=T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1],
+                                                                                                  z=xyz[2]),
+                                                      rotation=T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w))))
+    return T["tf2_msgs/msg/TFMessage"](transforms=out)
+
+
+def moving_robot_bag(path, *, tf=True):
+    """A robot driving through a static room (map → base_link: x 0 → 2 m, yaw 0 → 90° between 1 s and 3 s; its
+    camera 1 m above the body on /tf_static), its camera's clouds at 2 s and 2.5 s in the camera's frame; then one
+    at 9 s (after the last /tf) and one in a frame /tf does not know (9.5 s). The room's points in map are returned
+    too."""
+    from rosbags.rosbag2 import Writer
+    from scipy.spatial.transform import Rotation
+
+    camera = (np.array([0.0, 0, 1]), Rotation.from_euler("xyz", [-90, 0, -90], degrees=True))  # optical frame
+
+    def pose(s):  # map → base_link at s seconds (1 ≤ s ≤ 3)
+        f = (s - 1) / 2
+        return np.array([2 * f, 0, 0]), Rotation.from_euler("z", 90 * f, degrees=True)
+
+    def seen(xyz, s):  # room points (map) in the camera's frame at s
+        (t, r), (tc, rc) = pose(s), camera
+        return rc.inv().apply(r.inv().apply(xyz - t) - tc)
+
+    clouds, truth = [], []
+    for k, (s, frame) in enumerate([(2.0, "camera"), (2.5, "camera"), (9.0, "camera"), (9.5, "lidar")]):
+        rec = room(seed=k)
+        xyz = np.c_[rec["x"], rec["y"], rec["z"]].astype(float)
+        truth.append(xyz)
+        rec["x"], rec["y"], rec["z"] = seen(xyz, min(s, 3.0)).T
+        stamp = int(s * 10**9)
+        clouds.append((stamp, in_frame(message(rec, 1, 3000, stamp=stamp), frame)))
+    with Writer(path, version=9) as w:
+        conn = w.add_connection("/points", MSGTYPE, typestore=TS)
+        if tf:
+            dyn = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=TS)
+            fixed = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=TS)
+            w.write(fixed, 0, TS.serialize_cdr(tf_message(0, ("base_link", "camera", *camera)),
+                                              "tf2_msgs/msg/TFMessage"))
+            for s in (1.0, 3.0):
+                t = int(s * 10**9)
+                w.write(dyn, t, TS.serialize_cdr(tf_message(t, ("map", "base_link", *pose(s))), "tf2_msgs/msg/TFMessage"))
+        for stamp, msg in clouds:
+            w.write(conn, stamp, TS.serialize_cdr(msg, MSGTYPE))
+    return path, truth
+
+
+def test_tf_moves_each_message_into_map_at_its_stamp(tmp_path):
+    """/tf and /tf_static were ignored: a cloud in a moving camera's frame stayed there."""
+    bag, truth = moving_robot_bag(tmp_path / "robot")
+    (_, a), (_, b), (_, late), (_, lidar) = bag_frames(bag, "/points")
+    for cloud, xyz in ((a, truth[0]), (b, truth[1])):
+        assert cloud.frame == "map" and cloud.tf == "moved from 'camera' into 'map' with /tf"
+        np.testing.assert_allclose(cloud.xyz, xyz, atol=1e-5)  # interpolated, translation and rotation
+    np.testing.assert_allclose(a.sensor_origin, [1, 0, 1], atol=1e-9)  # the camera's origin in map at 2 s
+    np.testing.assert_allclose(b.sensor_origin, [1.5, 0, 1], atol=1e-9)
+    assert late.frame == "camera" and late.tf == "left in 'camera': no /tf chain into 'map' at its stamp"
+    assert lidar.frame == "lidar" and lidar.tf.startswith("left in 'lidar'")
+    assert np.array_equal(lidar.sensor_origin, [0, 0, 0])  # left as it is: the sensor at its frame's origin
+    np.save(tmp_path / "map.npy", truth[0])
+    r = sdp.compare_files(tmp_path / "map.npy", bag, output=tmp_path / "o.npz", topic="/points:1")
+    assert r.summary["current"]["tf"] == b.tf and r.summary["current"]["frame"] == "map"
+    assert "the current's message: moved from 'camera' into 'map' with /tf" in r.summary_text()
+
+
+def test_tf_makes_a_static_room_seen_by_a_moving_robot_unchanged(tmp_path):
+    """A moving robot's frames of a static room, compared in the camera's frame, flag much of the room."""
+    import warnings
+
+    from sdp.io import ReadNotice
+
+    share = {}
+    for tf in (False, True):
+        bag, _ = moving_robot_bag(tmp_path / f"robot{tf}", tf=tf)
+        frames = watch_folder(bag, bag, topic="/points:0")
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            next(frames)
+            moved = next(frames)  # the camera 0.5 m and 22.5° on
+        assert [str(w.message).split(": ", 1)[1] for w in said if w.category is ReadNotice] == \
+            ["frames moved from 'camera' into 'map' with /tf (from frame 000000@2000000000)"] * tf
+        frames.close()
+        share[tf] = (moved.n_appeared + moved.not_comparable.sum()) / len(moved.appeared)
+    assert share[False] > 0.1 and share[True] < 0.005  # 18.3 % appeared or not comparable → 0

@@ -370,6 +370,8 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
     for role, c in (("reference", ref), ("current", cur)):
         if c.frame is not None:  # a bag message's header.frame_id: the coverage line says why no sensor is known
             summary[role]["frame"] = c.frame
+        if c.tf is not None:  # what the bag's /tf did with it
+            summary[role]["tf"] = c.tf
     # a point outside its own cluster volume (F ≥ 0: sparser than the lattice assumes) can't be changed
     for role, g, fld in (("reference", g_ref, r.reference_field), ("current", g_cur, r.current_field)):
         summary[role]["outside_own_volume"] = int((g <= fld.h).sum())

@@ -58,7 +58,8 @@ def same_frame(ref, cur, names) -> None:
 
         raise InvalidPointsError(f"{names[0]} is in frame {ref.frame!r}, {names[1]} in frame {cur.frame!r}: the "
                                  "points would be compared as if in one frame; give --align density (or gicp) to "
-                                 "register them, or clouds in one frame")
+                                 "register them, or clouds in one frame (a bag's /tf, when it holds the "
+                                 "transforms, moves its messages into map)")
 
 
 def align_clouds(ref, cur, names, registration: Registration):

@@ -369,17 +369,26 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     # an empty frame (a blinded sensor) is the stream's to report, not an error
     stream = bag_frames(folder, split_topic(topic)[0]) if bag else (
         (p.name, read_points(p, format=format, allow_empty=True)) for p in paths)
-    if bag and align is None and getattr(ref, "frame", None) is not None:  # a bag's message against a bag's
-        stream = _in_frame_of(ref, stream, f"{reference} ({topic})", f"{folder} ({split_topic(topic)[0]})")
+    if bag:
+        stream = _bag_stream(ref, stream, f"{reference} ({topic})", f"{folder} ({split_topic(topic)[0]})",
+                             one_frame=align is None)
     return watch(ref, stream, lattice=lattice, update=update, window=window, decay=decay,
                  min_region_points=min_region_points, align=align, coverage=replace(coverage, sensor_origin=origin),
                  decision=decision, noise=noise)
 
 
-def _in_frame_of(ref, stream, ref_name: str, bag_name: str):
-    """The frames of ``stream``, each refused (:func:`same_frame`) if it names another frame than ``ref``."""
+def _bag_stream(ref, stream, ref_name: str, bag_name: str, *, one_frame: bool):
+    """The frames of a bag's ``stream``, each refused (:func:`same_frame`, with ``one_frame``) if it
+    names another frame than ``ref``; what the bag's /tf did with them said once (a ReadNotice)."""
+    from ..io._cloud import notice
+
+    said = set()
     for name, cloud in stream:
-        same_frame(ref, cloud, (ref_name, f"{bag_name} frame {name}"))
+        if one_frame and getattr(ref, "frame", None) is not None:  # a field names none
+            same_frame(ref, cloud, (ref_name, f"{bag_name} frame {name}"))
+        if cloud.tf is not None and cloud.tf not in said:
+            said.add(cloud.tf)
+            notice(f"{bag_name}: frames {cloud.tf} (from frame {name})")
         yield name, cloud
 
 

@@ -39,6 +39,7 @@ def change_text(s: dict, reference, current) -> str:
     if "extents" in s:
         lines.append(f"the reference spans {s['extents'][0]:.4g} units and the current {s['extents'][1]:.4g}: are they "
                      "in the same units (metres and millimetres)? Compared as given")
+    lines += [f"the {role}'s message: {s[role]['tf']}" for role in ("reference", "current") if "tf" in s[role]]
     units = s.get("range_units", {})
     if units:
         roles = " and the ".join(units)

@@ -32,8 +32,10 @@ import numpy as np
 
 from ..errors import require
 from ._cloud import Cloud, CloudFileError, library_error, unpacked_colour
+from ._tf import TransformTree
 
-__all__ = ["bag_frames", "bag_message", "bag_path", "bag_topics", "frame_kind", "is_bag", "pointcloud2_arrays", "split_topic"]
+__all__ = ["bag_frames", "bag_message", "bag_path", "bag_topics", "frame_kind", "is_bag", "pointcloud2_arrays",
+           "split_topic"]
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 #: Frames whose origin is no sensor (REP 105's world frames, and the usual name of the fixed one).
@@ -119,13 +121,29 @@ def bag_frames(path, topic: str) -> Iterator[tuple[str, Cloud]]:
             raise CloudFileError(f"{path}: {what} {topic!r}; its PointCloud2 topics: {', '.join(clouds) or 'none'}")
         if sum(c.msgcount for c in conns) == 0:  # a stream of no frame: an error, as an empty folder is
             raise CloudFileError(f"{path}: {topic!r} holds 0 messages")
+        try:
+            tree = TransformTree.read(reader)
+        except Exception as exc:
+            raise _error(f"{path} /tf", exc) from None
     except BaseException:
         reader.close()
         raise
-    return _frames(reader, conns, path)
+    return _frames(reader, conns, path, tree)
 
 
-def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
+def _moved(xyz, frame: str, stamp: int, tree) -> tuple[np.ndarray, np.ndarray | None, str, str]:
+    """(points, sensor position or None, frame, what /tf did) of a message's points in ``frame`` at
+    ``stamp`` (ns): moved into the tree's root where a chain of transforms reaches it then."""
+    root = tree.root
+    if root is None:
+        return xyz, None, frame, f"left in {frame!r}: /tf reaches neither map nor odom"
+    m = tree.matrix(frame, stamp)
+    if m is None:
+        return xyz, None, frame, f"left in {frame!r}: no /tf chain into {root!r} at its stamp"
+    return xyz @ m[:3, :3].T + m[:3, 3], m[:3, 3].copy(), root, f"moved from {frame!r} into {root!r} with /tf"
+
+
+def _frames(reader, conns, path, tree=None) -> Iterator[tuple[str, Cloud]]:
     messages = reader.messages(connections=conns)
     index = 0
     try:
@@ -156,11 +174,17 @@ def _frames(reader, conns, path) -> Iterator[tuple[str, Cloud]]:
                 raise CloudFileError(f"{where}: coordinates up to {reach:.3g}, beyond ±{MAX_COORDINATE:.0e}, which no "
                                      "scene reaches: a corrupt message")
             frame = str(msg.header.frame_id).strip().lstrip("/")
-            world = frame_kind(frame) is not None  # the summaries' coverage line says "no sensor position known"
+            # a world or body frame's origin is no sensor: the summaries' coverage line says "no sensor position known"
+            sensor = None if frame_kind(frame) else np.zeros(3)
+            moved = None
+            if tree is not None and frame and frame != tree.root:
+                header = msg.header.stamp
+                xyz, at, frame, moved = _moved(xyz, frame, int(header.sec) * 10**9 + int(header.nanosec), tree)
+                sensor = at if sensor is not None and at is not None else sensor
             image = (int(msg.height), int(msg.width)) if organized else None  # which pixels returned
             yield f"{index:06d}@{stamp}", Cloud(np.ascontiguousarray(xyz), fields, Path(path), dropped, None, None,
-                                                 organized, None if world else np.zeros((1, 3)), None, image,
-                                                 np.flatnonzero(finite) if organized else None, frame or None)
+                                                 organized, None if sensor is None else sensor[None, :], None, image,
+                                                 np.flatnonzero(finite) if organized else None, frame or None, moved)
             index += 1
     finally:
         reader.close()

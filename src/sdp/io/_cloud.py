@@ -122,7 +122,11 @@ class Cloud:
         being the rays that returned nothing (:func:`sdp.change._range_image.camera_border`).
     frame : str or None
         The coordinate frame the points are in: a ROS bag message's ``header.frame_id`` (without
-        a leading ``/``). None for files, which do not name theirs.
+        a leading ``/``), or the root frame its bag's ``/tf`` moved it into. None for files,
+        which do not name theirs.
+    tf : str or None
+        What a bag's ``/tf`` did with a message (:mod:`sdp.io._tf`): ``"moved from 'camera' into
+        'map' with /tf"``, or why it left it in its frame. None without ``/tf``.
     """
 
     xyz: np.ndarray
@@ -138,6 +142,7 @@ class Cloud:
     image: tuple | None = None
     pixels: np.ndarray | None = field(default=None, repr=False)
     frame: str | None = None
+    tf: str | None = None
 
     def __len__(self) -> int:
         return len(self.xyz)
