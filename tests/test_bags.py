@@ -454,3 +454,8 @@ def test_tf_makes_a_static_room_seen_by_a_moving_robot_unchanged(tmp_path):
         frames.close()
         share[tf] = (moved.n_appeared + moved.not_comparable.sum()) / len(moved.appeared)
     assert share[False] > 0.1 and share[True] < 0.005  # 18.3 % appeared or not comparable → 0
+
+
+def test_a_frames_name_is_its_index_and_the_time_the_bag_recorded_it_not_its_header_stamp(tmp_path):
+    bag = write_ros2(tmp_path / "b", [(5 * 10**9 + 7, message(room(), 1, 3000, stamp=10**9))])
+    assert [name for name, _ in bag_frames(bag, "/points")] == ["000000@5000000007"]

@@ -106,7 +106,11 @@ def bag_topics(path) -> dict[str, int]:
 
 def bag_frames(path, topic: str) -> Iterator[tuple[str, Cloud]]:
     """``(name, Cloud)`` of each ``PointCloud2`` message on ``topic``, in the order recorded; the
-    name is the message's index and its timestamp in nanoseconds (``000003@1355495015814212000``).
+    name is the message's index on the topic and the time the bag recorded it, in nanoseconds since
+    the epoch (``000003@1355495015814212000``): the bag's own time of the message (ROS 2's receive
+    time, ROS 1's record time), not its ``header.stamp`` (when the sensor took it, which ``/tf`` is
+    looked up at), later by the transport's delay and apart from it entirely in a bag rewritten
+    or played back with other times.
 
     The bag and the topic are checked when this is called (a bag without the topic raises
     :class:`~sdp.io.CloudFileError` listing its point-cloud topics); the messages are read as
