@@ -184,6 +184,7 @@ def test_sdp_change_reads_a_message_of_a_bag_as_its_pcd_file(shared_data, tmp_pa
     bag = write_ros2(tmp_path / "grabber", [pcd_message(p, 10**9 * (i + 1)) for i, p in enumerate(pcds)])
     files = compare_files(pcds[0], pcds[2], output=tmp_path / "files.npz", outputs=sdp.Outputs(both=True))
     last = compare_files(pcds[0], bag, output=tmp_path / "bag.npz", topic="/points:-1", outputs=sdp.Outputs(both=True))
+    assert last.summary["current"].pop("frame") == "sensor"  # the message's header.frame_id; a file names none
     for cloud in ("current", "reference"):
         assert files.summary[cloud] == last.summary[cloud]
     a, b = np.load(tmp_path / "files.npz"), np.load(tmp_path / "bag.npz")

@@ -342,11 +342,11 @@ def _compare_in_memory(reference, current, out: Path, *, outputs: Outputs, forma
     _check_in_memory(len(ref.xyz) + len(cur.xyz), memory_limit)
     names = [f"{f} ({topic})" if is_bag(f) else str(f) for f in (reference, current)]  # which message
     alignment, moved = None, cur
-    if not align:  # registered, the current is moved into the reference's frame
-        same_frame(ref, cur, names)
-    if align:
+    if align:  # registered, the current is moved into the reference's frame
         alignment = align_clouds(ref, cur, (reference, current), align)
         moved = cur.transformed(alignment.matrix)  # the current scan's sensor moves with it
+    else:
+        same_frame(ref, cur, names)
     origin = sensor_origins(coverage.sensor_origin, (reference, ref), (current, moved), alignment)
     r = detect_changes(ref, moved, lattice=lattice, coverage=replace(coverage, sensor_origin=origin),
                        memory_limit=memory_limit, **detect)

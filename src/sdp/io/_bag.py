@@ -13,7 +13,10 @@ lidar's optical frame), so the visibility test of :func:`sdp.detect_changes` fol
 unless the caller says otherwise (``--sensor-origin``). A cloud published in a world frame
 (REP 105's ``map``, ``odom``, ``earth``, or ``world``: a registered or accumulated cloud), or in a
 robot's body frame (``base_link``, ``base_footprint``, ``base_stabilized``: moved off its sensor),
-says nothing of where its sensor stood: it is read without one.
+says nothing of where its sensor stood: it is read without one. A bag holding ``/tf`` or
+``/tf_static`` moves each message into its root frame (``map``, else ``odom``) at its
+``header.stamp`` (:mod:`sdp.io._tf`), its sensor at the frame's origin moved there; a message
+without a chain of transforms there is left in its frame (:attr:`~sdp.io.Cloud.tf` says which).
 
 References
 ----------
@@ -184,7 +187,8 @@ def _frames(reader, conns, path, tree=None) -> Iterator[tuple[str, Cloud]]:
             if tree is not None and frame and frame != tree.root:
                 header = msg.header.stamp
                 xyz, at, frame, moved = _moved(xyz, frame, int(header.sec) * 10**9 + int(header.nanosec), tree)
-                sensor = at if sensor is not None and at is not None else sensor
+                if sensor is not None and at is not None:  # a sensor's frame: its origin moved with it
+                    sensor = at
             image = (int(msg.height), int(msg.width)) if organized else None  # which pixels returned
             yield f"{index:06d}@{stamp}", Cloud(np.ascontiguousarray(xyz), fields, Path(path), dropped, None, None,
                                                  organized, None if sensor is None else sensor[None, :], None, image,

@@ -78,7 +78,7 @@ class _Link:
 
 
 class TransformTree:
-    """The transforms of a bag's ``/tf`` and ``/tf_static`` (:func:`read` makes one)."""
+    """The transforms of a bag's ``/tf`` and ``/tf_static`` (:meth:`read` makes one)."""
 
     def __init__(self):
         self.links: dict[str, _Link] = {}  # child frame → its link to its parent
