@@ -282,6 +282,30 @@ def test_append_killed_while_writing_is_undone_by_the_next_open(slope, tmp_path,
     assert _digest(out) == before and sorted(os.listdir(tmp_path)) == ["s.zarr"]
 
 
+def test_a_full_disk_while_the_journal_is_made_is_one_line_and_leaves_nothing_beside(slope, tmp_path, monkeypatch):
+    """The disk fills while the append's journal is made (before any write to the archive): the
+    error names the archive and says it is as it was, and no half-made journal is left beside it
+    (it was: ``.s.zarr.journal-PID``, and a bare "No space left on device")."""
+    import errno
+
+    out = tmp_path / "s.zarr"
+    sdp.series(slope.epochs[:3], output=out, cylinder=CYL, times=range(3))
+    before = _digest(out)
+    real, calls = _archive._save, []
+
+    def full(src, dst):
+        calls.append(1)
+        if len(calls) == 5:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(src, dst)
+
+    monkeypatch.setattr(_archive, "_save", full)
+    with pytest.raises(_archive.SeriesArchiveError, match=r"s\.zarr: can't write the series archive \(No space left "
+                       r"on device; disk full\?\): it is as it was before this append"):
+        sdp.series(slope.epochs[3:4], output=out, append=True, times=[3])
+    assert sorted(os.listdir(tmp_path)) == ["s.zarr"] and _digest(out) == before
+
+
 @pytest.mark.slow
 def test_an_append_on_a_full_disk_is_one_line_and_leaves_the_archive(slope, tmp_path):
     """A file-size limit stands for a full disk: the append's writes fail part way, in place; the

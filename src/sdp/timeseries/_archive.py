@@ -266,6 +266,17 @@ def _begin(path: Path, untouched) -> Path:
     journal, _ = _journal(path)
     tmp = path.parent / f".{path.name}.journal-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        _record(path, tmp, untouched)
+        os.rename(tmp, journal)
+    except BaseException:  # a full disk, Ctrl-C: no journal, the archive untouched; nothing left beside it
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return journal
+
+
+def _record(path: Path, tmp: Path, untouched) -> None:
+    """The journal's content in the folder ``tmp``: ``names.json`` and the links in ``saved``."""
     saved = tmp / "saved"
     saved.mkdir(parents=True)
     listing: dict = {}
@@ -286,8 +297,6 @@ def _begin(path: Path, untouched) -> Path:
             else:
                 _save(src, saved / entry.name / f)
     (tmp / "names.json").write_text(json.dumps(listing))
-    os.rename(tmp, journal)
-    return journal
 
 
 def untouched_by_append(*, rows: int, rewritten_from: int, epochs_per_chunk: int):
@@ -330,7 +339,11 @@ def transaction(path, *, untouched=None):
         if path.resolve() not in _HELD:
             raise RuntimeError("an append's transaction runs inside writing(path)")
         journal, committed = _journal(path)
-        _begin(path, untouched)
+        try:
+            _begin(path, untouched)
+        except BaseException as exc:
+            _say_written(exc, path, "it is as it was before this append")
+            raise
         try:
             yield path
         except BaseException as exc:
