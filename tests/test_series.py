@@ -306,6 +306,42 @@ def test_a_full_disk_while_the_journal_is_made_is_one_line_and_leaves_nothing_be
     assert sorted(os.listdir(tmp_path)) == ["s.zarr"] and _digest(out) == before
 
 
+def test_an_export_that_fails_leaves_the_archive_as_it_was(slope, tmp_path, monkeypatch):
+    """The exports are written from the archive's new version before its commit: one that fails (a
+    full disk) leaves no archive, or the archive as it was before the append, and no export; they
+    were written after it, and a failed export left a new archive, or the epochs appended, behind
+    an error that said nothing was written."""
+    import errno
+
+    from sdp.cli import _series
+    from sdp.io import atomic_path
+
+    files = _write_epochs(slope, tmp_path, 4)
+    names = sorted(os.listdir(tmp_path))
+    out = tmp_path / "s.zarr"
+    exports = {"epochs": [(-1, tmp_path / "last.npz")], "points": (tmp_path / "p.csv", None)}
+
+    def full(ds, path, *args):
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(b"part")
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(_series, "_write_points", full)
+    with pytest.raises(sdp.SDPError, match=r"p\.csv: can't write \(No space left on device\)"):
+        series_files(files[:3], output=out, options={"cylinder": CYL}, exports=exports)
+    assert sorted(os.listdir(tmp_path)) == names
+    series_files(files[:3], output=out, options={"cylinder": CYL})
+    before = _digest(out)
+    with pytest.raises(sdp.SDPError, match=r"p\.csv: can't write"):
+        series_files(files[3:], output=out, append=True, exports=exports)
+    assert _digest(out) == before and sorted(os.listdir(tmp_path)) == sorted([*names, "s.zarr"])
+    monkeypatch.undo()
+    run = series_files(files[3:], output=out, append=True, exports=exports)
+    assert run.summary["epochs"] == 4 and run.dataset.sizes["epoch"] == 4
+    assert np.load(tmp_path / "last.npz")["smoothed"].shape == (run.summary["core_points"],)
+    assert (len((tmp_path / "p.csv").read_text().splitlines()) - 1) % 4 == 0  # a row per point and epoch
+
+
 @pytest.mark.slow
 def test_an_append_on_a_full_disk_is_one_line_and_leaves_the_archive(slope, tmp_path):
     """A file-size limit stands for a full disk: the append's writes fail part way, in place; the

@@ -92,10 +92,11 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     ----------
     .. [1] Lague et al. 2013 (M3C2); Winiwarter et al. 2023 (Kalman smoothing).
     """
-    from ..timeseries._archive import open_series
+    from ..timeseries._archive import open_series, open_version
     from ..timeseries._compute import write_series
 
     outputs = as_options(Outputs, outputs, "outputs").only("sdp series", "report", "field_names")
+    execution = as_options(Execution, execution, "execution")
     exports = {} if exports is None else exports
     options = dict(options or {})
     unknown = set(options) - {"core_points", "reference", "cylinder", "registration_error", "align", "orientation",
@@ -131,16 +132,17 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
         if bad:
             raise InvalidOptionError(f"--points {bad[0]}: the archive has core points 0..{n_points - 1}")
 
-    t0 = time.perf_counter()
-    archive = write_series(epochs, output=output, append=append, times=times, execution=execution, check=check,
-                           **options)
-    summary = describe_series(archive)
-    # the dataset only for exports (importing xarray and pandas is much of a job's start-up); without
-    # Dask's arrays: the command reads the rows and columns it indexes, and importing them costs more
-    ds = open_series(archive, chunks=None) if epoch_files or points is not None or report else None
+    exported = bool(epoch_files) or points is not None or bool(report)
     written = [str(output)]
-    like = _core_records(ds, execution.memory_limit) if epoch_files else None
-    with all_or_none():
+
+    def export(folder):
+        # from the archive's new version before its commit, under temporary names renamed after it:
+        # an export that fails (a full disk) leaves the archive as it was, and the command wrote nothing.
+        # The dataset only for exports (importing xarray and pandas is much of a job's start-up); without
+        # Dask's arrays: the command reads the rows and columns it indexes, and importing them costs more
+        ds = open_version(folder)
+        summary = describe_series(Path(output), version=folder)
+        like = _core_records(ds, execution.memory_limit) if epoch_files else None
         for k_text, f in epoch_files:
             _write_epoch(ds, _epoch_index(str(k_text), summary["epochs"]), f, inputs, outputs.field_names, like)
             written.append(str(f))
@@ -153,6 +155,13 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
             chosen = chosen_points if chosen_points is not None else default_points(ds)
             series_report(report, ds, summary=summary, points=chosen[:5])
             written.append(str(report))
+
+    t0 = time.perf_counter()
+    with all_or_none():
+        archive = write_series(epochs, output=output, append=append, times=times, execution=execution, check=check,
+                               before_commit=export if exported else None, **options)
+    summary = describe_series(archive)
+    ds = open_series(archive, chunks=None) if exported else None
     summary["outputs"] = written
     summary["seconds"] = round(time.perf_counter() - t0, 4)
     return SeriesRun(str(output), ds, summary, written)
@@ -293,12 +302,13 @@ def _epoch_notices(epochs: list, ref: int) -> dict:
                                                         "large": large}}
 
 
-def describe_series(path) -> dict:
+def describe_series(path, *, version=None) -> dict:
     """What ``sdp info ARCHIVE.zarr`` prints: epochs, times, core points, objects, every parameter
-    (read with zarr: no dataset is opened)."""
+    (read with zarr: no dataset is opened). ``version``: the folder of the archive's new version
+    this process is writing, described before its commit (:func:`~sdp.timeseries._archive.open_version`)."""
     from ..timeseries._archive import objects_by_size, read_group, show_time
 
-    g = read_group(path)
+    g = read_group(path) if version is None else read_group(version, settle=False)
     attrs = g.attrs.asdict()
     epochs = attrs["epochs"]
     n_points = g["x"].shape[0]

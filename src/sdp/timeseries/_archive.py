@@ -53,7 +53,7 @@ import numpy as np
 from ..errors import InvalidOptionError, SDPError, require
 from ..io._output import commit_point
 
-__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "archive_exists", "open_series", "recover", "writing", "transaction",
+__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "archive_exists", "open_series", "open_version", "recover", "writing", "transaction",
            "untouched_by_append", "Writer",
            "many_chunks_at_once", "write_state", "read_state", "objects_by_size", "read_group"]
 
@@ -601,13 +601,16 @@ def _plain(v):
     raise TypeError(f"{type(v).__name__} is not JSON")
 
 
-def read_group(path):
+def read_group(path, *, settle: bool = True):
     """The archive ``path`` as a zarr group (read only), checked to be an sdp series; what an
-    interrupted run left is completed or undone first (:func:`recover`)."""
+    interrupted run left is completed or undone first (:func:`recover`). ``settle=False``: the
+    folder of a version this process is writing (a :func:`transaction`'s, before its commit),
+    read as it is (settling would roll back this very append)."""
     path = Path(path)
     zarr = require_zarr()
     try:
-        recover(path)
+        if settle:
+            recover(path)
     except OSError:  # read-only: read what is there
         pass
     try:
@@ -685,6 +688,20 @@ def open_series(path, *, chunks="auto"):
         raise InvalidOptionError(f"chunks must be 'auto', a dict of dimension sizes or None, got {chunks!r}")
     path = Path(path)
     read_group(path)
+    return _dataset(xr, path, chunks)
+
+
+def open_version(folder):
+    """The version of an archive this process is writing (the folder a :func:`transaction`
+    yields, complete, before its commit) as :func:`open_series` opens it with ``chunks=None``:
+    what the command exports is read from it, so that an export that fails leaves the archive as
+    it was."""
+    xr, _ = require_series()
+    read_group(folder, settle=False)
+    return _dataset(xr, Path(folder), None)
+
+
+def _dataset(xr, path: Path, chunks):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ds = xr.open_zarr(str(path), consolidated=True, chunks=chunks)

@@ -380,11 +380,13 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
 def write_series(epochs, *, output, append: bool = False, times=None, core_points=None, reference: int | None = None,
                  cylinder: Cylinder | None = None, registration_error: float | str | None = None,
                  align: Registration | str | None = None, orientation=None, execution: Execution | None = None,
-                 format: str | None = None, check=None) -> Path:
+                 format: str | None = None, check=None, before_commit=None) -> Path:
     """:func:`series` without opening the archive: its path (the command opens it without Dask).
     ``check(epochs, core_points)``: called with the archive's counts after the run as soon as
     they are known, before any epoch is measured or anything written (what the command will
-    export from the archive: its refusal leaves an archive as it was)."""
+    export from the archive: its refusal leaves an archive as it was). ``before_commit(folder)``:
+    called with the folder holding the archive's new version, complete, before it is committed
+    (the command writes its exports from it: their failure leaves the archive as it was)."""
     A.require_zarr()
     t_start = time.perf_counter()  # after zarr's import, start-up like Python's
     append = boolean("append", append)  # a string "no" would read as True: the archive appended to, not replaced
@@ -472,7 +474,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             if tiles is None:
                 execution.say_in_memory()
             _run(epochs, out, t_new, kind, source, note=note, attrs=attrs, registration=registration, reg_opt=reg_opt,
-                 limit=limit, fmt=format, t_start=t_start, tiles=tiles)
+                 limit=limit, fmt=format, t_start=t_start, tiles=tiles, before_commit=before_commit)
         return out
     if reference is None:
         reference = 0
@@ -557,7 +559,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     with A.writing(out) if out.is_dir() else contextlib.nullcontext():  # an archive replaced: not while appended to
         _run(epochs, out, t, kind, source, note=note, attrs=attrs, registration=registration, reg_opt=reg_opt,
              limit=limit, fmt=format, t_start=t_start, prepared=prepared, state=arrays,
-             ref_cloud=(reference, ref_cloud), tiles=tiles)
+             ref_cloud=(reference, ref_cloud), tiles=tiles, before_commit=before_commit)
     return out
 
 
@@ -574,7 +576,7 @@ def _show_time(value: float, kind: str) -> str:
 
 
 def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registration, reg_opt, limit, fmt, t_start,
-         prepared=None, state=None, ref_cloud=None, tiles=None):
+         prepared=None, state=None, ref_cloud=None, tiles=None, before_commit=None):
     append = prepared is None
     timings = {}
     params = attrs["parameters"]
@@ -747,6 +749,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registrati
                               **({"times_note": note} if note else {}),
                               **({"tiled": tiles.record()} if tiles else {})})
         w.finish(attrs)
+        if before_commit is not None:
+            before_commit(folder)
 
 
 #: A column's float32 inputs (distance, lod: 8 B) and results (four arrays: 16 B) per epoch and
