@@ -722,3 +722,52 @@ def test_running_out_of_memory_while_reading_says_it_is_not_the_files_size(tmp_p
     monkeypatch.setitem(R._READERS, "npy", full)
     with pytest.raises(sdp.CloudFileError, match=r"out of memory reading it as npy \(0.0 MB on disk, on top of what"):
         sdp.read_points(tmp_path / "f.npy")
+
+
+def test_ctrl_c_swallowed_by_a_destructor_still_stops_the_command(tmp_path, monkeypatch, capsys):
+    """Python runs the signal handler wherever the main thread is, a destructor too, whose exception
+    is only reported ("Exception ignored in …"): the command went on and wrote everything, exit 0,
+    with that report on stderr. It now stops before its commit: exit 130, nothing written."""
+    from sdp.cli import _main, main
+    from sdp.io import _output
+
+    class Finalized:
+        def __del__(self):
+            _main._on_signal(signal.SIGINT, None)  # Ctrl-C, its handler run in this destructor
+
+    real = _output.write_ply
+
+    def write_ply(*args, **kwargs):
+        real(*args, **kwargs)
+        Finalized()
+
+    np.save(tmp_path / "a.npy", np.random.default_rng(7).random((3000, 3)))
+    monkeypatch.setattr(_output, "write_ply", write_ply)
+    assert main(["change", str(tmp_path / "a.npy"), str(tmp_path / "a.npy"), "-o", str(tmp_path / "o.ply"),
+                 "-q"]) == 130
+    assert capsys.readouterr().err == "sdp: interrupted\n"
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a.npy"]
+
+
+def test_a_signal_taken_by_another_thread_during_the_commit_waits_for_it(tmp_path, monkeypatch, capsys):
+    """The renames of a command's outputs hold Ctrl-C back in the main thread only: the system may
+    hand the signal to another thread, and Python runs the handler in the main thread all the same.
+    It raised between two renames, and the command wrote one of its two outputs (exit 130); the
+    commit now completes and the signal comes too late (exit 0, both written)."""
+    from sdp.cli import _main, main
+
+    real, renamed = os.replace, []
+
+    def replace(src, dst, **kwargs):
+        real(src, dst, **kwargs)
+        renamed.append(dst)
+        if len(renamed) == 1:
+            _main._on_signal(signal.SIGINT, None)  # as Python runs it, whichever thread took the signal
+
+    np.save(tmp_path / "a.npy", np.random.default_rng(7).random((3000, 3)))
+    monkeypatch.setattr(os, "replace", replace)
+    status = main(["change", str(tmp_path / "a.npy"), str(tmp_path / "a.npy"), "-o", str(tmp_path / "o.ply"),
+                   "--both", "-q"])
+    monkeypatch.undo()
+    assert status == 0 and capsys.readouterr().err == ""
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a.npy", "o.ply", "o_disappeared.ply"]

@@ -24,7 +24,7 @@ from .._core._json import dumps
 from ..defaults import DEFAULTS
 from ..errors import GridTooLargeError, SDPError
 from ..io._cloud import ReadNotice
-from ..io._output import all_or_none
+from ..io._output import all_or_none, defer
 from ..options import Coverage, Cylinder, Execution, Lattice, NoiseModel, Outputs, Registration
 from . import _actions as A
 from . import _change as C
@@ -593,7 +593,27 @@ def _on_signal(signum, frame):
         return
     _signalled = signum
     signal.signal(signum, signal.SIG_IGN)  # a second one must not cut the clean-up short
-    raise KeyboardInterrupt() if signum == signal.SIGINT else _Terminated()
+    if defer(_stop):  # taken by another thread during a commit: it completes first (then the signal comes too late)
+        return
+    _stop()
+
+
+def _stop() -> None:
+    """Raise the exception of the signal that came, unless the command has committed its outputs:
+    before the commit, as a library may have swallowed the one the handler raised (a destructor's,
+    reported as "Exception ignored in …") and the command gone on."""
+    if _signalled is not None and not _finished:
+        raise KeyboardInterrupt() if _signalled == signal.SIGINT else _Terminated()
+
+
+def _unraisable(previous):
+    """``sys.unraisablehook`` without the report of the signal's exception swallowed by a destructor
+    (:func:`_stop` acts on the signal)."""
+    def hook(unraisable):
+        if _signalled is None or not isinstance(unraisable.exc_value, (KeyboardInterrupt, _Terminated)):
+            previous(unraisable)
+
+    return hook
 
 
 def _one_line(exc: BaseException) -> str:
@@ -692,9 +712,10 @@ def main(argv=None, *, restore_signals: bool = True) -> int:
     in_main = threading.current_thread() is threading.main_thread()
     _quiet, _signalled, _finished = quiet, None, False
     previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)} if in_main else {}
+    unraisable, sys.unraisablehook = sys.unraisablehook, _unraisable(sys.unraisablehook)
     try:
         # a command writes all its outputs or none; with --quiet, warnings (not errors) are not shown
-        with all_or_none(on_commit=_finish), warnings.catch_warnings():
+        with all_or_none(on_commit=_finish, stop=_stop), warnings.catch_warnings():
             if quiet:
                 warnings.simplefilter("ignore")
             warnings.showwarning = _notices(warnings.showwarning)  # put back as it was when the block ends
@@ -707,6 +728,7 @@ def main(argv=None, *, restore_signals: bool = True) -> int:
         return status
     finally:
         _quiet, _finished = False, True
+        sys.unraisablehook = unraisable
         for s, handler in previous.items() if restore_signals else ():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
 

@@ -148,10 +148,47 @@ _ON_COMMIT: ContextVar = ContextVar("sdp_on_commit", default=None)
 
 
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: Commits under way in the main thread, and what a signal handler left to do after them (:func:`defer`).
+_committing = 0
+_deferred: list = []
+
+
+def defer(action) -> bool:
+    """For a program's signal handler: if a commit is under way, keep ``action`` to run when it is
+    over (if it succeeds) and return True; else False. Masking the signals holds them back only
+    from the main thread: the system may hand a process's signal to another thread (Zarr's event
+    loop, a thread pool), and Python then runs the handler in the main thread all the same, in the
+    middle of the renames."""
+    if _committing and _main_thread():
+        _deferred.append(action)
+        return True
+    return False
 
 
 @contextmanager
-def all_or_none(*, on_commit=None, own: bool = False):
+def _held():
+    """Ctrl-C and SIGTERM held back for the block (in the main thread; elsewhere a no-op); what a
+    handler deferred meanwhile (:func:`defer`) runs after it."""
+    global _committing
+    if not _main_thread():
+        yield
+        return
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+    _committing += 1
+    try:
+        yield
+    finally:
+        _committing -= 1
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+        actions = list(_deferred) if not _committing else []
+        if not _committing:
+            _deferred.clear()
+    for action in actions:
+        action()
+
+
+@contextmanager
+def all_or_none(*, on_commit=None, stop=None, own: bool = False):
     """Within the block, every :func:`atomic_path` (every writer of sdp) keeps its finished file
     under its temporary name; they are all renamed when the block succeeds, all removed when it
     fails: a command writes all its outputs or none (``sdp`` runs each command inside one).
@@ -162,9 +199,11 @@ def all_or_none(*, on_commit=None, own: bool = False):
     ``own=True`` commits the block's files at its own end all the same (steps whose files the
     next step reads, as in ``sdp warmup``).
 
-    The renames run with Ctrl-C and SIGTERM held back (in the main thread), then ``on_commit()``:
+    The renames run with Ctrl-C and SIGTERM held back (:func:`defer`), then ``on_commit()``:
     a signal arriving meanwhile is delivered after both, when the command is complete, and the
-    program can tell it came too late to stop anything."""
+    program can tell it came too late to stop anything. ``stop()``, called first, raises if the
+    command is to stop rather than commit: a signal came whose exception a library swallowed (a
+    destructor's, a callback's, reported as "Exception ignored") while the command went on."""
     if _PENDING.get() is not None and not own:
         yield
         return
@@ -174,16 +213,14 @@ def all_or_none(*, on_commit=None, own: bool = False):
     committed = False
     try:
         yield
-        held = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS) if _main_thread() else None
-        try:
+        with _held():
+            if stop is not None:
+                stop()
             for tmp, path in pending:
                 os.replace(tmp, path)
             committed = True
             if on_commit is not None:
                 on_commit()
-        finally:
-            if held is not None:
-                signal.pthread_sigmask(signal.SIG_SETMASK, held)
     finally:
         _PENDING.reset(token)
         _ON_COMMIT.reset(hook)
@@ -229,15 +266,11 @@ def commit_point():
     SIGTERM held back, then tells the command around it (:func:`all_or_none`'s ``on_commit``)
     that its output is committed, so that a signal from then on comes too late to stop anything
     rather than reporting as not written what was."""
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS) if _main_thread() else None
-    try:
+    with _held():
         yield
         hook = _ON_COMMIT.get()
         if hook is not None:
             hook()
-    finally:
-        if held is not None:
-            signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 @contextmanager
