@@ -208,6 +208,22 @@ def _try_lock(path: Path):
     return f
 
 
+def _holder(lock: Path) -> int | None:
+    """The process holding the flock on the file ``lock``, as Linux lists it in ``/proc/locks``
+    (``FLOCK ADVISORY WRITE pid major:minor:inode …``); None elsewhere, or if it is not listed."""
+    try:
+        st = os.stat(lock)
+        table = Path("/proc/locks").read_text()
+    except OSError:
+        return None
+    node = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    for line in table.splitlines():
+        fields = line.split()
+        if len(fields) > 5 and fields[1] == "FLOCK" and fields[5] == node and fields[4].isdigit():  # "->": waiting
+            return int(fields[4])
+    return None
+
+
 @contextmanager
 def _writer_gone(path: Path):
     """Whether no live run is writing ``path`` (this process holds its lock, or it is free: then
@@ -241,7 +257,9 @@ def writing(path):
         recover(path)  # a new version left pending by an interrupted run
     f = _try_lock(path)
     if f is None:
-        raise SeriesArchiveError(f"{path}: another sdp run is writing this archive; run again when it has ended")
+        pid = _holder(path / _LOCK)
+        raise SeriesArchiveError(f"{path}: another sdp run{f' (process {pid})' if pid else ''} is writing this "
+                                 "archive; run again when it has ended (its lock goes with it, however it ends)")
     key = path.resolve()
     _HELD.add(key)
     try:
