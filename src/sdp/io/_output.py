@@ -180,7 +180,7 @@ def _held():
     finally:
         _committing -= 1
         signal.pthread_sigmask(signal.SIG_SETMASK, held)
-        actions = list(_deferred) if not _committing else []
+        actions = [] if _committing else _deferred[:]
         if not _committing:
             _deferred.clear()
     for action in actions:

@@ -53,8 +53,8 @@ import numpy as np
 from ..errors import InvalidOptionError, SDPError, require
 from ..io._output import commit_point
 
-__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "archive_exists", "open_series", "open_version", "recover", "writing", "transaction",
-           "untouched_by_append", "Writer",
+__all__ = ["ARCHIVE_FORMAT", "ARCHIVE_VERSION", "archive_exists", "open_series", "open_version", "recover", "writing",
+           "transaction", "untouched_by_append", "Writer",
            "many_chunks_at_once", "write_state", "read_state", "objects_by_size", "read_group"]
 
 ARCHIVE_FORMAT = "sdp-series"
