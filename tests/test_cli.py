@@ -74,6 +74,11 @@ def test_refuses_to_overwrite_input(tmp_path, pair):
     assert cur.read_bytes() == before
 
 
+def test_python_m_sdp_is_the_program():
+    p = subprocess.run([sys.executable, "-m", "sdp", "info", "no-such-file.ply"], capture_output=True, text=True)
+    assert (p.returncode, p.stdout) == (2, "") and p.stderr.startswith("sdp: error: no-such-file.ply")
+
+
 @pytest.mark.slow
 def test_demo(tmp_path):
     p = run("demo", "-o", tmp_path / "demo")
