@@ -79,6 +79,27 @@ def test_python_m_sdp_is_the_program():
     assert (p.returncode, p.stdout) == (2, "") and p.stderr.startswith("sdp: error: no-such-file.ply")
 
 
+def test_every_option_says_what_it_does_and_the_store_commands_name_stores():
+    import argparse
+
+    from sdp.cli._main import build_parser
+
+    def commands(parser, name):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub, p in action.choices.items():
+                    yield from commands(p, f"{name} {sub}")
+        yield name, parser
+
+    bare = [(name, a.option_strings) for name, p in commands(build_parser(), "sdp") for a in p._actions
+            if a.option_strings and not a.help]
+    assert bare == []
+    parsers = dict(commands(build_parser(), "sdp"))
+    help_of = {(name, a.dest): a.help for name, p in parsers.items() for a in p._actions}
+    for key in [("sdp bool", "a"), ("sdp bool", "b"), ("sdp bool", "output"), ("sdp mesh", "input"), ("sdp info", "file")]:
+        assert ".zarr" in help_of[key], key
+
+
 @pytest.mark.slow
 def test_demo(tmp_path):
     p = run("demo", "-o", tmp_path / "demo")

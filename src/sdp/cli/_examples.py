@@ -37,12 +37,14 @@ BUILD = """  sdp build scan.pcd -o scan.sdpf --voxel-size 0.01
 """
 MESH = """  sdp mesh scan.sdpf -o surface.ply
   sdp mesh scan.pcd -o surface.obj --level 0
+  sdp mesh city.zarr -o city.ply                             a field store (sdp build -o X.zarr), tile by tile
 """
 DEMO = """  sdp demo -o demo-output
 """
 BOOL = """  sdp bool difference cur.sdpf ref.sdpf -o new.sdpf          what cur has and ref lacks
   sdp bool union a.pcd b.pcd -o both.ply                      surface of the union (auto voxel from both)
   sdp bool intersection a.sdpf b.ply -o common.stl            b is built on a's lattice
+  sdp bool union a.zarr b.zarr -o u.zarr                      two field stores, tile by tile
 """
 ALIGN = """  sdp align reference.pcd rescan.pcd -o T.txt               density-based, coarse to fine
   sdp align reference.pcd rescan.pcd -o T.txt --method gicp  small_gicp (extra: align)

@@ -457,18 +457,19 @@ def build_parser() -> argparse.ArgumentParser:
     _tile_options(b, "field stores (.zarr output)", tiled=False)
 
     i = _command(sub, "info", cmd_info, "describe a cloud or a field file", "  sdp info scan.laz\n  sdp info scan.sdpf")
-    i.add_argument("file")
+    i.add_argument("file", help="a cloud, a field (.sdpf), a field store or a series archive (.zarr)")
 
     m = _command(sub, "mesh", cmd_mesh, "iso-surface of a field or cloud (Lewiner marching cubes)", X.MESH)
-    m.add_argument("input")
+    m.add_argument("input", help="a field (.sdpf), a field store (.zarr: tile by tile) or a cloud")
     m.add_argument("-o", "--output", required=True, help=".ply, .obj or .stl")
     m.add_argument("--level", type=V.cli_type(V.finite), default=0.0, help="level of F = h - G (0: the boundary)")
 
     o = _command(sub, "bool", cmd_bool, "union, intersection or difference of two fields or clouds", X.BOOL)
     o.add_argument("operation", choices=("union", "intersection", "difference"))
-    o.add_argument("a", help="field (.sdpf) or cloud")
-    o.add_argument("b", help="field (.sdpf) or cloud")
-    o.add_argument("-o", "--output", required=True, help=".sdpf (the field) or .ply/.obj/.stl (its surface)")
+    o.add_argument("a", help="field (.sdpf), field store (.zarr) or cloud")
+    o.add_argument("b", help="field (.sdpf), field store (.zarr) or cloud")
+    o.add_argument("-o", "--output", required=True,
+                   help=".sdpf (the field), .zarr (of two field stores, tile by tile) or .ply/.obj/.stl (its surface)")
 
     al = _command(sub, "align", cmd_align, "rigid transform mapping CURRENT onto REFERENCE (4x4 text)", X.ALIGN)
     al.add_argument("reference", help="cloud, or field (.sdpf) for --method density")
@@ -557,8 +558,8 @@ def build_parser() -> argparse.ArgumentParser:
         _grid_options(q)
 
     d = _command(sub, "demo", cmd_demo, "change detection on a simulated office scan; write results", X.DEMO)
-    d.add_argument("-o", "--output", default="demo-output")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("-o", "--output", default="demo-output", help="folder for the outputs (default demo-output)")
+    d.add_argument("--seed", type=int, default=0, help="the simulation's random seed (default 0)")
     wu = _command(sub, "warmup", cmd_warmup, "compile every kernel now (make install does)", "  sdp warmup")
     with_json = (c, ds, se, al, w, ev, e)
     for q in (c, ds, se, b, i, m, o, al, w, t, pr, ev, e, r, d, wu):
