@@ -170,3 +170,24 @@ def test_options_are_shared_and_checked_once():
                                                   outputs=sdp.Outputs(field_names="pdal")), "field names")):
         with pytest.raises(sdp.InvalidOptionError, match=f"does not write .*{says}"):
             call()
+
+
+def test_the_documents_name_only_what_exists():
+    import importlib
+    import re
+
+    root = SRC.parent.parent
+    texts = [root / "README.md", root / "pyproject.toml", *sorted((root / "docs").glob("*.md"))]
+    missing = []
+    for text in texts:
+        for name in sorted(set(re.findall(r"\bsdp(?:\.[A-Za-z_]\w*)+", text.read_text()))):
+            parts = name.split(".")
+            depth = next(i for i in range(len(parts), 0, -1) if ".".join(parts[:i]) in _modules())
+            obj = importlib.import_module(".".join(parts[:depth]))
+            for part in parts[depth:]:
+                obj = getattr(obj, part, missing)
+            if obj is missing:
+                missing.append(f"{text.name}: {name}")
+    assert missing == []
+    for package in sorted(p.name for p in SRC.iterdir() if (p / "__init__.pyi").exists() and p.name != "_core"):
+        assert f":mod:`sdp.{package}`" in sdp.__doc__, package

@@ -10,6 +10,7 @@ The package follows the data path, one subpackage per step:
 - :mod:`sdp.registration`: the current scan moved onto the reference first;
 - :mod:`sdp.stream`: a stream, frame by frame, against a model field;
 - :mod:`sdp.scale`: the same path in tiles on Dask for clouds beyond memory, field stores;
+- :mod:`sdp.timeseries`: many epochs against one reference in one archive, smoothed through time;
 - :mod:`sdp.viz`: pictures and the one-page report;
 - :mod:`sdp.actions`: action recognition from depth sequences;
 - :mod:`sdp.cli`: the commands, as Python functions (files in, files out) and as the program;
