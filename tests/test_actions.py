@@ -205,6 +205,15 @@ def test_action_stream_reports_each_action_soon_after_it_ends(tmp_path, rng, cap
     assert "needs depth sequences, or --stream" in capsys.readouterr().err
 
 
+def test_a_folder_of_depth_frames_is_read_in_natural_name_order(tmp_path):
+    """f2 before f10, as sdp watch reads its frames: a plain sort would replay f10 after f1."""
+    from sdp.actions._actions import read_frames
+
+    for i in (1, 2, 10, 11):
+        np.save(tmp_path / f"f{i}.npy", np.full((2, 3), i, np.uint16))
+    assert [int(f[0, 0]) for f in read_frames(tmp_path)] == [1, 2, 10, 11]
+
+
 def test_flow_channels_point_the_way_the_density_moves():
     """A blob carried along +x (then along −y) lights the +x (then −y) channel, not its opposite."""
     x = np.arange(18.0)[:, None, None]

@@ -96,8 +96,8 @@ def test_every_option_says_what_it_does_and_the_store_commands_name_stores():
     assert bare == []
     parsers = dict(commands(build_parser(), "sdp"))
     help_of = {(name, a.dest): a.help for name, p in parsers.items() for a in p._actions}
-    for key in [("sdp bool", "a"), ("sdp bool", "b"), ("sdp bool", "output"), ("sdp mesh", "input"), ("sdp info", "file")]:
-        assert ".zarr" in help_of[key], key
+    for command, dest in [("bool", "a"), ("bool", "b"), ("bool", "output"), ("mesh", "input"), ("info", "file")]:
+        assert ".zarr" in help_of[f"sdp {command}", dest], (command, dest)
 
 
 @pytest.mark.slow

@@ -69,6 +69,7 @@ import numpy as np
 
 from ..defaults import DEFAULTS
 from ..errors import SDPError
+from ..io._cloud import natural_key
 from ..io._output import atomic_path
 
 __all__ = ["read_sequence", "depth_to_points", "frame_densities", "sequence_descriptor", "list_sequences",
@@ -546,11 +547,12 @@ class ActionStream:
 
 
 def read_frames(source: str | os.PathLike):
-    """Depth frames, one (H, W) array at a time, from a folder of ``.npy`` frames (sorted by name)
-    or from a depth-sequence file (``.mat``, ``.bin``: replayed frame by frame)."""
+    """Depth frames, one (H, W) array at a time, from a folder of ``.npy`` frames (in natural name
+    order, as ``sdp watch`` reads its frames: ``f2`` before ``f10``) or from a depth-sequence file
+    (``.mat``, ``.bin``: replayed frame by frame)."""
     source = Path(source)
     if source.is_dir():
-        files = sorted(p for p in source.iterdir() if p.suffix.lower() == ".npy")
+        files = sorted((p for p in source.iterdir() if p.suffix.lower() == ".npy"), key=natural_key)
         if not files:
             raise SDPError(f"{source}: no .npy depth frame in the folder")
         for path in files:

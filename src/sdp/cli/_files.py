@@ -293,10 +293,9 @@ def frame_files(folder) -> tuple[list[Path], list[Path]]:
     """(the frames of a folder, in natural name order, the files left out): the point-cloud files of
     its most common format. A recording's folder often holds its frames beside text of the same
     readers' formats (poses, timestamps, notes), which would be read as frames of a few points."""
-    import re
     from collections import Counter
 
-    from ..io._cloud import FORMATS
+    from ..io._cloud import FORMATS, natural_key
 
     files = [p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in FORMATS]
     counts = Counter(p.suffix.lower() for p in files)
@@ -307,8 +306,7 @@ def frame_files(folder) -> tuple[list[Path], list[Path]]:
             raise SDPError(f"{folder}: holds as many {first} files as of another format ({each}): give a folder of "
                            "one format")
     kind = counts.most_common(1)[0][0] if counts else None
-    frames = sorted((p for p in files if p.suffix.lower() == kind),
-                    key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+    frames = sorted((p for p in files if p.suffix.lower() == kind), key=natural_key)
     return frames, sorted(p for p in files if p.suffix.lower() != kind)
 
 

@@ -519,7 +519,8 @@ def build_parser() -> argparse.ArgumentParser:
     pr = asub.add_parser("predict", help="action label of each sequence")
     pr.add_argument("model")
     pr.add_argument("sequences", nargs="*", help=".mat or .bin depth sequences")
-    pr.add_argument("--stream", metavar="FRAMES", help="a folder of .npy depth frames (or a sequence file, replayed)")
+    pr.add_argument("--stream", metavar="FRAMES",
+                    help="a folder of .npy depth frames, in natural name order (or a sequence file, replayed)")
     pr.add_argument("--window", type=V.cli_type(V.integer_at_least, 2), default=DEFAULTS.action_window,
                     help=f"frames used (default {DEFAULTS.action_window})")
     pr.add_argument("--every", type=V.cli_type(V.integer_at_least, 1), default=DEFAULTS.action_every,

@@ -1,8 +1,9 @@
 """A point cloud read from a file (:class:`Cloud`), the error of a file that can't be read
 (:class:`CloudFileError`), and what every reader shares: the formats by extension
-(:data:`FORMATS`, :func:`input_format`), the one-line error of a library's failure
-(:func:`library_error`, :func:`unreadable`; pydantic's PCD header reports summarized) and the
-notice of what a file holds that is read otherwise than one might expect (:func:`notice`).
+(:data:`FORMATS`, :func:`input_format`), the order of a folder's frames (:func:`natural_key`), the
+one-line error of a library's failure (:func:`library_error`, :func:`unreadable`; pydantic's PCD header
+reports summarized) and the notice of what a file holds that is read otherwise than one might expect
+(:func:`notice`).
 
 Kept apart from the readers (one module per format) and from :func:`sdp.io.read_points`, which
 dispatches to them, so that every one of them imports it without an import cycle.
@@ -11,6 +12,7 @@ dispatches to them, so that every one of them imports it without an import cycle
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -20,7 +22,7 @@ import numpy as np
 from ..errors import SDPError
 
 __all__ = ["Cloud", "CloudFileError", "EmptyCloudError", "ReadNotice", "FORMATS", "input_format", "library_error",
-           "notice", "unreadable", "unpacked_colour"]
+           "natural_key", "notice", "unreadable", "unpacked_colour"]
 
 #: Extension → format name understood by :func:`sdp.io.read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
@@ -216,6 +218,12 @@ def unpacked_colour(fields: dict) -> dict:
             return {**rest, "red": ((bits >> 16) & 255).astype(np.uint8),
                     "green": ((bits >> 8) & 255).astype(np.uint8), "blue": (bits & 255).astype(np.uint8)}
     return fields
+
+
+def natural_key(path: Path) -> list:
+    """The sort key of a file in natural name order, the order of a folder's frames (``frame2``
+    before ``frame10``, which a plain sort puts after ``frame1``): digits compare as numbers."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", Path(path).name)]
 
 
 def input_format(path: Path, format: str | None) -> str:
