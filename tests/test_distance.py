@@ -303,6 +303,21 @@ def test_tiles_give_the_same_distances(rng):
     assert abs(np.nanmedian(auto.distance[a[:, 0] > 7]) - 0.02) < 0.002
 
 
+def test_tiles_say_the_orientation_as_memory_does_and_refuse_a_bad_one_before_any_tile(rng):
+    n = 4000
+    a = np.c_[rng.uniform(0, [2, 2], (n, 2)), 0.003 * rng.standard_normal(n)]
+    b = a + [0, 0, 0.01]
+    kw = dict(cylinder=sdp.Cylinder(projection_scale=0.1, normal_scale=0.2, max_distance=0.2))
+    execution = sdp.Execution(scheduler="synchronous")
+    for given in (None, (0, 0, 2)):
+        whole = sdp.distances(a, b, sensor_origin=None, orientation=given, **kw)
+        tiled = sdp.distances_tiled(a, b, orientation=given, execution=execution, **kw)
+        assert tiled.orientation == whole.orientation == "towards (0, 0, 1)"  # DEFAULTS.orientation, unit
+    assert sdp.DEFAULTS.orientation == (0.0, 0.0, 1.0)
+    with pytest.raises(sdp.InvalidOptionError, match="orientation must be three finite numbers"):
+        sdp.distances_tiled(a, b, orientation=(0, 0, 0), execution=execution, **kw)
+
+
 @pytest.mark.slow
 def test_tiles_measure_the_automatic_scales_as_memory_does(rng):
     # a surface half rough: the roughness rule's median sits between the halves, where a sample's

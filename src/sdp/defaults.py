@@ -90,6 +90,9 @@ class Defaults:
         ``"auto"``: an epoch is looked for up to 12d (48σ) along the normal, so that
         displacements well beyond the kernel's reach are still measured (a 2 m move of a plane
         whose d is 18 cm, in ``benchmarks/bench_distance.py``).
+    orientation : tuple
+        (0, 0, 1): where no sensor is known, normals point up (+z), as M3C2's do by default: the
+        scans without a sensor are mostly airborne or merged maps, in frames with z up.
     registration_error : str
         ``"auto"``: M3C2's ``reg`` measured on the data, the smallest for which at most 5 % of
         the stable part (distances within 2σ_p, which the density test leaves unchanged) lies
@@ -139,6 +142,7 @@ class Defaults:
     projection_scale: str = "auto"
     normal_scale: str = "auto"
     max_distance: str = "auto"
+    orientation: tuple = (0.0, 0.0, 1.0)
     registration_error: str = "auto"
     range_exponent: str = "auto"
     correlation_length: float | None = None

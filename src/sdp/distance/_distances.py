@@ -314,7 +314,7 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     L_opt = auto_or_positive("max_distance", cylinder.max_distance)
     reg = auto_or_nonnegative("registration_error", registration_error)
     grid_memory_limit(memory_limit)  # readable and positive, before any work
-    towards = np.array([0.0, 0.0, 1.0]) if orientation is None else direction("orientation", orientation)
+    towards = direction("orientation", DEFAULTS.orientation if orientation is None else orientation)
     origins = resolve_sensor_origins(sensor_origin, reference, current)
     for cloud, o in zip((reference, current), origins):  # several scanners need each point's, before any work
         if np.ndim(o) == 2:

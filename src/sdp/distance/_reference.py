@@ -28,8 +28,9 @@ import numpy as np
 
 from .._core._memory import check_memory
 from .._core._points import as_points
-from .._core._validate import auto_or_nonnegative, auto_or_positive
+from .._core._validate import auto_or_nonnegative, auto_or_positive, direction
 from ..change._visibility import resolve_sensor_origins
+from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._spacing import resolve_lattice
 from ..options import Cylinder, as_options
@@ -103,10 +104,7 @@ class PreparedReference:
         d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
         D_opt = auto_or_positive("normal_scale", cylinder.normal_scale)
         L_opt = auto_or_positive("max_distance", cylinder.max_distance)
-        towards = np.array([0.0, 0.0, 1.0]) if orientation is None else np.asarray(orientation, np.float64).reshape(-1)
-        if towards.shape != (3,) or not np.isfinite(towards).all() or not np.any(towards):
-            raise InvalidOptionError(f"orientation must be a nonzero finite vector (x, y, z), got {orientation!r}")
-        towards = towards / np.linalg.norm(towards)
+        towards = direction("orientation", DEFAULTS.orientation if orientation is None else orientation)
         core = ref.xyz if core_points is None else as_points(core_points, name="core points").xyz
         if d_opt == "auto":
             voxel, sigma_voxels = resolve_lattice([ref], k=3.0)

@@ -47,6 +47,7 @@ import numpy as np
 from .._core._memory import check_memory, format_bytes
 from .._core._memory import memory_limit as resolve_memory_limit
 from .._core._points import as_points
+from .._core._validate import direction
 from ..defaults import DEFAULTS
 from ..distance._cells import CELL, CellLists, bounds, cell_moments
 from ..distance._distances import Distances, normal_sigma, search_reach, tile_halo
@@ -208,10 +209,7 @@ class TiledSeries:
         if core is not None:
             core = as_points(core, name="core points").xyz
         d, D, max_half = _scales(ref, core, cylinder, self.execution)
-        towards = np.array([0.0, 0.0, 1.0]) if orientation is None else np.asarray(orientation, np.float64).reshape(-1)
-        if towards.shape != (3,) or not np.isfinite(towards).all() or not np.any(towards):
-            raise InvalidOptionError(f"orientation must be a nonzero finite vector (x, y, z), got {orientation!r}")
-        towards = towards / np.linalg.norm(towards)
+        towards = direction("orientation", DEFAULTS.orientation if orientation is None else orientation)
         clouds = {"reference": ref} if core is None else {"reference": ref, "core": core}
         self._start(clouds, d, D, max_half)
         run = self.run

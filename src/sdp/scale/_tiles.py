@@ -73,7 +73,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._core._validate import auto_or_nonnegative, integer_at_least
+from .._core._validate import auto_or_nonnegative, direction, integer_at_least
 from ..change._combined import joined_by_regions
 from ..change._coverage import footprint_covered
 from ..change._detect import ChangeResult, PointChanges
@@ -494,6 +494,7 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
     execution = as_options(Execution, execution, "execution")
     reg_opt = auto_or_nonnegative("registration_error", registration_error)
     reg = 0.0 if reg_opt == "auto" else reg_opt
+    towards = direction("orientation", DEFAULTS.orientation if orientation is None else orientation)  # before any work
     t0 = time.perf_counter()
     d, D = cylinder.projection_scale, cylinder.normal_scale
     if d == "auto" or D == "auto":  # from the first slice of each cloud, as the tiled change detection
@@ -523,7 +524,7 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
                          n1=packed[:, 3], n2=packed[:, 4], spread1=packed[:, 5], spread2=packed[:, 6],
                          normal=np.ascontiguousarray(packed[:, 7:10]), level=level, projection_scale=d,
                          normal_scale=D, max_distance=max(reach, 3.0 * sigma_p), registration_error=reg,
-                         orientation="towards (0, 0, 1)" if orientation is None else f"towards {tuple(orientation)}",
+                         orientation="towards ({:g}, {:g}, {:g})".format(*towards),
                          timings=timings, tiles=len(run.tiles))
     return with_level(measured, reg_opt)
 
