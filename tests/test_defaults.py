@@ -21,6 +21,7 @@ PYTHON = {  # function or option object → the DEFAULTS fields it takes as keyw
     sdp.detect_changes_tiled: ("min_region_points",),
     sdp.distances: ("registration_error",),
     sdp.align: ("voxel_size",),
+    sdp.threshold: ("k",),
 }
 CLI = {"change": ("voxel_size", "sigma_voxels", "k", "min_region_points", "sensor_origin", "range_noise", "decision"),
        "watch": ("voxel_size", "min_region_points", "sensor_origin", "range_noise", "update"),

@@ -72,7 +72,7 @@ _AUTO_METHOD = "fast"
 _CHUNK = 4_000_000  # points binned per kernel call (a progress step)
 
 
-def threshold(k: float = 3) -> float:
+def threshold(k: float = DEFAULTS.k) -> float:
     """The paper's threshold h = 1 + k·e^(−1/2): the density of a point with k neighbours at σ.
 
     Raises
