@@ -178,16 +178,39 @@ def test_the_documents_name_only_what_exists():
 
     root = SRC.parent.parent
     texts = [root / "README.md", root / "pyproject.toml", *sorted((root / "docs").glob("*.md"))]
-    missing = []
+    missing, absent = [], object()
     for text in texts:
         for name in sorted(set(re.findall(r"\bsdp(?:\.[A-Za-z_]\w*)+", text.read_text()))):
             parts = name.split(".")
             depth = next(i for i in range(len(parts), 0, -1) if ".".join(parts[:i]) in _modules())
             obj = importlib.import_module(".".join(parts[:depth]))
             for part in parts[depth:]:
-                obj = getattr(obj, part, missing)
-            if obj is missing:
+                obj = getattr(obj, part, absent)
+            if obj is absent:
                 missing.append(f"{text.name}: {name}")
     assert missing == []
     for package in sorted(p.name for p in SRC.iterdir() if (p / "__init__.pyi").exists() and p.name != "_core"):
         assert f":mod:`sdp.{package}`" in sdp.__doc__, package
+
+
+def test_the_documents_links_lead_somewhere():
+    """Every relative link of README.md and docs/ names a file that exists and, in a Markdown file,
+    a heading it has (GitHub's anchors: lower case, punctuation dropped, spaces as dashes)."""
+    import re
+
+    root = SRC.parent.parent
+
+    def anchors(path):
+        heads = re.findall(r"^#+\s+(.*)$", path.read_text(), flags=re.M)
+        return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in heads}
+
+    broken = []
+    for doc in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        for link in re.findall(r"\]\(([^)\s]+)\)", doc.read_text()):
+            if link.startswith(("http://", "https://", "mailto:")):
+                continue
+            path, _, fragment = link.partition("#")
+            target = (doc.parent / path).resolve() if path else doc
+            if not target.exists() or (fragment and target.suffix == ".md" and fragment not in anchors(target)):
+                broken.append(f"{doc.name}: {link}")
+    assert broken == []
