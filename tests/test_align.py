@@ -134,8 +134,8 @@ def test_flat_ground_keeps_the_horizontal_and_finds_the_vertical(rng):
     from sdp.cli._text import alignment_text
 
     assert set(a.kept) <= {"yaw (about z)", "x shift", "y shift"} and len(a.kept) == a.frozen
-    assert "left at the initial pose" in alignment_text(a.summary()) and "x shift" in alignment_text(a.summary())
-    assert fixed.kept == () and "left at the initial pose" not in alignment_text(fixed.summary())
+    assert "not refined at the finest level" in alignment_text(a.summary()) and "x shift" in alignment_text(a.summary())
+    assert fixed.kept == () and "not refined at the finest level" not in alignment_text(fixed.summary())
 
 
 @pytest.mark.slow

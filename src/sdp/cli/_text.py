@@ -115,7 +115,7 @@ def alignment_text(al: dict) -> str:
 def alignment_warnings(al: dict) -> list[str]:
     """What an alignment (:meth:`sdp.Alignment.summary`) may have got wrong, each a sentence: it
     started from almost no overlap (a guess), its surfaces do not coincide after it (a residual
-    beyond the kernel σ: it has most likely failed), directions it left at the initial pose."""
+    beyond the kernel σ: it has most likely failed), directions it did not refine at the finest level."""
     out = []
     if al.get("diverged"):
         out.append("the estimate moved the surfaces apart (less of the scan inside the reference's volume than at the "
@@ -127,8 +127,9 @@ def alignment_warnings(al: dict) -> list[str]:
         out.append(f"the residual exceeds the kernel σ = {al['sigma']:.4g} m the surfaces are compared with: they do "
                    "not coincide, and the registration has most likely failed (move the scans closer first)")
     if al.get("kept"):
-        out.append(f"left at the initial pose, the scene pinning them less than 1 % as firmly as the best direction: "
-                   f"{', '.join(al['kept'])}; where the scans may differ in those, --align gicp estimates all six")
+        out.append(f"not refined at the finest level, the scene pinning them less than 1 % as firmly as the best "
+                   f"direction: {', '.join(al['kept'])} (as the coarser levels left them, the initial pose if they "
+                   "did too); where the scans may differ in those, --align gicp estimates all six")
     return out
 
 

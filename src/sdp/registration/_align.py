@@ -108,7 +108,8 @@ class Alignment:
         the point whose motion is :attr:`shift`. The world origin when not known.
     kept : tuple of str
         ``"density"``: the motions those frozen directions mostly are (``"yaw (about z)"``,
-        ``"x shift"``, …), left at the initial transform.
+        ``"x shift"``, …) at the finest level: not refined there, left as the coarser levels
+        left them (the initial transform where they were frozen there too).
     sigma : float
         The kernel σ of the finest level, which :attr:`rmse` is read against: after a right
         registration the surfaces coincide within it (0.3–0.65σ on the re-scans measured), a
