@@ -83,7 +83,7 @@ __all__ = ["observation_variance", "process_noise", "kalman", "FilterState", "BY
 BYTES_PER_VALUE = 320
 _STEP_K = 4.0
 #: The rate's standard deviation at a point's first observation, in the point's noise deviations
-#: per time step. A diffuse rate would take a step right after the first epoch for a rate (two
+#: per typical (median) time step. A diffuse rate would take a step right after the first epoch for a rate (two
 #: epochs cannot tell them apart, and the third is then predicted twice as far); one deviation
 #: per step is what one epoch can resolve, and a few epochs outweigh it.
 _RATE_PRIOR = 1.0
