@@ -155,7 +155,7 @@ def _resolve_times(epochs, times, *, start_index: int = 0):
                     f"{' …' if len(undated) > 3 else ''}: the epochs are numbered (give --times to date them)")
         else:
             twice = next(x for x in stamps if stamps.count(x) > 1)
-            note = (f"two files record the same time {_show_time(twice, 'date')}: the epochs are numbered (give "
+            note = (f"two files record the same time {A.show_time(twice, 'date')}: the epochs are numbered (give "
                     f"--times to date them)")
     return np.arange(start_index, start_index + len(epochs), dtype=np.float64), "number", "index", note
 
@@ -448,10 +448,10 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                                          "(give numbers)")
             dup = np.intersect1d(t_new, old_times)
             if dup.size:
-                raise InvalidOptionError(f"epoch time {_show_time(dup[0], kind)} is already in the archive {out}")
+                raise InvalidOptionError(f"epoch time {A.show_time(dup[0], kind)} is already in the archive {out}")
             if t_new.min() <= old_times.max():
                 raise InvalidOptionError(f"appended epochs must come after the archive's last time "
-                                         f"{_show_time(old_times.max(), kind)}")
+                                         f"{A.show_time(old_times.max(), kind)}")
             if np.any(np.diff(t_new) <= 0):
                 raise InvalidOptionError("the times of the epochs must increase (and differ), in the order given")
             if core_points is not None:
@@ -485,7 +485,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     t, kind, source, note = _resolve_times(epochs, times)
     if len(np.unique(t)) != len(t):
         twice = np.sort(t)[np.argmax(np.diff(np.sort(t)) == 0)]
-        raise InvalidOptionError(f"two epochs have the time {_show_time(twice, kind)}"
+        raise InvalidOptionError(f"two epochs have the time {A.show_time(twice, kind)}"
                                  f" ({source}): give distinct --times")
     if np.any(np.diff(t) <= 0):
         raise InvalidOptionError("the times of the epochs must increase, in the order given"
@@ -569,10 +569,6 @@ def _random_sd(d) -> float | None:
     if not d.comparable.any():
         return None
     return float(np.median(d.lod[d.comparable]) / LEVEL_Z - d.registration_error)
-
-
-def _show_time(value: float, kind: str) -> str:
-    return A.show_time(value, kind)
 
 
 def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registration, reg_opt, limit, fmt, t_start,
