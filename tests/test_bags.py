@@ -427,8 +427,9 @@ def test_tf_moves_each_message_into_map_at_its_stamp(tmp_path):
         np.testing.assert_allclose(cloud.xyz, xyz, atol=1e-5)  # interpolated, translation and rotation
     np.testing.assert_allclose(a.sensor_origin, [1, 0, 1], atol=1e-9)  # the camera's origin in map at 2 s
     np.testing.assert_allclose(b.sensor_origin, [1.5, 0, 1], atol=1e-9)
-    assert late.frame == "camera" and late.tf == "left in 'camera': no /tf chain into 'map' at its stamp"
-    assert lidar.frame == "lidar" and lidar.tf.startswith("left in 'lidar'")
+    assert late.frame == "camera" and late.tf == ("left in 'camera': /tf holds 'map' → 'base_link' from 1.000 s to "
+                                                  "3.000 s, not at its stamp (no extrapolation, as tf2)")
+    assert lidar.frame == "lidar" and lidar.tf == "left in 'lidar': no /tf chain into 'map' ('lidar' has no parent in /tf)"
     assert np.array_equal(lidar.sensor_origin, [0, 0, 0])  # left as it is: the sensor at its frame's origin
     np.save(tmp_path / "map.npy", truth[0])
     r = sdp.compare_files(tmp_path / "map.npy", bag, output=tmp_path / "o.npz", topic="/points:1")
@@ -460,3 +461,35 @@ def test_tf_makes_a_static_room_seen_by_a_moving_robot_unchanged(tmp_path):
 def test_a_frames_name_is_its_index_and_the_time_the_bag_recorded_it_not_its_header_stamp(tmp_path):
     bag = write_ros2(tmp_path / "b", [(5 * 10**9 + 7, message(room(), 1, 3000, stamp=10**9))])
     assert [name for name, _ in bag_frames(bag, "/points")] == ["000000@5000000007"]
+
+
+def test_tf_says_why_a_message_is_left_in_its_frame_and_refuses_a_child_of_two_parents(tmp_path):
+    """A base_link given by odom and by map (5 m apart) once moved a cloud by 5 m between two stamps 1 ns apart, both
+    said 'moved into odom'; an unstamped message and one after the last /tf were both 'no /tf chain at its stamp'."""
+    from rosbags.rosbag2 import Writer
+    from scipy.spatial.transform import Rotation
+
+    still = Rotation.identity()
+    rec = room()
+    clouds = [(stamp, in_frame(message(rec, 1, 3000, stamp=stamp), "/camera")) for stamp in (0, 2 * 10**9, 4 * 10**9)]
+    for two in (False, True):
+        with Writer(tmp_path / f"b{two}", version=9) as w:
+            conn = w.add_connection("/points", MSGTYPE, typestore=TS)
+            dyn = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=TS)
+            fixed = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=TS)
+            w.write(fixed, 1, TS.serialize_cdr(tf_message(1, ("base_link", "camera", (0, 0, 1), still)),
+                                               "tf2_msgs/msg/TFMessage"))
+            for s in (1, 3):
+                links = [("odom", "base_link", (s, 0, 0), still)] + [("map", "base_link", (s + 5, 0, 0), still)] * two
+                w.write(dyn, s * 10**9, TS.serialize_cdr(tf_message(s * 10**9, *links), "tf2_msgs/msg/TFMessage"))
+            for stamp, msg in clouds:
+                w.write(conn, stamp + 1, TS.serialize_cdr(msg, MSGTYPE))
+        said = [(c.frame, c.tf) for _, c in bag_frames(tmp_path / f"b{two}", "/points")]
+        if two:
+            assert said == [("camera", "left in 'camera': /tf gives 'base_link' several parents ('map', 'odom'): a "
+                                       "broken tree")] * 3
+        else:
+            assert said == [("camera", "left in 'camera': its header.stamp is 0 (unstamped): no time to look /tf up at"),
+                            ("odom", "moved from 'camera' into 'odom' with /tf"),
+                            ("camera", "left in 'camera': /tf holds 'odom' → 'base_link' from 1.000 s to 3.000 s, not "
+                                       "at its stamp (no extrapolation, as tf2)")]

@@ -141,13 +141,10 @@ def bag_frames(path, topic: str) -> Iterator[tuple[str, Cloud]]:
 def _moved(xyz, frame: str, stamp: int, tree) -> tuple[np.ndarray, np.ndarray | None, str, str]:
     """(points, sensor position or None, frame, what /tf did) of a message's points in ``frame`` at
     ``stamp`` (ns): moved into the tree's root where a chain of transforms reaches it then."""
-    root = tree.root
-    if root is None:
-        return xyz, None, frame, f"left in {frame!r}: /tf reaches neither map nor odom"
-    m = tree.matrix(frame, stamp)
+    m, why = tree.lookup(frame, stamp)
     if m is None:
-        return xyz, None, frame, f"left in {frame!r}: no /tf chain into {root!r} at its stamp"
-    return xyz @ m[:3, :3].T + m[:3, 3], m[:3, 3].copy(), root, f"moved from {frame!r} into {root!r} with /tf"
+        return xyz, None, frame, f"left in {frame!r}: {why}"
+    return xyz @ m[:3, :3].T + m[:3, 3], m[:3, 3].copy(), tree.root, f"moved from {frame!r} into {tree.root!r} with /tf"
 
 
 def _frames(reader, conns, path, tree=None) -> Iterator[tuple[str, Cloud]]:

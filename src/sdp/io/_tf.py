@@ -9,7 +9,10 @@ frame into the root (``map``, else ``odom``: REP 105's world frames [2]_) at a m
 transforms recorded around the stamp, translation linearly and rotation by spherical linear
 interpolation (scipy's :class:`~scipy.spatial.transform.Slerp`), as tf2 does. A stamp outside a
 link's recorded times has no transform (tf2 refuses to extrapolate), nor has a frame without a
-chain of parents to the root.
+chain of parents to the root, nor one that ``/tf`` gives two parents (``odom`` → ``base_link``
+and ``map`` → ``base_link``: a broken tree, whose transforms, read as one link's, would move the
+cloud between the two parents' frames from one stamp to the next); :meth:`TransformTree.lookup`
+says which.
 
 References
 ----------
@@ -38,6 +41,7 @@ class _Link:
 
     def __init__(self, parent: str):
         self.parent = parent
+        self.other_parents: set[str] = set()  # parents /tf also gave this child: the tree is broken there
         self.stamps, self.translations, self.rotations = [], [], []
         self.static = False
         self._slerp = None
@@ -95,7 +99,11 @@ class TransformTree:
             for t in reader.deserialize(raw, conn.msgtype).transforms:
                 stamp = int(t.header.stamp.sec) * 10**9 + int(t.header.stamp.nanosec)
                 q, v = t.transform.rotation, t.transform.translation
-                link = tree.links.setdefault(_frame(t.child_frame_id), _Link(_frame(t.header.frame_id)))
+                parent = _frame(t.header.frame_id)
+                link = tree.links.setdefault(_frame(t.child_frame_id), _Link(parent))
+                if parent != link.parent:
+                    link.other_parents.add(parent)
+                    continue
                 link.add(stamp, (v.x, v.y, v.z), (q.x, q.y, q.z, q.w), conn.topic == "/tf_static")
         return tree if tree.links else None
 
@@ -105,18 +113,30 @@ class TransformTree:
         frames = set(self.links) | {link.parent for link in self.links.values()}
         return next((r for r in ROOTS if r in frames), None)
 
-    def matrix(self, frame: str, stamp: int) -> np.ndarray | None:
-        """The 4 × 4 transform of ``frame``'s coordinates into :attr:`root`'s at ``stamp`` (ns), or
-        None without a chain of links there at that time."""
+    def lookup(self, frame: str, stamp: int) -> tuple[np.ndarray | None, str]:
+        """(the 4 × 4 transform of ``frame``'s coordinates into :attr:`root`'s at ``stamp`` (ns), "")
+        or (None, why there is none: the link that has no transform then, and why)."""
         root, m, seen = self.root, np.eye(4), set()
         frame = _frame(frame)
-        while root is not None and frame != root:
+        if root is None:
+            return None, "/tf reaches neither map nor odom"
+        while frame != root:
             link = self.links.get(frame)
-            if link is None or frame in seen:
-                return None
+            if link is None:
+                return None, f"no /tf chain into {root!r} ({frame!r} has no parent in /tf)"
+            if frame in seen:
+                return None, f"/tf's links loop through {frame!r}"
+            if link.other_parents:
+                names = ", ".join(repr(p) for p in sorted({link.parent} | link.other_parents))
+                return None, f"/tf gives {frame!r} several parents ({names}): a broken tree"
             seen.add(frame)
             step = link.matrix(stamp)
             if step is None:
-                return None
+                if stamp == 0:  # a driver that stamps nothing: no time to look /tf up at
+                    return None, "its header.stamp is 0 (unstamped): no time to look /tf up at"
+                t = np.asarray(link.stamps, np.int64) / 1e9
+                held = f"at {t.min():.3f} s only" if t.min() == t.max() else f"from {t.min():.3f} s to {t.max():.3f} s"
+                return None, (f"/tf holds {link.parent!r} → {frame!r} {held}, not at its stamp (no extrapolation, "
+                              "as tf2)")
             m, frame = step @ m, link.parent
-        return None if root is None else m
+        return m, ""
