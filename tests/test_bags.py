@@ -494,3 +494,22 @@ def test_tf_says_why_a_message_is_left_in_its_frame_and_refuses_a_child_of_two_p
                             ("odom", "moved from 'camera' into 'odom' with /tf"),
                             ("camera", "left in 'camera': /tf holds 'odom' → 'base_link' from 1.000 s to 3.000 s, not "
                                        "at its stamp (no extrapolation, as tf2)")]
+
+
+def test_a_bag_given_where_files_are_read_says_where_its_messages_go(tmp_path):
+    """sdp series BAG said "is a folder, not a point-cloud file" (a ROS 2 bag), "unknown point-cloud format '.db3'"
+    (its storage file) or "'.bag'" (a ROS 1 bag, even a missing one)."""
+    bag = write_ros2(tmp_path / "b", [(1, message(room(), 1, 3000))])
+    (db3,) = bag.glob("*.db3")
+    ros1 = write_ros1(tmp_path / "b1.bag", [(1, message(room(), 1, 3000, ts=TS1))])
+    for path in (bag, db3, ros1):
+        with pytest.raises(CloudFileError, match=r"a ROS bag, not a point-cloud file: sdp change and sdp watch read its "
+                                                 r"PointCloud2 messages \(--topic TOPIC:N\)$"):
+            sdp.read_points(path)
+    with pytest.raises(CloudFileError, match=r"missing.bag: no such file or folder$"):
+        sdp.read_points(tmp_path / "missing.bag")
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "series", bag, bag, "-o", tmp_path / "s.zarr"],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and p.stderr.strip().splitlines() == [f"sdp: error: {bag}: a ROS bag, not a point-cloud "
+                                                                   "file: sdp change and sdp watch read its PointCloud2 "
+                                                                   "messages (--topic TOPIC:N)"]

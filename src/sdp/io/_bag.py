@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import require
-from ._cloud import Cloud, CloudFileError, library_error, unpacked_colour
+from ._cloud import Cloud, CloudFileError, is_bag, library_error, unpacked_colour
 from ._tf import TransformTree
 
 __all__ = ["bag_frames", "bag_message", "bag_path", "bag_topics", "frame_kind", "is_bag", "pointcloud2_arrays",
@@ -51,17 +51,6 @@ BODY_FRAMES = frozenset({"base_link", "base_footprint", "base_stabilized"})
 MAX_COORDINATE = 1e12
 # sensor_msgs/PointField datatypes: INT8 … FLOAT64
 _TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
-
-
-def is_bag(path) -> bool:
-    """A ROS 1 bag file (``.bag``), or a ROS 2 bag: a folder holding ``metadata.yaml``, or one of
-    its ``.db3`` / ``.mcap`` files (arrays and clouds are not)."""
-    if not isinstance(path, (str, os.PathLike)):
-        return False
-    p = Path(path)
-    if p.is_dir():
-        return (p / "metadata.yaml").is_file()
-    return p.suffix.lower() in (".bag", ".db3", ".mcap")  # missing too: the reader says so
 
 
 def bag_path(path) -> Path:

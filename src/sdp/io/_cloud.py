@@ -21,8 +21,8 @@ import numpy as np
 
 from ..errors import SDPError
 
-__all__ = ["Cloud", "CloudFileError", "EmptyCloudError", "ReadNotice", "FORMATS", "input_format", "library_error",
-           "natural_key", "notice", "unreadable", "unpacked_colour"]
+__all__ = ["Cloud", "CloudFileError", "EmptyCloudError", "ReadNotice", "FORMATS", "input_format", "is_bag",
+           "library_error", "natural_key", "notice", "unreadable", "unpacked_colour"]
 
 #: Extension → format name understood by :func:`sdp.io.read_points`.
 FORMATS = {".pcd": "pcd", ".ply": "ply", ".las": "las", ".laz": "las", ".xyz": "text", ".txt": "text",
@@ -226,10 +226,25 @@ def natural_key(path: Path) -> list:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", Path(path).name)]
 
 
+def is_bag(path) -> bool:
+    """A ROS 1 bag file (``.bag``), or a ROS 2 bag: a folder holding ``metadata.yaml``, or one of
+    its ``.db3`` / ``.mcap`` files (arrays and clouds are not)."""
+    if not isinstance(path, (str, os.PathLike)):
+        return False
+    p = Path(path)
+    if p.is_dir():
+        return (p / "metadata.yaml").is_file()
+    return p.suffix.lower() in (".bag", ".db3", ".mcap")  # missing too: the reader says so
+
+
 def input_format(path: Path, format: str | None) -> str:
     """The reader's format name for ``path`` (``format`` overrides the extension), once ``path``
     is known to be an existing file; else :class:`CloudFileError` saying what is wrong."""
     names = sorted(set(FORMATS.values()))
+    if format is None and is_bag(path):  # commands other than change and watch: say where its messages go
+        raise CloudFileError(f"{path}: no such file or folder" if not path.exists() else
+                             f"{path}: a ROS bag, not a point-cloud file: sdp change and sdp watch read its "
+                             "PointCloud2 messages (--topic TOPIC:N)")
     if path.is_dir():
         raise CloudFileError(f"{path}: is a folder, not a point-cloud file")
     if format is None and path.suffix.lower() == ".sdpf":
