@@ -513,3 +513,19 @@ def test_a_bag_given_where_files_are_read_says_where_its_messages_go(tmp_path):
     assert p.returncode == 2 and p.stderr.strip().splitlines() == [f"sdp: error: {bag}: a ROS bag, not a point-cloud "
                                                                    "file: sdp change and sdp watch read its PointCloud2 "
                                                                    "messages (--topic TOPIC:N)"]
+
+
+def test_sdp_change_without_topic_lists_the_bags_topics_before_calling_it_one_message(tmp_path):
+    """One bag of two PointCloud2 topics given twice without --topic said "would be the same message (None)"; a bag
+    beside a file said "give --topic TOPIC" without naming any."""
+    from rosbags.rosbag2 import Writer
+
+    with Writer(tmp_path / "two", version=9) as w:
+        for topic in ("/front/points", "/rear/points"):
+            conn = w.add_connection(topic, MSGTYPE, typestore=TS)
+            w.write(conn, 1, TS.serialize_cdr(message(room(), 1, 3000), MSGTYPE))
+    np.save(tmp_path / "ref.npy", np.c_[room()["x"], room()["y"], room()["z"]].astype(float))
+    listed = r"two: a ROS bag: give --topic, one of its PointCloud2 topics \(/front/points \(1 messages\), /rear/points"
+    for ref in (tmp_path / "two", tmp_path / "ref.npy"):
+        with pytest.raises(sdp.SDPError, match=listed):
+            sdp.compare_files(ref, tmp_path / "two", output=tmp_path / "o.npz")

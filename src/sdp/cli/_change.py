@@ -31,7 +31,7 @@ from ..options import Coverage, Execution, Lattice, NoiseModel, Outputs, Registr
 from . import _text as report
 from ..io._bag import bag_path, is_bag
 from ._common import (align_clouds, alignment_summary, check_picture_extras, disappeared_path, is_store, pictures,
-                      read_input, same_frame, sensor_origins)
+                      read_input, same_frame, sensor_origins, topic_needed)
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
 
@@ -300,6 +300,8 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
     bags = [is_bag(f) for f in (reference, current)]
     if topic is not None and not any(bags):
         raise SDPError("--topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if any(bags) and topic is None:  # before the same-message check, which would name no message
+        raise topic_needed(reference if bags[0] else current)
     if all(bags) and bag_path(reference) == bag_path(current):  # a ROS 2 bag's folder and its .db3 are one bag
         raise SDPError(f"{reference}: the reference and the current would be the same message ({topic}): compare a "
                        "bag's messages with sdp watch BAG_OR_REFERENCE BAG --topic TOPIC, or give each its own file")

@@ -127,6 +127,15 @@ def pictures(png, html, xyz, changed, title, regions=()) -> list[str]:
     return written
 
 
+def topic_needed(path) -> SDPError:
+    """The error for a ROS bag given without ``--topic``, listing its point-cloud topics."""
+    from ..io._bag import bag_topics
+
+    topics = bag_topics(path)  # a missing or corrupt bag says so instead
+    return SDPError(f"{path}: a ROS bag: give --topic, one of its PointCloud2 topics "
+                    f"({', '.join(f'{t} ({n} messages)' for t, n in sorted(topics.items())) or 'none'})")
+
+
 def read_input(path, *, format: str | None = None, topic: str | None = None):
     """The Cloud of an input: a point-cloud file, or with ``topic`` one message of a ROS bag
     (:func:`sdp.io._bag.bag_message`: ``TOPIC`` its first, ``TOPIC:N`` its N-th)."""
@@ -137,6 +146,6 @@ def read_input(path, *, format: str | None = None, topic: str | None = None):
         if not Path(path).exists():
             raise SDPError(f"{path}: no such file or folder")
         if topic is None:
-            raise SDPError(f"{path}: a ROS bag: give --topic TOPIC (its first message) or TOPIC:N")
+            raise topic_needed(path)
         return bag_message(path, topic)
     return read_points(path, format=format)

@@ -18,7 +18,8 @@ from ..io._cloud import input_format
 from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, NoiseModel, Registration, as_options
 from . import _text as report
-from ._common import align_clouds, is_field, is_store, pictures, read_input, same_frame, sensor_origins
+from ._common import (align_clouds, is_field, is_store, pictures, read_input, same_frame, sensor_origins,
+                      topic_needed)
 
 __all__ = ["build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder",
            "Evaluation", "evaluate_files", "render_file"]
@@ -330,15 +331,13 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     from ..io._cloud import FORMATS
     from ..stream._watch import watch
 
-    from ..io._bag import bag_frames, bag_topics, is_bag, split_topic
+    from ..io._bag import bag_frames, is_bag, split_topic
 
     noise = NoiseModel.of(noise, decision)
     folder = Path(frames)
     bag = is_bag(folder)
     if bag and topic is None:
-        topics = bag_topics(folder)
-        raise SDPError(f"{folder}: a ROS bag: give --topic, one of its PointCloud2 topics "
-                       f"({', '.join(f'{t} ({n} messages)' for t, n in sorted(topics.items())) or 'none'})")
+        raise topic_needed(folder)
     if topic is not None and not bag and not is_bag(reference):
         raise SDPError(f"{folder}: --topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
     if bag and is_bag(reference) and format is not None:  # it would be ignored: the messages carry their layout
