@@ -497,22 +497,22 @@ def test_tf_says_why_a_message_is_left_in_its_frame_and_refuses_a_child_of_two_p
 
 
 def test_a_bag_given_where_files_are_read_says_where_its_messages_go(tmp_path):
-    """sdp series BAG said "is a folder, not a point-cloud file" (a ROS 2 bag), "unknown point-cloud format '.db3'"
+    """sdp series BAG (without --topic) said "is a folder, not a point-cloud file" (a ROS 2 bag), "unknown point-cloud format '.db3'"
     (its storage file) or "'.bag'" (a ROS 1 bag, even a missing one)."""
     bag = write_ros2(tmp_path / "b", [(1, message(room(), 1, 3000))])
     (db3,) = bag.glob("*.db3")
     ros1 = write_ros1(tmp_path / "b1.bag", [(1, message(room(), 1, 3000, ts=TS1))])
     for path in (bag, db3, ros1):
         with pytest.raises(CloudFileError, match=r"a ROS bag, not a point-cloud file: sdp change and sdp watch read its "
-                                                 r"PointCloud2 messages \(--topic TOPIC:N\)$"):
+                                                 r"PointCloud2 messages \(--topic TOPIC:N\), sdp series all of them "
+                                                 r"as one epoch \(--topic TOPIC\)$"):
             sdp.read_points(path)
     with pytest.raises(CloudFileError, match=r"missing.bag: no such file or folder$"):
         sdp.read_points(tmp_path / "missing.bag")
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "series", bag, bag, "-o", tmp_path / "s.zarr"],
                        capture_output=True, text=True, timeout=300)
-    assert p.returncode == 2 and p.stderr.strip().splitlines() == [f"sdp: error: {bag}: a ROS bag, not a point-cloud "
-                                                                   "file: sdp change and sdp watch read its PointCloud2 "
-                                                                   "messages (--topic TOPIC:N)"]
+    assert p.returncode == 2 and p.stderr.strip().splitlines() == [f"sdp: error: {bag}: a ROS bag: give --topic, one "
+                                                                   "of its PointCloud2 topics (/points (1 messages))"]
 
 
 def test_sdp_change_without_topic_lists_the_bags_topics_before_calling_it_one_message(tmp_path):
@@ -529,3 +529,110 @@ def test_sdp_change_without_topic_lists_the_bags_topics_before_calling_it_one_me
     for ref in (tmp_path / "two", tmp_path / "ref.npy"):
         with pytest.raises(sdp.SDPError, match=listed):
             sdp.compare_files(ref, tmp_path / "two", output=tmp_path / "o.npz")
+
+
+NIGHT = 1_700_000_000 * 10**9  # the first night's first stamp (2023-11-14); a night a day later than the one before
+
+
+def patrol_scene(night: int, seed: int, n: int = 6000):
+    """Points (map) of a 4 m room's floor and two walls, and a 0.6 m box on the floor at (1, 1), moved to (2.6, 2.6)
+    from night 1 on; a depth camera's noise of 3 mm."""
+    rng = np.random.default_rng(seed)
+    u, v = rng.random((2, n)) * 4
+    side = rng.integers(0, 3, n)
+    xyz = np.where(side[:, None] == 0, np.c_[u, v, 0 * u], np.where(side[:, None] == 1, np.c_[u, 0 * u, v / 2],
+                                                                     np.c_[0 * u, u, v / 2]))
+    corner = np.array([1.0, 1.0, 0.0]) if night == 0 else np.array([2.6, 2.6, 0.0])
+    under = ((xyz[:, 0] > corner[0]) & (xyz[:, 0] < corner[0] + 0.6) & (xyz[:, 1] > corner[1])
+             & (xyz[:, 1] < corner[1] + 0.6) & (xyz[:, 2] == 0))
+    top = corner + np.c_[rng.random((1500, 2)) * 0.6, np.full(1500, 0.6)]
+    xyz = np.r_[xyz[~under], top]
+    return xyz + rng.normal(0, 0.003, xyz.shape)
+
+
+def patrol_bag(path, night: int, *, tf=True, keep=None, frame="camera"):
+    """One night's bag: the robot (map → base_link on /tf, its camera 1 m above on /tf_static, turned 30°) stops at
+    three places and its camera's messages hold the scene (``keep``: the points kept) in the camera's frame."""
+    from rosbags.rosbag2 import Writer
+    from scipy.spatial.transform import Rotation
+
+    camera = (np.array([0.0, 0, 1]), Rotation.from_euler("z", 30, degrees=True))
+    start = NIGHT + night * 86_400 * 10**9
+    stops = [(start + k * 10**9, np.array([1.0 + k, 3.0, 0]), Rotation.from_euler("z", 20 * k, degrees=True))
+             for k in range(3)]
+    with Writer(path, version=9) as w:
+        conn = w.add_connection("/camera/points", MSGTYPE, typestore=TS)
+        if tf:
+            dyn = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=TS)
+            fixed = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=TS)
+            w.write(fixed, start, TS.serialize_cdr(tf_message(start, ("base_link", "camera", *camera)),
+                                                   "tf2_msgs/msg/TFMessage"))
+            for t, where, turn in stops:  # held still at each stop, 0.1 s either side of the message
+                for dt in (-10**8, 10**8):
+                    w.write(dyn, t + dt, TS.serialize_cdr(tf_message(t + dt, ("map", "base_link", where, turn)),
+                                                          "tf2_msgs/msg/TFMessage"))
+        for k, (t, where, turn) in enumerate(stops):
+            xyz = patrol_scene(night, seed=10 * night + k)
+            if keep is not None:
+                xyz = xyz[keep(xyz)]
+            local = camera[1].inv().apply(turn.inv().apply(xyz - where) - camera[0])
+            rec = np.zeros(len(xyz), room(1).dtype)
+            rec["x"], rec["y"], rec["z"] = local.T
+            w.write(conn, t, TS.serialize_cdr(in_frame(message(rec, 1, len(rec), stamp=t), frame), MSGTYPE))
+    return path
+
+
+def test_a_bag_is_one_epoch_of_a_series_each_message_a_scan_position(tmp_path):
+    """sdp series refused a bag: "a ROS bag, not a point-cloud file"."""
+    from sdp.io._bag import bag_epoch
+
+    nights = [patrol_bag(tmp_path / "night1", 0), patrol_bag(tmp_path / "night2", 1),
+              patrol_bag(tmp_path / "night3", 2, keep=lambda xyz: xyz[:, 0] < 2.0)]  # the robot looked away
+    cloud = bag_epoch(nights[0], "/camera/points")
+    assert cloud.frame == "map" and cloud.tf == "moved from 'camera' into 'map' with /tf"
+    np.testing.assert_allclose(cloud.sensors, [[1, 3, 1], [2, 3, 1], [3, 3, 1]], atol=1e-9)  # each stop's camera
+    assert np.array_equal(np.bincount(cloud.scan), [len(patrol_scene(0, k)) for k in range(3)])
+    np.testing.assert_allclose(cloud.xyz[:len(patrol_scene(0, 0))], patrol_scene(0, 0), atol=1e-5)
+    ds = sdp.series(nights, output=tmp_path / "patrol.zarr", topic="/camera/points",
+                    cylinder=sdp.Cylinder(projection_scale=0.2))
+    assert ds.attrs["epochs"][0]["time_source"] == "file (ROS header.stamp)"
+    assert ds.attrs["parameters"]["used"]["orientation"] == "towards each point's scanner"  # as a multi-scan E57's
+    days = (ds.time.values - np.datetime64("1970-01-01")) / np.timedelta64(1, "D")
+    np.testing.assert_allclose(days, [NIGHT / 86_400e9 + k for k in range(3)], rtol=0, atol=1e-9)
+    x, y, z = (ds[a].values for a in "xyz")
+    old_box = (x > 1.05) & (x < 1.55) & (y > 1.05) & (y < 1.55) & (z > 0.55)
+    static = (z > 0.3) & ((x < 0.05) | (y < 0.05)) & (x < 1.8)  # the walls, seen every night
+    assert old_box.sum() > 5 and static.sum() > 50
+    sig = ds.significant.values
+    assert sig[1, old_box].mean() > 0.9 and np.all(ds.distance.values[1, old_box] < -0.4)  # the box gone
+    assert sig[1, static].mean() < 0.1 and sig[2, static].mean() < 0.1  # a 95 % level's false alarms: about 5 %
+    away = x > 2.3  # night 3 did not look there: not measured, not changed
+    assert np.isnan(ds.distance.values[2, away]).all() and not sig[2, away].any()
+    # --append: a bag epoch added to the archive of the first two measures as the full run did
+    sdp.series(nights[:2], output=tmp_path / "two.zarr", topic="/camera/points",
+               cylinder=sdp.Cylinder(projection_scale=0.2))
+    appended = sdp.series(nights[2:], output=tmp_path / "two.zarr", topic="/camera/points", append=True)
+    np.testing.assert_array_equal(appended.distance.values, ds.distance.values)
+    assert appended.attrs["epochs"][2]["time_source"] == "file (ROS header.stamp)"
+
+
+def test_a_bag_epoch_without_tf_or_topic_is_refused_in_one_line(tmp_path):
+    from sdp.io._bag import bag_epoch
+
+    bare = patrol_bag(tmp_path / "bare", 0, tf=False)
+    with pytest.raises(CloudFileError, match=r"bare /camera/points message 0: left in 'camera': the bag has no /tf; an "
+                                             r"epoch merges its messages in map or odom"):
+        bag_epoch(bare, "/camera/points")
+    mapped = patrol_bag(tmp_path / "mapped", 0, tf=False, frame="map")  # already in map: no /tf needed
+    assert bag_epoch(mapped, "/camera/points").sensors is None and bag_epoch(mapped, "/camera/points").frame == "map"
+    with pytest.raises(sdp.SDPError, match=r"would need .* above the memory limit"):  # counted before reading
+        bag_epoch(mapped, "/camera/points", memory_limit=10**6)
+    with pytest.raises(sdp.SDPError, match=r"give --topic, one of its PointCloud2 topics \(/camera/points \(3 messag"):
+        sdp.series([mapped, mapped], output=tmp_path / "s.zarr")
+    np.save(tmp_path / "a.npy", patrol_scene(0, 0))
+    with pytest.raises(sdp.SDPError, match=r"--topic reads a ROS bag epoch"):
+        sdp.series([tmp_path / "a.npy"] * 2, output=tmp_path / "s.zarr", topic="/camera/points")
+    p = subprocess.run([sys.executable, "-m", "sdp.cli", "series", mapped, bare, "--topic", "/camera/points", "-o",
+                        tmp_path / "s.zarr"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "bare /camera/points message 0" in p.stderr
+    assert not (tmp_path / "s.zarr").exists()

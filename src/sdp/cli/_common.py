@@ -128,12 +128,11 @@ def pictures(png, html, xyz, changed, title, regions=()) -> list[str]:
 
 
 def topic_needed(path) -> SDPError:
-    """The error for a ROS bag given without ``--topic``, listing its point-cloud topics."""
-    from ..io._bag import bag_topics
+    """The error for a ROS bag given without ``--topic``, listing its point-cloud topics
+    (:func:`sdp.io._bag.topic_needed`, which :func:`sdp.series` also raises)."""
+    from ..io._bag import topic_needed as needed
 
-    topics = bag_topics(path)  # a missing or corrupt bag says so instead
-    return SDPError(f"{path}: a ROS bag: give --topic, one of its PointCloud2 topics "
-                    f"({', '.join(f'{t} ({n} messages)' for t, n in sorted(topics.items())) or 'none'})")
+    return needed(path)
 
 
 def read_input(path, *, format: str | None = None, topic: str | None = None):

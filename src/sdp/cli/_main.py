@@ -222,7 +222,7 @@ def _epoch_output(text: str) -> tuple[str, str]:
 
 def cmd_series(a):
     options = dict(core_points=a.core_points, reference=a.reference, registration_error=a.registration_error,
-                   align=_registration(a), format=a.format,
+                   align=_registration(a), format=a.format, topic=a.topic,
                    orientation=None if a.orientation is None else V.sensor_origin_option("--orientation", a.orientation))
     given = (a.projection_scale, a.normal_scale, a.max_distance)
     if not a.append or given != (DEFAULTS.projection_scale, DEFAULTS.normal_scale, DEFAULTS.max_distance):
@@ -414,12 +414,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     se = _command(sub, "series", cmd_series, "many epochs against one reference: distances, smoothed change, "
                   "velocity and 4D objects of change in one archive, appended epoch by epoch", X.SERIES)
-    se.add_argument("epochs", nargs="+", help="the epochs' files, in time order")
+    se.add_argument("epochs", nargs="+", help="the epochs' files (or ROS bags, with --topic), in time order")
     se.add_argument("-o", "--output", required=True, help="the archive (.zarr folder)")
     se.add_argument("--append", action="store_true", help="add EPOCHS to the archive: only they are measured, "
                     "with its reference, core points and options")
     se.add_argument("--times", help="T1,T2,...: numbers or ISO dates (default: the files' own: LAS GPS time or "
-                    "creation date, E57 acquisition start; else the index)")
+                    "creation date, E57 acquisition start, a bag's first header.stamp; else the index)")
+    se.add_argument("--topic", help="epochs that are ROS bags: the sensor_msgs/PointCloud2 topic whose messages, moved "
+                    "into map or odom with /tf, make the epoch, each one a scan position (the scans extra)")
     se.add_argument("--core-points", help="where to measure (a cloud file; default: the reference subsampled at the "
                     "projection scale)")
     se.add_argument("--reference", type=V.cli_type(V.integer_at_least, 0), help="index of the reference epoch "

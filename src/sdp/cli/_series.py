@@ -72,7 +72,8 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
         As :func:`sdp.series` (``times`` also "T1,T2,…").
     options : dict, optional
         The other keywords of :func:`sdp.series`: ``core_points`` (a file), ``reference``,
-        ``cylinder``, ``registration_error``, ``align``, ``orientation``, ``format``.
+        ``cylinder``, ``registration_error``, ``align``, ``orientation``, ``format``, ``topic`` (the
+        PointCloud2 topic of the epochs that are ROS bags, each bag one epoch).
     outputs : Outputs, optional
         ``report``: one HTML page (maps of total change and velocity, the largest objects' series,
         the object table, the parameters with their reasons); ``field_names``: the exports' names
@@ -100,7 +101,7 @@ def series_files(epochs, *, output, append: bool = False, times=None, options: d
     exports = {} if exports is None else exports
     options = dict(options or {})
     unknown = set(options) - {"core_points", "reference", "cylinder", "registration_error", "align", "orientation",
-                              "format"}
+                              "format", "topic"}
     if unknown:
         raise InvalidOptionError(f"series_files: unknown option(s) {sorted(unknown)}")
     core_points = options.get("core_points")

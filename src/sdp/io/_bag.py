@@ -17,6 +17,8 @@ says nothing of where its sensor stood: it is read without one. A bag holding ``
 ``/tf_static`` moves each message into its root frame (``map``, else ``odom``) at its
 ``header.stamp`` (:mod:`sdp.io._tf`), its sensor at the frame's origin moved there; a message
 without a chain of transforms there is left in its frame (:attr:`~sdp.io.Cloud.tf` says which).
+:func:`bag_epoch` reads every message of a topic as one cloud, each message a scan position, as a
+multi-scan E57 file is read: a robot's patrol as one epoch of :func:`sdp.series`.
 
 References
 ----------
@@ -32,12 +34,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import require
-from ._cloud import Cloud, CloudFileError, is_bag, library_error, unpacked_colour
+from .._core._memory import check_memory
+from ..errors import SDPError, require
+from ._cloud import Cloud, CloudFileError, EmptyCloudError, is_bag, library_error, unpacked_colour
 from ._tf import TransformTree
 
-__all__ = ["bag_frames", "bag_message", "bag_path", "bag_topics", "frame_kind", "is_bag", "pointcloud2_arrays",
-           "split_topic"]
+__all__ = ["bag_epoch", "bag_frames", "bag_message", "bag_start", "bag_path", "bag_topics", "frame_kind", "is_bag", "pointcloud2_arrays",
+           "split_topic", "topic_needed"]
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 #: Frames whose origin is no sensor (REP 105's world frames, and the usual name of the fixed one).
@@ -50,6 +53,9 @@ BODY_FRAMES = frozenset({"base_link", "base_footprint", "base_stabilized"})
 MAX_COORDINATE = 1e12
 # sensor_msgs/PointField datatypes: INT8 … FLOAT64
 _TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+#: Bytes per point of a bag read as one epoch: what measuring it takes
+#: (:meth:`sdp.distance.PreparedReference.memory_per_epoch`), more than its reading.
+EPOCH_POINT_BYTES = 200.0
 
 
 def bag_path(path) -> Path:
@@ -124,6 +130,92 @@ def bag_frames(path, topic: str) -> Iterator[tuple[str, Cloud]]:
         reader.close()
         raise
     return _frames(reader, conns, path, tree)
+
+
+def topic_needed(path) -> SDPError:
+    """The error for a ROS bag given without ``--topic``, listing its point-cloud topics."""
+    topics = bag_topics(path)  # a missing or corrupt bag says so instead
+    return SDPError(f"{path}: a ROS bag: give --topic, one of its PointCloud2 topics "
+                    f"({', '.join(f'{t} ({n} messages)' for t, n in sorted(topics.items())) or 'none'})")
+
+
+def _headers(path, topic: str) -> Iterator[tuple[int, int]]:
+    """(points, ``header.stamp`` in ns) of each message on ``topic``, in the order recorded, their
+    data not decoded: the first pass of :func:`bag_epoch`, and :func:`bag_start`."""
+    reader = _reader(path)
+    try:
+        conns = [c for c in reader.connections if c.topic == topic and c.msgtype == POINTCLOUD2]
+        if not conns:  # bag_frames' one-line refusal, listing the topics
+            bag_frames(path, topic)
+        for index, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+            except Exception as exc:
+                raise _error(f"{path} {topic} message {index}", exc) from None
+            yield int(msg.height) * int(msg.width), int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+    finally:
+        reader.close()
+
+
+def bag_start(path, topic: str) -> int | None:
+    """The ``header.stamp`` (ns since the epoch) of the first message on ``topic``: when the sensor
+    took it; None when unstamped (0) or the topic holds no message."""
+    first = next(_headers(path, topic), None)
+    return first[1] if first is not None and first[1] > 0 else None
+
+
+def bag_epoch(path, topic: str, *, memory_limit=None) -> Cloud:
+    """Every ``PointCloud2`` message on ``topic`` as one cloud: a robot's patrol as one epoch.
+
+    Each message is moved into the bag's root frame (``map``, else ``odom``) with its ``/tf`` at
+    its ``header.stamp`` (:func:`bag_frames`) and is one scan position, as a multi-scan E57 file's
+    scans are: :attr:`~sdp.io.Cloud.sensors` holds each message's sensor (its frame's origin, moved)
+    and the ``scan`` field which message saw each point, so that visibility and normals follow
+    each position (:func:`sdp.change._visibility.scanner_of_points`). Messages in a world frame
+    (``map``, ``odom``: already registered) need no ``/tf``; they, and messages in a body frame,
+    record no sensor, and then the cloud records none (as an E57 file of scans some without a
+    pose). Only the coordinates and ``scan`` are kept; a message of no point is no position.
+
+    Raises
+    ------
+    CloudFileError
+        A message left in a sensor's or body frame (no ``/tf`` chain into ``map`` or ``odom`` at
+        its stamp: merging a moving sensor's messages without its poses means nothing), messages
+        in different world frames, or no point.
+    GridTooLargeError
+        The messages' points, counted first without decoding them, beyond ``memory_limit``.
+    """
+    name = split_topic(topic)[0]
+    if ":" in topic:
+        raise CloudFileError(f"--topic {topic!r}: an epoch is every message of the topic; give TOPIC, not TOPIC:N")
+    counts = [n for n, _ in _headers(path, name)]
+    total = sum(counts)
+    check_memory(EPOCH_POINT_BYTES * total, f"{path}: {total:,} points in {len(counts)} messages of {name}",
+                 memory_limit, advice="read fewer messages (a shorter bag)")
+    parts, sensors, frames, moved, dropped = [], [], set(), set(), 0
+    for index, (_, cloud) in enumerate(bag_frames(path, name)):
+        if frame_kind(cloud.frame) != "world":
+            why = cloud.tf or (f"left in {cloud.frame!r}: the bag has no /tf" if cloud.frame else "it names no frame")
+            raise CloudFileError(f"{path} {name} message {index}: {why}; an epoch merges its messages in map or odom, "
+                                 "which a moving sensor's need /tf to reach")
+        frames.add(cloud.frame)
+        moved.add(cloud.tf)
+        dropped += cloud.n_dropped
+        if len(cloud.xyz):  # a message that saw nothing says nothing, as an E57 file's empty scan
+            parts.append(cloud.xyz)
+            sensors.append(cloud.sensor_origin)
+    if len(frames) > 1:
+        raise CloudFileError(f"{path} {name}: messages in frames {', '.join(map(repr, sorted(frames)))}: no /tf "
+                             "between them to merge them in one")
+    if not parts:
+        raise EmptyCloudError(f"{path} {name}: holds no point with finite x, y, z")
+    posed = all(s is not None for s in sensors)
+    scan = np.repeat(np.arange(len(parts), dtype=np.uint32), [len(p) for p in parts])
+    xyz = np.concatenate(parts)
+    del parts
+    return Cloud(xyz, {"scan": scan} if posed else {}, Path(path), dropped,
+                 sensors=np.array(sensors, np.float64).reshape(-1, 3) if posed else None, frame=frames.pop(),
+                 tf="; ".join(sorted(t for t in moved if t)) or None)
 
 
 def _moved(xyz, frame: str, stamp: int, tree) -> tuple[np.ndarray, np.ndarray | None, str, str]:

@@ -244,7 +244,8 @@ def input_format(path: Path, format: str | None) -> str:
     if format is None and is_bag(path):  # commands other than change and watch: say where its messages go
         raise CloudFileError(f"{path}: no such file or folder" if not path.exists() else
                              f"{path}: a ROS bag, not a point-cloud file: sdp change and sdp watch read its "
-                             "PointCloud2 messages (--topic TOPIC:N)")
+                             "PointCloud2 messages (--topic TOPIC:N), sdp series all of them as one epoch (--topic "
+                             "TOPIC)")
     if path.is_dir():
         raise CloudFileError(f"{path}: is a folder, not a point-cloud file")
     if format is None and path.suffix.lower() == ".sdpf":

@@ -6,6 +6,8 @@
   *week* time (bit 0 clear) restarts every week and dates nothing, so then the header's creation
   date (a day) is used, if it has one.
 - **E57**: the earliest ``acquisitionStart`` of the file's scans (GPS seconds; 0 or absent: none).
+- **ROS bags** (read as one epoch with a topic, :func:`sdp.io._bag.bag_epoch`): the first message's
+  ``header.stamp`` on that topic (UTC, as ROS time is; 0, unstamped: none).
 
 GPS time runs ahead of UTC by the leap seconds inserted since 1980 (:data:`_LEAP`, IERS Bulletin
 C); times are returned as UTC days since 1970-01-01, the unit of a series' dated epochs.
@@ -79,12 +81,20 @@ def _e57_time(path) -> tuple[float, str] | None:
     return None if start is None else (float(gps_to_days(start)), "E57 acquisition start")
 
 
-def file_time(path) -> tuple[float, str] | None:
+def file_time(path, *, topic: str | None = None) -> tuple[float, str] | None:
     """(UTC days since 1970-01-01, what it was read from) of the scan in ``path``, or None
     when its format records no time (see the module docstring). A file whose header can't be
-    read gives None: its reader says why when the points are read."""
+    read gives None: its reader says why when the points are read. A ROS bag with ``topic``: its
+    first message's stamp, a bag that can't be read or lacks the topic raising its one-line error."""
     if not isinstance(path, (str, os.PathLike)):
         return None
+    from ._cloud import is_bag
+
+    if topic is not None and is_bag(path):
+        from ._bag import bag_start, split_topic
+
+        stamp = bag_start(path, split_topic(topic)[0])
+        return None if stamp is None else (stamp / 86_400e9, "ROS header.stamp")
     suffix = Path(path).suffix.lower()
     try:
         if suffix in (".las", ".laz"):

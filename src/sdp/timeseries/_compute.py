@@ -16,7 +16,8 @@ three; :func:`_noise_epochs`): an append that reaches the next power of two esti
 runs over the whole series.
 
 Times: ``times`` (numbers, or ISO dates: velocities are then per day), else each file's own
-(:func:`sdp.io._time.file_time`: LAS GPS time or creation date, E57 acquisition start), else the
+(:func:`sdp.io._time.file_time`: LAS GPS time or creation date, E57 acquisition start, a ROS bag's first
+``header.stamp``), else the
 epochs' index; the archive records which.
 
 References
@@ -53,7 +54,8 @@ from ..distance._level import LEVEL_Z
 from ..distance._reference import PreparedReference, subsample
 from ..errors import InvalidOptionError, InvalidPointsError, SDPError
 from ..fields._spacing import resolve_lattice
-from ..io._cloud import Cloud
+from ..io._bag import bag_epoch, topic_needed
+from ..io._cloud import Cloud, is_bag
 from ..io._output import check_outputs
 from ..io._read import read_points
 from ..io._time import file_time
@@ -135,7 +137,7 @@ def parse_times(values) -> tuple[np.ndarray, str]:
     return np.array([t for t, _ in parsed], np.float64), kinds.pop() if kinds else "number"
 
 
-def _resolve_times(epochs, times, *, start_index: int = 0):
+def _resolve_times(epochs, times, *, start_index: int = 0, topic: str | None = None):
     """(times, kind, source, note) of the epochs: given, from the files, else their index; ``note``
     says why the files' own times were not used where some record one (None otherwise)."""
     if times is not None:
@@ -143,7 +145,7 @@ def _resolve_times(epochs, times, *, start_index: int = 0):
         if len(t) != len(epochs):
             raise InvalidOptionError(f"{len(t)} time(s) for {len(epochs)} epoch(s)")
         return t, kind, "given", None
-    found = [file_time(e) for e in epochs]
+    found = [file_time(e, topic=topic) for e in epochs]
     stamps = [f[0] for f in found if f is not None]
     if found and len(stamps) == len(found) and len(set(stamps)) == len(found):
         return np.array(stamps), "date", f"file ({', '.join(sorted({f[1] for f in found}))})", None
@@ -174,10 +176,26 @@ def _naming(name: str):
         raise InvalidPointsError(f"{name}: {e}") from None
 
 
-def _load(epoch, fmt):
+def _load(epoch, fmt, topic: str | None = None, limit=None):
+    """An epoch's cloud: a file read, a ROS bag's messages on ``topic`` merged (refused beyond
+    ``limit`` before they are read), or the array or cloud given."""
     if isinstance(epoch, (str, os.PathLike)):
+        if topic is not None and is_bag(epoch):
+            return bag_epoch(epoch, topic, memory_limit=limit)
         return read_points(epoch, format=fmt, fields=False)
     return epoch
+
+
+def _check_bags(epochs, topic: str | None, tiled: bool) -> None:
+    """Refuse, before any work, ``topic`` without a bag among ``epochs`` and a bag without ``topic``."""
+    bags = [e for e in epochs if isinstance(e, (str, os.PathLike)) and is_bag(e)]
+    if topic is not None and not bags:
+        raise InvalidOptionError("--topic reads a ROS bag epoch (a .bag file, or a ROS 2 bag folder with "
+                                 "metadata.yaml); no epoch is one")
+    if bags and topic is None:
+        raise topic_needed(bags[0])
+    if bags and tiled:
+        raise InvalidOptionError(f"{bags[0]}: a ROS bag epoch is read whole, in memory: not with --tiled")
 
 
 def _xyz(cloud) -> np.ndarray:
@@ -269,7 +287,7 @@ def _near(points: np.ndarray, centres: np.ndarray, size: float) -> np.ndarray:
     return marked[at] == own
 
 
-def _read_ahead(epochs, fmt, *, skip: int, fits, tiled: bool):
+def _read_ahead(epochs, fmt, *, skip: int, fits, tiled: bool, topic: str | None = None, limit=None):
     """Each epoch's points in turn (None for the epoch ``skip``, which the caller holds, and for
     every epoch with ``tiled``), the next file read on a thread while the caller measures this one
     when ``fits(its point count)``: the cylinders' kernels release the GIL and a file's decoding
@@ -278,7 +296,7 @@ def _read_ahead(epochs, fmt, *, skip: int, fits, tiled: bool):
     from concurrent.futures import ThreadPoolExecutor
 
     def read(k):
-        return None if tiled or k == skip else _load(epochs[k], fmt)
+        return None if tiled or k == skip else _load(epochs[k], fmt, topic, limit)
 
     def ahead(k):
         if tiled or k >= len(epochs) or k == skip or not isinstance(epochs[k], (str, os.PathLike)):
@@ -303,7 +321,7 @@ def _read_ahead(epochs, fmt, *, skip: int, fits, tiled: bool):
 def series(epochs, *, output, append: bool = False, times=None, core_points=None, reference: int | None = None,
            cylinder: Cylinder | None = None, registration_error: float | str | None = None,
            align: Registration | str | None = None, orientation=None, execution: Execution | None = None,
-           format: str | None = None):
+           format: str | None = None, topic: str | None = None):
     """Signed distances of many epochs against one reference at fixed core points, in one Zarr
     archive, with their smoothed change, velocity, onsets and 4D objects of change.
 
@@ -344,6 +362,11 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
         slice; not with ``align``).
     format : str, optional
         Input format overriding the files' extensions.
+    topic : str, optional
+        The ``sensor_msgs/PointCloud2`` topic of the epochs that are ROS bags: each bag is one
+        epoch, every message on the topic moved into ``map`` or ``odom`` with its ``/tf`` and
+        merged, each message a scan position (:func:`sdp.io._bag.bag_epoch`); its time, unless
+        given, the first message's ``header.stamp``. Needed when an epoch is a bag, refused otherwise.
 
     Returns
     -------
@@ -374,13 +397,14 @@ def series(epochs, *, output, append: bool = False, times=None, core_points=None
     """
     return A.open_series(write_series(epochs, output=output, append=append, times=times, core_points=core_points,
                                       reference=reference, cylinder=cylinder, registration_error=registration_error,
-                                      align=align, orientation=orientation, execution=execution, format=format))
+                                      align=align, orientation=orientation, execution=execution, format=format,
+                                      topic=topic))
 
 
 def write_series(epochs, *, output, append: bool = False, times=None, core_points=None, reference: int | None = None,
                  cylinder: Cylinder | None = None, registration_error: float | str | None = None,
                  align: Registration | str | None = None, orientation=None, execution: Execution | None = None,
-                 format: str | None = None, check=None, before_commit=None) -> Path:
+                 format: str | None = None, topic: str | None = None, check=None, before_commit=None) -> Path:
     """:func:`series` without opening the archive: its path (the command opens it without Dask).
     ``check(epochs, core_points)``: called with the archive's counts after the run as soon as
     they are known, before any epoch is measured or anything written (what the command will
@@ -398,6 +422,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     execution = as_options(Execution, execution, "execution")
     limit = resolve_memory_limit(execution.memory_limit)
     check_process_fits(limit)
+    _check_bags(epochs, topic, bool(execution.tiled))
     if not isinstance(output, (str, os.PathLike)):  # Path(3) is a raw TypeError
         raise InvalidOptionError(f"output must be the archive's path (a .zarr folder), got {output!r}")
     out = Path(output)
@@ -438,7 +463,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
                 t_new = np.arange(len(old_times), len(old_times) + len(epochs), dtype=np.float64)
                 kind, source, note = "number", "index", None
             else:
-                t_new, kind, source, note = _resolve_times(epochs, times, start_index=len(old_times))
+                t_new, kind, source, note = _resolve_times(epochs, times, start_index=len(old_times), topic=topic)
             if kind != attrs["time_kind"]:
                 why = "their files record no date: give times (--times)" if times is None else "give dates"
                 raise InvalidOptionError(f"the archive's epochs are dated and the new epochs' times are "
@@ -474,7 +499,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
             if tiles is None:
                 execution.say_in_memory()
             _run(epochs, out, t_new, kind, source, note=note, attrs=attrs, registration=registration, reg_opt=reg_opt,
-                 limit=limit, fmt=format, t_start=t_start, tiles=tiles, before_commit=before_commit)
+                 limit=limit, fmt=format, t_start=t_start, tiles=tiles, before_commit=before_commit, topic=topic)
         return out
     if reference is None:
         reference = 0
@@ -482,7 +507,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     if reference >= len(epochs):
         raise InvalidOptionError(f"reference {reference} is not an epoch (there are {len(epochs)})")
     cylinder = as_options(Cylinder, cylinder, "cylinder")  # the defaults where none was given
-    t, kind, source, note = _resolve_times(epochs, times)
+    t, kind, source, note = _resolve_times(epochs, times, topic=topic)
     if len(np.unique(t)) != len(t):
         twice = np.sort(t)[np.argmax(np.diff(np.sort(t)) == 0)]
         raise InvalidOptionError(f"two epochs have the time {A.show_time(twice, kind)}"
@@ -509,7 +534,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
         core_source = (f"the reference subsampled at the projection scale ({prepared.projection_scale:.6g})"
                        if core_points is None else _core_name(core_points))
     else:
-        ref_cloud = _load(epochs[reference], format)
+        ref_cloud = _load(epochs[reference], format, topic, limit)
         d_opt = auto_or_positive("projection_scale", cylinder.projection_scale)
         with _naming(_name(epochs[reference], reference)):
             ref_xyz = _xyz(ref_cloud)
@@ -559,7 +584,7 @@ def write_series(epochs, *, output, append: bool = False, times=None, core_point
     with A.writing(out) if out.is_dir() else contextlib.nullcontext():  # an archive replaced: not while appended to
         _run(epochs, out, t, kind, source, note=note, attrs=attrs, registration=registration, reg_opt=reg_opt,
              limit=limit, fmt=format, t_start=t_start, prepared=prepared, state=arrays,
-             ref_cloud=(reference, ref_cloud), tiles=tiles, before_commit=before_commit)
+             ref_cloud=(reference, ref_cloud), tiles=tiles, before_commit=before_commit, topic=topic)
     return out
 
 
@@ -572,7 +597,7 @@ def _random_sd(d) -> float | None:
 
 
 def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registration, reg_opt, limit, fmt, t_start,
-         prepared=None, state=None, ref_cloud=None, tiles=None, before_commit=None):
+         prepared=None, state=None, ref_cloud=None, tiles=None, before_commit=None, topic=None):
     append = prepared is None
     timings = {}
     params = attrs["parameters"]
@@ -609,7 +634,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registrati
         ref_xyz = None
         if registration is not None:
             ref_xyz = _xyz(ref_cloud[1]) if ref_cloud is not None else _xyz(_load(attrs["parameters"]["reference_file"],
-                                                                                   fmt))
+                                                                                   fmt, topic, limit))
         t0 = time.perf_counter()
         # rows are written a few epochs at a time (one call writes their chunks together)
         flush = int(max(1, min(len(epochs), 64, (limit / 16.0) // max(9.0 * m, 1.0))))
@@ -628,7 +653,7 @@ def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registrati
                 buffered.clear()
 
         ref_k = ref_cloud[0] if ref_cloud is not None else -1
-        with contextlib.closing(_read_ahead(epochs, fmt, skip=ref_k, tiled=bool(tiles),
+        with contextlib.closing(_read_ahead(epochs, fmt, skip=ref_k, tiled=bool(tiles), topic=topic, limit=limit,
                                             fits=lambda n: _AHEAD_BYTES * n + CORE_BYTES * m <= limit)) as loaded:
             for k, (epoch, cloud) in enumerate(zip(epochs, loaded)):
                 row = n_old + k
