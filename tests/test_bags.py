@@ -630,6 +630,8 @@ def test_a_bag_epoch_without_tf_or_topic_is_refused_in_one_line(tmp_path):
     with pytest.raises(sdp.SDPError, match=r"give --topic, one of its PointCloud2 topics \(/camera/points \(3 messag"):
         sdp.series([mapped, mapped], output=tmp_path / "s.zarr")
     np.save(tmp_path / "a.npy", patrol_scene(0, 0))
+    with pytest.raises(sdp.SDPError, match=r"--topic '/camera/points:1': a bag epoch is every message of the topic"):
+        sdp.series([mapped, mapped], output=tmp_path / "s.zarr", topic="/camera/points:1")
     with pytest.raises(sdp.SDPError, match=r"--topic reads a ROS bag epoch"):
         sdp.series([tmp_path / "a.npy"] * 2, output=tmp_path / "s.zarr", topic="/camera/points")
     p = subprocess.run([sys.executable, "-m", "sdp.cli", "series", mapped, bare, "--topic", "/camera/points", "-o",

@@ -140,8 +140,8 @@ def topic_needed(path) -> SDPError:
 
 
 def _headers(path, topic: str) -> Iterator[tuple[int, int]]:
-    """(points, ``header.stamp`` in ns) of each message on ``topic``, in the order recorded, their
-    data not decoded: the first pass of :func:`bag_epoch`, and :func:`bag_start`."""
+    """(points, ``header.stamp`` in ns) of each message on ``topic``, in the order recorded, one
+    message at a time, their points not decoded: the first pass of :func:`bag_epoch`, and :func:`bag_start`."""
     reader = _reader(path)
     try:
         conns = [c for c in reader.connections if c.topic == topic and c.msgtype == POINTCLOUD2]
@@ -183,20 +183,17 @@ def bag_epoch(path, topic: str, *, memory_limit=None) -> Cloud:
         its stamp: merging a moving sensor's messages without its poses means nothing), messages
         in different world frames, or no point.
     GridTooLargeError
-        The messages' points, counted first without decoding them, beyond ``memory_limit``.
+        The messages' points, counted first (:func:`_headers`), beyond ``memory_limit``.
     """
-    name = split_topic(topic)[0]
-    if ":" in topic:
-        raise CloudFileError(f"--topic {topic!r}: an epoch is every message of the topic; give TOPIC, not TOPIC:N")
-    counts = [n for n, _ in _headers(path, name)]
+    counts = [n for n, _ in _headers(path, topic)]
     total = sum(counts)
-    check_memory(EPOCH_POINT_BYTES * total, f"{path}: {total:,} points in {len(counts)} messages of {name}",
+    check_memory(EPOCH_POINT_BYTES * total, f"{path}: {total:,} points in {len(counts)} messages of {topic}",
                  memory_limit, advice="read fewer messages (a shorter bag)")
     parts, sensors, frames, moved, dropped = [], [], set(), set(), 0
-    for index, (_, cloud) in enumerate(bag_frames(path, name)):
+    for index, (_, cloud) in enumerate(bag_frames(path, topic)):
         if frame_kind(cloud.frame) != "world":
             why = cloud.tf or (f"left in {cloud.frame!r}: the bag has no /tf" if cloud.frame else "it names no frame")
-            raise CloudFileError(f"{path} {name} message {index}: {why}; an epoch merges its messages in map or odom, "
+            raise CloudFileError(f"{path} {topic} message {index}: {why}; an epoch merges its messages in map or odom, "
                                  "which a moving sensor's need /tf to reach")
         frames.add(cloud.frame)
         moved.add(cloud.tf)
@@ -205,10 +202,10 @@ def bag_epoch(path, topic: str, *, memory_limit=None) -> Cloud:
             parts.append(cloud.xyz)
             sensors.append(cloud.sensor_origin)
     if len(frames) > 1:
-        raise CloudFileError(f"{path} {name}: messages in frames {', '.join(map(repr, sorted(frames)))}: no /tf "
+        raise CloudFileError(f"{path} {topic}: messages in frames {', '.join(map(repr, sorted(frames)))}: no /tf "
                              "between them to merge them in one")
     if not parts:
-        raise EmptyCloudError(f"{path} {name}: holds no point with finite x, y, z")
+        raise EmptyCloudError(f"{path} {topic}: holds no point with finite x, y, z")
     posed = all(s is not None for s in sensors)
     scan = np.repeat(np.arange(len(parts), dtype=np.uint32), [len(p) for p in parts])
     xyz = np.concatenate(parts)

@@ -91,9 +91,9 @@ def file_time(path, *, topic: str | None = None) -> tuple[float, str] | None:
     from ._cloud import is_bag
 
     if topic is not None and is_bag(path):
-        from ._bag import bag_start, split_topic
+        from ._bag import bag_start
 
-        stamp = bag_start(path, split_topic(topic)[0])
+        stamp = bag_start(path, topic)
         return None if stamp is None else (stamp / 86_400e9, "ROS header.stamp")
     suffix = Path(path).suffix.lower()
     try:

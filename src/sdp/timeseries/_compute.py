@@ -187,13 +187,17 @@ def _load(epoch, fmt, topic: str | None = None, limit=None):
 
 
 def _check_bags(epochs, topic: str | None, tiled: bool) -> None:
-    """Refuse, before any work, ``topic`` without a bag among ``epochs`` and a bag without ``topic``."""
+    """Refuse, before any work, ``topic`` without a bag among ``epochs``, a bag without ``topic`` (listing
+    its topics), a message number (``TOPIC:N``) and tiles."""
     bags = [e for e in epochs if isinstance(e, (str, os.PathLike)) and is_bag(e)]
     if topic is not None and not bags:
         raise InvalidOptionError("--topic reads a ROS bag epoch (a .bag file, or a ROS 2 bag folder with "
                                  "metadata.yaml); no epoch is one")
     if bags and topic is None:
         raise topic_needed(bags[0])
+    if bags and ":" in topic:  # sdp change's TOPIC:N picks a message; an epoch is all of them
+        raise InvalidOptionError(f"--topic {topic!r}: a bag epoch is every message of the topic; give TOPIC, not "
+                                 "TOPIC:N")
     if bags and tiled:
         raise InvalidOptionError(f"{bags[0]}: a ROS bag epoch is read whole, in memory: not with --tiled")
 
