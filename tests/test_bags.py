@@ -497,7 +497,7 @@ def test_tf_says_why_a_message_is_left_in_its_frame_and_refuses_a_child_of_two_p
 
 
 def test_a_bag_given_where_files_are_read_says_where_its_messages_go(tmp_path):
-    """sdp series BAG (without --topic) said "is a folder, not a point-cloud file" (a ROS 2 bag), "unknown point-cloud format '.db3'"
+    """sdp series BAG said "is a folder, not a point-cloud file" (a ROS 2 bag), "unknown point-cloud format '.db3'"
     (its storage file) or "'.bag'" (a ROS 1 bag, even a missing one)."""
     bag = write_ros2(tmp_path / "b", [(1, message(room(), 1, 3000))])
     (db3,) = bag.glob("*.db3")

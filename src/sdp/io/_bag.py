@@ -29,6 +29,7 @@ References
 from __future__ import annotations
 
 from collections import deque
+from contextlib import closing
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -39,8 +40,8 @@ from ..errors import SDPError, require
 from ._cloud import Cloud, CloudFileError, EmptyCloudError, is_bag, library_error, unpacked_colour
 from ._tf import TransformTree
 
-__all__ = ["bag_epoch", "bag_frames", "bag_message", "bag_start", "bag_path", "bag_topics", "frame_kind", "is_bag", "pointcloud2_arrays",
-           "split_topic", "topic_needed"]
+__all__ = ["bag_epoch", "bag_frames", "bag_message", "bag_path", "bag_start", "bag_topics", "frame_kind", "is_bag",
+           "pointcloud2_arrays", "split_topic", "topic_needed"]
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 #: Frames whose origin is no sensor (REP 105's world frames, and the usual name of the fixed one).
@@ -141,7 +142,8 @@ def topic_needed(path) -> SDPError:
 
 def _headers(path, topic: str) -> Iterator[tuple[int, int]]:
     """(points, ``header.stamp`` in ns) of each message on ``topic``, in the order recorded, one
-    message at a time, their points not decoded: the first pass of :func:`bag_epoch`, and :func:`bag_start`."""
+    message at a time, their points not decoded: the first pass of :func:`bag_epoch`, and
+    :func:`bag_start`."""
     reader = _reader(path)
     try:
         conns = [c for c in reader.connections if c.topic == topic and c.msgtype == POINTCLOUD2]
@@ -160,7 +162,8 @@ def _headers(path, topic: str) -> Iterator[tuple[int, int]]:
 def bag_start(path, topic: str) -> int | None:
     """The ``header.stamp`` (ns since the epoch) of the first message on ``topic``: when the sensor
     took it; None when unstamped (0) or the topic holds no message."""
-    first = next(_headers(path, topic), None)
+    with closing(_headers(path, topic)) as headers:  # the reader closed now, not when collected
+        first = next(headers, None)
     return first[1] if first is not None and first[1] > 0 else None
 
 
