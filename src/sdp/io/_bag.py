@@ -29,8 +29,8 @@ References
 from __future__ import annotations
 
 from collections import deque
-from contextlib import closing
 from collections.abc import Iterator
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
