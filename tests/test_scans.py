@@ -381,3 +381,95 @@ def test_scans_of_no_pose_put_their_scanner_at_the_origin_only_alone(tmp_path):
     info = describe_file(tmp_path / "two.e57")
     assert "sensors" not in info and [s["pose"] for s in info["scans"]] == [False, False]
     assert [s["kept"] for s in info["scans"]] == [400, 400]
+
+
+def _write_spherical_scan(e, local, bad, rotation, translation, start):
+    """A scan stored as ``sphericalRange/Azimuth/Elevation`` (invalid rays flagged), as many
+    scanners export: pye57 writes Cartesian scans only, so through its libE57Format bindings."""
+    import uuid
+
+    from pye57 import libe57
+
+    f = e.image_file
+    r = np.linalg.norm(local, axis=1)
+    values = {"sphericalRange": np.where(bad, 0.0, r), "sphericalAzimuth": np.arctan2(local[:, 1], local[:, 0]),
+              "sphericalElevation": np.arcsin(np.divide(local[:, 2], r, out=np.zeros_like(r), where=r > 0)),
+              "sphericalInvalidState": bad.astype(np.int8)}
+    scan = libe57.StructureNode(f)
+    scan.set("guid", libe57.StringNode(f, "{%s}" % uuid.uuid4()))
+    pose, turn, move, when = (libe57.StructureNode(f) for _ in range(4))
+    for k, v in zip("wxyz", rotation):
+        turn.set(k, libe57.FloatNode(f, float(v)))
+    for k, v in zip("xyz", translation):
+        move.set(k, libe57.FloatNode(f, float(v)))
+    pose.set("rotation", turn)
+    pose.set("translation", move)
+    scan.set("pose", pose)
+    when.set("dateTimeValue", libe57.FloatNode(f, float(start)))
+    scan.set("acquisitionStart", when)
+    proto = libe57.StructureNode(f)
+    proto.set("sphericalRange", libe57.FloatNode(f, 0.0, libe57.E57_DOUBLE, 0.0, float(r.max())))
+    proto.set("sphericalAzimuth", libe57.FloatNode(f, 0.0, libe57.E57_DOUBLE, -np.pi, np.pi))
+    proto.set("sphericalElevation", libe57.FloatNode(f, 0.0, libe57.E57_DOUBLE, -np.pi / 2, np.pi / 2))
+    proto.set("sphericalInvalidState", libe57.IntegerNode(f, 0, 0, 2))
+    arrays, buffers = e.make_buffers(list(values), len(r))
+    points = libe57.CompressedVectorNode(f, proto, libe57.VectorNode(f, True))
+    scan.set("points", points)
+    e.data3d.append(scan)
+    writer = points.writer(buffers)
+    for k, v in values.items():
+        arrays[k][:] = v
+    writer.write(len(r))
+    writer.close()
+
+
+def test_a_survey_in_a_projected_crs_with_spherical_scans_reads_and_measures_as_at_the_origin(tmp_path):
+    """A TLS campaign as surveys deliver it: stations posed at UTM-sized coordinates, one scan stored
+    spherical beside a Cartesian one, acquisition starts recorded. The spherical scan reads as its
+    Cartesian twin; the file's time is its earliest start; distances at the offset equal those of
+    the same data shifted to the origin within 1e-6 (scales commensurate with the lattice, so that
+    both fall on the same cells)."""
+    from sdp.io._time import file_time
+
+    offset = np.array([500_000.0, 5_000_000.0, 300.0])
+    a, b = np.array([-3.5, 0, 1.5]), np.array([3.5, 0.6, 1.5])
+    stations = ((a, 0.0), (b, np.pi))
+
+    def write(path, shapes, shift, spherical):
+        e = pye57.E57(str(path), mode="w")
+        for k, (o, yaw) in enumerate(stations):
+            pts = cast(o, shapes, step_deg=1.5)[0]
+            c, s = np.cos(yaw), np.sin(yaw)
+            local = (pts - o) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+            bad = ~np.isfinite(local).all(axis=1)
+            local[bad] = 0
+            q, t, start = np.array([np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]), o + shift, 1.4e9 + 600 * (1 - k)
+            if spherical and k == 1:
+                _write_spherical_scan(e, local, bad, q, t, start)
+                continue
+            lo, hi = pts[~bad].min(0) + shift, pts[~bad].max(0) + shift
+            e.write_scan_raw({"cartesianX": local[:, 0], "cartesianY": local[:, 1], "cartesianZ": local[:, 2],
+                              "cartesianInvalidState": bad.astype(np.int8)}, rotation=q, translation=t,
+                             scan_header=type("H", (), {"acquisitionStart_dateTimeValue": start,
+                                                        **dict(zip(["xMinimum", "yMinimum", "zMinimum"], lo)),
+                                                        **dict(zip(["xMaximum", "yMaximum", "zMaximum"], hi))})())
+        e.close()
+        return path
+
+    before, after = [FLOOR, WALL, TOWER, BOX_BEFORE], [FLOOR, WALL, TOWER, BOX_AFTER]
+    far = write(tmp_path / "far.e57", before, offset, True)
+    got, twin = sdp.read_points(far), sdp.read_points(write(tmp_path / "twin.e57", before, offset, False))
+    assert pye57.E57(str(far)).get_header(1).point_fields[0] == "sphericalRange"
+    assert np.array_equal(got.scan, twin.scan) and np.allclose(got.sensors, [a + offset, b + offset])
+    assert np.abs(got.xyz - twin.xyz).max() < 1e-5  # the Cartesian twin is stored in single precision
+    # GPS seconds (from 1980-01-06, 3657 days after 1970-01-01; 18 leap seconds) to UTC days
+    assert file_time(far)[0] == pytest.approx((1.4e9 - 18) / 86400 + 3657, abs=1e-9)
+    cylinder = sdp.Cylinder(projection_scale=0.25, normal_scale=0.5, max_distance=1.0)
+    core = got.xyz[::20] - offset
+    out = [sdp.distances(sdp.read_points(write(tmp_path / f"ref{i}.e57", before, shift, True)),
+                         sdp.read_points(write(tmp_path / f"cur{i}.e57", after, shift, False)),
+                         core_points=core + shift, cylinder=cylinder) for i, shift in enumerate((offset, np.zeros(3)))]
+    assert np.array_equal(np.isnan(out[0].distance), np.isnan(out[1].distance))
+    assert np.nanmax(np.abs(out[0].distance)) > 0.5  # the box moved
+    assert np.nanmax(np.abs(out[0].distance - out[1].distance)) < 1e-6
+    assert np.nanmax(np.abs(out[0].lod - out[1].lod)) < 1e-6
