@@ -29,9 +29,9 @@ from ..errors import SDPError
 from ..io._output import all_or_none, check_format, check_outputs
 from ..options import Coverage, Execution, Lattice, NoiseModel, Outputs, Registration, as_options
 from . import _text as report
-from ..io._bag import bag_path, is_bag
+from ..io._bag import bag_path, is_bag, topic_needed
 from ._common import (align_clouds, alignment_summary, check_picture_extras, disappeared_path, is_store, pictures,
-                      read_input, same_frame, sensor_origins, topic_needed)
+                      read_input, same_frame, sensor_origins)
 
 __all__ = ["ChangePlan", "FileComparison", "plan_change", "compare_files"]
 

@@ -127,18 +127,10 @@ def pictures(png, html, xyz, changed, title, regions=()) -> list[str]:
     return written
 
 
-def topic_needed(path) -> SDPError:
-    """The error for a ROS bag given without ``--topic``, listing its point-cloud topics
-    (:func:`sdp.io._bag.topic_needed`, which :func:`sdp.series` also raises)."""
-    from ..io._bag import topic_needed as needed
-
-    return needed(path)
-
-
 def read_input(path, *, format: str | None = None, topic: str | None = None):
     """The Cloud of an input: a point-cloud file, or with ``topic`` one message of a ROS bag
     (:func:`sdp.io._bag.bag_message`: ``TOPIC`` its first, ``TOPIC:N`` its N-th)."""
-    from ..io._bag import bag_message, is_bag
+    from ..io._bag import bag_message, is_bag, topic_needed
     from ..io._read import read_points
 
     if is_bag(path):

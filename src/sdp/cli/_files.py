@@ -18,8 +18,7 @@ from ..io._cloud import input_format
 from ..io._read import read_points
 from ..options import Coverage, Execution, Lattice, NoiseModel, Registration, as_options
 from . import _text as report
-from ._common import (align_clouds, is_field, is_store, pictures, read_input, same_frame, sensor_origins,
-                      topic_needed)
+from ._common import align_clouds, is_field, is_store, pictures, read_input, same_frame, sensor_origins
 
 __all__ = ["build_field_file", "mesh_file", "combine_files", "describe_file", "align_files", "watch_folder",
            "Evaluation", "evaluate_files", "render_file"]
@@ -331,7 +330,7 @@ def watch_folder(reference, frames, *, format: str | None = None, lattice: Latti
     from ..io._cloud import FORMATS
     from ..stream._watch import watch
 
-    from ..io._bag import bag_frames, is_bag, split_topic
+    from ..io._bag import bag_frames, is_bag, split_topic, topic_needed
 
     noise = NoiseModel.of(noise, decision)
     folder = Path(frames)
