@@ -26,6 +26,31 @@ def test_range_image_classes_along_rays():
     assert (image.classify(2.03 * probe, range_noise=0.005) == HIDDEN).all()
 
 
+def test_a_depth_cameras_image_is_its_own_pixels_whatever_its_pose():
+    # a 64 × 48 pinhole camera (f = 60 px) turned 30° about two axes and moved, 2 m from a wall
+    from scipy.spatial.transform import Rotation
+
+    from sdp.change._range_image import fit_camera
+
+    c, r = np.meshgrid(np.arange(64.0), np.arange(48.0))
+    rays = np.c_[(c.ravel() - 31.5) / 60, (r.ravel() - 23.5) / 60, np.ones(c.size)]
+    turn, origin = Rotation.from_euler("xy", [30, -30], degrees=True).as_matrix(), np.array([5.0, -2.0, 1.0])
+    frame = origin + (2.0 * rays) @ turn.T
+    keep = np.flatnonzero((c.ravel() > 2) | (r.ravel() < 40))  # a dark corner returned nothing
+    camera = fit_camera(frame[keep], keep, (48, 64), origin)
+    image = RangeImage.from_points(frame[keep], origin, camera=camera)
+    assert image.camera is not None and image.shape == (43, 32)  # cells of 1.5 pixels
+    assert (image.classify(frame[keep], range_noise=0.0, floor=0.01) == SAME_SURFACE).all()
+    probe = origin + np.r_[1.0, 3.0][:, None] * rays[[10 * 64 + 30]] @ turn.T
+    np.testing.assert_array_equal(image.classify(probe, range_noise=0.0, floor=0.01), [SEEN_FREE, HIDDEN])
+    # the dark corner's rays went out: seen free; behind the camera and beside its image: not in view
+    corner = origin + 1.5 * rays[[45 * 64 + 1]] @ turn.T
+    behind, beside = origin - 1.0 * rays[[10 * 64 + 30]] @ turn.T, origin + np.array([[2.0, -0.4, 1.2]]) @ turn.T
+    assert image.in_view(np.r_[corner, behind, beside]).tolist() == [True, False, False]
+    # a frame no pinhole fits (its pixels shuffled) has no camera
+    assert fit_camera(frame, np.random.default_rng(0).permutation(len(frame)), (48, 64), origin) is None
+
+
 def test_range_image_covers_a_full_turn():
     # a horizontal 360° scan of a cylindrical wall: the azimuth seam must not lose any ray
     az, z = np.meshgrid(np.linspace(-np.pi, np.pi, 720, endpoint=False), np.linspace(-0.5, 0.5, 60))
@@ -399,12 +424,13 @@ def test_a_camera_ray_that_returned_nothing_looked_through_the_place(tmp_path):
     assert not r.appeared[~on_person].any()
     # rows or columns without any return at the image's edge are margins the sensor never measured
     # (a depth image registered to a colour camera): not rays that found nothing
-    from sdp.change._range_image import camera_border
+    from sdp.change._range_image import fit_camera
 
     cut = np.flatnonzero(a.pixels % 96 < 88)  # the last 8 columns empty, as a registration margin leaves them
-    border = camera_border(a.xyz[cut], a.pixels[cut], a.image, np.zeros(3))
-    full = camera_border(a.xyz, a.pixels, a.image, np.zeros(3))
-    assert border is not None and border[:, 0].max() / border[:, 2].max() < full[:, 0].max() / full[:, 2].max()
+    camera = fit_camera(a.xyz[cut], a.pixels[cut], a.image, np.zeros(3))
+    assert camera is not None and camera.box[3] == 87 and fit_camera(a.xyz, a.pixels, a.image, np.zeros(3)).box[3] == 95
+    view = RangeImage.from_points(a.xyz[cut], np.zeros(3), camera=camera).in_view(a.xyz)
+    assert view[cut].all() and not view[a.pixels % 96 >= 88].any()  # each pixel projects to its own
     # an array gives no image: its view ends at its returns, and the person above them is not comparable
     plain = sdp.detect_changes(a.xyz, b.xyz, coverage=sdp.Coverage(sensor_origin=(0, 0, 0)))
     assert plain.current_not_comparable[on_person].mean() > 0.3

@@ -64,7 +64,7 @@ from ._combined import combine_decision
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, states_of
 from ._regions import Region, Volume, describe_regions, label_volume
 from ._range_image import RangeImage
-from ._visibility import (gone_only_if_seen, image_border, rays_sent, resolve_sensor_origins, scanner_of_points,
+from ._visibility import (gone_only_if_seen, image_camera, rays_sent, resolve_sensor_origins, scanner_of_points,
                           sensor_band, visibility_states)
 
 #: The decisions of :func:`detect_changes` (``"density"`` is ``"point"``: the paper's, density alone).
@@ -454,7 +454,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     # each epoch's range image from its single sensor, built once when first needed: the other
     # direction's visibility test, and this one's check that a hider's place could be seen
     views = {id(c): _Once(lambda c=c, o=o, s=s, f=f: RangeImage.from_points(c.xyz, o, rays_sent=s,
-                                                                             border=image_border(f, o))
+                                                                             camera=image_camera(f, o))
                           if o is not None and np.ndim(o) == 1 else None)
              for c, f, o, s in ((ref, reference, o_ref, rays_sent(reference)),
                                 (cur, current, o_cur, rays_sent(current)))}

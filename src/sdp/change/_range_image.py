@@ -14,6 +14,13 @@ horizon and 9.4° at the bottom), the nearest one within ``_MAX_GAP_CELLS`` cell
 beyond the angles the scan sent rays to (more than half a cell past its extreme returns, none along
 a sparse axis) is unobserved whatever the cells beside it hold: the floor below a LiDAR's lowest ring.
 
+An organized depth camera's frame (a PCD image, an organized bag message) needs no angles: its
+returns fit one pinhole camera (:func:`fit_camera`), and its image is then the camera's own
+pixels (cells of ``cell_factor`` pixels over the rows and columns holding a return, each return in
+the cell of its pixel, a point's ray through the pixel the fitted camera projects it to). Every
+pixel of the frame is a ray the camera sent, whether it returned or not, so the field of view is
+the whole image up to its border, not the hull of the returns.
+
 A point's ray is compared with the returns of the cells within ``reach`` of its own, with a band
 ``b(r) = max(range_noise·r², floor)``: the band grows as r², as the depth noise of triangulation
 sensors such as the Kinect (Khoshelham and Elberink [2]: σ_z ≈ 1.4e-3·r² m, depth steps ≈
@@ -39,7 +46,7 @@ import numpy.typing as npt
 
 from ..errors import InvalidPointsError
 
-__all__ = ["HIDDEN", "SAME_SURFACE", "SEEN_FREE", "UNOBSERVED", "RangeImage", "camera_border", "sees"]
+__all__ = ["HIDDEN", "SAME_SURFACE", "SEEN_FREE", "UNOBSERVED", "Camera", "RangeImage", "fit_camera", "sees"]
 
 #: Classes of :meth:`RangeImage.classify`.
 SEEN_FREE, SAME_SURFACE, HIDDEN, UNOBSERVED = 0, 1, 2, 3
@@ -143,6 +150,52 @@ def _angles(points, origin, frame):
                 lo_e, hi_e = min(lo_e, el[i]), max(hi_e, el[i])
                 count += 1
     return az, el, rng, (lo_a, lo_e, hi_a, hi_e, count)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _project(points, origin, matrix):
+    """Column, row (pixels) and range of each point seen by a pinhole camera at ``origin``
+    (``matrix``: :attr:`Camera.matrix`); NaN pixels behind the camera or at its origin. The
+    fourth item, empty bounds, keeps :func:`_angles`' signature."""
+    n = points.shape[0]
+    u = np.empty(n)
+    v = np.empty(n)
+    rng = np.empty(n)
+    m = matrix
+    for i in range(n):
+        dx, dy, dz = points[i, 0] - origin[0], points[i, 1] - origin[1], points[i, 2] - origin[2]
+        w = m[2, 0] * dx + m[2, 1] * dy + m[2, 2] * dz
+        rng[i] = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if w > 0.0:
+            u[i] = (m[0, 0] * dx + m[0, 1] * dy + m[0, 2] * dz) / w
+            v[i] = (m[1, 0] * dx + m[1, 1] * dy + m[1, 2] * dz) / w
+        else:
+            u[i] = v[i] = np.nan
+    return u, v, rng, (0.0, 0.0, 0.0, 0.0, 0)
+
+
+@nb.njit(cache=True, nogil=True)
+def _near_far_pixels(points, pixels, width, origin, lo_u, lo_v, cell, n_u, n_v):
+    """:func:`_near_far` of a camera's returns on cells of ``cell`` pixels from its own pixels
+    (row · width + column, ascending): the columns' and rows' cells looked up, no angle."""
+    near = np.full(n_u * n_v, np.inf)
+    far = np.full(n_u * n_v, -np.inf)
+    col = np.empty(width, np.int64)
+    for c in range(width):
+        col[c] = min(max(int((c - lo_u) / cell), 0), n_u - 1) * n_v
+    row, start, e = -1, 0, 0
+    for i in range(pixels.shape[0]):
+        p = pixels[i]
+        if p >= start + width or row < 0:  # a new row (pixels ascend)
+            row = p // width
+            start = row * width
+            e = min(max(int((row - lo_v) / cell), 0), n_v - 1)
+        dx, dy, dz = points[i, 0] - origin[0], points[i, 1] - origin[1], points[i, 2] - origin[2]
+        r = math.sqrt(dx * dx + dy * dy + dz * dz)
+        j = col[p - start] + e
+        near[j] = min(near[j], r)
+        far[j] = max(far[j], r)
+    return near, far
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -356,6 +409,10 @@ class RangeImage:
         inside the view is then a ray that found nothing (:meth:`seen_free`). False for a scan known
         to sample its view irregularly (an unorganized file or message from a sensor: a rosette
         scanner's petals leave half of its view unsampled).
+    camera : ndarray (3, 3) float64 or None
+        A depth camera's image (:meth:`from_points` with a :class:`Camera`): the
+        :attr:`Camera.matrix` projecting a point to its pixel, and the axes called azimuth and
+        elevation above are its columns and rows, in pixels (``frame`` unused, ``spacing`` 1).
     """
 
     origin: np.ndarray
@@ -372,11 +429,12 @@ class RangeImage:
     sparse: int
     hi: np.ndarray
     rays_sent: bool = True
+    camera: np.ndarray | None = None
 
     @classmethod
     def from_points(cls, points: np.ndarray, origin: npt.ArrayLike, *, cell_factor: float = 1.5,
                     spacing: float | None = None, rays_sent: bool = True,
-                    border: np.ndarray | None = None) -> RangeImage:
+                    camera: Camera | None = None) -> RangeImage:
         """Range image of ``points`` seen from ``origin``.
 
         Parameters
@@ -391,11 +449,12 @@ class RangeImage:
             Angular point spacing (radians); when None, sqrt(solid angle covered / points).
         rays_sent : bool
             :attr:`rays_sent`.
-        border : ndarray (m, 3), optional
-            Directions of the rays along the border of the sensor's image (:func:`camera_border`):
-            the field of view reaches them whether they returned or not (a camera's pixels beyond
-            its range, the sky), where the returns alone would end it at the farthest pixels that
-            returned. The cells of the returns stay where they are.
+        camera : Camera, optional
+            The pinhole fitted to ``points``, an organized frame (:func:`fit_camera`, its pixels
+            one per row of ``points``): the image is then the camera's pixels (module docstring),
+            its view the whole image, reaching its border whether those rays returned or not (a
+            camera's pixels beyond its range, the sky), where the returns alone would end it at
+            the farthest pixels that returned.
 
         Returns
         -------
@@ -403,6 +462,8 @@ class RangeImage:
         """
         points = np.ascontiguousarray(points, dtype=np.float64)
         origin = np.asarray(origin, dtype=np.float64)
+        if camera is not None and len(camera.pixels) == len(points):
+            return cls._from_camera(points, origin, camera, cell_factor=cell_factor, rays_sent=rays_sent)
         frame = _view_frame(points, origin)
         az, el, rng, (lo_a, lo_e, hi_a, hi_e, n) = _angles(points, origin, frame)
         if n == 0:
@@ -422,32 +483,42 @@ class RangeImage:
             shape = (int(extent[0] // cells[0]) + 1, int(extent[1] // cells[1]) + 1)
             near, far = _near_far(az, el, rng, lo[0], lo[1], cells[0], cells[1], shape[0], shape[1], half[:0])
         occupied = np.isfinite(near).reshape(shape)
-        if border is not None and len(border):
-            b_az, b_el, _, (b_lo_a, b_lo_e, b_hi_a, b_hi_e, bn) = _angles(origin + np.asarray(border, np.float64),
-                                                                          origin, frame)
-            if bn:  # whole cells before the returns' first: each return keeps its cell
-                pre = np.ceil(np.maximum(lo - [b_lo_a, b_lo_e], 0.0) / cells).astype(np.int64)
-                lo = lo - pre * cells
-                grown = (max(shape[0] + int(pre[0]), int((b_hi_a - lo[0]) // cells[0]) + 1),
-                         max(shape[1] + int(pre[1]), int((b_hi_e - lo[1]) // cells[1]) + 1))
-                inside = np.s_[pre[0]:pre[0] + shape[0], pre[1]:pre[1] + shape[1]]
-                near_g, far_g = np.full(grown, np.inf), np.full(grown, -np.inf)
-                near_g[inside], far_g[inside] = near.reshape(shape), far.reshape(shape)
-                occupied = np.isfinite(near_g) | _occupied(b_az, b_el, lo[0], lo[1], cells[0], cells[1],
-                                                          *grown).reshape(grown)
-                near, far, shape = near_g.ravel(), far_g.ravel(), grown
-                hi_a, hi_e = max(hi_a, b_hi_a), max(hi_e, b_hi_e)
         view = _convex_hull(occupied)
         return cls(origin, frame, float(cells[0]), float(spacing), lo, shape, near, far, view.ravel(),
                    float(far[np.isfinite(far)].max()), float(cells[1]), sparse, np.array([hi_a, hi_e]),
                    bool(rays_sent))
 
+    @classmethod
+    def _from_camera(cls, points, origin, camera: Camera, *, cell_factor: float, rays_sent: bool) -> RangeImage:
+        """:meth:`from_points` of an organized camera frame: cells of ``cell_factor`` pixels over the
+        rows and columns holding a return, every one of them in the view."""
+        r0, r1, c0, c1 = (int(b) for b in camera.box)
+        cell = float(cell_factor)
+        lo = np.array([c0 - 0.5, r0 - 0.5])  # the edges of the outer pixels
+        hi = np.array([c1 + 0.5, r1 + 0.5])
+        shape = (int(math.ceil((c1 - c0 + 1) / cell)), int(math.ceil((r1 - r0 + 1) / cell)))
+        near, far = _near_far_pixels(points, camera.pixels, camera.width, origin, lo[0], lo[1], cell, *shape)
+        returned = far[np.isfinite(far)]
+        if returned.size == 0 or not returned.max() > 0:
+            raise InvalidPointsError("sensor_origin coincides with every point: no ray to follow")
+        return cls(origin, np.eye(3), cell, 1.0, lo, shape, near, far, np.ones(shape[0] * shape[1], bool),
+                   float(returned.max()), cell, -1, hi, bool(rays_sent), camera.matrix)
+
     @property
     def margin(self) -> np.ndarray:
         """How far beyond its extreme returns (azimuth, elevation) the scan is taken to have looked:
         half a cell (a pixel's own width), none along a sparse axis (below a LiDAR's lowest ring,
-        the floor was never sampled, however near the ring)."""
+        the floor was never sampled, however near the ring); none for a camera's image, whose
+        edges are its outer pixels' own."""
+        if self.camera is not None:
+            return np.zeros(2)
         return np.array([0.0 if self.sparse == 0 else self.cell / 2, 0.0 if self.sparse == 1 else self.cell_el / 2])
+
+    def _coords(self, points: np.ndarray):
+        """(azimuth, elevation, range, bounds) of contiguous ``points``: a camera's columns and rows."""
+        if self.camera is not None:
+            return _project(points, self.origin, self.camera)
+        return _angles(points, self.origin, self.frame)
 
     def seen_free(self, points: np.ndarray) -> np.ndarray:
         """Did the sensor look along each ray (of :data:`UNOBSERVED` points) and find nothing?
@@ -461,13 +532,13 @@ class RangeImage:
         view = self.in_view(points)
         if self.rays_sent:
             return view
-        az, el, _, _ = _angles(points, self.origin, self.frame)
+        az, el, _, _ = self._coords(points)
         return view & _sampled_around(az, el, self.near, self.lo, self.cell, self.cell_el, self.shape[0],
                                       self.shape[1])
 
     def in_view(self, points: np.ndarray) -> np.ndarray:
         """Is each point inside the field of view (:attr:`view`) and within :attr:`reach_range`?"""
-        az, el, rng, _ = _angles(np.ascontiguousarray(points, dtype=np.float64), self.origin, self.frame)
+        az, el, rng, _ = self._coords(np.ascontiguousarray(points, dtype=np.float64))
         with np.errstate(invalid="ignore"):
             a = np.floor((az - self.lo[0]) / self.cell)
             e = np.floor((el - self.lo[1]) / self.cell_el)
@@ -490,7 +561,7 @@ class RangeImage:
         the returns are all farther than r + b; :data:`UNOBSERVED` (3): no return at all.
         """
         points = np.ascontiguousarray(points, dtype=np.float64)
-        az, el, rng, _ = _angles(points, self.origin, self.frame)
+        az, el, rng, _ = self._coords(points)
         cls, hide = _classify(az, el, rng, self.near, self.far, self.lo, self.hi, self.margin, self.cell, self.cell_el,
                               self.shape[0], self.shape[1], int(reach), float(range_noise), float(floor), self.sparse)
         if not hiders:
@@ -498,23 +569,46 @@ class RangeImage:
         return cls, _hider_points(points, self.origin, hide, rng, cls)
 
 
-def camera_border(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], origin, *,
-                  tolerance: float = 0.5, sample: int = 512) -> np.ndarray | None:
-    """Directions of the rays along the border of an organized camera image, returned or not.
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera fitted to an organized depth frame (:func:`fit_camera`).
+
+    Attributes
+    ----------
+    matrix : ndarray (3, 3) float64
+        Takes a point's offset d from the sensor to (column · w, row · w, w), w > 0 in front of
+        the camera: the intrinsics times the rotation, for the image's own pixels.
+    box : ndarray (4,) int64
+        The first and last row, first and last column holding a return.
+    pixels : ndarray (n,) int64
+        Each return's pixel (row · width + column), ascending.
+    width : int
+        The image's columns.
+    """
+
+    matrix: np.ndarray
+    box: np.ndarray
+    pixels: np.ndarray
+    width: int
+
+
+def fit_camera(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], origin, *,
+               tolerance: float = 0.5, sample: int = 512) -> Camera | None:
+    """The pinhole camera of an organized frame's returns, or None where they fit none.
 
     A depth camera's point of pixel (column c, row r) lies on the ray ``H⁻¹ (c, r, 1)`` from its
     origin, for one 3 × 3 matrix H (the camera's intrinsics times its rotation: a pinhole camera,
     whatever its pose). H is fitted to the returns (``xyz`` at ``pixels``, row · width + column,
     of an ``image`` of (height, width)) by the direct linear transform [1]_ on at most
-    ``sample`` of them; the border pixels' rays follow. None where the returns do not fit one
-    pinhole within ``tolerance`` pixels (RMS): an organized LiDAR's rings and columns, a
-    distorted image, too few returns.
+    ``sample`` of them. None where the returns do not fit one pinhole within ``tolerance``
+    pixels (RMS): an organized LiDAR's rings and columns, a distorted image, too few returns.
 
-    The border is that of the rows and columns holding a return: whole rows or columns without
-    one at the image's edge are the margins a depth image registered to a colour camera leaves
-    (the PCL grabber's frames: 32 columns and 15 rows), pixels the sensor never measured, not
-    rays that found nothing (there, 0.07–0.22 % of a static pair read changed after a
-    centimetre's motion). A wall beyond range across the whole image's top is lost with them.
+    The image is that of the rows and columns holding a return (:attr:`Camera.box`): whole rows
+    or columns without one at the image's edge are the margins a depth image registered to a
+    colour camera leaves (the PCL grabber's frames: 32 columns and 15 rows), pixels the sensor
+    never measured, not rays that found nothing (there, 0.07–0.22 % of a static pair read
+    changed after a centimetre's motion). A wall beyond range across the whole image's top is
+    lost with them.
 
     References
     ----------
@@ -528,16 +622,18 @@ def camera_border(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], o
     # where some forty small NumPy steps each took three times their time
     step = max(1, len(pixels) // sample)
     origin = np.asarray(origin, np.float64)
+    pixels = np.asarray(pixels, np.int64)
     normal, centre, scale, n = _pinhole_sums(xyz, pixels, width, origin, step)
     if n < 8:
         return None
     h = np.linalg.eigh(normal)[1][:, 0].reshape(3, 3)  # the least-squares null vector
-    inv = np.linalg.inv(h)
-    rms, facing = _pinhole_check(xyz, pixels, width, origin, step, h, inv, centre, scale)
+    rms, facing = _pinhole_check(xyz, pixels, width, origin, step, h, np.linalg.inv(h), centre, scale)
     if not rms <= tolerance:
         return None
-    box = _returned_box(pixels, width)
-    return _border_rays(box, inv if facing else -inv, centre, scale)  # H is known up to its sign
+    # H is known up to its sign: the one putting the returns in front; then back to whole pixels
+    pixel_of = np.array([[scale, 0.0, centre[0]], [0.0, scale, centre[1]], [0.0, 0.0, 1.0]])
+    matrix = pixel_of @ (h if facing else -h)
+    return Camera(np.ascontiguousarray(matrix), _returned_box(pixels, width), pixels, int(width))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -612,32 +708,6 @@ def _pinhole_check(xyz, pixels, width, origin, step, h, inv, centre, scale):
             dot += (inv[a, 0] * u + inv[a, 1] * v + inv[a, 2]) * (d0 if a == 0 else (d1 if a == 1 else d2))
         n += 1
     return math.sqrt(err2 / max(n, 1)), dot > 0.0
-
-
-@nb.njit(cache=True, nogil=True)
-def _border_rays(box, inv, centre, scale):
-    """Unit rays ``inv`` (c, r, 1) of the pixels along the four edges of the rows ``box[0]`` …
-    ``box[1]`` and columns ``box[2]`` … ``box[3]`` (pixels normalized as the fit's)."""
-    r0, r1, c0, c1 = box[0], box[1], box[2], box[3]
-    w, h = c1 - c0 + 1, r1 - r0 + 1
-    m = 2 * (w + h)
-    out = np.empty((m, 3))
-    for k in range(m):
-        if k < w:
-            c, r = c0 + k, r0
-        elif k < 2 * w:
-            c, r = c0 + k - w, r1
-        elif k < 2 * w + h:
-            c, r = c0, r0 + k - 2 * w
-        else:
-            c, r = c1, r0 + k - 2 * w - h
-        u, v = (c - centre[0]) / scale, (r - centre[1]) / scale
-        x = inv[0, 0] * u + inv[0, 1] * v + inv[0, 2]
-        y = inv[1, 0] * u + inv[1, 1] * v + inv[1, 2]
-        z = inv[2, 0] * u + inv[2, 1] * v + inv[2, 2]
-        norm = math.sqrt(x * x + y * y + z * z)
-        out[k, 0], out[k, 1], out[k, 2] = x / norm, y / norm, z / norm
-    return out
 
 
 def _axis_cells(az, el, lo, extent, cell: float, cell_factor: float, half: np.ndarray) -> tuple[list[float], int]:

@@ -57,9 +57,9 @@ from ..defaults import DEFAULTS
 from ..errors import InvalidPointsError
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ._planes import explain_by_planes
-from ._range_image import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage, camera_border, sees
+from ._range_image import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, Camera, RangeImage, fit_camera, sees
 
-__all__ = ["as_sensor_origins", "depth_camera_units", "gone_only_if_seen", "image_border", "rays_sent",
+__all__ = ["as_sensor_origins", "depth_camera_units", "gone_only_if_seen", "image_camera", "rays_sent",
            "resolve_sensor_origins",
            "scanner_of_points", "sensor_band", "sensor_range_noise", "visibility_states"]
 
@@ -244,15 +244,15 @@ def rays_sent(cloud) -> bool:
     return not isinstance(cloud, Cloud) or bool(cloud.organized) or "row" in cloud.fields
 
 
-def image_border(cloud, origin) -> np.ndarray | None:
-    """The rays along the border of ``cloud``'s camera image seen from one ``origin``
-    (:func:`sdp.change._range_image.camera_border`: every pixel of an organized cloud is a ray its
-    sensor sent, whether it returned or not), or None: no image (an unorganized cloud, an array),
-    several scanners, or returns that fit no pinhole camera."""
+def image_camera(cloud, origin) -> Camera | None:
+    """The pinhole camera of ``cloud``'s organized frame seen from one ``origin``
+    (:func:`sdp.change._range_image.fit_camera`: its range image is then the camera's pixels, every
+    one a ray its sensor sent, whether it returned or not), or None: no image (an unorganized
+    cloud, an array), several scanners, or returns that fit no pinhole camera."""
     image, pixels = getattr(cloud, "image", None), getattr(cloud, "pixels", None)
     if image is None or pixels is None or origin is None or np.ndim(origin) != 1 or len(pixels) != len(cloud.xyz):
         return None
-    return camera_border(cloud.xyz, pixels, image, origin)
+    return fit_camera(cloud.xyz, pixels, image, origin)
 
 
 def sensor_range_noise(cloud, range_noise: float, *, xyz: np.ndarray | None = None, origin=None) -> float:

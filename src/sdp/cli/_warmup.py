@@ -160,7 +160,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     import numpy as np
 
     from ..change._detect import detect_changes
-    from ..change._range_image import RangeImage, camera_border
+    from ..change._range_image import RangeImage, fit_camera
     from ..data._scene import office_scene
     from ..distance._distances import distances
     from ..io._output import all_or_none, write_points
@@ -200,8 +200,8 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
             # an organized frame's view reaches its image's border: a 16 × 12 pinhole image's
             c, r = np.meshgrid(np.arange(16.0), np.arange(12.0))
             frame = np.c_[(c.ravel() - 8) / 10, (r.ravel() - 6) / 10, np.ones(c.size)] * 2.0
-            border = camera_border(frame, np.arange(c.size), (12, 16), np.zeros(3))
-            RangeImage.from_points(frame, np.zeros(3), border=border)
+            camera = fit_camera(frame, np.arange(c.size), (12, 16), np.zeros(3))
+            RangeImage.from_points(frame, np.zeros(3), camera=camera).classify(frame, range_noise=0.01)
             if importlib.util.find_spec("dask") and importlib.util.find_spec("zarr"):
                 C.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "t.laz",
                                 execution=Execution(tiled=True, scheduler="synchronous", workdir=d))

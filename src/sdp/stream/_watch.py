@@ -54,7 +54,7 @@ from ..change._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, states_of
 from ..change._detect import inside_difference, judge_coverage, region_rules, single_origin
 from ..change._regions import Region
 from ..change._range_image import RangeImage
-from ..change._visibility import (image_border, rays_sent, resolve_sensor_origins, scanner_of_points,
+from ..change._visibility import (image_camera, rays_sent, resolve_sensor_origins, scanner_of_points,
                                   sensor_range_noise)
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
@@ -248,7 +248,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     target = None if align != "gicp" else GicpTarget(ref, resolution=base.sigma, max_distance=4 * base.sigma)
     scan = None if is_field else scanner_of_points(reference, origin, len(ref))  # several scanners: each point's
     image = None if origin is None or np.ndim(origin) == 2 else \
-        RangeImage.from_points(ref, origin, rays_sent=rays_sent(reference), border=image_border(reference, origin))
+        RangeImage.from_points(ref, origin, rays_sent=rays_sent(reference), camera=image_camera(reference, origin))
     band = sensor_range_noise(reference, coverage.range_noise, xyz=ref, origin=origin)  # a laser's, a camera's
     matrix = None if align is None else np.eye(4)
     try:
