@@ -22,6 +22,9 @@ class Points(NamedTuple):
     lo: np.ndarray
     hi: np.ndarray
     dropped_before: int = 0  # rows the file reader dropped already (a Cloud's n_dropped)
+    # an organized frame's (pixel of each row, (height, width), sensor origin): its pixels are
+    # neighbourhoods (sdp.fields._spacing); None for other clouds and once moved
+    image: tuple | None = None
 
     @property
     def n_dropped(self) -> int:
@@ -30,7 +33,7 @@ class Points(NamedTuple):
     def moved(self, xyz: np.ndarray) -> "Points":
         """The same cloud at new coordinates ``xyz`` (one row per finite point, e.g. registered),
         with their bounds."""
-        return self._replace(xyz=xyz, lo=xyz.min(axis=0), hi=xyz.max(axis=0))
+        return self._replace(xyz=xyz, lo=xyz.min(axis=0), hi=xyz.max(axis=0), image=None)
 
 
 def as_points(points, *, name: str = "points") -> Points:
@@ -49,8 +52,9 @@ def as_points(points, *, name: str = "points") -> Points:
         If the array is not (n, 3) numeric, or holds no finite row; a table of more than three
         columns without ``x``, ``y``, ``z`` among them.
     """
-    before = 0
+    before, image = 0, None
     if hasattr(points, "xyz") and hasattr(points, "n_dropped"):  # a Cloud from sdp.read_points
+        image = _image_of(points)
         points, before = points.xyz, int(points.n_dropped)
     elif not isinstance(points, np.ndarray) and getattr(points, "columns", None) is not None:
         points = _table_xyz(points, name)
@@ -70,7 +74,16 @@ def as_points(points, *, name: str = "points") -> Points:
     if arr.shape[0] == 0:
         what = "is empty" if finite is None else f"has no finite point (all {finite.size} rows hold NaN or Inf)"
         raise InvalidPointsError(f"{name} {what}: nothing to build a density field from")
-    return Points(arr, finite, lo, hi, before)
+    return Points(arr, finite, lo, hi, before, image if finite is None else None)
+
+
+def _image_of(cloud) -> tuple | None:
+    """:attr:`Points.image` of a cloud: an organized one with a pixel per row and its sensor's origin."""
+    shape, pixels = getattr(cloud, "image", None), getattr(cloud, "pixels", None)
+    origin = getattr(cloud, "sensor_origin", None)
+    if shape is None or pixels is None or origin is None or len(pixels) != len(cloud.xyz):
+        return None
+    return pixels, tuple(shape), np.asarray(origin, np.float64)
 
 
 def _table_xyz(table, name: str):

@@ -37,7 +37,7 @@ __all__ = ["warmup", "first_run", "first_run_note", "record_warm"]
 KERNEL_MODULES = ("fields/_kernels", "_core/_kdtree", "fields/_volume_kernels", "scale/_kernels", "io/_kernels",
                   "_core/_points", "actions/_actions", "distance/_distances", "distance/_cells", "fields/_spacing",
                   "change/_range_image", "change/_planes", "_core/_cells", "timeseries/_kalman", "timeseries/_objects",
-                  "distance/_noise", "change/_combined", "_core/_disjoint")
+                  "distance/_noise", "change/_combined", "_core/_disjoint", "_core/_pinhole")
 #: Commands whose first run compiles kernels, and what warmup runs for each.
 COMMANDS = ("change", "distance", "build", "bool", "mesh", "align", "watch", "action", "series")
 _STAMP = "sdp-warm.json"
@@ -159,10 +159,12 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     """
     import numpy as np
 
+    from .._core._points import as_points
     from ..change._detect import detect_changes
     from ..change._range_image import RangeImage, fit_camera
     from ..data._scene import office_scene
     from ..distance._distances import distances
+    from ..fields._spacing import kth_in_image
     from ..io._output import all_or_none, write_points
     from ..options import Coverage, Execution, Outputs
     from . import _change as C
@@ -202,6 +204,7 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
             frame = np.c_[(c.ravel() - 8) / 10, (r.ravel() - 6) / 10, np.ones(c.size)] * 2.0
             camera = fit_camera(frame, np.arange(c.size), (12, 16), np.zeros(3))
             RangeImage.from_points(frame, np.zeros(3), camera=camera).classify(frame, range_noise=0.01)
+            kth_in_image(as_points(frame)._replace(image=(camera.pixels, (12, 16), np.zeros(3))), np.arange(8), 4)
             if importlib.util.find_spec("dask") and importlib.util.find_spec("zarr"):
                 C.compare_files(files["ref", "laz"], files["cur", "laz"], output=d / "t.laz",
                                 execution=Execution(tiled=True, scheduler="synchronous", workdir=d))

@@ -135,11 +135,16 @@ def auto_voxel_size_of(clouds: Sequence[Points], *, k: int = 3, quantile: float 
         # which keeps the memory they touch warm; the quantile doesn't depend on the order
         idx = np.sort(rng.choice(len(xyz), sample, replace=False)) if len(xyz) > sample else None
         if len(xyz) > k:
-            jobs.append((pts, xyz if idx is None else xyz[idx]))
+            jobs.append((pts, xyz if idx is None else xyz[idx], idx))
     def spacing(job):
-        pts, queries = job
+        pts, queries, idx = job
         # each query is a point of the cloud: its k + 1-th neighbour is its k-th other point
-        d = kth_neighbour_distance(pts.xyz, queries, k + 1, lo=pts.lo, hi=pts.hi)
+        d = kth_in_image(pts, np.arange(len(pts.xyz)) if idx is None else idx, k + 1)
+        if d is None:
+            d = kth_neighbour_distance(pts.xyz, queries, k + 1, lo=pts.lo, hi=pts.hi)
+        elif np.isnan(d).any():  # not proven by the image: the grid
+            todo = np.isnan(d)
+            d[todo] = kth_neighbour_distance(pts.xyz, queries[todo], k + 1, lo=pts.lo, hi=pts.hi)
         if (d == 0).any():  # exact duplicates (merged scans, repeated rows) sample no space: distinct points
             unique = np.unique(pts.xyz, axis=0)
             d = kth_neighbour_distance(unique, np.unique(queries, axis=0), k + 1, lo=pts.lo, hi=pts.hi) \
@@ -235,6 +240,68 @@ def kth_neighbour_distance(points: np.ndarray, queries: np.ndarray, k: int, *, c
                 c = target
     _resolve(points, queries, todo, out, grid, cells, c, k, lo, size)
     return out
+
+
+#: Half-widths (pixels) of the windows an organized frame's queries are searched in, in turn.
+_WINDOWS = (2, 5, 11)
+
+
+def kth_in_image(pts: Points, rows: np.ndarray, k: int) -> np.ndarray | None:
+    """:func:`kth_neighbour_distance` of the cloud's rows ``rows`` from an organized frame's pixels
+    (:attr:`sdp._core._points.Points.image`), or None without one (or where its returns fit no
+    pinhole camera). The k nearest returns within a window of pixels around the query's own are
+    the k nearest of the cloud when the k-th of them is nearer than any return outside the
+    window can be: such a return's ray makes an angle θ with the query's whose sine is at least
+    S·d (:func:`sdp._core._pinhole.ray_sine_per_pixel`) for d the pixels between their
+    projections, at least the window's half-width + 1 less twice the largest reprojection error,
+    and it lies at least r·sin θ from a query at range r. Where that is not proven in the
+    widest window, NaN (for the grid to answer): the same distances, to the last bit."""
+    from .._core._pinhole import fit_camera, ray_sine_per_pixel, reprojection_error
+
+    if pts.image is None or len(pts.xyz) < k:
+        return None
+    pixels, (height, width), origin = pts.image
+    camera = fit_camera(pts.xyz, pixels, (height, width), origin)
+    if camera is None:
+        return None
+    error = reprojection_error(pts.xyz, camera.pixels, width, origin, camera.matrix)
+    if not error < 1.0:
+        return None
+    sine = ray_sine_per_pixel(camera, height, error)
+    index = np.full(height * width, -1, np.int32)
+    index[camera.pixels] = np.arange(len(camera.pixels), dtype=np.int32)
+    out = np.full(len(rows), np.nan)
+    for half in _WINDOWS:
+        _window_kth(pts.xyz, camera.pixels, index, width, height, origin, np.asarray(rows, np.int64), k, half,
+                    sine * (half + 1 - 2 * error), out)
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _window_kth(points, pixels, index, width, height, origin, rows, k, half, sine, out):
+    """``out[i]`` = the k-th nearest distance of row ``rows[i]`` from the returns within ``half``
+    pixels of its own, where it is below ``sine`` times the query's range (none outside is nearer);
+    rows already answered are left."""
+    best = np.empty(k)
+    for i in range(rows.shape[0]):
+        if not math.isnan(out[i]):
+            continue
+        q = rows[i]
+        x, y, z = points[q, 0], points[q, 1], points[q, 2]
+        r0, c0 = pixels[q] // width, pixels[q] % width
+        best[:] = np.inf
+        for r in range(max(r0 - half, 0), min(r0 + half + 1, height)):
+            for c in range(max(c0 - half, 0), min(c0 + half + 1, width)):
+                p = index[r * width + c]
+                if p >= 0:
+                    dx = points[p, 0] - x
+                    dy = points[p, 1] - y
+                    dz = points[p, 2] - z
+                    _insert(best, dx * dx + dy * dy + dz * dz)
+        ox, oy, oz = x - origin[0], y - origin[1], z - origin[2]
+        bound = math.sqrt(ox * ox + oy * oy + oz * oz) * sine * (1.0 - 1e-9)
+        if bound > 0.0 and best[k - 1] <= bound * bound:
+            out[i] = math.sqrt(best[k - 1])
 
 
 def _resolve(points, queries, todo, out, grid, cells, c, k, lo, size):
