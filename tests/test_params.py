@@ -62,6 +62,37 @@ def test_any_cell_size_gives_the_exact_distances(rng, cell):
     np.testing.assert_allclose(kth_neighbour_distance(pts, queries, 4, cell=cell), expected, rtol=1e-12, atol=0)
 
 
+def test_an_organized_frames_pixels_give_the_same_distances(rng):
+    # a 120 × 160 pinhole camera (f = 150 px), turned and moved, over a floor seen at grazing
+    # angles, a wall and a box (depth edges), with depth noise and dropouts
+    from scipy.spatial.transform import Rotation
+
+    from sdp._core._points import as_points
+    from sdp.fields._spacing import auto_voxel_size_of, kth_in_image
+    from sdp.io import Cloud
+
+    c, r = np.meshgrid(np.arange(160.0), np.arange(120.0))
+    rays = np.c_[(c.ravel() - 79.5) / 150, (r.ravel() - 59.5) / 150, np.ones(c.size)]
+    t_floor = 1.2 / np.where(rays[:, 1] > 1e-3, rays[:, 1], np.nan)  # the floor 1.2 m below the camera
+    t = np.fmin(np.where(t_floor > 0, t_floor, np.inf), 4.0)  # the wall 4 m ahead
+    in_box = (np.abs(rays[:, 0]) < 0.15) & (rays[:, 1] > 0.05) & (rays[:, 1] < 0.4)
+    t[in_box] = np.minimum(t[in_box], 2.0)
+    t *= 1 + rng.normal(0, 0.002, t.size)
+    keep = np.flatnonzero(rng.random(t.size) > 0.05)
+    turn, origin = Rotation.from_euler("zx", [40, -20], degrees=True).as_matrix(), np.array([3.0, 1.0, 0.5])
+    xyz = origin + (rays * t[:, None])[keep] @ turn.T
+    quat = Rotation.from_matrix(turn).as_quat()  # x, y, z, w
+    cloud = Cloud(xyz, viewpoint=np.r_[origin, quat[3], quat[:3]], organized=True, image=(120, 160), pixels=keep)
+    pts = as_points(cloud)
+    assert pts.image is not None and as_points(xyz).image is None
+    d = kth_in_image(pts, np.arange(len(xyz)), 4)
+    proven = ~np.isnan(d)
+    assert proven.mean() > 0.95
+    expected = kth_neighbour_distance(xyz, xyz, 4)  # itself and its 3 nearest others
+    np.testing.assert_array_equal(d[proven], expected[proven])
+    assert auto_voxel_size_of([pts], k=3) == auto_voxel_size_of([as_points(xyz)], k=3)
+
+
 def test_queries_anywhere(rng):
     """Queries that are not points of the cloud, inside and outside its box."""
     pts = room_scene(rng, n=20_000)
