@@ -325,7 +325,8 @@ class RangeImage:
         Sensor position (world units).
     frame : ndarray (3, 3) float64
         Rows: forward (azimuth 0, the scan's main viewing direction), left, pole (elevation
-        +π/2, the direction the scan spreads least along).
+        +π/2: the scanner's own vertical where known, else the direction the scan spreads least
+        along).
     cell : float
         Cell size in azimuth (radians).
     spacing : float
@@ -376,7 +377,7 @@ class RangeImage:
     @classmethod
     def from_points(cls, points: np.ndarray, origin: npt.ArrayLike, *, cell_factor: float = 1.5,
                     spacing: float | None = None, rays_sent: bool = True,
-                    border: np.ndarray | None = None) -> RangeImage:
+                    border: np.ndarray | None = None, pole: npt.ArrayLike | None = None) -> RangeImage:
         """Range image of ``points`` seen from ``origin``.
 
         Parameters
@@ -396,6 +397,11 @@ class RangeImage:
             the field of view reaches them whether they returned or not (a camera's pixels beyond
             its range, the sky), where the returns alone would end it at the farthest pixels that
             returned. The cells of the returns stay where they are.
+        pole : array_like (3,), optional
+            The sensor's own vertical (:attr:`sdp.io.Cloud.poles`: an E57 scan's z turned by its
+            pose), the image's elevation +π/2: its rows are then the scanner's, and the angles it
+            sent rays to (:attr:`lo`, :attr:`hi`) its own. None: the direction the points
+            spread least along (:func:`_view_frame`).
 
         Returns
         -------
@@ -403,7 +409,7 @@ class RangeImage:
         """
         points = np.ascontiguousarray(points, dtype=np.float64)
         origin = np.asarray(origin, dtype=np.float64)
-        frame = _view_frame(points, origin)
+        frame = _view_frame(points, origin, None if pole is None else _unit_pole(pole))
         az, el, rng, (lo_a, lo_e, hi_a, hi_e, n) = _angles(points, origin, frame)
         if n == 0:
             raise InvalidPointsError("sensor_origin coincides with every point: no ray to follow")
@@ -821,19 +827,41 @@ def _unit_directions(points, origin, step):
     return out[:k]
 
 
-def _view_frame(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
+def _view_frame(points: np.ndarray, origin: np.ndarray, pole: np.ndarray | None = None) -> np.ndarray:
     """Forward = main eigenvector of the unit directions' second moments (sign: towards the mean
     direction), pole = the least one: a camera's cone sits on the equator around azimuth 0, a
-    horizontal 360° scan gets a vertical pole; the azimuth seam (±π) lies behind the sensor."""
+    horizontal 360° scan gets a vertical pole; the azimuth seam (±π) lies behind the sensor.
+
+    A scanner's own vertical (``pole``, a unit vector) is taken as it is, forward being the main
+    direction made perpendicular to it: the least direction of a terrestrial scan's returns tilts
+    towards a cliff filling one side (10–16° on a rock cut), and the image's rows of constant
+    elevation would cut the scanner's own rows aslant, its lowest and highest rays (the limits of
+    what it sent) no longer a row of the image."""
     d = _unit_directions(points, origin, max(1, len(points) // _DIRECTION_SAMPLE))
-    if len(d) == 0:
+    if len(d) == 0 and pole is None:
         return np.eye(3)
-    w, v = np.linalg.eigh(d.T @ d / len(d))
-    forward, pole = v[:, 2], v[:, 0]
-    if forward @ d.mean(axis=0) < 0:
+    if pole is None:
+        w, v = np.linalg.eigh(d.T @ d / len(d))
+        forward, pole = v[:, 2], v[:, 0]
+    else:
+        flat = d - np.outer(d @ pole, pole)  # the directions seen from above the scanner
+        w, v = np.linalg.eigh(flat.T @ flat / max(len(d), 1))
+        forward = v[:, 2] - (v[:, 2] @ pole) * pole
+        if not np.linalg.norm(forward) > 1e-9:  # no direction off the pole: any forward
+            forward = np.eye(3)[np.argmin(np.abs(pole))] - pole * pole[np.argmin(np.abs(pole))]
+        forward = forward / np.linalg.norm(forward)
+    if len(d) and forward @ d.mean(axis=0) < 0:
         forward = -forward
     left = np.cross(pole, forward)
     return np.ascontiguousarray(np.stack([forward, left / np.linalg.norm(left), pole]))
+
+
+def _unit_pole(pole) -> np.ndarray:
+    """``pole`` as a unit vector (3,); one-line :class:`InvalidPointsError` for anything else."""
+    p = np.asarray(pole, np.float64)
+    if p.shape != (3,) or not np.isfinite(p).all() or not np.linalg.norm(p) > 0:
+        raise InvalidPointsError(f"pole: expected a non-zero finite vector x, y, z, got {np.asarray(pole).tolist()}")
+    return p / np.linalg.norm(p)
 
 
 def _angular_spacing(az, el, lo, extent, n) -> float:
