@@ -14,6 +14,15 @@ horizon and 9.4° at the bottom), the nearest one within ``_MAX_GAP_CELLS`` cell
 beyond the angles the scan sent rays to (more than half a cell past its extreme returns, none along
 a sparse axis) is unobserved whatever the cells beside it hold: the floor below a LiDAR's lowest ring.
 
+A scanner whose vertical is known (an E57 scan's pose: ``pole``) has its image laid out about it,
+so that the image's rows are its own and the angles it sent rays to its own: the direction its
+returns spread least along tilts towards a cliff filling one side (10–16° on a rock cut), where
+the image's rows would cut the scanner's aslant and the ground below its lowest ray (never
+sampled) lies inside the image beside ground it did see. Its elevation is then bridged as a
+sparse axis's (:attr:`RangeImage.scanner_rows`): at grazing range consecutive rows lie metres apart
+on the ground, farther than the band, and a ray between a nearer row and a farther one passes
+through the ground between them.
+
 A point's ray is compared with the returns of the cells within ``reach`` of its own, with a band
 ``b(r) = max(range_noise·r², floor)``: the band grows as r², as the depth noise of triangulation
 sensors such as the Kinect (Khoshelham and Elberink [2]: σ_z ≈ 1.4e-3·r² m, depth steps ≈
@@ -357,6 +366,11 @@ class RangeImage:
         inside the view is then a ray that found nothing (:meth:`seen_free`). False for a scan known
         to sample its view irregularly (an unorganized file or message from a sensor: a rosette
         scanner's petals leave half of its view unsampled).
+    scanner_rows : bool
+        The image is laid out about its scanner's own vertical (``pole``): its rows are the
+        scanner's, and elevation is bridged as a sparse axis is (a ray between a row nearer and
+        one farther is on the ground between them, metres apart at grazing range), its cells and
+        margin left square.
     """
 
     origin: np.ndarray
@@ -373,6 +387,7 @@ class RangeImage:
     sparse: int
     hi: np.ndarray
     rays_sent: bool = True
+    scanner_rows: bool = False
 
     @classmethod
     def from_points(cls, points: np.ndarray, origin: npt.ArrayLike, *, cell_factor: float = 1.5,
@@ -400,8 +415,8 @@ class RangeImage:
         pole : array_like (3,), optional
             The sensor's own vertical (:attr:`sdp.io.Cloud.poles`: an E57 scan's z turned by its
             pose), the image's elevation +π/2: its rows are then the scanner's, and the angles it
-            sent rays to (:attr:`lo`, :attr:`hi`) its own. None: the direction the points
-            spread least along (:func:`_view_frame`).
+            sent rays to (:attr:`lo`, :attr:`hi`) its own (:attr:`scanner_rows`). None: the
+            direction the points spread least along (:func:`_view_frame`).
 
         Returns
         -------
@@ -446,7 +461,7 @@ class RangeImage:
         view = _convex_hull(occupied)
         return cls(origin, frame, float(cells[0]), float(spacing), lo, shape, near, far, view.ravel(),
                    float(far[np.isfinite(far)].max()), float(cells[1]), sparse, np.array([hi_a, hi_e]),
-                   bool(rays_sent))
+                   bool(rays_sent), pole is not None)
 
     @property
     def margin(self) -> np.ndarray:
@@ -498,7 +513,8 @@ class RangeImage:
         points = np.ascontiguousarray(points, dtype=np.float64)
         az, el, rng, _ = _angles(points, self.origin, self.frame)
         cls, hide = _classify(az, el, rng, self.near, self.far, self.lo, self.hi, self.margin, self.cell, self.cell_el,
-                              self.shape[0], self.shape[1], int(reach), float(range_noise), float(floor), self.sparse)
+                              self.shape[0], self.shape[1], int(reach), float(range_noise), float(floor),
+                              1 if self.scanner_rows and self.sparse < 0 else self.sparse)
         if not hiders:
             return cls
         return cls, _hider_points(points, self.origin, hide, rng, cls)

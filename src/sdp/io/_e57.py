@@ -126,12 +126,14 @@ def read_e57(path):
         q, t = _pose(h, path, i)
         if int(h.point_count) == 0:  # a scan of no record: libE57Format can't read its empty vector
             continue
-        part, spherical = _scan_points(e.read_scan_raw(i, ignore_unsupported_fields=True), q, t, i, path)
+        raw = e.read_scan_raw(i, ignore_unsupported_fields=True)
+        part = _scan_points(raw, q, t, i, path)
         if not np.isfinite(part["xyz"]).all(axis=1).any():  # a scanner that saw nothing says nothing
             continue
         part["scan"][:] = len(sensors)
         parts.append(part)
         sensors.append(t)
+        spherical = not _CARTESIAN <= raw.keys()  # elevations from the scan frame's xy-plane: its z is vertical
         poles.append(_rotation(q)[:, 2] if h.has_pose() or spherical else np.full(3, np.nan))
         posed &= bool(h.has_pose())
     sensors = np.array(sensors).reshape(-1, 3) if posed or len(sensors) == 1 else None
@@ -154,17 +156,20 @@ _FIELDS = {"intensity": "intensity", "colorRed": "red", "colorGreen": "green", "
            "rowIndex": "row", "columnIndex": "column"}
 
 
-def _scan_points(raw: dict, q, t, index: int, path) -> tuple[dict, bool]:
-    """(World points (NaN where invalid) and fields of one scan's raw arrays, whether they are spherical)."""
-    if {"cartesianX", "cartesianY", "cartesianZ"} <= raw.keys():
+_CARTESIAN = {"cartesianX", "cartesianY", "cartesianZ"}
+
+
+def _scan_points(raw: dict, q, t, index: int, path) -> dict:
+    """World points (NaN where invalid) and fields of one scan's raw arrays."""
+    if _CARTESIAN <= raw.keys():
         local = np.c_[raw["cartesianX"], raw["cartesianY"], raw["cartesianZ"]].astype(np.float64)
-        invalid, spherical = raw.get("cartesianInvalidState"), False
+        invalid = raw.get("cartesianInvalidState")
     elif {"sphericalRange", "sphericalAzimuth", "sphericalElevation"} <= raw.keys():
         r = np.asarray(raw["sphericalRange"], np.float64)
         az = np.asarray(raw["sphericalAzimuth"], np.float64)
         el = np.asarray(raw["sphericalElevation"], np.float64)
         local = np.c_[r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)]
-        invalid, spherical = raw.get("sphericalInvalidState"), True
+        invalid = raw.get("sphericalInvalidState")
     else:
         raise CloudFileError(f"{path}: scan {index} has neither Cartesian nor spherical coordinates")
     with np.errstate(invalid="ignore", over="ignore"):  # an infinite coordinate: a row the reader drops
@@ -175,4 +180,4 @@ def _scan_points(raw: dict, q, t, index: int, path) -> tuple[dict, bool]:
     for src, dst in _FIELDS.items():
         if src in raw:
             out[dst] = np.asarray(raw[src])
-    return out, spherical
+    return out
