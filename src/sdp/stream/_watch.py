@@ -304,8 +304,9 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         # the model's footprint, or the reference's rays (imaged once)
         states = judge_coverage(cur.xyz, mask, ref, seen, origin, coverage=coverage.enabled,
                                 range_noise=band, image=image, present=frame.inside, other_scan=scan,
-                                other_pole=pole, own_pole=own_pole, own_origin=own, own_range_noise=sensor_range_noise(given, coverage.range_noise,
-                                                                                     xyz=cur.xyz, origin=own))
+                                other_pole=pole, own_origin=own, own_pole=own_pole,
+                                own_range_noise=sensor_range_noise(given, coverage.range_noise, xyz=cur.xyz,
+                                                                   origin=own))
         mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
         labels = np.full(len(mask), -1, np.int32)
