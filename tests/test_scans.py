@@ -378,6 +378,7 @@ def test_scans_of_no_pose_put_their_scanner_at_the_origin_only_alone(tmp_path):
 
     one, two = sdp.read_points(write(tmp_path / "one.e57", 1)), sdp.read_points(write(tmp_path / "two.e57", 2))
     assert np.allclose(one.sensor_origin, 0) and two.sensors is None and two.sensor_origin is None
+    assert one.poles is None and two.poles is None  # Cartesian points say nothing of the scanner's axes
     info = describe_file(tmp_path / "two.e57")
     assert "sensors" not in info and [s["pose"] for s in info["scans"]] == [False, False]
     assert [s["kept"] for s in info["scans"]] == [400, 400]
@@ -461,6 +462,7 @@ def test_a_survey_in_a_projected_crs_with_spherical_scans_reads_and_measures_as_
     got, twin = sdp.read_points(far), sdp.read_points(write(tmp_path / "twin.e57", before, offset, False))
     assert pye57.E57(str(far)).get_header(1).point_fields[0] == "sphericalRange"
     assert np.array_equal(got.scan, twin.scan) and np.allclose(got.sensors, [a + offset, b + offset])
+    assert np.allclose(got.poles, [[0, 0, 1], [0, 0, 1]]) and np.allclose(twin.poles, got.poles)
     assert np.abs(got.xyz - twin.xyz).max() < 1e-5  # the Cartesian twin is stored in single precision
     # GPS seconds (from 1980-01-06, 3657 days after 1970-01-01; 18 leap seconds) to UTC days
     assert file_time(far)[0] == pytest.approx((1.4e9 - 18) / 86400 + 3657, abs=1e-9)
@@ -473,3 +475,92 @@ def test_a_survey_in_a_projected_crs_with_spherical_scans_reads_and_measures_as_
     assert np.nanmax(np.abs(out[0].distance)) > 0.5  # the box moved
     assert np.nanmax(np.abs(out[0].distance - out[1].distance)) < 1e-6
     assert np.nanmax(np.abs(out[0].lod - out[1].lod)) < 1e-6
+
+
+# A rock cut: flat ground to 40 m, a 6 m cliff 6 m east of station A. The current campaign adds
+# station C; a block has fallen on the ground west of A. Both scanners stand level (their poses'
+# z is up), but their returns, crowded on the cliff's side, spread least along a direction 13°
+# (A) and 24° (C) off the vertical.
+CUT_GROUND, CUT_CLIFF = ([-40, -40, -0.1], [40, 40, 0]), ([6, -40, 0], [8, 40, 6])
+FALLEN = ([-5, 2, 0], [-3.5, 3.5, 1])
+CUT_A, CUT_C = np.array([0.0, 0.0, 1.5]), np.array([3.0, 10.0, 1.5])
+
+
+def tls_scan(origin, boxes, rng, *, shift=0.0, step=0.6):
+    """:func:`cast` over −60°…+60° of elevation (from ``shift`` above −60°: a station set up
+    again samples other rays), with 2 mm of range noise."""
+    pts, row, col = cast(origin, boxes, step_deg=step, el_range=(-60 + shift, 60))
+    d = pts - origin
+    r = np.linalg.norm(d, axis=1)
+    return origin + d * ((r + 0.002 * rng.standard_normal(len(r))) / r)[:, None], row, col
+
+
+@pytest.fixture(scope="module")
+def rock_cut(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cut")
+    rng = np.random.default_rng(1)
+    before, after = [CUT_GROUND, CUT_CLIFF], [CUT_GROUND, CUT_CLIFF, FALLEN]
+    ref = write_e57(d / "ref.e57", [(*tls_scan(CUT_A, before, rng), CUT_A, 0.0)])
+    scans = [(*tls_scan(CUT_A, after, rng, shift=0.3), CUT_A, 0.0), (*tls_scan(CUT_C, after, rng), CUT_C, 0.0)]
+    return ref, write_e57(d / "cur.e57", scans), write_e57(d / "c.e57", scans[1:])
+
+
+def test_grazing_ground_beside_a_cliff_is_unchanged_where_a_station_was_added(rock_cut):
+    """Each scanner's range image is laid out about its own vertical (its pose's z), its rows the
+    image's: laid out about the direction its returns spread least along, tilted towards the
+    cliff, 334 points of the ground C saw at grazing range read as changed against A's rays and
+    2,380 as not comparable (359 and 2,983 with a laser scan's own band)."""
+    ref, cur = (sdp.read_points(p) for p in rock_cut[:2])
+    assert np.allclose(cur.poles, [[0, 0, 1], [0, 0, 1]])
+    for noise in (0.001, None):  # the band of --range-noise 0.001, and a laser scan's own (σ)
+        res = sdp.detect_changes(ref, cur, lattice=sdp.Lattice(voxel_size=0.05),
+                                 coverage=sdp.Coverage() if noise is None else sdp.Coverage(range_noise=noise))
+        block = inside(cur.xyz, *FALLEN, pad=0.05)
+        state = res.current_state
+        assert (state[~block] == sdp.UNCHANGED).all(), np.bincount(state[~block], minlength=3)
+        assert block.sum() > 1000 and (state[block] == sdp.CHANGED).mean() > 0.8
+        assert (res.reference_state == sdp.UNCHANGED).all()
+
+
+def test_a_place_below_a_scanners_lowest_ray_is_not_seen(rock_cut):
+    """An epoch of station C alone measures no core point under C, below its lowest ray (−60°:
+    within 0.87 m of its foot), which no scanner of that epoch saw; in the image laid out about
+    the returns' least direction, that ground lay beside ground C did see (2 of 25 measured, both
+    "significant")."""
+    from sdp.distance._seen import not_seen
+
+    ref, cur = (sdp.read_points(p) for p in (rock_cut[0], rock_cut[2]))
+    foot = np.linalg.norm(ref.xyz[:, :2] - CUT_C[:2], axis=1)
+    under = ref.xyz[foot < 1.5 / np.tan(np.radians(60)) - 0.05]
+    assert len(under) > 20
+    assert not_seen(under, cur.xyz, cur.sensors[0], None, sigma=0.05, poles=cur.poles[0]).all()
+    d = sdp.distances(ref, cur, core_points=under, cylinder=sdp.Cylinder(projection_scale=0.5, normal_scale=0.5))
+    assert np.isnan(d.distance).all() and not d.significant.any()
+
+
+def test_a_scanners_vertical_is_its_poses_z_and_moves_with_the_cloud(tmp_path):
+    """A scanner set up 10° off level (its pose turns its z about x): its pole is that turned z,
+    the range image's pole is it, and a moved cloud's poles turn with it; without one, the image
+    is laid out about the least direction of its returns."""
+    from sdp.change._range_image import RangeImage
+
+    tilt = np.radians(10)
+    q = np.array([np.cos(tilt / 2), np.sin(tilt / 2), 0, 0])  # 10° about x
+    rng = np.random.default_rng(2)
+    local = rng.normal(size=(2000, 3)) * [10, 10, 1]
+    e = pye57.E57(str(tmp_path / "tilted.e57"), mode="w")
+    e.write_scan_raw({"cartesianX": local[:, 0], "cartesianY": local[:, 1], "cartesianZ": local[:, 2]},
+                     rotation=q, translation=np.array([1.0, 2.0, 3.0]))
+    e.close()
+    cloud = sdp.read_points(tmp_path / "tilted.e57")
+    up = [0, -np.sin(tilt), np.cos(tilt)]
+    np.testing.assert_allclose(cloud.poles, [up], atol=1e-12)
+    image = RangeImage.from_points(cloud.xyz, cloud.sensors[0], pole=cloud.poles[0])
+    np.testing.assert_allclose(image.frame[2], up, atol=1e-12)
+    assert image.scanner_rows and abs(image.frame[0] @ up) < 1e-12
+    assert not RangeImage.from_points(cloud.xyz, cloud.sensors[0]).scanner_rows
+    turn = np.eye(4)
+    turn[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # 90° about z
+    np.testing.assert_allclose(cloud.transformed(turn).poles, [[np.sin(tilt), 0, np.cos(tilt)]], atol=1e-12)
+    with pytest.raises(sdp.InvalidPointsError, match="pole"):
+        RangeImage.from_points(cloud.xyz, cloud.sensors[0], pole=[0, 0, 0])

@@ -65,7 +65,7 @@ from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED, footprint_covered, st
 from ._regions import Region, Volume, describe_regions, label_volume
 from ._range_image import RangeImage
 from ._visibility import (gone_only_if_seen, image_camera, rays_sent, resolve_sensor_origins, scanner_of_points,
-                          sensor_band, visibility_states)
+                          sensor_band, sensor_poles, visibility_states)
 
 #: The decisions of :func:`detect_changes` (``"density"`` is ``"point"``: the paper's, density alone).
 DECISIONS = ("point", "density", "cluster", "combined")
@@ -431,6 +431,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     cur = as_points(current, name="current")
     s_ref = scanner_of_points(reference, o_ref, len(ref.xyz))  # which scanner saw each point (several)
     s_cur = scanner_of_points(current, o_cur, len(cur.xyz))
+    pole_of = {id(ref): sensor_poles(reference, o_ref), id(cur): sensor_poles(current, o_cur)}  # their verticals
     timings = {}
     t = time.perf_counter()
     voxel_size, sigma_voxels = resolve_lattice([ref, cur], voxel_size=lattice.voxel_size, grid_size=lattice.grid_size,
@@ -454,7 +455,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     # each epoch's range image from its single sensor, built once when first needed: the other
     # direction's visibility test, and this one's check that a hider's place could be seen
     views = {id(c): _Once(lambda c=c, o=o, s=s, f=f: RangeImage.from_points(c.xyz, o, rays_sent=s,
-                                                                             camera=image_camera(f, o))
+                                                                             camera=image_camera(f, o),
+                                                                             pole=pole_of[id(c)])
                           if o is not None and np.ndim(o) == 1 else None)
              for c, f, o, s in ((ref, reference, o_ref, rays_sent(reference)),
                                 (cur, current, o_cur, rays_sent(current)))}
@@ -470,7 +472,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
         states = judge_coverage(pts.xyz, mask, other.xyz, other_field, other_origin, coverage=coverage.enabled,
                                 range_noise=noise_of[id(other)], present=fld.inside, other_scan=other_scan,
                                 image=views[id(other)].get, own_origin=own_origin, own_scan=own_scan,
-                                own_image=views[id(pts)].get, own_range_noise=noise_of[id(pts)])
+                                own_image=views[id(pts)].get, own_range_noise=noise_of[id(pts)],
+                                other_pole=pole_of[id(other)], own_pole=pole_of[id(pts)])
         steps = {"coverage": time.perf_counter() - t}
         t = time.perf_counter()
         unseen = states == NOT_COMPARABLE
@@ -587,7 +590,8 @@ def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | 
                    other_origin: np.ndarray | None, *, coverage: bool = True,
                    range_noise: float = DEFAULTS.range_noise, image=None, present=None,
                    other_scan: np.ndarray | None = None, own_origin=None, own_scan=None,
-                   own_image=None, own_range_noise: float | None = None) -> np.ndarray:
+                   own_image=None, own_range_noise: float | None = None, other_pole=None,
+                   own_pole=None) -> np.ndarray:
     """The state (:mod:`sdp.change._coverage`) of each point of ``points`` flagged ``changed`` against
     the other epoch (its points ``other`` and field ``other_field``): by the other scan's rays
     when its origin is known (:func:`sdp.change._visibility.visibility_states`, ``present`` and
@@ -597,13 +601,16 @@ def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | 
     not see counts as changed. With the points' own sensors (``own_origin``, ``own_scan``, and the
     range image ``own_image`` or a callable returning it, their ``own_range_noise``), a hider their
     scan does not hold is gone only where those sensors could have seen its place
-    (:func:`sdp.change._visibility.gone_only_if_seen`)."""
+    (:func:`sdp.change._visibility.gone_only_if_seen`). ``other_pole`` and ``own_pole``: the
+    sensors' verticals, shaped as their origins (:func:`sdp.change._visibility.sensor_poles`), or
+    None."""
     if other_origin is not None:
         present = gone_only_if_seen(present, points, own_origin, own_scan, floor=other_field.sigma, image=own_image,
                                     range_noise=range_noise if own_range_noise is None else own_range_noise,
-                                    other_origin=other_origin)
+                                    other_origin=other_origin, pole=own_pole)
         states = visibility_states(points, changed, other, other_origin, sigma=other_field.sigma,
-                                   range_noise=range_noise, image=image, present=present, other_scan=other_scan)
+                                   range_noise=range_noise, image=image, present=present, other_scan=other_scan,
+                                   pole=other_pole)
         if not coverage:
             states[states == NOT_COMPARABLE] = CHANGED
         return states

@@ -21,6 +21,15 @@ the cell of its pixel, a point's ray through the pixel the fitted camera project
 pixel of the frame is a ray the camera sent, whether it returned or not, so the field of view is
 the whole image up to its border, not the hull of the returns.
 
+A scanner whose vertical is known (an E57 scan's pose: ``pole``) has its image laid out about it,
+so that the image's rows are its own and the angles it sent rays to its own: the direction its
+returns spread least along tilts towards a cliff filling one side (10–16° on a rock cut), where
+the image's rows would cut the scanner's aslant and the ground below its lowest ray (never
+sampled) lies inside the image beside ground it did see. Its elevation is then bridged as a
+sparse axis's (:attr:`RangeImage.scanner_rows`): at grazing range consecutive rows lie metres apart
+on the ground, farther than the band, and a ray between a nearer row and a farther one passes
+through the ground between them.
+
 A point's ray is compared with the returns of the cells within ``reach`` of its own, with a band
 ``b(r) = max(range_noise·r², floor)``: the band grows as r², as the depth noise of triangulation
 sensors such as the Kinect (Khoshelham and Elberink [2]: σ_z ≈ 1.4e-3·r² m, depth steps ≈
@@ -379,7 +388,8 @@ class RangeImage:
         Sensor position (world units).
     frame : ndarray (3, 3) float64
         Rows: forward (azimuth 0, the scan's main viewing direction), left, pole (elevation
-        +π/2, the direction the scan spreads least along).
+        +π/2: the scanner's own vertical where known, else the direction the scan spreads least
+        along).
     cell : float
         Cell size in azimuth (radians).
     spacing : float
@@ -414,6 +424,11 @@ class RangeImage:
         A depth camera's image (:meth:`from_points` with a :class:`Camera`): the
         :attr:`Camera.matrix` projecting a point to its pixel, and the axes called azimuth and
         elevation above are its columns and rows, in pixels (``frame`` unused, ``spacing`` 1).
+    scanner_rows : bool
+        The image is laid out about its scanner's own vertical (``pole``): its rows are the
+        scanner's, and elevation is bridged as a sparse axis is (a ray between a row nearer and
+        one farther is on the ground between them, metres apart at grazing range), its cells and
+        margin left square.
     """
 
     origin: np.ndarray
@@ -430,12 +445,13 @@ class RangeImage:
     sparse: int
     hi: np.ndarray
     rays_sent: bool = True
+    scanner_rows: bool = False
     camera: np.ndarray | None = None
 
     @classmethod
     def from_points(cls, points: np.ndarray, origin: npt.ArrayLike, *, cell_factor: float = 1.5,
                     spacing: float | None = None, rays_sent: bool = True,
-                    camera: Camera | None = None) -> RangeImage:
+                    camera: Camera | None = None, pole: npt.ArrayLike | None = None) -> RangeImage:
         """Range image of ``points`` seen from ``origin``.
 
         Parameters
@@ -456,6 +472,11 @@ class RangeImage:
             its view the whole image, reaching its border whether those rays returned or not (a
             camera's pixels beyond its range, the sky), where the returns alone would end it at
             the farthest pixels that returned.
+        pole : array_like (3,), optional
+            The sensor's own vertical (:attr:`sdp.io.Cloud.poles`: an E57 scan's z turned by its
+            pose), the image's elevation +π/2: its rows are then the scanner's, and the angles it
+            sent rays to (:attr:`lo`, :attr:`hi`) its own (:attr:`scanner_rows`). None: the
+            direction the points spread least along (:func:`_view_frame`).
 
         Returns
         -------
@@ -465,7 +486,7 @@ class RangeImage:
         origin = np.asarray(origin, dtype=np.float64)
         if camera is not None and len(camera.pixels) == len(points):
             return cls._from_camera(points, origin, camera, cell_factor=cell_factor, rays_sent=rays_sent)
-        frame = _view_frame(points, origin)
+        frame = _view_frame(points, origin, None if pole is None else _unit_pole(pole))
         az, el, rng, (lo_a, lo_e, hi_a, hi_e, n) = _angles(points, origin, frame)
         if n == 0:
             raise InvalidPointsError("sensor_origin coincides with every point: no ray to follow")
@@ -487,7 +508,7 @@ class RangeImage:
         view = _convex_hull(occupied)
         return cls(origin, frame, float(cells[0]), float(spacing), lo, shape, near, far, view.ravel(),
                    float(far[np.isfinite(far)].max()), float(cells[1]), sparse, np.array([hi_a, hi_e]),
-                   bool(rays_sent))
+                   bool(rays_sent), pole is not None)
 
     @classmethod
     def _from_camera(cls, points, origin, camera: Camera, *, cell_factor: float, rays_sent: bool) -> RangeImage:
@@ -503,7 +524,7 @@ class RangeImage:
         if returned.size == 0 or not returned.max() > 0:
             raise InvalidPointsError("sensor_origin coincides with every point: no ray to follow")
         return cls(origin, np.eye(3), cell, 1.0, lo, shape, near, far, np.ones(shape[0] * shape[1], bool),
-                   float(returned.max()), cell, -1, hi, bool(rays_sent), camera.matrix)
+                   float(returned.max()), cell, -1, hi, bool(rays_sent), camera=camera.matrix)
 
     @property
     def margin(self) -> np.ndarray:
@@ -564,7 +585,8 @@ class RangeImage:
         points = np.ascontiguousarray(points, dtype=np.float64)
         az, el, rng, _ = self._coords(points)
         cls, hide = _classify(az, el, rng, self.near, self.far, self.lo, self.hi, self.margin, self.cell, self.cell_el,
-                              self.shape[0], self.shape[1], int(reach), float(range_noise), float(floor), self.sparse)
+                              self.shape[0], self.shape[1], int(reach), float(range_noise), float(floor),
+                              1 if self.scanner_rows and self.sparse < 0 else self.sparse)
         if not hiders:
             return cls
         return cls, _hider_points(points, self.origin, hide, rng, cls)
@@ -751,19 +773,41 @@ def _unit_directions(points, origin, step):
     return out[:k]
 
 
-def _view_frame(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
+def _view_frame(points: np.ndarray, origin: np.ndarray, pole: np.ndarray | None = None) -> np.ndarray:
     """Forward = main eigenvector of the unit directions' second moments (sign: towards the mean
     direction), pole = the least one: a camera's cone sits on the equator around azimuth 0, a
-    horizontal 360° scan gets a vertical pole; the azimuth seam (±π) lies behind the sensor."""
+    horizontal 360° scan gets a vertical pole; the azimuth seam (±π) lies behind the sensor.
+
+    A scanner's own vertical (``pole``, a unit vector) is taken as it is, forward being the main
+    direction made perpendicular to it: the least direction of a terrestrial scan's returns tilts
+    towards a cliff filling one side (10–16° on a rock cut), and the image's rows of constant
+    elevation would cut the scanner's own rows aslant, its lowest and highest rays (the limits of
+    what it sent) no longer a row of the image."""
     d = _unit_directions(points, origin, max(1, len(points) // _DIRECTION_SAMPLE))
-    if len(d) == 0:
+    if len(d) == 0 and pole is None:
         return np.eye(3)
-    w, v = np.linalg.eigh(d.T @ d / len(d))
-    forward, pole = v[:, 2], v[:, 0]
-    if forward @ d.mean(axis=0) < 0:
+    if pole is None:
+        w, v = np.linalg.eigh(d.T @ d / len(d))
+        forward, pole = v[:, 2], v[:, 0]
+    else:
+        flat = d - np.outer(d @ pole, pole)  # the directions seen from above the scanner
+        w, v = np.linalg.eigh(flat.T @ flat / max(len(d), 1))
+        forward = v[:, 2] - (v[:, 2] @ pole) * pole
+        if not np.linalg.norm(forward) > 1e-9:  # no direction off the pole: any forward
+            forward = np.eye(3)[np.argmin(np.abs(pole))] - pole * pole[np.argmin(np.abs(pole))]
+        forward = forward / np.linalg.norm(forward)
+    if len(d) and forward @ d.mean(axis=0) < 0:
         forward = -forward
     left = np.cross(pole, forward)
     return np.ascontiguousarray(np.stack([forward, left / np.linalg.norm(left), pole]))
+
+
+def _unit_pole(pole) -> np.ndarray:
+    """``pole`` as a unit vector (3,); one-line :class:`InvalidPointsError` for anything else."""
+    p = np.asarray(pole, np.float64)
+    if p.shape != (3,) or not np.isfinite(p).all() or not np.linalg.norm(p) > 0:
+        raise InvalidPointsError(f"pole: expected a non-zero finite vector x, y, z, got {np.asarray(pole).tolist()}")
+    return p / np.linalg.norm(p)
 
 
 def _angular_spacing(az, el, lo, extent, n) -> float:

@@ -60,8 +60,8 @@ from ._planes import explain_by_planes
 from ._range_image import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, Camera, RangeImage, fit_camera, sees
 
 __all__ = ["as_sensor_origins", "depth_camera_units", "gone_only_if_seen", "image_camera", "rays_sent",
-           "resolve_sensor_origins",
-           "scanner_of_points", "sensor_band", "sensor_range_noise", "visibility_states"]
+           "resolve_sensor_origins", "scanner_of_points", "sensor_band", "sensor_poles", "sensor_range_noise",
+           "visibility_states"]
 
 def resolve_sensor_origins(sensor_origin, reference, current) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(reference's, current's) sensor origin, each None when unknown.
@@ -119,6 +119,19 @@ def _known_origins(cloud) -> np.ndarray | None:
     return many[0] if len(many) == 1 else many
 
 
+def sensor_poles(cloud, origins) -> np.ndarray | None:
+    """The vertical axis of each sensor at ``origins`` ((3,), or (k, 3): as resolved for
+    ``cloud``), shaped as ``origins``: the cloud's :attr:`~sdp.Cloud.poles` where those are its
+    own scanners (:attr:`~sdp.Cloud.sensors`, moved with it), else None (a position given
+    otherwise, a cloud that does not say)."""
+    poles, sensors = getattr(cloud, "poles", None), getattr(cloud, "sensors", None)
+    if poles is None or sensors is None or origins is None:
+        return None
+    if not np.array_equal(np.reshape(origins, (-1, 3)), sensors):
+        return None
+    return poles[0].copy() if np.ndim(origins) == 1 else np.array(poles, np.float64)
+
+
 def scanner_of_points(cloud, origins, n: int) -> np.ndarray | None:
     """Which of ``origins`` (k, 3) saw each of the ``n`` points of ``cloud`` (its
     :attr:`~sdp.Cloud.scan`), or None for one origin (3,) or none."""
@@ -139,7 +152,8 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
                             plane_stride: int = 8, plane_bin: float = 2.0, plane_distance: float = 2.0,
                             plane_flatness: float = 1.0,
                             spacing: float | None = None, image: RangeImage | None = None,
-                            present=None, other_scan: np.ndarray | None = None) -> np.ndarray:
+                            present=None, other_scan: np.ndarray | None = None,
+                            pole: np.ndarray | None = None) -> np.ndarray:
     """What the other scan's view says of each changed point: unchanged, changed or not comparable.
 
     Parameters
@@ -195,6 +209,9 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
         same surface for one of them: unchanged; else seen through by one of them: changed;
         else (hidden from or outside the view of every one) as a point one scan did not see.
         A point is not comparable only where no scanner of the other epoch could see it.
+    pole : ndarray (3,) or (k, 3), optional
+        The vertical of the other scan's sensor, or of each of its k scanners
+        (:func:`sensor_poles`), about which its range images are laid out; None: their points' own.
 
     Returns
     -------
@@ -216,11 +233,11 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     if np.ndim(other_origin) == 2:
         return _many_scanners(points, changed, states, cand, other, np.asarray(other_origin, np.float64), other_scan,
                               range_noise=range_noise, floor=band_floor * sigma, cell_factor=cell_factor, reach=reach,
-                              present=present, **plane)
+                              present=present, poles=pole, **plane)
     if callable(image):  # built when first needed, shared with whoever else needs it
         image = image()
     if image is None:
-        image = RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing)
+        image = RangeImage.from_points(other, other_origin, cell_factor=cell_factor, spacing=spacing, pole=pole)
     query = np.take(points, cand, axis=0)  # a plain gather of rows (fancy indexing takes a slower, general path)
     cls, hider = image.classify(query, range_noise=range_noise, floor=band_floor * sigma, reach=reach, hiders=True)
     states[cand[cls == SAME_SURFACE]] = UNCHANGED
@@ -299,14 +316,15 @@ def depth_camera_units(xyz: np.ndarray, origin) -> float:
 
 
 def gone_only_if_seen(present, own: np.ndarray, own_origin, own_scan=None, *, range_noise: float, floor: float,
-                      image=None, other_origin=None):
+                      image=None, other_origin=None, pole=None):
     """``present`` (:func:`visibility_states`) widened: a hider the point's own scan does not hold
     is gone only where that scan's sensors could have seen its place (the same surface there, seen
     through it, or no return inside their view); where they could not (hidden behind something,
     or outside their view: an unchanged object's far side, which a scanner on the other side saw),
     nothing says it is gone, and the point stays not comparable. ``own``: the points' own scan,
     seen from ``own_origin`` ((3,), or (k, 3) with ``own_scan``; None: ``present`` as it is);
-    ``image``: its range image from a single origin, or a callable returning it. A point's own
+    ``image``: its range image from a single origin, or a callable returning it; ``pole``: the
+    own sensors' verticals, as ``own_origin`` (:func:`sensor_poles`), or None. A point's own
     sensor where the other's stood (a fixed camera) saw the hider's place: the point itself lies
     behind it on that ray, so ``present`` is returned as it is."""
     if present is None or own_origin is None:
@@ -321,10 +339,10 @@ def gone_only_if_seen(present, own: np.ndarray, own_origin, own_scan=None, *, ra
         if "images" not in cache:
             if origins.ndim == 1:
                 one = image() if callable(image) else image
-                cache["images"] = [one if one is not None else RangeImage.from_points(own, origins)]
+                cache["images"] = [one if one is not None else RangeImage.from_points(own, origins, pole=pole)]
             else:
-                cache["images"] = [RangeImage.from_points(own[own_scan == j], o) for j, o in enumerate(origins)
-                                   if (own_scan == j).any()]
+                cache["images"] = [RangeImage.from_points(own[own_scan == j], o, pole=None if pole is None else pole[j])
+                                   for j, o in enumerate(origins) if (own_scan == j).any()]
         return cache["images"]
 
     def still_there(xyz):
@@ -341,10 +359,11 @@ def gone_only_if_seen(present, own: np.ndarray, own_origin, own_scan=None, *, ra
 
 
 def _many_scanners(points, changed, states, cand, other, origins, other_scan, *, range_noise, floor, cell_factor,
-                   reach, present, **plane) -> np.ndarray:
+                   reach, present, poles=None, **plane) -> np.ndarray:
     """:func:`visibility_states` against k scanners: each point takes the most informative answer
     of any scanner (0 same surface, 1 seen through, 2 unseen but changed: a free ray in view or
-    a hider gone, 3 unseen), so the answer of one scanner is that of :func:`visibility_states`."""
+    a hider gone, 3 unseen), so the answer of one scanner is that of :func:`visibility_states`
+    (``poles``: each scanner's vertical (k, 3), or None)."""
     if other_scan is None or len(other_scan) != len(other):
         raise InvalidPointsError(f"{len(origins)} sensor positions need the scanner of each point (other_scan)")
     query = points[cand]
@@ -353,7 +372,7 @@ def _many_scanners(points, changed, states, cand, other, origins, other_scan, *,
         mine = other[other_scan == j]
         if len(mine) == 0 or not (rank > 0).any():
             continue
-        image = RangeImage.from_points(mine, origin, cell_factor=cell_factor)
+        image = RangeImage.from_points(mine, origin, cell_factor=cell_factor, pole=None if poles is None else poles[j])
         cls, hider = image.classify(query, range_noise=range_noise, floor=floor, reach=reach, hiders=True)
         r = np.full(len(cand), 3, np.int8)
         r[cls == SAME_SURFACE] = 0

@@ -30,7 +30,7 @@ import dataclasses
 import numpy as np
 
 from ..change._range_image import RangeImage, sees
-from ..change._visibility import image_camera, rays_sent, scanner_of_points, sensor_range_noise
+from ..change._visibility import image_camera, rays_sent, scanner_of_points, sensor_poles, sensor_range_noise
 from ..defaults import DEFAULTS
 
 __all__ = ["not_seen", "without_unseen"]
@@ -64,7 +64,8 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
     hidden = measured[not_seen(places, xyz, origins, scan, sigma=sigma,
                                normals=d.normal[measured] if facing else None,
                                range_noise=sensor_range_noise(cloud, DEFAULTS.range_noise, xyz=xyz, origin=origins),
-                               rays=rays_sent(cloud), camera=image_camera(cloud, origins))]
+                               rays=rays_sent(cloud), camera=image_camera(cloud, origins),
+                               poles=sensor_poles(cloud, origins))]
     if hidden.size == 0:
         return d
     distance, lod, level = d.distance.copy(), d.lod.copy(), d.level.copy()
@@ -76,25 +77,29 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
 
 def not_seen(points: np.ndarray, cloud: np.ndarray, origins: np.ndarray, scan: np.ndarray | None, *,
              sigma: float, normals: np.ndarray | None = None, range_noise: float = DEFAULTS.range_noise,
-             rays: bool = True, camera=None) -> np.ndarray:
+             rays: bool = True, camera=None, poles: np.ndarray | None = None) -> np.ndarray:
     """Which of ``points`` the scan ``cloud`` could not see from ``origins`` (one position (3,),
     or k positions (k, 3) with ``scan``, each point of ``cloud``'s scanner): hidden from every
     scanner, or outside every field of view (module docstring), or with ``normals`` (each
     place's surface normal, facing its own sensor) behind every scanner's back. The band around
     a return is the change masks' (``range_noise``·r², at least σ); ``rays``: the scan sent every
     ray of its view (:func:`sdp.change._visibility.rays_sent`), as the change masks ask; ``camera``:
-    the pinhole of one camera's organized frame (:func:`sdp.change._visibility.image_camera`)."""
+    the pinhole of one camera's organized frame (:func:`sdp.change._visibility.image_camera`);
+    ``poles``: each scanner's vertical, shaped as ``origins`` (:func:`sdp.change._visibility.sensor_poles`),
+    or None."""
     unseen = np.ones(len(points), bool)
     if len(points) == 0:
         return unseen
     origins = np.asarray(origins, np.float64)
+    verticals = [None] * len(origins.reshape(-1, 3)) if poles is None else np.reshape(poles, (-1, 3))
     for j, origin in enumerate(origins.reshape(-1, 3)):
         mine = cloud if origins.ndim == 1 else cloud[scan == j]
         todo = np.flatnonzero(unseen)
         if len(mine) == 0 or len(todo) == 0:
             continue
         query = np.take(points, todo, axis=0)
-        image = RangeImage.from_points(mine, origin, rays_sent=rays, camera=camera if origins.ndim == 1 else None)
+        image = RangeImage.from_points(mine, origin, rays_sent=rays, camera=camera if origins.ndim == 1 else None,
+                                       pole=verticals[j])
         seen = sees(image, query, range_noise=range_noise, floor=sigma)
         if normals is not None:  # a scanner behind the surface saw its other side
             seen &= np.einsum("ij,ij->i", origin - query, normals[todo]) > 0

@@ -113,6 +113,11 @@ class Cloud:
         Where each scanner stood (an E57 file's scan poses; one row per scan), in the cloud's
         frame; the ``scan`` field (:attr:`scan`) says which of them saw each point. None when
         the file records no scanner this way.
+    poles : ndarray (k, 3) float64 or None
+        Each scanner's vertical axis (a unit vector, rows as :attr:`sensors`), in the cloud's
+        frame: an E57 scan's pose turns its scanner's z into the file's frame. Its range image is
+        laid out about it (:meth:`sdp.change._range_image.RangeImage.from_points`). None when
+        the file does not say (a bag's messages, a Cartesian scan without a pose).
     range_noise : float or None
         The range noise its sensor's kind implies, per r² (the rays' band,
         :func:`sdp.change._visibility.sensor_range_noise`): 0 for an E57 file's laser scans, whose
@@ -145,6 +150,7 @@ class Cloud:
     pixels: np.ndarray | None = field(default=None, repr=False)
     frame: str | None = None
     tf: str | None = None
+    poles: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -185,7 +191,7 @@ class Cloud:
 
     def transformed(self, matrix: np.ndarray) -> "Cloud":
         """The cloud moved by a rigid 4×4 ``matrix`` (e.g. :attr:`sdp.Alignment.matrix`), its
-        sensor pose with it; fields, path and counts unchanged."""
+        sensor poses with it; fields, path and counts unchanged."""
         from scipy.spatial.transform import Rotation
 
         m = np.asarray(matrix, dtype=np.float64)
@@ -197,7 +203,8 @@ class Cloud:
             x, y, z, w = turned.as_quat()
             viewpoint = np.r_[m[:3, :3] @ self.viewpoint[:3] + m[:3, 3], w, x, y, z]
         sensors = None if self.sensors is None else self.sensors @ m[:3, :3].T + m[:3, 3]
-        return replace(self, xyz=np.ascontiguousarray(xyz), viewpoint=viewpoint, sensors=sensors)
+        poles = None if self.poles is None else self.poles @ m[:3, :3].T
+        return replace(self, xyz=np.ascontiguousarray(xyz), viewpoint=viewpoint, sensors=sensors, poles=poles)
 
 
 def unpacked_colour(fields: dict) -> dict:

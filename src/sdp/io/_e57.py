@@ -7,8 +7,10 @@ and colour. :func:`read_e57` reads every scan, moves its points by its pose, kee
 (``intensity``), colour (``red``, ``green``, ``blue``) and the grid (``row``, ``column``) as fields,
 marks the points flagged invalid (``cartesianInvalidState`` / ``sphericalInvalidState`` ≠ 0) as
 NaN so that :func:`sdp.io.read_points` drops and counts them, and records per point which scan
-saw it (the ``scan`` field) and where each scanner stood (the poses' translations: a scanner sits
-at its scan frame's origin; a file of several scans, some without a pose, records no scanner).
+saw it (the ``scan`` field), where each scanner stood (the poses' translations: a scanner sits
+at its scan frame's origin; a file of several scans, some without a pose, records no scanner) and
+which way its vertical axis points (the pose's rotation of the scan frame's z: E57's spherical
+elevation is measured from the scan frame's xy-plane, the scanner's horizon).
 
 The reader is pye57 (MIT; Python bindings of libE57Format, the reference implementation of the
 standard, maintained, with wheels for Linux, macOS and Windows), not the Rust-based ``e57``
@@ -99,7 +101,7 @@ def e57_start(path) -> float | None:
 
 
 def read_e57(path):
-    """``(xyz, fields, None, None, False, sensors)`` of an E57 file: every scan moved by its pose
+    """``(xyz, fields, None, None, False, sensors, poles)`` of an E57 file: every scan moved by its pose
     into the file's frame (invalid points as NaN rows), the fields ``scan`` (uint16: which scan, the
     scans that hold a valid point numbered in the file's order: a scan of none is no scanner),
     ``intensity``, ``red``/``green``/``blue`` and ``row``/``column`` where any scan has them (at
@@ -109,27 +111,35 @@ def read_e57(path):
     single scan exported in its scanner's frame. A file of several scans some of which record no
     pose is a registered export whose stations were not kept (they cannot all have stood at the
     origin): its scanners are unknown (None), and it is compared as a file that records no sensor,
-    rather than with rays made up from the origin."""
+    rather than with rays made up from the origin. ``poles`` (k, 3): each scanner's vertical axis
+    in the file's frame (its pose's rotation of the scan frame's z), by which its range image is
+    laid out; a lone scan without a pose has the file's z if it is stored spherical (its
+    elevations are measured from that frame's xy-plane), else none is known (Cartesian points in
+    the file's frame say nothing of the scanner's axes): None, as without scanners."""
     e = _open(path)
     k = e.scan_count
     if k == 0:
         raise CloudFileError(f"{path}: the E57 file holds no scan")
-    parts, sensors, posed = [], [], True
+    parts, sensors, poles, posed = [], [], [], True
     for i in range(k):
         h = e.get_header(i)
         q, t = _pose(h, path, i)
         if int(h.point_count) == 0:  # a scan of no record: libE57Format can't read its empty vector
             continue
-        part = _scan_points(e.read_scan_raw(i, ignore_unsupported_fields=True), q, t, i, path)
+        raw = e.read_scan_raw(i, ignore_unsupported_fields=True)
+        part = _scan_points(raw, q, t, i, path)
         if not np.isfinite(part["xyz"]).all(axis=1).any():  # a scanner that saw nothing says nothing
             continue
         part["scan"][:] = len(sensors)
         parts.append(part)
         sensors.append(t)
+        spherical = not _CARTESIAN <= raw.keys()  # elevations from the scan frame's xy-plane: its z is vertical
+        poles.append(_rotation(q)[:, 2] if h.has_pose() or spherical else np.full(3, np.nan))
         posed &= bool(h.has_pose())
     sensors = np.array(sensors).reshape(-1, 3) if posed or len(sensors) == 1 else None
+    poles = np.array(poles).reshape(-1, 3) if sensors is not None and np.isfinite(poles).all() else None
     if not parts:  # every scan empty: no point (said by the reader's caller)
-        return np.zeros((0, 3)), {}, None, None, False, None
+        return np.zeros((0, 3)), {}, None, None, False, None, None
     xyz = np.concatenate([p.pop("xyz") for p in parts])
     fields = {}
     for name in sorted(set().union(*parts)):  # a field any scan has, filled where a scan lacks it
@@ -139,16 +149,19 @@ def read_e57(path):
             kind = np.result_type(kind, np.int8)  # signed, to hold -1
         fields[name] = np.concatenate([np.asarray(p[name], kind) if name in p else np.full(len(p["scan"]), fill, kind)
                                        for p in parts])
-    return xyz, fields, None, None, False, sensors
+    return xyz, fields, None, None, False, sensors, poles
 
 
 _FIELDS = {"intensity": "intensity", "colorRed": "red", "colorGreen": "green", "colorBlue": "blue",
            "rowIndex": "row", "columnIndex": "column"}
 
 
+_CARTESIAN = {"cartesianX", "cartesianY", "cartesianZ"}
+
+
 def _scan_points(raw: dict, q, t, index: int, path) -> dict:
     """World points (NaN where invalid) and fields of one scan's raw arrays."""
-    if {"cartesianX", "cartesianY", "cartesianZ"} <= raw.keys():
+    if _CARTESIAN <= raw.keys():
         local = np.c_[raw["cartesianX"], raw["cartesianY"], raw["cartesianZ"]].astype(np.float64)
         invalid = raw.get("cartesianInvalidState")
     elif {"sphericalRange", "sphericalAzimuth", "sphericalElevation"} <= raw.keys():

@@ -116,7 +116,7 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
         values = {k: v[finite] for k, v in values.items()}
     if len(xyz) == 0 and not allow_empty:
         raise EmptyCloudError(f"{path}: holds no point with finite x, y, z")
-    viewpoint, organized, sensors = (list(pose) + [None, False, None][len(pose):])[:3]
+    viewpoint, organized, sensors, poles = (list(pose) + [None, False, None, None][len(pose):])[:4]
     image = pixels = None
     if organized and fmt == "pcd":  # the camera's image: which pixels returned (the rest: rays that found nothing)
         image = pcd_image(path)
@@ -126,7 +126,7 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
             image = None
     return Cloud(np.ascontiguousarray(xyz), values, path, dropped, las, viewpoint, organized, sensors,
                  0.0 if fmt == "e57" else None,  # a terrestrial laser's range noise: millimetres at any range
-                 image, pixels)
+                 image, pixels, poles=poles)
 
 
 def header_point_count(path: str | os.PathLike, *, format: str | None = None) -> int | None:

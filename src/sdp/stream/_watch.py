@@ -55,7 +55,7 @@ from ..change._detect import inside_difference, judge_coverage, region_rules, si
 from ..change._regions import Region
 from ..change._range_image import RangeImage
 from ..change._visibility import (image_camera, rays_sent, resolve_sensor_origins, scanner_of_points,
-                                  sensor_range_noise)
+                                  sensor_poles, sensor_range_noise)
 from ..defaults import DEFAULTS
 from ..errors import InvalidOptionError, InvalidPointsError
 from ..fields._density import DensityField
@@ -247,8 +247,10 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
     weight, history = 1.0, deque([base])
     target = None if align != "gicp" else GicpTarget(ref, resolution=base.sigma, max_distance=4 * base.sigma)
     scan = None if is_field else scanner_of_points(reference, origin, len(ref))  # several scanners: each point's
+    pole = None if is_field else sensor_poles(reference, origin)  # the scanners' verticals, where known
     image = None if origin is None or np.ndim(origin) == 2 else \
-        RangeImage.from_points(ref, origin, rays_sent=rays_sent(reference), camera=image_camera(reference, origin))
+        RangeImage.from_points(ref, origin, rays_sent=rays_sent(reference), camera=image_camera(reference, origin),
+                               pole=pole)
     band = sensor_range_noise(reference, coverage.range_noise, xyz=ref, origin=origin)  # a laser's, a camera's
     matrix = None if align is None else np.eye(4)
     try:
@@ -295,13 +297,16 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
         choice = coverage.sensor_origin  # the frame's own sensor: what it could see, its range law
         choice = "auto" if isinstance(choice, str) and choice == "viewpoint" else choice
         own = single_origin(resolve_sensor_origins(choice, None, given)[1])
+        own_pole = sensor_poles(given, own)
         if own is not None and matrix is not None:
             own = transform_points(matrix, own[None, :])[0]
+            own_pole = None if own_pole is None else matrix[:3, :3] @ own_pole
         # the model's footprint, or the reference's rays (imaged once)
         states = judge_coverage(cur.xyz, mask, ref, seen, origin, coverage=coverage.enabled,
                                 range_noise=band, image=image, present=frame.inside, other_scan=scan,
-                                own_origin=own, own_range_noise=sensor_range_noise(given, coverage.range_noise,
-                                                                                     xyz=cur.xyz, origin=own))
+                                other_pole=pole, own_origin=own, own_pole=own_pole,
+                                own_range_noise=sensor_range_noise(given, coverage.range_noise, xyz=cur.xyz,
+                                                                   origin=own))
         mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
         labels = np.full(len(mask), -1, np.int32)
