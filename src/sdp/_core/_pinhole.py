@@ -200,5 +200,6 @@ def reprojection_error(xyz, pixels, width, origin, matrix):
             return np.inf
         u = matrix[0, 0] * dx + matrix[0, 1] * dy + matrix[0, 2] * dz - (pixels[i] - start) * w
         v = matrix[1, 0] * dx + matrix[1, 1] * dy + matrix[1, 2] * dz - row * w
-        worst = max(worst, (u * u + v * v) / (w * w))
+        if u * u + v * v > worst * (w * w):  # divided only for a new largest error
+            worst = (u * u + v * v) / (w * w)
     return math.sqrt(worst)
