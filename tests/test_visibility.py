@@ -30,7 +30,7 @@ def test_a_depth_cameras_image_is_its_own_pixels_whatever_its_pose():
     # a 64 × 48 pinhole camera (f = 60 px) turned 30° about two axes and moved, 2 m from a wall
     from scipy.spatial.transform import Rotation
 
-    from sdp.change._range_image import fit_camera
+    from sdp._core._pinhole import fit_camera
 
     c, r = np.meshgrid(np.arange(64.0), np.arange(48.0))
     rays = np.c_[(c.ravel() - 31.5) / 60, (r.ravel() - 23.5) / 60, np.ones(c.size)]
@@ -424,7 +424,7 @@ def test_a_camera_ray_that_returned_nothing_looked_through_the_place(tmp_path):
     assert not r.appeared[~on_person].any()
     # rows or columns without any return at the image's edge are margins the sensor never measured
     # (a depth image registered to a colour camera): not rays that found nothing
-    from sdp.change._range_image import fit_camera
+    from sdp._core._pinhole import fit_camera
 
     cut = np.flatnonzero(a.pixels % 96 < 88)  # the last 8 columns empty, as a registration margin leaves them
     camera = fit_camera(a.xyz[cut], a.pixels[cut], a.image, np.zeros(3))

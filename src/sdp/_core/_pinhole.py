@@ -5,11 +5,6 @@ An organized frame (a PCD image, an organized bag message) keeps each return's p
 lie on the rays of one pinhole camera, whatever its pose. :func:`fit_camera` finds that camera, so
 the frame's own pixels can serve as the neighbourhoods and the range image of the sensor
 (:mod:`sdp.change._range_image`, :mod:`sdp.fields._spacing`).
-
-References
-----------
-.. [1] R. Hartley, A. Zisserman, "Multiple View Geometry in Computer Vision", 2nd ed.,
-   Cambridge University Press, 2004, §4.1 (the DLT) and §4.4 (normalization).
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ beyond the angles the scan sent rays to (more than half a cell past its extreme 
 a sparse axis) is unobserved whatever the cells beside it hold: the floor below a LiDAR's lowest ring.
 
 An organized depth camera's frame (a PCD image, an organized bag message) needs no angles: its
-returns fit one pinhole camera (:func:`fit_camera`), and its image is then the camera's own
+returns fit one pinhole camera (:func:`sdp._core._pinhole.fit_camera`), and its image is then the camera's own
 pixels (cells of ``cell_factor`` pixels over the rows and columns holding a return, each return in
 the cell of its pixel, a point's ray through the pixel the fitted camera projects it to). Every
 pixel of the frame is a ray the camera sent, whether it returned or not, so the field of view is
@@ -53,10 +53,10 @@ import numba as nb
 import numpy as np
 import numpy.typing as npt
 
-from .._core._pinhole import Camera, fit_camera
+from .._core._pinhole import Camera
 from ..errors import InvalidPointsError
 
-__all__ = ["HIDDEN", "SAME_SURFACE", "SEEN_FREE", "UNOBSERVED", "Camera", "RangeImage", "fit_camera", "sees"]
+__all__ = ["HIDDEN", "SAME_SURFACE", "SEEN_FREE", "UNOBSERVED", "RangeImage", "sees"]
 
 #: Classes of :meth:`RangeImage.classify`.
 SEEN_FREE, SAME_SURFACE, HIDDEN, UNOBSERVED = 0, 1, 2, 3
@@ -420,15 +420,15 @@ class RangeImage:
         inside the view is then a ray that found nothing (:meth:`seen_free`). False for a scan known
         to sample its view irregularly (an unorganized file or message from a sensor: a rosette
         scanner's petals leave half of its view unsampled).
-    camera : ndarray (3, 3) float64 or None
-        A depth camera's image (:meth:`from_points` with a :class:`Camera`): the
-        :attr:`Camera.matrix` projecting a point to its pixel, and the axes called azimuth and
-        elevation above are its columns and rows, in pixels (``frame`` unused, ``spacing`` 1).
     scanner_rows : bool
         The image is laid out about its scanner's own vertical (``pole``): its rows are the
         scanner's, and elevation is bridged as a sparse axis is (a ray between a row nearer and
         one farther is on the ground between them, metres apart at grazing range), its cells and
         margin left square.
+    camera : ndarray (3, 3) float64 or None
+        A depth camera's image (:meth:`from_points` with a :class:`Camera`): the
+        :attr:`Camera.matrix` projecting a point to its pixel, and the axes called azimuth and
+        elevation above are its columns and rows, in pixels (``frame`` unused, ``spacing`` 1).
     """
 
     origin: np.ndarray
@@ -467,7 +467,7 @@ class RangeImage:
         rays_sent : bool
             :attr:`rays_sent`.
         camera : Camera, optional
-            The pinhole fitted to ``points``, an organized frame (:func:`fit_camera`, its pixels
+            The pinhole fitted to ``points``, an organized frame (:func:`sdp._core._pinhole.fit_camera`, its pixels
             one per row of ``points``): the image is then the camera's pixels (module docstring),
             its view the whole image, reaching its border whether those rays returned or not (a
             camera's pixels beyond its range, the sky), where the returns alone would end it at

@@ -52,12 +52,13 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from .._core._pinhole import Camera, fit_camera
 from .._core._validate import as_sensor_origins
 from ..defaults import DEFAULTS
 from ..errors import InvalidPointsError
 from ._coverage import CHANGED, NOT_COMPARABLE, UNCHANGED
 from ._planes import explain_by_planes
-from ._range_image import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, Camera, RangeImage, fit_camera, sees
+from ._range_image import HIDDEN, SAME_SURFACE, SEEN_FREE, UNOBSERVED, RangeImage, sees
 
 __all__ = ["as_sensor_origins", "depth_camera_units", "gone_only_if_seen", "image_camera", "rays_sent",
            "resolve_sensor_origins", "scanner_of_points", "sensor_band", "sensor_poles", "sensor_range_noise",
@@ -263,7 +264,7 @@ def rays_sent(cloud) -> bool:
 
 def image_camera(cloud, origin) -> Camera | None:
     """The pinhole camera of ``cloud``'s organized frame seen from one ``origin``
-    (:func:`sdp.change._range_image.fit_camera`: its range image is then the camera's pixels, every
+    (:func:`sdp._core._pinhole.fit_camera`: its range image is then the camera's pixels, every
     one a ray its sensor sent, whether it returned or not), or None: no image (an unorganized
     cloud, an array), several scanners, or returns that fit no pinhole camera."""
     image, pixels = getattr(cloud, "image", None), getattr(cloud, "pixels", None)

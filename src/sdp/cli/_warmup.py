@@ -159,9 +159,10 @@ def warmup(*, echo: Callable[[str], object] | None = None) -> dict[str, float]:
     """
     import numpy as np
 
+    from .._core._pinhole import fit_camera
     from .._core._points import as_points
     from ..change._detect import detect_changes
-    from ..change._range_image import RangeImage, fit_camera
+    from ..change._range_image import RangeImage
     from ..data._scene import office_scene
     from ..distance._distances import distances
     from ..fields._spacing import kth_in_image

@@ -126,7 +126,7 @@ class Cloud:
         An organized cloud's (height, width): the sensor's image, one ray per pixel.
     pixels : ndarray of int64 (n,) or None
         With ``image``: the pixel (row · width + column) of each row kept, ascending, the others
-        being the rays that returned nothing (:func:`sdp.change._range_image.fit_camera`).
+        being the rays that returned nothing (:func:`sdp._core._pinhole.fit_camera`).
     frame : str or None
         The coordinate frame the points are in: a ROS bag message's ``header.frame_id`` (without
         a leading ``/``), or the root frame its bag's ``/tf`` moved it into. None for files,
