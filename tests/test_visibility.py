@@ -431,6 +431,13 @@ def test_a_camera_ray_that_returned_nothing_looked_through_the_place(tmp_path):
     assert camera is not None and camera.box[3] == 87 and fit_camera(a.xyz, a.pixels, a.image, np.zeros(3)).box[3] == 95
     view = RangeImage.from_points(a.xyz[cut], np.zeros(3), camera=camera).in_view(a.xyz)
     assert view[cut].all() and not view[a.pixels % 96 >= 88].any()  # each pixel projects to its own
+    # sdp info names the camera the frame's returns fit (the synthetic one: f = 80 px, centred)
+    from sdp.cli._files import describe_file
+
+    camera = describe_file(tmp_path / "a.pcd")["image"]["pinhole"]
+    assert camera["focal_px"] == pytest.approx([80, 80], abs=0.5)
+    assert camera["principal_point_px"] == pytest.approx([47.5, 35.5], abs=0.5)
+    assert camera["field_of_view_deg"][0] == pytest.approx(2 * np.degrees(np.arctan(48 / 80)), abs=0.5)
     # an array gives no image: its view ends at its returns, and the person above them is not comparable
     plain = sdp.detect_changes(a.xyz, b.xyz, coverage=sdp.Coverage(sensor_origin=(0, 0, 0)))
     assert plain.current_not_comparable[on_person].mean() > 0.3

@@ -40,6 +40,26 @@ class Camera:
     pixels: np.ndarray
     width: int
 
+    def describe(self) -> dict:
+        """The camera's intrinsics (K of ``matrix = K R``, Hartley and Zisserman §6.1, with a
+        positive diagonal): focal lengths and principal point in pixels, and the field of view
+        (degrees) across the rows and columns holding a return, through the principal point."""
+        from scipy.linalg import rq
+
+        k = rq(self.matrix)[0]
+        k = k * np.sign(np.diag(k))[None, :]  # R's columns' signs moved into K's
+        k = k / k[2, 2]
+        inv = np.linalg.inv(k)
+        r0, r1, c0, c1 = (float(b) for b in self.box)
+
+        def angle(a, b):
+            u, v = inv @ np.array([a[0], a[1], 1.0]), inv @ np.array([b[0], b[1], 1.0])
+            return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(u, v)), u @ v)))
+
+        cx, cy = float(k[0, 2]), float(k[1, 2])
+        return {"focal_px": [float(k[0, 0]), float(k[1, 1])], "principal_point_px": [cx, cy],
+                "field_of_view_deg": [angle((c0 - 0.5, cy), (c1 + 0.5, cy)), angle((cx, r0 - 0.5), (cx, r1 + 0.5))]}
+
 
 def fit_camera(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], origin, *,
                tolerance: float = 0.5, sample: int = 512) -> Camera | None:

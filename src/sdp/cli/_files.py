@@ -251,6 +251,12 @@ def describe_file(path, *, format: str | None = None) -> dict:
             "min": c.xyz.min(0).tolist(), "max": c.xyz.max(0).tolist(), "fields": sorted(c.fields)}
     if c.sensor_origins is not None:
         info["sensors"] = c.sensor_origins.tolist()
+    if c.image is not None:  # an organized frame: its image, and the camera its returns fit (or none)
+        from .._core._pinhole import fit_camera
+
+        camera = None if c.sensor_origin is None else fit_camera(c.xyz, c.pixels, c.image, c.sensor_origin)
+        info["image"] = {"height": int(c.image[0]), "width": int(c.image[1]),
+                         "pinhole": camera.describe() if camera is not None else None}
     if input_format(Path(path), format) == "e57":  # each scan's pose and grid, the points it kept
         from ..io._e57 import e57_scans
 
