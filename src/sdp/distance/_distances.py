@@ -21,6 +21,16 @@ and their weighted moments are what M3C2 needs.
   resolution, and the nearest surface answers, not a mean of all surfaces on the line.
   ``distance = mean₂ − mean₁``: positive where the current lies on the normal's side (M3C2's
   sign).
+- **Off the axis** (M3C2's step edge, Lague et al. [1]_): M3C2 assumes each epoch's surface
+  crosses the cylinder's axis. Where the current's surface has gone (a door swung open, the floor
+  under a pallet set down) its cylinder may still catch another surface at its rim (the frame, the
+  pallet's sides) and read a small, significant distance. The cylinder's sums also give each
+  epoch's weighted centroid across the axis; where the current's lies farther from the
+  reference's than a half-disc's centroid (0.80σ_p) plus their sampling noise (:func:`off_axis`)
+  there is no corresponding surface: no distance, counted as ``off_axis``. A surface cut by an
+  edge in both epochs (a table's) gives both the same centroid and is measured. The combined
+  decision's per-point offsets (:mod:`sdp.distance._noise`) are not tested so: they measure each
+  point against the other epoch alone, within 3σ, where the density decides beyond 2σ.
 - **Moments on cells** (:mod:`sdp.distance._cells`): each epoch's points are summed once, in O(n), into cubic cells of
   1.5σ_p (count, centroid, scatter); a cylinder reads at most 5³ cells and gives each cell's
   points the weight of its centroid (their offsets and spread along the normal stay exact), so
