@@ -1,7 +1,6 @@
 """M3C2's step edge: no distance where the current's surface only touches the cylinder off its axis."""
 
 import numpy as np
-import pytest
 
 import sdp
 from sdp.cli._text import distance_text
@@ -109,7 +108,7 @@ def test_the_floor_under_a_pallet_set_down_reads_its_top_or_nothing(rng):
     assert d.comparable[inside > 4 * SIGMA].all()  # beyond the sides' reach: the top
 
 
-def test_series_epochs_and_tiles_find_the_same_places_off_the_axis(rng):
+def test_series_epochs_find_the_same_places_off_the_axis(rng):
     ref, cur, core, d, _ = door_distances(rng)
     prepared = PreparedReference.prepare(ref, core, cylinder=sdp.Cylinder(projection_scale=D), orientation=(0, 1, 0))
     e = prepared.measure(cur, registration_error=0)
@@ -120,7 +119,6 @@ def test_series_epochs_and_tiles_find_the_same_places_off_the_axis(rng):
     assert not old.measure(cur, registration_error=0).off_axis.any()
 
 
-@pytest.mark.slow
 def test_tiles_find_the_same_places_off_the_axis(rng):
     ref, cur, core, _, _ = door_distances(rng)
     d = sdp.distances(ref, cur, cylinder=sdp.Cylinder(projection_scale=D), registration_error=0,
@@ -130,3 +128,25 @@ def test_tiles_find_the_same_places_off_the_axis(rng):
                             execution=sdp.Execution(tile_size=1.0, scheduler="synchronous"))
     assert t.tiles > 1 and t.summary()["off_axis"] == d.summary()["off_axis"] > 0
     assert np.array_equal(t.off_axis, d.off_axis)
+
+
+def test_an_archive_without_the_references_centroid_is_appended_to(tmp_path):
+    """An archive written before the reference's centroid across the axis was kept: appended to,
+    its epochs measured as it measured them (no place off the axis)."""
+    import json
+    import shutil
+
+    from sdp.data import slope_series
+
+    s = slope_series(5, 4000, size=6.0, step_epoch=4, seed=3)
+    out = tmp_path / "old.zarr"
+    cyl = sdp.Cylinder(projection_scale=0.5)
+    sdp.series(s.epochs[:3], output=out, cylinder=cyl, registration_error=0.002)
+    meta = json.loads((out / "zarr.json").read_text())
+    for name in ("ref_across_x", "ref_across_y", "ref_across_z", "ref_across_var"):
+        shutil.rmtree(out / name)
+        del meta["consolidated_metadata"]["metadata"][name]
+    (out / "zarr.json").write_text(json.dumps(meta))
+    grown = sdp.series(s.epochs[3:], output=out, append=True)
+    assert grown.sizes["epoch"] == 5 and "ref_across_var" not in grown
+    assert np.isfinite(grown.distance.values[3:]).mean() > 0.9

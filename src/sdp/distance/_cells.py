@@ -118,7 +118,8 @@ class CellLists:
         the nearest cell of ``xyz`` on the normal's line within ``max_half``, where the first found
         too few points. The centroid across the axis is the weighted mean position's offset
         perpendicular to the normal (the same for a cylinder moved along it), its variance
-        ``Σw²|a − L|² / (Σw)²`` summed over both directions across (:func:`sdp.distance._distances.off_axis`)."""
+        ``Σw²|a − L|² / (Σw)²`` summed over both directions across
+        (:func:`sdp.distance._distances.off_axis`)."""
         half = RADIUS * sigma
         out = self._cylinders(xyz, queries, normals, sigma, half)
         level = np.where(_enough(out), 0, -1)
@@ -491,12 +492,11 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
                         if r >= 0:
                             acc = _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2, acc)
         w, w2, st, stt, lx, ly, lz, kx, ky, kz, kk = acc
-        out[i, 3] = w
         if w <= 0.0:
             out[i, :] = np.nan
-            out[i, 2] = 0.0
-            out[i, 3] = w
+            out[i, 2] = out[i, 3] = 0.0
             continue
+        out[i, 3] = w
         m = st / w
         n_eff = w * w / w2
         var = max(stt / w - m * m, 0.0)
