@@ -113,9 +113,13 @@ class CellLists:
         return self._cache[key], table, rows, cell
 
     def cylinder(self, xyz, queries, normals, sigma, max_half):
-        """(weighted mean offset, spread, effective count, level) of ``xyz`` in the cylinders:
-        level 0 around the core point; level 1 around the nearest cell of ``xyz`` on the normal's
-        line within ``max_half``, where the first found too few points."""
+        """(weighted mean offset, spread, effective count, level, centroid across the axis (m, 3),
+        its variance) of ``xyz`` in the cylinders: level 0 around the core point; level 1 around
+        the nearest cell of ``xyz`` on the normal's line within ``max_half``, where the first found
+        too few points. The centroid across the axis is the weighted mean position's offset
+        perpendicular to the normal (the same for a cylinder moved along it), its variance
+        ``Σw²|a − L|² / (Σw)²`` summed over both directions across
+        (:func:`sdp.distance._distances.off_axis`)."""
         half = RADIUS * sigma
         out = self._cylinders(xyz, queries, normals, sigma, half)
         level = np.where(_enough(out), 0, -1)
@@ -136,15 +140,18 @@ class CellLists:
             out[todo[found[keep]]] = fine[keep]
             level[todo[found[keep]]] = 1
         out[level < 0, :2] = np.nan
-        return out[:, 0], out[:, 1], out[:, 2], level
+        out[level < 0, 4:] = np.nan
+        return out[:, 0], out[:, 1], out[:, 2], level, np.ascontiguousarray(out[:, 4:7]), out[:, 7].copy()
 
     def _cylinders(self, xyz, queries, normals, sigma, half):
-        """(mean offset, spread, effective count, weight) per cylinder; no mean nor spread
-        where too few points answer."""
-        out = np.empty((len(queries), 4))
+        """(mean offset, spread, effective count, weight, centroid across the axis (3), its
+        variance) per cylinder; no mean, spread nor centroid where too few points answer."""
+        out = np.empty((len(queries), 8))
         _cylinders(*self.moments(xyz, CELL * sigma), self.lo, np.ascontiguousarray(queries),
                    np.ascontiguousarray(normals), sigma, RADIUS * sigma, half, out)
-        out[out[:, 2] < _MIN_POINTS, :2] = np.nan
+        few = out[:, 2] < _MIN_POINTS
+        out[few, :2] = np.nan
+        out[few, 4:] = np.nan
         return out
 
 
@@ -417,39 +424,47 @@ def _nearest_along(table, dims, cell, lo, queries, normals, reach, out):
 
 
 @nb.njit(cache=True, inline="always")
-def _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2, w, w2, st, stt):
-    """The sums of a cylinder (weight, squared weight, weighted offset and its square) with cell
-    row ``r`` added if its centroid lies in the cylinder."""
+def _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2, acc):
+    """The sums of a cylinder with cell row ``r`` added if its centroid lies in the cylinder:
+    weight, squared weight, weighted offset along the axis and its square, then the weighted
+    offset across the axis (3), the same with the squared weight (3) and the squared weight
+    times the squared offset across (its points' scatter across included)."""
     dx, dy, dz = cells[r, 1] - qx, cells[r, 2] - qy, cells[r, 3] - qz
     t = dx * nx + dy * ny + dz * nz
     if t > half or t < -half:
-        return w, w2, st, stt
+        return acc
     r2 = dx * dx + dy * dy + dz * dz - t * t
     if r2 > r2max:
-        return w, w2, st, stt
+        return acc
+    w, w2, st, stt, lx, ly, lz, kx, ky, kz, kk = acc
     g = math.exp(-r2 * inv2s2)
     n = cells[r, 0]
     along = (nx * (cells[r, 4] * nx + cells[r, 5] * ny + cells[r, 6] * nz)
              + ny * (cells[r, 5] * nx + cells[r, 7] * ny + cells[r, 8] * nz)
              + nz * (cells[r, 6] * nx + cells[r, 8] * ny + cells[r, 9] * nz))
-    return w + g * n, w2 + g * g * n, st + g * n * t, stt + g * (n * t * t + along)
+    across = max(cells[r, 4] + cells[r, 7] + cells[r, 9] - along, 0.0)
+    gn, ggn = g * n, g * g * n
+    ax, ay, az = dx - t * nx, dy - t * ny, dz - t * nz
+    return (w + gn, w2 + ggn, st + gn * t, stt + g * (n * t * t + along), lx + gn * ax, ly + gn * ay, lz + gn * az,
+            kx + ggn * ax, ky + ggn * ay, kz + ggn * az, kk + ggn * r2 + g * g * across)
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, half, out):
-    """Per query: kernel-weighted mean offset along its normal, spread and effective count of the
-    cells whose centroid lies within ``radius`` of its axis and ``half`` along it; each cell's
-    points share the weight of its centroid, their offsets and spread are exact (the cell's
-    centroid and scatter)."""
+    """Per query, a row of ``out``: kernel-weighted mean offset along its normal, spread, effective
+    count and weight of the cells whose centroid lies within ``radius`` of its axis and ``half``
+    along it, then their weighted centroid's offset across the axis (3) and that centroid's
+    variance; each cell's points share the weight of its centroid, their offsets and spread are
+    exact (the cell's centroid and scatter)."""
     inv2s2 = 0.5 / (sigma * sigma)
     r2max = radius * radius
     shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
     for i in nb.prange(queries.shape[0]):
         qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        w = w2 = st = stt = 0.0
+        acc = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         if not np.isfinite(nx):
-            out[i, 0] = out[i, 1] = np.nan
+            out[i, :] = np.nan
             out[i, 2] = out[i, 3] = 0.0
             continue
         ex = half * abs(nx) + radius * math.sqrt(max(0.0, 1.0 - nx * nx))
@@ -468,21 +483,20 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
                     for c in range(column + z0, column + z1 + 1):
                         r = table[c]
                         if r >= 0:
-                            w, w2, st, stt = _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2,
-                                                            w, w2, st, stt)
+                            acc = _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2, acc)
         else:
             for ix in range(x0, x1 + 1):
                 for iy in range(y0, y1 + 1):
                     for iz in range(z0, z1 + 1):
                         r = table_row(table, ix, iy, iz, shift)
                         if r >= 0:
-                            w, w2, st, stt = _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2,
-                                                            w, w2, st, stt)
-        out[i, 3] = w
+                            acc = _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2, acc)
+        w, w2, st, stt, lx, ly, lz, kx, ky, kz, kk = acc
         if w <= 0.0:
-            out[i, 0] = out[i, 1] = np.nan
-            out[i, 2] = 0.0
+            out[i, :] = np.nan
+            out[i, 2] = out[i, 3] = 0.0
             continue
+        out[i, 3] = w
         m = st / w
         n_eff = w * w / w2
         var = max(stt / w - m * m, 0.0)
@@ -491,3 +505,8 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
         out[i, 0] = m
         out[i, 1] = math.sqrt(var)
         out[i, 2] = n_eff
+        # the weighted centroid's offset across the axis, and the variance of that centroid's
+        # position from its points' scatter about it: Σw²|a − L|² / (Σw)²
+        cx, cy, cz = lx / w, ly / w, lz / w
+        out[i, 4], out[i, 5], out[i, 6] = cx, cy, cz
+        out[i, 7] = max(kk - 2.0 * (cx * kx + cy * ky + cz * kz) + (cx * cx + cy * cy + cz * cz) * w2, 0.0) / (w * w)

@@ -21,6 +21,16 @@ and their weighted moments are what M3C2 needs.
   resolution, and the nearest surface answers, not a mean of all surfaces on the line.
   ``distance = mean₂ − mean₁``: positive where the current lies on the normal's side (M3C2's
   sign).
+- **Off the axis** (M3C2's step edge, Lague et al. [1]_): M3C2 assumes each epoch's surface
+  crosses the cylinder's axis. Where the current's surface has gone (a door swung open, the floor
+  under a pallet set down) its cylinder may still catch another surface at its rim (the frame, the
+  pallet's sides) and read a small, significant distance. The cylinder's sums also give each
+  epoch's weighted centroid across the axis; where the current's lies farther from the
+  reference's than a half-disc's centroid (0.80σ_p) plus their sampling noise (:func:`off_axis`)
+  there is no corresponding surface: no distance, counted as ``off_axis``. A surface cut by an
+  edge in both epochs (a table's) gives both the same centroid and is measured. The combined
+  decision's per-point offsets (:mod:`sdp.distance._noise`) are not tested so: they measure each
+  point against the other epoch alone, within 3σ, where the density decides beyond 2σ.
 - **Moments on cells** (:mod:`sdp.distance._cells`): each epoch's points are summed once, in O(n), into cubic cells of
   1.5σ_p (count, centroid, scatter); a cylinder reads at most 5³ cells and gives each cell's
   points the weight of its centroid (their offsets and spread along the normal stay exact), so
@@ -105,6 +115,7 @@ DISTANCE_FIELDS = ("distance", "lod", "significant", "n1", "n2", "spread1", "spr
 
 _ROUGHNESS_RATIO = 20.0  # Lague et al.: normal scale ≥ 20–25 × the roughness
 _MAX_NORMAL_FACTOR = 4.0  # the roughness rule may enlarge D up to this many projection scales
+_HALF_DISC = math.sqrt(2.0 / math.pi)  # a half-disc's weighted centroid from the axis, in σ_p (off_axis)
 
 
 
@@ -121,8 +132,8 @@ class Distances:
         Signed distance ``mean₂ − mean₁`` along ``normal``; NaN (not comparable) where no normal
         could be fitted (fewer than three reference points within ``normal_scale / 2``), where an
         epoch has fewer than two effective points in the longest cylinder or less weight than two
-        points on its rim (:mod:`sdp.distance._seen`), or where its sensor could not see the place
-        (``not_seen``).
+        points on its rim (:mod:`sdp.distance._seen`), where its sensor could not see the place
+        (``not_seen``), or where the current's surface lies off the cylinder's axis (``off_axis``).
     lod : ndarray (m,) float64
         Level of detection at 95 % (M3C2's LoD95), NaN where ``distance`` is.
     significant : ndarray (m,) bool
@@ -144,6 +155,11 @@ class Distances:
     not_seen : int
         Core points without a distance because an epoch was found only farther along the normal
         and its sensor could not see the core point (:mod:`sdp.distance._seen`).
+    off_axis : ndarray (m,) bool or None
+        Core points without a distance because the current's surface only touches the cylinder
+        off its axis (at its rim: a door swung open inside its frame; :func:`off_axis`): its
+        weighted centroid across the axis lies farther from the reference's than σ_p plus their
+        sampling noise. None: not tested (an archive's reference that did not keep its centroid).
     orientation : str
         How the normals were oriented.
     timings : dict of str to float
@@ -176,6 +192,7 @@ class Distances:
     mean1: np.ndarray | None = field(default=None, repr=False)
     registration_source: str = "given"
     not_seen: int = 0
+    off_axis: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def comparable(self) -> np.ndarray:
@@ -206,6 +223,7 @@ class Distances:
             "comparable": int(ok.sum()),
             "not_comparable": int((~ok).sum()) - blank,
             "not_seen": self.not_seen,
+            "off_axis": 0 if self.off_axis is None else int(self.off_axis.sum()),
             "no_normal": int((np.isnan(self.normal).any(axis=1) & np.isfinite(self.core_points).all(axis=1)).sum()),
             "significant": int(sig.sum()),
             "significant_positive": int((sig & (d > 0)).sum()),
@@ -396,9 +414,9 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     reach = max(max_half, 3.0 * sigma_p)
     m = len(order)
     dist, lod, n1, n2, s1, s2 = (np.empty(m) for _ in range(6))
-    out_normal, level = np.empty((m, 3)), np.empty(m, np.int8)
-    _results(order, stats[0], stats[1], normal, 0.0 if reg == "auto" else reg, reach, dist, lod, n1, n2, s1, s2,
-             out_normal, level)
+    out_normal, level, off = np.empty((m, 3)), np.empty(m, np.int8), np.empty(m, np.bool_)
+    _results(order, stats[0], stats[1], normal, 0.0 if reg == "auto" else reg, reach, sigma_p, dist, lod, n1, n2,
+             s1, s2, out_normal, level, off)
     normal = out_normal
     mean1 = np.full(m, np.nan)
     mean1[order] = stats[0][0]
@@ -407,7 +425,8 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     d = Distances(core_points=core.copy(), distance=dist, lod=lod, significant=np.abs(dist) > lod,
                   n1=n1, n2=n2, spread1=s1, spread2=s2, normal=normal, level=level,
                   projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=reach,
-                  registration_error=0.0 if reg == "auto" else reg, orientation=how, timings=timings, mean1=mean1)
+                  registration_error=0.0 if reg == "auto" else reg, orientation=how, timings=timings, mean1=mean1,
+                  off_axis=off)
     t = time.perf_counter()
     # where an epoch's sensor could not see the place measured, there is no distance
     # (sdp.distance._seen); the reference saw its own points
@@ -437,7 +456,8 @@ def _on_given_rows(d: Distances, rows: np.ndarray) -> Distances:
     arrays = {name: spread(getattr(d, name), np.nan) for name in ("core_points", "distance", "lod", "n1", "n2",
                                                                   "spread1", "spread2", "normal")}
     return dataclasses.replace(d, **arrays, significant=spread(d.significant, False), level=spread(d.level, -1),
-                               mean1=None if d.mean1 is None else spread(d.mean1, np.nan))
+                               mean1=None if d.mean1 is None else spread(d.mean1, np.nan),
+                               off_axis=None if d.off_axis is None else spread(d.off_axis, False))
 
 
 def auto_scales(reference, current, *, cylinder: Cylinder | None = None) -> tuple[float, float]:
@@ -531,27 +551,60 @@ def normal_sigma(lists: "CellLists", ref_xyz: np.ndarray, centroids: np.ndarray,
     return sigma_n
 
 
+@nb.njit(cache=True, inline="always")
+def off_axis(l1, v1, l2, v2, sigma):
+    """Whether the current's surface only touches the cylinder off its axis (M3C2's step edge):
+    its weighted centroid across the axis, ``l2`` (3), lies farther than
+    ``√(2/π)·σ_p + 1.96·√(v₁ + v₂)`` from the reference's, ``l1``.
+
+    M3C2 assumes that each epoch's surface crosses the cylinder's axis. A surface that does, sampled
+    evenly, has its centroid across the axis at the axis up to its sampling noise: the variance of
+    a weighted mean position, ``v = Σw²|a − L|² / (Σw)²`` (summed over both directions across; σ²/n
+    on an even plane, whose w²-weighted spread is σ²/2 per direction), measured on the points, so
+    that a clumped or lined sampling widens it. The two epochs' centroids are independent, their
+    difference has variance ``v₁ + v₂``, and 1.96·√(v₁ + v₂) bounds its length at 95 % or more
+    whatever its shape (exactly, all of it along one direction; spread evenly, the 95 % point of
+    its length is 1.73·√(v₁ + v₂)). The epochs are compared with each other, not with the axis: a
+    surface cut by an edge (a table's) gives both epochs the same part of the disc and the same
+    centroid, and stays measured. Beyond the noise, √(2/π)·σ_p = 0.80σ_p, the centroid of a
+    half-disc under the Gaussian weight: a surface ending at ``a`` past the axis has its centroid
+    λ(a/σ_p)·σ_p out (λ the inverse Mills ratio: 0.80 at a = 0, 1.0 at 0.3σ_p, 2.4 at 2σ_p),
+    so the bound is where the current's surface stops reaching the axis: one that only touches the
+    rim (a door frame around a door swung open, a pallet's sides around the floor it stands on)
+    lies 2σ_p or more out, and a reference half-disc whose other half the current fills (0.80σ_p
+    plus noise) stays measured. Within about σ_p of a step the cylinder straddles it at its own
+    resolution: a side along the normal at ``a`` pulls the centroid in to ``a`` (a pallet's side is
+    caught from 1.3σ_p in the tests' scene, a floor's edge alone from about 0.25σ_p). NaN (an old
+    archive's reference, which did not keep its centroid) never counts as off the axis."""
+    dx, dy, dz = l2[0] - l1[0], l2[1] - l1[1], l2[2] - l1[2]
+    bound = _HALF_DISC * sigma + 1.96 * math.sqrt(v1 + v2)
+    return dx * dx + dy * dy + dz * dz > bound * bound
+
+
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _results(order, ref, cur, normal, reg, reach, dist, lod, n1, n2, s1, s2, out_normal, level):
+def _results(order, ref, cur, normal, reg, reach, sigma, dist, lod, n1, n2, s1, s2, out_normal, level, off):
     """The outputs, back in the core points' input order (``order``: sorted row → input row), in
     one pass: distance = mean₂ − mean₁ and M3C2's level of detection; NaN (level -1) where an
-    epoch had no points or the two lie farther apart than ``reach``."""
-    m1, sp1, c1, k1 = ref
-    m2, sp2, c2, k2 = cur
+    epoch had no points or the two lie farther apart than ``reach``, and where the current's
+    surface lies off the cylinder's axis (:func:`off_axis`, ``off`` True there)."""
+    m1, sp1, c1, k1, l1, v1 = ref
+    m2, sp2, c2, k2, l2, v2 = cur
     for i in nb.prange(order.shape[0]):
         j = order[i]
         d = m2[i] - m1[i]
         n1[j], n2[j], s1[j], s2[j] = c1[i], c2[i], sp1[i], sp2[i]
         for a in range(3):
             out_normal[j, a] = normal[i, a]
+        off[j] = False
         if abs(d) <= reach and np.isfinite(normal[i, 0]):
+            off[j] = off_axis(l1[i], v1[i], l2[i], v2[i], sigma)
+        if abs(d) <= reach and np.isfinite(normal[i, 0]) and not off[j]:
             dist[j] = d
             lod[j] = 1.96 * (math.sqrt(sp1[i] ** 2 / c1[i] + sp2[i] ** 2 / c2[i]) + reg)
             level[j] = max(k1[i], k2[i])
         else:
             dist[j] = lod[j] = np.nan
             level[j] = -1
-
 
 
 def _sensor_per_point(origins, cloud, xyz: np.ndarray, core: np.ndarray | None = None) -> np.ndarray | None:

@@ -322,7 +322,7 @@ class SurfaceDistances:
         else:
             flip = normal[:, 2] < 0
         normal[flip] *= -1.0
-        mean1, spread1, n1, _ = lists.cylinder(other, centroid, normal, sigma, 3.0 * sigma)
+        mean1, spread1, n1 = lists.cylinder(other, centroid, normal, sigma, 3.0 * sigma)[:3]
         corr = self._options[2]
         n_corr = np.inf if corr is None else np.float64(2.0 * sigma / float(corr)) ** 2  # inf, not OverflowError
         # one point of an unchanged surface scatters about the other epoch's mean as that epoch's

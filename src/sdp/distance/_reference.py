@@ -42,7 +42,8 @@ from ._seen import without_unseen
 __all__ = ["PreparedReference"]
 
 #: The arrays of :meth:`PreparedReference.state`, per core point (in the core points' order).
-STATE_ARRAYS = ("core_points", "normal", "ref_mean", "ref_spread", "ref_count", "ref_level")
+STATE_ARRAYS = ("core_points", "normal", "ref_mean", "ref_spread", "ref_count", "ref_level", "ref_across",
+                "ref_across_var")
 
 
 @dataclass
@@ -58,6 +59,10 @@ class PreparedReference:
         The reference's kernel-weighted offset along the normal, spread and effective count.
     ref_level : ndarray (m,) int8
         0: the reference answered in the cylinder at the core point; 1: farther along the normal.
+    ref_across, ref_across_var : ndarray (m, 3), (m,) float64
+        The reference's weighted centroid across the cylinder's axis and its variance, which an
+        epoch's is compared with (:func:`sdp.distance._distances.off_axis`); NaN where not
+        kept (an archive written before them: no place is then found off the axis).
     projection_scale, normal_scale, max_distance : float
         The scales used (M3C2's d, D and the search's half-length).
     corner : ndarray (3,) float64
@@ -72,6 +77,8 @@ class PreparedReference:
     ref_spread: np.ndarray
     ref_count: np.ndarray
     ref_level: np.ndarray
+    ref_across: np.ndarray
+    ref_across_var: np.ndarray
     projection_scale: float
     normal_scale: float
     max_distance: float
@@ -130,7 +137,7 @@ class PreparedReference:
             sensor = np.asarray(sensor, np.float64)
             facing = (sensor[order] if sensor.ndim == 2 else sensor[None, :]) - core_sorted
             normal[np.einsum("ij,ij->i", normal, facing) < 0] *= -1.0
-        m1, s1, c1, k1 = lists.cylinder(ref.xyz, core_sorted, normal, sigma_p, max_half)
+        m1, s1, c1, k1, l1, v1 = lists.cylinder(ref.xyz, core_sorted, normal, sigma_p, max_half)
         back = np.empty_like(order)
         back[order] = np.arange(len(order))
 
@@ -140,6 +147,7 @@ class PreparedReference:
         # a private copy (core may be the caller's own array); each epoch's results get theirs (_measure)
         return cls(core_points=np.array(core, np.float64, order="C"), normal=unsort(normal), ref_mean=unsort(m1),
                    ref_spread=unsort(s1), ref_count=unsort(c1), ref_level=unsort(k1).astype(np.int8),
+                   ref_across=unsort(l1), ref_across_var=unsort(v1),
                    projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=max_half,
                    corner=lo, orientation=towards)
 
@@ -154,7 +162,10 @@ class PreparedReference:
 
     @classmethod
     def from_state(cls, arrays: dict, scalars: dict) -> "PreparedReference":
-        """The object :meth:`state` described."""
+        """The object :meth:`state` described (a state without the reference's centroid across
+        the axis, an archive's from before it: NaN, no place off the axis)."""
+        m = len(arrays["core_points"])
+        arrays = {"ref_across": np.full((m, 3), np.nan), "ref_across_var": np.full(m, np.nan), **arrays}
         return cls(**{name: np.ascontiguousarray(arrays[name]) for name in STATE_ARRAYS},
                    projection_scale=float(scalars["projection_scale"]), normal_scale=float(scalars["normal_scale"]),
                    max_distance=float(scalars["max_distance"]), corner=np.asarray(scalars["corner"], np.float64),
@@ -202,20 +213,23 @@ class PreparedReference:
             self._sorted = (order, lists.get(core, cell)[0], np.ascontiguousarray(self.normal[order]),
                             tuple(np.ascontiguousarray(a[order]) for a in (self.ref_mean, self.ref_spread,
                                                                            self.ref_count,
-                                                                           self.ref_level.astype(np.int64))),
+                                                                           self.ref_level.astype(np.int64),
+                                                                           self.ref_across, self.ref_across_var)),
                             core_hi)
         order, queries, normal, ref, _ = self._sorted
         cur_stats = lists.cylinder(xyz, queries, normal, sigma_p, self.max_distance)
         reach = max(self.max_distance, RADIUS * sigma_p)
         m = len(order)
         dist, lod, n1, n2, s1, s2 = (np.empty(m) for _ in range(6))
-        out_normal, level = np.empty((m, 3)), np.empty(m, np.int8)
-        _results(order, ref, cur_stats, normal, reg, reach, dist, lod, n1, n2, s1, s2, out_normal, level)
+        out_normal, level, off = np.empty((m, 3)), np.empty(m, np.int8), np.empty(m, np.bool_)
+        _results(order, ref, cur_stats, normal, reg, reach, sigma_p, dist, lod, n1, n2, s1, s2, out_normal, level,
+                 off)
         how = "towards ({:g}, {:g}, {:g})".format(*self.orientation)
         return Distances(core_points=core.copy(), distance=dist, lod=lod, significant=np.abs(dist) > lod,
                          n1=n1, n2=n2, spread1=s1, spread2=s2, normal=out_normal, level=level,
                          projection_scale=self.projection_scale, normal_scale=self.normal_scale, max_distance=reach,
-                         registration_error=reg, orientation=how, timings={"total": time.perf_counter() - t0})
+                         registration_error=reg, orientation=how, timings={"total": time.perf_counter() - t0},
+                         off_axis=off)
 
 
 def subsample(xyz: np.ndarray, spacing: float, *, origin=None) -> np.ndarray:

@@ -67,8 +67,8 @@ __all__ = ["TiledSeries", "plan_series", "count_points", "POINT_BYTES", "CORE_BY
 
 #: The values a measuring task returns per core point (as :func:`sdp.distances_tiled` packs them).
 _PACKED = ("distance", "lod", "significant", "n1", "n2", "spread1", "spread2", "normal_x", "normal_y", "normal_z",
-           "level")
-_STATE = ("normal", "ref_mean", "ref_spread", "ref_count", "ref_level")
+           "level", "off_axis")
+_STATE = ("normal", "ref_mean", "ref_spread", "ref_count", "ref_level", "ref_across", "ref_across_var")
 
 
 def _open(epoch, fmt: str | None):
@@ -222,13 +222,14 @@ class TiledSeries:
         rows = np.concatenate([r[0] for r in results]) if results else np.zeros(0, np.int64)
         order = np.argsort(rows, kind="stable")
         xyz = np.concatenate([r[1] for r in results])[order] if results else np.zeros((0, 3))
-        values = np.concatenate([r[2] for r in results])[order] if results else np.zeros((0, 7))
+        values = np.concatenate([r[2] for r in results])[order] if results else np.zeros((0, 11))
         if not len(xyz):
             raise SDPError("no core point: the reference and the core points given do not meet")
         self.prepared = PreparedReference(
             core_points=np.ascontiguousarray(xyz), normal=np.ascontiguousarray(values[:, 0:3]),
             ref_mean=np.ascontiguousarray(values[:, 3]), ref_spread=np.ascontiguousarray(values[:, 4]),
             ref_count=np.ascontiguousarray(values[:, 5]), ref_level=values[:, 6].astype(np.int8),
+            ref_across=np.ascontiguousarray(values[:, 7:10]), ref_across_var=np.ascontiguousarray(values[:, 10]),
             projection_scale=d, normal_scale=D, max_distance=max_half, corner=corner, orientation=towards)
         return self.prepared
 
@@ -272,7 +273,7 @@ class TiledSeries:
                       max_distance=max(prepared.max_distance, 3.0 * prepared.projection_scale / 4.0),
                       registration_error=reg,
                       orientation="towards ({:g}, {:g}, {:g})".format(*prepared.orientation),
-                      timings={"total": time.perf_counter() - t0}, tiles=len(self._keys))
+                      timings={"total": time.perf_counter() - t0}, tiles=len(self._keys), off_axis=packed[:, 11] == 1)
         return with_level(d, registration_error), int(n_points)
 
 
@@ -304,8 +305,8 @@ def _scales(ref, core, cylinder: Cylinder, execution: Execution) -> tuple[float,
 
 
 def _prepare_tile(key, root: str, tiling: Tiling, opts: dict):
-    """The reference side at tile ``key``'s own core points: (their rows, xyz, (m, 7) values:
-    normal, ref_mean, ref_spread, ref_count, ref_level)."""
+    """The reference side at tile ``key``'s own core points: (their rows, xyz, (m, 11) values:
+    normal, ref_mean, ref_spread, ref_count, ref_level, ref_across, ref_across_var)."""
     opts = dict(opts)
     margin, origin = opts.pop("margin"), opts.pop("origin")
     ref = load_bucket(root, "reference", key)
@@ -315,14 +316,15 @@ def _prepare_tile(key, root: str, tiling: Tiling, opts: dict):
         core = ref[subsample(ref[:, :3], opts["cylinder"].projection_scale, origin=origin)] if len(ref) else ref
     own = tiling.owns(key, core)
     if not own.any():
-        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 7))
-    values = np.full((int(own.sum()), 7), np.nan)
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 11))
+    values = np.full((int(own.sum()), 11), np.nan)
     values[:, 5], values[:, 6] = 0.0, -1.0  # no reference point near: never comparable, as in memory
     if len(ref) >= 3:
         near = tiling.owns(key, core, margin)  # the cells whose core points share a normal, whole
         p = PreparedReference.prepare(np.ascontiguousarray(ref[:, :3]), np.ascontiguousarray(core[near, :3]), **opts)
         mine = own[near]
-        values = np.column_stack([p.normal, p.ref_mean, p.ref_spread, p.ref_count, p.ref_level])[mine]
+        values = np.column_stack([p.normal, p.ref_mean, p.ref_spread, p.ref_count, p.ref_level, p.ref_across,
+                                  p.ref_across_var])[mine]
     return core[own, 3].astype(np.int64), np.ascontiguousarray(core[own, :3]), values.astype(np.float64)
 
 
@@ -358,7 +360,7 @@ def _write_state(prepared: PreparedReference, root: str, tiling: Tiling) -> list
 
 
 def _measure_tile(key, root: str, name: str, lo: np.ndarray, reg: float, scalars: dict, memory_limit):
-    """Tile ``key``'s core points measured on its bucket of epoch ``name``: (rows, (m, 11) values)."""
+    """Tile ``key``'s core points measured on its bucket of epoch ``name``: (rows, (m, 12) values)."""
     t0 = time.perf_counter()
     with np.load(Path(root, "state", f"{key[0]}_{key[1]}.npz")) as f:
         state = {k: f[k] for k in f.files}
@@ -370,10 +372,10 @@ def _measure_tile(key, root: str, name: str, lo: np.ndarray, reg: float, scalars
     if not len(rec):  # no point of the epoch near: what the cylinders give for none
         values = np.full((len(rows), len(_PACKED)), np.nan)
         values[:, 2], values[:, 3], values[:, 4] = 0.0, prepared.ref_count, 0.0
-        values[:, 5], values[:, 7:10], values[:, 10] = prepared.ref_spread, prepared.normal, -1.0
+        values[:, 5], values[:, 7:10], values[:, 10], values[:, 11] = prepared.ref_spread, prepared.normal, -1.0, 0.0
         return rows, values
     xyz = np.ascontiguousarray(rec[:, :3])
     d = prepared._measure(xyz, lo, bounds(xyz)[1], reg, t0)
     f = d.fields()
-    values = np.column_stack([f[n] for n in _PACKED[:10]] + [d.level]).astype(np.float64)
+    values = np.column_stack([f[n] for n in _PACKED[:10]] + [d.level, d.off_axis]).astype(np.float64)
     return rows, values

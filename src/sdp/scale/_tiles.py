@@ -515,7 +515,7 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
         results = run.tasks("distances", _distance_tile, [(key, run.root, run.tiling, opts) for key in run.tiles],
                             ())
     n = run.sources["reference"].n_rows
-    xyz, packed = np.full((n, 3), np.nan), np.full((n, 11), np.nan)
+    xyz, packed = np.full((n, 3), np.nan), np.full((n, 12), np.nan)
     for rows, pts, values in results:
         xyz[rows], packed[rows] = pts, values
     level = np.where(np.isnan(packed[:, 10]), -1, packed[:, 10]).astype(np.int8)
@@ -525,12 +525,13 @@ def distances_tiled(reference, current, *, cylinder: Cylinder | None = None,
                          normal=np.ascontiguousarray(packed[:, 7:10]), level=level, projection_scale=d,
                          normal_scale=D, max_distance=max(reach, 3.0 * sigma_p), registration_error=reg,
                          orientation="towards ({:g}, {:g}, {:g})".format(*towards),
-                         timings=timings, tiles=len(run.tiles))
+                         timings=timings, tiles=len(run.tiles), off_axis=packed[:, 11] == 1)
     return with_level(measured, reg_opt)
 
 
 def _distance_tile(key, root: str, tiling: Tiling, opts: dict):
-    """The distances of tile ``key``'s own reference rows: (rows, xyz, (m, 11) values)."""
+    """The distances of tile ``key``'s own reference rows: (rows, xyz, (m, 12) values: the fields, the
+    level, off the axis)."""
     from ..distance._distances import distances
 
     opts = dict(opts)
@@ -538,8 +539,8 @@ def _distance_tile(key, root: str, tiling: Tiling, opts: dict):
     ref, cur = load_bucket(root, "reference", key), load_bucket(root, "current", key)
     own = tiling.owns(key, ref)
     if not own.any():
-        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 11))
-    values = np.full((int(own.sum()), 11), np.nan)
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 12))
+    values = np.full((int(own.sum()), 12), np.nan)
     if len(cur) >= 3 and len(ref) >= 3:
         near = tiling.owns(key, ref, margin)
         d = distances(ref[:, :3], cur[:, :3], core_points=ref[near, :3], sensor_origin=None, **opts)
@@ -547,7 +548,7 @@ def _distance_tile(key, root: str, tiling: Tiling, opts: dict):
         f = d.fields()
         cols = [f[name] for name in ("distance", "lod", "significant", "n1", "n2", "spread1", "spread2",
                                      "normal_x", "normal_y", "normal_z")]
-        values = np.column_stack([*cols, d.level])[mine].astype(np.float64)
+        values = np.column_stack([*cols, d.level, d.off_axis])[mine].astype(np.float64)
         values[values[:, 10] < 0, 10] = np.nan
     return ref[own, 3].astype(np.int64), np.ascontiguousarray(ref[own, :3]), values
 

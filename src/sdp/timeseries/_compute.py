@@ -617,10 +617,14 @@ def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registrati
     with tiles or contextlib.nullcontext(), A.transaction(out, untouched=untouched) as folder, A.many_chunks_at_once():
         w = A.Writer(folder, create=not append)
         if append:
-            state = w.read_all(A.REFERENCE_SIDE)
+            # an archive written before the reference's centroid across the axis was kept has none
+            state = w.read_all([name for name in A.REFERENCE_SIDE if (Path(folder) / name).is_dir()])
             arrays = {"core_points": np.c_[state["x"], state["y"], state["z"]],
                       "normal": np.c_[state["normal_x"], state["normal_y"], state["normal_z"]],
                       **{k: state[k] for k in ("ref_mean", "ref_spread", "ref_count", "ref_level")}}
+            if "ref_across_var" in state:
+                arrays.update(ref_across=np.c_[state["ref_across_x"], state["ref_across_y"], state["ref_across_z"]],
+                              ref_across_var=state["ref_across_var"])
             prepared = PreparedReference.from_state(arrays, params["reference_state"])
             w.resize_all({name: (E, len(prepared.core_points))
                           for name in ("distance", "lod", "significant") + (A.REWRITTEN if go_on else ())})
@@ -630,7 +634,9 @@ def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registrati
                          **{f"normal_{axis}": (state["normal"][:, a], ("point",), None)
                             for a, axis in enumerate("xyz")},
                          **{name: (state[name], ("point",), None)
-                            for name in ("ref_mean", "ref_spread", "ref_count", "ref_level")}})
+                            for name in ("ref_mean", "ref_spread", "ref_count", "ref_level", "ref_across_var")},
+                         **{f"ref_across_{axis}": (state["ref_across"][:, a], ("point",), None)
+                            for a, axis in enumerate("xyz")}})
             for name, dtype in (("distance", "f4"), ("lod", "f4"), ("significant", "bool")):
                 w.array(name, (len(epochs), m), dtype, _EPOCH_DIMS)
         m = len(prepared.core_points)
