@@ -118,7 +118,8 @@ class CellLists:
         the nearest cell of ``xyz`` on the normal's line within ``max_half``, where the first found
         too few points. The centroid across the axis is the weighted mean position's offset
         perpendicular to the normal (the same for a cylinder moved along it), its variance
-        ``Σw²|a − L|² / (Σw)²`` summed over both directions across
+        ``Σw|a − L|² / Σw`` over the effective count ``(Σw)² / Σw²`` (Kish), summed over both
+        directions across
         (:func:`sdp.distance._distances.off_axis`)."""
         half = RADIUS * sigma
         out = self._cylinders(xyz, queries, normals, sigma, half)
@@ -427,8 +428,8 @@ def _nearest_along(table, dims, cell, lo, queries, normals, reach, out):
 def _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2, acc):
     """The sums of a cylinder with cell row ``r`` added if its centroid lies in the cylinder:
     weight, squared weight, weighted offset along the axis and its square, then the weighted
-    offset across the axis (3), the same with the squared weight (3) and the squared weight
-    times the squared offset across (its points' scatter across included)."""
+    offset across the axis (3) and the weighted squared offset across (its points' scatter across
+    included)."""
     dx, dy, dz = cells[r, 1] - qx, cells[r, 2] - qy, cells[r, 3] - qz
     t = dx * nx + dy * ny + dz * nz
     if t > half or t < -half:
@@ -436,17 +437,16 @@ def _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2, acc):
     r2 = dx * dx + dy * dy + dz * dz - t * t
     if r2 > r2max:
         return acc
-    w, w2, st, stt, lx, ly, lz, kx, ky, kz, kk = acc
+    w, w2, st, stt, lx, ly, lz, kk = acc
     g = math.exp(-r2 * inv2s2)
     n = cells[r, 0]
     along = (nx * (cells[r, 4] * nx + cells[r, 5] * ny + cells[r, 6] * nz)
              + ny * (cells[r, 5] * nx + cells[r, 7] * ny + cells[r, 8] * nz)
              + nz * (cells[r, 6] * nx + cells[r, 8] * ny + cells[r, 9] * nz))
     across = max(cells[r, 4] + cells[r, 7] + cells[r, 9] - along, 0.0)
-    gn, ggn = g * n, g * g * n
-    ax, ay, az = dx - t * nx, dy - t * ny, dz - t * nz
-    return (w + gn, w2 + ggn, st + gn * t, stt + g * (n * t * t + along), lx + gn * ax, ly + gn * ay, lz + gn * az,
-            kx + ggn * ax, ky + ggn * ay, kz + ggn * az, kk + ggn * r2 + g * g * across)
+    gn = g * n
+    return (w + gn, w2 + g * gn, st + gn * t, stt + g * (n * t * t + along), lx + gn * (dx - t * nx),
+            ly + gn * (dy - t * ny), lz + gn * (dz - t * nz), kk + g * (n * r2 + across))
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -462,7 +462,7 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
     for i in nb.prange(queries.shape[0]):
         qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        acc = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        acc = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         if not np.isfinite(nx):
             out[i, :] = np.nan
             out[i, 2] = out[i, 3] = 0.0
@@ -491,7 +491,7 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
                         r = table_row(table, ix, iy, iz, shift)
                         if r >= 0:
                             acc = _cylinder_cell(cells, r, qx, qy, qz, nx, ny, nz, half, r2max, inv2s2, acc)
-        w, w2, st, stt, lx, ly, lz, kx, ky, kz, kk = acc
+        w, w2, st, stt, lx, ly, lz, kk = acc
         if w <= 0.0:
             out[i, :] = np.nan
             out[i, 2] = out[i, 3] = 0.0
@@ -506,7 +506,7 @@ def _cylinders(cells, table, dims, cell, lo, queries, normals, sigma, radius, ha
         out[i, 1] = math.sqrt(var)
         out[i, 2] = n_eff
         # the weighted centroid's offset across the axis, and the variance of that centroid's
-        # position from its points' scatter about it: Σw²|a − L|² / (Σw)²
+        # position: its points' weighted scatter about it over the effective count (Kish)
         cx, cy, cz = lx / w, ly / w, lz / w
         out[i, 4], out[i, 5], out[i, 6] = cx, cy, cz
-        out[i, 7] = max(kk - 2.0 * (cx * kx + cy * ky + cz * kz) + (cx * cx + cy * cy + cz * cz) * w2, 0.0) / (w * w)
+        out[i, 7] = max(kk / w - (cx * cx + cy * cy + cz * cz), 0.0) / n_eff

@@ -559,9 +559,9 @@ def off_axis(l1, v1, l2, v2, sigma):
 
     M3C2 assumes that each epoch's surface crosses the cylinder's axis. A surface that does, sampled
     evenly, has its centroid across the axis at the axis up to its sampling noise: the variance of
-    a weighted mean position, ``v = Σw²|a − L|² / (Σw)²`` (summed over both directions across; σ²/n
-    on an even plane, whose w²-weighted spread is σ²/2 per direction), measured on the points, so
-    that a clumped or lined sampling widens it. The two epochs' centroids are independent, their
+    a weighted mean position, ``v = (Σw|a − L|² / Σw) / n_eff`` with ``n_eff = (Σw)² / Σw²`` (Kish's
+    effective count; summed over both directions across), measured on the points, so that a clumped
+    or lined sampling widens it. The two epochs' centroids are independent, their
     difference has variance ``v₁ + v₂``, and 1.96·√(v₁ + v₂) bounds its length at 95 % or more
     whatever its shape (exactly, all of it along one direction; spread evenly, the 95 % point of
     its length is 1.73·√(v₁ + v₂)). The epochs are compared with each other, not with the axis: a
