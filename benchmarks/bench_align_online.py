@@ -385,18 +385,23 @@ def online_table(repeats=3):
     grab = [read_points(p) for p in sorted(glob.glob(str(DATA / "pcl_kinect/grabber_sequence/*.pcd")))]
     mosd = [read_points(DATA / f"mosd/learn/learn{i}.pcd") for i in (6, 7, 8, 9, 10, 11)]
     load = os.getloadavg()[0]
-    streams = {"static grabber sequence (x4)": (grab[0], [c.xyz for c in grab[1:] + grab * 3]),
-               "mOSD learn6 → 7 … 11": (mosd[0], [c.xyz for c in mosd[1:]])}
+    streams = {"static grabber sequence (x4)": (grab[0], grab[1:] + grab * 3),
+               "mOSD learn6 → 7 … 11": (mosd[0], mosd[1:])}
     for name, (ref, frames) in streams.items():
         configs = [(u, r, None, None) for u in ("window", "decay") for r in (True, False)]
-        configs.append(("window", True, None, ref.sensor_origin))  # the visibility test (PCD VIEWPOINT)
+        # the visibility test: the clouds as `sdp watch FOLDER` reads them (each PCD's VIEWPOINT, its
+        # image: the camera's own pixels), the default
+        configs.append(("window", True, None, "auto"))
         if name.startswith("static"):  # its camera moved between frames (0.8-1.2°, 1-2 cm): registered
-            configs += [("window", True, "gicp", None), ("window", True, "gicp", ref.sensor_origin)]
+            configs += [("window", True, "gicp", None), ("window", True, "gicp", "auto")]
         for update, regions, align, origin in configs:
             kw = dict(update=update, regions=regions, align=align, sensor_origin=origin)
-            list(flat.watch(ref.xyz, frames[:2], **kw))  # warm the compiled kernels
-            least = sdp.DEFAULTS.min_region_points if regions else 1
-            runs = [list(flat.watch(ref.xyz, frames, min_region_points=least, **kw)) for _ in range(repeats)]
+            if regions:
+                kw["min_region_points"] = sdp.DEFAULTS.min_region_points
+            clouds = origin == "auto"  # else arrays: no sensor
+            r0, fr = (ref, frames) if clouds else (ref.xyz, [c.xyz for c in frames])
+            list(flat.watch(r0, fr[:2], **kw))  # warm the compiled kernels
+            runs = [list(flat.watch(r0, fr, **kw)) for _ in range(repeats)]
             reps = runs[0]
             lat = np.array([r.latency for run in runs for r in run]) * 1e3
             step = " / ".join(f"{1e3 * np.median([r.timings.get(k, 0.0) for run in runs for r in run]):.1f}"
