@@ -51,7 +51,6 @@ def test_a_depth_cameras_image_is_its_own_pixels_whatever_its_pose():
     assert fit_camera(frame, np.random.default_rng(0).permutation(len(frame)), (48, 64), origin) is None
 
 
-
 def test_a_frame_whose_returns_lie_in_one_row_or_column_fits_no_camera():
     # their rays lie in one plane, which many cameras fit: the DLT's null space is not one vector
     # (a column's raised a singular matrix, a row's gave a camera 0.02° tall)

@@ -144,7 +144,7 @@ def _pinhole_sums(xyz, pixels, width, origin, step):
     cu, cv = su / n, sv / n
     vu, vv, cov = max(su2 / n - cu * cu, 0.0), max(sv2 / n - cv * cv, 0.0), suv / n - cu * cv
     across = 0.5 * (vu + vv) - math.sqrt(0.25 * (vu - vv) ** 2 + cov * cov)  # the 2 × 2 covariance's least eigenvalue
-    scale = max(math.sqrt(max(su2 / n - cu * cu, 0.0)) + math.sqrt(max(sv2 / n - cv * cv, 0.0)), 1.0)
+    scale = max(math.sqrt(vu) + math.sqrt(vv), 1.0)
     ata = np.zeros((9, 9))
     row = np.empty(9)
     used = 0
