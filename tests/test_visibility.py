@@ -51,6 +51,19 @@ def test_a_depth_cameras_image_is_its_own_pixels_whatever_its_pose():
     assert fit_camera(frame, np.random.default_rng(0).permutation(len(frame)), (48, 64), origin) is None
 
 
+def test_a_frame_whose_returns_lie_in_one_row_or_column_fits_no_camera():
+    # their rays lie in one plane, which many cameras fit: the DLT's null space is not one vector
+    # (a column's raised a singular matrix, a row's gave a camera 0.02° tall)
+    from sdp._core._pinhole import fit_camera
+
+    c, r = np.meshgrid(np.arange(64.0), np.arange(48.0))
+    frame = 2.0 * np.c_[(c.ravel() - 31.5) / 60, (r.ravel() - 23.5) / 60, np.ones(c.size)]
+    row, column = np.flatnonzero(r.ravel() == 20), np.flatnonzero(c.ravel() == 30)
+    assert fit_camera(frame[row], row, (48, 64), np.zeros(3)) is None
+    assert fit_camera(frame[column], column, (48, 64), np.zeros(3)) is None
+    both = np.union1d(row, column)
+    assert fit_camera(frame[both], both, (48, 64), np.zeros(3)) is not None
+
 def test_range_image_covers_a_full_turn():
     # a horizontal 360° scan of a cylindrical wall: the azimuth seam must not lose any ray
     az, z = np.meshgrid(np.linspace(-np.pi, np.pi, 720, endpoint=False), np.linspace(-0.5, 0.5, 60))

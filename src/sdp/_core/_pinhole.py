@@ -70,7 +70,9 @@ def fit_camera(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], orig
     whatever its pose). H is fitted to the returns (``xyz`` at ``pixels``, row · width + column,
     of an ``image`` of (height, width)) by the direct linear transform [1]_ on at most
     ``sample`` of them. None where the returns do not fit one pinhole within ``tolerance``
-    pixels (RMS): an organized LiDAR's rings and columns, a distorted image, too few returns.
+    pixels (RMS): an organized LiDAR's rings and columns, a distorted image, too few returns, or
+    returns whose pixels lie on one line (a single row or column: their rays lie in one plane, which
+    every camera seeing that plane along the line fits, so none is the frame's).
 
     The image is that of the rows and columns holding a return (:attr:`Camera.box`): whole rows
     or columns without one at the image's edge are the margins a depth image registered to a
@@ -92,8 +94,8 @@ def fit_camera(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], orig
     step = max(1, len(pixels) // sample)
     origin = np.asarray(origin, np.float64)
     pixels = np.asarray(pixels, np.int64)
-    normal, centre, scale, n = _pinhole_sums(xyz, pixels, width, origin, step)
-    if n < 8:
+    normal, centre, scale, across, n = _pinhole_sums(xyz, pixels, width, origin, step)
+    if n < 8 or across < _MIN_ACROSS:
         return None
     h = np.linalg.eigh(normal)[1][:, 0].reshape(3, 3)  # the least-squares null vector
     rms, facing = _pinhole_check(xyz, pixels, width, origin, step, h, np.linalg.inv(h), centre, scale)
@@ -119,22 +121,30 @@ def _returned_box(pixels, width):
     return np.array([r0, r1, c0, c1])
 
 
+#: The least variance (pixels²) of the returns' pixels across their main direction for a camera to be
+#: fitted: 0 for a single row or column, 1/12 for a digital line, thousands for a frame.
+_MIN_ACROSS = 1.0
+
+
 @nb.njit(cache=True, nogil=True)
 def _pinhole_sums(xyz, pixels, width, origin, step):
-    """(the DLT's normal matrix AᵀA (9, 9), the pixels' centre, their scale, the rows used) over
-    every ``step``-th return: unit directions d and normalized pixels (u, v), two rows each,
-    (dᵀ, 0, −u dᵀ) and (0, dᵀ, −v dᵀ)."""
+    """(the DLT's normal matrix AᵀA (9, 9), the pixels' centre, their scale, their variance across
+    their main direction (pixels²), the rows used) over every ``step``-th return: unit directions d
+    and normalized pixels (u, v), two rows each, (dᵀ, 0, −u dᵀ) and (0, dᵀ, −v dᵀ)."""
     n = 0
-    su = sv = su2 = sv2 = 0.0
+    su = sv = su2 = sv2 = suv = 0.0
     for i in range(0, pixels.shape[0], step):
         c, r = pixels[i] % width, pixels[i] // width
         su += c
         sv += r
         su2 += c * c
         sv2 += r * r
+        suv += c * r
         n += 1
     cu, cv = su / n, sv / n
-    scale = max(math.sqrt(max(su2 / n - cu * cu, 0.0)) + math.sqrt(max(sv2 / n - cv * cv, 0.0)), 1.0)
+    vu, vv, cov = max(su2 / n - cu * cu, 0.0), max(sv2 / n - cv * cv, 0.0), suv / n - cu * cv
+    across = 0.5 * (vu + vv) - math.sqrt(0.25 * (vu - vv) ** 2 + cov * cov)  # the 2 × 2 covariance's least eigenvalue
+    scale = max(math.sqrt(vu) + math.sqrt(vv), 1.0)
     ata = np.zeros((9, 9))
     row = np.empty(9)
     used = 0
@@ -156,7 +166,7 @@ def _pinhole_sums(xyz, pixels, width, origin, step):
                     for b in range(9):
                         ata[a, b] += row[a] * row[b]
         used += 1
-    return ata, np.array([cu, cv]), scale, used
+    return ata, np.array([cu, cv]), scale, across, used
 
 
 @nb.njit(cache=True, nogil=True)
