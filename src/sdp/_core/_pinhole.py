@@ -97,8 +97,12 @@ def fit_camera(xyz: np.ndarray, pixels: np.ndarray, image: tuple[int, int], orig
     normal, centre, scale, across, n = _pinhole_sums(xyz, pixels, width, origin, step)
     if n < 8 or across < _MIN_ACROSS:
         return None
-    h = np.linalg.eigh(normal)[1][:, 0].reshape(3, 3)  # the least-squares null vector
-    rms, facing = _pinhole_check(xyz, pixels, width, origin, step, h, np.linalg.inv(h), centre, scale)
+    try:
+        h = np.linalg.eigh(normal)[1][:, 0].reshape(3, 3)  # the least-squares null vector
+        inv = np.linalg.inv(h)
+    except np.linalg.LinAlgError:  # returns no camera explains (rays in one plane, NaN rows)
+        return None
+    rms, facing = _pinhole_check(xyz, pixels, width, origin, step, h, inv, centre, scale)
     if not rms <= tolerance:
         return None
     # H is known up to its sign: the one putting the returns in front; then back to whole pixels
