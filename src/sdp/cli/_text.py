@@ -236,8 +236,9 @@ def distance_text(s: dict, reference, current) -> str:
              + (f"no normal ({s['no_normal']:,}), " if s.get("no_normal") else "") + "an epoch has too few points "
              "near" + (f", or its sensor could not see the place ({s['not_seen']:,})" if s.get("not_seen")
                        else "")
-             + (f", or the current's surface only touches the cylinder off its axis: a step edge, no "
-                f"corresponding surface ({s['off_axis']:,})" if s.get("off_axis") else "") + ", not comparable)",
+             + (f", or the current's surface only touches the cylinder off its axis: none of its own at the "
+                f"core point, a step edge or a gap in its sampling ({s['off_axis']:,})" if s.get("off_axis") else "")
+             + ", not comparable)",
              f"  significant      {s['significant']:>12,}  ({s['significant_positive']:,} +, "
              f"{s['significant_negative']:,} −; |distance| > level of detection at 95 %)",
              f"  median distance  {s['median_distance']:>12.4g}  (5–95 %: {s['distance_p05']:.4g} … "
