@@ -64,6 +64,27 @@ def test_a_frame_whose_returns_lie_in_one_row_or_column_fits_no_camera():
     both = np.union1d(row, column)
     assert fit_camera(frame[both], both, (48, 64), np.zeros(3)) is not None
 
+def test_a_sparse_grid_of_many_pixels_builds_no_image_of_them(monkeypatch):
+    # a TLS grid stored as an organized PCD: 1,500 returns in a 3,000 × 4,000 image; an index of its
+    # 12 M pixels (48 MB) or 5 M cells of 1.5 pixels would outweigh the returns many times
+    import sdp.change._range_image as R
+    from sdp._core._pinhole import fit_camera
+    from sdp._core._points import as_points
+    from sdp.fields._spacing import kth_in_image
+
+    rng = np.random.default_rng(0)
+    pixels = np.sort(rng.choice(3000 * 4000, 1500, replace=False))
+    c, r = pixels % 4000, pixels // 4000
+    xyz = np.c_[(c - 1999.5) / 2000, (r - 1499.5) / 2000, np.ones(len(c))] * 3.0
+    camera = fit_camera(xyz, pixels, (3000, 4000), np.zeros(3))
+    assert camera is not None
+    pts = as_points(xyz)._replace(image=(pixels, (3000, 4000), np.zeros(3)))
+    assert kth_in_image(pts, np.arange(10), 4) is None  # the hashed grid answers
+    monkeypatch.setattr(R, "_MAX_CELLS", 1_000_000)
+    image = RangeImage.from_points(xyz, np.zeros(3), camera=camera)
+    assert image.camera is None and image.shape[0] * image.shape[1] <= 1_000_000  # the angular image, coarser
+
+
 def test_range_image_covers_a_full_turn():
     # a horizontal 360° scan of a cylindrical wall: the azimuth seam must not lose any ray
     az, z = np.meshgrid(np.linspace(-np.pi, np.pi, 720, endpoint=False), np.linspace(-0.5, 0.5, 60))

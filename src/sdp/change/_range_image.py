@@ -376,6 +376,19 @@ def _hider_points(points, origin, hide, rng, cls):
     return out
 
 
+def _camera_shape(camera: Camera, cell: float) -> tuple[int, int]:
+    """Cells (columns, rows) of ``cell`` pixels over the rows and columns of ``camera`` holding a return."""
+    r0, r1, c0, c1 = (int(b) for b in camera.box)
+    return int(math.ceil((c1 - c0 + 1) / cell)), int(math.ceil((r1 - r0 + 1) / cell))
+
+
+def _camera_cells(camera: Camera, cell: float) -> int:
+    """The cells of a camera's image (a sparse grid of many pixels, a TLS grid stored as an
+    organized PCD: beyond :data:`_MAX_CELLS` its returns make an angular image of coarser cells)."""
+    a, b = _camera_shape(camera, cell)
+    return a * b
+
+
 # ---------------------------------------------------------------- range image
 
 @dataclass(frozen=True)
@@ -484,7 +497,8 @@ class RangeImage:
         """
         points = np.ascontiguousarray(points, dtype=np.float64)
         origin = np.asarray(origin, dtype=np.float64)
-        if camera is not None and len(camera.pixels) == len(points):
+        if camera is not None and len(camera.pixels) == len(points) \
+                and _camera_cells(camera, cell_factor) <= _MAX_CELLS:
             return cls._from_camera(points, origin, camera, cell_factor=cell_factor, rays_sent=rays_sent)
         frame = _view_frame(points, origin, None if pole is None else _unit_pole(pole))
         az, el, rng, (lo_a, lo_e, hi_a, hi_e, n) = _angles(points, origin, frame)
@@ -518,7 +532,7 @@ class RangeImage:
         cell = float(cell_factor)
         lo = np.array([c0 - 0.5, r0 - 0.5])  # the edges of the outer pixels
         hi = np.array([c1 + 0.5, r1 + 0.5])
-        shape = (int(math.ceil((c1 - c0 + 1) / cell)), int(math.ceil((r1 - r0 + 1) / cell)))
+        shape = _camera_shape(camera, cell)
         near, far = _near_far_pixels(points, camera.pixels, camera.width, origin, lo[0], lo[1], cell, *shape)
         returned = far[np.isfinite(far)]
         if returned.size == 0 or not returned.max() > 0:

@@ -244,6 +244,8 @@ def kth_neighbour_distance(points: np.ndarray, queries: np.ndarray, k: int, *, c
 
 #: Half-widths (pixels) of the windows an organized frame's queries are searched in, in turn.
 _WINDOWS = (2, 5, 11)
+#: Pixels per return beyond which an organized frame's index of pixels (4 bytes each) is not built.
+_PIXELS_PER_POINT = 8
 
 
 def kth_in_image(pts: Points, rows: np.ndarray, k: int) -> np.ndarray | None:
@@ -261,6 +263,8 @@ def kth_in_image(pts: Points, rows: np.ndarray, k: int) -> np.ndarray | None:
     if pts.image is None or len(pts.xyz) < k:
         return None
     pixels, (height, width), origin = pts.image
+    if height * width > _PIXELS_PER_POINT * len(pts.xyz) + 2**20:  # a sparse grid: its index would outweigh the cloud
+        return None
     camera = fit_camera(pts.xyz, pixels, (height, width), origin)
     if camera is None:
         return None
