@@ -116,6 +116,9 @@ def test_a_second_message_given_as_the_current_says_one_topic_serves_both(tmp_pa
                         "o.npz"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--topic names one message for both inputs" in r.stderr
     assert sorted(f.name for f in tmp_path.iterdir()) == ["b"]
+    with pytest.raises(sdp.SDPError, match="--topic names one message for both inputs"):  # the first, without :0
+        compare_files(bag, "/points:1", output=tmp_path / "o.npz", topic="/points")
+
 
 def test_a_bag_without_the_topic_lists_its_topics(tmp_path):
     path = write_ros2(tmp_path / "b2", [(1, message(small_frames()[0], 4, 5))], topic="/lidar")
