@@ -103,6 +103,23 @@ def test_bag_frames_read_pointcloud2_as_pcd_files_are_read(tmp_path, version):
         assert np.array_equal(cloud.sensor_origin, [0, 0, 0])  # the message frame's origin
 
 
+def test_a_second_message_given_as_the_current_says_one_topic_serves_both(tmp_path):
+    """`sdp change BAG --topic /points:0 /points:1` took the second message for a file: "unknown point-cloud format
+    '(no extension)'"."""
+    from sdp.cli import compare_files
+
+    bag = write_ros2(tmp_path / "b", [(k + 1, message(f, 4, 5, stamp=k + 1)) for k, f in enumerate(small_frames())])
+    with pytest.raises(sdp.SDPError, match=r"^/points:1: no such file; --topic names one message for both inputs: "
+                                           r"compare the messages of .*b with sdp watch BAG BAG --topic /points:0"):
+        compare_files(bag, "/points:1", output=tmp_path / "o.npz", topic="/points:0")
+    r = subprocess.run([sys.executable, "-m", "sdp.cli", "change", "b", "--topic", "/points:0", "/points:1", "-o",
+                        "o.npz"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--topic names one message for both inputs" in r.stderr
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["b"]
+    with pytest.raises(sdp.SDPError, match="--topic names one message for both inputs"):  # the first, without :0
+        compare_files(bag, "/points:1", output=tmp_path / "o.npz", topic="/points")
+
+
 def test_a_bag_without_the_topic_lists_its_topics(tmp_path):
     path = write_ros2(tmp_path / "b2", [(1, message(small_frames()[0], 4, 5))], topic="/lidar")
     with pytest.raises(CloudFileError, match=r"no topic '/points'; its PointCloud2 topics: /lidar"):

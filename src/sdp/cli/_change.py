@@ -302,6 +302,12 @@ def compare_files(reference, current, *, output, outputs: Outputs | None = None,
         raise SDPError("--topic reads a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
     if any(bags) and topic is None:  # before the same-message check, which would name no message
         raise topic_needed(reference if bags[0] else current)
+    bag, other = (reference, current) if bags[0] else (current, reference)
+    if bags[0] != bags[1] and not Path(other).exists() and str(other).split(":")[0] == topic.split(":")[0]:
+        # `sdp change BAG --topic T:0 T:1`: the second message parsed as the current file (ROS names hold no colon)
+        raise SDPError(f"{other}: no such file; --topic names one message for both inputs: compare the messages of "
+                       f"{bag} with sdp watch BAG BAG --topic {topic} (that message against every one), or give "
+                       "each its own file")
     if all(bags) and bag_path(reference) == bag_path(current):  # a ROS 2 bag's folder and its .db3 are one bag
         raise SDPError(f"{reference}: the reference and the current would be the same message ({topic}): compare a "
                        "bag's messages with sdp watch BAG_OR_REFERENCE BAG --topic TOPIC, or give each its own file")
