@@ -357,3 +357,22 @@ def test_sdp_distance_in_tiles_streams_the_reference_with_its_distances(rng, tmp
                           *extra)
         assert refused.returncode == 2 and f"{extra[0]} is not available with --tiled" in refused.stderr
     assert not (tmp_path / "s.laz").exists()
+
+
+def test_noiseless_scans_of_one_surface_are_not_significant_for_rounding():
+    # one plane sampled twice without noise (two grids) at UTM offsets: the level is about 0 and the
+    # distances are rounding: none of them a change
+    from scipy.spatial.transform import Rotation
+
+    def plane(shift):  # the same tilted plane, sampled on a grid moved by ``shift``
+        x, y = np.meshgrid(np.arange(shift, 6.0, 0.05), np.arange(shift, 6.0, 0.05))
+        return np.c_[x.ravel(), y.ravel(), 0.1 * x.ravel() + 0.05 * y.ravel()]
+
+    turn = Rotation.from_euler("xyz", [20, -10, 30], degrees=True).as_matrix()
+    offset = np.array([500_000.0, 5_000_000.0, 100.0])
+    ref = plane(0.0) @ turn.T + offset  # both scans through a pose's turn, as an E57 reader moves them
+    cur = plane(0.025) @ turn.T + offset
+    d = sdp.distances(ref, cur, registration_error=0.0)
+    ok = np.isfinite(d.distance)
+    assert ok.mean() > 0.9 and np.abs(d.distance[ok]).max() < 1e-6
+    assert not d.significant.any()

@@ -116,6 +116,10 @@ DISTANCE_FIELDS = ("distance", "lod", "significant", "n1", "n2", "spread1", "spr
 _ROUGHNESS_RATIO = 20.0  # Lague et al.: normal scale ≥ 20–25 × the roughness
 _MAX_NORMAL_FACTOR = 4.0  # the roughness rule may enlarge D up to this many projection scales
 _HALF_DISC = math.sqrt(2.0 / math.pi)  # a half-disc's weighted centroid from the axis, in σ_p (off_axis)
+#: The least level of detection per unit of the core point's coordinates: 2⁻⁴⁶, 64 float64 roundings
+#: of them (the offsets are means of differences of coordinates that large: two noiseless scans of
+#: one plane at UTM's 5e6 m differ by 5e-10 m, half a rounding); 71 nm there.
+_RESOLUTION = 2.0**-46
 
 
 
@@ -415,8 +419,8 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     m = len(order)
     dist, lod, n1, n2, s1, s2 = (np.empty(m) for _ in range(6))
     out_normal, level, off = np.empty((m, 3)), np.empty(m, np.int8), np.empty(m, np.bool_)
-    _results(order, stats[0], stats[1], normal, 0.0 if reg == "auto" else reg, reach, sigma_p, dist, lod, n1, n2,
-             s1, s2, out_normal, level, off)
+    _results(order, stats[0], stats[1], normal, 0.0 if reg == "auto" else reg, reach, sigma_p, core_sorted, dist, lod,
+             n1, n2, s1, s2, out_normal, level, off)
     normal = out_normal
     mean1 = np.full(m, np.nan)
     mean1[order] = stats[0][0]
@@ -582,11 +586,14 @@ def off_axis(l1, v1, l2, v2, sigma):
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _results(order, ref, cur, normal, reg, reach, sigma, dist, lod, n1, n2, s1, s2, out_normal, level, off):
+def _results(order, ref, cur, normal, reg, reach, sigma, core, dist, lod, n1, n2, s1, s2, out_normal, level, off):
     """The outputs, back in the core points' input order (``order``: sorted row → input row), in
     one pass: distance = mean₂ − mean₁ and M3C2's level of detection; NaN (level -1) where an
     epoch had no points or the two lie farther apart than ``reach``, and where the current's
-    surface lies off the cylinder's axis (:func:`off_axis`, ``off`` True there)."""
+    surface lies off the cylinder's axis (:func:`off_axis`, ``off`` True there). The level is at
+    least what the arithmetic resolves at the core point's coordinates (``core``, sorted as the
+    stats: :data:`_RESOLUTION` of their magnitude), so that noiseless data (a level of 0) does not
+    call rounding significant."""
     m1, sp1, c1, k1, l1, v1 = ref
     m2, sp2, c2, k2, l2, v2 = cur
     for i in nb.prange(order.shape[0]):
@@ -600,7 +607,8 @@ def _results(order, ref, cur, normal, reg, reach, sigma, dist, lod, n1, n2, s1, 
             off[j] = off_axis(l1[i], v1[i], l2[i], v2[i], sigma)
         if abs(d) <= reach and np.isfinite(normal[i, 0]) and not off[j]:
             dist[j] = d
-            lod[j] = 1.96 * (math.sqrt(sp1[i] ** 2 / c1[i] + sp2[i] ** 2 / c2[i]) + reg)
+            size = max(1.0, abs(core[i, 0]), abs(core[i, 1]), abs(core[i, 2]))
+            lod[j] = max(1.96 * (math.sqrt(sp1[i] ** 2 / c1[i] + sp2[i] ** 2 / c2[i]) + reg), _RESOLUTION * size)
             level[j] = max(k1[i], k2[i])
         else:
             dist[j] = lod[j] = np.nan

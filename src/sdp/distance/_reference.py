@@ -222,8 +222,8 @@ class PreparedReference:
         m = len(order)
         dist, lod, n1, n2, s1, s2 = (np.empty(m) for _ in range(6))
         out_normal, level, off = np.empty((m, 3)), np.empty(m, np.int8), np.empty(m, np.bool_)
-        _results(order, ref, cur_stats, normal, reg, reach, sigma_p, dist, lod, n1, n2, s1, s2, out_normal, level,
-                 off)
+        _results(order, ref, cur_stats, normal, reg, reach, sigma_p, queries, dist, lod, n1, n2, s1, s2, out_normal,
+                 level, off)
         how = "towards ({:g}, {:g}, {:g})".format(*self.orientation)
         return Distances(core_points=core.copy(), distance=dist, lod=lod, significant=np.abs(dist) > lod,
                          n1=n1, n2=n2, spread1=s1, spread2=s2, normal=out_normal, level=level,
