@@ -1,6 +1,7 @@
 """M3C2's step edge: no distance where the current's surface only touches the cylinder off its axis."""
 
 import numpy as np
+import pytest
 
 import sdp
 from sdp.cli._text import distance_text
@@ -119,6 +120,7 @@ def test_series_epochs_find_the_same_places_off_the_axis(rng):
     assert not old.measure(cur, registration_error=0).off_axis.any()
 
 
+@pytest.mark.slow  # tiles / an archive: the full suite's
 def test_tiles_find_the_same_places_off_the_axis(rng):
     ref, cur, core, _, _ = door_distances(rng)
     d = sdp.distances(ref, cur, cylinder=sdp.Cylinder(projection_scale=D), registration_error=0,
@@ -130,6 +132,7 @@ def test_tiles_find_the_same_places_off_the_axis(rng):
     assert np.array_equal(t.off_axis, d.off_axis)
 
 
+@pytest.mark.slow  # tiles / an archive: the full suite's
 def test_an_archive_without_the_references_centroid_is_appended_to(tmp_path):
     """An archive written before the reference's centroid across the axis was kept: appended to,
     its epochs measured as it measured them (no place off the axis)."""
