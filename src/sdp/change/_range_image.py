@@ -382,13 +382,6 @@ def _camera_shape(camera: Camera, cell: float) -> tuple[int, int]:
     return int(math.ceil((c1 - c0 + 1) / cell)), int(math.ceil((r1 - r0 + 1) / cell))
 
 
-def _camera_cells(camera: Camera, cell: float) -> int:
-    """The cells of a camera's image (a sparse grid of many pixels, a TLS grid stored as an
-    organized PCD: beyond :data:`_MAX_CELLS` its returns make an angular image of coarser cells)."""
-    a, b = _camera_shape(camera, cell)
-    return a * b
-
-
 # ---------------------------------------------------------------- range image
 
 @dataclass(frozen=True)
@@ -497,8 +490,10 @@ class RangeImage:
         """
         points = np.ascontiguousarray(points, dtype=np.float64)
         origin = np.asarray(origin, dtype=np.float64)
+        # a sparse grid of many pixels (a TLS grid stored as an organized PCD) beyond _MAX_CELLS: the
+        # angular image, whose cells coarsen
         if camera is not None and len(camera.pixels) == len(points) \
-                and _camera_cells(camera, cell_factor) <= _MAX_CELLS:
+                and math.prod(_camera_shape(camera, cell_factor)) <= _MAX_CELLS:
             return cls._from_camera(points, origin, camera, cell_factor=cell_factor, rays_sent=rays_sent)
         frame = _view_frame(points, origin, None if pole is None else _unit_pole(pole))
         az, el, rng, (lo_a, lo_e, hi_a, hi_e, n) = _angles(points, origin, frame)
@@ -528,10 +523,10 @@ class RangeImage:
     def _from_camera(cls, points, origin, camera: Camera, *, cell_factor: float, rays_sent: bool) -> RangeImage:
         """:meth:`from_points` of an organized camera frame: cells of ``cell_factor`` pixels over the
         rows and columns holding a return, every one of them in the view."""
-        r0, r1, c0, c1 = (int(b) for b in camera.box)
+        r0, r1, c0, c1 = camera.box
         cell = float(cell_factor)
-        lo = np.array([c0 - 0.5, r0 - 0.5])  # the edges of the outer pixels
-        hi = np.array([c1 + 0.5, r1 + 0.5])
+        lo = np.array([c0 - 0.5, r0 - 0.5], np.float64)  # the edges of the outer pixels
+        hi = np.array([c1 + 0.5, r1 + 0.5], np.float64)
         shape = _camera_shape(camera, cell)
         near, far = _near_far_pixels(points, camera.pixels, camera.width, origin, lo[0], lo[1], cell, *shape)
         returned = far[np.isfinite(far)]

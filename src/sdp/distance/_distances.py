@@ -162,8 +162,8 @@ class Distances:
     off_axis : ndarray (m,) bool or None
         Core points without a distance because the current's surface only touches the cylinder
         off its axis (at its rim: a door swung open inside its frame; :func:`off_axis`): its
-        weighted centroid across the axis lies farther from the reference's than σ_p plus their
-        sampling noise. None: not tested (an archive's reference that did not keep its centroid).
+        weighted centroid across the axis lies farther from the reference's than a half-disc's
+        (0.80σ_p) plus 1.96 times their sampling noise. None: not tested (an archive's reference that did not keep its centroid).
     orientation : str
         How the normals were oriented.
     timings : dict of str to float

@@ -274,10 +274,11 @@ def kth_in_image(pts: Points, rows: np.ndarray, k: int) -> np.ndarray | None:
     sine = ray_sine_per_pixel(camera, height, error)
     index = np.full(height * width, -1, np.int32)
     index[camera.pixels] = np.arange(len(camera.pixels), dtype=np.int32)
+    rows = np.asarray(rows, np.int64)
     out = np.full(len(rows), np.nan)
-    for half in _WINDOWS:
-        _window_kth(pts.xyz, camera.pixels, index, width, height, origin, np.asarray(rows, np.int64), k, half,
-                    sine * (half + 1 - 2 * error), out)
+    for half in _WINDOWS:  # each window only for the rows the ones before did not prove
+        _window_kth(pts.xyz, camera.pixels, index, width, height, origin, rows, k, half, sine * (half + 1 - 2 * error),
+                    out)
     return out
 
 
