@@ -10,9 +10,12 @@
    re-scans (after GICP; outside the people = points the density test leaves unchanged), the
    Toronto ground (class 2, after density alignment).
 3. The combined decision in tiles against memory on the Toronto pair (:func:`tiles`).
+4. Where the misses lie (:func:`misses`): each decision's missed and false points of the 24 pairs
+   with an appeared object, by where the current return lies against the reference's return at
+   the same pixel, and the kappa either kind would give if the decision had them right.
 
 Nothing here is fitted: the rule's constants are in ``sdp.change._combined`` and
-``sdp.distance._noise`` with their reasons. Prints markdown; ``--only kinect|static|tiles``.
+``sdp.distance._noise`` with their reasons. Prints markdown; ``--only kinect|static|tiles|misses``.
 """
 
 from __future__ import annotations
@@ -142,6 +145,57 @@ def static():
     print(f"\nload {os.getloadavg()}")
 
 
+def misses():
+    """The missed (FN) and false (FP) points of each decision on the 24 pairs with an appeared
+    object, by the current return against the reference's return at the same pixel (the camera
+    stayed put): in front of it by more than 1 cm (the reference saw through the place), within
+    1 cm, behind it by more than 1 cm (the reference could not see the place: its hider is gone
+    or still there), or no reference return at that pixel. Behind, the decision rests on the
+    plane test (:mod:`sdp.change._planes`): a point behind a gone hider continuing the unchanged
+    surface is unchanged (a moved object's table), else changed. "Kappa with the tables right":
+    the false points behind counted unchanged; "with the hidden objects right": the missed points
+    behind counted changed."""
+    decisions = ("point", "combined")
+    where = ("in front", "within 1 cm", "behind", "no reference return")
+    counts = {(dec, kind, w): 0 for dec in decisions for kind in ("FN", "FP") for w in where}
+    gone = dict.fromkeys(decisions, 0)
+    kappas = {(dec, k): [] for dec in decisions for k in ("as is", "tables right", "hidden objects right", "both")}
+    for t, _, _, truth, scored in labelled_pairs():
+        if not truth.any():
+            continue
+        ref, cur = sdp.read_points(LEARN / f"learn{t - 1}.pcd"), sdp.read_points(LEARN / f"learn{t}.pcd")
+        rng = np.full(ref.image[0] * ref.image[1], np.nan)
+        rng[ref.pixels] = np.linalg.norm(ref.xyz - ref.sensor_origin, axis=1)
+        ahead = rng[cur.pixels] - np.linalg.norm(cur.xyz - cur.sensor_origin, axis=1)  # > 0: current in front
+        with np.errstate(invalid="ignore"):
+            w = np.select([ahead > 0.01, np.abs(ahead) <= 0.01, ahead < -0.01], where[:3], where[3])
+        behind = w == "behind"
+        for dec in decisions:
+            r = sdp.detect_changes(ref, cur, decision=dec)
+            app = r.appeared
+            fn, fp = truth & ~app, scored & ~truth & app
+            for kind, m in (("FN", fn), ("FP", fp)):
+                for x in where:
+                    counts[dec, kind, x] += int((m & (w == x)).sum())
+            gone_ref = np.zeros(len(rng), bool)
+            gone_ref[ref.pixels] = r.disappeared
+            gone[dec] += int((fn & behind & gone_ref[cur.pixels]).sum())
+            for k, a in (("as is", app), ("tables right", app & ~(behind & ~truth)),
+                         ("hidden objects right", app | (behind & truth)), ("both", (app & ~(behind & ~truth)) | (behind & truth))):
+                kappas[dec, k].append(sdp.kappa(truth[scored], a[scored]))
+        print(t, flush=True)
+    print("\n| decision | points | " + " | ".join(where) + " |")
+    print("|---|---|" + "---:|" * len(where))
+    for dec in decisions:
+        for kind in ("FN", "FP"):
+            print(f"| {dec} | {kind} | " + " | ".join(f"{counts[dec, kind, x]:,}" for x in where) + " |")
+    for dec in decisions:
+        print(f"\n{dec}: missed points behind, whose reference return at that pixel the decision marked "
+              f"disappeared: {gone[dec]:,} of {counts[dec, 'FN', 'behind']:,}; kappa " +
+              ", ".join(f"{k} {np.mean(v):.3f}" for (d, k), v in kappas.items() if d == dec))
+    print(f"\nload {os.getloadavg()}")
+
+
 def tiles():
     """The combined decision in tiles against memory on the Toronto pair (whole scene, 2023 aligned
     to 2015 with ``fix_horizontal``): the states, and the time, with Dask's synchronous scheduler
@@ -203,7 +257,7 @@ def tiles():
 
 if __name__ == "__main__":
     p = argparse.ArgumentParser()
-    p.add_argument("--only", choices=("kinect", "static", "tiles"))
+    p.add_argument("--only", choices=("kinect", "static", "tiles", "misses"))
     p.add_argument("--ablation", action="store_true", help="also the combined decision without the noise model")
     a = p.parse_args()
     if a.only in (None, "kinect"):
@@ -212,3 +266,5 @@ if __name__ == "__main__":
         static()
     if a.only in (None, "tiles"):
         tiles()
+    if a.only in (None, "misses"):
+        misses()
