@@ -475,3 +475,42 @@ def test_a_camera_ray_that_returned_nothing_looked_through_the_place(tmp_path):
     # an array gives no image: its view ends at its returns, and the person above them is not comparable
     plain = sdp.detect_changes(a.xyz, b.xyz, coverage=sdp.Coverage(sensor_origin=(0, 0, 0)))
     assert plain.current_not_comparable[on_person].mean() > 0.3
+
+
+def _plates(plates, *, rng, width=240, height=240, fov=0.6, noise=0.001):
+    """A camera at the origin looking along +z, one ray per pixel cast against ``plates`` (centre,
+    normal, half-width in x and in y of each rectangle, bounded in the camera's x and y) and a
+    wall at z = 2.5 m: (hits (n, 3), index of the plate hit, -1 the wall)."""
+    u, v = np.meshgrid(np.linspace(-fov / 2, fov / 2, width), np.linspace(-fov / 2, fov / 2, height))
+    rays = np.c_[u.ravel(), v.ravel(), np.ones(u.size)]
+    t = np.full(len(rays), 2.5)
+    which = np.full(len(rays), -1)
+    for i, (centre, normal, hx, hy) in enumerate(plates):
+        centre, normal = np.asarray(centre, float), np.asarray(normal, float)
+        ti = (centre @ normal) / (rays @ normal)
+        p = rays * ti[:, None]
+        hit = (ti > 0) & (ti < t) & (np.abs(p[:, 0] - centre[0]) <= hx) & (np.abs(p[:, 1] - centre[1]) <= hy)
+        t, which = np.where(hit, ti, t), np.where(hit, i, which)
+    r = np.linalg.norm(rays, axis=1) * t
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True) * (r + noise * rng.standard_normal(len(r)))[:, None], which
+
+
+def test_a_new_object_behind_the_front_of_the_one_it_replaced_is_found_and_the_uncovered_wall_is_not():
+    # a plate turned 30° stood 1.5 m away; it is taken away and a plate facing the camera is put
+    # in its place across half of its silhouette, 5 cm behind its centre: where the old plate's front
+    # stood before the new one, the reference could not see; the two surfaces cross along a line,
+    # where the new plate's points lie on the old plate's surface (a band the density calls unchanged)
+    rng = np.random.default_rng(3)
+    old = ((0.0, 0.0, 1.5), (-np.sin(np.radians(30)), 0.0, np.cos(np.radians(30))), 0.2, 0.2)
+    new = ((0.0, -0.1, 1.55), (0.0, 0.0, 1.0), 0.2, 0.1)
+    reference, hit_ref = _plates([old], rng=rng)
+    current, which = _plates([new], rng=rng)
+    r = sdp.detect_changes(reference, current, lattice=sdp.Lattice(voxel_size=0.005),
+                           coverage=sdp.Coverage(sensor_origin=(0.0, 0.0, 0.0)))
+    plate = which == 0
+    hidden = plate & (current[:, 0] < 0.0)  # behind the old plate by 5σ and more (the band: x ≈ 0.02–0.14 m)
+    assert hidden.sum() > 2500
+    assert r.appeared[hidden].mean() > 0.95  # not the new plate's band continued (none of it was found before)
+    uncovered = (which == -1) & (hit_ref == 0)  # the same rays: the wall the old plate hid, nothing put there
+    assert uncovered.sum() > 2500
+    assert not r.appeared[uncovered].any() and r.current_not_comparable[uncovered].mean() < 0.05

@@ -464,6 +464,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
     band = {role: sensor_band(c, coverage.range_noise, xyz=p.xyz, origin=o)
             for role, p, c, o in (("reference", ref, reference, o_ref), ("current", cur, current, o_cur))}
     noise_of = {id(ref): band["reference"][0], id(cur): band["current"][0]}
+    raw = {id(ref): dis, id(cur): app}  # each epoch's points the density finds gone from the other
 
     def finish(job):
         """Coverage and region rules of one direction: (the points' states and labels, regions), times."""
@@ -473,7 +474,8 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
                                 range_noise=noise_of[id(other)], present=fld.inside, other_scan=other_scan,
                                 image=views[id(other)].get, own_origin=own_origin, own_scan=own_scan,
                                 own_image=views[id(pts)].get, own_range_noise=noise_of[id(pts)],
-                                other_pole=pole_of[id(other)], own_pole=pole_of[id(pts)])
+                                other_pole=pole_of[id(other)], own_pole=pole_of[id(pts)],
+                                other_gone=lambda: other.xyz[raw[id(other)]])
         steps = {"coverage": time.perf_counter() - t}
         t = time.perf_counter()
         unseen = states == NOT_COMPARABLE
@@ -591,7 +593,7 @@ def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | 
                    range_noise: float = DEFAULTS.range_noise, image=None, present=None,
                    other_scan: np.ndarray | None = None, own_origin=None, own_scan=None,
                    own_image=None, own_range_noise: float | None = None, other_pole=None,
-                   own_pole=None) -> np.ndarray:
+                   own_pole=None, other_gone=None) -> np.ndarray:
     """The state (:mod:`sdp.change._coverage`) of each point of ``points`` flagged ``changed`` against
     the other epoch (its points ``other`` and field ``other_field``): by the other scan's rays
     when its origin is known (:func:`sdp.change._visibility.visibility_states`, ``present`` and
@@ -603,14 +605,16 @@ def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | 
     scan does not hold is gone only where those sensors could have seen its place
     (:func:`sdp.change._visibility.gone_only_if_seen`). ``other_pole`` and ``own_pole``: the
     sensors' verticals, shaped as their origins (:func:`sdp.change._visibility.sensor_poles`), or
-    None."""
+    None. ``other_gone``: the points of ``other`` the density finds gone, or a callable returning
+    them (``gone`` of :func:`~sdp.change._visibility.visibility_states`: no part of a plane test's
+    patch within twice the kernel's support)."""
     if other_origin is not None:
         present = gone_only_if_seen(present, points, own_origin, own_scan, floor=other_field.sigma, image=own_image,
                                     range_noise=range_noise if own_range_noise is None else own_range_noise,
                                     other_origin=other_origin, pole=own_pole)
         states = visibility_states(points, changed, other, other_origin, sigma=other_field.sigma,
                                    range_noise=range_noise, image=image, present=present, other_scan=other_scan,
-                                   pole=other_pole)
+                                   pole=other_pole, gone=other_gone, gone_reach=2.0 * other_field.truncate)
         if not coverage:
             states[states == NOT_COMPARABLE] = CHANGED
         return states

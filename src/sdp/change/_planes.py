@@ -6,6 +6,16 @@ et al. [1]), and that patch is flat. That is the table a moved object uncovers, 
 field of view that moved. Points in one cube share the patch nearest to their mean (one
 neighbour query per cube, by :func:`sdp._core._kdtree.k_nearest`).
 
+What left is no evidence of what stayed: the patch leaves out the unchanged points near a point
+the density finds gone from the other epoch. An unchanged verdict rests on the other epoch's
+points within the kernel's support (truncate·σ), a gone point's verdict on this epoch's points
+within the same reach; within twice that reach the two verdicts share their evidence. There an
+unchanged point may be a new object's face where it passes through the surface of the object it
+replaced (the density cannot tell two surfaces apart within about 2σ), or the foot of a moved
+object beside its table: a patch of them explained a new object's hidden faces as unchanged
+(put behind the old one's front) and failed on the uncovered table beside them
+(docs/benchmarks.md §11).
+
 References
 ----------
 .. [1] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle, "Surface reconstruction from
@@ -27,14 +37,21 @@ __all__ = ["explain_by_planes"]
 
 
 def explain_by_planes(points, changed, states, unseen, *, plane_points, plane_stride, plane_distance,
-                       plane_flatness, plane_bin) -> np.ndarray:
+                       plane_flatness, plane_bin, gone=None, gone_reach: float = 0.0) -> np.ndarray:
     """``states`` with the ``unseen`` points that continue the unchanged surface made unchanged: on
     its plane, and for a point the other scan says nothing of (not comparable: outside its view,
     or hidden behind what is still there) also within the patch's reach (twice its spread of its
     centre). Farther, the plane would be extrapolated over ground never seen; a point the other
     scan saw changed (a gone hider, a free ray) is judged by the plane alone, as a moved object's
-    uncovered table."""
+    uncovered table. ``gone``: the other epoch's points the density finds gone (g, 3), or a
+    callable returning them; the unchanged points within ``gone_reach`` of one are no part of a
+    patch."""
     static = _every_nth_unchanged(points, changed, max(1, int(plane_stride)))
+    if len(unseen) and gone is not None:
+        gone = np.asarray(gone() if callable(gone) else gone, np.float64).reshape(-1, 3)
+        if len(gone) and len(static):
+            near = np.linalg.norm(static - gone[k_nearest(gone, static, 1)[:, 0]], axis=1) <= gone_reach
+            static = static[~near]
     if len(unseen) and len(static) >= 3:
         on_plane, within = _on_unchanged_plane(np.take(points, unseen, axis=0), static,
                                                k=min(int(plane_points), len(static)), distance=plane_distance,

@@ -154,7 +154,7 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
                             plane_flatness: float = 1.0,
                             spacing: float | None = None, image: RangeImage | None = None,
                             present=None, other_scan: np.ndarray | None = None,
-                            pole: np.ndarray | None = None) -> np.ndarray:
+                            pole: np.ndarray | None = None, gone=None, gone_reach: float = 6.0) -> np.ndarray:
     """What the other scan's view says of each changed point: unchanged, changed or not comparable.
 
     Parameters
@@ -213,6 +213,11 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     pole : ndarray (3,) or (k, 3), optional
         The vertical of the other scan's sensor, or of each of its k scanners
         (:func:`sensor_poles`), about which its range images are laid out; None: their points' own.
+    gone : ndarray (g, 3) or callable, optional
+        The points of ``other`` the density finds gone (inside the other epoch's difference
+        volume), or a callable returning them when the plane test first needs them: the
+        unchanged points within ``gone_reach``·σ of one are no part of a plane test's patch
+        (:mod:`sdp.change._planes`). 6σ: twice the kernel's support at ``truncate=3``.
 
     Returns
     -------
@@ -230,7 +235,8 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     if len(cand) == 0:
         return states
     plane = dict(plane_points=plane_points, plane_stride=plane_stride, plane_distance=plane_distance * sigma,
-                 plane_flatness=plane_flatness * sigma, plane_bin=plane_bin * sigma)
+                 plane_flatness=plane_flatness * sigma, plane_bin=plane_bin * sigma, gone=gone,
+                 gone_reach=gone_reach * sigma)
     if np.ndim(other_origin) == 2:
         return _many_scanners(points, changed, states, cand, other, np.asarray(other_origin, np.float64), other_scan,
                               range_noise=range_noise, floor=band_floor * sigma, cell_factor=cell_factor, reach=reach,
