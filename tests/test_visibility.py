@@ -285,6 +285,15 @@ def test_plane_test_helpers_match_numpy(rng):
     for stride in (1, 3, 8):
         np.testing.assert_array_equal(_every_nth_unchanged(query, changed, stride),
                                       query[np.flatnonzero(~changed)[::stride]])
+    # which points lie within a reach of another set: as a brute force, at any reach (none, some, all)
+    from scipy.spatial.distance import cdist
+
+    from sdp.change._planes import near_any
+
+    others = query[::50] + 0.3
+    nearest = cdist(query, others).min(axis=1)
+    for reach in (1e-9, 1e-3, 0.2, 0.5, 50.0):  # 1e-9: too many cells to key, the k-d tree answers
+        np.testing.assert_array_equal(near_any(query, others, reach), nearest <= reach)
 
 
 @pytest.mark.parametrize("far", [0.0, -3e5, 1e6])

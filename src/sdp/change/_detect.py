@@ -475,7 +475,7 @@ def detect_changes(reference, current, *, lattice: Lattice | None = None, covera
                                 image=views[id(other)].get, own_origin=own_origin, own_scan=own_scan,
                                 own_image=views[id(pts)].get, own_range_noise=noise_of[id(pts)],
                                 other_pole=pole_of[id(other)], own_pole=pole_of[id(pts)],
-                                other_gone=lambda: other.xyz[raw[id(other)]])
+                                other_gone=raw[id(other)])
         steps = {"coverage": time.perf_counter() - t}
         t = time.perf_counter()
         unseen = states == NOT_COMPARABLE
@@ -605,9 +605,9 @@ def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | 
     scan does not hold is gone only where those sensors could have seen its place
     (:func:`sdp.change._visibility.gone_only_if_seen`). ``other_pole`` and ``own_pole``: the
     sensors' verticals, shaped as their origins (:func:`sdp.change._visibility.sensor_poles`), or
-    None. ``other_gone``: the points of ``other`` the density finds gone, or a callable returning
-    them (``gone`` of :func:`~sdp.change._visibility.visibility_states`: no part of a plane test's
-    patch within twice the kernel's support)."""
+    None. ``other_gone``: which points of ``other`` the density finds gone (a mask, or a callable
+    returning it: ``gone`` of :func:`~sdp.change._visibility.visibility_states`; the unchanged
+    points near them are no part of a plane test's patch)."""
     if other_origin is not None:
         present = gone_only_if_seen(present, points, own_origin, own_scan, floor=other_field.sigma, image=own_image,
                                     range_noise=range_noise if own_range_noise is None else own_range_noise,

@@ -29,7 +29,7 @@ import math
 import numba as nb
 import numpy as np
 
-from .._core._cells import MAX_INDEX, cell_key, probe, table_bits
+from .._core._cells import BITS, MAX_INDEX, cell_key, find_cell, linked_cells, probe, table_bits
 from .._core._kdtree import k_nearest
 from ._coverage import CHANGED, UNCHANGED
 
@@ -48,16 +48,71 @@ def explain_by_planes(points, changed, states, unseen, *, plane_points, plane_st
     patch."""
     static = _every_nth_unchanged(points, changed, max(1, int(plane_stride)))
     if len(unseen) and gone is not None:
-        gone = np.asarray(gone() if callable(gone) else gone, np.float64).reshape(-1, 3)
+        gone = np.ascontiguousarray(gone() if callable(gone) else gone, np.float64).reshape(-1, 3)
         if len(gone) and len(static):
-            near = np.linalg.norm(static - gone[k_nearest(gone, static, 1)[:, 0]], axis=1) <= gone_reach
-            static = static[~near]
+            static = static[~near_any(static, gone, gone_reach)]
     if len(unseen) and len(static) >= 3:
         on_plane, within = _on_unchanged_plane(np.take(points, unseen, axis=0), static,
                                                k=min(int(plane_points), len(static)), distance=plane_distance,
                                                flatness=plane_flatness, bin_size=plane_bin)
         states[unseen[on_plane & (within | (states[unseen] == CHANGED))]] = UNCHANGED
     return states
+
+
+def near_any(points: np.ndarray, others: np.ndarray, reach: float) -> np.ndarray:
+    """Which ``points`` lie within ``reach`` of a point of ``others`` (both (n, 3) float64, finite,
+    non-empty). ``others`` in cells of side ``reach`` (:func:`sdp._core._cells.linked_cells`): a
+    point's neighbours within reach lie in its cell's 27; a second table of the cells next to an
+    occupied one answers most points with one lookup."""
+    lo = np.minimum(points.min(axis=0), others.min(axis=0)) - reach  # every neighbour's index ≥ 0
+    span = (np.maximum(points.max(axis=0), others.max(axis=0)) - lo) / reach if reach > 0 else np.inf
+    if not np.all(span < MAX_INDEX - 2):  # cells too many to key: not expected of a scan at its own σ
+        return np.linalg.norm(points - others[k_nearest(others, points, 1)[:, 0]], axis=1) <= reach
+    bits = table_bits(max(len(others) // 4, 1))
+    while True:
+        keys, heads, nxt, cells, _ = linked_cells(others, lo, reach, bits)
+        if len(nxt):
+            return _near_any(keys, heads, nxt, others, points, lo, reach, cells)
+        bits += 2  # the table got half full: more cells than guessed
+
+
+@nb.njit(cache=True, nogil=True)
+def _near_any(keys, heads, nxt, others, points, lo, c, cells):
+    """:func:`near_any`'s kernel over the cell lists of ``others`` (side ``c`` from ``lo``)."""
+    mask, shift = keys.shape[0] - 1, 64 - int(round(math.log2(keys.shape[0])))
+    low = (1 << BITS) - 1
+    # the cells next to an occupied one (itself included): a point in none of them has no neighbour
+    bits = table_bits(2 * 27 * cells)
+    ring = np.full(1 << bits, -1, np.int64)
+    rmask, rshift = (1 << bits) - 1, 64 - bits
+    for s in range(keys.shape[0]):
+        key = keys[s]
+        if key >= 0:
+            ix, iy, iz = key >> (2 * BITS), (key >> BITS) & low, key & low
+            for dx in range(-1, 2):
+                for dy in range(-1, 2):
+                    for dz in range(-1, 2):
+                        k = cell_key(ix + dx, iy + dy, iz + dz)
+                        ring[probe(ring, k, rshift, rmask)] = k
+    inv, r2 = 1.0 / c, c * c
+    out = np.zeros(points.shape[0], np.bool_)
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        cx, cy, cz = int(math.floor((x - lo[0]) * inv)), int(math.floor((y - lo[1]) * inv)), \
+            int(math.floor((z - lo[2]) * inv))
+        k = cell_key(cx, cy, cz)
+        if ring[probe(ring, k, rshift, rmask)] != k:
+            continue
+        for ix in range(cx - 1, cx + 2):
+            for iy in range(cy - 1, cy + 2):
+                for iz in range(cz - 1, cz + 2):
+                    s = find_cell(keys, ix, iy, iz, shift, mask)
+                    p = heads[s] if s >= 0 else -1
+                    while p >= 0 and not out[i]:
+                        dx, dy, dz = others[p, 0] - x, others[p, 1] - y, others[p, 2] - z
+                        out[i] = dx * dx + dy * dy + dz * dz <= r2
+                        p = nxt[p]
+    return out
 
 
 def _on_unchanged_plane(query: np.ndarray, static: np.ndarray, *, k: int, distance: float, flatness: float,

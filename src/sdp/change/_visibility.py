@@ -213,10 +213,11 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     pole : ndarray (3,) or (k, 3), optional
         The vertical of the other scan's sensor, or of each of its k scanners
         (:func:`sensor_poles`), about which its range images are laid out; None: their points' own.
-    gone : ndarray (g, 3) or callable, optional
-        The points of ``other`` the density finds gone (inside the other epoch's difference
-        volume), or a callable returning them when the plane test first needs them: the
-        unchanged points within ``gone_reach``·σ of one are no part of a plane test's patch
+    gone : ndarray of bool (m,) or callable, optional
+        Which points of ``other`` the density finds gone (inside the other epoch's difference
+        volume), or a callable returning that mask when the plane test first needs it: the
+        unchanged points within ``gone_reach``·σ of one of every ``plane_stride``-th gone point
+        (thinned as the unchanged points are) are no part of a plane test's patch
         (:mod:`sdp.change._planes`). 6σ: twice the kernel's support at ``truncate=3``.
 
     Returns
@@ -234,6 +235,9 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     cand = np.flatnonzero(changed)
     if len(cand) == 0:
         return states
+    if gone is not None:
+        mask = gone
+        gone = lambda: np.take(other, np.flatnonzero(mask() if callable(mask) else mask)[::plane_stride], axis=0)  # noqa: E731
     plane = dict(plane_points=plane_points, plane_stride=plane_stride, plane_distance=plane_distance * sigma,
                  plane_flatness=plane_flatness * sigma, plane_bin=plane_bin * sigma, gone=gone,
                  gone_reach=gone_reach * sigma)
