@@ -606,8 +606,8 @@ def judge_coverage(points: np.ndarray, changed: np.ndarray, other: np.ndarray | 
     (:func:`sdp.change._visibility.gone_only_if_seen`). ``other_pole`` and ``own_pole``: the
     sensors' verticals, shaped as their origins (:func:`sdp.change._visibility.sensor_poles`), or
     None. ``other_gone``: which points of ``other`` the density finds gone (a mask, or a callable
-    returning it: ``gone`` of :func:`~sdp.change._visibility.visibility_states`; the unchanged
-    points near them are no part of a plane test's patch)."""
+    giving it over some rows: ``gone`` of :func:`~sdp.change._visibility.visibility_states`; the
+    unchanged points near them are no part of a plane test's patch)."""
     if other_origin is not None:
         present = gone_only_if_seen(present, points, own_origin, own_scan, floor=other_field.sigma, image=own_image,
                                     range_noise=range_noise if own_range_noise is None else own_range_noise,

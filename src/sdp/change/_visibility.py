@@ -215,10 +215,11 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
         (:func:`sensor_poles`), about which its range images are laid out; None: their points' own.
     gone : ndarray of bool (m,) or callable, optional
         Which points of ``other`` the density finds gone (inside the other epoch's difference
-        volume), or a callable returning that mask when the plane test first needs it: the
-        unchanged points within ``gone_reach``·σ of one of every ``plane_stride``-th gone point
-        (thinned as the unchanged points are) are no part of a plane test's patch
-        (:mod:`sdp.change._planes`). 6σ: twice the kernel's support at ``truncate=3``.
+        volume), or a callable ``gone(rows)`` giving that mask over ``other[rows]`` when the
+        plane test first needs it. Every ``plane_stride``-th point of ``other`` is looked at (thinned
+        as the unchanged points are): the unchanged points within ``gone_reach``·σ of one found
+        gone are no part of a plane test's patch (:mod:`sdp.change._planes`). 6σ: twice the
+        kernel's support at ``truncate=3``.
 
     Returns
     -------
@@ -236,8 +237,10 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     if len(cand) == 0:
         return states
     if gone is not None:
-        mask = gone
-        gone = lambda: np.take(other, np.flatnonzero(mask() if callable(mask) else mask)[::plane_stride], axis=0)  # noqa: E731
+        found, rows = gone, slice(None, None, max(1, int(plane_stride)))
+
+        def gone():
+            return np.take(other[rows], np.flatnonzero(found(rows) if callable(found) else found[rows]), axis=0)
     plane = dict(plane_points=plane_points, plane_stride=plane_stride, plane_distance=plane_distance * sigma,
                  plane_flatness=plane_flatness * sigma, plane_bin=plane_bin * sigma, gone=gone,
                  gone_reach=gone_reach * sigma)
