@@ -31,6 +31,7 @@ import numpy as np
 
 from .._core._cells import BITS, MAX_INDEX, cell_key, find_cell, linked_cells, probe, table_bits
 from .._core._kdtree import k_nearest
+from .._core._points import finite_bounds
 from ._coverage import CHANGED, UNCHANGED
 
 __all__ = ["explain_by_planes"]
@@ -64,8 +65,9 @@ def near_any(points: np.ndarray, others: np.ndarray, reach: float) -> np.ndarray
     non-empty). ``others`` in cells of side ``reach`` (:func:`sdp._core._cells.linked_cells`): a
     point's neighbours within reach lie in its cell's 27; a second table of the cells next to an
     occupied one answers most points with one lookup."""
-    lo = np.minimum(points.min(axis=0), others.min(axis=0)) - reach  # every neighbour's index ≥ 0
-    span = (np.maximum(points.max(axis=0), others.max(axis=0)) - lo) / reach if reach > 0 else np.inf
+    (lo_p, hi_p, _), (lo_o, hi_o, _) = finite_bounds(points), finite_bounds(others)  # NumPy's axis=0 is slower
+    lo = np.minimum(lo_p, lo_o) - reach  # every neighbour's index ≥ 0
+    span = (np.maximum(hi_p, hi_o) - lo) / reach if reach > 0 else np.inf
     if not np.all(span < MAX_INDEX - 2):  # cells too many to key: not expected of a scan at its own σ
         return np.linalg.norm(points - others[k_nearest(others, points, 1)[:, 0]], axis=1) <= reach
     bits = table_bits(max(len(others) // 4, 1))
