@@ -237,10 +237,11 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     if len(cand) == 0:
         return states
     if gone is not None:
-        found, rows = gone, slice(None, None, max(1, int(plane_stride)))
+        found, step = gone, max(1, int(plane_stride))
 
         def gone():
-            return np.take(other[rows], np.flatnonzero(found(rows) if callable(found) else found[rows]), axis=0)
+            rows = slice(None, None, step)
+            return other[np.flatnonzero(found(rows) if callable(found) else found[rows]) * step]
     plane = dict(plane_points=plane_points, plane_stride=plane_stride, plane_distance=plane_distance * sigma,
                  plane_flatness=plane_flatness * sigma, plane_bin=plane_bin * sigma, gone=gone,
                  gone_reach=gone_reach * sigma)
