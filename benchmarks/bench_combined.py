@@ -182,8 +182,9 @@ def misses():
             gone_ref = np.zeros(len(rng), bool)
             gone_ref[ref.pixels] = r.disappeared
             gone[dec] += int((fn & behind & gone_ref[cur.pixels]).sum())
-            for k, a in (("as is", app), ("tables right", app & ~(behind & ~truth)),
-                         ("hidden objects right", app | (behind & truth)), ("both", (app & ~(behind & ~truth)) | (behind & truth))):
+            tables, hidden = app & ~(behind & ~truth), app | (behind & truth)
+            for k, a in (("as is", app), ("tables right", tables), ("hidden objects right", hidden),
+                         ("both", tables | (behind & truth))):
                 kappas[dec, k].append(sdp.kappa(truth[scored], a[scored]))
         print(t, flush=True)
     print("\n| decision | points | " + " | ".join(where) + " |")

@@ -501,7 +501,8 @@ def _plates(plates, *, rng, width=240, height=240, fov=0.6, noise=0.001):
         hit = (ti > 0) & (ti < t) & (np.abs(p[:, 0] - centre[0]) <= hx) & (np.abs(p[:, 1] - centre[1]) <= hy)
         t, which = np.where(hit, ti, t), np.where(hit, i, which)
     r = np.linalg.norm(rays, axis=1) * t
-    return rays / np.linalg.norm(rays, axis=1, keepdims=True) * (r + noise * rng.standard_normal(len(r)))[:, None], which
+    r = r + noise * rng.standard_normal(len(r))
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True) * r[:, None], which
 
 
 def test_a_new_object_behind_the_front_of_the_one_it_replaced_is_found_and_the_uncovered_wall_is_not():

@@ -236,15 +236,15 @@ def visibility_states(points: np.ndarray, changed: np.ndarray, other: np.ndarray
     cand = np.flatnonzero(changed)
     if len(cand) == 0:
         return states
-    if gone is not None:
-        found, step = gone, max(1, int(plane_stride))
+    step = max(1, int(plane_stride))
 
-        def gone():
-            rows = slice(None, None, step)
-            return other[np.flatnonzero(found(rows) if callable(found) else found[rows]) * step]
+    def gone_points():
+        rows = slice(None, None, step)
+        return other[np.flatnonzero(gone(rows) if callable(gone) else gone[rows]) * step]
+
     plane = dict(plane_points=plane_points, plane_stride=plane_stride, plane_distance=plane_distance * sigma,
-                 plane_flatness=plane_flatness * sigma, plane_bin=plane_bin * sigma, gone=gone,
-                 gone_reach=gone_reach * sigma)
+                 plane_flatness=plane_flatness * sigma, plane_bin=plane_bin * sigma,
+                 gone=None if gone is None else gone_points, gone_reach=gone_reach * sigma)
     if np.ndim(other_origin) == 2:
         return _many_scanners(points, changed, states, cand, other, np.asarray(other_origin, np.float64), other_scan,
                               range_noise=range_noise, floor=band_floor * sigma, cell_factor=cell_factor, reach=reach,

@@ -307,7 +307,8 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
                                 other_pole=pole, own_origin=own, own_pole=own_pole,
                                 own_range_noise=sensor_range_noise(given, coverage.range_noise, xyz=cur.xyz,
                                                                    origin=own),
-                                other_gone=lambda rows: inside_difference(base, frame, np.ascontiguousarray(ref[rows]))[0])
+                                other_gone=lambda rows: inside_difference(base, frame,
+                                                                          np.ascontiguousarray(ref[rows]))[0])
         mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
         labels = np.full(len(mask), -1, np.int32)
