@@ -69,7 +69,7 @@ class Defaults:
         ``"point"``: Algorithm 1 per point; the paper's cluster rule changes nothing on
         table-top scenes (objects share the table's cluster). ``"combined"`` (density or the
         distance beyond its level, :mod:`sdp.change._combined`) is not the default: on the 27
-        mOSD pairs it scores kappa 0.905 against 0.886, for 1.4× the time and 14 false
+        mOSD pairs it scores kappa 0.905 against 0.886, for 1.5× the time and 14 false
         positives on one of the three static pairs where the density has none
         (``benchmarks/bench_combined.py``).
     cluster_fraction : float
