@@ -602,10 +602,9 @@ def _results(order, ref, cur, normal, reg, reach, sigma, core, dist, lod, n1, n2
         n1[j], n2[j], s1[j], s2[j] = c1[i], c2[i], sp1[i], sp2[i]
         for a in range(3):
             out_normal[j, a] = normal[i, a]
-        off[j] = False
-        if abs(d) <= reach and np.isfinite(normal[i, 0]):
-            off[j] = off_axis(l1[i], v1[i], l2[i], v2[i], sigma)
-        if abs(d) <= reach and np.isfinite(normal[i, 0]) and not off[j]:
+        near = abs(d) <= reach and np.isfinite(normal[i, 0])
+        off[j] = near and off_axis(l1[i], v1[i], l2[i], v2[i], sigma)
+        if near and not off[j]:
             dist[j] = d
             size = max(1.0, abs(core[i, 0]), abs(core[i, 1]), abs(core[i, 2]))
             lod[j] = max(1.96 * (math.sqrt(sp1[i] ** 2 / c1[i] + sp2[i] ** 2 / c2[i]) + reg), _RESOLUTION * size)
