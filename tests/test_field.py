@@ -176,6 +176,26 @@ def test_building_two_clouds_at_once_gives_each_field_bit_for_bit(rng, method):
         assert (got.n_points, got.n_dropped, got.method) == (want.n_points, want.n_dropped, want.method)
     assert fb.n_dropped == 31 and len(seconds) == 2 and all(np.isfinite(seconds)) and min(seconds) >= 0
 
+@pytest.mark.parametrize("chunk", [None, 1777])
+def test_a_cloud_built_alone_on_two_threads_gives_its_field_bit_for_bit(rng, monkeypatch, chunk):
+    # a cloud built alone marks its blocks in two halves and bins in two slabs along x at once
+    import sdp.fields._density as density
+
+    pts = rng.random((6000, 3)) * [1.0, 0.5, 0.3]
+    monkeypatch.setattr(density, "_SPLIT_POINTS", 1000)
+    if chunk:
+        monkeypatch.setattr(density, "_CHUNK", chunk)
+    monkeypatch.setattr(density, "concurrent", lambda **_: False)
+    one = DensityField.from_points(pts, voxel_size=0.02, sigma_voxels=1.5)
+    monkeypatch.setattr(density, "concurrent", lambda **_: True)
+    slabs = density._slabs(pts, one.grid.origin[0], one.voxel_size)
+    two = DensityField.from_points(pts, voxel_size=0.02, sigma_voxels=1.5)
+    assert slabs[0][1] % 8 == 0 and 0 < slabs[0][1] < one.grid.shape[0]  # a block's face inside the grid
+    assert np.array_equal(two.blocks.keys, one.blocks.keys)
+    assert np.array_equal(two.blocks.values, one.blocks.values)
+    assert two.h == one.h == sdp.fields._density.threshold() and two.n_points == 6000
+
+
 
 @pytest.mark.parametrize("sigma_voxels", [0.5, 1.0, 2.0, 3.7])
 def test_allocated_blocks_are_exactly_those_the_kernels_reach(rng, sigma_voxels):

@@ -20,7 +20,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba as nb  # noqa: E402
 
-__all__ = ["map_concurrently"]
+__all__ = ["concurrent", "map_concurrently"]
 
 
 def map_concurrently(fn, items, *, parallel_kernels: bool = False) -> list:
@@ -34,15 +34,8 @@ def map_concurrently(fn, items, *, parallel_kernels: bool = False) -> list:
     kernels; they may run from two threads at once only on a thread-safe Numba threading layer
     (OpenMP, TBB; not the fallback "workqueue"), else the items run in turn."""
     items = list(items)
-    if len(items) < 2 or nb.config.NUMBA_NUM_THREADS < 2 or getattr(_in_pool, "yes", False):
+    if len(items) < 2 or not concurrent(parallel_kernels=parallel_kernels):
         return [fn(x) for x in items]
-    if parallel_kernels:
-        try:
-            safe = nb.threading_layer() in ("omp", "tbb")
-        except ValueError:  # no parallel kernel has run yet: the layer is not chosen
-            safe = False
-        if not safe:
-            return [fn(x) for x in items]
     futures = [_pool().submit(fn, x) for x in items[1:]]
     try:
         first = fn(items[0])
@@ -51,6 +44,19 @@ def map_concurrently(fn, items, *, parallel_kernels: bool = False) -> list:
             f.cancel()
         raise
     return [first, *(f.result() for f in futures)]
+
+
+def concurrent(*, parallel_kernels: bool = False) -> bool:
+    """Whether :func:`map_concurrently` would run its items at once here (not in turn): work split
+    for it pays only then."""
+    if nb.config.NUMBA_NUM_THREADS < 2 or getattr(_in_pool, "yes", False):
+        return False
+    if parallel_kernels:
+        try:
+            return nb.threading_layer() in ("omp", "tbb")
+        except ValueError:  # no parallel kernel has run yet: the layer is not chosen
+            return False
+    return True
 
 
 _in_pool = threading.local()  # .yes in the pool's threads

@@ -18,7 +18,9 @@ point's kernel cube (±⌈truncate·σ⌉ nodes) reaches; elsewhere G = 0. Two b
 :func:`build_fields` builds the fields of a comparison on one lattice: the single-threaded first
 parts of the builds (block marking, binning) run at once on two threads, their blurs, parallel
 inside, in turn; two whole single-threaded builds at once were 1.1–1.3× slower than two
-parallel builds in turn.
+parallel builds in turn. A cloud built alone (a stream's frame, a series' epoch) marks its blocks
+in two halves and bins its points in two slabs of nodes along x at once: each node's sum is taken
+by one thread in the points' order, so the field is the one thread's to the bit.
 
 Operations on G alone (no points needed): :meth:`DensityField.coarsen` gives the next level of
 detail (2l, 2σ: blur by a normalized Gaussian of √3·σ, ×8, every second node; within 3 % of a
@@ -46,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from .._core._memory import check_memory
-from .._core._parallel import map_concurrently
+from .._core._parallel import concurrent, map_concurrently
 from .._core._points import Points, as_points
 from .._core._progress import bar
 from .._core._validate import check_grid_options, check_threshold, finite
@@ -70,6 +72,16 @@ _DELTA = math.exp(-0.5)
 #: (``benchmarks/bench_core.py``) and departs from the exact sum by < 1 % of the peak.
 _AUTO_METHOD = "fast"
 _CHUNK = 4_000_000  # points binned per kernel call (a progress step)
+_SPLIT_POINTS = 50_000  # fewer points are marked and binned on one thread (a thread's start costs more)
+_ALL = 1 << 62  # a slab holding every node
+
+
+def _slabs(xyz: np.ndarray, x0: float, voxel: float) -> list[tuple[int, int]]:
+    """Two slabs of nodes along x, split at a block's face near the points' median (of a sample):
+    about half the binning each."""
+    ix = np.floor((xyz[::64, 0] - x0) / voxel)
+    mid = int(np.median(ix)) // BLOCK * BLOCK
+    return [(-_ALL, mid), (mid, _ALL)]
 
 
 def threshold(k: float = DEFAULTS.k) -> float:
@@ -195,11 +207,12 @@ class DensityField:
 
     @classmethod
     def _binned(cls, cloud: Points, *, voxel_size: float, sigma_voxels: float, k: float, h: float | None,
-                truncate: float, method: str, memory_limit: int | str | None):
+                truncate: float, method: str, memory_limit: int | str | None, split: bool = False):
         """The first, single-threaded part of :meth:`from_points` for a validated cloud and checked
         options (:func:`build_fields`): (field, flags of the blocks written, taps), the field holding
         the exact sums (``method="exact"``, taps None) or the binned weights still to be blurred with
-        ``taps`` (``"fast"``)."""
+        ``taps`` (``"fast"``). ``split``: mark and bin on two threads (a cloud built alone), the
+        field the same to the bit."""
         l = voxel_size
         if method == "auto":
             method = _AUTO_METHOD
@@ -216,7 +229,14 @@ class DensityField:
                      advice=f"the points span {span:.4g} at a voxel of {l:.4g}: remove far outliers, or use a larger "
                             "voxel size (or a smaller grid size)")
         xyz, origin, l = cloud.xyz, grid.origin, grid.voxel_size
-        occ = mark_blocks(xyz, origin, l, reach, reach + 1, np.asarray(grid.shape_blocks, np.int64))
+        shape_blocks = np.asarray(grid.shape_blocks, np.int64)
+        halves = split and len(xyz) >= _SPLIT_POINTS and concurrent()
+        if halves:  # each half's blocks, joined: the same blocks
+            half = len(xyz) // 2
+            occ = np.bitwise_or(*map_concurrently(lambda part: mark_blocks(part, origin, l, reach, reach + 1,
+                                                                           shape_blocks), (xyz[:half], xyz[half:])))
+        else:
+            occ = mark_blocks(xyz, origin, l, reach, reach + 1, shape_blocks)
         flat = np.flatnonzero(occ)
         check_memory(flat.size * BLOCK**3 * 4 + grid.n_blocks_box * 5,
                      f"{flat.size} blocks of {BLOCK}³ nodes (voxel {l:g})", memory_limit)
@@ -233,7 +253,9 @@ class DensityField:
                     splat_exact(part, origin, l, field.blocks.directory, field.blocks.values,
                                 1.0 / (2 * sigma_voxels**2), rmax, reach)
                 else:
-                    bin_trilinear(part, origin, l, field.blocks.directory, field.blocks.values, touched)
+                    slabs = _slabs(part, origin[0], l) if halves else [(-_ALL, _ALL)]
+                    map_concurrently(lambda s: bin_trilinear(part, origin, l, field.blocks.directory,
+                                                             field.blocks.values, touched, *s), slabs)
                 pb.update(len(part))
         if method == "exact":
             return field, touched, None
@@ -508,8 +530,8 @@ def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size
                  memory_limit: int | str | None = None) -> tuple[list[DensityField], list[float]]:
     """:meth:`DensityField.from_points` of each cloud, on one lattice (the voxel resolved from all
     of them, :func:`sdp.fields._spacing.resolve_lattice`): their single-threaded parts (block marking,
-    binning) at once on the threads of :func:`sdp._core._parallel.map_concurrently`, then the parallel
-    blurs in turn. Returns the fields and the seconds each took (its first part, in its own
+    binning) at once on the threads of :func:`sdp._core._parallel.map_concurrently` (a cloud alone:
+    its two halves marked, its two slabs binned at once), then the parallel blurs in turn. Returns the fields and the seconds each took (its first part, in its own
     thread, plus its blur: together more than the wall time when the first parts overlap)."""
     check_grid_options(voxel_size=None if grid_size is not None else voxel_size, sigma_voxels=sigma_voxels, k=k,
                        h=h, truncate=truncate, memory_limit=memory_limit)  # before any work
@@ -521,7 +543,7 @@ def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size
 
     def binned(cloud):
         t = time.perf_counter()
-        return DensityField._binned(cloud, **options), time.perf_counter() - t
+        return DensityField._binned(cloud, split=len(clouds) == 1, **options), time.perf_counter() - t
 
     fields, seconds = [], []
     for (field, touched, taps), t_binned in map_concurrently(binned, clouds):

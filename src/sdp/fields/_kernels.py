@@ -65,21 +65,27 @@ def mark_blocks(points, origin, voxel, lo_off, hi_off, shape_blocks):
 
 
 @nb.njit(cache=True, nogil=True)
-def bin_trilinear(points, origin, voxel, directory, blocks, touched):
+def bin_trilinear(points, origin, voxel, directory, blocks, touched, x_lo, x_hi):
     """Add each point's unit weight to its cell's 8 nodes, split by trilinear weights, and flag
-    the blocks written in ``touched`` (the others stay all zero).
+    the blocks written in ``touched`` (the others stay all zero); only the nodes of x index in
+    [``x_lo``, ``x_hi``) (multiples of the block's side, or beyond the grid: all of them).
 
+    Two calls on disjoint slabs may run at once on one field: each node's sum is then taken by
+    one of them, in the points' order, so the field is the same to the bit as one call's.
     Weights are computed in float64 and rounded to float32 before they are added (a float32
     sum, no round trip through float64 per node).
     """
     for p in range(points.shape[0]):
         x = (points[p, 0] - origin[0]) / voxel
+        ix = int(math.floor(x))
+        if ix + 1 < x_lo or ix >= x_hi:  # neither of its cell's x nodes in the slab
+            continue
         y = (points[p, 1] - origin[1]) / voxel
         z = (points[p, 2] - origin[2]) / voxel
-        ix, iy, iz = int(math.floor(x)), int(math.floor(y)), int(math.floor(z))
+        iy, iz = int(math.floor(y)), int(math.floor(z))
         fx, fy, fz = x - ix, y - iy, z - iz
         gx, gy, gz = 1.0 - fx, 1.0 - fy, 1.0 - fz
-        if (ix & 7) < 7 and (iy & 7) < 7 and (iz & 7) < 7:  # the cell lies in one block
+        if (ix & 7) < 7 and (iy & 7) < 7 and (iz & 7) < 7:  # the cell lies in one block (so in the slab)
             blk = directory[ix >> 3, iy >> 3, iz >> 3]
             touched[blk] = True
             out = blocks[blk]
@@ -96,6 +102,8 @@ def bin_trilinear(points, origin, voxel, directory, blocks, touched):
         for a in range(2):
             wx = fx if a else gx
             nx = ix + a
+            if nx < x_lo or nx >= x_hi:
+                continue
             for b in range(2):
                 wy = fy if b else gy
                 ny = iy + b

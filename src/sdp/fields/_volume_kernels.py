@@ -46,13 +46,13 @@ def _volume_value(a_blocks, fa_h, b_blocks, j, fb_h, blk, n):
     return max(fa_h - a_blocks[blk, n], -fb_h)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(parallel=True, cache=True)
 def volume_masks(a_keys, a_blocks, ha, b_blocks, b_directory, shift, hb):
     """Per block of a, per line of 8 nodes along z (columns 8j … 8j+7): bit z set where v < 0,
     that is where A > ha and B < hb (the sign of a float32 difference is exact)."""
     fa_h, fb_h = np.float32(ha), np.float32(hb)
     masks = np.zeros((a_blocks.shape[0], B2), np.uint8)
-    for blk in range(a_blocks.shape[0]):
+    for blk in nb.prange(a_blocks.shape[0]):
         j = _partner(a_keys, blk, b_directory, shift)
         if j < 0 and not fb_h > 0:
             continue  # v >= -hb >= 0 throughout

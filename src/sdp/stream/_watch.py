@@ -253,6 +253,14 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
                                pole=pole)
     band = sensor_range_noise(reference, coverage.range_noise, xyz=ref, origin=origin)  # a laser's, a camera's
     matrix = None if align is None else np.eye(4)
+    kept_rows = {}
+
+    def reference_rows(rows: slice) -> np.ndarray:  # the same rows every frame: gathered once
+        key = rows.indices(len(ref))
+        if key not in kept_rows:
+            kept_rows[key] = np.ascontiguousarray(ref[rows])
+        return kept_rows[key]
+
     try:
         frames = iter(frames)
     except TypeError:
@@ -307,8 +315,7 @@ def watch(reference, frames: Iterable, *, lattice: Lattice | None = None, update
                                 other_pole=pole, own_origin=own, own_pole=own_pole,
                                 own_range_noise=sensor_range_noise(given, coverage.range_noise, xyz=cur.xyz,
                                                                    origin=own),
-                                other_gone=lambda rows: inside_difference(base, frame,
-                                                                          np.ascontiguousarray(ref[rows]))[0])
+                                other_gone=lambda rows: inside_difference(base, frame, reference_rows(rows))[0])
         mask, unseen = states == CHANGED, states == NOT_COMPARABLE
         t2 = time.perf_counter()
         labels = np.full(len(mask), -1, np.int32)
