@@ -18,9 +18,10 @@ point's kernel cube (±⌈truncate·σ⌉ nodes) reaches; elsewhere G = 0. Two b
 :func:`build_fields` builds the fields of a comparison on one lattice: the single-threaded first
 parts of the builds (block marking, binning) run at once on two threads, their blurs, parallel
 inside, in turn; two whole single-threaded builds at once were 1.1–1.3× slower than two
-parallel builds in turn. A cloud built alone (a stream's frame, a series' epoch) marks its blocks
-in two halves and bins its points in two slabs of nodes along x at once: each node's sum is taken
-by one thread in the points' order, so the field is the one thread's to the bit.
+parallel builds in turn. A cloud built alone (a stream's frame, :func:`sdp.align`'s levels,
+``sdp field``) marks its blocks in two halves and bins its points in two slabs of nodes along x
+at once: each node's sum is taken by one thread in the points' order, so the field is the one
+thread's to the bit.
 
 Operations on G alone (no points needed): :meth:`DensityField.coarsen` gives the next level of
 detail (2l, 2σ: blur by a normalized Gaussian of √3·σ, ×8, every second node; within 3 % of a
@@ -531,8 +532,9 @@ def build_fields(clouds, *, voxel_size: float | str | None = DEFAULTS.voxel_size
     """:meth:`DensityField.from_points` of each cloud, on one lattice (the voxel resolved from all
     of them, :func:`sdp.fields._spacing.resolve_lattice`): their single-threaded parts (block marking,
     binning) at once on the threads of :func:`sdp._core._parallel.map_concurrently` (a cloud alone:
-    its two halves marked, its two slabs binned at once), then the parallel blurs in turn. Returns the fields and the seconds each took (its first part, in its own
-    thread, plus its blur: together more than the wall time when the first parts overlap)."""
+    its two halves marked, its two slabs binned at once), then the parallel blurs in turn. Returns
+    the fields and the seconds each took (its first part, in its own thread, plus its blur: together
+    more than the wall time when the first parts overlap)."""
     check_grid_options(voxel_size=None if grid_size is not None else voxel_size, sigma_voxels=sigma_voxels, k=k,
                        h=h, truncate=truncate, memory_limit=memory_limit)  # before any work
     clouds = [c if isinstance(c, Points) else as_points(c) for c in clouds]  # Points: validated already
