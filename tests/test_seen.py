@@ -149,6 +149,27 @@ def test_a_laser_scans_band_is_its_kernel_not_a_depth_cameras():
     assert sensor_range_noise(xyz, DEFAULTS.range_noise) == DEFAULTS.range_noise
 
 
+def test_a_las_files_sensor_is_a_laser_where_its_position_is_given(tmp_path, rng):
+    # LAS is LiDAR's format: with the scanner's position given, the rays' band is the kernel's, not
+    # a depth camera's 0.015·r² (6 m at 20 m, which took a crate 0.6 m before the wall for the wall)
+    def wall(crate: bool):
+        yz = rng.uniform([-4, 0], [4, 3], (40_000, 2))
+        pts = [np.c_[yz[:, 0], np.full(len(yz), 20.0), yz[:, 1]]]
+        if crate:  # the face of a crate 0.6 m before the wall, the part of the wall it hides gone
+            face = rng.uniform([-0.5, 0], [0.5, 1.0], (3_000, 2))
+            hid = (np.abs(pts[0][:, 0] * 19.4 / 20.0) < 0.5) & (pts[0][:, 2] * 19.4 / 20.0 < 1.0)
+            pts = [pts[0][~hid], np.c_[face[:, 0], np.full(len(face), 19.4), face[:, 1]]]
+        return np.concatenate(pts) + rng.normal(0, 0.003, (sum(map(len, pts)), 3))
+
+    for name, crate in (("a.las", False), ("b.las", True)):
+        sdp.write_points(tmp_path / name, wall(crate))
+    a, b = sdp.read_points(tmp_path / "a.las"), sdp.read_points(tmp_path / "b.las")
+    assert a.range_noise == 0.0  # a laser's: millimetres at any range
+    r = sdp.detect_changes(a, b, coverage=sdp.Coverage(sensor_origin=[0.0, 0.0, 1.5]))
+    face = np.abs(b.xyz[:, 1] - 19.4) < 0.05
+    assert r.appeared[face].mean() > 0.9 and r.appeared[~face].mean() < 0.01
+
+
 def test_a_hole_in_an_unorganized_scan_pattern_is_not_a_place_seen():
     # the change masks' rule for scans that did not send every ray (sdp.change._visibility.rays_sent)
     from sdp.distance._seen import not_seen

@@ -295,8 +295,8 @@ def sensor_range_noise(cloud, range_noise: float, *, xyz: np.ndarray | None = No
 def sensor_band(cloud, range_noise: float, *, xyz: np.ndarray | None = None, origin=None) -> tuple[float, float]:
     """(The range noise of the rays' band for ``cloud``'s sensor, the metres per unit it took):
     ``range_noise`` as given, except the default (a depth camera's, growing as r², per metre) where
-    the cloud's format says what its sensor's is (:attr:`sdp.Cloud.range_noise`: an E57 file's
-    laser scans, millimetres at any range, whose band the floor σ bounds alone; at 4 m the
+    the cloud's format says what its sensor's is (:attr:`sdp.Cloud.range_noise`: an E57 or
+    LAS/LAZ file's laser scans, millimetres at any range, whose band the floor σ bounds alone; at 4 m the
     default's 24 cm would take a partition's far face, 20 cm on, for its near one), or where the
     points (``xyz``, seen from one ``origin``) lie too far for a depth camera in metres: then per
     millimetre or centimetre (:func:`depth_camera_units`)."""

@@ -379,7 +379,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "records it (organized PCD: VIEWPOINT), as it lifts kappa on Kinect pairs from 0.67 to 0.85; "
                         "viewpoint: the same, required; none: density and footprint only; X,Y,Z: one position")
     c.add_argument("--range-noise", type=V.cli_type(V.nonnegative_finite), default=DEFAULTS.range_noise,
-                   help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect's depth noise)")
+                   help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect's depth noise; "
+                        "E57 and LAS/LAZ files: a laser's, the kernel's σ at any range)")
     _tile_options(c, "large clouds: tiles on Dask (taken by itself when the grids or points exceed --memory-limit, "
                      "or when REFERENCE is a .zarr field store; outputs LAS/LAZ with 'change' and 'region')")
 
@@ -504,7 +505,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "file "
                         "records the sensor (organized PCD), viewpoint the same but required, none, or X,Y,Z")
     w.add_argument("--range-noise", type=V.cli_type(V.nonnegative_finite), default=DEFAULTS.range_noise,
-                   help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect)")
+                   help="with a sensor: same range within RANGE_NOISE·r² (default 0.015, a Kinect; "
+                        "E57 and LAS/LAZ: a laser's)")
     w.add_argument("--decision", choices=("point", "density", "combined"), default=DEFAULTS.decision,
                    help="point / density (the density alone, default) or combined (also the distance to the "
                         "reference's surface beyond its level of detection, completing what the density found)")

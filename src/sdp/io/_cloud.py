@@ -120,8 +120,9 @@ class Cloud:
         the file does not say (a bag's messages, a Cartesian scan without a pose).
     range_noise : float or None
         The range noise its sensor's kind implies, per r² (the rays' band,
-        :func:`sdp.change._visibility.sensor_range_noise`): 0 for an E57 file's laser scans, whose
-        noise is millimetres at any range; None when the format says nothing of its sensor.
+        :func:`sdp.change._visibility.sensor_range_noise`): 0 for an E57 or LAS/LAZ file's laser
+        scans, whose noise is millimetres at any range; None when the format says nothing of its
+        sensor.
     image : tuple of int or None
         An organized cloud's (height, width): the sensor's image, one ray per pixel.
     pixels : ndarray of int64 (n,) or None

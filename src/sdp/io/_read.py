@@ -125,7 +125,7 @@ def read_points(path: str | os.PathLike, *, format: str | None = None, fields: b
         else:
             image = None
     return Cloud(np.ascontiguousarray(xyz), values, path, dropped, las, viewpoint, organized, sensors,
-                 0.0 if fmt == "e57" else None,  # a terrestrial laser's range noise: millimetres at any range
+                 0.0 if fmt in ("e57", "las") else None,  # a laser's range noise: millimetres at any range
                  image, pixels, poles=poles)
 
 
