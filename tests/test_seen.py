@@ -21,40 +21,79 @@ def shadowed_floor(rng, n=60_000):
     return sdp.Cloud(floor, sensors=origin[None]), sdp.Cloud(second, sensors=origin[None]), shadow
 
 
-def test_a_hidden_floor_is_not_comparable_where_m3c2_measures_the_plate(tmp_path, capsys):
+def test_a_plate_put_before_the_floor_is_measured_where_it_stands(tmp_path):
+    """The floor's sensor saw the space above the floor free, so the plate put there is new and
+    hides the floor itself: measured where it stands (M3C2's +0.3 m), and where it left the
+    other way (−0.3 m: the first epoch's sensor saw through its place)."""
     rng = np.random.default_rng(3)
     first, second, shadow = shadowed_floor(rng)
     blind = sdp.distances(first, second, sensor_origin=None)  # M3C2: the plate found along the normal
     assert np.nanmedian(blind.distance[shadow]) > 0.25 and blind.level[shadow].max() == 1
-    d = sdp.distances(first, second)  # the sensor known: the floor under the plate was not seen
+    d = sdp.distances(first, second)  # the sensor known
     inner = shadow & np.all(np.abs(first.xyz[:, :2] - 2.0) < 0.3, axis=1)
-    assert not d.comparable[inner].any() and d.significant[shadow].mean() < 0.05  # the shadow's rim: measured
-    assert d.not_seen == int((~d.comparable & blind.comparable).sum()) >= inner.sum()
+    assert inner.sum() > 500 and d.comparable[inner].all() and d.significant[inner].all()
+    assert np.allclose(d.distance[inner], 0.3, atol=0.01) and np.array_equal(d.distance[inner], blind.distance[inner])
     assert d.comparable[~shadow].mean() > 0.99 and d.significant[~shadow].mean() < 0.07
-    assert d.summary()["not_seen"] == d.not_seen
-    given = sdp.distances(first.xyz, second.xyz, sensor_origin=[2.0, 2.0, 3.0])  # arrays, the sensor given
-    assert np.array_equal(given.distance, d.distance, equal_nan=True) and given.not_seen == d.not_seen
+    back = sdp.distances(second, first)  # the plate's core points: the floor found behind, their place seen free
+    plate = second.xyz[:, 2] > 0.2
+    assert back.comparable[plate].mean() > 0.95 and np.allclose(np.nanmedian(back.distance[plate]), -0.3, atol=0.01)
     from sdp.cli._main import main
 
     sdp.write_points(tmp_path / "a.ply", first.xyz)
     sdp.write_points(tmp_path / "b.ply", second.xyz)
-    assert main(["distance", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "-o", str(tmp_path / "d.ply"),
+    assert main(["distance", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "-o", str(tmp_path / "d.npz"),
                  "--sensor-origin", "2,2,3"]) == 0
-    assert "its sensor could not see the place" in capsys.readouterr().out
+    assert np.array_equal(np.load(tmp_path / "d.npz")["distance"], d.distance, equal_nan=True)
 
 
-def test_a_series_epoch_knows_what_its_sensor_did_not_see(tmp_path):
+def test_a_ledge_both_epochs_hold_is_no_measurement_of_the_floor_it_hides_from_one():
+    """A ledge 0.3 m over the floor in both epochs: the first sensor, low at the side, saw the
+    floor under it; the second, above, could not. The ledge found in front of that floor is no
+    new surface (the reference held it there): the floor gets no distance, where M3C2 reads +0.3."""
+    rng = np.random.default_rng(12)
+    low, high = np.array([-1.0, 2.0, 0.6]), np.array([2.0, 2.0, 3.0])
+    floor = np.c_[rng.uniform(0, 4, (80_000, 2)), np.zeros(80_000)]
+    ledge = np.c_[rng.uniform(1.6, 2.4, (6_000, 2)), np.full(6_000, 0.3)]
+
+    def lit(sensor):  # the floor points whose ray from the sensor misses the ledge
+        t = (0.3 - sensor[2]) / (floor[:, 2] - sensor[2])
+        cross = sensor[:2] + t[:, None] * (floor[:, :2] - sensor[:2])
+        return floor[~(((t > 0) & (t < 1))[:, None] & (cross > 1.6) & (cross < 2.4)).all(axis=1)]
+
+    def noisy(p):
+        return p + 0.001 * rng.standard_normal(p.shape)
+
+    first = sdp.Cloud(noisy(np.r_[lit(low), ledge]), sensors=low[None])
+    second = sdp.Cloud(noisy(np.r_[lit(high), ledge]), sensors=high[None])
+    under = (np.abs(first.xyz[:, :2] - 2.0) < 0.3).all(axis=1) & (first.xyz[:, 2] < 0.1)
+    assert under.sum() > 100
+    blind = sdp.distances(first, second, sensor_origin=None)
+    assert np.nanmedian(blind.distance[under]) > 0.25  # M3C2: the ledge
+    d = sdp.distances(first, second)
+    assert not d.comparable[under].any() and d.not_seen >= under.sum()
+
+
+def test_a_series_epoch_measures_the_plate_and_not_a_face_seen_from_behind(tmp_path):
     rng = np.random.default_rng(4)
     first, second, shadow = shadowed_floor(rng, n=30_000)
     ds = sdp.series([first, second], output=tmp_path / "s.zarr")
     core = np.c_[ds["x"].values, ds["y"].values, ds["z"].values]
     u = ds.attrs["parameters"]["used"]
-    pair = sdp.distances(first, second, core_points=core, cylinder=sdp.Cylinder(
-        projection_scale=u["projection_scale"], normal_scale=u["normal_scale"], max_distance=u["max_distance"]))
+    cyl = sdp.Cylinder(projection_scale=u["projection_scale"], normal_scale=u["normal_scale"],
+                       max_distance=u["max_distance"])
+    pair = sdp.distances(first, second, core_points=core, cylinder=cyl)
     under = np.all(np.abs(core[:, :2] - 2.0) < 0.3, axis=1)
-    assert under.sum() > 10 and np.isnan(ds["distance"].values[1, under]).all()
-    assert np.array_equal(np.isnan(ds["distance"].values[1]), np.isnan(pair.distance))
+    assert under.sum() > 10 and np.allclose(ds["distance"].values[1, under], 0.3, atol=0.01)
     assert np.allclose(ds["distance"].values[1], pair.distance, atol=1e-6, equal_nan=True)
+    a, b = box_scans(rng)  # the box's west face seen by A only; B saw its east face, from behind the west one's normal
+    ds = sdp.series([a, b], output=tmp_path / "box.zarr")
+    core = np.c_[ds["x"].values, ds["y"].values, ds["z"].values]
+    west = (np.abs(core[:, 0]) < 0.01) & (np.abs(core[:, 1]) < 0.6) & (core[:, 2] > 0.2) & (core[:, 2] < 0.8)
+    assert west.sum() > 5 and np.isnan(ds["distance"].values[1, west]).all()
+    u = ds.attrs["parameters"]["used"]
+    pair = sdp.distances(a, b, core_points=core, cylinder=sdp.Cylinder(
+        projection_scale=u["projection_scale"], normal_scale=u["normal_scale"], max_distance=u["max_distance"]))
+    assert np.array_equal(np.isnan(ds["distance"].values[1]), np.isnan(pair.distance))
 
 
 def box_scans(rng, *, lift=0.0, n=40_000):

@@ -129,7 +129,7 @@ class CellLists:
             q, n = queries[todo], normals[todo]
             _, _, table, dims, cell, _ = self.get(xyz, CELL * sigma)
             t = np.empty(todo.size)
-            _nearest_along(table, dims, cell, self.lo, q, n, max_half, t)
+            _nearest_along(table, dims, cell, self.lo, q, n, max_half, False, t)
             found = np.flatnonzero(np.isfinite(t))
             q, n, t = q[found], n[found], t[found]
             for _ in range(2):  # move the cylinder onto the surface found: twice settles it
@@ -143,6 +143,25 @@ class CellLists:
         out[level < 0, :2] = np.nan
         out[level < 0, 4:] = np.nan
         return out[:, 0], out[:, 1], out[:, 2], level, np.ascontiguousarray(out[:, 4:7]), out[:, 7].copy()
+
+    def free_ahead(self, xyz, queries, normals, sigma, start, reach):
+        """How far along +n from each query ``xyz`` holds nothing, from ``start`` (m,) on (the
+        query's own surface and its cylinder's half-length behind it) up to ``reach``: the offset
+        from the query of the first cell (or one of its neighbours) holding points, inf where none
+        does, NaN where ``start`` is NaN. Where an epoch finds a surface in front of a core point
+        nearer than this, the reference held nothing there (:mod:`sdp.distance._seen`)."""
+        start = np.asarray(start, np.float64)
+        out = np.full(len(queries), np.nan)
+        ok = np.flatnonzero(np.isfinite(start) & (start < reach))
+        out[np.isfinite(start) & (start >= reach)] = np.inf
+        if ok.size:
+            _, _, table, dims, cell, _ = self.get(xyz, CELL * sigma)
+            n = np.ascontiguousarray(normals[ok])
+            q = np.ascontiguousarray(queries[ok] + start[ok, None] * n)
+            t = np.empty(ok.size)
+            _nearest_along(table, dims, cell, self.lo, q, n, float(reach), True, t)
+            out[ok] = np.where(np.isnan(t) | (start[ok] + t > reach), np.inf, start[ok] + t)
+        return out
 
     def _cylinders(self, xyz, queries, normals, sigma, half):
         """(mean offset, spread, effective count, weight, centroid across the axis (3), its
@@ -401,19 +420,21 @@ def _normals(cells, table, dims, cell, lo, queries, sigma, reach, normal, rough)
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _nearest_along(table, dims, cell, lo, queries, normals, reach, out):
+def _nearest_along(table, dims, cell, lo, queries, normals, reach, forward, out):
     """Per query: the signed offset t, nearest to 0 with |t| ≤ ``reach``, at which the line
     ``q + t·n`` passes an occupied cell or one of its 26 neighbours (steps of half a cell, both
-    ways at once; the neighbours bridge the gaps of a sparse surface); NaN if none."""
+    ways at once, or along +n alone with ``forward``; the neighbours bridge the gaps of a sparse
+    surface); NaN if none."""
     shift = 64 - int(round(math.log2(max(table.shape[0] // 2, 1))))  # hash tables only
     step = 0.5 * cell
+    ways = 1 if forward else 2
     for i in nb.prange(queries.shape[0]):
         rows = np.empty(27, np.int64)
         out[i] = np.nan
         s = step
         while s <= reach and np.isnan(out[i]):
-            for sign in (1.0, -1.0):
-                t = sign * s
+            for way in range(ways):
+                t = s if way == 0 else -s
                 cx = int(math.floor((queries[i, 0] + t * normals[i, 0] - lo[0]) / cell))
                 cy = int(math.floor((queries[i, 1] + t * normals[i, 1] - lo[1]) / cell))
                 cz = int(math.floor((queries[i, 2] + t * normals[i, 2] - lo[2]) / cell))

@@ -105,7 +105,7 @@ from ..fields._spacing import resolve_lattice
 from ..options import Cylinder, as_options
 from ._cells import CELL, DENSE_CELLS, NORMAL_REACH, RADIUS, CellLists, cell_moments
 from ._level import with_level
-from ._seen import without_unseen
+from ._seen import front_start, without_unseen
 
 __all__ = ["Distances", "distances", "search_reach", "cells_below", "normal_sigma", "tile_halo", "DISTANCE_FIELDS"]
 
@@ -435,7 +435,16 @@ def distances(reference, current, *, core_points=None, cylinder: Cylinder | None
     # where an epoch's sensor could not see the place measured, there is no distance
     # (sdp.distance._seen); the reference saw its own points
     facing = sensor is not None  # the normals face the core points' own sensor
-    d = without_unseen(d, current, cur.xyz, origins[1], sigma=sigma_p, along=mean1 + d.distance, facing=facing)
+    free = None
+    if facing and origins[1] is not None:  # what the reference held in front, where the current was found so
+        free = np.full(m, np.nan)
+        ahead = np.flatnonzero((d.level == 1) & (mean1 + d.distance > 0))
+        if ahead.size:
+            free[ahead] = lists.free_ahead(ref.xyz, np.ascontiguousarray(core[ahead]),
+                                           np.ascontiguousarray(d.normal[ahead]), sigma_p,
+                                           front_start(mean1[ahead], sigma_p), max_half)
+    d = without_unseen(d, current, cur.xyz, origins[1], sigma=sigma_p, along=mean1 + d.distance, facing=facing,
+                       free_ahead=free)
     if core is not ref.xyz:
         d = without_unseen(d, reference, ref.xyz, origins[0], sigma=sigma_p, along=mean1, facing=facing)
     timings["not_seen"] = time.perf_counter() - t

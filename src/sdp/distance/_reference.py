@@ -37,13 +37,13 @@ from ..options import Cylinder, as_options
 from ._cells import CELL, RADIUS, CellLists, cell_moments
 from ._distances import Distances, _results, cell_corner, cells_below, normal_sigma, search_reach
 from ._level import with_level
-from ._seen import without_unseen
+from ._seen import front_start, without_unseen
 
 __all__ = ["PreparedReference"]
 
 #: The arrays of :meth:`PreparedReference.state`, per core point (in the core points' order).
 STATE_ARRAYS = ("core_points", "normal", "ref_mean", "ref_spread", "ref_count", "ref_level", "ref_across",
-                "ref_across_var")
+                "ref_across_var", "ref_front")
 
 
 @dataclass
@@ -63,6 +63,12 @@ class PreparedReference:
         The reference's weighted centroid across the cylinder's axis and its variance, which an
         epoch's is compared with (:func:`sdp.distance._distances.off_axis`); NaN where not
         kept (an archive written before them: no place is then found off the axis).
+    ref_front : ndarray (m,) float64
+        How far along the normal in front of each core point the reference held nothing
+        (:meth:`sdp.distance._cells.CellLists.free_ahead`; inf: nothing within the search's
+        reach), where the normals face its sensors; NaN otherwise (and in an archive written
+        before it). An epoch's surface found farther in front, nearer than this, is new there and
+        measured where it stands (:mod:`sdp.distance._seen`).
     projection_scale, normal_scale, max_distance : float
         The scales used (M3C2's d, D and the search's half-length).
     corner : ndarray (3,) float64
@@ -79,11 +85,15 @@ class PreparedReference:
     ref_level: np.ndarray
     ref_across: np.ndarray
     ref_across_var: np.ndarray
+    ref_front: np.ndarray
     projection_scale: float
     normal_scale: float
     max_distance: float
     corner: np.ndarray
     orientation: np.ndarray
+    #: The normals face the reference's sensors (prepared with ``sensor``): a surface an epoch holds
+    #: farther in front of a core point is then measured where it stands (:mod:`sdp.distance._seen`).
+    faces_sensor: bool = False
     #: The core points sorted by cell, their arrays in that order and their upper corner, made at
     #: the first epoch: each core point's numbers do not depend on the order, which only keeps the
     #: cylinders' reads of neighbouring cells close in memory, so a series sorts them once, not
@@ -138,6 +148,9 @@ class PreparedReference:
             facing = (sensor[order] if sensor.ndim == 2 else sensor[None, :]) - core_sorted
             normal[np.einsum("ij,ij->i", normal, facing) < 0] *= -1.0
         m1, s1, c1, k1, l1, v1 = lists.cylinder(ref.xyz, core_sorted, normal, sigma_p, max_half)
+        front = np.full(len(core_sorted), np.nan)
+        if sensor is not None:  # the normals face the sensors: what the reference held in front of each core point
+            front = lists.free_ahead(ref.xyz, core_sorted, normal, sigma_p, front_start(m1, sigma_p), max_half)
         back = np.empty_like(order)
         back[order] = np.arange(len(order))
 
@@ -147,9 +160,9 @@ class PreparedReference:
         # a private copy (core may be the caller's own array); each epoch's results get theirs (_measure)
         return cls(core_points=np.array(core, np.float64, order="C"), normal=unsort(normal), ref_mean=unsort(m1),
                    ref_spread=unsort(s1), ref_count=unsort(c1), ref_level=unsort(k1).astype(np.int8),
-                   ref_across=unsort(l1), ref_across_var=unsort(v1),
+                   ref_across=unsort(l1), ref_across_var=unsort(v1), ref_front=unsort(front),
                    projection_scale=4.0 * sigma_p, normal_scale=4.0 * sigma_n, max_distance=max_half,
-                   corner=lo, orientation=towards)
+                   corner=lo, orientation=towards, faces_sensor=sensor is not None)
 
     # ------------------------------------------------------------------ state
     def state(self) -> tuple[dict[str, np.ndarray], dict]:
@@ -157,7 +170,7 @@ class PreparedReference:
         arrays = {name: getattr(self, name) for name in STATE_ARRAYS}
         scalars = {"projection_scale": self.projection_scale, "normal_scale": self.normal_scale,
                    "max_distance": self.max_distance, "corner": [float(v) for v in self.corner],
-                   "orientation": [float(v) for v in self.orientation]}
+                   "orientation": [float(v) for v in self.orientation], "faces_sensor": self.faces_sensor}
         return arrays, scalars
 
     @classmethod
@@ -165,11 +178,13 @@ class PreparedReference:
         """The object :meth:`state` described (a state without the reference's centroid across
         the axis, an archive's from before it: NaN, no place off the axis)."""
         m = len(arrays["core_points"])
-        arrays = {"ref_across": np.full((m, 3), np.nan), "ref_across_var": np.full(m, np.nan), **arrays}
+        arrays = {"ref_across": np.full((m, 3), np.nan), "ref_across_var": np.full(m, np.nan),
+                  "ref_front": np.full(m, np.nan), **arrays}
         return cls(**{name: np.ascontiguousarray(arrays[name]) for name in STATE_ARRAYS},
                    projection_scale=float(scalars["projection_scale"]), normal_scale=float(scalars["normal_scale"]),
                    max_distance=float(scalars["max_distance"]), corner=np.asarray(scalars["corner"], np.float64),
-                   orientation=np.asarray(scalars["orientation"], np.float64))
+                   orientation=np.asarray(scalars["orientation"], np.float64),
+                   faces_sensor=bool(scalars.get("faces_sensor", False)))
 
     def memory_per_epoch(self, n_points: int) -> float:
         """Bytes :meth:`measure` needs for an epoch of ``n_points`` (its cells and the outputs)."""
@@ -191,7 +206,7 @@ class PreparedReference:
         d = self._measure(cur.xyz, self.epoch_corner(cur.lo), cur.hi, 0.0 if reg == "auto" else reg, t0)
         origins = resolve_sensor_origins("auto", None, current)[1]  # what the epoch's file says, else None
         d = without_unseen(d, current, cur.xyz, origins, sigma=self.projection_scale / 4.0,
-                           along=self.ref_mean + d.distance)
+                           along=self.ref_mean + d.distance, facing=self.faces_sensor, free_ahead=self.ref_front)
         return with_level(d, reg)
 
     def epoch_corner(self, lowest) -> np.ndarray:

@@ -16,9 +16,14 @@ it lies outside the field of view or beyond the sensor's reach.
 
 The place is where the epoch's surface was measured: the core point moved along the normal by
 that epoch's mean offset in its cylinder (level 0), so a surface that moved towards the sensor,
-hiding the old place, is measured where it now is and stays comparable; the core point itself
-where an epoch was found only farther along the normal (level 1: was the place emptied, or
-hidden?). With several scanners (a multi-scan E57), a place is seen when any scanner of that epoch
+hiding the old place, is measured where it now is and stays comparable. Where an epoch was found
+only farther along the normal (level 1), the place is the core point itself (was it emptied, or
+hidden?), unless the normal faces the core points' own sensor and the surface was found in front
+of the core point, on the side that sensor saw it from, nearer than anything the reference held
+along the normal there (:attr:`sdp.distance.PreparedReference.ref_front`): it is new, hides the place itself
+(a balcony built before a wall, a door opened towards the scanner, a deposit on a slope) and is
+measured where it stands. A surface found in front that the reference held as well (a ledge, a
+canopy, seen from elsewhere) says nothing of the hidden place: no distance there. With several scanners (a multi-scan E57), a place is seen when any scanner of that epoch
 saw it. Places not seen get no distance (NaN: not comparable, as M3C2's places without points), so
 they are neither significant nor counted in the level's calibration.
 """
@@ -32,12 +37,20 @@ import numpy as np
 from ..change._range_image import RangeImage, sees
 from ..change._visibility import image_camera, rays_sent, scanner_of_points, sensor_poles, sensor_range_noise
 from ..defaults import DEFAULTS
+from ._cells import CELL, RADIUS
 
-__all__ = ["not_seen", "without_unseen"]
+__all__ = ["front_start", "not_seen", "without_unseen"]
+
+
+def front_start(ref_mean: np.ndarray, sigma: float) -> np.ndarray:
+    """Where to look for what the reference held in front of its core points: beyond its own
+    surface (``ref_mean`` along the normal, NaN: the core point), the cylinder's half-length
+    (RADIUS·σ_p) and the cells its search bridges (1.5 cells)."""
+    return np.nan_to_num(np.asarray(ref_mean, np.float64)) + (RADIUS + 1.5 * CELL) * sigma
 
 
 def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sigma: float, along=None,
-                   facing: bool = False):
+                   facing: bool = False, free_ahead=None):
     """``d`` (:class:`sdp.Distances`) with no distance at the core points whose measured place
     the scan ``cloud`` (an array or a :class:`sdp.Cloud`; its finite points ``xyz``; its sensors
     ``origins``: (3,), or (k, 3) with the Cloud's :attr:`~sdp.Cloud.scan`, or None) could not
@@ -49,7 +62,9 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
     only farther along the normal (level 1): was the place emptied, or hidden? ``facing``: the
     normals face the core points' own sensor, so a scanner behind the surface (on the other side
     of its normal) saw its back, not the place: a wall's far face is no measurement of
-    its near one."""
+    its near one; and a surface found farther in front of the core point (``along`` > 0, level 1),
+    nearer than ``free_ahead`` (m,) (how far in front the reference held nothing; NaN: unknown),
+    is new: its own place is measured (module docstring)."""
     measured = np.flatnonzero(np.isfinite(d.distance))
     if origins is None or measured.size == 0:
         return d
@@ -59,7 +74,11 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
         if len(scan) != len(xyz):  # rows with NaN were dropped from xyz
             scan = scan[np.isfinite(cloud.xyz).all(axis=1)]
     offset = np.zeros(measured.size) if along is None else np.asarray(along, np.float64)[measured]
-    offset = np.where((d.level[measured] == 0) & np.isfinite(offset), offset, 0.0)
+    at_place = d.level[measured] == 0
+    if facing and free_ahead is not None:  # found farther in front, where the reference held nothing: new
+        with np.errstate(invalid="ignore"):
+            at_place |= (offset > 0) & (offset < np.asarray(free_ahead, np.float64)[measured])
+    offset = np.where(at_place & np.isfinite(offset), offset, 0.0)
     places = d.core_points[measured] + offset[:, None] * d.normal[measured]
     hidden = measured[not_seen(places, xyz, origins, scan, sigma=sigma,
                                normals=d.normal[measured] if facing else None,

@@ -230,6 +230,7 @@ class TiledSeries:
             ref_mean=np.ascontiguousarray(values[:, 3]), ref_spread=np.ascontiguousarray(values[:, 4]),
             ref_count=np.ascontiguousarray(values[:, 5]), ref_level=values[:, 6].astype(np.int8),
             ref_across=np.ascontiguousarray(values[:, 7:10]), ref_across_var=np.ascontiguousarray(values[:, 10]),
+            ref_front=np.full(len(xyz), np.nan),  # tiles follow no sensor: the normals face `towards`
             projection_scale=d, normal_scale=D, max_distance=max_half, corner=corner, orientation=towards)
         return self.prepared
 

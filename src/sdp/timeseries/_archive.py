@@ -14,7 +14,8 @@ Layout (a Zarr v3 group, ``*.zarr``, readable with ``xarray.open_zarr``)::
     x, y, z, onset, onset_kind       (point,): chunks of 65,536 points
     normal_x/y/z, ref_mean, ref_spread, ref_count, ref_level     (point,): the reference side
     ref_across_x/y/z, ref_across_var (:class:`sdp.distance.PreparedReference`) that appending
-                                     reuses (an archive without ref_across_*: no place off the axis)
+    ref_front                        reuses (an archive without ref_across_*: no place off the axis;
+                                     without ref_front: no surface found in front measured there)
     object_id, object_start, object_end, object_start_time, object_end_time, object_points,
     object_area, object_peak_change, object_mean_velocity        (object_id,): the object table
     state.npz                        what an append goes on from (:func:`write_state`), not a
@@ -69,7 +70,7 @@ POINT_CHUNK = 16384
 ROW_CHUNK = 65536
 #: The per-point arrays of the reference side, which appending reads and never writes.
 REFERENCE_SIDE = ("x", "y", "z", "normal_x", "normal_y", "normal_z", "ref_mean", "ref_spread", "ref_count",
-                  "ref_level", "ref_across_x", "ref_across_y", "ref_across_z", "ref_across_var")
+                  "ref_level", "ref_across_x", "ref_across_y", "ref_across_z", "ref_across_var", "ref_front")
 #: The (epoch, point) arrays measured once per epoch (one epoch per chunk row, written once).
 MEASURED = ("distance", "lod", "significant")
 #: The (epoch, point) arrays an append writes again from the saved epoch on (16 epochs per chunk row).

@@ -625,6 +625,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registrati
             if "ref_across_var" in state:
                 arrays.update(ref_across=np.c_[state["ref_across_x"], state["ref_across_y"], state["ref_across_z"]],
                               ref_across_var=state["ref_across_var"])
+            if "ref_front" in state:  # an archive from before it: no surface found in front is measured there
+                arrays["ref_front"] = state["ref_front"]
             prepared = PreparedReference.from_state(arrays, params["reference_state"])
             w.resize_all({name: (E, len(prepared.core_points))
                           for name in ("distance", "lod", "significant") + (A.REWRITTEN if go_on else ())})
@@ -634,7 +636,8 @@ def _run(epochs, out: Path, t_new, kind, source, *, note=None, attrs, registrati
                          **{f"normal_{axis}": (state["normal"][:, a], ("point",), None)
                             for a, axis in enumerate("xyz")},
                          **{name: (state[name], ("point",), None)
-                            for name in ("ref_mean", "ref_spread", "ref_count", "ref_level", "ref_across_var")},
+                            for name in ("ref_mean", "ref_spread", "ref_count", "ref_level", "ref_across_var",
+                                         "ref_front")},
                          **{f"ref_across_{axis}": (state["ref_across"][:, a], ("point",), None)
                             for a, axis in enumerate("xyz")}})
             for name, dtype in (("distance", "f4"), ("lod", "f4"), ("significant", "bool")):
