@@ -20,11 +20,11 @@ hiding the old place, is measured where it now is and stays comparable. Where an
 only farther along the normal (level 1), the place is the core point itself (was it emptied, or
 hidden?), unless the normal faces the core points' own sensor and the surface was found in front
 of the core point, on the side that sensor saw it from, nearer than anything the reference held
-along the normal there (:attr:`sdp.distance.PreparedReference.ref_front`): it is new, hides the place itself
-(a balcony built before a wall, a door opened towards the scanner, a deposit on a slope) and is
-measured where it stands. A surface found in front that the reference held as well (a ledge, a
-canopy, seen from elsewhere) says nothing of the hidden place: no distance there. With several scanners (a multi-scan E57), a place is seen when any scanner of that epoch
-saw it. Places not seen get no distance (NaN: not comparable, as M3C2's places without points), so
+along the normal there (:attr:`sdp.distance.PreparedReference.ref_front`): it is new, hides the
+place itself (a balcony built before a wall, a door opened towards the scanner, a deposit on a
+slope) and is measured where it stands. A surface found in front that the reference held as well
+(a ledge, a canopy, seen from elsewhere) says nothing of the hidden place: no distance there.
+With several scanners (a multi-scan E57), a place is seen when any scanner of that epoch saw it. Places not seen get no distance (NaN: not comparable, as M3C2's places without points), so
 they are neither significant nor counted in the level's calibration.
 """
 
