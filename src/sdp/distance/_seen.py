@@ -24,8 +24,9 @@ along the normal there (:attr:`sdp.distance.PreparedReference.ref_front`): it is
 place itself (a balcony built before a wall, a door opened towards the scanner, a deposit on a
 slope) and is measured where it stands. A surface found in front that the reference held as well
 (a ledge, a canopy, seen from elsewhere) says nothing of the hidden place: no distance there.
-With several scanners (a multi-scan E57), a place is seen when any scanner of that epoch saw it. Places not seen get no distance (NaN: not comparable, as M3C2's places without points), so
-they are neither significant nor counted in the level's calibration.
+With several scanners (a multi-scan E57), a place is seen when any scanner of that epoch saw it.
+Places not seen get no distance (NaN: not comparable, as M3C2's places without points), so they
+are neither significant nor counted in the level's calibration.
 """
 
 from __future__ import annotations
