@@ -153,22 +153,3 @@ def test_an_archive_without_the_references_centroid_is_appended_to(tmp_path):
     grown = sdp.series(s.epochs[3:], output=out, append=True)
     assert grown.sizes["epoch"] == 5 and "ref_across_var" not in grown
     assert np.isfinite(grown.distance.values[3:]).mean() > 0.9
-
-
-def test_one_scan_line_of_ground_at_grazing_incidence_has_no_normal():
-    # A scanner 1.5 m up sees the ground 15 m away along one line of returns; its range noise lies
-    # along the rays, 5.7° below the horizon, so the plane of that line holds the rays: tilted by the
-    # grazing angle. The other epoch's line, 8 cm farther, then read 8 mm off, every place
-    # significant; a line has no normal, so no distance
-    rng = np.random.default_rng(21)
-    sensor = np.array([0.0, 0.0, 1.5])
-
-    def line(r):
-        azimuth = np.radians(np.arange(-10.0, 10.0, 0.1))
-        ground = np.c_[r * np.cos(azimuth), r * np.sin(azimuth), np.zeros(len(azimuth))]
-        rays = ground - sensor
-        rays /= np.linalg.norm(rays, axis=1)[:, None]
-        return ground + 0.002 * rng.standard_normal(len(ground))[:, None] * rays
-
-    d = sdp.distances(line(15.0), line(15.08), sensor_origin=None, registration_error=0.0)
-    assert not d.significant.any() and not d.comparable.any()

@@ -33,12 +33,6 @@ NORMAL_REACH = 2.0  # normal kernels cut at 2σ_n: the covariance's direction is
 DENSE_CELLS = 2**25  # boxes of up to this many cells are sorted by counting (4 bytes per cell)
 RADIUS = 3.0  # cylinder cut, in σ_p: the density kernel's truncation
 CELL = 1.5  # cells of the cylinders' moments, in σ_p
-#: A normal needs its neighbourhood spread in two directions: where its points lie along one line,
-#: their spread across it (√λ₂) under 1/LINE of their spread along it (√λ₁), the plane's tilt about
-#: that line is whatever the noise across it makes it (one scan line of ground at grazing
-#: incidence, its range noise along the ray: the plane holds the ray, tilted by the grazing angle;
-#: a pole, a wire), and there is no normal.
-LINE = 10.0
 
 
 class CellLists:
@@ -96,8 +90,7 @@ class CellLists:
         return self._cache[key]
 
     def normals(self, xyz, queries, sigma, cell=None):
-        """(unit normals (m, 3), NaN where fewer than 3 points or where they lie along one line
-        (:data:`LINE`); roughness = √λ_min).
+        """(unit normals (m, 3), NaN where fewer than 3 points; roughness = √λ_min).
 
         From the moments of cells of σ (count, centroid, scatter), each cell weighted by the
         Gaussian at its centroid: a few dozen cells per query instead of hundreds of points,
@@ -420,21 +413,10 @@ def _normals(cells, table, dims, cell, lo, queries, sigma, reach, normal, rough)
             rough[i] = np.nan
             continue
         mx, my, mz = sx / w, sy / w, sz / w
-        c00, c01, c02 = sxx / w - mx * mx, sxy / w - mx * my, sxz / w - mx * mz
-        c11, c12, c22 = syy / w - my * my, syz / w - my * mz, szz / w - mz * mz
-        nx, ny, nz, lam = _smallest_eigenvector(c00, c01, c02, c11, c12, c22)
-        # the other two eigenvalues: they sum to the trace less λ₃, their product is the sum of the
-        # principal 2×2 minors less λ₃ times that sum
-        lam = max(lam, 0.0)
-        rest = c00 + c11 + c22 - lam
-        prod = c00 * c11 - c01 * c01 + c00 * c22 - c02 * c02 + c11 * c22 - c12 * c12 - lam * rest
-        root = math.sqrt(max(rest * rest - 4.0 * prod, 0.0))
-        if not 0.5 * (rest - root) * LINE * LINE > 0.5 * (rest + root):  # points along one line: no plane
-            normal[i, 0] = normal[i, 1] = normal[i, 2] = np.nan
-            rough[i] = np.nan
-            continue
+        nx, ny, nz, lam = _smallest_eigenvector(sxx / w - mx * mx, sxy / w - mx * my, sxz / w - mx * mz,
+                                                syy / w - my * my, syz / w - my * mz, szz / w - mz * mz)
         normal[i, 0], normal[i, 1], normal[i, 2] = nx, ny, nz
-        rough[i] = math.sqrt(lam)
+        rough[i] = math.sqrt(max(lam, 0.0))
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
