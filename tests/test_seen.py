@@ -220,3 +220,35 @@ def test_a_hole_in_an_unorganized_scan_pattern_is_not_a_place_seen():
     place = np.array([[3.0, 0.0, 0.0]])  # on the wall, in the hole's middle
     assert not not_seen(place, wall, np.zeros(3), None, sigma=0.01, range_noise=0.0, rays=True)[0]
     assert not_seen(place, wall, np.zeros(3), None, sigma=0.01, range_noise=0.0, rays=False)[0]
+
+
+def test_a_mound_seen_at_grazing_incidence_is_measured_where_it_stands():
+    """A scanner 1.6 m up sees the ground 13–16 m away at about 6°, and a mound 0.5 m high put
+    there. The mound is the second scan's own returns, found in front of the ground where the first
+    held nothing: measured there (+0.5 m) wherever M3C2 measures it. At such angles the normals tilt
+    towards the rays, and asking whether the mound's place faces the sensor lost two thirds of it."""
+    rng = np.random.default_rng(13)
+    sensor = np.array([-2.0, 0.0, 1.6])
+    az, el = np.meshgrid(np.radians(np.arange(-20, 20, 0.12)), np.radians(np.arange(-12, -3, 0.12)))
+    rays = np.c_[(np.cos(el) * np.cos(az)).ravel(), (np.cos(el) * np.sin(az)).ravel(), np.sin(el).ravel()]
+
+    def scan(mound: bool):
+        t = -sensor[2] / rays[:, 2]  # the ground z = 0
+        if mound:
+            lo, hi = np.array([13.0, -1.5, 0.0]), np.array([16.0, 1.5, 0.5])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t0, t1 = (lo - sensor) / rays, (hi - sensor) / rays
+            near, far = np.nanmax(np.minimum(t0, t1), axis=1), np.nanmin(np.maximum(t0, t1), axis=1)
+            t = np.where((near <= far) & (near > 0) & (near < t), near, t)
+        pts = sensor + t[:, None] * rays + 0.002 * rng.standard_normal(len(t))[:, None] * rays
+        return sdp.Cloud(pts, sensors=sensor[None])
+
+    first, second = scan(False), scan(True)
+    core = first.xyz[(np.abs(first.xyz[:, 0] - 14.5) < 1.0) & (np.abs(first.xyz[:, 1]) < 1.0)]
+    cyl = sdp.Cylinder(projection_scale=0.15, normal_scale=0.3)
+    blind = sdp.distances(first.xyz, second.xyz, core_points=core, cylinder=cyl, sensor_origin=None,
+                          orientation=[0, 0, 1])  # M3C2: the mound found along the normal
+    assert blind.comparable.mean() > 0.25 and np.allclose(np.nanmedian(blind.distance), 0.5, atol=0.01)
+    d = sdp.distances(first, second, core_points=core, cylinder=cyl)
+    assert d.comparable.mean() >= blind.comparable.mean() - 0.02 and d.not_seen == 0
+    assert np.allclose(np.nanmedian(np.abs(d.distance)), 0.5, atol=0.01)

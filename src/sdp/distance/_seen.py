@@ -22,8 +22,9 @@ hidden?), unless the normal faces the core points' own sensor and the surface wa
 of the core point, on the side that sensor saw it from, nearer than anything the reference held
 along the normal there (:attr:`sdp.distance.PreparedReference.ref_front`): it is new, hides the
 place itself (a balcony built before a wall, a door opened towards the scanner, a deposit on a
-slope) and is measured where it stands. A surface found in front that the reference held as well
-(a ledge, a canopy, seen from elsewhere) says nothing of the hidden place: no distance there.
+slope) and is measured where it stands: it is that epoch's own returns, which its sensor saw. A
+surface found in front that the reference held as well (a ledge, a canopy, seen from elsewhere)
+says nothing of the hidden place: no distance there.
 With several scanners (a multi-scan E57), a place is seen when any scanner of that epoch saw it.
 Places not seen get no distance (NaN: not comparable, as M3C2's places without points), so they
 are neither significant nor counted in the level's calibration.
@@ -65,7 +66,8 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
     of its normal) saw its back, not the place: a wall's far face is no measurement of
     its near one; and a surface found farther in front of the core point (``along`` > 0, level 1),
     nearer than ``free_ahead`` (m,) (how far in front the reference held nothing; NaN: unknown),
-    is new: its own place is measured (module docstring)."""
+    is new: it is the epoch's own returns, measured where it stands, whatever the place behind it
+    (module docstring)."""
     measured = np.flatnonzero(np.isfinite(d.distance))
     if origins is None or measured.size == 0:
         return d
@@ -75,17 +77,19 @@ def without_unseen(d, cloud, xyz: np.ndarray, origins: np.ndarray | None, *, sig
         if len(scan) != len(xyz):  # rows with NaN were dropped from xyz
             scan = scan[np.isfinite(cloud.xyz).all(axis=1)]
     offset = np.zeros(measured.size) if along is None else np.asarray(along, np.float64)[measured]
-    at_place = d.level[measured] == 0
-    if facing and free_ahead is not None:  # found farther in front, where the reference held nothing: new
+    new = np.zeros(measured.size, bool)
+    if facing and free_ahead is not None:  # found farther in front, where the reference held nothing
         with np.errstate(invalid="ignore"):
-            at_place |= (offset > 0) & (offset < np.asarray(free_ahead, np.float64)[measured])
-    offset = np.where(at_place & np.isfinite(offset), offset, 0.0)
-    places = d.core_points[measured] + offset[:, None] * d.normal[measured]
-    hidden = measured[not_seen(places, xyz, origins, scan, sigma=sigma,
-                               normals=d.normal[measured] if facing else None,
-                               range_noise=sensor_range_noise(cloud, DEFAULTS.range_noise, xyz=xyz, origin=origins),
-                               rays=rays_sent(cloud), camera=image_camera(cloud, origins),
-                               poles=sensor_poles(cloud, origins))]
+            new = (d.level[measured] == 1) & (offset > 0) & (offset < np.asarray(free_ahead, np.float64)[measured])
+    # a new surface is the epoch's own returns, which its sensor saw: only the other places are asked
+    asked = measured[~new]
+    offset = np.where((d.level[asked] == 0) & np.isfinite(offset[~new]), offset[~new], 0.0)
+    places = d.core_points[asked] + offset[:, None] * d.normal[asked]
+    hidden = asked[not_seen(places, xyz, origins, scan, sigma=sigma,
+                            normals=d.normal[asked] if facing else None,
+                            range_noise=sensor_range_noise(cloud, DEFAULTS.range_noise, xyz=xyz, origin=origins),
+                            rays=rays_sent(cloud), camera=image_camera(cloud, origins),
+                            poles=sensor_poles(cloud, origins))]
     if hidden.size == 0:
         return d
     distance, lod, level = d.distance.copy(), d.lod.copy(), d.level.copy()
