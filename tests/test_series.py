@@ -1125,6 +1125,7 @@ def test_an_onset_runs_over_an_epoch_without_a_distance():
     assert np.array_equal(again.seen_at, tr.seen_at) and np.array_equal(again.seen_sign, tr.seen_sign)
 
 
+@pytest.mark.slow  # 5 aligned epochs of 40,000 points: 6 s, the quick tier's longest
 def test_an_aligned_epoch_is_aligned_on_its_stable_part(tmp_path):
     """A patch creeping towards the scanner pulls a rigid alignment of the whole epoch with it (a
     tenth of a wall moved 20 mm moved the epoch 2 mm, and the still wall read as change): each
