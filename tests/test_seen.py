@@ -252,3 +252,27 @@ def test_a_mound_seen_at_grazing_incidence_is_measured_where_it_stands():
     d = sdp.distances(first, second, core_points=core, cylinder=cyl)
     assert d.comparable.mean() >= blind.comparable.mean() - 0.02 and d.not_seen == 0
     assert np.allclose(np.nanmedian(np.abs(d.distance)), 0.5, atol=0.01)
+
+
+def test_an_appended_epoch_measures_the_plate_as_the_first_run_and_an_old_archive_keeps_the_old_rule(tmp_path):
+    import json
+    import shutil
+
+    rng = np.random.default_rng(5)
+    first, second, _ = shadowed_floor(rng, n=20_000)
+    whole = sdp.series([first, second, second], output=tmp_path / "whole.zarr")
+    sdp.series([first, second], output=tmp_path / "grown.zarr")
+    grown = sdp.series([second], output=tmp_path / "grown.zarr", append=True)
+    core = np.c_[whole["x"].values, whole["y"].values, whole["z"].values]
+    under = np.all(np.abs(core[:, :2] - 2.0) < 0.3, axis=1)
+    assert np.allclose(grown["distance"].values[2, under], 0.3, atol=0.01)
+    assert np.allclose(grown["distance"].values[2], whole["distance"].values[2], atol=1e-6, equal_nan=True)
+    out = tmp_path / "old.zarr"  # written before ref_front was kept: the floor under the plate not seen
+    sdp.series([first, second], output=out)
+    meta = json.loads((out / "zarr.json").read_text())
+    shutil.rmtree(out / "ref_front")
+    del meta["consolidated_metadata"]["metadata"]["ref_front"]
+    (out / "zarr.json").write_text(json.dumps(meta))
+    old = sdp.series([second], output=out, append=True)
+    assert np.isnan(old["distance"].values[2, under]).all()
+    assert np.isfinite(old["distance"].values[2, ~under]).mean() > 0.9

@@ -145,8 +145,8 @@ class CellLists:
         return out[:, 0], out[:, 1], out[:, 2], level, np.ascontiguousarray(out[:, 4:7]), out[:, 7].copy()
 
     def free_ahead(self, xyz, queries, normals, sigma, start, reach):
-        """How far along +n from each query ``xyz`` holds nothing, from ``start`` (m,) on (the
-        query's own surface and its cylinder's half-length behind it) up to ``reach``: the offset
+        """How far along +n from each query the cloud ``xyz`` holds nothing, from ``start`` (m,) on
+        (the query's own surface and its cylinder's half-length behind it) up to ``reach``: the offset
         from the query of the first cell (or one of its neighbours) holding points, inf where none
         does, NaN where ``start`` is NaN. Where an epoch finds a surface in front of a core point
         nearer than this, the reference held nothing there (:mod:`sdp.distance._seen`)."""
